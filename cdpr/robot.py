@@ -1,0 +1,164 @@
+"""The Robot: one validated description and the model computations on it."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from cdpr.description import ActuatorSpec, ConfigError, RobotSpec, load_yaml, parse_robot
+from cdpr.dynamics import PlatformInertia, modal_masses
+from cdpr.forward_kinematics import FKResult, FKSettings, solve_forward_kinematics
+from cdpr.kinematics import CableGeometry
+from cdpr.pose import Pose
+from cdpr.so3 import quat_to_r9
+
+Array = NDArray[np.float64]
+
+
+class Robot:
+    """A cable-driven parallel robot: geometry, platform inertia and actuators.
+
+    Build it with ``Robot.from_yaml(path)`` or ``Robot.from_dict(d)``.  Twists and
+    accelerations are length-6 arrays (v, omega) in mixed coordinates (DESIGN §3).
+    """
+
+    def __init__(self, spec: RobotSpec) -> None:
+        self.spec = spec
+        self.name = spec.name
+        self.actuators: list[ActuatorSpec] = [spec.actuator_of(i) for i in range(len(spec.cables))]
+        self.geometry = CableGeometry(
+            np.array([c.anchor for c in spec.cables]),
+            np.array([c.attachment for c in spec.cables]),
+            [None if c.pulley is None else (c.pulley.radius, c.pulley.axis) for c in spec.cables],
+        )
+        self.platform = PlatformInertia(
+            spec.platform.mass,
+            spec.platform.center_of_mass,
+            np.array(spec.platform.inertia),
+            spec.gravity,
+        )
+        self.m0 = np.array([a.m0 for a in self.actuators])
+        self._sqrt_m0 = np.sqrt(self.m0)[:, None]
+        self.k0 = np.array([a.k0 for a in self.actuators])
+        self.t_min = np.array([a.t_min for a in self.actuators])
+        self.force_max = np.array([a.force_max for a in self.actuators])
+        self.length_min = np.array([a.length_min for a in self.actuators])
+        self.length_max = np.array([a.length_max for a in self.actuators])
+        self.home = Pose(spec.home.position, spec.home.quaternion.as_tuple())
+        fk = spec.forward_kinematics
+        self.fk_settings = FKSettings(fk.max_iterations, fk.step_tolerance, fk.max_residual)
+        self._check_home()
+
+    @classmethod
+    def from_dict(cls, data: Any, source: str = "robot") -> Robot:
+        """Validate and build; ConfigError names each bad key."""
+        return cls(parse_robot(data, source))
+
+    @classmethod
+    def from_yaml(cls, path: str | Path) -> Robot:
+        """Load a robot description file (see config/robots/)."""
+        return cls.from_dict(load_yaml(path), source=str(path))
+
+    @property
+    def n_cables(self) -> int:
+        return self.geometry.n
+
+    # -- kinematics -----------------------------------------------------------------
+
+    def cable_lengths(self, pose: Pose) -> Array:
+        """L(eta): cable lengths (m)."""
+        return self._table(pose)[:, 6].copy()
+
+    def jacobian(self, pose: Pose) -> Array:
+        """Lambda(eta), n x 6, with l_dot = Lambda phi."""
+        return self._table(pose)[:, :6].copy()
+
+    def lengths_and_jacobian(self, pose: Pose) -> tuple[Array, Array]:
+        """L(eta) and Lambda(eta) in one pass."""
+        table = self._table(pose)
+        return table[:, 6].copy(), table[:, :6].copy()
+
+    def bias_accel(self, pose: Pose, twist: ArrayLike) -> Array:
+        """c(eta, phi) with l_ddot = Lambda alpha + c."""
+        R = quat_to_r9(*pose.quaternion.tolist())
+        phi = _twist_list(twist)
+        return np.array(self.geometry.evaluate(pose.position.tolist(), R, phi, jacobian=False))
+
+    def _table(self, pose: Pose) -> Array:
+        """n x 7 table [Lambda | L]."""
+        R = quat_to_r9(*pose.quaternion.tolist())
+        flat = self.geometry.evaluate(pose.position.tolist(), R)
+        return np.array(flat).reshape(self.geometry.n, 7)
+
+    def forward_kinematics(self, lengths: ArrayLike, guess: Pose | None = None) -> FKResult:
+        """Y(l): warm-start from `guess` (e.g. the last pose), else cold-start from home.
+
+        Never raises on a bad measurement; see FKResult.converged and .reason.
+        """
+        return solve_forward_kinematics(
+            self.geometry, lengths, self.home if guess is None else guess, self.fk_settings
+        )
+
+    # -- dynamics -------------------------------------------------------------------
+
+    def dynamics(self, pose: Pose, twist: ArrayLike) -> tuple[Array, Array]:
+        """(M, mu) at (eta, phi): tau = M alpha + mu, actuator inertia m0 included."""
+        phi = _twist_list(twist)
+        R = quat_to_r9(*pose.quaternion.tolist())
+        # rows [Lambda_k | c_k] scaled by sqrt(m0_k): their Gram matrix holds
+        # Lambda^T D Lambda and Lambda^T D c; the platform part is added to it
+        table = np.array(self.geometry.evaluate(pose.position.tolist(), R, phi))
+        table = table.reshape(self.geometry.n, 7) * self._sqrt_m0
+        G = table.T @ table
+        G[:6] += np.array(self.platform.mass_and_bias(R, phi)).reshape(6, 7)
+        return G[:6, :6], G[:6, 6]
+
+    def mass_matrix(self, pose: Pose) -> Array:
+        """M(eta) = M_p + Lambda^T diag(m0) Lambda (6 x 6, symmetric positive definite)."""
+        return self.dynamics(pose, _ZERO_TWIST)[0]
+
+    def bias_wrench(self, pose: Pose, twist: ArrayLike) -> Array:
+        """mu(eta, phi): velocity-dependent and gravity-compensating part of tau."""
+        return self.dynamics(pose, twist)[1]
+
+    def modal_masses(self, pose: Pose) -> Array:
+        """Lemma 1: m_i = 1 / eig(M^-1 Lambda^T Lambda), ascending, each in [m0, inf]."""
+        return modal_masses(self.mass_matrix(pose), self.jacobian(pose))
+
+    # -- checks ---------------------------------------------------------------------
+
+    def length_violations(self, lengths: ArrayLike) -> list[str]:
+        """Human-readable list of cables outside [length_min, length_max]."""
+        lengths = np.asarray(lengths, dtype=float)
+        out = []
+        for k, (ell, lo, hi) in enumerate(
+            zip(lengths, self.length_min, self.length_max, strict=True)
+        ):
+            if not lo <= ell <= hi:
+                out.append(f"cable {k} length {ell:.4f} m outside [{lo:.4f}, {hi:.4f}] m")
+        return out
+
+    def _check_home(self) -> None:
+        lengths, Lam = self.lengths_and_jacobian(self.home)
+        problems = self.length_violations(lengths)
+        if problems:
+            raise ConfigError(f"{self.name}: home pose puts " + "; ".join(problems))
+        sv = np.linalg.svd(Lam, compute_uv=False)
+        if sv[-1] < 1e-6 * sv[0]:
+            raise ConfigError(
+                f"{self.name}: Jacobian Lambda is rank deficient at the home pose "
+                f"(singular values {np.array2string(sv, precision=3)})"
+            )
+
+
+_ZERO_TWIST = (0.0,) * 6
+
+
+def _twist_list(twist: ArrayLike) -> list[float]:
+    phi = twist.tolist() if isinstance(twist, np.ndarray) else [float(c) for c in twist]
+    if len(phi) != 6 or not isinstance(phi[0], float):
+        raise ValueError(f"a twist is 6 numbers (v, omega), got {twist!r}")
+    return phi

@@ -1,0 +1,158 @@
+"""Rotations: hat/vee, exp/log on SO(3), quaternion <-> matrix.
+
+Quaternions are (w, x, y, z) arrays with the scalar first; they are returned
+canonical (w >= 0) because q and -q are the same rotation.  exp and log are
+accurate near 0 (series expansions) and near pi (log goes through a
+quaternion built by Shepperd's method, then atan2, which stays well
+conditioned where arccos((tr R - 1) / 2) does not).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+Vec = NDArray[np.float64]
+
+_SMALL_ANGLE = 1e-4  # below this, use Taylor series (error < 1e-17 relative)
+
+
+def hat(w: ArrayLike) -> Vec:
+    """Skew matrix [w]x such that hat(w) @ v == cross(w, v)."""
+    x, y, z = (float(c) for c in np.asarray(w, dtype=float).reshape(3))
+    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+
+
+def vee(W: ArrayLike) -> Vec:
+    """Inverse of hat: the vector of a skew matrix (antisymmetric part used)."""
+    W = np.asarray(W, dtype=float)
+    return 0.5 * np.array([W[2, 1] - W[1, 2], W[0, 2] - W[2, 0], W[1, 0] - W[0, 1]])
+
+
+def exp_so3(w: ArrayLike) -> Vec:
+    """Rotation matrix of the rotation vector w (Rodrigues, series near 0)."""
+    w = np.asarray(w, dtype=float).reshape(3)
+    theta2 = float(w @ w)
+    theta = math.sqrt(theta2)
+    if theta < _SMALL_ANGLE:
+        a = 1.0 - theta2 / 6.0
+        b = 0.5 - theta2 / 24.0
+    else:
+        a = math.sin(theta) / theta
+        b = (1.0 - math.cos(theta)) / theta2
+    W = hat(w)
+    return np.eye(3) + a * W + b * (W @ W)
+
+
+def rotvec_to_quat4(wx: float, wy: float, wz: float) -> tuple[float, float, float, float]:
+    """Unit quaternion of the rotation vector (wx, wy, wz); scalar hot path."""
+    theta = math.sqrt(wx * wx + wy * wy + wz * wz)
+    # sin(theta/2) / theta, by its series near 0
+    s = 0.5 - theta * theta / 48.0 if theta < _SMALL_ANGLE else math.sin(0.5 * theta) / theta
+    return (math.cos(0.5 * theta), s * wx, s * wy, s * wz)
+
+
+def quat_from_rotvec(w: ArrayLike) -> Vec:
+    """Unit quaternion (w, x, y, z), w >= 0, of the rotation vector w."""
+    wx, wy, wz = np.asarray(w, dtype=float).reshape(3).tolist()
+    return canonical_quat(np.array(rotvec_to_quat4(wx, wy, wz)))
+
+
+def rotvec_from_quat(q: ArrayLike) -> Vec:
+    """Rotation vector (angle in [0, pi]) of a unit quaternion, either sign."""
+    q = canonical_quat(q)
+    v = q[1:]
+    s = math.sqrt(float(v @ v))
+    if s < _SMALL_ANGLE:
+        # 2 atan2(s, w) / s  ->  2/w (1 - s^2/(3 w^2) ...) for small s
+        w0 = q[0]
+        return (2.0 / w0) * (1.0 - s * s / (3.0 * w0 * w0)) * v
+    return (2.0 * math.atan2(s, q[0]) / s) * v
+
+
+def log_so3(R: ArrayLike) -> Vec:
+    """Rotation vector of R, accurate near 0 and near pi."""
+    return rotvec_from_quat(quat_from_matrix(R))
+
+
+def canonical_quat(q: ArrayLike) -> Vec:
+    """q with the sign chosen so that w >= 0 (first non-zero component positive at w == 0)."""
+    q = np.asarray(q, dtype=float).reshape(4)
+    for c in q:
+        if c != 0.0:
+            return -q if c < 0.0 else q.copy()
+    return q.copy()
+
+
+def quat_to_r9(w: float, x: float, y: float, z: float) -> tuple[float, ...]:
+    """Row-major rotation matrix (9 floats) of a unit quaternion; scalar hot path."""
+    xx, yy, zz = x * x, y * y, z * z
+    xy, xz, yz = x * y, x * z, y * z
+    wx, wy, wz = w * x, w * y, w * z
+    return (
+        1.0 - 2.0 * (yy + zz), 2.0 * (xy - wz), 2.0 * (xz + wy),
+        2.0 * (xy + wz), 1.0 - 2.0 * (xx + zz), 2.0 * (yz - wx),
+        2.0 * (xz - wy), 2.0 * (yz + wx), 1.0 - 2.0 * (xx + yy),
+    )
+
+
+def quat_to_matrix(q: ArrayLike) -> Vec:
+    """Rotation matrix of a unit quaternion (w, x, y, z)."""
+    w, x, y, z = (float(c) for c in np.asarray(q, dtype=float).reshape(4))
+    return np.array(quat_to_r9(w, x, y, z)).reshape(3, 3)
+
+
+def quat_from_matrix(R: ArrayLike) -> Vec:
+    """Unit quaternion (w >= 0) of a rotation matrix, by Shepperd's method."""
+    R = np.asarray(R, dtype=float)
+    m00, m11, m22 = R[0, 0], R[1, 1], R[2, 2]
+    trace = m00 + m11 + m22
+    k = int(np.argmax([trace, m00, m11, m22]))
+    if k == 0:
+        r = math.sqrt(1.0 + trace)
+        q = [0.5 * r, (R[2, 1] - R[1, 2]) / (2 * r), (R[0, 2] - R[2, 0]) / (2 * r),
+             (R[1, 0] - R[0, 1]) / (2 * r)]
+    elif k == 1:
+        r = math.sqrt(1.0 + m00 - m11 - m22)
+        q = [(R[2, 1] - R[1, 2]) / (2 * r), 0.5 * r, (R[0, 1] + R[1, 0]) / (2 * r),
+             (R[0, 2] + R[2, 0]) / (2 * r)]
+    elif k == 2:
+        r = math.sqrt(1.0 - m00 + m11 - m22)
+        q = [(R[0, 2] - R[2, 0]) / (2 * r), (R[0, 1] + R[1, 0]) / (2 * r), 0.5 * r,
+             (R[1, 2] + R[2, 1]) / (2 * r)]
+    else:
+        r = math.sqrt(1.0 - m00 - m11 + m22)
+        q = [(R[1, 0] - R[0, 1]) / (2 * r), (R[0, 2] + R[2, 0]) / (2 * r),
+             (R[1, 2] + R[2, 1]) / (2 * r), 0.5 * r]
+    q = np.array(q, dtype=float)
+    return canonical_quat(q / np.linalg.norm(q))
+
+
+def quat_mul4(
+    aw: float, ax: float, ay: float, az: float, bw: float, bx: float, by: float, bz: float
+) -> tuple[float, float, float, float]:
+    """Hamilton product a * b on scalars; scalar hot path."""
+    return (
+        aw * bw - ax * bx - ay * by - az * bz,
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+    )
+
+
+def quat_multiply(a: ArrayLike, b: ArrayLike) -> Vec:
+    """Hamilton product a * b (rotation b first, then a)."""
+    a = np.asarray(a, dtype=float).reshape(4).tolist()
+    b = np.asarray(b, dtype=float).reshape(4).tolist()
+    return np.array(quat_mul4(*a, *b))
+
+
+def rotate_quat_by_rotvec(
+    q: tuple[float, float, float, float], wx: float, wy: float, wz: float
+) -> tuple[float, float, float, float]:
+    """exp(w) * q, renormalised: the rotation part of a mixed-coordinate step."""
+    r = quat_mul4(*rotvec_to_quat4(wx, wy, wz), *q)
+    n = 1.0 / math.sqrt(r[0] * r[0] + r[1] * r[1] + r[2] * r[2] + r[3] * r[3])
+    return (r[0] * n, r[1] * n, r[2] * n, r[3] * n)

@@ -1,0 +1,1 @@
+"""Virtual actuators: plant physics, device-side CAN nodes and fault injection."""
