@@ -54,7 +54,9 @@ def main(argv: list[str] | None = None) -> int:
     rng = np.random.default_rng(1)
     n = 256
     poses = [
-        Pose.from_rotvec(robot.home.position + rng.uniform(-0.3, 0.3, 3), rng.uniform(-0.15, 0.15, 3))
+        Pose.from_rotvec(
+            robot.home.position + rng.uniform(-0.3, 0.3, 3), rng.uniform(-0.15, 0.15, 3)
+        )
         for _ in range(n)
     ]
     twists = [rng.normal(0.0, 0.3, 6) for _ in range(n)]
@@ -63,14 +65,20 @@ def main(argv: list[str] | None = None) -> int:
     for pose in poses:
         dp = rng.normal(size=3)
         dw = rng.normal(size=3)
-        step = np.concatenate([1e-3 * dp / np.linalg.norm(dp), np.deg2rad(0.5) * dw / np.linalg.norm(dw)])
+        step = np.concatenate(
+            [1e-3 * dp / np.linalg.norm(dp), np.deg2rad(0.5) * dw / np.linalg.norm(dw)]
+        )
         guesses.append(retract(pose, step))
     lengths = [robot.cable_lengths(p) for p in poses]
 
     fk_iterations = [robot.forward_kinematics(lengths[i], guesses[i]).iterations for i in range(n)]
     results = {
-        "lengths_jacobian": per_call_us(lambda i: robot.lengths_and_jacobian(poses[i % n]), args.calls),
-        "bias_accel": per_call_us(lambda i: robot.bias_accel(poses[i % n], twists[i % n]), args.calls),
+        "lengths_jacobian": per_call_us(
+            lambda i: robot.lengths_and_jacobian(poses[i % n]), args.calls
+        ),
+        "bias_accel": per_call_us(
+            lambda i: robot.bias_accel(poses[i % n], twists[i % n]), args.calls
+        ),
         "fk_warm": per_call_us(
             lambda i: robot.forward_kinematics(lengths[i % n], guesses[i % n]), args.calls
         ),

@@ -189,9 +189,7 @@ class RobotSpec(_Strict):
 
 
 def _first_message(exc: ValidationError) -> str:
-    err = exc.errors()[0]
-    loc = ".".join(str(p) for p in err["loc"])
-    return f"{loc}: {err['msg']}" if loc else err["msg"]
+    return format_validation_error(exc).splitlines()[0]
 
 
 def format_validation_error(exc: ValidationError, root: str = "") -> str:
@@ -199,11 +197,11 @@ def format_validation_error(exc: ValidationError, root: str = "") -> str:
     lines = []
     for err in exc.errors():
         loc = ".".join(str(p) for p in err["loc"])
-        key = ".".join(p for p in (root, loc) if p) or "<root>"
+        key = ".".join(p for p in (root, loc) if p)
         msg = err["msg"].removeprefix("Value error, ")
         got = err.get("input")
         shown = "" if isinstance(got, dict | list) or got is None else f" (got {got!r})"
-        lines.append(f"{key}: {msg}{shown}")
+        lines.append(f"{key}: {msg}{shown}" if key else f"{msg}{shown}")
     return "\n".join(lines)
 
 

@@ -92,9 +92,15 @@ def quat_to_r9(w: float, x: float, y: float, z: float) -> tuple[float, ...]:
     xy, xz, yz = x * y, x * z, y * z
     wx, wy, wz = w * x, w * y, w * z
     return (
-        1.0 - 2.0 * (yy + zz), 2.0 * (xy - wz), 2.0 * (xz + wy),
-        2.0 * (xy + wz), 1.0 - 2.0 * (xx + zz), 2.0 * (yz - wx),
-        2.0 * (xz - wy), 2.0 * (yz + wx), 1.0 - 2.0 * (xx + yy),
+        1.0 - 2.0 * (yy + zz),
+        2.0 * (xy - wz),
+        2.0 * (xz + wy),
+        2.0 * (xy + wz),
+        1.0 - 2.0 * (xx + zz),
+        2.0 * (yz - wx),
+        2.0 * (xz - wy),
+        2.0 * (yz + wx),
+        1.0 - 2.0 * (xx + yy),
     )
 
 
@@ -112,20 +118,36 @@ def quat_from_matrix(R: ArrayLike) -> Vec:
     k = int(np.argmax([trace, m00, m11, m22]))
     if k == 0:
         r = math.sqrt(1.0 + trace)
-        q = [0.5 * r, (R[2, 1] - R[1, 2]) / (2 * r), (R[0, 2] - R[2, 0]) / (2 * r),
-             (R[1, 0] - R[0, 1]) / (2 * r)]
+        q = [
+            0.5 * r,
+            (R[2, 1] - R[1, 2]) / (2 * r),
+            (R[0, 2] - R[2, 0]) / (2 * r),
+            (R[1, 0] - R[0, 1]) / (2 * r),
+        ]
     elif k == 1:
         r = math.sqrt(1.0 + m00 - m11 - m22)
-        q = [(R[2, 1] - R[1, 2]) / (2 * r), 0.5 * r, (R[0, 1] + R[1, 0]) / (2 * r),
-             (R[0, 2] + R[2, 0]) / (2 * r)]
+        q = [
+            (R[2, 1] - R[1, 2]) / (2 * r),
+            0.5 * r,
+            (R[0, 1] + R[1, 0]) / (2 * r),
+            (R[0, 2] + R[2, 0]) / (2 * r),
+        ]
     elif k == 2:
         r = math.sqrt(1.0 - m00 + m11 - m22)
-        q = [(R[0, 2] - R[2, 0]) / (2 * r), (R[0, 1] + R[1, 0]) / (2 * r), 0.5 * r,
-             (R[1, 2] + R[2, 1]) / (2 * r)]
+        q = [
+            (R[0, 2] - R[2, 0]) / (2 * r),
+            (R[0, 1] + R[1, 0]) / (2 * r),
+            0.5 * r,
+            (R[1, 2] + R[2, 1]) / (2 * r),
+        ]
     else:
         r = math.sqrt(1.0 - m00 - m11 + m22)
-        q = [(R[1, 0] - R[0, 1]) / (2 * r), (R[0, 2] + R[2, 0]) / (2 * r),
-             (R[1, 2] + R[2, 1]) / (2 * r), 0.5 * r]
+        q = [
+            (R[1, 0] - R[0, 1]) / (2 * r),
+            (R[0, 2] + R[2, 0]) / (2 * r),
+            (R[1, 2] + R[2, 1]) / (2 * r),
+            0.5 * r,
+        ]
     q = np.array(q, dtype=float)
     return canonical_quat(q / np.linalg.norm(q))
 

@@ -1,0 +1,52 @@
+"""Shared fixtures: the example robots and a random-pose strategy inside their workspaces."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, settings
+from hypothesis import strategies as st
+
+from cdpr import Pose, Robot
+
+ROOT = Path(__file__).resolve().parent.parent
+ROBOTS = ROOT / "config" / "robots"
+
+# Deterministic in CI: the same examples every run, no wall-clock deadline on a busy machine.
+settings.register_profile(
+    "cdprd", derandomize=True, deadline=None, suppress_health_check=[HealthCheck.too_slow]
+)
+settings.load_profile("cdprd")
+
+
+def load_robot(name: str) -> Robot:
+    return Robot.from_yaml(ROBOTS / f"{name}.yaml")
+
+
+@pytest.fixture(scope="session", params=["reference8", "suspended6"])
+def robot(request: pytest.FixtureRequest) -> Robot:
+    """Each example robot in turn (the second one exercises the pulley model)."""
+    return load_robot(request.param)
+
+
+@pytest.fixture(scope="session")
+def reference8() -> Robot:
+    return load_robot("reference8")
+
+
+def workspace_poses(reach: float = 0.3, tilt: float = 0.2) -> st.SearchStrategy:
+    """Offsets (dp, rotvec) from home within `reach` metres and `tilt` radians."""
+    coord = st.floats(-reach, reach, allow_nan=False)
+    angle = st.floats(-tilt, tilt, allow_nan=False)
+    return st.tuples(st.tuples(coord, coord, coord), st.tuples(angle, angle, angle))
+
+
+def pose_near_home(robot: Robot, offset: tuple) -> Pose:
+    dp, rv = offset
+    return Pose.from_rotvec(robot.home.position + np.array(dp), rv)
+
+
+def twists(scale: float = 1.0) -> st.SearchStrategy:
+    return st.lists(st.floats(-scale, scale, allow_nan=False), min_size=6, max_size=6).map(np.array)

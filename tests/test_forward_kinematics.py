@@ -1,0 +1,120 @@
+"""Forward kinematics Y(l): exact recovery, noise behaviour, and bad measurements."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from cdpr import Robot, liediff, retract
+from tests.conftest import pose_near_home, workspace_poses
+
+
+def pose_error(a, b) -> tuple[float, float]:
+    d = liediff(a, b)
+    return float(np.linalg.norm(d[:3])), float(np.linalg.norm(d[3:]))
+
+
+@given(offset=workspace_poses(reach=0.4, tilt=0.25))
+def test_cold_start_from_home_recovers_the_pose(robot: Robot, offset) -> None:
+    truth = pose_near_home(robot, offset)
+    result = robot.forward_kinematics(robot.cable_lengths(truth))
+    assert result.converged, result.reason
+    dp, dw = pose_error(truth, result.pose)
+    assert dp < 1e-9 and dw < 1e-9
+    assert result.residual < 1e-9
+
+
+@given(
+    offset=workspace_poses(),
+    step=st.lists(st.floats(-1, 1), min_size=6, max_size=6).filter(
+        lambda v: np.linalg.norm(v[:3]) > 1e-3 and np.linalg.norm(v[3:]) > 1e-3
+    ),
+)
+def test_warm_start_after_a_cycle_recovers_the_pose(robot: Robot, offset, step) -> None:
+    """The previous pose, 1 mm and 0.5 deg away, as the guess (the daemon's case)."""
+    truth = pose_near_home(robot, offset)
+    s = np.array(step)
+    move = np.concatenate(
+        [1e-3 * s[:3] / np.linalg.norm(s[:3]), np.deg2rad(0.5) * s[3:] / np.linalg.norm(s[3:])]
+    )
+    result = robot.forward_kinematics(robot.cable_lengths(truth), guess=retract(truth, move))
+    assert result.converged, result.reason
+    dp, dw = pose_error(truth, result.pose)
+    assert dp < 1e-9 and dw < 1e-9
+    assert result.iterations <= 4
+
+
+def test_noise_gives_the_least_squares_estimate(reference8: Robot) -> None:
+    """With 0.1 mm encoder noise n, Y(L + n) - eta is the linear least-squares estimate
+    (Lambda^T Lambda)^-1 Lambda^T n up to second-order terms, and its Mahalanobis norm follows
+    chi^2 with 6 degrees of freedom; the residual is that of the projection of n."""
+    robot = reference8
+    rng = np.random.default_rng(7)
+    sigma = 1e-4
+    chi2 = []
+    for _ in range(300):
+        truth = retract(
+            robot.home, np.concatenate([rng.uniform(-0.3, 0.3, 3), rng.uniform(-0.15, 0.15, 3)])
+        )
+        lengths, Lam = robot.lengths_and_jacobian(truth)
+        noise = rng.normal(0.0, sigma, robot.n_cables)
+        result = robot.forward_kinematics(lengths + noise, guess=truth)
+        assert result.converged, result.reason
+        err = liediff(truth, result.pose)
+        linear = np.linalg.lstsq(Lam, noise, rcond=None)[0]
+        # equal up to second-order terms, which are ~ noise / length relative to it
+        assert np.linalg.norm(err - linear) < 1e-2 * np.linalg.norm(linear)
+        misfit = robot.cable_lengths(result.pose) - (lengths + noise)
+        assert result.residual == pytest.approx(np.sqrt(misfit @ misfit / 8), rel=1e-9, abs=1e-15)
+        projected = noise - Lam @ linear
+        assert result.residual == pytest.approx(np.sqrt(projected @ projected / 8), rel=0.05)
+        chi2.append(err @ (Lam.T @ Lam) @ err / sigma**2)
+    # mean of chi^2(6) is 6; the mean of 300 samples has standard deviation sqrt(12/300) = 0.2
+    assert 5.3 < np.mean(chi2) < 6.7
+
+
+def test_six_cables_solve_exactly_with_zero_residual(robot: Robot) -> None:
+    truth = retract(robot.home, [0.1, -0.05, 0.08, 0.05, -0.02, 0.1])
+    result = robot.forward_kinematics(robot.cable_lengths(truth) + 1e-4 * np.arange(robot.n_cables))
+    assert result.converged
+    if robot.n_cables == 6:  # square system: any nearby lengths fit exactly
+        assert result.residual < 1e-12
+    else:
+        assert result.residual > 1e-6
+
+
+@pytest.mark.parametrize(
+    ("corrupt", "reason"),
+    [
+        (lambda L: L * 3.0, "exceeds max_residual"),
+        (lambda L: L + np.r_[0.5, np.zeros(len(L) - 1)], "exceeds max_residual"),
+        (lambda L: np.r_[np.nan, L[1:]], "non-finite length nan at cable 0"),
+        (lambda L: np.r_[L[:-1], np.inf], "non-finite length inf at cable"),
+        (lambda L: -L, ""),
+        (lambda L: np.zeros_like(L), ""),
+    ],
+)
+def test_bad_measurements_are_reported_not_raised(reference8: Robot, corrupt, reason) -> None:
+    lengths = corrupt(reference8.cable_lengths(reference8.home))
+    result = reference8.forward_kinematics(lengths)
+    assert not result.converged
+    assert reason in result.reason and result.reason
+    assert np.all(np.isfinite(result.pose.position))
+
+
+def test_unreachable_lengths_for_the_suspended_robot_do_not_converge() -> None:
+    from tests.conftest import load_robot
+
+    robot = load_robot("suspended6")
+    # corners 2.7 m apart, platform attachments 0.5 m apart: 0.5 m cables cannot reach
+    lengths = np.full(robot.n_cables, 0.5)
+    result = robot.forward_kinematics(lengths)
+    assert not result.converged
+    assert result.reason
+
+
+def test_wrong_number_of_lengths_is_a_programming_error(reference8: Robot) -> None:
+    with pytest.raises(ValueError, match="expected 8 cable lengths, got 7"):
+        reference8.forward_kinematics(np.ones(7))
