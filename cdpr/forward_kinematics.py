@@ -54,14 +54,14 @@ def solve_forward_kinematics(
     Lambda^T e and |e|^2 at once.
     """
     n = geometry.n
-    meas = np.array(lengths, dtype=float).reshape(-1)
+    meas = np.asarray(lengths, dtype=float).reshape(-1)
     if meas.shape[0] != n:
         raise ValueError(f"expected {n} cable lengths, got {meas.shape[0]}")
     if not math.isfinite(meas @ meas):
         k = int(np.flatnonzero(~np.isfinite(meas))[0])
         return FKResult(guess, math.inf, 0, False, f"non-finite length {meas[k]} at cable {k}")
     evaluate = geometry.evaluate
-    tolerance = settings.step_tolerance
+    tolerance2 = settings.step_tolerance**2
     m = meas.tolist()
     p = guess.position.tolist()
     q = tuple(guess.quaternion.tolist())
@@ -83,16 +83,16 @@ def solve_forward_kinematics(
                 return _result(p, q, cost, it, n, "singular Jacobian", settings, guess)
             continue
         dx, dy, dz, wx, wy, wz = x.tolist()
-        step = max(math.sqrt(dx * dx + dy * dy + dz * dz), math.sqrt(wx * wx + wy * wy + wz * wz))
+        step2 = max(dx * dx + dy * dy + dz * dz, wx * wx + wy * wy + wz * wz)  # squared
         p_new = [p[0] - dx, p[1] - dy, p[2] - dz]
         q_new = rotate_quat_by_rotvec(q, -wx, -wy, -wz)
-        if not lam and step < tolerance:
+        if not lam and step2 < tolerance2:
             # linearised cost after the step: |e|^2 - g . A^-1 g
             return _result(p_new, q_new, cost - float(g @ x), it, n, "", settings, guess)
-        if not lam and step < _CHORD_BELOW:
+        if not lam and step2 < _CHORD_BELOW2:
             # quadratic regime: one more step with this factorisation and Jacobian needs
             # only the lengths; its error is ~ step x next step, far below tolerance
-            done = _chord_finish(geometry, m, p_new, q_new, table[:, :6], chol, tolerance)
+            done = _chord_finish(geometry, m, p_new, q_new, table[:, :6], chol, tolerance2)
             if done is not None:
                 p_new, q_new, chord_cost = done
                 return _result(p_new, q_new, chord_cost, it + 1, n, "", settings, guess)
@@ -102,7 +102,7 @@ def solve_forward_kinematics(
         if cost_new <= cost or not math.isfinite(cost):
             p, q, S, cost = p_new, q_new, S_new, cost_new
             lam = lam * 0.1 if lam > _LM_START else 0.0
-            if step < tolerance:
+            if step2 < tolerance2:
                 return _result(p, q, cost, it, n, "", settings, guess)
         else:
             lam = max(lam * 10.0, _LM_START)
@@ -119,26 +119,25 @@ def _chord_finish(
     q: tuple[float, float, float, float],
     J: np.ndarray,
     chol: np.ndarray,
-    tolerance: float,
+    tolerance2: float,
 ) -> tuple[list[float], tuple[float, float, float, float], float] | None:
     """A simplified-Newton step reusing the last Jacobian and its Cholesky factor.
-    Returns the final (p, q, linearised cost), or None if the step is not yet short."""
+    Returns the final (p, q, linearised cost), or None if the step is not yet short
+    (tolerance2 is the squared step tolerance)."""
     e = np.array(geometry.evaluate(p, quat_to_r9(*q), jacobian=False, measured=meas))
     g = J.T @ e
     x, info = dpotrs(chol, g)
     if info != 0:
         return None
     dx, dy, dz, wx, wy, wz = x.tolist()
-    if max(math.sqrt(dx * dx + dy * dy + dz * dz), math.sqrt(wx * wx + wy * wy + wz * wz)) >= (
-        tolerance
-    ):
+    if max(dx * dx + dy * dy + dz * dz, wx * wx + wy * wy + wz * wz) >= tolerance2:
         return None
     p_new = [p[0] - dx, p[1] - dy, p[2] - dz]
     q_new = rotate_quat_by_rotvec(q, -wx, -wy, -wz)
     return p_new, q_new, float(e @ e) - float(g @ x)
 
 
-_CHORD_BELOW = 1e-4
+_CHORD_BELOW2 = 1e-4**2  # squared step length below which the chord finish is tried
 _DIAG = np.diag_indices(6)
 
 
