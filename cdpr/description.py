@@ -173,7 +173,8 @@ class RobotSpec(_Strict):
         if isinstance(defaults, dict) and isinstance(cables, list):
             for i, cable in enumerate(cables):
                 if isinstance(cable, dict) and isinstance(cable.get("actuator"), dict):
-                    merged = {**defaults, **cable["actuator"]}
+                    overrides = {k: v for k, v in cable["actuator"].items() if v is not None}
+                    merged = {**defaults, **overrides}
                     try:
                         ActuatorSpec.model_validate(merged)
                     except ValidationError as exc:

@@ -131,3 +131,9 @@ def tension_margin(robot: Robot) -> float:
 def test_home_is_well_inside_the_wrench_feasible_workspace(robot: Robot) -> None:
     """Static equilibrium at home with every tension at least 25 N inside its limits."""
     assert tension_margin(robot) > 25.0
+
+
+def test_spec_round_trips_through_a_plain_dict(robot: Robot) -> None:
+    """model_dump() output (unset overrides as None) builds the same robot again."""
+    again = Robot.from_dict(robot.spec.model_dump())
+    assert again.spec == robot.spec
