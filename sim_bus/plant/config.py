@@ -1,0 +1,203 @@
+"""Plant configuration: a validated pydantic model whose errors name the key.
+
+Everything the simulator may differ in from the controller's model lives here:
+integration step, cable elasticity, the actuator model of the paper's Assumption 1,
+friction, the encoders, the model mismatch and the disturbance wrench.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Annotated, Any
+
+import numpy as np
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
+
+from cdpr import ConfigError, Robot
+from cdpr.description import (
+    FiniteFloat,
+    NonNegativeFloat,
+    PositiveFloat,
+    Vec3,
+    format_validation_error,
+)
+
+Wrench = tuple[FiniteFloat, FiniteFloat, FiniteFloat, FiniteFloat, FiniteFloat, FiniteFloat]
+Coefficients = list[NonNegativeFloat]
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class CableConfig(_Strict):
+    """Elastic unilateral cable: t = EA ε + damping dε/dt while taut, ε = (L - l) / l,
+    with L the geometric length and l the unstretched length paid out by the drum."""
+
+    stiffness: PositiveFloat = 1e5  # EA, N per unit strain
+    damping: NonNegativeFloat = 100.0  # N s per unit strain rate
+
+
+class ActuatorModelConfig(_Strict):
+    """Assumption 1 of the paper, in its general form (ascending derivative order):
+
+    f + c[0] f' + c[1] f'' + ... + k[0] l' + k[1] l'' + ... = f_c + c_tilde[0] f_c' + ...
+
+    i.e. c = (c_2, c_3, ...), k = (k_0, k_1, ...), c_tilde = (c~_2, ...) in the paper's
+    names.  The default is a first-order electrical lag of 2 ms; k = None takes the
+    back-EMF k0 of each actuator from the robot description, k = [k0] exactly.
+    """
+
+    c: Coefficients = [2e-3]
+    k: Coefficients | None = None
+    c_tilde: Coefficients = []
+
+    @field_validator("c")
+    @classmethod
+    def _hurwitz(cls, v: list[float]) -> list[float]:
+        poly = _trim([1.0, *v])
+        if len(poly) > 1:
+            roots = np.roots(poly[::-1])
+            if np.any(roots.real >= 0.0):
+                raise ValueError(
+                    f"1 + c[0] s + c[1] s^2 + ... must have all roots in the left half plane "
+                    f"(a stable actuator); roots {np.round(roots, 6).tolist()}"
+                )
+        return v
+
+    @model_validator(mode="after")
+    def _proper(self) -> ActuatorModelConfig:
+        C, K, Ct = self.coefficients(0.0)
+        if len(Ct) > len(C):
+            raise ValueError(
+                f"c_tilde has {len(Ct) - 1} non-zero coefficients but c has {len(C) - 1}: "
+                "f_c may not enter with a higher derivative than f (improper model)"
+            )
+        if len(K) > len(C) + 1:
+            raise ValueError(
+                f"k has {len(K)} coefficients but at most len(c) + 2 = {len(C) + 1} are "
+                "allowed (the paper's k_0 ... k_n go with c_2 ... c_n)"
+            )
+        if self.k is not None:  # else K(s) = k0 s, always realisable
+            from sim_bus.plant.actuator import ActuatorModel  # it imports this module
+
+            ActuatorModel.from_config(self, 0.0)
+        return self
+
+    def coefficients(self, k0: float) -> tuple[list[float], list[float], list[float]]:
+        """Polynomials in s, ascending, trailing zeros dropped: C(s) = 1 + c_2 s + ...,
+        K(s)/s = k_0 + k_1 s + ... (with this actuator's k0 when k is None), and
+        C~(s) = 1 + c~_2 s + ..."""
+        K = [k0] if self.k is None else list(self.k)
+        return _trim([1.0, *self.c]), _trim(K), _trim([1.0, *self.c_tilde])
+
+
+def _trim(poly: list[float]) -> list[float]:
+    out = list(poly)
+    while len(out) > 1 and out[-1] == 0.0:
+        out.pop()
+    return out if out else [0.0]
+
+
+class FrictionConfig(_Strict):
+    """Drum friction in cable coordinates; breaks Assumption 1 on purpose (the paper warns)."""
+
+    coulomb: NonNegativeFloat = 0.0  # N
+    viscous: NonNegativeFloat = 0.0  # N s/m
+
+
+class EncoderConfig(_Strict):
+    """What a drive reports: length sampled `latency_steps` plant steps ago, plus
+    Gaussian noise, quantised to counts (None: ideal); velocity as the drive computes
+    it, the difference of two such samples `velocity_window_steps` steps apart."""
+
+    counts_per_metre: PositiveFloat | None = 1e5
+    noise_std: NonNegativeFloat = 0.0  # m
+    latency_steps: Annotated[int, Field(ge=0, le=10_000)] = 0
+    velocity_window_steps: Annotated[int, Field(ge=1, le=10_000)] = 2
+
+
+class MismatchConfig(_Strict):
+    """How the simulated ("true") robot differs from the controller's model."""
+
+    mass_scale: PositiveFloat = 1.0
+    inertia_scale: PositiveFloat = 1.0
+    center_of_mass_offset: Vec3 = (0.0, 0.0, 0.0)  # m, platform frame
+    m0_scale: PositiveFloat = 1.0
+    k0_scale: NonNegativeFloat = 1.0
+    anchor_offsets: list[Vec3] | None = None  # m, one per cable, world frame
+    anchor_error_std: NonNegativeFloat = 0.0  # m, random per anchor coordinate (seeded)
+
+    def apply(self, robot: Robot, rng: np.random.Generator) -> Robot:
+        """The true robot: `robot`'s description with these errors, built by cdpr."""
+        spec = robot.spec.model_dump(exclude_none=True)
+        platform = spec["platform"]
+        platform["mass"] *= self.mass_scale
+        platform["inertia"] = (np.array(platform["inertia"]) * self.inertia_scale).tolist()
+        platform["center_of_mass"] = (
+            np.array(platform["center_of_mass"]) + self.center_of_mass_offset
+        ).tolist()
+        for actuator in [spec["actuator"]] + [c["actuator"] for c in spec["cables"]]:
+            if "m0" in actuator:
+                actuator["m0"] *= self.m0_scale
+            if "k0" in actuator:
+                actuator["k0"] *= self.k0_scale
+        n = robot.n_cables
+        offsets = np.zeros((n, 3))
+        if self.anchor_offsets is not None:
+            if len(self.anchor_offsets) != n:
+                raise ConfigError(
+                    f"mismatch.anchor_offsets: {len(self.anchor_offsets)} offsets for {n} cables"
+                )
+            offsets += np.array(self.anchor_offsets)
+        if self.anchor_error_std > 0.0:
+            offsets += rng.normal(0.0, self.anchor_error_std, (n, 3))
+        for cable, offset in zip(spec["cables"], offsets, strict=True):
+            cable["anchor"] = (np.array(cable["anchor"]) + offset).tolist()
+        return Robot.from_dict(spec, source=f"{robot.name} with plant mismatch")
+
+
+class DisturbanceConfig(_Strict):
+    """External wrench (force, torque about p; world frame) acting for start <= t < end:
+    constant with the defaults, a step with start > 0."""
+
+    wrench: Wrench = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    start: NonNegativeFloat = 0.0
+    end: Annotated[float, Field(gt=0.0)] = math.inf
+
+
+class PlantConfig(_Strict):
+    """The whole plant. `step` is the unit of Plant.step() and of the encoder history;
+    it is integrated in `substeps` equal semi-implicit Euler substeps."""
+
+    step: Annotated[float, Field(gt=0.0, le=0.1, allow_inf_nan=False)] = 1e-3
+    substeps: Annotated[int, Field(ge=1, le=1000)] = 1
+    seed: int = 0
+    cable: CableConfig = CableConfig()
+    actuator: ActuatorModelConfig = ActuatorModelConfig()
+    friction: FrictionConfig = FrictionConfig()
+    encoder: EncoderConfig = EncoderConfig()
+    mismatch: MismatchConfig = MismatchConfig()
+    disturbance: DisturbanceConfig = DisturbanceConfig()
+
+    @property
+    def substep(self) -> float:
+        """The integration step h = step / substeps (s)."""
+        return self.step / self.substeps
+
+
+def parse_plant_config(data: Any, source: str = "plant") -> PlantConfig:
+    """Validate a plain dict (e.g. from YAML); ConfigError names every bad key."""
+    if not isinstance(data, dict):
+        raise ConfigError(f"{source}: expected a mapping, got {type(data).__name__}")
+    try:
+        return PlantConfig.model_validate(data)
+    except ValidationError as exc:
+        raise ConfigError(f"{source} is invalid:\n{format_validation_error(exc)}") from None

@@ -1,0 +1,59 @@
+"""Drive-side length and velocity measurement of the drums.
+
+A drive samples its encoder every plant step.  What it reports at time t is the drum
+length of `latency_steps` steps earlier, plus Gaussian noise, quantised to whole
+counts (rounded), and the velocity the drive computes from two such samples
+`velocity_window_steps` steps apart: (q(t) - q(t - w)) / w.  Each reported sample
+draws fresh noise, so the velocity noise has std sqrt(2) noise_std / w.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+
+from sim_bus.plant.config import EncoderConfig
+
+
+class Encoders:
+    """The encoders of n drums, sampled once per plant step of `step` seconds."""
+
+    def __init__(
+        self, config: EncoderConfig, n: int, step: float, rng: np.random.Generator
+    ) -> None:
+        self.n = n
+        self.step = step
+        self._counts = config.counts_per_metre
+        self._noise = config.noise_std
+        self._latency = config.latency_steps
+        self._window = config.velocity_window_steps
+        self._rng = rng
+        self._history: deque[tuple[float, ...]] = deque(maxlen=self._latency + self._window + 1)
+
+    def reset(self, lengths: Sequence[float], rates: Sequence[float]) -> None:
+        """Fill the history as if the drums had moved at constant `rates` until now."""
+        depth = self._history.maxlen or 1
+        self._history.clear()
+        for age in range(depth - 1, -1, -1):
+            dt = age * self.step
+            self._history.append(tuple(x - v * dt for x, v in zip(lengths, rates, strict=True)))
+
+    def sample(self, lengths: Sequence[float]) -> None:
+        """Record the drum lengths at the end of a plant step."""
+        self._history.append(tuple(lengths))
+
+    def read(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """(lengths in m, rates in m/s) as the drives report them now."""
+        now = np.array(self._history[-1 - self._latency])
+        before = np.array(self._history[-1 - self._latency - self._window])
+        if self._noise > 0.0:
+            noise = self._rng.normal(0.0, self._noise, (2, self.n))
+            now = now + noise[0]
+            before = before + noise[1]
+        if self._counts is not None:
+            now = np.round(now * self._counts) / self._counts
+            before = np.round(before * self._counts) / self._counts
+        return now, (now - before) / (self._window * self.step)
