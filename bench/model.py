@@ -15,13 +15,11 @@ import json
 import sys
 import time
 from collections.abc import Callable
-from pathlib import Path
 
 import numpy as np
+from timing import REFERENCE8, summary_us
 
 from cdpr import Pose, Robot, retract
-
-ROBOT = Path(__file__).resolve().parent.parent / "config" / "robots" / "reference8.yaml"
 
 
 def per_call_us(fn: Callable[[int], object], calls: int) -> dict[str, float]:
@@ -38,10 +36,7 @@ def per_call_us(fn: Callable[[int], object], calls: int) -> dict[str, float]:
             samples[i] = clock() - t0
     finally:
         gc.enable()
-    return {
-        "median_us": round(float(np.median(samples)) / 1e3, 2),
-        "p99_us": round(float(np.percentile(samples, 99)) / 1e3, 2),
-    }
+    return summary_us(samples)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -50,7 +45,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--calls", type=int, default=20000, help="timed calls per item")
     args = parser.parse_args(argv)
 
-    robot = Robot.from_yaml(ROBOT)
+    robot = Robot.from_yaml(REFERENCE8)
     rng = np.random.default_rng(1)
     n = 256
     poses = [

@@ -21,16 +21,15 @@ import json
 import sys
 import time
 from collections.abc import Callable
-from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
+from timing import REFERENCE8, summary_us
 
 from cdpr import Robot
 from sim_bus.lockstep import run_lockstep
 from sim_bus.plant import Plant, equilibrium_tensions
 
-ROBOT = Path(__file__).resolve().parent.parent / "config" / "robots" / "reference8.yaml"
 Array = NDArray[np.float64]
 RATE_HZ = 500.0
 KP, KD = 2e4, 400.0  # N/m, N s/m: the drives' length hold
@@ -85,16 +84,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seconds", type=float, default=20.0, help="simulated seconds per run")
     args = parser.parse_args(argv)
 
-    robot = Robot.from_yaml(ROBOT)
+    robot = Robot.from_yaml(REFERENCE8)
     step_times(robot, 1.0)  # warm-up
     samples = step_times(robot, args.seconds)
     step = Plant(robot).config.step
     results = {
         "realtime_factor": round(step / (float(np.mean(samples)) / 1e9), 1),
-        "step_us": {
-            "median_us": round(float(np.median(samples)) / 1e3, 2),
-            "p99_us": round(float(np.percentile(samples, 99)) / 1e3, 2),
-        },
+        "step_us": summary_us(samples),
         "lockstep_realtime_factor": round(lockstep_factor(robot, args.seconds), 1),
     }
     if args.json:
