@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, TypeVar
 
 import numpy as np
 import yaml
@@ -25,17 +25,20 @@ FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
 PositiveFloat = Annotated[float, Field(gt=0.0, allow_inf_nan=False)]
 NonNegativeFloat = Annotated[float, Field(ge=0.0, allow_inf_nan=False)]
 Vec3 = tuple[FiniteFloat, FiniteFloat, FiniteFloat]
+Section = TypeVar("Section", bound=BaseModel)
 
 
 class ConfigError(ValueError):
     """A configuration problem; the message names the key path and the problem."""
 
 
-class _Strict(BaseModel):
+class StrictModel(BaseModel):
+    """Config sections: unknown keys are errors, values immutable once validated."""
+
     model_config = ConfigDict(extra="forbid", frozen=True)
 
 
-class QuaternionSpec(_Strict):
+class QuaternionSpec(StrictModel):
     """Quaternion as an object with named keys (never a bare array at interfaces)."""
 
     w: FiniteFloat = 1.0
@@ -54,12 +57,12 @@ class QuaternionSpec(_Strict):
         return (self.w, self.x, self.y, self.z)
 
 
-class PoseSpec(_Strict):
+class PoseSpec(StrictModel):
     position: Vec3
     quaternion: QuaternionSpec = QuaternionSpec()
 
 
-class PulleySpec(_Strict):
+class PulleySpec(StrictModel):
     """Standard pulley model: the cable runs along `axis` into a pulley of `radius`
     that swivels about that axis through the anchor point, then leaves tangentially."""
 
@@ -75,7 +78,7 @@ class PulleySpec(_Strict):
         return (v[0] / n, v[1] / n, v[2] / n)
 
 
-class ActuatorOverrides(_Strict):
+class ActuatorOverrides(StrictModel):
     """Per-cable overrides of the actuator defaults (every field optional)."""
 
     m0: PositiveFloat | None = None
@@ -87,7 +90,7 @@ class ActuatorOverrides(_Strict):
     t_min: NonNegativeFloat | None = None
 
 
-class ActuatorSpec(_Strict):
+class ActuatorSpec(StrictModel):
     """One winch in cable-length coordinates.
 
     m0: effective no-load mass (drum + gear + rotor inertia / r^2), kg.
@@ -114,14 +117,14 @@ class ActuatorSpec(_Strict):
         return self
 
 
-class CableSpec(_Strict):
+class CableSpec(StrictModel):
     anchor: Vec3
     attachment: Vec3
     pulley: PulleySpec | None = None
     actuator: ActuatorOverrides = ActuatorOverrides()
 
 
-class PlatformSpec(_Strict):
+class PlatformSpec(StrictModel):
     """Rigid platform: mass (kg), centre of mass from p in the platform frame (m), and the
     3x3 inertia about the centre of mass in the platform frame (kg m^2)."""
 
@@ -145,7 +148,7 @@ class PlatformSpec(_Strict):
         return v
 
 
-class ForwardKinematicsSpec(_Strict):
+class ForwardKinematicsSpec(StrictModel):
     """Gauss-Newton / Levenberg-Marquardt settings for Y(l)."""
 
     max_iterations: Annotated[int, Field(ge=1, le=1000)] = 50
@@ -153,7 +156,7 @@ class ForwardKinematicsSpec(_Strict):
     max_residual: PositiveFloat = 2e-3
 
 
-class RobotSpec(_Strict):
+class RobotSpec(StrictModel):
     name: Annotated[str, Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_\-]+$")]
     gravity: Vec3 = (0.0, 0.0, -9.81)
     platform: PlatformSpec
@@ -206,16 +209,19 @@ def format_validation_error(exc: ValidationError, root: str = "") -> str:
     return "\n".join(lines)
 
 
-def parse_robot(data: Any, source: str = "robot") -> RobotSpec:
-    """Validate a plain dict; raises ConfigError naming every bad key."""
+def validate_section(model: type[Section], data: Any, source: str) -> Section:
+    """Validate a plain dict (from YAML or JSON) as `model`; ConfigError names every bad key."""
     if not isinstance(data, dict):
-        raise ConfigError(
-            f"{source}: expected a mapping at the top level, got {type(data).__name__}"
-        )
+        raise ConfigError(f"{source}: expected a mapping, got {type(data).__name__}")
     try:
-        return RobotSpec.model_validate(data)
+        return model.model_validate(data)
     except ValidationError as exc:
         raise ConfigError(f"{source} is invalid:\n{format_validation_error(exc)}") from None
+
+
+def parse_robot(data: Any, source: str = "robot") -> RobotSpec:
+    """Validate a robot description; raises ConfigError naming every bad key."""
+    return validate_section(RobotSpec, data, source)
 
 
 def load_yaml(path: str | Path) -> Any:

@@ -106,15 +106,21 @@ class Robot:
 
     def dynamics(self, pose: Pose, twist: ArrayLike) -> tuple[Array, Array]:
         """(M, mu) at (eta, phi): tau = M alpha + mu, actuator inertia m0 included."""
+        return self.model_terms(pose, twist)[2:]
+
+    def model_terms(self, pose: Pose, twist: ArrayLike) -> tuple[Array, Array, Array, Array]:
+        """(Lambda, c, M, mu) at (eta, phi) from one kinematics pass: what a control
+        cycle needs of the model."""
         phi = _twist_list(twist)
         R = quat_to_r9(*pose.quaternion.tolist())
+        table = np.array(self.geometry.evaluate(pose.position.tolist(), R, phi))
+        table = table.reshape(self.geometry.n, 7)
         # rows [Lambda_k | c_k] scaled by sqrt(m0_k): their Gram matrix holds
         # Lambda^T D Lambda and Lambda^T D c; the platform part is added to it
-        table = np.array(self.geometry.evaluate(pose.position.tolist(), R, phi))
-        table = table.reshape(self.geometry.n, 7) * self._sqrt_m0
-        G = table.T @ table
+        scaled = table * self._sqrt_m0
+        G = scaled.T @ scaled
         G[:6] += np.array(self.platform.mass_and_bias(R, phi)).reshape(6, 7)
-        return G[:6, :6], G[:6, 6]
+        return table[:, :6], table[:, 6], G[:6, :6], G[:6, 6]
 
     def mass_matrix(self, pose: Pose) -> Array:
         """M(eta) = M_p + Lambda^T diag(m0) Lambda (6 x 6, symmetric positive definite)."""

@@ -103,7 +103,7 @@ def test_yaml_errors_name_the_file(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match="cannot read"):
         Robot.from_yaml(tmp_path / "missing.yaml")
     (tmp_path / "list.yaml").write_text("- 1\n- 2\n")
-    with pytest.raises(ConfigError, match="expected a mapping at the top level, got list"):
+    with pytest.raises(ConfigError, match="expected a mapping, got list"):
         Robot.from_yaml(tmp_path / "list.yaml")
 
 

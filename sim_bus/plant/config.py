@@ -11,33 +11,23 @@ import math
 from typing import Annotated, Any
 
 import numpy as np
-from pydantic import (
-    BaseModel,
-    ConfigDict,
-    Field,
-    ValidationError,
-    field_validator,
-    model_validator,
-)
+from pydantic import Field, field_validator, model_validator
 
 from cdpr import ConfigError, Robot
 from cdpr.description import (
     FiniteFloat,
     NonNegativeFloat,
     PositiveFloat,
+    StrictModel,
     Vec3,
-    format_validation_error,
+    validate_section,
 )
 
 Wrench = tuple[FiniteFloat, FiniteFloat, FiniteFloat, FiniteFloat, FiniteFloat, FiniteFloat]
 Coefficients = list[NonNegativeFloat]
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-
-class CableConfig(_Strict):
+class CableConfig(StrictModel):
     """Elastic unilateral cable: t = EA ε + damping dε/dt while taut, ε = (L - l) / l,
     with L the geometric length and l the unstretched length paid out by the drum."""
 
@@ -45,7 +35,7 @@ class CableConfig(_Strict):
     damping: NonNegativeFloat = 100.0  # N s per unit strain rate
 
 
-class ActuatorModelConfig(_Strict):
+class ActuatorModelConfig(StrictModel):
     """Assumption 1 of the paper, in its general form (ascending derivative order):
 
     f + c[0] f' + c[1] f'' + ... + k[0] l' + k[1] l'' + ... = f_c + c_tilde[0] f_c' + ...
@@ -55,9 +45,9 @@ class ActuatorModelConfig(_Strict):
     back-EMF k0 of each actuator from the robot description, k = [k0] exactly.
     """
 
-    c: Coefficients = [2e-3]
+    c: Coefficients = Field(default_factory=lambda: [2e-3])
     k: Coefficients | None = None
-    c_tilde: Coefficients = []
+    c_tilde: Coefficients = Field(default_factory=list)
 
     @field_validator("c")
     @classmethod
@@ -106,14 +96,14 @@ def _trim(poly: list[float]) -> list[float]:
     return out if out else [0.0]
 
 
-class FrictionConfig(_Strict):
+class FrictionConfig(StrictModel):
     """Drum friction in cable coordinates; breaks Assumption 1 on purpose (the paper warns)."""
 
     coulomb: NonNegativeFloat = 0.0  # N
     viscous: NonNegativeFloat = 0.0  # N s/m
 
 
-class EncoderConfig(_Strict):
+class EncoderConfig(StrictModel):
     """What a drive reports: length sampled `latency_steps` plant steps ago, plus
     Gaussian noise, quantised to counts (None: ideal); velocity as the drive computes
     it, the difference of two such samples `velocity_window_steps` steps apart."""
@@ -124,7 +114,7 @@ class EncoderConfig(_Strict):
     velocity_window_steps: Annotated[int, Field(ge=1, le=10_000)] = 2
 
 
-class MismatchConfig(_Strict):
+class MismatchConfig(StrictModel):
     """How the simulated ("true") robot differs from the controller's model."""
 
     mass_scale: PositiveFloat = 1.0
@@ -164,7 +154,7 @@ class MismatchConfig(_Strict):
         return Robot.from_dict(spec, source=f"{robot.name} with plant mismatch")
 
 
-class DisturbanceConfig(_Strict):
+class DisturbanceConfig(StrictModel):
     """External wrench (force, torque about p; world frame) acting for start <= t < end:
     constant with the defaults, a step with start > 0."""
 
@@ -173,7 +163,7 @@ class DisturbanceConfig(_Strict):
     end: Annotated[float, Field(gt=0.0)] = math.inf
 
 
-class PlantConfig(_Strict):
+class PlantConfig(StrictModel):
     """The whole plant. `step` is the unit of Plant.step() and of the encoder history;
     it is integrated in `substeps` equal semi-implicit Euler substeps."""
 
@@ -195,9 +185,4 @@ class PlantConfig(_Strict):
 
 def parse_plant_config(data: Any, source: str = "plant") -> PlantConfig:
     """Validate a plain dict (e.g. from YAML); ConfigError names every bad key."""
-    if not isinstance(data, dict):
-        raise ConfigError(f"{source}: expected a mapping, got {type(data).__name__}")
-    try:
-        return PlantConfig.model_validate(data)
-    except ValidationError as exc:
-        raise ConfigError(f"{source} is invalid:\n{format_validation_error(exc)}") from None
+    return validate_section(PlantConfig, data, source)

@@ -1,0 +1,113 @@
+"""Controller configuration: the YAML/dict schema of the `controller` section.
+
+Validated like the robot description (pydantic, errors name the key path).  The gains
+are per unit mass (the single-actuator controller returns an acceleration) and are
+tuned once on one actuator (DESIGN §5).
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, Literal
+
+import numpy as np
+from pydantic import Field, model_validator
+
+from cdpr.description import (
+    FiniteFloat,
+    NonNegativeFloat,
+    PositiveFloat,
+    StrictModel,
+    validate_section,
+)
+from cdpr.single_actuator import LinearController, pid
+
+
+class PidSpec(StrictModel):
+    """a = -(ki int e + kp e + kd e'), e' low-passed with time constant derivative_filter."""
+
+    kp: NonNegativeFloat
+    ki: NonNegativeFloat = 0.0
+    kd: NonNegativeFloat = 0.0
+    derivative_filter: NonNegativeFloat = 0.0
+
+
+class StateSpaceSpec(StrictModel):
+    """x' = A x + B [e, e', ...], a = C x + D [e, e', ...]  (DESIGN §5)."""
+
+    A: list[list[FiniteFloat]] = Field(default_factory=list)
+    B: list[list[FiniteFloat]] = Field(default_factory=list)
+    C: list[FiniteFloat] = Field(default_factory=list)
+    D: Annotated[list[FiniteFloat], Field(min_length=1, max_length=2)]
+
+    @model_validator(mode="after")
+    def _shapes(self) -> StateSpaceSpec:
+        self.build()
+        return self
+
+    def build(self) -> LinearController:
+        n = len(self.A)
+        if any(len(row) != n for row in self.A):
+            raise ValueError(f"A must be square ({n} rows)")
+        if len(self.B) != n or any(len(row) != len(self.D) for row in self.B):
+            raise ValueError(f"B must be {n} x {len(self.D)} (states x error derivatives)")
+        if len(self.C) != n:
+            raise ValueError(f"C must have {n} entries (one per state)")
+        return LinearController(
+            np.array(self.A, dtype=float).reshape(n, n),
+            np.array(self.B, dtype=float).reshape(n, len(self.D)),
+            self.C,
+            [self.D],
+        )
+
+
+class TensionSpec(StrictModel):
+    """Tension distribution: method, and the reference tension it stays near (N; default
+    mid-range between t_min and force_max of each cable)."""
+
+    method: Literal["osqp", "closed_form"] = "osqp"
+    reference: PositiveFloat | None = None
+
+
+class ControllerSpec(StrictModel):
+    """The parallel-actuator controller (paper §5).
+
+    model_at: evaluate M, mu, Lambda, W, F at the measured (eta, phi) or at the
+    reference (eta_r, phi_r) — the paper allows both.
+    velocity: twist from the drives' reported rates by least squares ("drive"), or by
+    differentiating successive forward-kinematics poses ("differentiate") for drives
+    that report no rate, low-passed with velocity_filter (s).
+    """
+
+    rate_hz: Annotated[float, Field(gt=0.0, le=10000.0)] = 500.0
+    pid: PidSpec | None = None
+    state_space: StateSpaceSpec | None = None
+    discretisation: Literal["zoh", "bilinear", "euler", "backward_diff"] = "zoh"
+    model_at: Literal["measured", "reference"] = "measured"
+    velocity: Literal["drive", "differentiate"] = "drive"
+    velocity_filter: NonNegativeFloat = 0.0
+    tension: TensionSpec = TensionSpec()
+
+    @model_validator(mode="after")
+    def _one_law(self) -> ControllerSpec:
+        if self.pid is not None and self.state_space is not None:
+            raise ValueError("give either pid or state_space, not both")
+        return self
+
+    @property
+    def period(self) -> float:
+        return 1.0 / self.rate_hz
+
+    def linear_controller(self) -> LinearController:
+        """The single-actuator controller (default PID if neither law is given)."""
+        if self.state_space is not None:
+            return self.state_space.build()
+        gains = self.pid or DEFAULT_PID
+        return pid(gains.kp, gains.ki, gains.kd, gains.derivative_filter)
+
+
+DEFAULT_PID = PidSpec(kp=100.0, ki=10.0, kd=20.0)
+
+
+def parse_controller(data: Any, source: str = "controller") -> ControllerSpec:
+    """Validate a plain dict; ConfigError names every bad key."""
+    return validate_section(ControllerSpec, {} if data is None else data, source)
