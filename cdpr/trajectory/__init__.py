@@ -1,0 +1,26 @@
+"""Reference trajectories for the controller (DESIGN §7).
+
+Waypoints become a C² pose reference (`Trajectory`), sampled once per control cycle;
+`parse_trajectory` reads the interface form (JSON / YAML), `validate` checks a whole
+trajectory against rate, cable-length and wrench limits before it runs, and `approach`
+/ `goto` build jump-free transitions from the current reference.
+"""
+
+from cdpr.trajectory.core import SCHEMA_VERSION, Reference, Trajectory, TrajectoryError, Waypoint
+from cdpr.trajectory.limits import TrajectoryLimits, WrenchCheck, validate
+from cdpr.trajectory.parse import parse_trajectory
+from cdpr.trajectory.transitions import approach, goto
+
+__all__ = [
+    "SCHEMA_VERSION",
+    "Reference",
+    "Trajectory",
+    "TrajectoryError",
+    "TrajectoryLimits",
+    "Waypoint",
+    "WrenchCheck",
+    "approach",
+    "goto",
+    "parse_trajectory",
+    "validate",
+]

@@ -1,0 +1,419 @@
+"""Waypoints -> a C² pose reference with analytic twist and acceleration (DESIGN §7).
+
+Between two knots, every segment is a quintic Hermite curve fixed by the knot states
+(pose, twist, accel) at both ends, so sharing one state per knot makes the reference C²
+by construction, whatever the knot rates are:
+
+- position: p(t) is the quintic in R³ through (p, v, a) at both knots;
+- orientation: R(t) = exp(θ(t)) R_k with θ a quintic in R³ in the world frame, θ = 0 at
+  the start and θ = log(R_k+1 R_kᵀ) at the end of the segment; ω = J_l(θ) θ̇ and
+  ω̇ = J_l(θ) θ̈ + (d/dt J_l(θ)) θ̇, in closed form (J_l the left Jacobian of SO(3)).
+
+Knot rates that the waypoints leave free are chosen to minimise the integrated squared
+jerk of the positions and of the cumulative world-frame rotation vectors (a banded linear
+system).  With no interior twists that is exactly the C⁴ quintic interpolating spline.
+
+scipy's RotationSpline is not used: its angular rate and acceleration are in the BODY
+frame (ω_world = R ω_body) and its end conditions are not at rest; a robot starts and
+stops at rest, and the controller wants the world-frame ω of DESIGN §3.
+"""
+
+from __future__ import annotations
+
+import math
+from bisect import bisect_right
+from collections.abc import Sequence
+from dataclasses import dataclass
+from itertools import pairwise
+from typing import NamedTuple
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.sparse import coo_matrix, csr_matrix, diags
+from scipy.sparse.linalg import spsolve
+
+from cdpr.pose import Pose, liediff
+from cdpr.so3 import rotate_quat_by_rotvec
+from cdpr.trajectory.rotation import angular_rates, left_jacobian
+
+Array = NDArray[np.float64]
+
+SCHEMA_VERSION = 1  # of the interface form (as_dict / parse_trajectory)
+MIN_SEGMENT = 1e-4  # s: shortest time between waypoints (keeps h⁵ well away from zero)
+MAX_TIME = 1e9  # s: |t| bound, so that time differences stay exact enough and finite
+MAX_MAGNITUDE = 1e6  # bound on position, twist and accel components (m, m/s, rad/s, ...)
+_REST_TOLERANCE = 1e-9  # a final twist/accel must be zero to within this
+
+_ZERO6 = np.zeros(6)
+_ZERO6.setflags(write=False)
+
+# Quintic Hermite on [0, 1]: (y0, v0, a0, y1, v1, a1) -> coefficients c0..c5 of τ^j.
+_HERMITE = np.array(
+    [
+        [1.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+        [0.0, 1.0, 0.0, 0.0, 0.0, 0.0],
+        [0.0, 0.0, 0.5, 0.0, 0.0, 0.0],
+        [-10.0, -6.0, -1.5, 10.0, -4.0, 0.5],
+        [15.0, 8.0, 1.5, -15.0, 7.0, -1.0],
+        [-6.0, -3.0, -0.5, 6.0, -3.0, 0.5],
+    ]
+)
+# ∫₀¹ jerk² dτ as a quadratic form in (c3, c4, c5), then in the Hermite knot data
+_JERK_GRAM = np.array([[36.0, 72.0, 120.0], [72.0, 192.0, 360.0], [120.0, 360.0, 720.0]])
+_JERK_COST = _HERMITE[3:].T @ _JERK_GRAM @ _HERMITE[3:]
+
+
+class TrajectoryError(ValueError):
+    """A trajectory was rejected: which waypoint (or None), which limit, which value.
+
+    `limit` is a short name such as "times_increasing", "linear_speed", "cable_length",
+    "wrench_set", "unit_quaternion", "finite", "schema"; `field` names the offending
+    input key (e.g. "waypoints[3].quaternion") where there is one.
+    """
+
+    def __init__(
+        self,
+        limit: str,
+        detail: str,
+        *,
+        waypoint: int | None = None,
+        value: float | None = None,
+        field: str | None = None,
+    ) -> None:
+        self.limit = limit
+        self.waypoint = waypoint
+        self.value = value
+        self.field = field
+        prefix = "" if waypoint is None else f"waypoint {waypoint}: "
+        super().__init__(f"{prefix}{limit}: {detail}")
+
+
+@dataclass(frozen=True, eq=False, slots=True)
+class Waypoint:
+    """A pose to be at at time t (s); optionally the twist (v, ω) and accel there.
+
+    A twist or accel left None is chosen by the trajectory (minimum jerk); at the first
+    waypoint None means at rest, and the last waypoint is always at rest.
+    """
+
+    t: float
+    pose: Pose
+    twist: Array | None = None
+    accel: Array | None = None
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "t", float(self.t))
+        for name in ("twist", "accel"):
+            raw = getattr(self, name)
+            if raw is not None:
+                arr = np.array(raw, dtype=float)
+                if arr.shape != (6,):
+                    raise TrajectoryError("schema", f"{name} must have 6 components (v, ω)")
+                arr.setflags(write=False)
+                object.__setattr__(self, name, arr)
+
+
+class Reference(NamedTuple):
+    """The requested state at one instant: pose η_r, twist φ_r (6,), accel α_r (6,)."""
+
+    pose: Pose
+    twist: Array
+    accel: Array
+
+
+class Trajectory:
+    """A C² reference through >= 2 waypoints; `sample(t)` once per control cycle.
+
+    Before the first waypoint the reference is the first pose at rest, after the last
+    one the last pose at rest (the last waypoint must be at rest, so this is no jump).
+    Interior waypoint twists (and accels) are honoured exactly; the rates left free
+    minimise the integrated squared jerk.  Consecutive orientations are joined along
+    the shorter rotation (< π): add waypoints for larger turns.
+    """
+
+    def __init__(self, waypoints: Sequence[Waypoint]) -> None:
+        wps = tuple(waypoints)
+        _check_waypoints(wps)
+        times = np.array([w.t for w in wps])
+        poses = [w.pose for w in wps]
+        with np.errstate(all="ignore"):
+            steps = np.array([liediff(a, b) for a, b in pairwise(poses)])
+            values = np.zeros((len(wps), 6))
+            values[:, :3] = [p.position for p in poses]
+            values[1:, 3:] = np.cumsum(steps[:, 3:], axis=0)
+            twists, accels = _knot_rates(times, values, wps)
+            tables = np.array(
+                [
+                    segment_table(
+                        poses[k],
+                        twists[k],
+                        accels[k],
+                        twists[k + 1],
+                        accels[k + 1],
+                        steps[k],
+                        times[k + 1] - times[k],
+                    )
+                    for k in range(len(wps) - 1)
+                ]
+            )
+        if not (np.all(np.isfinite(tables)) and np.all(np.isfinite(twists))):
+            raise TrajectoryError(
+                "finite", "the curve through these waypoints is not finite (values too large?)"
+            )
+        self._waypoints = wps
+        self._times: list[float] = times.tolist()
+        self._tables = tables
+        self._quats = [tuple(p.quaternion.tolist()) for p in poses]
+        self._rates = (twists, accels)
+        self._set_ends()
+
+    def _set_ends(self) -> None:
+        self._before = Reference(self._waypoints[0].pose, _ZERO6, _ZERO6)
+        self._after = Reference(self._waypoints[-1].pose, _ZERO6, _ZERO6)
+
+    @property
+    def waypoints(self) -> tuple[Waypoint, ...]:
+        """The waypoints as given."""
+        return self._waypoints
+
+    @property
+    def knots(self) -> tuple[Waypoint, ...]:
+        """The waypoints with the twist and accel the trajectory has there (all set)."""
+        twists, accels = self._rates
+        return tuple(
+            Waypoint(w.t, w.pose, twists[k], accels[k]) for k, w in enumerate(self._waypoints)
+        )
+
+    @property
+    def start_time(self) -> float:
+        """Time of the first waypoint (s)."""
+        return self._times[0]
+
+    @property
+    def end_time(self) -> float:
+        """Time of the last waypoint (s); the last pose is held from then on."""
+        return self._times[-1]
+
+    @property
+    def duration(self) -> float:
+        """end_time - start_time (s)."""
+        return self._times[-1] - self._times[0]
+
+    def waypoint_index(self, t: float) -> int:
+        """Index of the waypoint that starts the segment holding t (clipped to the ends)."""
+        return min(max(bisect_right(self._times, t) - 1, 0), len(self._times) - 1)
+
+    def sample(self, t: float) -> Reference:
+        """(η_r, φ_r, α_r) at time t: evaluates only the segment holding t."""
+        times = self._times
+        if t >= times[-1]:
+            return self._after
+        if t >= times[0]:
+            k = bisect_right(times, t) - 1
+            return evaluate_segment(self._tables[k], self._quats[k], t - times[k])
+        if t < times[0]:
+            return self._before
+        raise ValueError(f"sample time must be a number, got {t!r}")
+
+    def shifted(self, dt: float) -> Trajectory:
+        """The same trajectory with every time moved by dt (e.g. to start "now")."""
+        dt = float(dt)
+        if not math.isfinite(dt):
+            raise ValueError(f"time shift must be finite, got {dt!r}")
+        out = Trajectory.__new__(Trajectory)
+        out._waypoints = tuple(
+            Waypoint(w.t + dt, w.pose, w.twist, w.accel) for w in self._waypoints
+        )
+        out._times = [w.t for w in out._waypoints]
+        out._tables, out._quats, out._rates = self._tables, self._quats, self._rates
+        out._set_ends()
+        return out
+
+    def as_dict(self) -> dict:
+        """Interface form (JSON / YAML ready), the inverse of parse_trajectory."""
+        out = []
+        for w in self._waypoints:
+            item = {"t": w.t, **w.pose.as_dict()}
+            for name in ("twist", "accel"):
+                vec = getattr(w, name)
+                if vec is not None:
+                    item[name] = {"linear": vec[:3].tolist(), "angular": vec[3:].tolist()}
+            out.append(item)
+        return {"version": SCHEMA_VERSION, "waypoints": out}
+
+    def __repr__(self) -> str:
+        return (
+            f"Trajectory({len(self._times)} waypoints, t = {self.start_time:.6g} .. "
+            f"{self.end_time:.6g} s)"
+        )
+
+
+def _check_waypoints(wps: tuple[Waypoint, ...]) -> None:
+    """Count, types, finite and increasing times, sane magnitudes, rest at the end.
+
+    The bounds on |t| and on the magnitudes keep every spline coefficient and every
+    sample of an accepted trajectory finite.
+    """
+    if len(wps) < 2:
+        raise TrajectoryError(
+            "min_waypoints", f"a trajectory needs at least 2 waypoints, got {len(wps)}"
+        )
+    previous = -math.inf
+    for i, w in enumerate(wps):
+        if not isinstance(w, Waypoint):
+            raise TrajectoryError(
+                "schema", f"expected a Waypoint, got {type(w).__name__}", waypoint=i
+            )
+        if not abs(w.t) <= MAX_TIME:
+            raise TrajectoryError(
+                "finite",
+                f"t = {w.t!r} s is not a finite time within ±{MAX_TIME:g} s",
+                waypoint=i,
+                value=w.t,
+                field=f"waypoints[{i}].t",
+            )
+        if not w.t >= previous + MIN_SEGMENT:
+            raise TrajectoryError(
+                "times_increasing",
+                f"t = {w.t:.9g} s must exceed the previous waypoint's {previous:.9g} s "
+                f"by at least {MIN_SEGMENT:g} s",
+                waypoint=i,
+                value=w.t,
+                field=f"waypoints[{i}].t",
+            )
+        previous = w.t
+        for name, vec in (("position", w.pose.position), ("twist", w.twist), ("accel", w.accel)):
+            if vec is not None and not np.all(np.abs(vec) <= MAX_MAGNITUDE):
+                raise TrajectoryError(
+                    "finite",
+                    f"{name} {vec.tolist()} is not finite within ±{MAX_MAGNITUDE:g}",
+                    waypoint=i,
+                    value=float(np.max(np.abs(vec))),
+                    field=f"waypoints[{i}].{name}",
+                )
+    last = wps[-1]
+    for name in ("twist", "accel"):
+        vec = getattr(last, name)
+        if vec is not None and not np.all(np.abs(vec) <= _REST_TOLERANCE):
+            size = float(np.linalg.norm(vec))
+            raise TrajectoryError(
+                "end_at_rest",
+                f"the last waypoint's {name} has norm {size:.6g}; a trajectory must end at "
+                "rest (it then holds the last pose)",
+                waypoint=len(wps) - 1,
+                value=size,
+                field=f"waypoints[{len(wps) - 1}].{name}",
+            )
+
+
+def _knot_rates(times: Array, values: Array, wps: tuple[Waypoint, ...]) -> tuple[Array, Array]:
+    """Knot rates (n, 6) and accelerations (n, 6) of minimum integrated squared jerk.
+
+    `values` holds positions and cumulative rotation vectors at the knots.  Given rates
+    are kept; the first knot defaults to rest, the last is at rest.  Unknowns are
+    (v_k, a_k) per knot; each segment adds its quintic Hermite jerk cost, so the normal
+    equations are banded and symmetric positive definite in the free unknowns.
+    """
+    n = len(times)
+    known = np.zeros((2 * n, 6))
+    free = np.zeros(2 * n, dtype=bool)
+    for k, w in enumerate(wps):
+        for j, vec in enumerate((w.twist, w.accel)):
+            if vec is not None:
+                known[2 * k + j] = vec
+            elif 0 < k < n - 1:
+                free[2 * k + j] = True
+    if free.any():
+        h = np.diff(times)
+        m = n - 1
+        one = np.ones(m)
+        scale = np.stack([one, h, h * h, one, h, h * h], axis=1)
+        cost = _JERK_COST * scale[:, :, None] * scale[:, None, :] / (h**5)[:, None, None]
+        seg = np.arange(m)[:, None]
+        u_idx = 2 * seg + np.arange(4)  # (v_k, a_k, v_k+1, a_k+1)
+        p_idx = seg + np.arange(2)  # (y_k, y_k+1)
+        slots, pslots = [1, 2, 4, 5], [0, 3]
+
+        def assemble(col_idx: Array, col_slots: list[int], shape: tuple[int, int]) -> csr_matrix:
+            block = cost[:, slots][:, :, col_slots]
+            rows = np.broadcast_to(u_idx[:, :, None], block.shape).ravel()
+            cols = np.broadcast_to(col_idx[:, None, :], block.shape).ravel()
+            return coo_matrix((block.ravel(), (rows, cols)), shape=shape).tocsr()
+
+        H = assemble(u_idx, slots, (2 * n, 2 * n))
+        rhs = -(assemble(p_idx, pslots, (2 * n, n)) @ values)
+        rhs = rhs[free] - H[free][:, ~free] @ known[~free]
+        H_ff = H[free][:, free]
+        d = 1.0 / np.sqrt(H_ff.diagonal())  # Jacobi scaling: segment lengths may differ a lot
+        D = diags(d)
+        known[free] = d[:, None] * spsolve((D @ H_ff @ D).tocsc(), d[:, None] * rhs).reshape(-1, 6)
+    return known[0::2], known[1::2]
+
+
+def segment_table(
+    pose0: Pose,
+    twist0: Array,
+    accel0: Array,
+    twist1: Array,
+    accel1: Array,
+    step: Array,
+    h: float,
+) -> Array:
+    """Coefficients (6 powers of τ x [p, θ]) of one segment between two knot states.
+
+    `step` = liediff(pose0, pose1).  θ̇ and θ̈ at the end follow from ω = J_l(θ) θ̇ and
+    ω̇ = J_l θ̈ + J̇_l θ̇ at θ = step; at the start θ = 0, so θ̇ = ω and θ̈ = ω̇ there.
+    """
+    delta = step[3:]
+    J = left_jacobian(delta)
+    theta_dot1 = np.linalg.solve(J, twist1[3:])
+    _, jdot_thetadot = angular_rates(delta.tolist(), theta_dot1.tolist(), [0.0, 0.0, 0.0])
+    theta_ddot1 = np.linalg.solve(J, accel1[3:] - np.array(jdot_thetadot))
+    p0 = pose0.position
+    y0 = np.concatenate([p0, np.zeros(3)])
+    y1 = np.concatenate([p0 + step[:3], delta])
+    v1 = np.concatenate([twist1[:3], theta_dot1])
+    a1 = np.concatenate([accel1[:3], theta_ddot1])
+    return _hermite_coefficients(y0, twist0, accel0, y1, v1, a1, h)
+
+
+def _hermite_coefficients(
+    y0: ArrayLike,
+    v0: ArrayLike,
+    a0: ArrayLike,
+    y1: ArrayLike,
+    v1: ArrayLike,
+    a1: ArrayLike,
+    h: float,
+) -> Array:
+    """Coefficients c_j of τ^j (rows) of the quintic with value, rate, accel at τ = 0, h."""
+    data = np.array(
+        [
+            y0,
+            np.multiply(v0, h),
+            np.multiply(a0, h * h),
+            y1,
+            np.multiply(v1, h),
+            np.multiply(a1, h * h),
+        ]
+    )
+    return (_HERMITE @ data) / (h ** np.arange(6.0))[:, None]
+
+
+def evaluate_segment(table: Array, q0: tuple[float, ...], tau: float) -> Reference:
+    """The reference at τ seconds into a segment (coefficients `table`, start rotation q0)."""
+    t2 = tau * tau
+    t3 = t2 * tau
+    basis = np.array(
+        (
+            (1.0, tau, t2, t3, t3 * tau, t3 * t2),
+            (0.0, 1.0, 2.0 * tau, 3.0 * t2, 4.0 * t3, 5.0 * t3 * tau),
+            (0.0, 0.0, 2.0, 6.0 * tau, 12.0 * t2, 20.0 * t3),
+        )
+    )
+    x, v, a = (basis @ table).tolist()
+    q = rotate_quat_by_rotvec(q0, x[3], x[4], x[5])
+    omega, omega_dot = angular_rates(x[3:], v[3:], a[3:])
+    return Reference(
+        Pose._from_unit(x[:3], q), np.array(v[:3] + omega), np.array(a[:3] + omega_dot)
+    )

@@ -1,0 +1,134 @@
+"""Jump-free transitions from the current reference: `goto` a pose, `approach` a trajectory.
+
+Both are one quintic Hermite segment between two states (pose, twist, accel), the same
+segment every Trajectory is made of, so the reference stays C² across the joints.  From
+rest to rest the segment is the minimum-jerk profile along the straight line and the
+geodesic, and its duration has a closed form; otherwise the shortest duration whose
+sampled speeds and accelerations respect the limits is searched for.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from cdpr.pose import Pose, liediff
+from cdpr.trajectory.core import (
+    Reference,
+    Trajectory,
+    TrajectoryError,
+    Waypoint,
+    evaluate_segment,
+    segment_table,
+)
+from cdpr.trajectory.limits import TrajectoryLimits, rate_violation
+
+MIN_BLEND = 1e-3  # s: the shortest transition (a goto to where the reference already is)
+_PEAK_SPEED = 15.0 / 8.0  # max of s'(τ) for the minimum-jerk s = 10τ³ - 15τ⁴ + 6τ⁵
+_PEAK_ACCEL = 10.0 / math.sqrt(3.0)  # max of |s''(τ)|
+_CHECKS = 128  # samples per candidate duration
+_GROW = 1.25  # candidate durations grow geometrically from a lower bound ...
+_BISECTIONS = 12  # ... then the first feasible one is refined
+_MARGIN = 1.02  # final duration stretch: headroom for peaks between the samples
+
+
+def goto(
+    current: Reference, target: Pose, limits: TrajectoryLimits, start: float = 0.0
+) -> Trajectory:
+    """From the current reference state at time `start` to `target`, arriving at rest."""
+    end = Reference(target, np.zeros(6), np.zeros(6))
+    T = _blend_duration(current, end, limits)
+    first = Waypoint(start, current.pose, current.twist, current.accel)
+    return Trajectory([first, Waypoint(start + T, target)])
+
+
+def approach(
+    current: Reference, trajectory: Trajectory, limits: TrajectoryLimits, start: float | None = None
+) -> Trajectory:
+    """`trajectory` preceded by a blend from the current reference state into its start.
+
+    The blend begins at `start` (default: so that `trajectory` keeps its own times) and
+    the trajectory follows unchanged, shifted to begin where the blend ends.  No blend
+    is added when the current state already is the trajectory's start state.
+    """
+    knots = trajectory.knots
+    end = Reference(knots[0].pose, knots[0].twist, knots[0].accel)
+    if (
+        current.pose == end.pose
+        and np.array_equal(current.twist, end.twist)
+        and np.array_equal(current.accel, end.accel)
+    ):
+        return trajectory if start is None else trajectory.shifted(start - trajectory.start_time)
+    T = _blend_duration(current, end, limits)
+    t0 = trajectory.start_time - T if start is None else start
+    offset = t0 + T - trajectory.start_time
+    return Trajectory(
+        [Waypoint(t0, current.pose, current.twist, current.accel)]
+        + [Waypoint(k.t + offset, k.pose, k.twist, k.accel) for k in knots]
+    )
+
+
+def _blend_duration(s0: Reference, s1: Reference, limits: TrajectoryLimits) -> float:
+    """The shortest duration of the s0 -> s1 segment that keeps the rate limits."""
+    for name, state in (("current reference", s0), ("target state", s1)):
+        bad = rate_violation(state, limits)
+        if bad is not None:
+            limit, value, unit = bad
+            raise TrajectoryError(
+                limit,
+                f"the {name} has {value:.6g} {unit}, above the limit "
+                f"{getattr(limits, limit):g} {unit}",
+                value=value,
+            )
+    step = liediff(s0.pose, s1.pose)
+    if not (np.any(s0.twist) or np.any(s0.accel) or np.any(s1.twist) or np.any(s1.accel)):
+        dist, angle = float(np.linalg.norm(step[:3])), float(np.linalg.norm(step[3:]))
+        span = max(
+            MIN_BLEND,
+            _PEAK_SPEED * dist / limits.linear_speed,
+            math.sqrt(_PEAK_ACCEL * dist / limits.linear_accel),
+            _PEAK_SPEED * angle / limits.angular_speed,
+            math.sqrt(_PEAK_ACCEL * angle / limits.angular_accel),
+        )
+        return span * (1.0 + 1e-9)  # the peaks sit exactly at a limit: keep rounding below it
+    # the mean acceleration |Δv| / span can never exceed the limit: a lower bound on span
+    span = max(
+        MIN_BLEND,
+        float(np.linalg.norm(s1.twist[:3] - s0.twist[:3])) / limits.linear_accel,
+        float(np.linalg.norm(s1.twist[3:] - s0.twist[3:])) / limits.angular_accel,
+    )
+    infeasible = None
+    while (bad := _violation(s0, s1, step, span, limits)) is not None:
+        if span > limits.max_duration:
+            limit, value, unit = bad
+            raise TrajectoryError(
+                limit,
+                f"no transition of up to {limits.max_duration:g} s from the current "
+                f"reference keeps within the limits (at {span:.4g} s: {value:.6g} {unit} above "
+                f"{getattr(limits, limit):g} {unit})",
+                value=value,
+            )
+        infeasible, span = span, span * _GROW
+    if infeasible is not None:
+        lo = infeasible
+        for _ in range(_BISECTIONS):
+            mid = 0.5 * (lo + span)
+            if _violation(s0, s1, step, mid, limits) is None:
+                span = mid
+            else:
+                lo = mid
+    return span * _MARGIN if _violation(s0, s1, step, span * _MARGIN, limits) is None else span
+
+
+def _violation(
+    s0: Reference, s1: Reference, step: np.ndarray, T: float, limits: TrajectoryLimits
+) -> tuple[str, float, str] | None:
+    """The first rate limit the s0 -> s1 segment of duration T exceeds inside, else None."""
+    table = segment_table(s0.pose, s0.twist, s0.accel, s1.twist, s1.accel, step, T)
+    q0 = tuple(s0.pose.quaternion.tolist())
+    for j in range(1, _CHECKS):
+        bad = rate_violation(evaluate_segment(table, q0, T * j / _CHECKS), limits)
+        if bad is not None:
+            return bad
+    return None

@@ -1,0 +1,789 @@
+"""Reference trajectories: the curve, its rates, limits, parsing and transitions."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.interpolate import make_interp_spline
+
+from cdpr import Pose, Robot, liediff
+from cdpr.so3 import exp_so3, vee
+from cdpr.trajectory import (
+    Reference,
+    Trajectory,
+    TrajectoryError,
+    TrajectoryLimits,
+    Waypoint,
+    approach,
+    goto,
+    parse_trajectory,
+    validate,
+)
+from cdpr.trajectory.core import MIN_SEGMENT
+from cdpr.trajectory.rotation import angular_rates, left_jacobian
+from cdpr.trajectory.transitions import MIN_BLEND
+
+LIMITS = TrajectoryLimits()
+HOME = np.array([0.0, 0.0, 1.25])
+ZERO6 = np.zeros(6)
+
+
+def random_waypoints(seed: int, n: int = 6, reach: float = 1.0, tilt: float = 1.5) -> list:
+    """n waypoints 0.5 .. 2 s apart at random positions and orientations."""
+    rng = np.random.default_rng(seed)
+    times = np.cumsum(rng.uniform(0.5, 2.0, n)) - 1.0
+    return [
+        Waypoint(t, Pose.from_rotvec(rng.uniform(-reach, reach, 3), rng.uniform(-tilt, tilt, 3)))
+        for t in times
+    ]
+
+
+def with_interior_twists(waypoints: list, seed: int) -> list:
+    """The same waypoints with a random twist (and at one, an accel) at interior ones."""
+    rng = np.random.default_rng(seed)
+    out = [waypoints[0]]
+    for k, w in enumerate(waypoints[1:-1], start=1):
+        accel = rng.normal(0.0, 0.5, 6) if k == 2 else None
+        out.append(Waypoint(w.t, w.pose, rng.normal(0.0, 0.5, 6), accel))
+    return [*out, waypoints[-1]]
+
+
+def moving_start(waypoints: list, seed: int) -> list:
+    rng = np.random.default_rng(seed)
+    w = waypoints[0]
+    return [Waypoint(w.t, w.pose, rng.normal(0, 0.5, 6), rng.normal(0, 1.0, 6)), *waypoints[1:]]
+
+
+def large_turns() -> list:
+    """Turns of 170 degrees about a different axis in each segment."""
+    axes = np.array([[0.3, -0.5, 0.81], [1.0, 0.0, 0.0], [0.0, 0.6, -0.8]])
+    R = np.eye(3)
+    out = [Waypoint(0.0, Pose(HOME))]
+    for k, axis in enumerate(axes):
+        R = exp_so3(np.deg2rad(170.0) * axis / np.linalg.norm(axis)) @ R
+        out.append(Waypoint(1.5 * (k + 1), Pose.from_matrix(HOME, R)))
+    return out
+
+
+TRAJECTORIES = {
+    "plain": lambda: Trajectory(random_waypoints(1)),
+    "interior_twists": lambda: Trajectory(with_interior_twists(random_waypoints(2), 3)),
+    "moving_start": lambda: Trajectory(moving_start(random_waypoints(4), 5)),
+    # consecutive orientations about 170 degrees apart: log near pi in every segment
+    "large_turns": lambda: Trajectory(large_turns()),
+}
+
+
+@pytest.fixture(params=sorted(TRAJECTORIES))
+def trajectory(request: pytest.FixtureRequest) -> Trajectory:
+    return TRAJECTORIES[request.param]()
+
+
+def inner_times(tr: Trajectory, n: int = 60) -> np.ndarray:
+    """n instants inside the trajectory, off the knots (where the jerk may jump)."""
+    times = tr.start_time + tr.duration * (np.arange(1, n + 1) + 0.37) / (n + 1)
+    knots = np.array([w.t for w in tr.waypoints])
+    assert np.abs(times[:, None] - knots).min() > 1e-3
+    return times
+
+
+def fd_twist(tr: Trajectory, t: float, h: float = 1e-5) -> np.ndarray:
+    return liediff(tr.sample(t - h).pose, tr.sample(t + h).pose) / (2 * h)
+
+
+def fd_accel(tr: Trajectory, t: float, h: float = 1e-4) -> np.ndarray:
+    """Second central difference on the group: (η+ ⊖ η) + (η- ⊖ η) = h² α + O(h⁴)."""
+    mid = tr.sample(t).pose
+    return (liediff(mid, tr.sample(t + h).pose) + liediff(mid, tr.sample(t - h).pose)) / h**2
+
+
+def peak_rates(tr: Trajectory, n: int = 4000) -> dict[str, float]:
+    refs = [tr.sample(t) for t in np.linspace(tr.start_time, tr.end_time, n)]
+    tw = np.array([r.twist for r in refs])
+    ac = np.array([r.accel for r in refs])
+    norm = np.linalg.norm
+    return {
+        "linear_speed": float(norm(tw[:, :3], axis=1).max()),
+        "angular_speed": float(norm(tw[:, 3:], axis=1).max()),
+        "linear_accel": float(norm(ac[:, :3], axis=1).max()),
+        "angular_accel": float(norm(ac[:, 3:], axis=1).max()),
+    }
+
+
+def assert_within(peaks: dict[str, float], limits: TrajectoryLimits) -> None:
+    for name, value in peaks.items():
+        assert value <= getattr(limits, name), (name, value)
+
+
+def assert_same_state(a: Reference, b: Reference, tol: float) -> None:
+    assert np.abs(liediff(a.pose, b.pose)).max() < tol
+    np.testing.assert_allclose(a.twist, b.twist, atol=tol)
+    np.testing.assert_allclose(a.accel, b.accel, atol=tol)
+
+
+# -- the curve ----------------------------------------------------------------------------
+
+
+def test_waypoints_are_interpolated_exactly(trajectory: Trajectory) -> None:
+    for w in trajectory.waypoints:
+        ref = trajectory.sample(w.t)
+        assert np.abs(liediff(ref.pose, w.pose)).max() < 1e-12
+        if w.twist is not None:
+            np.testing.assert_allclose(ref.twist, w.twist, atol=1e-12)
+        if w.accel is not None:
+            np.testing.assert_allclose(ref.accel, w.accel, atol=1e-12)
+
+
+def test_twist_and_accel_match_finite_differences(trajectory: Trajectory) -> None:
+    for t in inner_times(trajectory):
+        ref = trajectory.sample(t)
+        np.testing.assert_allclose(ref.twist, fd_twist(trajectory, t), atol=1e-6)
+        np.testing.assert_allclose(ref.accel, fd_accel(trajectory, t), atol=1e-4)
+
+
+def test_omega_is_the_world_frame_rate(trajectory: Trajectory) -> None:
+    """Ṙ = [ω]× R from differences of rotation matrices; the body rate differs."""
+    h = 1e-6
+    differs = 0.0
+    for t in inner_times(trajectory, 20):
+        R = trajectory.sample(t).pose.rotation
+        R_dot = trajectory.sample(t + h).pose.rotation - trajectory.sample(t - h).pose.rotation
+        R_dot /= 2 * h
+        omega = trajectory.sample(t).twist[3:]
+        np.testing.assert_allclose(vee(R_dot @ R.T), omega, atol=1e-7)
+        differs = max(differs, float(np.abs(vee(R.T @ R_dot) - omega).max()))
+    assert differs > 0.1  # the test would notice a body-frame omega
+
+
+def test_omega_dot_is_the_derivative_of_the_world_rate(trajectory: Trajectory) -> None:
+    h = 1e-5
+    for t in inner_times(trajectory, 20):
+        fd = (trajectory.sample(t + h).twist - trajectory.sample(t - h).twist) / (2 * h)
+        np.testing.assert_allclose(trajectory.sample(t).accel, fd, atol=1e-5)
+
+
+def test_c2_across_knots(trajectory: Trajectory) -> None:
+    for w in trajectory.waypoints[1:-1]:
+        left = trajectory.sample(math.nextafter(w.t, -math.inf))
+        right = trajectory.sample(w.t)
+        assert_same_state(left, right, 1e-9)
+        # and just around it, the acceleration moves by no more than jerk * time
+        eps = 1e-7
+        jump = trajectory.sample(w.t + eps).accel - trajectory.sample(w.t - eps).accel
+        assert np.abs(jump).max() < 1e-3
+
+
+def test_rest_at_both_ends_and_hold_after_the_end() -> None:
+    tr = Trajectory(random_waypoints(7))
+    first, last = tr.waypoints[0], tr.waypoints[-1]
+    for t in (tr.start_time, tr.end_time, tr.end_time + 5.0, 1e12):
+        ref = tr.sample(t)
+        assert not ref.twist.any() and not ref.accel.any()
+    for t in (tr.start_time - 1.0, -1e12):
+        ref = tr.sample(t)
+        assert ref.pose == first.pose and not ref.twist.any() and not ref.accel.any()
+    assert tr.sample(tr.end_time + 3.0).pose == last.pose
+    # no jump arriving at the end: the state just before the end is the last pose at rest
+    just_before = tr.sample(math.nextafter(tr.end_time, 0.0))
+    assert_same_state(just_before, Reference(last.pose, ZERO6, ZERO6), 1e-9)
+    just_after = tr.sample(math.nextafter(tr.start_time, tr.end_time))
+    assert_same_state(just_after, Reference(first.pose, ZERO6, ZERO6), 1e-9)
+    with pytest.raises(ValueError, match="number"):
+        tr.sample(float("nan"))
+
+
+def test_positions_are_the_quintic_interpolating_spline() -> None:
+    """Minimum jerk with no interior twists is the C⁴ quintic spline through the points."""
+    wps = random_waypoints(8, n=9)
+    tr = Trajectory(wps)
+    times = [w.t for w in wps]
+    rest = [(1, np.zeros(3)), (2, np.zeros(3))]
+    spline = make_interp_spline(times, [w.pose.position for w in wps], k=5, bc_type=(rest, rest))
+    for t in np.linspace(times[0], times[-1], 200):
+        ref = tr.sample(t)
+        np.testing.assert_allclose(ref.pose.position, spline(t), atol=1e-12)
+        np.testing.assert_allclose(ref.twist[:3], spline(t, 1), atol=1e-11)
+        np.testing.assert_allclose(ref.accel[:3], spline(t, 2), atol=1e-10)
+
+
+def test_single_axis_rotation_is_the_quintic_spline_of_the_angle() -> None:
+    """About one fixed axis, rotations commute: ω is the spline of the angle's rate."""
+    axis = np.array([1.0, 2.0, -2.0]) / 3.0
+    times, angles = [0.0, 1.0, 2.5, 3.0, 4.2], [0.0, 1.0, -0.5, 0.3, 2.0]
+    tr = Trajectory(
+        [Waypoint(t, Pose.from_rotvec(HOME, a * axis)) for t, a in zip(times, angles, strict=True)]
+    )
+    rest = [(1, 0.0), (2, 0.0)]
+    spline = make_interp_spline(times, angles, k=5, bc_type=(rest, rest))
+    for t in np.linspace(0.0, 4.2, 50):
+        ref = tr.sample(t)
+        np.testing.assert_allclose(ref.pose.rotation, exp_so3(spline(t) * axis), atol=1e-12)
+        np.testing.assert_allclose(ref.twist[3:], spline(t, 1) * axis, atol=1e-11)
+        np.testing.assert_allclose(ref.accel[3:], spline(t, 2) * axis, atol=1e-10)
+
+
+def test_shifted_moves_every_time() -> None:
+    tr = Trajectory(with_interior_twists(random_waypoints(9), 10))
+    moved = tr.shifted(100.25)
+    assert moved.start_time == tr.start_time + 100.25 and moved.duration == pytest.approx(
+        tr.duration
+    )
+    assert [w.t for w in moved.waypoints] == [w.t + 100.25 for w in tr.waypoints]
+    for t in inner_times(tr, 15):
+        assert_same_state(moved.sample(t + 100.25), tr.sample(t), 1e-9)
+
+
+def test_knots_hold_the_full_state() -> None:
+    tr = Trajectory(random_waypoints(11))
+    for knot in tr.knots:
+        ref = tr.sample(knot.t)
+        np.testing.assert_allclose(knot.twist, ref.twist, atol=1e-12)
+        np.testing.assert_allclose(knot.accel, ref.accel, atol=1e-12)
+    # rebuilding from the full knot states reproduces the curve
+    again = Trajectory(tr.knots)
+    for t in inner_times(tr, 15):
+        assert_same_state(again.sample(t), tr.sample(t), 1e-10)
+
+
+def test_left_jacobian_is_the_derivative_of_exp() -> None:
+    """exp(θ + ε δ) exp(θ)ᵀ ≈ exp(ε J_l(θ) δ), across the series/closed-form switch."""
+    rng = np.random.default_rng(12)
+    for size in (0.0, 1e-6, 0.19999, 0.2, 0.20001, 1.0, 3.1, 5.0):
+        theta = size * np.array([0.6, -0.8, 0.0])
+        delta = rng.normal(size=3)
+        eps = 1e-6
+        R_dot = (exp_so3(theta + eps * delta) - exp_so3(theta - eps * delta)) / (2 * eps)
+        J = left_jacobian(theta)
+        np.testing.assert_allclose(vee(R_dot @ exp_so3(theta).T), J @ delta, atol=1e-8)
+        # ω̇ = J θ̈ + J̇ θ̇: J̇ θ̇ against a difference of J along θ + t θ̇
+        dot = rng.normal(size=3)
+        J_dot = (left_jacobian(theta + eps * dot) - left_jacobian(theta - eps * dot)) / (2 * eps)
+        _, omega_dot = angular_rates(theta, dot, [0.0, 0.0, 0.0])
+        np.testing.assert_allclose(omega_dot, J_dot @ dot, atol=1e-8)
+
+
+# -- construction errors ------------------------------------------------------------------
+
+
+def test_times_must_increase() -> None:
+    wps = random_waypoints(13)
+    bad = [*wps[:3], Waypoint(wps[2].t, wps[3].pose), *wps[4:]]
+    with pytest.raises(TrajectoryError) as info:
+        Trajectory(bad)
+    err = info.value
+    assert (err.waypoint, err.limit, err.value) == (3, "times_increasing", wps[2].t)
+    assert str(err).startswith("waypoint 3: times_increasing")
+    with pytest.raises(TrajectoryError, match="times_increasing"):
+        Trajectory([wps[0], Waypoint(wps[0].t + MIN_SEGMENT / 2, wps[1].pose)])
+
+
+def test_a_trajectory_needs_two_waypoints_and_must_end_at_rest() -> None:
+    wps = random_waypoints(14, n=3)
+    with pytest.raises(TrajectoryError) as info:
+        Trajectory(wps[:1])
+    assert info.value.limit == "min_waypoints"
+    moving_end = [*wps[:2], Waypoint(wps[2].t, wps[2].pose, [0.0, 0.1, 0.0, 0.0, 0.0, 0.0])]
+    with pytest.raises(TrajectoryError) as info:
+        Trajectory(moving_end)
+    assert (info.value.waypoint, info.value.limit) == (2, "end_at_rest")
+    assert info.value.value == pytest.approx(0.1)
+    # an explicit zero twist at the end is fine
+    Trajectory([*wps[:2], Waypoint(wps[2].t, wps[2].pose, ZERO6, ZERO6)])
+
+
+def test_non_finite_rates_and_times_are_rejected() -> None:
+    wps = random_waypoints(15, n=3)
+    twist = np.array([0.0, np.nan, 0.0, 0.0, 0.0, 0.0])
+    with pytest.raises(TrajectoryError) as info:
+        Trajectory([wps[0], Waypoint(wps[1].t, wps[1].pose, twist), wps[2]])
+    assert (info.value.waypoint, info.value.limit, info.value.field) == (
+        1,
+        "finite",
+        "waypoints[1].twist",
+    )
+    with pytest.raises(TrajectoryError) as info:
+        Trajectory([wps[0], Waypoint(math.inf, wps[1].pose)])
+    assert (info.value.waypoint, info.value.limit) == (1, "finite")
+
+
+# -- the interface form -------------------------------------------------------------------
+
+
+def doc(*waypoints: dict, **extra: object) -> dict:
+    return {"waypoints": list(waypoints), **extra}
+
+
+def wp(t: float, x: float = 0.0, **extra: object) -> dict:
+    return {
+        "t": t,
+        "position": [x, 0.0, 1.25],
+        "quaternion": {"w": 1.0, "x": 0.0, "y": 0.0, "z": 0.0},
+        **extra,
+    }
+
+
+def rejected(data: object, limits: TrajectoryLimits = LIMITS) -> TrajectoryError:
+    with pytest.raises(TrajectoryError) as info:
+        parse_trajectory(data, limits)
+    return info.value
+
+
+def test_parse_round_trips_as_dict() -> None:
+    tr = Trajectory(moving_start(with_interior_twists(random_waypoints(16), 17), 18))
+    data = tr.as_dict()
+    assert data["version"] == 1 and set(data["waypoints"][0]["quaternion"]) == set("wxyz")
+    again = parse_trajectory(data)
+    for t in inner_times(tr, 20):
+        assert_same_state(again.sample(t), tr.sample(t), 1e-9)
+
+
+def test_parse_accepts_position_objects_and_normalises_near_unit_quaternions() -> None:
+    q = {"w": 1.0 + 5e-7, "x": 0.0, "y": 0.0, "z": 0.0}
+    tr = parse_trajectory(
+        doc(
+            {"t": 0.0, "position": {"x": 0.0, "y": 0.0, "z": 1.25}, "quaternion": q},
+            wp(2.0, 0.1, twist={"linear": [0, 0, 0], "angular": {"x": 0, "y": 0, "z": 0}}),
+            version=1,
+        )
+    )
+    assert tr.waypoints[0].pose.quaternion.tolist() == [1.0, 0.0, 0.0, 0.0]
+    assert tr.sample(2.0).pose.position.tolist() == [0.1, 0.0, 1.25]
+
+
+def test_parse_rejects_a_non_unit_quaternion() -> None:
+    bad = wp(1.0, 0.1)
+    bad["quaternion"] = {"w": 0.9, "x": 0.0, "y": 0.0, "z": 0.0}
+    err = rejected(doc(wp(0.0), bad))
+    assert (err.waypoint, err.limit, err.field) == (1, "unit_quaternion", "waypoints[1].quaternion")
+    assert err.value == pytest.approx(0.9)
+    assert "waypoint 1" in str(err) and "0.9" in str(err)
+    # within a looser configured tolerance it is normalised instead
+    bad["quaternion"] = {"w": 0.0, "x": 0.0, "y": 0.0, "z": 1.005}
+    assert rejected(doc(wp(0.0), bad)).limit == "unit_quaternion"
+    tr = parse_trajectory(doc(wp(0.0), bad), TrajectoryLimits(unit_tolerance=0.01))
+    assert tr.waypoints[1].pose.quaternion.tolist() == [0.0, 0.0, 0.0, 1.0]
+
+
+def test_parse_rejects_nan_with_the_waypoint_and_field() -> None:
+    bad = wp(1.0)
+    bad["position"] = [0.0, float("nan"), 1.25]
+    err = rejected(doc(wp(0.0), wp(0.5), bad))
+    assert (err.waypoint, err.limit, err.field) == (2, "finite", "waypoints[2].position[1]")
+    assert math.isnan(err.value) and "nan" in str(err)
+
+
+def test_parse_rejects_non_increasing_times() -> None:
+    err = rejected(doc(wp(0.0), wp(1.0, 0.1), wp(1.0, 0.2)))
+    assert (err.waypoint, err.limit, err.value) == (2, "times_increasing", 1.0)
+
+
+def test_parse_rejects_too_many_waypoints() -> None:
+    limits = TrajectoryLimits(max_waypoints=5)
+    err = rejected(doc(*(wp(float(i)) for i in range(6))), limits)
+    assert (err.limit, err.value) == ("max_waypoints", 6.0)
+    assert "6 waypoints exceed the limit of 5" in str(err)
+    parse_trajectory(doc(*(wp(float(i)) for i in range(5))), limits)
+
+
+@pytest.mark.parametrize(
+    ("mutate", "limit", "field"),
+    [
+        (lambda w: w.update(speed=1.0), "schema", "waypoints[1]"),
+        (lambda w: w.pop("t"), "schema", "waypoints[1].t"),
+        (lambda w: w.update(t="1.0"), "schema", "waypoints[1].t"),
+        (lambda w: w.update(t=True), "schema", "waypoints[1].t"),
+        (lambda w: w.update(t=10**400), "finite", "waypoints[1].t"),
+        (lambda w: w.update(t=1e12), "finite", "waypoints[1].t"),
+        (lambda w: w.update(position=[0.0, 1.25]), "schema", "waypoints[1].position"),
+        (lambda w: w.update(position=[0.0, 1e7, 1.25]), "finite", "waypoints[1].position"),
+        (lambda w: w.update(quaternion=[1.0, 0.0, 0.0, 0.0]), "schema", "waypoints[1].quaternion"),
+        (lambda w: w["quaternion"].pop("z"), "schema", "waypoints[1].quaternion.z"),
+        (lambda w: w.update(twist=[0.0] * 6), "schema", "waypoints[1]"),
+        (lambda w: w.update(twist={"linear": [0, 0, 0]}), "schema", "waypoints[1].twist.angular"),
+    ],
+)
+def test_parse_rejects_malformed_waypoints(mutate, limit: str, field: str) -> None:
+    bad = wp(1.0, 0.1)
+    mutate(bad)
+    err = rejected(doc(wp(0.0), bad, wp(2.0)))
+    assert (err.waypoint, err.limit) == (1, limit)
+    assert err.field is not None and err.field.startswith(field)
+
+
+@pytest.mark.parametrize(
+    "data", [None, [], "waypoints", {"waypoints": {}}, {"waypoints": []}, {"wp": []}]
+)
+def test_parse_rejects_malformed_documents(data: object) -> None:
+    assert rejected(data).limit in {"schema", "min_waypoints"}
+
+
+def test_parse_rejects_an_unknown_version() -> None:
+    assert rejected(doc(wp(0.0), wp(1.0), version=2)).field == "version"
+
+
+JSON_SCALARS = (
+    st.none()
+    | st.booleans()
+    | st.integers()
+    | st.integers(min_value=-(10**400), max_value=10**400)
+    | st.floats()
+    | st.text(max_size=4)
+)
+JSON = st.recursive(
+    JSON_SCALARS,
+    lambda inner: (
+        st.lists(inner, max_size=4) | st.dictionaries(st.text(max_size=6), inner, max_size=4)
+    ),
+    max_leaves=12,
+)
+NUMBER = st.floats() | st.integers(min_value=-(10**400), max_value=10**400) | JSON_SCALARS
+VEC3 = st.lists(NUMBER, min_size=2, max_size=4) | st.fixed_dictionaries(
+    {"x": NUMBER, "y": NUMBER, "z": NUMBER}
+)
+NEAR_VALID_WAYPOINT = st.dictionaries(
+    st.sampled_from(["t", "position", "quaternion", "twist", "accel", "w"]),
+    st.one_of(
+        NUMBER,
+        VEC3,
+        st.fixed_dictionaries({"w": NUMBER, "x": NUMBER, "y": NUMBER, "z": NUMBER}),
+        st.fixed_dictionaries({"linear": VEC3, "angular": VEC3}),
+        JSON,
+    ),
+)
+GOOD_WAYPOINT = st.builds(
+    lambda t, x, q: wp(t, x) | {"quaternion": dict(zip("wxyz", q, strict=True))},
+    st.floats(-1e10, 1e10) | st.integers(-5, 5),
+    st.floats(-2, 2),
+    st.sampled_from([(1.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0), (0.5, 0.5, 0.5, 0.5)]),
+)
+
+
+def _well_formed(rows: list) -> dict:
+    t, out = 0.0, []
+    for gap, x, q, twist in rows:
+        t += gap
+        item = wp(t, x) | {"quaternion": dict(zip("wxyz", q, strict=True))}
+        if twist is not None:
+            item["twist"] = {"linear": twist[:3], "angular": twist[3:]}
+        out.append(item)
+    return {"waypoints": out}
+
+
+# well-formed documents with extreme but legal numbers: tiny and huge gaps, big rates
+WELL_FORMED = st.lists(
+    st.tuples(
+        st.floats(MIN_SEGMENT, 1e8),
+        st.floats(-1e6, 1e6),
+        st.sampled_from([(1.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0), (0.5, -0.5, 0.5, 0.5)]),
+        st.none() | st.lists(st.floats(-1e6, 1e6), min_size=6, max_size=6),
+    ),
+    min_size=2,
+    max_size=6,
+).map(_well_formed)
+
+
+@settings(max_examples=500)
+@given(
+    st.one_of(
+        JSON,
+        st.fixed_dictionaries({"waypoints": st.lists(NEAR_VALID_WAYPOINT, max_size=4)}),
+        st.fixed_dictionaries(
+            {"waypoints": st.lists(GOOD_WAYPOINT | NEAR_VALID_WAYPOINT, max_size=5)},
+            optional={"version": JSON_SCALARS},
+        ),
+        WELL_FORMED,
+    )
+)
+def test_hostile_input_raises_only_trajectory_error(data: object) -> None:
+    try:
+        tr = parse_trajectory(data)
+    except TrajectoryError as err:
+        assert err.limit and str(err)
+        return
+    # whatever was accepted samples to finite values everywhere
+    for t in np.linspace(tr.start_time, tr.end_time, 7):
+        ref = tr.sample(float(t))
+        assert np.all(np.isfinite(ref.pose.position)) and np.all(np.isfinite(ref.twist))
+        assert np.all(np.isfinite(ref.accel))
+
+
+# -- validation against limits, cable lengths and the wrench set --------------------------
+
+
+def line(
+    robot: Robot, times: list[float], xs: list[float], rotvecs: list | None = None, stop=False
+) -> Trajectory:
+    """Along x from home; with stop=True the robot rests at every waypoint, so each
+    segment is a separate rest-to-rest move and its peaks stay in it."""
+    rotvecs = rotvecs or [(0.0, 0.0, 0.0)] * len(times)
+    rest = ZERO6 if stop else None
+    return Trajectory(
+        [
+            Waypoint(
+                t, Pose.from_rotvec(robot.home.position + np.array([x, 0.0, 0.0]), rv), rest, rest
+            )
+            for t, x, rv in zip(times, xs, rotvecs, strict=True)
+        ]
+    )
+
+
+def rejected_by_validate(tr: Trajectory, robot: Robot, limits=LIMITS, **kw) -> TrajectoryError:
+    with pytest.raises(TrajectoryError) as info:
+        validate(tr, robot, limits, **kw)
+    return info.value
+
+
+def test_a_gentle_trajectory_passes(reference8: Robot) -> None:
+    tr = line(reference8, [0.0, 2.0, 4.0, 6.0], [0.0, 0.2, -0.1, 0.0])
+    calls = []
+
+    def in_w(pose: Pose, twist: np.ndarray, accel: np.ndarray) -> None:
+        assert isinstance(pose, Pose) and twist.shape == accel.shape == (6,)
+        calls.append(pose)
+
+    assert validate(tr, reference8, LIMITS, in_w) is None
+    assert len(calls) >= 600  # every 10 ms over 6 s
+
+
+def test_speed_limit_names_the_segment(reference8: Robot) -> None:
+    # slow, slow, then 0.5 m in 0.5 s in the segment that starts at waypoint 3
+    tr = line(reference8, [0.0, 2.0, 4.0, 6.0, 6.5, 9.0], [0.0, 0.02, 0.04, 0.06, 0.56, 0.56])
+    err = rejected_by_validate(tr, reference8)
+    assert (err.waypoint, err.limit) == (3, "linear_speed")
+    assert err.value > LIMITS.linear_speed and f"{err.value:.6g} m/s" in str(err)
+    assert str(err).startswith("waypoint 3: linear_speed:") and "at t=6." in str(err)
+
+
+def test_accel_limit(reference8: Robot) -> None:
+    # 0.3 m in 1 s from rest to rest: peak 10/sqrt(3) * 0.3 = 1.73 m/s² in segment 1
+    tr = line(reference8, [0.0, 2.0, 3.0, 5.0], [0.0, 0.02, 0.32, 0.32], stop=True)
+    err = rejected_by_validate(tr, reference8, TrajectoryLimits(linear_accel=1.5))
+    assert (err.waypoint, err.limit) == (1, "linear_accel")
+    assert 1.5 < err.value <= 10 / math.sqrt(3) * 0.3 + 1e-12
+
+
+def test_angular_limits(reference8: Robot) -> None:
+    # 0.6 rad in 2 s from rest: peaks 15/8 * 0.3 = 0.5625 rad/s, 10/sqrt(3) * 0.15 rad/s²
+    rotvecs = [(0, 0, 0), (0, 0, 0), (0, 0, 0.6), (0, 0, 0.6)]
+    tr = line(reference8, [0.0, 1.0, 3.0, 4.0], [0.0] * 4, rotvecs, stop=True)
+    err = rejected_by_validate(tr, reference8, TrajectoryLimits(angular_speed=0.5))
+    assert (err.waypoint, err.limit) == (1, "angular_speed")
+    assert 0.5 < err.value <= 0.5625 + 1e-12 and "rad/s exceeds" in str(err)
+    err = rejected_by_validate(tr, reference8, TrajectoryLimits(angular_accel=0.8))
+    assert (err.waypoint, err.limit) == (1, "angular_accel")
+    assert 0.8 < err.value <= 10 / math.sqrt(3) * 0.15 + 1e-12
+
+
+def test_cable_length_limit_names_the_cable(reference8: Robot) -> None:
+    # a pure translation: lengths are convex along the line, so only cables out of range
+    # at the far end can fail, and at that pose exactly one is (cable 1, too long)
+    far = reference8.home.position + np.array([-1.45, -1.45, 1.05])
+    lengths = reference8.cable_lengths(Pose(far))
+    assert np.flatnonzero(lengths > 4.2).tolist() == [1]
+    tr = Trajectory([Waypoint(0.0, reference8.home), Waypoint(8.0, Pose(far))])
+    err = rejected_by_validate(tr, reference8)
+    assert (err.waypoint, err.limit) == (0, "cable_length")
+    assert 4.2 < err.value < lengths[1] and "cable 1 length" in str(err)
+    assert "[0.3, 4.2] m" in str(err)
+
+
+def test_wrench_check_reason_is_reported(reference8: Robot) -> None:
+    tr = line(reference8, [0.0, 2.0, 4.0, 6.0], [0.0, 0.1, 0.2, 0.3])
+
+    def beyond(pose: Pose, twist: np.ndarray, accel: np.ndarray) -> str | None:
+        if pose.position[0] > 0.15:
+            return "cable 3 tension below t_min"
+        return None
+
+    err = rejected_by_validate(tr, reference8, wrench_check=beyond)
+    assert (err.waypoint, err.limit, err.value) == (1, "wrench_set", None)
+    assert "cable 3 tension below t_min" in str(err)
+
+
+def test_every_waypoint_time_is_checked(reference8: Robot) -> None:
+    """A waypoint between two sample instants is still checked, at its exact pose."""
+    tr = line(reference8, [0.0, 1.2345, 2.5], [0.0, 0.1, 0.0])
+    target = tr.waypoints[1].pose
+
+    def only_at_the_waypoint(pose: Pose, twist: np.ndarray, accel: np.ndarray) -> str | None:
+        return "singular" if np.abs(liediff(pose, target)).max() < 1e-12 else None
+
+    err = rejected_by_validate(tr, reference8, wrench_check=only_at_the_waypoint)
+    assert (err.waypoint, err.limit) == (1, "wrench_set") and "t=1.2345 s" in str(err)
+
+
+def test_validate_counts_waypoints_and_duration(reference8: Robot) -> None:
+    tr = line(reference8, [0.0, 10.0, 20.0], [0.0, 0.1, 0.0])
+    assert rejected_by_validate(tr, reference8, TrajectoryLimits(max_waypoints=2)).limit == (
+        "max_waypoints"
+    )
+    err = rejected_by_validate(tr, reference8, TrajectoryLimits(max_duration=15.0))
+    assert (err.limit, err.value) == ("max_duration", 20.0)
+
+
+def test_limits_are_a_strict_config_section() -> None:
+    from pydantic import ValidationError
+
+    with pytest.raises(ValidationError, match="linear_sped"):
+        TrajectoryLimits.model_validate({"linear_sped": 1.0})
+    with pytest.raises(ValidationError, match="linear_speed"):
+        TrajectoryLimits.model_validate({"linear_speed": -1.0})
+    assert TrajectoryLimits.model_validate({"linear_speed": 0.5}).angular_speed == 2.0
+
+
+# -- transitions --------------------------------------------------------------------------
+
+
+def moving_state(seed: int, speed: float = 0.5) -> Reference:
+    rng = np.random.default_rng(seed)
+    twist = rng.normal(size=6)
+    twist[:3] *= speed / np.linalg.norm(twist[:3])
+    twist[3:] *= speed / np.linalg.norm(twist[3:])
+    pose = Pose.from_rotvec(HOME + rng.uniform(-0.2, 0.2, 3), rng.uniform(-0.2, 0.2, 3))
+    return Reference(pose, twist, rng.uniform(-1.5, 1.5, 6))
+
+
+def planned(seed: int) -> Trajectory:
+    rng = np.random.default_rng(seed)
+    return Trajectory(
+        [
+            Waypoint(
+                t, Pose.from_rotvec(HOME + rng.uniform(-0.2, 0.2, 3), rng.uniform(-0.2, 0.2, 3))
+            )
+            for t in (0.0, 1.5, 3.0, 4.5)
+        ]
+    )
+
+
+@settings(max_examples=15)
+@given(st.integers(0, 10**6), st.floats(0.0, 0.9))
+def test_approach_from_a_moving_reference_is_c2_and_within_limits(seed: int, speed: float) -> None:
+    current = moving_state(seed, speed)
+    target = planned(seed + 1)
+    tr = approach(current, target, LIMITS, start=10.0)
+    assert tr.start_time == 10.0
+    assert_same_state(tr.sample(10.0), current, 1e-12)  # starts exactly where we are
+    assert_same_state(tr.sample(math.nextafter(10.0, 20.0)), current, 1e-9)
+    # the joint into the trajectory: the same state from the left and the right
+    joint = tr.waypoints[1].t
+    assert_same_state(tr.sample(math.nextafter(joint, 0.0)), tr.sample(joint), 1e-9)
+    # then the trajectory itself, unchanged, shifted
+    offset = joint - target.start_time
+    for t in inner_times(target, 10):
+        assert_same_state(tr.sample(t + offset), target.sample(t), 1e-9)
+    assert_within(peak_rates(tr), LIMITS)
+
+
+def test_approach_result_passes_validation(reference8: Robot) -> None:
+    tr = approach(moving_state(3, 0.8), planned(4), LIMITS)
+    validate(tr, reference8, LIMITS)
+    assert tr.end_time == planned(4).end_time  # default: the trajectory keeps its times
+
+
+def test_approach_adds_nothing_when_already_at_the_start() -> None:
+    target = planned(5)
+    here = target.sample(target.start_time)
+    assert approach(here, target, LIMITS) is target
+    moved = approach(here, target, LIMITS, start=7.0)
+    assert moved.start_time == 7.0 and len(moved.waypoints) == len(target.waypoints)
+
+
+def test_approach_from_beyond_the_limits_is_rejected() -> None:
+    current = moving_state(6)._replace(twist=np.array([1.5, 0.0, 0.0, 0.0, 0.0, 0.0]))
+    with pytest.raises(TrajectoryError) as info:
+        approach(current, planned(7), LIMITS)
+    assert (info.value.limit, info.value.value) == ("linear_speed", 1.5)
+    assert "current reference" in str(info.value)
+
+
+def test_approach_that_no_duration_allows_is_rejected() -> None:
+    # accelerating at the limit: any blend either brakes too hard or runs too fast
+    current = moving_state(8, 0.99)._replace(accel=np.array([4.99, 0, 0, 0, 0, 0.0]))
+    current = current._replace(twist=np.array([0.99, 0, 0, 0, 0, 0.0]))
+    with pytest.raises(TrajectoryError) as info:
+        approach(current, planned(9), TrajectoryLimits(max_duration=30.0))
+    assert info.value.limit in {"linear_speed", "linear_accel"}
+    assert "no transition" in str(info.value)
+
+
+def at_rest(pose: Pose) -> Reference:
+    return Reference(pose, ZERO6, ZERO6)
+
+
+def assert_arrives_at_rest(tr: Trajectory, target: Pose) -> None:
+    end = tr.sample(tr.end_time)
+    assert np.abs(liediff(end.pose, target)).max() < 1e-12
+    assert_same_state(tr.sample(math.nextafter(tr.end_time, 0.0)), at_rest(target), 1e-9)
+
+
+@pytest.mark.parametrize(
+    ("dp", "rotvec", "binding"),
+    [
+        ((0.8, -0.3, 0.2), (0.0, 0.0, 0.0), "linear_speed"),
+        ((0.05, 0.0, 0.0), (0.0, 0.0, 0.0), "linear_accel"),
+        ((0.0, 0.0, 0.0), (0.0, 0.5, 2.5), "angular_speed"),
+        ((0.0, 0.0, 0.01), (0.25, 0.0, 0.0), "angular_accel"),
+    ],
+)
+def test_goto_from_rest_is_time_optimal_minimum_jerk(dp, rotvec, binding: str) -> None:
+    start = Pose.from_rotvec(HOME, (0.1, 0.0, 0.0))
+    target = Pose.from_rotvec(HOME + np.array(dp), rotvec)
+    tr = goto(at_rest(start), target, LIMITS, start=3.0)
+    assert tr.start_time == 3.0
+    assert_arrives_at_rest(tr, target)
+    peaks = peak_rates(tr, 20001)
+    assert_within(peaks, LIMITS)
+    assert peaks[binding] > 0.999 * getattr(LIMITS, binding)
+    # along the straight line and the geodesic: every pose lies on them
+    step = liediff(start, target)
+    for t in inner_times(tr, 9):
+        d = liediff(start, tr.sample(t).pose)
+        assert np.linalg.norm(np.cross(d[:3], step[:3])) < 1e-12
+        assert np.linalg.norm(np.cross(d[3:], step[3:])) < 1e-12
+
+
+@settings(max_examples=15)
+@given(st.integers(0, 10**6), st.floats(0.0, 0.9))
+def test_goto_from_a_moving_state(seed: int, speed: float) -> None:
+    current = moving_state(seed, speed)
+    target = Pose.from_rotvec(HOME + np.array([0.1, -0.2, 0.05]), (0.3, 0.0, -0.2))
+    tr = goto(current, target, LIMITS, start=1.0)
+    assert_same_state(tr.sample(1.0), current, 1e-12)
+    assert_same_state(tr.sample(math.nextafter(1.0, 2.0)), current, 1e-9)
+    assert_arrives_at_rest(tr, target)
+    assert_within(peak_rates(tr), LIMITS)
+
+
+def test_goto_nowhere_and_tiny_moves() -> None:
+    here = Pose.from_rotvec(HOME, (0.1, 0.2, 0.3))
+    tr = goto(at_rest(here), here, LIMITS)
+    assert tr.duration == pytest.approx(MIN_BLEND)
+    for t in np.linspace(-1.0, 1.0, 21):
+        ref = tr.sample(t)
+        assert ref.pose == here and not ref.twist.any() and not ref.accel.any()
+    for size in (1e-15, 1e-9, 1e-6):
+        target = Pose.from_rotvec(HOME + size, (0.1, 0.2, 0.3 + size))
+        tiny = goto(at_rest(here), target, LIMITS)
+        assert_arrives_at_rest(tiny, target)
+        assert np.isfinite(tiny.duration) and tiny.duration >= MIN_BLEND
+        assert_within(peak_rates(tiny, 101), LIMITS)
+
+
+@pytest.mark.parametrize("angle", [math.pi - 1e-6, math.pi])
+def test_goto_half_a_turn(angle: float) -> None:
+    axis = np.array([1.0, 1.0, 0.0]) / math.sqrt(2.0)
+    here = Pose(HOME)
+    target = Pose.from_rotvec(HOME, angle * axis)
+    tr = goto(at_rest(here), target, LIMITS)
+    assert_arrives_at_rest(tr, target)
+    assert tr.duration == pytest.approx(15 / 8 * angle / LIMITS.angular_speed, rel=1e-6)
+    for t in inner_times(tr, 10):
+        ref = tr.sample(t)
+        # a rotation about the fixed axis: ω is along it (either way round at exactly pi)
+        assert np.linalg.norm(np.cross(ref.twist[3:], axis)) < 1e-9
+        np.testing.assert_allclose(ref.twist, fd_twist(tr, t), atol=1e-6)
+        np.testing.assert_allclose(ref.accel, fd_accel(tr, t), atol=1e-4)
