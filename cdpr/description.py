@@ -88,6 +88,7 @@ class ActuatorOverrides(StrictModel):
     length_min: NonNegativeFloat | None = None
     length_max: PositiveFloat | None = None
     t_min: NonNegativeFloat | None = None
+    cable_stiffness: PositiveFloat | None = None
 
 
 class ActuatorSpec(StrictModel):
@@ -96,6 +97,8 @@ class ActuatorSpec(StrictModel):
     m0: effective no-load mass (drum + gear + rotor inertia / r^2), kg.
     k0: back-EMF / viscous coefficient, N s/m.  force_max: |command force| limit, N.
     t_min: minimum cable tension kept by the tension distribution, N.
+    cable_stiffness: EA of the cable (N per unit strain) for the stretch correction of
+    the encoder lengths, l_geometric = l_drum (1 + t / EA); None: inextensible.
     """
 
     m0: PositiveFloat
@@ -105,6 +108,7 @@ class ActuatorSpec(StrictModel):
     length_min: NonNegativeFloat
     length_max: PositiveFloat
     t_min: NonNegativeFloat
+    cable_stiffness: PositiveFloat | None = None
 
     @model_validator(mode="after")
     def _ranges(self) -> ActuatorSpec:

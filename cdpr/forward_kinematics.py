@@ -25,13 +25,19 @@ _LM_GIVE_UP = 1e12
 
 
 class FKResult(NamedTuple):
-    """Outcome of Y(l): the pose, RMS length residual (m), iterations, and why not converged."""
+    """Outcome of Y(l): the pose, RMS length residual (m), iterations, and why not converged.
+
+    `jacobian` is Lambda at the solver's last linearisation point, less than one step
+    tolerance-scale step (<= 1e-4 m / rad) from `pose` when converged: accurate enough
+    for the least-squares twist of the same cycle, and free.
+    """
 
     pose: Pose
     residual: float
     iterations: int
     converged: bool
     reason: str = ""
+    jacobian: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -80,7 +86,7 @@ def solve_forward_kinematics(
         if info != 0:  # singular normal equations: damp harder
             lam = max(lam * 10.0, _LM_START)
             if lam > _LM_GIVE_UP:
-                return _result(p, q, cost, it, n, "singular Jacobian", settings, guess)
+                return _result(p, q, cost, it, n, "singular Jacobian", settings, guess, table)
             continue
         dx, dy, dz, wx, wy, wz = x.tolist()
         step2 = max(dx * dx + dy * dy + dz * dz, wx * wx + wy * wy + wz * wz)  # squared
@@ -88,14 +94,15 @@ def solve_forward_kinematics(
         q_new = rotate_quat_by_rotvec(q, -wx, -wy, -wz)
         if not lam and step2 < tolerance2:
             # linearised cost after the step: |e|^2 - g . A^-1 g
-            return _result(p_new, q_new, cost - float(g @ x), it, n, "", settings, guess)
+            cost_new = cost - float(g @ x)
+            return _result(p_new, q_new, cost_new, it, n, "", settings, guess, table)
         if not lam and step2 < _CHORD_BELOW2:
             # quadratic regime: one more step with this factorisation and Jacobian needs
             # only the lengths; its error is ~ step x next step, far below tolerance
             done = _chord_finish(geometry, m, p_new, q_new, table[:, :6], chol, tolerance2)
             if done is not None:
                 p_new, q_new, chord_cost = done
-                return _result(p_new, q_new, chord_cost, it + 1, n, "", settings, guess)
+                return _result(p_new, q_new, chord_cost, it + 1, n, "", settings, guess, table)
         table = np.array(evaluate(p_new, quat_to_r9(*q_new), measured=m)).reshape(n, 7)
         S_new = table.T @ table
         cost_new = float(S_new[6, 6])
@@ -103,13 +110,14 @@ def solve_forward_kinematics(
             p, q, S, cost = p_new, q_new, S_new, cost_new
             lam = lam * 0.1 if lam > _LM_START else 0.0
             if step2 < tolerance2:
-                return _result(p, q, cost, it, n, "", settings, guess)
+                return _result(p, q, cost, it, n, "", settings, guess, table)
         else:
             lam = max(lam * 10.0, _LM_START)
             if lam > _LM_GIVE_UP:
-                return _result(p, q, cost, it, n, "no descent direction", settings, guess)
+                reason = "no descent direction"
+                return _result(p, q, cost, it, n, reason, settings, guess, table)
     reason = f"no convergence in {settings.max_iterations} iterations"
-    return _result(p, q, cost, settings.max_iterations, n, reason, settings, guess)
+    return _result(p, q, cost, settings.max_iterations, n, reason, settings, guess, table)
 
 
 def _chord_finish(
@@ -150,6 +158,7 @@ def _result(
     reason: str,
     settings: FKSettings,
     fallback: Pose,
+    table: np.ndarray,
 ) -> FKResult:
     residual = math.sqrt(max(cost, 0.0) / n) if math.isfinite(cost) else math.inf
     if not (math.isfinite(sum(p)) and math.isfinite(sum(q))):
@@ -158,4 +167,5 @@ def _result(
         reason = (
             f"length residual {residual:.3g} m exceeds max_residual {settings.max_residual:.3g} m"
         )
-    return FKResult(Pose._from_unit(p, q), residual, iterations, not reason, reason)
+    jacobian = None if reason else table[:, :6]
+    return FKResult(Pose._from_unit(p, q), residual, iterations, not reason, reason, jacobian)

@@ -121,9 +121,12 @@ def liediff(eta1: Pose, eta2: Pose) -> NDArray[np.float64]:
 
 def retract(eta: Pose, theta: Sequence[float] | NDArray[np.float64]) -> Pose:
     """eta (+) theta: move by a mixed tangent vector (dp, dw): (p + dp, exp(dw) R)."""
-    t = np.asarray(theta, dtype=float).reshape(6)
-    q = so3.rotate_quat_by_rotvec(tuple(eta.quaternion.tolist()), *t[3:].tolist())
-    return Pose(eta.position + t[:3], q)
+    dx, dy, dz, wx, wy, wz = np.asarray(theta, dtype=float).reshape(6).tolist()
+    if not math.isfinite(dx + dy + dz + wx + wy + wz):
+        raise ValueError(f"cannot retract by a non-finite tangent vector {theta!r}")
+    q = so3.rotate_quat_by_rotvec(tuple(eta.quaternion.tolist()), wx, wy, wz)
+    x, y, z = eta.position.tolist()
+    return Pose._from_unit((x + dx, y + dy, z + dz), q)
 
 
 def _conjugate(q: NDArray[np.float64]) -> NDArray[np.float64]:

@@ -47,6 +47,9 @@ class Robot:
         self.force_max = np.array([a.force_max for a in self.actuators])
         self.length_min = np.array([a.length_min for a in self.actuators])
         self.length_max = np.array([a.length_max for a in self.actuators])
+        self.compliance = np.array(
+            [0.0 if a.cable_stiffness is None else 1.0 / a.cable_stiffness for a in self.actuators]
+        )
         self.home = Pose(spec.home.position, spec.home.quaternion.as_tuple())
         fk = spec.forward_kinematics
         self.fk_settings = FKSettings(fk.max_iterations, fk.step_tolerance, fk.max_residual)
@@ -86,6 +89,17 @@ class Robot:
         R = quat_to_r9(*pose.quaternion.tolist())
         phi = _twist_list(twist)
         return np.array(self.geometry.evaluate(pose.position.tolist(), R, phi, jacobian=False))
+
+    def stretched_lengths(self, drum_lengths: ArrayLike, tensions: ArrayLike) -> Array:
+        """Geometric cable lengths from the lengths the drums paid out, under `tensions`
+        (elastic cables, DESIGN §12): L = l (1 + t / EA).  Identity for inextensible ones."""
+        drum = np.asarray(drum_lengths, dtype=float)
+        return drum + drum * self.compliance * np.asarray(tensions, dtype=float)
+
+    def drum_lengths(self, lengths: ArrayLike, tensions: ArrayLike) -> Array:
+        """The inverse of stretched_lengths: what the drums pay out for geometric
+        `lengths` under `tensions`."""
+        return np.asarray(lengths, dtype=float) / (1.0 + self.compliance * np.asarray(tensions))
 
     def _table(self, pose: Pose) -> Array:
         """n x 7 table [Lambda | L]."""

@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from cdpr import Robot, liediff, retract
+from cdpr import Pose, Robot, liediff, retract
 from tests.conftest import pose_near_home, workspace_poses
 
 
@@ -118,3 +118,17 @@ def test_unreachable_lengths_for_the_suspended_robot_do_not_converge() -> None:
 def test_wrong_number_of_lengths_is_a_programming_error(reference8: Robot) -> None:
     with pytest.raises(ValueError, match="expected 8 cable lengths, got 7"):
         reference8.forward_kinematics(np.ones(7))
+
+
+def test_result_carries_the_jacobian_of_its_last_linearisation(reference8: Robot) -> None:
+    """FKResult.jacobian is Lambda within one (tiny) step of the pose: the controller's
+    least-squares twist uses it instead of evaluating Lambda again."""
+    pose = Pose.from_rotvec(
+        reference8.home.position + np.array([0.05, -0.03, 0.02]), [0.02, 0.01, -0.03]
+    )
+    guess = Pose.from_rotvec(pose.position + 1e-3, [0.021, 0.01, -0.03])
+    result = reference8.forward_kinematics(reference8.cable_lengths(pose), guess)
+    assert result.converged and result.jacobian is not None
+    np.testing.assert_allclose(result.jacobian, reference8.jacobian(result.pose), atol=1e-4)
+    bad = reference8.forward_kinematics(np.full(8, np.nan))
+    assert not bad.converged and bad.jacobian is None

@@ -74,3 +74,12 @@ def test_pulley_adds_the_wrapped_arc() -> None:
     length, ux, uy, uz, _ = pulley_length_direction(2 * r, 0.0, -1.0, (r, 0.0, 0.0, 1.0))
     assert length == pytest.approx(np.pi * r + 1.0, abs=1e-12)
     np.testing.assert_allclose([ux, uy, uz], [0, 0, -1], atol=1e-12)
+
+
+def test_stretch_correction_inverts_the_cable_law(reference8: Robot) -> None:
+    """L = l (1 + t/EA), the plant's cable law solved for L; drum_lengths inverts it."""
+    drum = np.linspace(1.0, 3.0, 8)
+    tensions = np.linspace(20.0, 500.0, 8)
+    stretched = reference8.stretched_lengths(drum, tensions)
+    np.testing.assert_allclose((stretched - drum) / drum * 1e5, tensions)
+    np.testing.assert_allclose(reference8.drum_lengths(stretched, tensions), drum)

@@ -1,0 +1,204 @@
+"""The parallel-actuator controller: the paper's §5 steps 1-11 (DESIGN §4).
+
+One object per robot.  Each cycle: sample the reference, forward kinematics from the
+measured lengths, the twist from the measured rates, the pose error
+theta_d = liediff(eta_r, eta) (the erratum of DESIGN §3: actual minus requested), the
+single-actuator controller on each of the 6 tangent components, the command wrench
+tau_c = M alpha_c + mu, the back-EMF part f_b = k0 Lambda(eta_r) phi_r, the no-load
+forces f0 = m0 (Lambda alpha_c + c), the tension distribution f_p = F(tau_c, f_b, f0)
+(not in W: infeasible, the daemon brakes), and the commands f_c = f_p + f_b.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple, Protocol
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.linalg.lapack import dposv
+
+from cdpr.control_spec import ControllerSpec
+from cdpr.pose import Pose, liediff, retract
+from cdpr.robot import Robot
+from cdpr.tension import TensionLimits, TensionSolver, make_tension_solver
+from cdpr.trajectory import Reference
+
+Array = NDArray[np.float64]
+_ZERO6 = np.zeros(6)
+
+
+class ReferenceSource(Protocol):
+    """Anything that gives the requested (eta_r, phi_r, alpha_r) at time t (a Trajectory)."""
+
+    def sample(self, t: float) -> Reference: ...
+
+
+class Hold:
+    """A reference that stays at one pose, at rest."""
+
+    def __init__(self, pose: Pose) -> None:
+        self.reference = Reference(pose, _ZERO6.copy(), _ZERO6.copy())
+
+    def sample(self, t: float) -> Reference:
+        return self.reference
+
+
+def static_tensions(robot: Robot, tension: TensionSolver, pose: Pose) -> Array:
+    """The planned tensions that hold the platform at rest at `pose` (the reference
+    tensions where no distribution exists: the next cycle reports that)."""
+    zero = np.zeros(robot.n_cables)
+    result = tension.solve(robot.jacobian(pose), robot.bias_wrench(pose, _ZERO6), zero, zero)
+    return result.tensions if result.feasible else tension.limits.t_ref.copy()
+
+
+class ControlOutput(NamedTuple):
+    """One cycle's commands and everything that led to them.
+
+    feasible is False when the cycle produced no safe command (forward kinematics
+    failed, non-finite values, or the wrench is not in W); `reason` says why, and the
+    daemon brakes.  `commands` are NaN unless feasible.
+    """
+
+    commands: Array
+    feasible: bool
+    reason: str
+    reference: Reference
+    pose: Pose
+    twist: Array
+    fk_residual: float
+    theta_d: Array
+    alpha_c: Array
+    tau_c: Array
+    f0: Array
+    f_b: Array
+    f_p: Array
+    tensions: Array
+
+
+class ParallelController:
+    """The paper's controller for `robot` with the settings of `spec` (DESIGN §4-§6)."""
+
+    def __init__(self, robot: Robot, spec: ControllerSpec | None = None) -> None:
+        self.robot = robot
+        self.spec = spec = spec or ControllerSpec()
+        self.period = spec.period
+        self.loop = spec.linear_controller().discretise(self.period, 6, spec.discretisation)
+        if self.loop.Dd.shape[1] > 2:
+            raise ValueError("the controller reads theta_d and its rate only (order <= 2)")
+        t_ref = None if spec.tension.reference is None else spec.tension.reference
+        limits = TensionLimits.from_robot(
+            robot, None if t_ref is None else np.full(robot.n_cables, t_ref)
+        )
+        self.tension = make_tension_solver(spec.tension.method, limits)
+        self._at_reference = spec.model_at == "reference"
+        self._differentiate = spec.velocity == "differentiate"
+        self._smoothing = self.period / (spec.velocity_filter + self.period)
+        self._stretch_corrected = bool(np.any(robot.compliance > 0.0))
+        self._error = np.zeros((self.loop.Dd.shape[1], 6))
+        self.reset(robot.home)
+
+    def reset(self, pose: Pose) -> None:
+        """Hold `pose`, zero the controller state, restart forward kinematics from it
+        (on enable, after a brake: the platform is at rest)."""
+        self.source: ReferenceSource = Hold(pose)
+        self.loop.reset()
+        self._pose = pose
+        self._twist = _ZERO6.copy()
+        self._tensions = static_tensions(self.robot, self.tension, pose)
+        self._rate_bias = _ZERO6.copy()
+
+    def follow(self, source: ReferenceSource) -> None:
+        """Track `source` from the next cycle (a validated, jump-free trajectory)."""
+        self.source = source
+
+    @property
+    def pose(self) -> Pose:
+        """The last measured pose (forward kinematics)."""
+        return self._pose
+
+    def tracking_error(self, pose: Pose, twist: Array, reference: Reference) -> tuple[Array, Array]:
+        """Step 5 with the erratum of DESIGN §3: theta_d = liediff(eta_r, eta) ~ eta - eta_r
+        and its rate phi - phi_r (actual minus requested)."""
+        return liediff(reference.pose, pose), twist - reference.twist
+
+    def step(self, t: float, lengths: ArrayLike, length_rates: ArrayLike) -> ControlOutput:
+        """One control cycle at time t (s) from the measured lengths and rates."""
+        robot = self.robot
+        ref = self.source.sample(t)
+        guess = retract(self._pose, self._twist * self.period)
+        # the encoders measure the drums; the last planned tensions stretch the cables
+        lengths = np.asarray(lengths, dtype=float)
+        fk = robot.forward_kinematics(robot.stretched_lengths(lengths, self._tensions), guess)
+        if not fk.converged:
+            return self._fault(ref, fk.pose, fk.residual, f"forward kinematics: {fk.reason}")
+        pose = fk.pose
+        twist = self._measure_twist(pose, fk.jacobian, length_rates)
+        if not np.isfinite(twist @ twist):
+            return self._fault(ref, pose, fk.residual, "non-finite twist from the drives' rates")
+        self._pose, self._twist = pose, twist
+
+        theta_d, theta_d_rate = self.tracking_error(pose, twist, ref)
+        self._error[0] = theta_d
+        if self._error.shape[0] > 1:
+            self._error[1] = theta_d_rate
+        alpha_c = ref.accel + self.loop.step(self._error)
+
+        if self._at_reference:
+            Lam, c, M, mu = robot.model_terms(ref.pose, ref.twist)
+            Lam_r = Lam
+        else:
+            Lam, c, M, mu = robot.model_terms(pose, twist)
+            Lam_r = robot.jacobian(ref.pose)
+        tau_c = M @ alpha_c + mu
+        f_b = robot.k0 * (Lam_r @ ref.twist)
+        f0 = robot.m0 * (Lam @ alpha_c + c)
+        result = self.tension.solve(Lam, tau_c, f_b, f0)
+        if result.feasible:
+            commands = result.forces + f_b
+            self._tensions = result.tensions
+        else:
+            commands = np.full(robot.n_cables, np.nan)
+        return ControlOutput(
+            commands,
+            result.feasible,
+            "" if result.feasible else f"wrench not in W: {result.reason}",
+            ref,
+            pose,
+            twist,
+            fk.residual,
+            theta_d,
+            alpha_c,
+            tau_c,
+            f0,
+            f_b,
+            result.forces,
+            result.tensions,
+        )
+
+    def _measure_twist(self, pose: Pose, Lam: Array, length_rates: ArrayLike) -> Array:
+        """phi = Lambda^+ l' (least squares) corrected for cable stretch, or filtered
+        differences of forward-kinematics poses.
+
+        Drums report l', but a stretching cable's length also moves with its tension
+        (L' = l' (1 + t/EA) + l t'/EA), a large error for a tilting platform whose
+        internal forces swing.  The low-frequency part of that difference is taken from
+        the poses (which are stretch-corrected) through a low-pass of time constant
+        velocity_filter: a complementary filter, quiet like the drives' rates at high
+        frequency and consistent with the poses at low frequency."""
+        raw = liediff(self._pose, pose) / self.period
+        if self._differentiate:
+            return self._twist + self._smoothing * (raw - self._twist)
+        rates = np.asarray(length_rates, dtype=float).reshape(-1)
+        _, drive, info = dposv(Lam.T @ Lam, Lam.T @ rates)
+        if info != 0:
+            return np.full(6, np.nan)
+        if self._stretch_corrected:
+            self._rate_bias += self._smoothing * (raw - drive - self._rate_bias)
+        return drive + self._rate_bias
+
+    def _fault(self, ref: Reference, pose: Pose, residual: float, reason: str) -> ControlOutput:
+        nan6, nan_n = np.full(6, np.nan), np.full(self.robot.n_cables, np.nan)
+        return ControlOutput(
+            nan_n, False, reason, ref, pose, nan6, residual, nan6, nan6, nan6,
+            nan_n, nan_n, nan_n, nan_n,
+        )  # fmt: skip
