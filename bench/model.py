@@ -10,33 +10,13 @@ Prints per-call median and p99 in microseconds of: lengths + Jacobian
 from __future__ import annotations
 
 import argparse
-import gc
 import json
 import sys
-import time
-from collections.abc import Callable
 
 import numpy as np
-from timing import REFERENCE8, summary_us
+from timing import REFERENCE8, per_call_us
 
 from cdpr import Pose, Robot, retract
-
-
-def per_call_us(fn: Callable[[int], object], calls: int) -> dict[str, float]:
-    """Time each call separately; returns median and p99 in microseconds."""
-    for i in range(min(calls, 200)):  # warm-up
-        fn(i)
-    samples = np.empty(calls)
-    clock = time.perf_counter_ns
-    gc.disable()
-    try:
-        for i in range(calls):
-            t0 = clock()
-            fn(i)
-            samples[i] = clock() - t0
-    finally:
-        gc.enable()
-    return summary_us(samples)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,10 +1,12 @@
 """Benchmark of the tension distribution F on config/robots/reference8.yaml.
 
 Prints per-call median and p99 in microseconds of OsqpTensionSolver.solve (`tda_osqp`,
-warm-started from the previous cycle) and ClosedFormTensionSolver.solve
-(`tda_closed_form`) along a smooth path sampled at 1 kHz: the inputs (Λ, τ, f_b, f0) come
-from the model at each sample, as in the control cycle.  Also reports the share of
-feasible cycles, of cycles with an active bound, and OSQP's median iterations.
+OSQP on every cycle, warm-started from the previous one; `tda_osqp_shortcut`, the
+default, which skips OSQP when the equality-constrained optimum already meets every
+bound) and ClosedFormTensionSolver.solve (`tda_closed_form`) along a smooth path sampled
+at 1 kHz: the inputs (Λ, τ, f_b, f0) come from the model at each sample, as in the
+control cycle. Also reports the share of feasible cycles, of cycles with an active
+bound, and OSQP's median iterations.
 
     python bench/tension.py [--json] [--calls N] [--t-ref NEWTONS]
 """
@@ -12,14 +14,11 @@ feasible cycles, of cycles with an active bound, and OSQP's median iterations.
 from __future__ import annotations
 
 import argparse
-import gc
 import json
 import sys
-import time
-from collections.abc import Callable
 
 import numpy as np
-from timing import REFERENCE8, summary_us
+from timing import REFERENCE8, per_call_us
 
 from cdpr import Pose, Robot
 from cdpr.tension import ClosedFormTensionSolver, OsqpTensionSolver, TensionLimits
@@ -54,24 +53,6 @@ def path_inputs(robot: Robot, samples: int, rate: float = 1000.0) -> list[Inputs
     return out
 
 
-def timed_walk(solve: Callable[[Inputs], object], inputs: list[Inputs]) -> dict[str, float]:
-    """Time each call separately while walking the path once in order (warm start as in
-    the loop), after a warm-up walk over the first 200 samples."""
-    for args in inputs[:200]:
-        solve(args)
-    samples = np.empty(len(inputs))
-    clock = time.perf_counter_ns
-    gc.disable()
-    try:
-        for i, args in enumerate(inputs):
-            t0 = clock()
-            solve(args)
-            samples[i] = clock() - t0
-    finally:
-        gc.enable()
-    return summary_us(samples)
-
-
 def measure(
     robot: Robot, calls: int = 20000, t_ref: float | None = None
 ) -> dict[str, dict[str, float]]:
@@ -85,14 +66,16 @@ def measure(
     inputs = path_inputs(robot, calls)
     results: dict[str, dict[str, float]] = {}
     for name, solver in (
-        ("tda_osqp", OsqpTensionSolver(limits)),
+        ("tda_osqp", OsqpTensionSolver(limits, interior_shortcut=False)),
+        ("tda_osqp_shortcut", OsqpTensionSolver(limits)),
         ("tda_closed_form", ClosedFormTensionSolver(limits)),
     ):
         answers = [solver.solve(*args) for args in inputs]  # also the warm-up of the caches
-        r: dict[str, float] = dict(timed_walk(lambda args, s=solver: s.solve(*args), inputs))
+        # timed in path order: each solve warm-starts from the previous sample's
+        r: dict[str, float] = dict(per_call_us(lambda i, s=solver: s.solve(*inputs[i]), calls))
         r["feasible_share"] = round(float(np.mean([a.feasible for a in answers])), 4)
         r["active_share"] = round(_active_share(answers, inputs, limits), 4)
-        if name == "tda_osqp":
+        if name.startswith("tda_osqp"):
             r["iterations_median"] = float(np.median([a.iterations for a in answers]))
         results[name] = r
     return results

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import gc
+import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -15,3 +18,21 @@ def summary_us(samples_ns: np.ndarray) -> dict[str, float]:
         "median_us": round(float(np.median(samples_ns)) / 1e3, 2),
         "p99_us": round(float(np.percentile(samples_ns, 99)) / 1e3, 2),
     }
+
+
+def per_call_us(fn: Callable[[int], object], calls: int, warm_up: int = 200) -> dict[str, float]:
+    """Call fn(i) for i in range(calls), each timed separately with the collector off,
+    after fn(0..warm_up-1) untimed; returns median and p99 in microseconds."""
+    for i in range(min(calls, warm_up)):
+        fn(i)
+    samples = np.empty(calls)
+    clock = time.perf_counter_ns
+    gc.disable()
+    try:
+        for i in range(calls):
+            t0 = clock()
+            fn(i)
+            samples[i] = clock() - t0
+    finally:
+        gc.enable()
+    return summary_us(samples)

@@ -14,8 +14,7 @@ import json
 import sys
 
 import numpy as np
-from model import per_call_us
-from timing import REFERENCE8
+from timing import REFERENCE8, per_call_us
 
 from cdpr import Pose, Robot
 from cdpr.trajectory import Trajectory, TrajectoryLimits, Waypoint, parse_trajectory, validate

@@ -108,7 +108,7 @@ class ControllerSpec(StrictModel):
         return pid(gains.kp, gains.ki, gains.kd, gains.derivative_filter)
 
 
-DEFAULT_PID = PidSpec(kp=100.0, ki=10.0, kd=20.0)
+DEFAULT_PID = PidSpec(kp=100.0, ki=50.0, kd=20.0)
 
 
 def parse_controller(data: Any, source: str = "controller") -> ControllerSpec:

@@ -115,8 +115,10 @@ class Pose:
 
 def liediff(eta1: Pose, eta2: Pose) -> NDArray[np.float64]:
     """The paper's eta2 (-) eta1 in mixed coordinates: (p2 - p1, log(R2 R1^T))."""
-    dq = so3.quat_multiply(eta2.quaternion, _conjugate(eta1.quaternion))
-    return np.concatenate([eta2.position - eta1.position, so3.rotvec_from_quat(dq)])
+    w1, x1, y1, z1 = eta1._q.tolist()
+    dq = so3.quat_mul4(*eta2._q.tolist(), w1, -x1, -y1, -z1)
+    (a, b, c), (d, e, f) = eta1._p.tolist(), eta2._p.tolist()
+    return np.array((d - a, e - b, f - c, *so3.quat4_to_rotvec(*dq)))
 
 
 def retract(eta: Pose, theta: Sequence[float] | NDArray[np.float64]) -> Pose:
@@ -127,7 +129,3 @@ def retract(eta: Pose, theta: Sequence[float] | NDArray[np.float64]) -> Pose:
     q = so3.rotate_quat_by_rotvec(tuple(eta.quaternion.tolist()), wx, wy, wz)
     x, y, z = eta.position.tolist()
     return Pose._from_unit((x + dx, y + dy, z + dz), q)
-
-
-def _conjugate(q: NDArray[np.float64]) -> NDArray[np.float64]:
-    return np.array([q[0], -q[1], -q[2], -q[3]])

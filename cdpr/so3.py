@@ -62,14 +62,21 @@ def quat_from_rotvec(w: ArrayLike) -> Vec:
 
 def rotvec_from_quat(q: ArrayLike) -> Vec:
     """Rotation vector (angle in [0, pi]) of a unit quaternion, either sign."""
-    q = canonical_quat(q)
-    v = q[1:]
-    s = math.sqrt(float(v @ v))
-    if s < _SMALL_ANGLE:
-        # 2 atan2(s, w) / s  ->  2/w (1 - s^2/(3 w^2) ...) for small s
-        w0 = q[0]
-        return (2.0 / w0) * (1.0 - s * s / (3.0 * w0 * w0)) * v
-    return (2.0 * math.atan2(s, q[0]) / s) * v
+    return np.array(quat4_to_rotvec(*canonical_quat(q).tolist()))
+
+
+def quat4_to_rotvec(w: float, x: float, y: float, z: float) -> tuple[float, float, float]:
+    """Rotation vector (angle in [0, pi]) of a unit quaternion; scalar hot path."""
+    if w < 0.0:
+        w, x, y, z = -w, -x, -y, -z
+    s = math.sqrt(x * x + y * y + z * z)
+    # 2 atan2(s, w) / s, by its series 2/w (1 - s^2/(3 w^2)) for small s
+    k = (
+        (2.0 / w) * (1.0 - s * s / (3.0 * w * w))
+        if s < _SMALL_ANGLE
+        else 2.0 * math.atan2(s, w) / s
+    )
+    return (k * x, k * y, k * z)
 
 
 def log_so3(R: ArrayLike) -> Vec:

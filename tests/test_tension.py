@@ -114,10 +114,11 @@ def test_osqp_equals_exact_least_squares_when_no_bound_is_active(robot, offset, 
     exact = equality_least_squares(L, tau, f0, limits.t_ref)
     lo, hi = bounds(limits, f_b, f0)
     assert np.all(exact > lo + 1.0) and np.all(exact < hi - 1.0)  # no bound active
-    res = OsqpTensionSolver(limits).solve(L, tau, f_b, f0)
-    assert res.feasible, res.reason
-    np.testing.assert_allclose(res.tensions, exact, rtol=0, atol=1e-6)
-    assert res.iterations > 0
+    for shortcut in (False, True):
+        res = OsqpTensionSolver(limits, interior_shortcut=shortcut).solve(L, tau, f_b, f0)
+        assert res.feasible, res.reason
+        np.testing.assert_allclose(res.tensions, exact, rtol=0, atol=1e-6)
+        assert (res.iterations == 0) == shortcut  # OSQP ran only without the shortcut
 
 
 @settings(max_examples=60)
@@ -273,7 +274,7 @@ def test_osqp_recovers_after_infeasible_cycle(reference8):
 
 def test_osqp_answer_violating_equality_is_rejected(reference8):
     limits = TensionLimits.from_robot(reference8)
-    solver = OsqpTensionSolver(limits)
+    solver = OsqpTensionSolver(limits, interior_shortcut=False)  # the OSQP path
     args = model_inputs(reference8, reference8.home, np.zeros(6), np.zeros(6))
     real_run = solver._run
 
@@ -292,7 +293,7 @@ def test_osqp_answer_violating_t_min_is_rejected(reference8):
     """A solution that keeps the wrench but drops cable 0 to 5 N is caught, and the
     reason names the worst cable below t_min."""
     limits = TensionLimits.from_robot(reference8)
-    solver = OsqpTensionSolver(limits)
+    solver = OsqpTensionSolver(limits, interior_shortcut=False)  # the OSQP path
     L, tau, f_b, f0 = model_inputs(reference8, reference8.home, np.zeros(6), np.zeros(6))
     null = np.linalg.svd(L.T)[2][-1]  # Lambda^T null = 0
     real_run = solver._run
@@ -315,7 +316,7 @@ def test_osqp_answer_violating_t_min_is_rejected(reference8):
 def test_osqp_refines_when_polishing_fails(reference8):
     """A solve whose polish failed is re-solved at tighter tolerance before any verdict."""
     limits = TensionLimits.from_robot(reference8)
-    solver = OsqpTensionSolver(limits)
+    solver = OsqpTensionSolver(limits, interior_shortcut=False)  # the OSQP path
     args = model_inputs(reference8, reference8.home, np.zeros(6), np.zeros(6))
     calls = []
     real_run = solver._run
@@ -337,7 +338,7 @@ def test_osqp_refines_when_polishing_fails(reference8):
 def test_osqp_rejected_update_is_infeasible_not_solved(reference8):
     """If osqp refuses a data update it keeps the old data: never report that solution."""
     limits = TensionLimits.from_robot(reference8)
-    solver = OsqpTensionSolver(limits)
+    solver = OsqpTensionSolver(limits, interior_shortcut=False)  # the OSQP path
     args = model_inputs(reference8, reference8.home, np.zeros(6), np.zeros(6))
     assert solver.solve(*args).feasible
 

@@ -1,0 +1,109 @@
+"""Benchmark of the parallel-actuator controller on config/robots/reference8.yaml.
+
+Prints per-call median and p99 (us) of the whole controller step (`step`, replaying the
+measurements of a closed-loop figure-8 run at 500 Hz), of the tension distribution
+methods (`tda_osqp`, `tda_osqp_shortcut`, `tda_closed_form`, from bench/tension.py), and
+the closed-loop figures of the standard trajectory set (`tracking`): per trajectory RMS
+/ max position and orientation error of the paper's controller, tension range, slack
+events, the ratio of its RMS position error to the joint-space baseline's
+(`baseline_ratio`), and the same run under model mismatch (plant mass +10 %, m0 -10 %, 5
+um encoder noise).
+
+    python bench/controller.py [--json] [--calls N] [--skip-tracking]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+import tension
+from timing import REFERENCE8, per_call_us
+
+from cdpr import Robot
+from cdpr.baseline import JointSpaceController
+from cdpr.control_spec import ControllerSpec
+from cdpr.controller import ParallelController
+from sim_bus.plant.config import PlantConfig, parse_plant_config
+from sim_bus.scenarios import STANDARD_SET
+from sim_bus.tracking import run_tracking
+
+MISMATCH = {
+    "mismatch": {"mass_scale": 1.1, "m0_scale": 0.9},
+    "encoder": {"counts_per_metre": 1e5, "noise_std": 5e-6},
+    "seed": 7,
+}
+
+
+def step_us(robot: Robot, spec: ControllerSpec, calls: int) -> dict[str, float]:
+    """Time ParallelController.step on the measurements of a closed-loop figure-8 run."""
+    trajectory = STANDARD_SET["figure_eight"](robot)
+    run = run_tracking(robot, trajectory, ParallelController(robot, spec), rate_hz=spec.rate_hz)
+    rec = run.recording
+    cycles = len(rec)
+    controller = ParallelController(robot, spec)
+
+    def replay(i: int) -> None:
+        k = i % cycles
+        if k == 0:
+            controller.reset(rec.pose(0))
+            controller.follow(trajectory)
+        controller.step(rec.t[k], rec.measured_lengths[k], rec.measured_rates[k])
+
+    return per_call_us(replay, calls, warm_up=0)
+
+
+def tracking(robot: Robot, spec: ControllerSpec) -> dict[str, dict]:
+    """Closed-loop figures of the standard set (nominal, baseline, mismatch)."""
+    out: dict[str, dict] = {}
+    mismatch = parse_plant_config(MISMATCH)
+    for name, make in STANDARD_SET.items():
+        trajectory = make(robot)
+        paper = run_tracking(robot, trajectory, ParallelController(robot, spec), PlantConfig())
+        base = run_tracking(robot, trajectory, JointSpaceController(robot, spec), PlantConfig())
+        off = run_tracking(robot, trajectory, ParallelController(robot, spec), mismatch)
+        figures = _rounded(paper.figures())
+        figures["baseline"] = _rounded(base.figures())
+        figures["baseline_ratio"] = round(paper.rms_mm / base.rms_mm, 3)
+        figures["mismatch"] = _rounded(off.figures())
+        out[name] = figures
+    return out
+
+
+def _rounded(figures: dict) -> dict:
+    return {k: round(v, 4) if isinstance(v, float) else v for k, v in figures.items()}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--json", action="store_true", help="print one JSON object")
+    parser.add_argument("--calls", type=int, default=5000, help="timed controller steps")
+    parser.add_argument("--skip-tracking", action="store_true", help="timings only")
+    args = parser.parse_args(argv)
+
+    robot = Robot.from_yaml(REFERENCE8)
+    spec = ControllerSpec()
+    results: dict[str, dict] = {"step": step_us(robot, spec, args.calls)}
+    results.update(tension.measure(robot, calls=max(args.calls, 2000)))
+    if not args.skip_tracking:
+        results["tracking"] = tracking(robot, spec)
+    if args.json:
+        print(json.dumps(results))
+        return 0
+    for name in ("step", "tda_osqp", "tda_osqp_shortcut", "tda_closed_form"):
+        r = results[name]
+        print(f"{name:16s} median {r['median_us']:7.2f} us   p99 {r['p99_us']:7.2f} us")
+    for name, f in results.get("tracking", {}).items():
+        print(
+            f"{name:14s} rms {f['rms_mm']:.3f} mm  max {f['max_mm']:.3f} mm  "
+            f"rms {f['rms_deg']:.3f} deg  max {f['max_deg']:.3f} deg  "
+            f"tension {f['min_tension']:.0f}-{f['max_tension']:.0f} N  slack {f['slack_events']}  "
+            f"baseline rms {f['baseline']['rms_mm']:.3f} mm (ratio {f['baseline_ratio']:.2f})  "
+            f"mismatch rms {f['mismatch']['rms_mm']:.3f} mm max {f['mismatch']['max_mm']:.3f} mm"
+        )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
