@@ -16,10 +16,9 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from cdpr.control_spec import ControllerSpec
-from cdpr.controller import Hold, ReferenceSource
+from cdpr.controller import Hold, ReferenceSource, tension_solver
 from cdpr.pose import Pose
 from cdpr.robot import Robot
-from cdpr.tension import TensionLimits, make_tension_solver
 
 Array = NDArray[np.float64]
 
@@ -32,11 +31,7 @@ class JointSpaceController:
         spec = spec or ControllerSpec()
         n = robot.n_cables
         self.loop = spec.linear_controller().discretise(spec.period, n, spec.discretisation)
-        reference = spec.tension.reference
-        self.tension = make_tension_solver(
-            spec.tension.method,
-            TensionLimits.from_robot(robot, None if reference is None else np.full(n, reference)),
-        )
+        self.tension = tension_solver(robot, spec)
         Lam = robot.jacobian(robot.home)
         apparent = Lam @ np.linalg.solve(robot.mass_matrix(robot.home), Lam.T)
         self.cable_mass = 1.0 / np.diag(apparent)

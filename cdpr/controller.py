@@ -43,6 +43,12 @@ class Hold:
         return self.reference
 
 
+def tension_solver(robot: Robot, spec: ControllerSpec) -> TensionSolver:
+    """The tension distribution the controller config asks for (method, reference)."""
+    limits = TensionLimits.from_robot(robot, spec.tension.reference)
+    return make_tension_solver(spec.tension.method, limits)
+
+
 def static_tensions(robot: Robot, tension: TensionSolver, pose: Pose) -> Array:
     """The planned tensions that hold the platform at rest at `pose` (the reference
     tensions where no distribution exists: the next cycle reports that)."""
@@ -83,13 +89,7 @@ class ParallelController:
         self.spec = spec = spec or ControllerSpec()
         self.period = spec.period
         self.loop = spec.linear_controller().discretise(self.period, 6, spec.discretisation)
-        if self.loop.Dd.shape[1] > 2:
-            raise ValueError("the controller reads theta_d and its rate only (order <= 2)")
-        t_ref = None if spec.tension.reference is None else spec.tension.reference
-        limits = TensionLimits.from_robot(
-            robot, None if t_ref is None else np.full(robot.n_cables, t_ref)
-        )
-        self.tension = make_tension_solver(spec.tension.method, limits)
+        self.tension = tension_solver(robot, spec)
         self._at_reference = spec.model_at == "reference"
         self._differentiate = spec.velocity == "differentiate"
         self._smoothing = self.period / (spec.velocity_filter + self.period)
@@ -185,14 +185,15 @@ class ParallelController:
         the poses (which are stretch-corrected) through a low-pass of time constant
         velocity_filter: a complementary filter, quiet like the drives' rates at high
         frequency and consistent with the poses at low frequency."""
-        raw = liediff(self._pose, pose) / self.period
         if self._differentiate:
+            raw = liediff(self._pose, pose) / self.period
             return self._twist + self._smoothing * (raw - self._twist)
         rates = np.asarray(length_rates, dtype=float).reshape(-1)
         _, drive, info = dposv(Lam.T @ Lam, Lam.T @ rates)
         if info != 0:
             return np.full(6, np.nan)
         if self._stretch_corrected:
+            raw = liediff(self._pose, pose) / self.period
             self._rate_bias += self._smoothing * (raw - drive - self._rate_bias)
         return drive + self._rate_bias
 

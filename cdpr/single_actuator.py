@@ -100,20 +100,20 @@ def pid(
     for name, value in gains.items():
         if not (np.isfinite(value) and value >= 0.0):
             raise ValueError(f"PID {name} must be a finite number >= 0, got {value}")
+    filtered = derivative_filter > 0.0 and kd > 0.0
     A: list[list[float]] = []
     B: list[list[float]] = []
     C: list[float] = []
-    D = [-kp, 0.0 if derivative_filter > 0.0 and kd else -kd]
-    size = (1 if ki else 0) + (1 if derivative_filter > 0.0 and kd else 0)
+    size = (ki > 0.0) + filtered
     if ki:
         A.append([0.0] * size)
         B.append([1.0, 0.0])
         C.append(-ki)
-    if derivative_filter > 0.0 and kd:
+    if filtered:
         A.append([0.0] * (size - 1) + [-1.0 / derivative_filter])
         B.append([0.0, 1.0 / derivative_filter])
         C.append(-kd)
-    return LinearController(A, B, C, [D])
+    return LinearController(A, B, C, [[-kp, 0.0 if filtered else -kd]])
 
 
 class DiscreteController:

@@ -290,16 +290,15 @@ class _TensionSolverBase:
             f"{f_max:.4g} N (tension {t:.4g} N)"
         )
 
-    def _equality_optimum(self, p: _Problem) -> Array | None:
-        """argmin |t - t_ref| subject to Λᵀ t = w, bounds ignored (None: Λ singular)."""
-        L = p.L
-        _, x, info = dposv(L.T @ L, p.w - self._t_ref @ L)
-        return None if info else self._t_ref + L @ x
-
     def _least_norm(self, L: Array, w: Array) -> Array:
-        """Tensions nearest t_ref that satisfy Λᵀ t = w (bounds ignored): a finite attempt."""
-        dt = np.linalg.lstsq(L.T, w - self._t_ref @ L, rcond=None)[0]
-        return self._t_ref + dt
+        """Tensions nearest t_ref that satisfy Λᵀ t = w, bounds ignored: the QP's optimum
+        when they meet every bound, else a finite attempt.  One 6 × 6 Cholesky; a
+        least-squares fallback where Λ is rank deficient."""
+        rhs = w - self._t_ref @ L
+        _, x, info = dposv(L.T @ L, rhs)
+        if info:
+            return self._t_ref + np.linalg.lstsq(L.T, rhs, rcond=None)[0]
+        return self._t_ref + L @ x
 
     def _result(self, p: _Problem, t: Array, reason: str, iterations: int) -> TensionResult:
         return TensionResult(p.f0 - t, t, not reason, reason, iterations)
@@ -430,8 +429,8 @@ class OsqpTensionSolver(_TensionSolverBase):
             return p
         assert isinstance(p, _Problem)
         if self.interior_shortcut:
-            t = self._equality_optimum(p)
-            if t is not None and not self._check(p, t):
+            t = self._least_norm(p.L, p.w)
+            if not self._check(p, t):
                 # no bound active: the equality-constrained optimum is the QP's optimum
                 self._warm_start(t)
                 return TensionResult(p.f0 - t, t, True, "", 0)
