@@ -12,42 +12,17 @@ from cdpr import Pose, Robot, liediff
 from cdpr.baseline import JointSpaceController
 from cdpr.control_spec import ControllerSpec, parse_controller
 from cdpr.controller import Hold, ParallelController
-from sim_bus.lockstep import run_lockstep
-from sim_bus.plant import Plant, equilibrium_tensions
 from sim_bus.plant.config import parse_plant_config
 from sim_bus.scenarios import STANDARD_SET
 from sim_bus.tracking import run_tracking
-
-RATE = 500.0
-
-
-def _hold_run(robot: Robot, controller: ParallelController, target: Pose, duration: float):
-    """Plant at rest at home, controller asked to hold `target`; returns (recording, outputs)."""
-    plant = Plant(robot)
-    plant.reset(robot.home, equilibrium_tensions(robot, robot.home))
-    controller.reset(robot.home)
-    controller.follow(Hold(target))
-    outputs = []
-
-    def control(t: float, lengths: np.ndarray, rates: np.ndarray) -> np.ndarray:
-        out = controller.step(t, lengths, rates)
-        outputs.append(out)
-        return out.commands if out.feasible else np.zeros(robot.n_cables)
-
-    return run_lockstep(plant, control, duration, RATE), outputs
-
-
-def _errors(rec, target: Pose) -> tuple[np.ndarray, np.ndarray]:
-    """Position (m) and angle (rad) error of the true platform per cycle."""
-    e = np.array([liediff(target, rec.pose(i)) for i in range(len(rec))])
-    return np.linalg.norm(e[:, :3], axis=1), np.linalg.norm(e[:, 3:], axis=1)
+from tests.closed_loop import RATE, hold_run, pose_errors
 
 
 @pytest.mark.parametrize("model_at", ["reference", "measured"])
 def test_holds_home_still(reference8: Robot, model_at: str) -> None:
     controller = ParallelController(reference8, parse_controller({"model_at": model_at}))
-    rec, outputs = _hold_run(reference8, controller, reference8.home, 3.0)
-    pos, ang = _errors(rec, reference8.home)
+    rec, outputs = hold_run(reference8, controller, reference8.home, 3.0)
+    pos, ang = pose_errors(rec, reference8.home)
     assert all(o.feasible for o in outputs)
     assert pos.max() < 1e-4 and np.degrees(ang.max()) < 0.01
     assert rec.tensions.min() > reference8.t_min.min() * 0.5
@@ -72,13 +47,13 @@ def test_sign_erratum_ours_converges_the_literal_reading_diverges(
         reference8.home.position + np.array((0.003, -0.002, 0.003)), np.radians((0.3, -0.2, 0.3))
     )
     spec = parse_controller({"model_at": model_at})
-    rec, outputs = _hold_run(reference8, ParallelController(reference8, spec), target, 4.5)
-    pos, ang = _errors(rec, target)
+    rec, outputs = hold_run(reference8, ParallelController(reference8, spec), target, 4.5)
+    pos, ang = pose_errors(rec, target)
     assert all(o.feasible for o in outputs)
     assert pos[-100:].max() < 1e-4 and ang[-100:].max() < np.radians(0.05)
 
-    rec, outputs = _hold_run(reference8, LiteralStep5(reference8, spec), target, 2.0)
-    pos, _ = _errors(rec, target)
+    rec, outputs = hold_run(reference8, LiteralStep5(reference8, spec), target, 2.0)
+    pos, _ = pose_errors(rec, target)
     ran_away = pos.max() > 0.05 or not all(o.feasible for o in outputs)
     assert ran_away and pos.max() > 10 * 0.0047
 

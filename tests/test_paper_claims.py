@@ -12,12 +12,11 @@ import itertools
 import numpy as np
 import pytest
 
-from cdpr import Pose, Robot, liediff
+from cdpr import Pose, Robot
 from cdpr.control_spec import ControllerSpec
-from cdpr.controller import Hold, ParallelController, static_tensions
+from cdpr.controller import ParallelController, static_tensions
 from sim_bus.analysis import robust_mass_range
-from sim_bus.lockstep import run_lockstep
-from sim_bus.plant import Plant
+from tests.closed_loop import hold_run, pose_errors
 from tests.conftest import load_robot
 
 SPREAD = [  # (offset from home in m, rotation vector in rad)
@@ -61,21 +60,12 @@ def test_unchanged_gains_settle_the_robot_across_the_workspace(
     pose = Pose.from_rotvec(robot.home.position + np.array(offset), rotvec)
     target = Pose.from_rotvec(pose.position + 0.002, np.array(rotvec) + 0.002)
     controller = ParallelController(robot)  # the default gains, as tuned on the rig
-    controller.reset(pose)
     # start from the tensions the controller plans there: its stretch correction assumes
     # them (the plant's own equilibrium distribution can differ by 100s of N)
-    plant = Plant(robot)
-    plant.reset(pose, static_tensions(robot, controller.tension, pose))
-    controller.follow(Hold(target))
-
-    def control(t: float, lengths: np.ndarray, rates: np.ndarray) -> np.ndarray:
-        out = controller.step(t, lengths, rates)
-        assert out.feasible, out.reason
-        return out.commands
-
-    rec = run_lockstep(plant, control, 4.5, 500.0)
-    error = np.array([liediff(target, rec.pose(i)) for i in range(len(rec))])
-    position = np.linalg.norm(error[:, :3], axis=1)
-    angle = np.linalg.norm(error[:, 3:], axis=1)
+    planned = static_tensions(robot, controller.tension, pose)
+    rec, outputs = hold_run(robot, controller, target, 4.5, pose, planned)
+    infeasible = [o.reason for o in outputs if not o.feasible]
+    assert not infeasible, infeasible[0]
+    position, angle = pose_errors(rec, target)
     assert position[-50:].max() < 1e-4 and np.degrees(angle[-50:].max()) < 0.02
     assert rec.tensions.min() > 1.0  # no slack on the way
