@@ -19,7 +19,7 @@ import json
 import sys
 
 import tension
-from timing import REFERENCE8, per_call_us
+from timing import REFERENCE8, per_call_us, print_timings
 
 from cdpr import Robot
 from cdpr.baseline import JointSpaceController
@@ -91,9 +91,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         print(json.dumps(results))
         return 0
-    for name in ("step", "tda_osqp", "tda_osqp_shortcut", "tda_closed_form"):
-        r = results[name]
-        print(f"{name:16s} median {r['median_us']:7.2f} us   p99 {r['p99_us']:7.2f} us")
+    timed = ("step", "tda_osqp", "tda_osqp_shortcut", "tda_closed_form")
+    print_timings({name: results[name] for name in timed})
     for name, f in results.get("tracking", {}).items():
         print(
             f"{name:14s} rms {f['rms_mm']:.3f} mm  max {f['max_mm']:.3f} mm  "

@@ -14,7 +14,7 @@ import json
 import sys
 
 import numpy as np
-from timing import REFERENCE8, per_call_us
+from timing import REFERENCE8, per_call_us, print_timings
 
 from cdpr import Pose, Robot, retract
 
@@ -63,8 +63,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         print(json.dumps(results))
     else:
-        for name, r in results.items():
-            print(f"{name:18s} median {r['median_us']:7.2f} us   p99 {r['p99_us']:7.2f} us")
+        print_timings(results)
     return 0
 
 

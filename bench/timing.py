@@ -36,3 +36,9 @@ def per_call_us(fn: Callable[[int], object], calls: int, warm_up: int = 200) -> 
     finally:
         gc.enable()
     return summary_us(samples)
+
+
+def print_timings(results: dict[str, dict[str, float]]) -> None:
+    """One human-readable line per timed item: median and p99 in microseconds."""
+    for name, r in results.items():
+        print(f"{name:18s} median {r['median_us']:9.2f} us   p99 {r['p99_us']:9.2f} us")

@@ -14,7 +14,7 @@ import json
 import sys
 
 import numpy as np
-from timing import REFERENCE8, per_call_us
+from timing import REFERENCE8, per_call_us, print_timings
 
 from cdpr import Pose, Robot
 from cdpr.trajectory import Trajectory, TrajectoryLimits, Waypoint, parse_trajectory, validate
@@ -63,8 +63,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         print(json.dumps(out))
     else:
-        for name, r in out.items():
-            print(f"{name:10s} median {r['median_us']:9.2f} us   p99 {r['p99_us']:9.2f} us")
+        print_timings(out)
     return 0
 
 
