@@ -1,0 +1,464 @@
+"""Host side of ODrive CANSimple (firmware 0.6) for the actuators on one bus.
+
+Timing.CYCLIC: every drive streams Get_Encoder_Estimates at DrivesConfig.feedback_rate_hz
+and its Heartbeat every heartbeat_period (drive-side settings: the axis' CAN
+encoder_msg_rate_ms and heartbeat_msg_rate_ms); `receive` returns the actuator index on
+every accepted estimate.  A force is sent as Set_Input_Torque in N·m at the motor shaft,
+lengths arrive as motor turns; both convert through `Scaling` (counts_per_rev = 1: turns).
+
+Braking (DESIGN §9).  ODrive's Estop, and IDLE on an axis without a mechanical brake,
+cut the motor and let a suspended platform fall: neither is ever used as a brake here.
+- POSITION_HOLD: Set_Controller_Mode(POSITION_CONTROL, PASSTHROUGH), Set_Axis_State(
+  CLOSED_LOOP_CONTROL), Set_Input_Pos(length): the drive servoes the cable at `length`
+  (firmware resets input_pos to the position estimate on the mode change, so the first
+  frame already holds).  Takes effect with no answer; `keepalive` re-sends Set_Input_Pos.
+- HOLDING_BRAKE: Set_Axis_State(IDLE), only with has_holding_brake: the firmware engages
+  the brake when it disarms.  Asked for without a brake, `brake` holds position instead.
+
+Sequences (coroutines on a `Link`):
+- start: a heartbeat from every node (DriverError naming the missing ones), then every
+  drive is left with its cables held, not idle: with a holding brake, IDLE (brake on,
+  READY); without one, closed-loop position control at the length of its first encoder
+  estimate (HOLDING), because IDLE would let the platform fall.  Errors are cleared in
+  the same batch and the sequence waits for heartbeats showing no error and that state.
+- enable: position hold at `lengths`, CLOSED_LOOP_CONTROL confirmed by heartbeat, then
+  Set_Input_Torque(0) and Set_Controller_Mode(TORQUE_CONTROL, PASSTHROUGH): zero torque
+  until the first `commands`.  After `brake`, force commands are ignored by the drive
+  (it is in position control) until `enable` runs again: a brake is never released by
+  a stray command.
+- reset_faults: Clear_Errors and the same hold as start, confirmed by heartbeats with
+  axis_error == 0.
+While a sequence waits it feeds the watchdog of holding drives (`keepalive` every third
+of watchdog_timeout) and asks for the awaited frame by RTR, so it need not wait a whole
+heartbeat period.
+
+Watchdog: set each axis' enable_watchdog and watchdog_timeout = DrivesConfig.
+watchdog_timeout.  Every command frame feeds it; `keepalive` feeds holding drives and
+never re-sends a force, so a daemon that stops commanding while ENABLED lets it expire.
+Real firmware disarms the axis (IDLE) on an axis error, watchdog expiry and Estop
+included: without a holding brake a dead host then lets the platform fall on real
+hardware.  The simulated drive (sim_bus.devices.odrive) holds position instead, as
+DrivesConfig.brake asks; fail-safe suspended ODrive robots need holding brakes.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from collections.abc import Callable, Sequence
+
+import can
+
+from drivers.base import (
+    ActuatorDriver,
+    BrakeMode,
+    DriverError,
+    DriveState,
+    FrameError,
+    Link,
+    Scaling,
+    Timing,
+)
+from drivers.config import DrivesConfig
+from drivers.odrive.codec import (
+    F32,
+    FLOAT32_MAX,
+    AxisState,
+    Cmd,
+    ControlMode,
+    Heartbeat,
+    InputMode,
+    OdriveFrameError,
+    decode_encoder_estimates,
+    decode_error_status,
+    decode_heartbeat,
+    encode_clear_errors,
+    encode_request,
+    encode_set_axis_state,
+    encode_set_controller_mode,
+    error_text,
+    input_pos_payload,
+    is_error_request,
+)
+
+
+class Intent(enum.Enum):
+    """What the host last asked a drive to do (the heartbeat does not say)."""
+
+    NONE = "none"
+    TORQUE = "torque"  # following force commands
+    HOLD_POSITION = "hold_position"  # servoing its cable at a length
+    HOLD_BRAKE = "hold_brake"  # IDLE with the mechanical brake engaged
+
+
+class OdriveDriver(ActuatorDriver):
+    """ODrive CANSimple host for config.nodes (cable order), one axis per node.
+
+    `ignored` counts frames that are not this driver's (other nodes, other commands,
+    requests); `drive_errors[i]` is the last Get_Error answer (active_errors,
+    disarm_reason) of actuator i, asked for with `request_errors`.
+    """
+
+    timing = Timing.CYCLIC
+
+    def __init__(
+        self,
+        config: DrivesConfig,
+        scalings: Sequence[Scaling],
+        *,
+        timeout: float | None = None,
+    ) -> None:
+        """`scalings` from config.scalings(drum radii); `timeout` bounds each wait of a
+        sequence (default: 3 heartbeat timeouts, at least 1 s)."""
+        if config.protocol != "odrive":
+            raise ValueError(f"OdriveDriver needs protocol odrive, config says {config.protocol}")
+        super().__init__(scalings)
+        self.nodes = list(config.nodes)
+        if len(self.nodes) != self.n:
+            raise ValueError(f"{self.n} scalings for {len(self.nodes)} ODrive nodes")
+        for node, scaling in zip(self.nodes, self.scalings, strict=True):
+            if scaling.counts_per_rev != 1.0:
+                raise ValueError(
+                    f"ODrive node {node} reports turns: counts_per_rev must be 1, "
+                    f"not {scaling.counts_per_rev}"
+                )
+        self.timeout = max(1.0, 3.0 * config.heartbeat_timeout) if timeout is None else timeout
+        if not (math.isfinite(self.timeout) and self.timeout > 0):
+            raise ValueError(f"timeout must be positive, not {timeout}")
+        self.has_holding_brake = config.has_holding_brake
+        self.feed_period = config.watchdog_timeout / 3.0
+        self.ignored = 0
+        self.drive_errors: list[tuple[int, int] | None] = [None] * self.n
+        self.intent = [Intent.NONE] * self.n
+        self._axis_state: list[AxisState | None] = [None] * self.n
+        self._axis_error = [0] * self.n
+        self._hold: list[bytes | None] = [None] * self.n  # Set_Input_Pos data while holding
+        self._now: Callable[[], float] | None = None
+        self._routes: dict[int, tuple[int, Cmd]] = {
+            node << 5 | cmd: (i, cmd)
+            for i, node in enumerate(self.nodes)
+            for cmd in (Cmd.GET_ENCODER_ESTIMATES, Cmd.HEARTBEAT, Cmd.GET_ERROR)
+        }
+        self._torque_ids = [node << 5 | Cmd.SET_INPUT_TORQUE for node in self.nodes]
+        self._pos_ids = [node << 5 | Cmd.SET_INPUT_POS for node in self.nodes]
+        self._torque_per_newton = [s.motor_torque(1.0) for s in self.scalings]
+        self._metres_per_turn = [s.metres_per_count for s in self.scalings]
+        self._offsets = [s.length_offset for s in self.scalings]
+
+    # -- sequences ----------------------------------------------------------------------
+
+    async def start(self, link: Link, now: Callable[[], float]) -> None:
+        self._now = now
+        await self._collect(link, Cmd.HEARTBEAT, _decodes, "start", "no heartbeat")
+        await self._settle(link, "start")
+
+    async def enable(self, link: Link, lengths: Sequence[float], forces: Sequence[float]) -> None:
+        self._require_started("enable")
+        if len(lengths) != self.n or not all(math.isfinite(x) for x in lengths):
+            raise ValueError(f"enable needs {self.n} finite lengths, got {list(lengths)}")
+        first = self.commands(forces)  # FrameError on a bad force, before anything moves
+        holds = [self._hold_payload(i, length) for i, length in enumerate(lengths)]
+        for i, hold in enumerate(holds):
+            if hold is None:
+                raise ValueError(f"actuator {i}: length {lengths[i]} m is no float32 position")
+        for i, hold in enumerate(holds):
+            self._send_hold(link, i, hold, clear=False)
+        await self._confirm(link, AxisState.CLOSED_LOOP_CONTROL, "enable")
+        for i, node in enumerate(self.nodes):
+            link.send(first[i])  # the input torque, taken up by the mode change
+            link.send(
+                encode_set_controller_mode(node, ControlMode.TORQUE_CONTROL, InputMode.PASSTHROUGH)
+            )
+            self._set_intent(i, Intent.TORQUE, None)
+
+    async def reset_faults(self, link: Link) -> None:
+        self._require_started("reset_faults")
+        await self._settle(link, "reset_faults")
+
+    def _require_started(self, what: str) -> None:
+        if self._now is None:
+            raise DriverError(f"ODrive {what}: start() has not run")
+
+    async def _settle(self, link: Link, what: str) -> None:
+        """Clear errors and leave every drive holding (brake or position); confirm."""
+        if self.has_holding_brake:
+            for i, node in enumerate(self.nodes):
+                link.send(encode_clear_errors(node))
+                link.send(encode_set_axis_state(node, AxisState.IDLE))
+                self._set_intent(i, Intent.NONE, None)
+            await self._confirm(link, AxisState.IDLE, what)
+            return
+        estimates = await self._collect(
+            link,
+            Cmd.GET_ENCODER_ESTIMATES,
+            _decodes,
+            what,
+            "no encoder estimate",
+        )
+        for i in range(self.n):
+            pos, _ = decode_encoder_estimates(estimates[i])
+            self._send_hold(link, i, input_pos_payload(pos), clear=True)
+        await self._confirm(link, AxisState.CLOSED_LOOP_CONTROL, what)
+
+    def _send_hold(self, link: Link, i: int, hold: bytes, *, clear: bool) -> None:
+        node = self.nodes[i]
+        if clear:
+            link.send(encode_clear_errors(node))
+        for message in self._hold_frames(i, hold):
+            link.send(message)
+        self._set_intent(i, Intent.HOLD_POSITION, hold)
+
+    async def _confirm(self, link: Link, state: AxisState, what: str) -> None:
+        def reached(i: int, message: can.Message) -> bool:
+            heartbeat = decode_heartbeat(message)
+            return heartbeat.axis_error == 0 and heartbeat.axis_state is state
+
+        await self._collect(
+            link, Cmd.HEARTBEAT, reached, what, f"not in {state.name} without axis error"
+        )
+
+    async def _collect(
+        self,
+        link: Link,
+        cmd: Cmd,
+        accept: Callable[[int, can.Message], bool],
+        what: str,
+        failure: str,
+    ) -> dict[int, can.Message]:
+        """One well-formed frame `cmd` per actuator for which `accept` holds, within
+        `timeout`; feeds holding drives and re-asks by RTR every feed period meanwhile.
+        DriverError names every node still missing and what was last heard from it."""
+        now = self._now
+        assert now is not None
+        pending = set(range(self.n))
+        found: dict[int, can.Message] = {}
+
+        def match(message: can.Message) -> bool:
+            route = self._routes.get(message.arbitration_id)
+            if (
+                route is None
+                or route[1] is not cmd
+                or route[0] not in pending
+                or message.is_extended_id
+                or message.is_remote_frame
+            ):
+                return False
+            try:
+                return accept(route[0], message)
+            except OdriveFrameError:
+                return False
+
+        deadline = now() + self.timeout
+        next_feed = -math.inf
+        while pending:
+            t = now()
+            if t >= next_feed:
+                for message in self.keepalive():
+                    link.send(message)
+                for i in sorted(pending):
+                    link.send(encode_request(self.nodes[i], cmd))
+                next_feed = t + self.feed_period
+            if t >= deadline:
+                raise DriverError(
+                    f"ODrive {what}: {failure} within {self.timeout} s from "
+                    + "; ".join(self._describe(i) for i in sorted(pending))
+                )
+            try:
+                message = await link.expect(match, min(deadline, next_feed) - t, what)
+            except DriverError:
+                continue  # a feed period passed without the frame
+            index = self._routes[message.arbitration_id][0]
+            pending.discard(index)
+            found[index] = message
+        return found
+
+    def _describe(self, i: int) -> str:
+        status = self.status[i]
+        node = self.nodes[i]
+        state = self._axis_state[i]
+        if state is None:
+            return f"node {node} (nothing heard)"
+        error = self._axis_error[i]
+        fault = f", axis error 0x{error:08X} ({error_text(error)})" if error else ""
+        return f"node {node} (last heartbeat: {state.name}{fault}, {status.state.value})"
+
+    # -- immediate frames ----------------------------------------------------------------
+
+    def cycle_start(self) -> list[can.Message]:
+        return []
+
+    def commands(self, forces: Sequence[float]) -> list[can.Message]:
+        if len(forces) != self.n:
+            raise ValueError(f"{len(forces)} forces for {self.n} ODrive actuators")
+        pack = F32.pack
+        out = []
+        for i, force in enumerate(forces):
+            torque = force * self._torque_per_newton[i]
+            if not -FLOAT32_MAX <= torque <= FLOAT32_MAX:
+                raise FrameError(
+                    f"actuator {i} (ODrive node {self.nodes[i]}): force {force} N "
+                    f"is no finite float32 torque"
+                )
+            out.append(
+                can.Message(
+                    arbitration_id=self._torque_ids[i], data=pack(torque), is_extended_id=False
+                )
+            )
+        return out
+
+    def brake(self, lengths: Sequence[float], mode: BrakeMode) -> list[can.Message]:
+        """Freeze every cable (see the module docstring).  A non-finite length holds at
+        the newest measured length; with neither, the mode change alone holds at the
+        drive's own position estimate."""
+        if len(lengths) != self.n:
+            raise ValueError(f"{len(lengths)} lengths for {self.n} ODrive actuators")
+        out: list[can.Message] = []
+        by_brake = mode is BrakeMode.HOLDING_BRAKE and self.has_holding_brake
+        for i, node in enumerate(self.nodes):
+            if by_brake:
+                out.append(encode_set_axis_state(node, AxisState.IDLE))
+                self._set_intent(i, Intent.HOLD_BRAKE, None)
+                continue
+            length = lengths[i] if math.isfinite(lengths[i]) else self.feedback[i].length
+            hold = self._hold_payload(i, length)
+            out.extend(self._hold_frames(i, hold))
+            self._set_intent(i, Intent.HOLD_POSITION, hold)
+        return out
+
+    def disable(self) -> list[can.Message]:
+        """IDLE on every axis: brakes engage where fitted, otherwise the drums free-wheel
+        (only for a platform that rests on its support)."""
+        out = []
+        for i, node in enumerate(self.nodes):
+            out.append(encode_set_axis_state(node, AxisState.IDLE))
+            self._set_intent(i, Intent.NONE, None)
+        return out
+
+    def keepalive(self) -> list[can.Message]:
+        """Set_Input_Pos again for every drive holding a position (Set_Controller_Mode
+        where no length is known); nothing for others: never a force."""
+        out = []
+        for i, intent in enumerate(self.intent):
+            if intent is not Intent.HOLD_POSITION:
+                continue
+            hold = self._hold[i]
+            if hold is None:
+                out.append(self._position_mode(i))
+            else:
+                out.append(
+                    can.Message(arbitration_id=self._pos_ids[i], data=hold, is_extended_id=False)
+                )
+        return out
+
+    def request_errors(self) -> list[can.Message]:
+        """RTR Get_Error to every node; answers land in `drive_errors`."""
+        return [encode_request(node, Cmd.GET_ERROR) for node in self.nodes]
+
+    def _hold_payload(self, i: int, length: float) -> bytes | None:
+        if not math.isfinite(length):
+            return None
+        try:
+            return input_pos_payload(self.scalings[i].position(length))
+        except FrameError:
+            return None
+
+    def _hold_frames(self, i: int, hold: bytes | None) -> list[can.Message]:
+        node = self.nodes[i]
+        frames = [
+            self._position_mode(i),
+            encode_set_axis_state(node, AxisState.CLOSED_LOOP_CONTROL),
+        ]
+        if hold is not None:
+            frames.append(
+                can.Message(arbitration_id=self._pos_ids[i], data=hold, is_extended_id=False)
+            )
+        return frames
+
+    def _position_mode(self, i: int) -> can.Message:
+        return encode_set_controller_mode(
+            self.nodes[i], ControlMode.POSITION_CONTROL, InputMode.PASSTHROUGH
+        )
+
+    def _set_intent(self, i: int, intent: Intent, hold: bytes | None) -> None:
+        self.intent[i] = intent
+        self._hold[i] = hold
+        self._refresh(i)
+
+    # -- input ----------------------------------------------------------------------------
+
+    def receive(self, message: can.Message, now: float) -> int | None:
+        route = self._routes.get(message.arbitration_id)
+        if (
+            route is None
+            or message.is_extended_id
+            or message.is_remote_frame
+            or message.is_error_frame
+        ):
+            self.ignored += 1
+            return None
+        i, cmd = route
+        try:
+            if cmd is Cmd.GET_ENCODER_ESTIMATES:
+                pos, vel = decode_encoder_estimates(message)
+                feedback = self.feedback[i]
+                scale = self._metres_per_turn[i]
+                feedback.length = self._offsets[i] + pos * scale
+                feedback.rate = vel * scale
+                feedback.stamp = now
+                feedback.count += 1
+                self.counters.accepted += 1
+                return i
+            if cmd is Cmd.HEARTBEAT:
+                self._on_heartbeat(i, decode_heartbeat(message), now)
+            elif is_error_request(message):
+                self.ignored += 1  # another host asking this node
+                return None
+            else:
+                self.drive_errors[i] = decode_error_status(message)
+        except OdriveFrameError as exc:
+            self.counters.reject(exc.reason)
+            return None
+        self.counters.accepted += 1
+        return None
+
+    def _on_heartbeat(self, i: int, heartbeat: Heartbeat, now: float) -> None:
+        error = heartbeat.axis_error
+        self._axis_state[i] = heartbeat.axis_state
+        self._axis_error[i] = error
+        status = self.status[i]
+        status.heartbeat_stamp = now
+        status.fault_code = error
+        status.fault = (
+            f"ODrive node {self.nodes[i]}: axis error 0x{error:08X} ({error_text(error)})"
+            if error
+            else None
+        )
+        self._refresh(i)
+
+    def _refresh(self, i: int) -> None:
+        """status[i].state from the last heartbeat and what the host asked for."""
+        state = self._axis_state[i]
+        intent = self.intent[i]
+        holding = intent in (Intent.HOLD_POSITION, Intent.HOLD_BRAKE)
+        if state is None or state is AxisState.UNDEFINED:
+            drive_state = DriveState.UNKNOWN
+        elif self._axis_error[i]:
+            drive_state = DriveState.FAULT
+        elif state is AxisState.IDLE:
+            drive_state = (
+                DriveState.HOLDING if holding and self.has_holding_brake else DriveState.READY
+            )
+        elif state is AxisState.CLOSED_LOOP_CONTROL:
+            drive_state = DriveState.HOLDING if holding else DriveState.ENABLED
+        else:
+            drive_state = DriveState.DISABLED  # a calibration or startup procedure runs
+        self.status[i].state = drive_state
+
+
+def _decodes(i: int, message: can.Message) -> bool:
+    """Any well-formed heartbeat or estimate (a malformed one raises OdriveFrameError)."""
+    if message.arbitration_id & 0x1F == Cmd.HEARTBEAT:
+        decode_heartbeat(message)
+    else:
+        decode_encoder_estimates(message)
+    return True

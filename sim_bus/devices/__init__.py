@@ -1,0 +1,1 @@
+"""Device-side CAN nodes of the simulated drives, one module per protocol."""

@@ -1,0 +1,518 @@
+"""Device side of one CiA 402 drive in cyclic synchronous torque mode, for the simulator.
+
+The object dictionary comes from config/can/cia402_cst.eds (parsed by canopen): every
+object starts at its EDS value and the SDO server (expedited upload/download) reads and
+writes it with the EDS's types, access rights and limits, answering unknown objects,
+read-only writes, wrong sizes and out-of-range values with the CiA 301 abort codes.
+Rated torque 0x6076, holding brake 0x2001 and brake reaction 0x2000 are preset from the
+`drives:` config (the drive's stored parameters); heartbeat time 0x1017 and RPDO deadline
+0x1400:05 keep their EDS defaults (0 = off, 100 ms) until the host writes them.
+
+NMT: boot-up message at the first tick (then PRE-OPERATIONAL), start / stop / enter
+pre-operational / reset node / reset communication; SDO in pre-operational and
+operational, PDOs (and SYNC -> TPDO1 + TPDO2 from `measure`) only in operational.
+
+402 state machine (drivers.cia402.statemachine) driven by the controlword from RPDO1,
+RPDO2 or SDO; operation enabled gives Actuation.TORQUE (mode 10, target torque per mille
+of rated torque, clamped to +-0x6072) or Actuation.POSITION (mode 8, target position;
+switching to mode 8 without a target, by RPDO1 or SDO, holds the actual position).
+
+Brake reaction (0x2000, DESIGN §9): on a fault, an RPDO timeout or a quick stop, a drive
+whose power stage is on either holds the cable length it has at that moment (position
+hold) or engages its holding brake and switches off; the reaction stays latched
+(statusword bit 14) through FAULT, fault reset and SWITCH ON DISABLED — the drive never
+moves by itself — until operation is enabled again or "disable voltage" comes with
+controlword bit 15.  A drive whose power stage was off stays off (brake on where fitted).
+
+RPDO deadline: armed by each RPDO that leaves the drive OPERATION ENABLED, it expires
+0x1400:05 ms after the last one: brake reaction, FAULT, EMCY 0x8250.  `inject_fault`
+does the same with any code; a fault reset (controlword bit 7 rising edge) clears the
+fault unless its cause persists (`inject_fault(..., persistent=True)` until
+`clear_fault_cause()`), and then sends the EMCY error reset (code 0).
+
+Power-on hold (`power_on_hold`, default: drives without a holding brake): at power-on
+(the first `measure`) and at every reset node the drive latches a position hold at the
+measured length, as a suspended robot without brakes needs until the host starts; it
+ends like any latched brake reaction.
+
+Frames addressed to the drive that are malformed (wrong length, undefined NMT command or
+mode, RTR) are counted in `counters.rejected` and ignored.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from pathlib import Path
+
+import can
+from canopen.objectdictionary import ODArray, ODRecord, ODVariable
+
+from drivers.base import Actuation, BrakeMode, FrameCounters, Scaling, VirtualDrive
+from drivers.cia402.codec import (
+    ABORT_LENGTH,
+    ABORT_NO_DATA,
+    ABORT_NO_SUBINDEX,
+    ABORT_NOT_IN_OD,
+    ABORT_READ_WRITE_ONLY,
+    ABORT_UNSUPPORTED_COMMAND,
+    ABORT_VALUE_HIGH,
+    ABORT_VALUE_LOW,
+    ABORT_VALUE_RANGE,
+    ABORT_WRITE_READ_ONLY,
+    BRAKE_REACTION,
+    COB_ID_SYNC,
+    CONTROLWORD,
+    EDS_PATH,
+    ERROR_CODE,
+    ERROR_REGISTER,
+    HOLDING_BRAKE_FITTED,
+    I32_MAX,
+    I32_MIN,
+    MAX_TORQUE,
+    MODE_DISPLAY,
+    MODE_OF_OPERATION,
+    NMT_ID,
+    POSITION_ACTUAL,
+    PRODUCER_HEARTBEAT,
+    RATED_TORQUE,
+    RPDO1,
+    RPDO1_BASE,
+    RPDO2_BASE,
+    RPDO_DEADLINE_SUB,
+    SDO_REQUEST_BASE,
+    STATUSWORD,
+    TARGET_POSITION,
+    TARGET_TORQUE,
+    VELOCITY_ACTUAL,
+    Cia402FrameError,
+    NmtCommand,
+    NmtState,
+    SdoKind,
+    decode_nmt,
+    decode_rpdo1,
+    decode_rpdo2,
+    decode_sdo_request,
+    decode_sync,
+    encode_emcy,
+    encode_heartbeat,
+    encode_sdo_abort,
+    encode_sdo_download_response,
+    encode_sdo_upload_response,
+    encode_tpdo1,
+    encode_tpdo2,
+    error_register,
+    load_eds,
+    od_value,
+)
+from drivers.cia402.statemachine import (
+    CONTROL_FAULT_RESET,
+    CONTROL_RELEASE_HOLD,
+    MODE_CSP,
+    MODE_CST,
+    MODES,
+    Command,
+    State,
+    decode_command,
+    encode_statusword,
+    next_state,
+)
+from drivers.config import DrivesConfig
+
+RPDO_TIMEOUT = 0x8250
+_FAULTED = (State.FAULT, State.FAULT_REACTION_ACTIVE)
+_SDO_STATES = (NmtState.PRE_OPERATIONAL, NmtState.OPERATIONAL)
+
+
+def _i32(value: float) -> int:
+    """An encoder reading saturated to the i32 range of 0x6064 / 0x606C."""
+    if value >= I32_MAX:
+        return I32_MAX
+    if value <= I32_MIN:
+        return I32_MIN
+    return round(value)
+
+
+class Cia402Drive(VirtualDrive):
+    """One simulated CiA 402 drive at `node_id`, with the stored parameters of `config`.
+
+    `counters` counts frames addressed to this drive (accepted / rejected by reason).
+    `state` is its 402 state, `nmt_state` its NMT state (None before the boot-up),
+    `hold` its latched brake reaction (None, POSITION_HOLD at `hold_length`, or
+    HOLDING_BRAKE), `fault_code` / `fault_text` the active fault.
+    """
+
+    def __init__(
+        self,
+        node_id: int,
+        scaling: Scaling,
+        config: DrivesConfig,
+        *,
+        power_on_hold: bool | None = None,
+        eds: str | Path = EDS_PATH,
+    ) -> None:
+        if not 1 <= node_id <= 127:
+            raise ValueError(f"CANopen node ids run 1..127, not {node_id}")
+        if config.rated_torque is None:
+            raise ValueError("a CiA 402 drive needs rated_torque (N·m)")
+        super().__init__(node_id, scaling)
+        self.od = load_eds(eds, node_id)
+        self.rated_torque = config.rated_torque
+        self.has_holding_brake = config.has_holding_brake
+        self.power_on_hold = (
+            not config.has_holding_brake if power_on_hold is None else power_on_hold
+        )
+        self._stored = {
+            (RATED_TORQUE, 0): round(config.rated_torque * 1000),
+            (HOLDING_BRAKE_FITTED, 0): int(config.has_holding_brake),
+            (BRAKE_REACTION, 0): int(config.brake is BrakeMode.HOLDING_BRAKE),
+        }
+        self.counters = FrameCounters()
+        self.nmt_state: NmtState | None = None
+        self.state = State.NOT_READY_TO_SWITCH_ON
+        self.controlword = 0
+        self.hold: BrakeMode | None = None
+        self.hold_length = math.nan
+        self.fault_code = 0
+        self.fault_text: str | None = None
+        self.fault_persistent = False
+        self._powered = False
+        self._deadline = math.inf  # RPDO deadline expiry (inf: disarmed)
+        self._next_heartbeat = math.inf
+        self._reset_values(communication_only=False)
+        self._live: dict[tuple[int, int], Callable[[], int]] = {
+            (STATUSWORD, 0): lambda: encode_statusword(self.state, self.hold is not None),
+            (CONTROLWORD, 0): lambda: self.controlword,
+            (MODE_DISPLAY, 0): lambda: self.mode,
+            (POSITION_ACTUAL, 0): self._position,
+            (VELOCITY_ACTUAL, 0): self._velocity,
+            (ERROR_CODE, 0): lambda: self.fault_code,
+            (ERROR_REGISTER, 0): lambda: error_register(self.fault_code),
+        }
+        self._routes: dict[int, Callable[[can.Message, float], list[can.Message]]] = {
+            NMT_ID: self._on_nmt,
+            RPDO1_BASE + node_id: self._on_rpdo1,
+            RPDO2_BASE + node_id: self._on_rpdo2,
+            SDO_REQUEST_BASE + node_id: self._on_sdo,
+        }
+        self._apply()
+
+    # -- object dictionary ----------------------------------------------------------------
+
+    def _reset_values(self, communication_only: bool) -> None:
+        """Every object back to its EDS value (reset node), or only 0x1000-0x1FFF (reset
+        communication); the stored parameters from the config win over the EDS."""
+        values = (
+            {}
+            if not communication_only
+            else {k: v for k, v in self.values.items() if k[0] >= 0x2000}
+        )
+        for index, entry in self.od.items():
+            if communication_only and index >= 0x2000:
+                continue
+            members = entry.values() if isinstance(entry, ODRecord | ODArray) else (entry,)
+            for var in members:
+                value = od_value(var)
+                if isinstance(value, int):
+                    values[(var.index, var.subindex)] = value
+        if not communication_only:
+            values.update(self._stored)
+        self.values: dict[tuple[int, int], int] = values
+        self._settings()
+
+    def _settings(self) -> None:
+        """Cache the objects the drive consults on every frame or tick."""
+        values = self.values
+        self.mode = values[(MODE_OF_OPERATION, 0)]
+        self.target_torque = values[(TARGET_TORQUE, 0)]
+        self.target_position = values[(TARGET_POSITION, 0)]
+        self.max_torque = values[(MAX_TORQUE, 0)]
+        self.sync_id = values[(COB_ID_SYNC, 0)] & 0x7FF
+        self.heartbeat_period = values[(PRODUCER_HEARTBEAT, 0)] / 1000.0
+        self.rpdo_timeout = values[(RPDO1.comm_index, RPDO_DEADLINE_SUB)] / 1000.0
+        self.brake_reaction = (
+            BrakeMode.HOLDING_BRAKE if values[(BRAKE_REACTION, 0)] else BrakeMode.POSITION_HOLD
+        )
+
+    def _variable(self, index: int, subindex: int) -> ODVariable | int:
+        """The OD variable, or the SDO abort code for a missing one."""
+        entry = self.od.get(index)
+        if entry is None:
+            return ABORT_NOT_IN_OD
+        if isinstance(entry, ODRecord | ODArray):
+            return entry.get(subindex, ABORT_NO_SUBINDEX)
+        return entry if subindex == 0 else ABORT_NO_SUBINDEX
+
+    def _position(self) -> int:
+        return _i32(self.scaling.position(self.length))
+
+    def _velocity(self) -> int:
+        return _i32(self.scaling.velocity(self.rate))
+
+    # -- VirtualDrive ---------------------------------------------------------------------
+
+    def measure(self, length: float, rate: float) -> None:
+        super().measure(length, rate)
+        if not self._powered:
+            self._powered = True
+            if self.power_on_hold:
+                self.hold, self.hold_length = BrakeMode.POSITION_HOLD, length
+                self._apply()
+
+    def on_frame(self, message: can.Message, now: float) -> list[can.Message]:
+        if self.nmt_state is None or message.is_extended_id or message.is_error_frame:
+            return []  # not booted yet, or not CANopen
+        out = self._watchdog(now)
+        can_id = message.arbitration_id
+        handler = self._on_sync if can_id == self.sync_id else self._routes.get(can_id)
+        if handler is None:
+            return out
+        if message.is_remote_frame:
+            self.counters.reject("remote frame")
+            return out
+        try:
+            out += handler(message, now)
+        except Cia402FrameError as exc:
+            self.counters.reject(exc.reason)
+        return out
+
+    def on_tick(self, now: float) -> list[can.Message]:
+        if self.nmt_state is None:
+            return self._boot(now, communication_only=False)
+        out = self._watchdog(now)
+        if now >= self._next_heartbeat:
+            out.append(encode_heartbeat(self.node_id, self.nmt_state))
+            due = self._next_heartbeat + self.heartbeat_period
+            self._next_heartbeat = due if due > now else now + self.heartbeat_period
+        return out
+
+    def inject_fault(self, code: int, text: str, *, persistent: bool = False) -> list[can.Message]:
+        """The drive detects fault `code` (an EMCY error code): brake reaction, FAULT,
+        EMCY.  A persistent cause survives fault resets until `clear_fault_cause()`."""
+        if not 0 < code <= 0xFFFF:
+            raise ValueError(f"an EMCY error code is a non-zero u16, not {code}")
+        return self._fault(code, text, persistent)
+
+    def clear_fault_cause(self) -> None:
+        """The cause of a persistent fault is gone; the next fault reset clears it."""
+        self.fault_persistent = False
+
+    # -- NMT, SYNC, heartbeat ---------------------------------------------------------------
+
+    def _boot(self, now: float, communication_only: bool) -> list[can.Message]:
+        """Boot-up after power-on or reset node (everything back to the EDS, power stage
+        off) or after reset communication (0x1000-0x1FFF only; the 402 state stays)."""
+        self._reset_values(communication_only)
+        if not communication_only:
+            self.state, self.hold, self.controlword = State.SWITCH_ON_DISABLED, None, 0
+            if self.power_on_hold and self._powered:
+                self.hold, self.hold_length = BrakeMode.POSITION_HOLD, self.length
+            self._deadline = math.inf
+            if not self.fault_persistent:
+                self.fault_code, self.fault_text = 0, None
+        self.nmt_state = NmtState.PRE_OPERATIONAL
+        self._next_heartbeat = now + self.heartbeat_period if self.heartbeat_period else math.inf
+        out = [encode_heartbeat(self.node_id, NmtState.BOOT_UP)]
+        if self.fault_persistent and not communication_only:
+            out += self._fault(self.fault_code, self.fault_text or "", True)
+        self._apply()
+        return out
+
+    def _on_nmt(self, message: can.Message, now: float) -> list[can.Message]:
+        command, node = decode_nmt(message.data)
+        if node not in (0, self.node_id):
+            return []
+        self.counters.accepted += 1
+        if command is NmtCommand.RESET_NODE:
+            return self._boot(now, communication_only=False)
+        if command is NmtCommand.RESET_COMMUNICATION:
+            return self._boot(now, communication_only=True)
+        self.nmt_state = {
+            NmtCommand.START: NmtState.OPERATIONAL,
+            NmtCommand.STOP: NmtState.STOPPED,
+            NmtCommand.ENTER_PRE_OPERATIONAL: NmtState.PRE_OPERATIONAL,
+        }[command]
+        return []
+
+    def _on_sync(self, message: can.Message, now: float) -> list[can.Message]:
+        decode_sync(message.data)
+        self.counters.accepted += 1
+        if self.nmt_state is not NmtState.OPERATIONAL:
+            return []
+        statusword = encode_statusword(self.state, self.hold is not None)
+        return [
+            encode_tpdo1(self.node_id, statusword, self._position(), self.mode),
+            encode_tpdo2(self.node_id, self._velocity()),
+        ]
+
+    # -- RPDOs ------------------------------------------------------------------------------
+
+    def _on_rpdo1(self, message: can.Message, now: float) -> list[can.Message]:
+        controlword, torque, mode = decode_rpdo1(message.arbitration_id, message.data)
+        if self.nmt_state is not NmtState.OPERATIONAL:
+            self.counters.reject("RPDO outside OPERATIONAL")
+            return []
+        self.counters.accepted += 1
+        self.values[(TARGET_TORQUE, 0)] = self.target_torque = torque
+        self._set_mode(mode)
+        return self._control(controlword, now, from_rpdo=True)
+
+    def _on_rpdo2(self, message: can.Message, now: float) -> list[can.Message]:
+        controlword, position, mode = decode_rpdo2(message.arbitration_id, message.data)
+        if self.nmt_state is not NmtState.OPERATIONAL:
+            self.counters.reject("RPDO outside OPERATIONAL")
+            return []
+        self.counters.accepted += 1
+        self._set_mode(mode)
+        self.values[(TARGET_POSITION, 0)] = self.target_position = position
+        return self._control(controlword, now, from_rpdo=True)
+
+    def _set_mode(self, mode: int) -> None:
+        """Mode of operation; entering mode 8 starts from the actual position (no jump to
+        a stale 0x607A when no target comes with the switch)."""
+        if mode == MODE_CSP and self.mode != MODE_CSP:
+            self.values[(TARGET_POSITION, 0)] = self.target_position = self._position()
+        self.values[(MODE_OF_OPERATION, 0)] = self.mode = mode
+
+    # -- 402 state machine ------------------------------------------------------------------
+
+    def _control(self, controlword: int, now: float, from_rpdo: bool) -> list[can.Message]:
+        """Apply a controlword; an RPDO that leaves the drive enabled feeds the deadline."""
+        previous, self.controlword = self.controlword, controlword
+        self.values[(CONTROLWORD, 0)] = controlword
+        out: list[can.Message] = []
+        if self.state in _FAULTED:
+            if controlword & CONTROL_FAULT_RESET and not previous & CONTROL_FAULT_RESET:
+                out = self._fault_reset()
+        else:
+            command = decode_command(controlword)
+            if command is Command.QUICK_STOP and self.state is State.OPERATION_ENABLED:
+                self._brake_reaction()
+            self.state = next_state(self.state, command)
+            released = command is Command.DISABLE_VOLTAGE and controlword & CONTROL_RELEASE_HOLD
+            if self.state is State.OPERATION_ENABLED or released:
+                self.hold = None
+        if self.state is not State.OPERATION_ENABLED:
+            self._deadline = math.inf
+        elif from_rpdo and self.rpdo_timeout > 0:
+            self._deadline = now + self.rpdo_timeout
+        self._apply()
+        return out
+
+    def _brake_reaction(self) -> None:
+        """Latch the configured reaction if the power stage is on (an already latched
+        reaction stays as it is: a position hold keeps its original length)."""
+        if self.hold is not None or self.state is not State.OPERATION_ENABLED:
+            return
+        if self.brake_reaction is BrakeMode.HOLDING_BRAKE and self.has_holding_brake:
+            self.hold = BrakeMode.HOLDING_BRAKE
+        else:
+            self.hold, self.hold_length = BrakeMode.POSITION_HOLD, self.length
+
+    def _fault(self, code: int, text: str, persistent: bool) -> list[can.Message]:
+        self._brake_reaction()
+        self.state = State.FAULT
+        self._deadline = math.inf
+        self.fault_code, self.fault_text, self.fault_persistent = code, text, persistent
+        self._apply()
+        if self.nmt_state not in _SDO_STATES:
+            return []
+        return [encode_emcy(self.node_id, code, error_register(code))]
+
+    def _fault_reset(self) -> list[can.Message]:
+        if self.fault_persistent:
+            return []
+        self.state = State.SWITCH_ON_DISABLED
+        self.fault_code, self.fault_text = 0, None
+        return [encode_emcy(self.node_id, 0, 0)]
+
+    def _watchdog(self, now: float) -> list[can.Message]:
+        if now < self._deadline:
+            return []
+        return self._fault(RPDO_TIMEOUT, "no RPDO within the 0x1400:05 deadline", False)
+
+    def _apply(self) -> None:
+        """The power stage and brake for the state, mode and latched reaction."""
+        if self.state is State.OPERATION_ENABLED:
+            self.brake_engaged = False
+            if self.mode == MODE_CST:
+                limit = self.max_torque
+                torque = max(-limit, min(limit, self.target_torque))
+                self.actuation = Actuation.TORQUE
+                self.force = self.scaling.force(torque * self.rated_torque / 1000.0)
+                self.target_length = math.nan
+            else:
+                self.actuation = Actuation.POSITION
+                self.force = 0.0
+                self.target_length = self.scaling.length(self.target_position)
+        elif self.hold is BrakeMode.POSITION_HOLD:
+            self.brake_engaged = False
+            self.actuation = Actuation.POSITION
+            self.force = 0.0
+            self.target_length = self.hold_length
+        else:
+            self.brake_engaged = self.has_holding_brake
+            self.actuation = Actuation.OFF
+            self.force = 0.0
+            self.target_length = math.nan
+
+    # -- SDO server -------------------------------------------------------------------------
+
+    def _on_sdo(self, message: can.Message, now: float) -> list[can.Message]:
+        request = decode_sdo_request(message.arbitration_id, message.data)
+        if self.nmt_state not in _SDO_STATES:
+            self.counters.reject("SDO while stopped")
+            return []
+        self.counters.accepted += 1
+        index, sub = request.index, request.subindex
+        if request.kind is SdoKind.ABORT:
+            return []
+        if request.kind is SdoKind.UNSUPPORTED:
+            return [self._abort(index, sub, ABORT_UNSUPPORTED_COMMAND)]
+        var = self._variable(index, sub)
+        if isinstance(var, int):
+            return [self._abort(index, sub, var)]
+        if request.kind is SdoKind.UPLOAD:
+            if not var.readable:
+                return [self._abort(index, sub, ABORT_READ_WRITE_ONLY)]
+            live = self._live.get((index, sub))
+            value = live() if live is not None else self.values.get((index, sub))
+            if value is None:  # an EDS object without an integer value
+                return [self._abort(index, sub, ABORT_NO_DATA)]
+            return [encode_sdo_upload_response(self.node_id, index, sub, var.encode_raw(value))]
+        code = self._write(var, request.data, now)
+        if code:
+            return [self._abort(index, sub, code)]
+        out = [encode_sdo_download_response(self.node_id, index, sub)]
+        if index == CONTROLWORD:
+            out += self._control(self.values[(CONTROLWORD, 0)], now, from_rpdo=False)
+        return out
+
+    def _abort(self, index: int, sub: int, code: int) -> can.Message:
+        return encode_sdo_abort(self.node_id, index, sub, code, server=True)
+
+    def _write(self, var: ODVariable, data: bytes, now: float) -> int:
+        """Store an SDO download; the abort code (0: written)."""
+        if not var.writable:
+            return ABORT_WRITE_READ_ONLY
+        if len(data) != len(var) // 8:
+            return ABORT_LENGTH
+        value = var.decode_raw(data)
+        if var.min is not None and value < var.min:
+            return ABORT_VALUE_LOW
+        if var.max is not None and value > var.max:
+            return ABORT_VALUE_HIGH
+        key = (var.index, var.subindex)
+        if key == (MODE_OF_OPERATION, 0) and value not in MODES:
+            return ABORT_VALUE_RANGE
+        if key == (BRAKE_REACTION, 0) and value and not self.has_holding_brake:
+            return ABORT_VALUE_RANGE
+        if key == (MODE_OF_OPERATION, 0):
+            self._set_mode(value)
+        self.values[key] = value
+        self._settings()
+        if key == (PRODUCER_HEARTBEAT, 0):
+            self._next_heartbeat = now + self.heartbeat_period if value else math.inf
+        if key != (CONTROLWORD, 0):
+            self._apply()
+        return 0

@@ -1,0 +1,595 @@
+"""The simulated ODrive axis, alone and against the host driver over an in-memory link.
+
+`SimLink` runs in simulated time (1 ms ticks): host frames reach every device at once,
+device frames reach the driver's `receive` and then a pending `expect`.  Coroutines run
+with asyncio.run and never wait on a wall clock.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import struct
+from collections import deque
+from collections.abc import Callable, Sequence
+
+import can
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from drivers.base import Actuation, BrakeMode, DriverError, DriveState
+from drivers.config import DrivesConfig, parse_drives
+from drivers.odrive import codec
+from drivers.odrive.codec import AxisError, AxisState, Cmd, ControlMode, InputMode
+from drivers.odrive.host import Intent, OdriveDriver
+from sim_bus.devices.odrive import OdriveAxis
+
+NODES = [3, 5, 7, 11]
+RADII = [0.05, 0.04, 0.06, 0.05]
+DIRECTIONS = [1, -1, 1, -1]
+LENGTHS = [1.2, 2.5, 0.8, 1.7]
+HOLDING = [-120.0, -80.0, -120.0, -80.0]  # N: forces holding a platform at enable
+TICK = 0.001
+
+
+def config(**extra: object) -> DrivesConfig:
+    return parse_drives(
+        {
+            "protocol": "odrive",
+            "nodes": NODES,
+            "gear_ratio": 5.0,
+            "direction": DIRECTIONS,
+            "length_offset": [1.0, 2.0, 0.5, 1.5],
+            **extra,
+        }
+    )
+
+
+def axes(cfg: DrivesConfig, **kwargs: object) -> list[OdriveAxis]:
+    devices = [
+        OdriveAxis(node, scaling, cfg, **kwargs)
+        for node, scaling in zip(cfg.nodes, cfg.scalings(RADII), strict=True)
+    ]
+    for device, length in zip(devices, LENGTHS, strict=True):
+        device.measure(length, 0.0)
+    return devices
+
+
+class SimLink:
+    """The bus between one driver and its devices, in simulated time."""
+
+    def __init__(self, driver: OdriveDriver, devices: Sequence[OdriveAxis]) -> None:
+        self.driver = driver
+        self.devices = list(devices)
+        self.ticks = 0
+        self.sent: list[can.Message] = []
+        self.inbox: deque[can.Message] = deque()
+
+    @property
+    def t(self) -> float:
+        return self.ticks * TICK
+
+    def now(self) -> float:
+        return self.t
+
+    def send(self, message: can.Message) -> None:
+        self.sent.append(message)
+        for device in self.devices:
+            self.inbox.extend(device.on_frame(message, self.t))
+
+    def send_all(self, messages: Sequence[can.Message]) -> None:
+        for message in messages:
+            self.send(message)
+
+    def _tick(self) -> None:
+        self.ticks += 1
+        for device in self.devices:
+            self.inbox.extend(device.on_tick(self.t))
+
+    def _drain(self, match: Callable[[can.Message], bool] | None = None) -> can.Message | None:
+        while self.inbox:
+            message = self.inbox.popleft()
+            self.driver.receive(message, self.t)
+            if match is not None and match(message):
+                return message
+        return None
+
+    async def expect(
+        self, match: Callable[[can.Message], bool], timeout: float, what: str
+    ) -> can.Message:
+        end = self.ticks + max(1, round(timeout / TICK))
+        while True:
+            found = self._drain(match)
+            if found is not None:
+                return found
+            if self.ticks >= end:
+                raise DriverError(f"timeout waiting for {what}")
+            self._tick()
+
+    def run(self, seconds: float, each_tick: Callable[[], None] | None = None) -> None:
+        """Let time pass; `each_tick` runs once per ms (e.g. the host's cycle)."""
+        for _ in range(round(seconds / TICK)):
+            self._tick()
+            self._drain()
+            if each_tick is not None:
+                each_tick()
+
+
+def setup(**extra: object) -> tuple[OdriveDriver, list[OdriveAxis], SimLink]:
+    cfg = config(**extra)
+    driver = OdriveDriver(cfg, cfg.scalings(RADII))
+    devices = axes(cfg)
+    return driver, devices, SimLink(driver, devices)
+
+
+def started(**extra: object) -> tuple[OdriveDriver, list[OdriveAxis], SimLink]:
+    driver, devices, link = setup(**extra)
+    asyncio.run(driver.start(link, link.now))
+    return driver, devices, link
+
+
+def enabled(**extra: object) -> tuple[OdriveDriver, list[OdriveAxis], SimLink]:
+    driver, devices, link = started(**extra)
+    link.run(0.005)  # fresh estimates (a start with brakes does not wait for them)
+    asyncio.run(driver.enable(link, [f.length for f in driver.feedback], HOLDING))
+    return driver, devices, link
+
+
+def frame(node: int, cmd: int, data: bytes) -> can.Message:
+    return can.Message(arbitration_id=node << 5 | cmd, data=data, is_extended_id=False)
+
+
+# -- the device alone -----------------------------------------------------------------------
+
+
+def test_power_on_state_depends_on_the_brake() -> None:
+    no_brake = axes(config())[0]
+    assert no_brake.axis_state is AxisState.CLOSED_LOOP_CONTROL  # startup_closed_loop
+    assert no_brake.actuation is Actuation.POSITION
+    assert no_brake.target_length == pytest.approx(LENGTHS[0])
+    assert not no_brake.brake_engaged
+    braked = axes(config(has_holding_brake=True))[0]
+    assert braked.axis_state is AxisState.IDLE
+    assert braked.actuation is Actuation.OFF and braked.brake_engaged
+    # An IDLE axis without a brake free-wheels: what the host must never choose.
+    free = axes(config(), startup_closed_loop=False)[0]
+    assert free.actuation is Actuation.OFF and not free.brake_engaged
+
+
+def test_cyclic_heartbeat_and_estimates() -> None:
+    device = axes(config(feedback_rate_hz=250.0, heartbeat_period=0.1))[1]
+    device.measure(LENGTHS[1], 0.3)
+    out: list[can.Message] = []
+    for k in range(1, 1001):
+        out.extend(device.on_tick(k * TICK))
+    heartbeats = [m for m in out if m.arbitration_id == 5 << 5 | Cmd.HEARTBEAT]
+    estimates = [m for m in out if m.arbitration_id == 5 << 5 | Cmd.GET_ENCODER_ESTIMATES]
+    assert len(heartbeats) == 10 and len(estimates) == 250
+    pos, vel = codec.decode_encoder_estimates(estimates[-1])
+    assert pos == pytest.approx(device.scaling.position(LENGTHS[1]), rel=1e-6)
+    assert vel == pytest.approx(device.scaling.velocity(0.3), rel=1e-6)
+    assert codec.decode_heartbeat(heartbeats[0]).axis_state is AxisState.CLOSED_LOOP_CONTROL
+
+
+def test_remote_requests_are_answered_at_once() -> None:
+    device = axes(config())[0]
+    for cmd in (Cmd.HEARTBEAT, Cmd.GET_ENCODER_ESTIMATES, Cmd.GET_ERROR):
+        (answer,) = device.on_frame(codec.encode_request(3, cmd), 0.0)
+        assert answer.arbitration_id == 3 << 5 | cmd and not answer.is_remote_frame
+    assert device.on_frame(codec.encode_request(3, Cmd.SET_INPUT_TORQUE), 0.0) == []
+    assert device.on_frame(codec.encode_request(4, Cmd.HEARTBEAT), 0.0) == []
+    (answer,) = device.on_frame(frame(3, Cmd.GET_ERROR, b"\x00"), 0.0)  # with an error type
+    assert codec.decode_error_status(answer) == (0, 0)
+
+
+def test_torque_and_position_commands_drive_the_winch() -> None:
+    device = axes(config())[1]  # direction -1
+    device.on_frame(codec.encode_set_input_torque(5, 0.4), 0.0)
+    assert device.actuation is Actuation.POSITION  # position control: torque only stored
+    device.on_frame(
+        codec.encode_set_controller_mode(5, ControlMode.TORQUE_CONTROL, InputMode.PASSTHROUGH),
+        0.0,
+    )
+    assert device.actuation is Actuation.TORQUE
+    assert device.force == pytest.approx(-0.4 * 5.0 / 0.04, rel=1e-6)  # direction -1
+    device.on_frame(codec.encode_set_input_torque(5, -0.2), 0.001)
+    assert device.force == pytest.approx(0.2 * 5.0 / 0.04, rel=1e-6)
+    device.on_frame(
+        codec.encode_set_controller_mode(5, ControlMode.POSITION_CONTROL, InputMode.PASSTHROUGH),
+        0.002,
+    )
+    assert device.actuation is Actuation.POSITION
+    assert device.target_length == pytest.approx(LENGTHS[1])  # holds where it is
+    turns = device.scaling.position(2.6)
+    device.on_frame(codec.encode_set_input_pos(5, turns), 0.003)
+    assert device.target_length == pytest.approx(2.6, rel=1e-6)
+    device.on_frame(codec.encode_set_axis_state(5, AxisState.IDLE), 0.004)
+    assert device.actuation is Actuation.OFF and not device.brake_engaged
+    assert device.counters.accepted == 6 and device.counters.rejected_total == 0
+
+
+def test_unsupported_states_and_modes_are_refused() -> None:
+    device = axes(config())[0]
+    device.on_frame(codec.encode_set_axis_state(3, AxisState.FULL_CALIBRATION_SEQUENCE), 0.0)
+    assert device.axis_state is AxisState.CLOSED_LOOP_CONTROL
+    assert device.procedure_result == codec.ProcedureResult.INVALID_STATE
+    heartbeat = codec.decode_heartbeat(
+        device.on_frame(codec.encode_request(3, Cmd.HEARTBEAT), 0)[0]
+    )
+    assert heartbeat.procedure_result == codec.ProcedureResult.INVALID_STATE
+    device.on_frame(
+        codec.encode_set_controller_mode(3, ControlMode.VELOCITY_CONTROL, InputMode.VEL_RAMP), 0.0
+    )
+    assert device.control_mode is ControlMode.POSITION_CONTROL
+    assert device.refused == {
+        "unsupported state FULL_CALIBRATION_SEQUENCE": 1,
+        "unsupported mode VELOCITY_CONTROL/VEL_RAMP": 1,
+    }
+
+
+def test_device_refuses_non_finite_and_malformed_frames() -> None:
+    device = axes(config())[0]
+    device.on_frame(
+        codec.encode_set_controller_mode(3, ControlMode.TORQUE_CONTROL, InputMode.PASSTHROUGH), 0
+    )
+    device.on_frame(codec.encode_set_input_torque(3, 0.5), 0.0)
+    force = device.force
+    hostile = [
+        frame(3, Cmd.SET_INPUT_TORQUE, struct.pack("<f", math.nan)),
+        frame(3, Cmd.SET_INPUT_TORQUE, struct.pack("<f", -math.inf)),
+        frame(3, Cmd.SET_INPUT_TORQUE, bytes(2)),
+        frame(3, Cmd.SET_INPUT_POS, struct.pack("<fhh", math.nan, 0, 0)),
+        frame(3, Cmd.SET_AXIS_STATE, struct.pack("<I", 99)),
+        frame(3, Cmd.SET_CONTROLLER_MODE, struct.pack("<II", 7, 1)),
+        frame(3, Cmd.SET_CONTROLLER_MODE, bytes(4)),
+        frame(3, Cmd.GET_ERROR, bytes(3)),
+    ]
+    for message in hostile:
+        assert device.on_frame(message, 0.01) == []
+    assert device.counters.rejected == {
+        "Set_Input_Torque.non_finite": 2,
+        "Set_Input_Torque.dlc": 1,
+        "Set_Input_Pos.non_finite": 1,
+        "Set_Axis_State.axis_state": 1,
+        "Set_Controller_Mode.control_mode": 1,
+        "Set_Controller_Mode.dlc": 1,
+        "Get_Error.dlc": 1,
+    }
+    assert device.force == force and device.actuation is Actuation.TORQUE
+    # Frames for other nodes, extended ids and its own messages change nothing either.
+    for message in [
+        codec.encode_set_input_torque(4, 9.0),
+        can.Message(arbitration_id=3 << 5 | 0x0E, data=bytes(4), is_extended_id=True),
+        codec.encode_heartbeat(3, 0, AxisState.IDLE),
+        frame(3, 0x1F, bytes(8)),
+    ]:
+        assert device.on_frame(message, 0.02) == []
+    assert device.force == force and device.ignored == 2
+
+
+@given(st.lists(st.tuples(st.integers(0, 0x7FF), st.binary(max_size=8)), max_size=40))
+def test_device_never_raises_and_ignores_other_nodes(frames) -> None:
+    device = axes(config())[0]
+    before = (device.actuation, device.target_length, device.axis_state, device.axis_error)
+    for arbitration_id, data in frames:
+        if arbitration_id >> 5 == 3:
+            arbitration_id ^= 1 << 5  # another node
+        message = can.Message(arbitration_id=arbitration_id, data=data, is_extended_id=False)
+        assert device.on_frame(message, 0.0) == []
+    assert (device.actuation, device.target_length, device.axis_state, device.axis_error) == before
+
+
+@given(st.lists(st.tuples(st.integers(0, 0x1F), st.binary(max_size=8)), max_size=40))
+def test_device_survives_anything_addressed_to_it(frames) -> None:
+    device = axes(config())[0]
+    for cmd, data in frames:
+        for answer in device.on_frame(frame(3, cmd, data), 0.0):
+            assert answer.arbitration_id >> 5 == 3
+    assert math.isfinite(device.force)
+    assert device.actuation is not Actuation.POSITION or math.isfinite(device.target_length)
+    assert device.actuation is not Actuation.OFF or device.brake_engaged is False
+
+
+def test_flood_leaves_the_drive_in_control() -> None:
+    device = axes(config())[0]
+    junk = frame(3, Cmd.SET_INPUT_POS, struct.pack("<fhh", math.inf, 0, 0))
+    for k in range(20000):
+        device.on_frame(junk, k * 1e-5)
+    assert device.counters.rejected["Set_Input_Pos.non_finite"] == 20000
+    assert device.target_length == pytest.approx(LENGTHS[0])
+
+
+@pytest.mark.parametrize(
+    ("extra", "actuation", "state", "brake"),
+    [
+        ({}, Actuation.POSITION, AxisState.CLOSED_LOOP_CONTROL, False),
+        ({"has_holding_brake": True}, Actuation.POSITION, AxisState.CLOSED_LOOP_CONTROL, False),
+        (
+            {"has_holding_brake": True, "brake": "holding_brake"},
+            Actuation.OFF,
+            AxisState.IDLE,
+            True,
+        ),
+    ],
+)
+def test_injected_fault_takes_the_configured_safe_action(extra, actuation, state, brake) -> None:
+    device = axes(config(**extra), startup_closed_loop=True)[0]
+    device.on_frame(
+        codec.encode_set_controller_mode(3, ControlMode.TORQUE_CONTROL, InputMode.PASSTHROUGH), 0
+    )
+    device.on_frame(codec.encode_set_input_torque(3, -0.3), 0.0)
+    device.measure(1.25, 0.0)
+    assert device.inject_fault(AxisError.DRV_FAULT, "gate driver fault") == []
+    assert device.axis_error == AxisError.DRV_FAULT and device.fault_text == "gate driver fault"
+    assert (device.actuation, device.axis_state, device.brake_engaged) == (actuation, state, brake)
+    if actuation is Actuation.POSITION:
+        assert device.target_length == pytest.approx(1.25)  # where it was, never a fall
+    (heartbeat,) = device.on_frame(codec.encode_request(3, Cmd.HEARTBEAT), 0.0)
+    assert codec.decode_heartbeat(heartbeat)[:2] == (AxisError.DRV_FAULT, state)
+    with pytest.raises(ValueError, match="non-zero u32"):
+        device.inject_fault(0, "nothing")
+
+
+def test_fault_on_an_idle_axis_keeps_it_idle() -> None:
+    device = axes(config(has_holding_brake=True))[0]
+    device.inject_fault(AxisError.MOTOR_OVER_TEMP, "hot")
+    assert device.axis_state is AxisState.IDLE and device.brake_engaged
+    assert device.actuation is Actuation.OFF
+
+
+def test_errors_latch_until_clear_errors() -> None:
+    device = axes(config())[0]
+    device.inject_fault(AxisError.SPINOUT_DETECTED, "spinout")
+    held = device.target_length
+    for message in [
+        codec.encode_set_controller_mode(3, ControlMode.TORQUE_CONTROL, InputMode.PASSTHROUGH),
+        codec.encode_set_input_pos(3, 100.0),
+        codec.encode_set_input_torque(3, 1.0),
+        codec.encode_set_axis_state(3, AxisState.CLOSED_LOOP_CONTROL),
+    ]:
+        device.on_frame(message, 0.0)
+    assert device.actuation is Actuation.POSITION and device.target_length == held
+    assert sum(device.refused.values()) == 4
+    (status,) = device.on_frame(codec.encode_request(3, Cmd.GET_ERROR), 0.0)
+    assert codec.decode_error_status(status) == (AxisError.SPINOUT_DETECTED,) * 2
+    device.on_frame(codec.encode_clear_errors(3), 0.0)
+    assert device.axis_error == 0 and device.fault_text is None
+    assert device.axis_state is AxisState.CLOSED_LOOP_CONTROL  # clearing changes no state
+    device.on_frame(codec.encode_set_input_pos(3, 100.0), 0.0)
+    assert device.target_length == pytest.approx(device.scaling.length(100.0))
+
+
+def test_estop_idles_the_axis_and_without_a_brake_it_free_wheels() -> None:
+    for has_brake in (False, True):
+        device = axes(config(has_holding_brake=has_brake), startup_closed_loop=True)[0]
+        device.on_frame(codec.encode_estop(3), 0.0)
+        assert device.axis_error == AxisError.ESTOP_REQUESTED
+        assert device.axis_state is AxisState.IDLE and device.actuation is Actuation.OFF
+        assert device.brake_engaged is has_brake
+
+
+def test_watchdog_expiry_on_the_device() -> None:
+    device = axes(config(watchdog_timeout=0.05))[0]
+    device.on_frame(
+        codec.encode_set_controller_mode(3, ControlMode.TORQUE_CONTROL, InputMode.PASSTHROUGH), 0
+    )
+    for k in range(1, 101):  # fed every 10 ms for 1 s: no expiry
+        now = k * 0.01
+        device.on_frame(codec.encode_set_input_torque(3, 0.1), now)
+        device.on_tick(now)
+    assert device.axis_error == 0 and device.actuation is Actuation.TORQUE
+    # RTR requests do not feed it.
+    for k in range(1, 60):
+        now = 1.0 + k * TICK
+        device.on_frame(codec.encode_request(3, Cmd.HEARTBEAT), now)
+        device.on_tick(now)
+    assert device.axis_error == AxisError.WATCHDOG_TIMER_EXPIRED
+    assert device.actuation is Actuation.POSITION
+    assert device.target_length == pytest.approx(LENGTHS[0])
+
+
+# -- host <-> device -------------------------------------------------------------------------
+
+
+def test_start_without_brakes_holds_the_measured_lengths() -> None:
+    driver, devices, link = setup()
+    link.run(0.2)  # powered up holding, no host yet: every watchdog expires
+    assert all(d.axis_error == AxisError.WATCHDOG_TIMER_EXPIRED for d in devices)
+    assert all(d.actuation is Actuation.POSITION for d in devices)
+    assert all(s.state is DriveState.FAULT for s in driver.status)
+    asyncio.run(driver.start(link, link.now))
+    for i, device in enumerate(devices):
+        assert device.axis_state is AxisState.CLOSED_LOOP_CONTROL and device.axis_error == 0
+        assert device.actuation is Actuation.POSITION
+        assert device.target_length == pytest.approx(LENGTHS[i], abs=1e-6)
+        assert driver.status[i].state is DriveState.HOLDING
+        assert driver.feedback[i].length == pytest.approx(LENGTHS[i], abs=1e-6)
+        assert driver.intent[i] is Intent.HOLD_POSITION
+    sent = [m.arbitration_id & 0x1F for m in link.sent]
+    assert Cmd.CLEAR_ERRORS in sent and Cmd.ESTOP not in sent
+    assert AxisState.IDLE not in [
+        codec.decode_set_axis_state(m) for m in link.sent if m.arbitration_id & 0x1F == 7
+    ]
+    # The daemon then feeds the holds every cycle: they stay without error.
+    link.run(1.0, lambda: link.send_all(driver.keepalive()))
+    assert all(d.axis_error == 0 for d in devices)
+    assert all(s.state is DriveState.HOLDING for s in driver.status)
+
+
+def test_start_with_brakes_leaves_the_axes_idle_and_braked() -> None:
+    driver, devices, link = started(has_holding_brake=True)
+    for i, device in enumerate(devices):
+        assert device.axis_state is AxisState.IDLE and device.brake_engaged
+        assert driver.status[i].state is DriveState.READY
+    link.run(1.0)  # IDLE: nothing to feed, no watchdog error
+    assert all(d.axis_error == 0 for d in devices)
+
+
+def test_start_names_the_silent_nodes() -> None:
+    driver, devices, link = setup()
+    link.devices = devices[:2]  # nodes 7 and 11 never answer
+    with pytest.raises(DriverError, match="no heartbeat") as info:
+        asyncio.run(driver.start(link, link.now))
+    message = str(info.value)
+    assert "node 7" in message and "node 11" in message
+    assert "node 3" not in message and "node 5" not in message
+
+
+def test_enable_then_commands_reach_the_winches_as_forces() -> None:
+    driver, devices, link = enabled()
+    for i, device in enumerate(devices):
+        assert device.actuation is Actuation.TORQUE
+        assert device.force == pytest.approx(HOLDING[i], rel=1e-6)  # never a dropped load
+        assert driver.status[i].state is DriveState.ENABLED
+    forces = [-120.0, -80.0, -40.5, -10.0]
+    link.send_all(driver.commands(forces))
+    for device, force in zip(devices, forces, strict=True):
+        assert device.force == pytest.approx(force, rel=1e-6)
+    # Commanding every 2 ms keeps every watchdog fed.
+    link.run(1.0, lambda: link.send_all(driver.commands(forces)) if link.ticks % 2 else None)
+    assert all(d.axis_error == 0 and d.actuation is Actuation.TORQUE for d in devices)
+
+
+def test_enable_holds_position_on_the_way() -> None:
+    driver, _, link = started()
+    lengths = [1.0, 2.0, 3.0, 4.0]
+    asyncio.run(driver.enable(link, lengths, HOLDING))
+    modes = [
+        codec.decode_set_controller_mode(m)[0]
+        for m in link.sent
+        if m.arbitration_id == NODES[0] << 5 | Cmd.SET_CONTROLLER_MODE
+    ]
+    assert modes[-2:] == [ControlMode.POSITION_CONTROL, ControlMode.TORQUE_CONTROL]
+    last_torque = [m for m in link.sent if m.arbitration_id == NODES[0] << 5 | 0x0E][-1]
+    # the drive takes up the holding force with the mode change, never zero torque
+    assert driver.scalings[0].force(codec.decode_set_input_torque(last_torque)) == pytest.approx(
+        HOLDING[0], rel=1e-6
+    )
+    with pytest.raises(ValueError, match="finite lengths"):
+        asyncio.run(driver.enable(link, [math.nan] * 4, HOLDING))
+
+
+def test_enable_fails_on_a_faulted_drive_and_names_it() -> None:
+    driver, devices, link = started()
+    devices[2].inject_fault(AxisError.INVERTER_OVER_TEMP, "hot")
+    with pytest.raises(DriverError, match="enable") as info:
+        asyncio.run(driver.enable(link, [f.length for f in driver.feedback], HOLDING))
+    assert "node 7" in str(info.value) and "INVERTER_OVER_TEMP" in str(info.value)
+    assert "node 3" not in str(info.value)
+    assert devices[2].actuation is Actuation.POSITION  # still holding
+
+
+def test_sequences_need_start_first() -> None:
+    driver, _, link = setup()
+    with pytest.raises(DriverError, match="start"):
+        asyncio.run(driver.enable(link, LENGTHS, HOLDING))
+    with pytest.raises(DriverError, match="start"):
+        asyncio.run(driver.reset_faults(link))
+
+
+@pytest.mark.parametrize(
+    ("extra", "actuation", "brake"),
+    [
+        ({}, Actuation.POSITION, False),
+        ({"has_holding_brake": True, "brake": "holding_brake"}, Actuation.OFF, True),
+    ],
+)
+def test_dead_host_ends_braked_by_the_watchdog(extra, actuation, brake) -> None:
+    driver, devices, link = enabled(**extra)
+    link.send_all(driver.commands([-50.0] * 4))
+    link.run(0.2)  # the daemon stops: no commands, no keepalive
+    for i, device in enumerate(devices):
+        assert device.axis_error & AxisError.WATCHDOG_TIMER_EXPIRED
+        assert device.actuation is actuation and device.brake_engaged is brake
+        if actuation is Actuation.POSITION:
+            assert device.target_length == pytest.approx(LENGTHS[i], abs=1e-6)
+        status = driver.status[i]
+        assert status.state is DriveState.FAULT
+        assert "WATCHDOG_TIMER_EXPIRED" in status.fault
+        assert status.fault_code == AxisError.WATCHDOG_TIMER_EXPIRED
+
+
+@pytest.mark.parametrize(
+    ("extra", "end_state"),
+    [({}, DriveState.HOLDING), ({"has_holding_brake": True}, DriveState.READY)],
+)
+def test_reset_faults_clears_and_holds(extra, end_state) -> None:
+    driver, devices, link = enabled(**extra)
+    link.run(0.2)
+    assert all(s.state is DriveState.FAULT for s in driver.status)
+    asyncio.run(driver.reset_faults(link))
+    for i, device in enumerate(devices):
+        assert device.axis_error == 0
+        assert driver.status[i].state is end_state and driver.status[i].fault is None
+        assert device.actuation is not Actuation.TORQUE
+        assert device.brake_engaged or device.actuation is Actuation.POSITION  # never loose
+
+
+def test_reset_after_estop_rearms_the_hold() -> None:
+    driver, devices, link = started()
+    link.send(codec.encode_estop(NODES[1]))  # someone else's estop: the drum free-wheels
+    assert devices[1].actuation is Actuation.OFF and not devices[1].brake_engaged
+    link.run(0.15, lambda: link.send_all(driver.keepalive()))
+    assert driver.status[1].state is DriveState.FAULT
+    assert "ESTOP_REQUESTED" in driver.status[1].fault
+    asyncio.run(driver.reset_faults(link))
+    assert devices[1].axis_state is AxisState.CLOSED_LOOP_CONTROL
+    assert devices[1].actuation is Actuation.POSITION
+    assert driver.status[1].state is DriveState.HOLDING
+
+
+def test_brake_modes_on_the_devices() -> None:
+    driver, devices, link = enabled(has_holding_brake=True)
+    link.send_all(driver.brake([f.length for f in driver.feedback], BrakeMode.POSITION_HOLD))
+    assert all(d.actuation is Actuation.POSITION and not d.brake_engaged for d in devices)
+    link.run(0.5, lambda: link.send_all(driver.keepalive()))
+    assert all(d.axis_error == 0 for d in devices)
+    assert all(s.state is DriveState.HOLDING for s in driver.status)
+    link.send_all(driver.brake([f.length for f in driver.feedback], BrakeMode.HOLDING_BRAKE))
+    assert all(d.actuation is Actuation.OFF and d.brake_engaged for d in devices)
+    link.run(0.5, lambda: link.send_all(driver.keepalive()))
+    assert all(d.axis_error == 0 for d in devices)
+    assert all(s.state is DriveState.HOLDING for s in driver.status)
+
+
+def test_force_commands_after_a_brake_do_not_release_it() -> None:
+    driver, devices, link = enabled()
+    link.send_all(driver.brake([f.length for f in driver.feedback], BrakeMode.POSITION_HOLD))
+    link.send_all(driver.commands([500.0] * 4))
+    assert all(d.actuation is Actuation.POSITION for d in devices)
+    asyncio.run(driver.enable(link, [f.length for f in driver.feedback], HOLDING))
+    assert [d.force for d in devices] == pytest.approx(HOLDING, rel=1e-6)
+    link.send_all(driver.commands([-5.0] * 4))
+    assert all(d.force == pytest.approx(-5.0, rel=1e-6) for d in devices)
+
+
+def test_disable_idles_the_devices() -> None:
+    driver, devices, link = enabled(has_holding_brake=True)
+    link.send_all(driver.disable())
+    link.run(0.15)
+    assert all(d.actuation is Actuation.OFF and d.brake_engaged for d in devices)
+    assert all(s.state is DriveState.READY for s in driver.status)
+
+
+def test_get_error_round_trip() -> None:
+    driver, devices, link = started()
+    devices[3].inject_fault(AxisError.BAD_CONFIG, "bad config")
+    link.send_all(driver.request_errors())
+    link.run(0.001)
+    assert driver.drive_errors[3] == (AxisError.BAD_CONFIG, AxisError.BAD_CONFIG)
+    assert driver.drive_errors[0] == (0, 0)
+
+
+def test_host_counts_rejects_from_a_babbling_drive() -> None:
+    driver, _, link = started()
+    count = driver.feedback[0].count
+    link.inbox.extend(
+        [frame(NODES[0], 9, struct.pack("<ff", math.nan, 0.0))] * 100
+        + [frame(NODES[0], 1, bytes(2))] * 10
+    )
+    link.run(0.0)
+    link._drain()
+    assert driver.counters.rejected["Get_Encoder_Estimates.non_finite"] == 100
+    assert driver.counters.rejected["Heartbeat.dlc"] == 10
+    assert driver.feedback[0].count == count
