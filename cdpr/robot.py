@@ -65,6 +65,15 @@ class Robot:
         """Load a robot description file (see config/robots/)."""
         return cls.from_dict(load_yaml(path), source=str(path))
 
+    @classmethod
+    def from_reference(cls, value: str | dict, base: Path) -> Robot:
+        """The `robot:` entry of a daemon config: a file path (relative to `base`, the
+        config file's directory) or an inline description."""
+        if isinstance(value, str):
+            path = Path(value)
+            return cls.from_yaml(path if path.is_absolute() else base / path)
+        return cls.from_dict(value)
+
     @property
     def n_cables(self) -> int:
         return self.geometry.n

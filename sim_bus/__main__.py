@@ -1,0 +1,198 @@
+"""`python -m sim_bus --config FILE`: the simulator as its own process.
+
+It answers as the config's drives on the bus the config names (the in-process loop bus,
+socketcan such as vcan0, or a socketcand server), optionally serves its bus to other
+processes in the socketcand protocol (`--serve-socketcand 127.0.0.1:PORT`), injects
+device and frame faults on a schedule, and prints the bus load every few seconds.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import logging
+import signal
+import sys
+from collections.abc import Callable
+
+import can
+
+from cdpr import ConfigError
+from sim_bus.busload import BusLoadMeter
+from sim_bus.config import SimSetup, load_sim_setup
+from sim_bus.frame_faults import FaultyBus, parse_frame_faults
+from sim_bus.runner import SimulatorRunner
+from sim_bus.socketcand import SocketcandServer
+from sim_bus.virtual_robot import VirtualRobot
+
+log = logging.getLogger("sim_bus")
+
+DEVICE_FAULTS = ("silent", "stuck", "drive", "snap")
+
+
+def parse_device_fault(text: str) -> tuple[str, int, float]:
+    """KIND:CABLE@T, e.g. snap:3@2.5 (cable 3 snaps at t = 2.5 s)."""
+    try:
+        kind, rest = text.split(":", 1)
+        cable, at = rest.split("@", 1)
+        parsed = (kind, int(cable), float(at))
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"fault {text!r}: expected KIND:CABLE@SECONDS, KIND one of {', '.join(DEVICE_FAULTS)}"
+        ) from None
+    if parsed[0] not in DEVICE_FAULTS:
+        raise argparse.ArgumentTypeError(
+            f"fault kind {parsed[0]!r} unknown; use one of {', '.join(DEVICE_FAULTS)}"
+        )
+    return parsed
+
+
+def parse_address(text: str) -> tuple[str, int]:
+    host, _, port = text.rpartition(":")
+    try:
+        return host or "127.0.0.1", int(port)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected HOST:PORT") from None
+
+
+def fault_action(robot: VirtualRobot, kind: str, cable: int) -> Callable[[], list[can.Message]]:
+    """The device fault `kind` on `cable`, as an action for SimulatorRunner.at."""
+    if not 0 <= cable < robot.n:
+        raise ConfigError(f"fault on cable {cable}: the robot has cables 0..{robot.n - 1}")
+
+    def act() -> list[can.Message]:
+        log.warning("injecting %s fault on cable %d at t=%.3f s", kind, cable, robot.t)
+        if kind == "silent":
+            robot.silence(cable)
+        elif kind == "stuck":
+            robot.stick_encoder(cable)
+        elif kind == "snap":
+            robot.snap_cable(cable)
+        else:
+            return robot.drive_fault(cable, text="injected overcurrent")
+        return []
+
+    return act
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="python -m sim_bus", description=__doc__)
+    parser.add_argument(
+        "--config", required=True, help="daemon config YAML (robot, drives, can, sim)"
+    )
+    parser.add_argument("--serve-socketcand", type=parse_address, metavar="HOST:PORT")
+    parser.add_argument(
+        "--fault",
+        type=parse_device_fault,
+        action="append",
+        default=[],
+        help="device fault KIND:CABLE@SECONDS, KIND in silent, stuck, drive, snap (repeatable)",
+    )
+    parser.add_argument("--drop", type=float, default=0.0, help="drop this fraction of frames")
+    parser.add_argument(
+        "--corrupt", type=float, default=0.0, help="corrupt this fraction of frames"
+    )
+    parser.add_argument("--delay", type=float, default=0.0, help="delay every frame by SECONDS")
+    parser.add_argument(
+        "--error-burst",
+        type=float,
+        default=0.0,
+        metavar="PERIOD",
+        help="an error frame every PERIOD seconds",
+    )
+    parser.add_argument("--duration", type=float, default=0.0, help="stop after SECONDS (0: run)")
+    parser.add_argument("--report-every", type=float, default=5.0, help="bus-load report period")
+    return parser
+
+
+def frame_fault_flags(args: argparse.Namespace) -> dict:
+    """The command-line frame faults as a frame_faults config section."""
+    section: dict = {}
+    if args.drop:
+        section["drop"] = [{"name": "cli-drop", "probability": args.drop}]
+    if args.corrupt:
+        section["corrupt"] = [{"name": "cli-corrupt", "probability": args.corrupt}]
+    if args.delay:
+        section["delay"] = [{"name": "cli-delay", "delay": args.delay, "probability": 1.0}]
+    if args.error_burst:
+        section["error_bursts"] = [{"name": "cli-errors", "period": args.error_burst}]
+    return section
+
+
+async def simulate(setup: SimSetup, args: argparse.Namespace) -> int:
+    c = setup.can
+    bus: can.BusABC = can.Bus(
+        interface=c.interface, channel=c.channel, bitrate=c.bitrate, **c.options
+    )
+    flags = frame_fault_flags(args)
+    faults = parse_frame_faults(flags, "command line") if flags else setup.sim.frame_faults
+    device_bus = FaultyBus(bus, faults) if faults.named_rules() else bus
+    robot = VirtualRobot(setup.robot, setup.drives, setup.sim.plant)
+    meter = BusLoadMeter(c.bitrate)
+    runner = SimulatorRunner(robot, device_bus, meter)
+    for kind, cable, at in args.fault:
+        runner.at(at, fault_action(robot, kind, cable))
+    server = None
+    served_bus = None
+    address = args.serve_socketcand or _address(setup.sim.serve_socketcand)
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        loop.add_signal_handler(sig, stop.set)
+    runner.start()
+    try:
+        if address is not None:
+            served_bus = can.Bus(
+                interface=c.interface, channel=c.channel, bitrate=c.bitrate, **c.options
+            )
+            server = SocketcandServer(served_bus, address[0], address[1], channel=c.channel)
+            await server.start()
+            print(
+                f"serving socketcand on {address[0]}:{server.port} channel {c.channel}", flush=True
+            )
+        print(
+            f"simulating {setup.robot.name}: {robot.n} {setup.drives.protocol} drives on "
+            f"{c.interface}:{c.channel}",
+            flush=True,
+        )
+        if args.duration:
+            loop.call_later(args.duration, stop.set)
+        while not stop.is_set():
+            try:
+                await asyncio.wait_for(stop.wait(), args.report_every)
+            except TimeoutError:
+                report = meter.report()
+                print(
+                    f"t={runner.t:.1f} s bus load {report.load:.1%} "
+                    f"({report.window_frames} frames/s at {c.bitrate} bit/s)",
+                    flush=True,
+                )
+        return 0
+    finally:
+        runner.close()
+        if server is not None:
+            await server.stop()
+        if served_bus is not None:
+            served_bus.shutdown()
+        device_bus.shutdown()
+
+
+def _address(text: str | None) -> tuple[str, int] | None:
+    return None if text is None else parse_address(text)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(
+        level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s"
+    )
+    try:
+        setup = load_sim_setup(args.config)
+        return asyncio.run(simulate(setup, args))
+    except ConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,54 @@
+"""The simulator's view of a daemon config file: robot, drives, can and sim sections.
+
+The simulator reads the same file as the daemon (so both sides of the bus agree on the
+robot, node ids and scaling) but never imports the daemon; sections it does not use
+are ignored here and validated by the daemon.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, NamedTuple
+
+from cdpr import ConfigError, Robot
+from cdpr.description import StrictModel, load_yaml, validate_section
+from drivers.config import CanConfig, DrivesConfig, parse_drives
+from sim_bus.frame_faults import FrameFaultConfig
+from sim_bus.plant import PlantConfig
+
+
+class SimConfig(StrictModel):
+    """`sim:` section.  plant: sim_bus.plant.PlantConfig keys; frame_faults:
+    sim_bus.frame_faults keys; serve_socketcand: "127.0.0.1:PORT" to serve the bus to
+    other processes in the socketcand protocol."""
+
+    plant: PlantConfig = PlantConfig()
+    frame_faults: FrameFaultConfig = FrameFaultConfig()
+    serve_socketcand: str | None = None
+
+
+class SimSetup(NamedTuple):
+    robot: Robot
+    drives: DrivesConfig
+    can: CanConfig
+    sim: SimConfig
+
+
+def parse_sim(data: Any, source: str = "sim") -> SimConfig:
+    return validate_section(SimConfig, {} if data is None else data, source)
+
+
+def load_sim_setup(path: str | Path) -> SimSetup:
+    """Read the simulator's sections of a daemon config file (ConfigError names the key)."""
+    path = Path(path)
+    data = load_yaml(path)
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: expected a mapping at the top level")
+    for key in ("robot", "drives"):
+        if key not in data:
+            raise ConfigError(f"{path}: missing section {key!r}")
+    robot = Robot.from_reference(data["robot"], path.resolve().parent)
+    drives = parse_drives(data["drives"], f"{path}: drives")
+    can = validate_section(CanConfig, data.get("can", {}), f"{path}: can")
+    sim = parse_sim(data.get("sim"), f"{path}: sim")
+    return SimSetup(robot, drives, can, sim)

@@ -1,0 +1,123 @@
+"""Run a VirtualRobot on a python-can bus in real time, as a task of an asyncio loop.
+
+The plant advances on its own timerfd (one plant step per period) and whenever a frame
+arrives, so a SYNC is answered with the state at the moment it was seen.  Buses with a
+file descriptor are drained by the loop itself; others through a Notifier thread.
+Frames the drives send pass through optional frame faults and a bus-load meter.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections.abc import Callable
+
+import can
+
+from drivers.bus import drain
+from drivers.clock import PeriodicTimer
+from sim_bus.busload import BusLoadMeter
+from sim_bus.virtual_robot import VirtualRobot
+
+
+class SimulatorRunner:
+    """`start()` on a running loop, `close()` to stop; `t` is simulated time (s)."""
+
+    def __init__(
+        self, robot: VirtualRobot, bus: can.BusABC, meter: BusLoadMeter | None = None
+    ) -> None:
+        self.robot = robot
+        self.bus = bus
+        self.meter = meter  # bus-load accounting of every frame seen and sent
+        self._schedule: list[tuple[float, Callable[[], list[can.Message]]]] = []
+        self._t0 = 0.0
+        self._timer: PeriodicTimer | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._fd = -1
+        self._notifier: can.Notifier | None = None
+        self.frames_in = 0
+        self.frames_out = 0
+        self.send_errors = 0
+        self._delays = hasattr(bus, "tick")
+
+    @property
+    def t(self) -> float:
+        return time.monotonic() - self._t0
+
+    def start(self) -> None:
+        loop = asyncio.get_running_loop()
+        self._loop = loop
+        self._t0 = time.monotonic() - self.robot.t
+        self._timer = PeriodicTimer(self.robot.plant.config.step)
+        loop.add_reader(self._timer.fileno(), self._on_tick)
+        try:
+            fd = self.bus.fileno()
+        except NotImplementedError:
+            fd = -1
+        if isinstance(fd, int) and fd >= 0:
+            self._fd = fd
+            loop.add_reader(fd, self._drain)
+        else:
+            self._notifier = can.Notifier(self.bus, [self._from_thread], timeout=0.1)
+
+    def close(self) -> None:
+        loop = self._loop
+        if loop is not None and self._timer is not None:
+            loop.remove_reader(self._timer.fileno())
+            self._timer.close()
+            self._timer = None
+        if loop is not None and self._fd >= 0:
+            loop.remove_reader(self._fd)
+            self._fd = -1
+        if self._notifier is not None:
+            self._notifier.stop()
+            self._notifier = None
+
+    def _on_tick(self) -> None:
+        if self._timer is None or not self._timer.expirations():
+            return
+        t = self.t
+        self._send(self.robot.advance_to(t))
+        while self._schedule and self._schedule[0][0] <= t:
+            self._send(self._schedule.pop(0)[1]())
+        if self._delays:  # a FaultyBus releases delayed frames when drained
+            self._drain()
+
+    def _drain(self) -> None:
+        out = []
+        t = self.t
+        frames = drain(self.bus)
+        if self.meter is not None:
+            self.meter.add_many(frames)
+        for msg in frames:
+            self.frames_in += 1
+            out.extend(self.robot.handle(msg, t))
+        self._send(out)
+
+    def _from_thread(self, msg: can.Message) -> None:
+        loop = self._loop
+        if loop is not None and not loop.is_closed():
+            loop.call_soon_threadsafe(self._handle_one, msg)
+
+    def at(self, t: float, action: Callable[[], list[can.Message] | None]) -> None:
+        """Run `action` (e.g. a device fault) once simulated time reaches `t`; frames it
+        returns go on the bus."""
+        self._schedule.append((t, lambda: action() or []))
+        self._schedule.sort(key=lambda item: item[0])
+
+    def _handle_one(self, msg: can.Message) -> None:
+        if self.meter is not None:
+            self.meter.add(msg)
+        self.frames_in += 1
+        self._send(self.robot.handle(msg, self.t))
+
+    def _send(self, frames: list[can.Message]) -> None:
+        for frame in frames:
+            try:
+                self.bus.send(frame)
+            except can.CanError:
+                self.send_errors += 1
+            else:
+                self.frames_out += 1
+                if self.meter is not None:
+                    self.meter.add(frame)

@@ -1,0 +1,188 @@
+"""The simulated robot as the bus sees it: the plant plus one virtual drive per cable.
+
+Time is the simulator's own: `advance_to(t)` steps the plant in whole plant steps up to
+t, applying each drive's actuation before every step and letting each drive's clock run
+after it (heartbeats, cyclic feedback, watchdogs).  `handle(frame, t)` first brings the
+plant up to t, so a SYNC at t is answered with the state at t.  Nothing here touches a
+bus or a wall clock: the asyncio runner (sim_bus.runner) and the tests drive it.
+
+Device-level faults live here (a silent node, a stuck encoder, a drive fault, a snapped
+cable); frame-level faults (drops, delays, corruption, error frames) are sim_bus.frame_faults.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import can
+
+from cdpr import Robot
+from drivers.base import Actuation, VirtualDrive
+from drivers.config import DrivesConfig
+from sim_bus.plant import Plant, PlantConfig
+
+# an overcurrent as each protocol reports it: CiA 402 EMCY error code, ODrive 0.6 axis
+# error bit CURRENT_LIMIT_VIOLATION
+OVERCURRENT = {"cia402": 0x2310, "odrive": 0x1000}
+
+
+class PositionServo:
+    """The drive's internal position loop (PID on the cable length) used while it holds
+    a length.  Starts bumpless: the integrator takes the force the drive was producing,
+    so a platform that was held by torque is not dropped when the hold begins."""
+
+    def __init__(self, kp: float = 5.0e4, ki: float = 2.0e5, kd: float = 800.0) -> None:
+        self.kp, self.ki, self.kd = kp, ki, kd
+        self.integral = 0.0
+
+    def start(self, force: float) -> None:
+        self.integral = force
+
+    def force(self, target: float, length: float, rate: float, h: float) -> float:
+        error = target - length
+        self.integral += self.ki * error * h
+        return self.integral + self.kp * error - self.kd * rate
+
+
+def make_virtual_drives(config: DrivesConfig, robot: Robot) -> list[VirtualDrive]:
+    """One device per cable, of the configured protocol, scaled like the host side."""
+    scalings = config.scalings([a.drum_radius for a in robot.actuators])
+    if config.protocol == "cia402":
+        from sim_bus.devices.cia402 import Cia402Drive
+
+        return [
+            Cia402Drive(node, s, config) for node, s in zip(config.nodes, scalings, strict=True)
+        ]
+    from sim_bus.devices.odrive import OdriveAxis
+
+    return [OdriveAxis(node, s, config) for node, s in zip(config.nodes, scalings, strict=True)]
+
+
+class VirtualRobot:
+    """Plant + virtual drives.  `t` is simulated time in seconds from the start."""
+
+    def __init__(
+        self,
+        robot: Robot,
+        drives: DrivesConfig,
+        plant: PlantConfig | None = None,
+    ) -> None:
+        self.plant = Plant(robot, plant)
+        self.protocol = drives.protocol
+        self.drives = make_virtual_drives(drives, robot)
+        self.n = len(self.drives)
+        self.servos = [PositionServo() for _ in self.drives]
+        self.silent = [False] * self.n
+        self.stuck: list[tuple[float, float] | None] = [None] * self.n
+        self._applied: list[Actuation | None] = [None] * self.n
+        self._brakes: list[bool | None] = [None] * self.n
+        self._step = self.plant.config.step
+        self._measure()
+        self._apply()
+
+    @property
+    def t(self) -> float:
+        return self.plant.time
+
+    # -- time and frames ------------------------------------------------------------
+
+    def advance_to(self, t: float) -> list[can.Message]:
+        """Step the plant up to `t` (whole steps); the frames the drives send meanwhile."""
+        out: list[can.Message] = []
+        while self.plant.time + self._step <= t + 1e-12:
+            self._apply()
+            self.plant.step()
+            self._measure()
+            now = self.plant.time
+            for k, drive in enumerate(self.drives):
+                frames = drive.on_tick(now)
+                if frames and not self.silent[k]:
+                    out.extend(frames)
+        return out
+
+    def handle(self, message: can.Message, t: float) -> list[can.Message]:
+        """Deliver one bus frame at time `t` to every drive; the frames they answer."""
+        out = self.advance_to(t)
+        now = self.plant.time
+        for k, drive in enumerate(self.drives):
+            if self.silent[k]:
+                continue
+            frames = drive.on_frame(message, now)
+            if frames:
+                out.extend(frames)
+        return out
+
+    # -- device faults ----------------------------------------------------------------
+
+    def silence(self, k: int, silent: bool = True) -> None:
+        """Node k stops sending and hearing frames (a dead or unplugged drive); its
+        power stage keeps doing what it did."""
+        self.silent[k] = silent
+
+    def stick_encoder(self, k: int, stuck: bool = True) -> None:
+        """Drive k's encoder freezes at its current reading."""
+        drive = self.drives[k]
+        self.stuck[k] = (drive.length, 0.0) if stuck else None
+
+    def drive_fault(
+        self, k: int, code: int | None = None, text: str = "overcurrent"
+    ) -> list[can.Message]:
+        """Drive k detects an internal fault (default: an overcurrent, in the protocol's
+        own code) and reacts as the real drive would."""
+        if code is None:
+            code = OVERCURRENT[self.protocol]
+        frames = self.drives[k].inject_fault(code, text)
+        self._apply()
+        return [] if self.silent[k] else frames
+
+    def snap_cable(self, k: int) -> None:
+        """Cable k breaks."""
+        self.plant.break_cable(k)
+
+    # -- coupling -------------------------------------------------------------------
+
+    def _measure(self) -> None:
+        lengths, rates = self.plant.measure()
+        for k, drive in enumerate(self.drives):
+            stuck = self.stuck[k]
+            if stuck is None:
+                drive.measure(float(lengths[k]), float(rates[k]))
+            else:
+                drive.measure(*stuck)
+
+    def _apply(self) -> None:
+        """Each drive's power stage and brake onto its winch, then the force commands."""
+        plant = self.plant
+        commands = plant.winches.commands
+        forces = list(commands)
+        for k, drive in enumerate(self.drives):
+            actuation = drive.actuation
+            brake = drive.brake_engaged
+            if brake != self._brakes[k]:
+                plant.set_brake(k, brake)
+                self._brakes[k] = brake
+            previous = self._applied[k]
+            if actuation is not previous:
+                powered = actuation is not Actuation.OFF
+                if previous is None or powered != (previous is not Actuation.OFF):
+                    plant.set_drive_enabled(k, powered)  # restarts the electrical state
+                if actuation is Actuation.POSITION:
+                    self.servos[k].start(commands[k])
+                self._applied[k] = actuation
+            if actuation is Actuation.TORQUE:
+                forces[k] = drive.force
+            elif actuation is Actuation.POSITION:
+                forces[k] = self.servos[k].force(
+                    drive.target_length, drive.length, drive.rate, self._step
+                )
+            else:
+                forces[k] = 0.0
+            if not math.isfinite(forces[k]):
+                forces[k] = 0.0
+        plant.set_commands(forces)
+
+    # -- views ------------------------------------------------------------------------
+
+    def tensions(self) -> Sequence[float]:
+        return self.plant.tensions.tolist()
