@@ -22,18 +22,11 @@ import tension
 from timing import REFERENCE8, per_call_us, print_timings
 
 from cdpr import Robot
-from cdpr.baseline import JointSpaceController
 from cdpr.control_spec import ControllerSpec
 from cdpr.controller import ParallelController
-from sim_bus.plant.config import PlantConfig, parse_plant_config
+from sim_bus.comparison import standard_set_figures as tracking
 from sim_bus.scenarios import STANDARD_SET
 from sim_bus.tracking import run_tracking
-
-MISMATCH = {
-    "mismatch": {"mass_scale": 1.1, "m0_scale": 0.9},
-    "encoder": {"counts_per_metre": 1e5, "noise_std": 5e-6},
-    "seed": 7,
-}
 
 
 def step_us(robot: Robot, spec: ControllerSpec, calls: int) -> dict[str, float]:
@@ -52,27 +45,6 @@ def step_us(robot: Robot, spec: ControllerSpec, calls: int) -> dict[str, float]:
         controller.step(rec.t[k], rec.measured_lengths[k], rec.measured_rates[k])
 
     return per_call_us(replay, calls, warm_up=0)
-
-
-def tracking(robot: Robot, spec: ControllerSpec) -> dict[str, dict]:
-    """Closed-loop figures of the standard set (nominal, baseline, mismatch)."""
-    out: dict[str, dict] = {}
-    mismatch = parse_plant_config(MISMATCH)
-    for name, make in STANDARD_SET.items():
-        trajectory = make(robot)
-        paper = run_tracking(robot, trajectory, ParallelController(robot, spec), PlantConfig())
-        base = run_tracking(robot, trajectory, JointSpaceController(robot, spec), PlantConfig())
-        off = run_tracking(robot, trajectory, ParallelController(robot, spec), mismatch)
-        figures = _rounded(paper.figures())
-        figures["baseline"] = _rounded(base.figures())
-        figures["baseline_ratio"] = round(paper.rms_mm / base.rms_mm, 3)
-        figures["mismatch"] = _rounded(off.figures())
-        out[name] = figures
-    return out
-
-
-def _rounded(figures: dict) -> dict:
-    return {k: round(v, 4) if isinstance(v, float) else v for k, v in figures.items()}
 
 
 def main(argv: list[str] | None = None) -> int:
