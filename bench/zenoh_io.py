@@ -1,0 +1,214 @@
+"""Benchmark of the zenoh interface (daemon/zenoh_io.py) against a STAND-IN handler.
+
+The daemon side runs in a child process: the ZenohInterface on its own asyncio loop with
+a stand-in DaemonHandler that accepts every trajectory at once and returns an 8-cable
+state snapshot (no robot, no controller, no validation along the path).  The parent is
+a planner with a plain zenoh client session on tcp/127.0.0.1.  It measures:
+
+- accept_latency: a 100-waypoint trajectory put on <prefix>/trajectory until its
+  trajectory_accepted event arrives (JSON decode, schema check and spline build in the
+  child's zenoh thread, the loop hand-over, the handler, the event back);
+- accept_latency_query: the same trajectory sent as a get, until the reply;
+- state_jitter: |interval - period| between successive state publications, from the
+  publication times the state messages carry (the child's clock: loop timing only);
+- state_arrival_jitter: the same from the times the parent receives them.
+
+    python bench/zenoh_io.py [--json] [--trials N] [--seconds S] [--rate HZ]
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import math
+import socket
+import subprocess
+import sys
+import threading
+import time
+from typing import Any
+
+import numpy as np
+import zenoh
+from timing import print_timings, summary_us
+
+from daemon.zenoh_config import ZenohSettings, client_zenoh_config
+from daemon.zenoh_io import ZenohInterface
+
+PREFIX = "cdpr/bench"
+
+
+class StandIn:
+    """Accepts everything at once; a state snapshot the size of an 8-cable robot's."""
+
+    def command(self, name: str, args: dict[str, Any]) -> dict[str, Any]:
+        return {"state": "IDLE"}
+
+    def submit_trajectory(self, trajectory: Any, start: float | None) -> dict[str, Any]:
+        return {"accepted": True, "duration": trajectory.duration}
+
+    def state(self) -> dict[str, Any]:
+        return {
+            "state": "TRACKING",
+            "fault": None,
+            "conditions": [],
+            "pose": {
+                "position": [0.1, 0.0, 1.3],
+                "quaternion": {"w": 1.0, "x": 0.0, "y": 0.0, "z": 0.0},
+            },
+            "twist": [0.05, 0.0, 0.0, 0.0, 0.0, 0.0],
+            "lengths": [1.9 + 0.01 * k for k in range(8)],
+            "rates": [0.01] * 8,
+            "tensions": [61.0 + k for k in range(8)],
+            "forces": [-61.0 - k for k in range(8)],
+            "cycle": {"rate_hz": 500.0, "last_us": 180.0, "p99_us": 260.0, "overruns": 0},
+        }
+
+
+def serve(endpoint: str, rate_hz: float) -> None:
+    """The child: serve until the parent closes our stdin."""
+
+    async def run() -> None:
+        settings = ZenohSettings(listen=[endpoint], state_rate_hz=rate_hz)
+        async with ZenohInterface(settings, StandIn(), PREFIX):
+            await asyncio.get_running_loop().run_in_executor(None, sys.stdin.read)
+
+    asyncio.run(run())
+
+
+def trajectory_json(n: int = 100) -> dict[str, Any]:
+    """n waypoints 0.1 s apart along a slow circle with a slow yaw: valid and smooth."""
+    waypoints = []
+    for k in range(n):
+        angle = 0.02 * k
+        waypoints.append(
+            {
+                "t": 0.1 * k,
+                "position": [0.1 * math.cos(angle), 0.1 * math.sin(angle), 1.25],
+                "quaternion": {
+                    "w": math.cos(angle / 4),
+                    "x": 0.0,
+                    "y": 0.0,
+                    "z": math.sin(angle / 4),
+                },
+            }
+        )
+    return {"version": 1, "waypoints": waypoints}
+
+
+def connect(endpoint: str, within: float = 20.0) -> zenoh.Session:
+    """A client session once the child's interface is up (its liveliness token)."""
+    deadline = time.monotonic() + within
+    while time.monotonic() < deadline:
+        try:
+            session = zenoh.open(client_zenoh_config([endpoint]))
+        except zenoh.ZError:  # not listening yet
+            time.sleep(0.1)
+            continue
+        if list(session.liveliness().get(f"{PREFIX}/alive", timeout=1.0)):
+            return session
+        session.close()
+    raise SystemExit(f"the interface did not come up on {endpoint}")
+
+
+def jitter(times: list[float], period: float) -> np.ndarray:
+    """|interval - period| in nanoseconds."""
+    return np.abs(np.diff(np.array(times)) - period) * 1e9
+
+
+def measure(endpoint: str, trials: int, seconds: float, rate_hz: float) -> dict[str, Any]:
+    body = trajectory_json()
+    accepted: dict[str, float] = {}
+    arrived = threading.Condition()
+    stamps: list[tuple[float, float]] = []  # (publication time, arrival time)
+
+    def on_event(sample: zenoh.Sample) -> None:
+        event = json.loads(sample.payload.to_bytes())
+        if event.get("event") == "trajectory_accepted":
+            with arrived:
+                accepted[event["id"]] = time.perf_counter()
+                arrived.notify()
+
+    def on_state(sample: zenoh.Sample) -> None:
+        stamps.append((json.loads(sample.payload.to_bytes())["time"], time.perf_counter()))
+
+    with connect(endpoint) as session:
+        events = session.declare_subscriber(f"{PREFIX}/events", on_event)
+        publisher = session.declare_publisher(f"{PREFIX}/trajectory")
+        list(session.get(f"{PREFIX}/cmd/status", timeout=5.0))  # subscription in place
+        put_ns = np.empty(trials)
+        for i in range(trials):
+            ident = f"put-{i}"
+            payload = json.dumps({**body, "id": ident})
+            t0 = time.perf_counter()
+            publisher.put(payload)
+            with arrived:
+                if not arrived.wait_for(lambda ident=ident: ident in accepted, timeout=5.0):
+                    raise SystemExit(f"no trajectory_accepted event for {ident}")
+            put_ns[i] = (accepted[ident] - t0) * 1e9
+        query_ns = np.empty(trials)
+        for i in range(trials):
+            payload = json.dumps({**body, "id": f"get-{i}"})
+            t0 = time.perf_counter()
+            replies = list(session.get(f"{PREFIX}/trajectory", payload=payload, timeout=5.0))
+            query_ns[i] = (time.perf_counter() - t0) * 1e9
+            if not (replies and replies[0].ok is not None):
+                raise SystemExit("a trajectory query was not accepted")
+        events.undeclare()
+        state = session.declare_subscriber(f"{PREFIX}/state", on_state)
+        time.sleep(seconds)
+        state.undeclare()
+    period = 1.0 / rate_hz
+    return {
+        "accept_latency": summary_us(put_ns),
+        "accept_latency_query": summary_us(query_ns),
+        "state_jitter": summary_us(jitter([s[0] for s in stamps], period)),
+        "state_arrival_jitter": summary_us(jitter([s[1] for s in stamps], period)),
+        "setup": {
+            "handler": "stand-in (no robot, no validation)",
+            "waypoints": len(body["waypoints"]),
+            "payload_bytes": len(json.dumps(body)),
+            "trials": trials,
+            "state_rate_hz": rate_hz,
+            "state_messages": len(stamps),
+        },
+    }
+
+
+def free_endpoint() -> str:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return f"tcp/127.0.0.1:{s.getsockname()[1]}"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--json", action="store_true", help="print one JSON object")
+    parser.add_argument("--trials", type=int, default=300, help="trajectories per path")
+    parser.add_argument("--seconds", type=float, default=5.0, help="state sampling time")
+    parser.add_argument("--rate", type=float, default=50.0, help="state rate (Hz)")
+    parser.add_argument("--serve", metavar="ENDPOINT", help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.serve:
+        serve(args.serve, args.rate)
+        return
+    endpoint = free_endpoint()
+    child = subprocess.Popen(
+        [sys.executable, __file__, "--serve", endpoint, "--rate", str(args.rate)],
+        stdin=subprocess.PIPE,
+    )
+    try:
+        results = measure(endpoint, args.trials, args.seconds, args.rate)
+    finally:
+        child.stdin.close()
+        child.wait(timeout=20)
+    if args.json:
+        print(json.dumps(results))
+    else:
+        print(f"stand-in handler; setup: {results.pop('setup')}")
+        print_timings(results)
+
+
+if __name__ == "__main__":
+    main()
