@@ -21,7 +21,7 @@ from cdpr.control_spec import ControllerSpec
 from cdpr.pose import Pose, liediff, retract
 from cdpr.robot import Robot
 from cdpr.tension import TensionLimits, TensionSolver, make_tension_solver
-from cdpr.trajectory import Reference
+from cdpr.trajectory import Reference, WrenchCheck
 
 Array = NDArray[np.float64]
 _ZERO6 = np.zeros(6)
@@ -203,3 +203,18 @@ class ParallelController:
             nan_n, False, reason, ref, pose, nan6, residual, nan6, nan6, nan6,
             nan_n, nan_n, nan_n, nan_n,
         )  # fmt: skip
+
+
+def wrench_check(robot: Robot, tension: TensionSolver) -> WrenchCheck:
+    """A trajectory check (DESIGN §7): is the wrench the controller would need to follow
+    (pose, twist, accel) exactly — steps 7–10 with α_c = α_r — in W?  None if it is,
+    else the reason."""
+
+    def check(pose: Pose, twist: Array, accel: Array) -> str | None:
+        Lam, c, M, mu = robot.model_terms(pose, twist)
+        result = tension.solve(
+            Lam, M @ accel + mu, robot.k0 * (Lam @ twist), robot.m0 * (Lam @ accel + c)
+        )
+        return None if result.feasible else f"wrench not in W: {result.reason}"
+
+    return check

@@ -8,12 +8,21 @@ import sys
 import numpy as np
 
 from cdpr import ConfigError, Robot
+from cdpr.description import load_yaml
+from daemon import analyze_cmd, client_cmd, demo_cmd, run_cmd
+from daemon.config import load_config
 
 
 def check_config(path: str) -> int:
-    """Validate a robot description and print a readable summary; 0 if it is sound."""
+    """Validate a daemon config (or a bare robot description) and print a readable
+    summary; 0 if it is sound, 1 with the problem named if not."""
     try:
-        robot = Robot.from_yaml(path)
+        data = load_yaml(path)
+        if isinstance(data, dict) and "drives" in data:
+            config = load_config(path)
+            robot = config.robot
+        else:
+            config, robot = None, Robot.from_yaml(path)
     except ConfigError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
@@ -28,6 +37,20 @@ def check_config(path: str) -> int:
     print(f"cable lengths at home: {np.round(lengths, 4).tolist()} m")
     shown = ", ".join("inf" if np.isinf(m) else f"{m:.3g}" for m in masses)
     print(f"modal masses at home (Lemma 1, kg): {shown}")
+    if config is not None:
+        d, c = config.drives, config.can
+        print(
+            f"drives: {d.protocol} nodes {d.nodes}, brake {d.brake.value}, "
+            f"watchdog {d.watchdog_timeout * 1e3:g} ms"
+        )
+        print(f"bus: {c.interface} {c.channel} at {c.bitrate} bit/s")
+        print(
+            f"controller: {config.controller.rate_hz:g} Hz, model at {config.controller.model_at}; "
+            f"home pose in W: yes"
+        )
+        prefix = config.zenoh.key_prefix(robot.name)
+        listen = ", ".join(config.zenoh.listen_endpoints)
+        print(f"zenoh: prefix {prefix}, listening on {listen}")
     return 0
 
 
@@ -36,9 +59,19 @@ def main(argv: list[str] | None = None) -> int:
         prog="cdprd", description="Hardware-interface daemon for cable-driven parallel robots."
     )
     sub = parser.add_subparsers(dest="command", required=True)
-    check = sub.add_parser("check-config", help="validate a robot description file")
-    check.add_argument("file", help="robot YAML, e.g. config/robots/reference8.yaml")
+    check = sub.add_parser("check-config", help="validate a daemon config or robot file")
+    check.add_argument("file", help="e.g. config/reference8-cia402.yaml or config/robots/*.yaml")
+    analyze_cmd.add_parser(sub)
+    client_cmd.add_parsers(sub)
+    run_cmd.add_parsers(sub)
+    demo_cmd.add_parser(sub)
     args = parser.parse_args(argv)
+    if hasattr(args, "handler"):
+        return args.handler(args)
+    if hasattr(args, "run"):
+        return args.run(args)
+    if args.command == "analyze":
+        return analyze_cmd.run(args)
     if args.command == "check-config":
         return check_config(args.file)
     parser.error(f"unknown command {args.command}")

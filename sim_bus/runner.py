@@ -14,7 +14,7 @@ from collections.abc import Callable
 
 import can
 
-from drivers.bus import drain
+from drivers.bus import BusWatch, drain
 from drivers.clock import PeriodicTimer
 from sim_bus.busload import BusLoadMeter
 from sim_bus.virtual_robot import VirtualRobot
@@ -33,8 +33,7 @@ class SimulatorRunner:
         self._t0 = 0.0
         self._timer: PeriodicTimer | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
-        self._fd = -1
-        self._notifier: can.Notifier | None = None
+        self._watch: BusWatch | None = None
         self.frames_in = 0
         self.frames_out = 0
         self.send_errors = 0
@@ -50,15 +49,7 @@ class SimulatorRunner:
         self._t0 = time.monotonic() - self.robot.t
         self._timer = PeriodicTimer(self.robot.plant.config.step)
         loop.add_reader(self._timer.fileno(), self._on_tick)
-        try:
-            fd = self.bus.fileno()
-        except NotImplementedError:
-            fd = -1
-        if isinstance(fd, int) and fd >= 0:
-            self._fd = fd
-            loop.add_reader(fd, self._drain)
-        else:
-            self._notifier = can.Notifier(self.bus, [self._from_thread], timeout=0.1)
+        self._watch = BusWatch(self.bus, loop, self._drain, self._handle_one)
 
     def close(self) -> None:
         loop = self._loop
@@ -66,12 +57,9 @@ class SimulatorRunner:
             loop.remove_reader(self._timer.fileno())
             self._timer.close()
             self._timer = None
-        if loop is not None and self._fd >= 0:
-            loop.remove_reader(self._fd)
-            self._fd = -1
-        if self._notifier is not None:
-            self._notifier.stop()
-            self._notifier = None
+        if self._watch is not None:
+            self._watch.close()
+            self._watch = None
 
     def _on_tick(self) -> None:
         if self._timer is None or not self._timer.expirations():
@@ -93,11 +81,6 @@ class SimulatorRunner:
             self.frames_in += 1
             out.extend(self.robot.handle(msg, t))
         self._send(out)
-
-    def _from_thread(self, msg: can.Message) -> None:
-        loop = self._loop
-        if loop is not None and not loop.is_closed():
-            loop.call_soon_threadsafe(self._handle_one, msg)
 
     def at(self, t: float, action: Callable[[], list[can.Message] | None]) -> None:
         """Run `action` (e.g. a device fault) once simulated time reaches `t`; frames it

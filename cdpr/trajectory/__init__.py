@@ -7,7 +7,7 @@ trajectory against rate, cable-length and wrench limits before it runs, and `app
 """
 
 from cdpr.trajectory.core import SCHEMA_VERSION, Reference, Trajectory, TrajectoryError, Waypoint
-from cdpr.trajectory.limits import TrajectoryLimits, WrenchCheck, validate
+from cdpr.trajectory.limits import TrajectoryLimits, WrenchCheck, validate, validation_steps
 from cdpr.trajectory.parse import parse_trajectory
 from cdpr.trajectory.transitions import approach, goto
 
@@ -23,4 +23,5 @@ __all__ = [
     "goto",
     "parse_trajectory",
     "validate",
+    "validation_steps",
 ]

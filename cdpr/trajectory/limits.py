@@ -7,7 +7,7 @@ which limit and which value (DESIGN §7).
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 
 import numpy as np
 from numpy.typing import NDArray
@@ -66,6 +66,18 @@ def validate(
     ``wrench_check(pose, twist, accel)`` (None when the wrench is in W, else a reason).
     The waypoint index reported is that of the segment holding the failing instant.
     """
+    for _ in validation_steps(trajectory, robot, limits, wrench_check):
+        pass
+
+
+def validation_steps(
+    trajectory: Trajectory,
+    robot: Robot,
+    limits: TrajectoryLimits,
+    wrench_check: WrenchCheck | None = None,
+) -> Iterator[float]:
+    """`validate` one sample at a time: yields each sampled time once it passed, so a
+    caller sharing an event loop with a control cycle can pause between samples."""
     count = len(trajectory.waypoints)
     if count > limits.max_waypoints:
         raise TrajectoryError(
@@ -110,3 +122,4 @@ def validate(
             reason = wrench_check(ref.pose, ref.twist, ref.accel)
             if reason is not None:
                 raise TrajectoryError("wrench_set", f"{reason} {at}", waypoint=index)
+        yield t

@@ -1,0 +1,118 @@
+"""The daemon's end of the CAN bus: frames in on the event loop, frames out, and the
+`Link` that drivers' start-up sequences use to wait for answers.
+
+Buses with a file descriptor (socketcan, the simulator's loop bus) are read by the
+event loop itself, draining every queued frame per wake-up (PERF-FACTS: one frame per
+wake-up costs a loop pass each).  Other buses go through a python-can Notifier thread
+that hands frames to the loop.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from collections.abc import Callable
+
+import can
+
+from drivers.base import DriverError
+from drivers.bus import BusWatch, drain
+
+log = logging.getLogger(__name__)
+
+FrameSink = Callable[[list[can.Message], float], None]
+
+
+class BusPort:
+    """Reads frames into `sink(frames, now)` and sends frames; also a drivers.base.Link."""
+
+    def __init__(self, bus: can.BusABC, sink: FrameSink) -> None:
+        self.bus = bus
+        self._sink = sink
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._watch: BusWatch | None = None
+        self._waiters: list[tuple[Callable[[can.Message], bool], asyncio.Future]] = []
+        self.send_errors = 0
+        self.on_send_error: Callable[[str], None] | None = None
+        self.on_sent: Callable[[can.Message], None] | None = None
+
+    def open(self, loop: asyncio.AbstractEventLoop) -> None:
+        """Start delivering received frames on `loop`."""
+        self._loop = loop
+        self._watch = BusWatch(self.bus, loop, self._drain, lambda msg: self._deliver([msg]))
+
+    def close(self) -> None:
+        if self._watch is not None:
+            self._watch.close()
+            self._watch = None
+        for _, future in self._waiters:
+            if not future.done():
+                future.cancel()
+        self._waiters.clear()
+
+    # -- input --------------------------------------------------------------------
+
+    def _drain(self) -> None:
+        try:
+            frames = drain(self.bus)
+        except can.CanError as exc:
+            self._error(f"receive failed: {exc}")
+            return
+        if frames:
+            self._deliver(frames)
+
+    def _deliver(self, frames: list[can.Message]) -> None:
+        now = time.monotonic()
+        self._sink(frames, now)
+        if self._waiters:
+            for msg in frames:
+                self._wake(msg)
+
+    def _wake(self, msg: can.Message) -> None:
+        keep = []
+        for match, future in self._waiters:
+            if future.done():
+                continue
+            if match(msg):
+                future.set_result(msg)
+            else:
+                keep.append((match, future))
+        self._waiters = keep
+
+    # -- output -------------------------------------------------------------------
+
+    def send(self, message: can.Message) -> None:
+        """Send one frame; a failure is counted and reported, never raised."""
+        try:
+            self.bus.send(message, timeout=0.0)
+        except can.CanError as exc:
+            self._error(f"send of 0x{message.arbitration_id:03x} failed: {exc}")
+            return
+        if self.on_sent is not None:
+            self.on_sent(message)
+
+    def send_all(self, messages: list[can.Message]) -> None:
+        for message in messages:
+            self.send(message)
+
+    def _error(self, what: str) -> None:
+        self.send_errors += 1
+        if self.on_send_error is not None:
+            self.on_send_error(what)
+        else:
+            log.warning("CAN: %s", what)
+
+    # -- Link ----------------------------------------------------------------------
+
+    async def expect(
+        self, match: Callable[[can.Message], bool], timeout: float, what: str
+    ) -> can.Message:
+        """The next received frame matching `match`; DriverError naming `what` on timeout."""
+        assert self._loop is not None, "open() the port first"
+        future: asyncio.Future = self._loop.create_future()
+        self._waiters.append((match, future))
+        try:
+            return await asyncio.wait_for(future, timeout)
+        except TimeoutError:
+            raise DriverError(f"no answer within {timeout * 1e3:.0f} ms: {what}") from None

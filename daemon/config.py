@@ -1,0 +1,149 @@
+"""The daemon's config file (DESIGN §11): one YAML per robot, validated at load.
+
+Sections: robot (a path relative to this file, or inline), controller, drives, can,
+safety, trajectory (limits), zenoh, logging, recording, sim (the simulator used by
+`run --sim`, `demo` and `sim`).  Every problem is a ConfigError naming the key; the
+geometry is checked for sense (Λ full rank at home, the home pose's static wrench in W).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import numpy as np
+from pydantic import Field
+
+from cdpr import ConfigError, Robot
+from cdpr.control_spec import ControllerSpec, parse_controller
+from cdpr.controller import tension_solver
+from cdpr.description import (
+    PositiveFloat,
+    StrictModel,
+    load_yaml,
+    validate_section,
+)
+from cdpr.trajectory import TrajectoryLimits
+from daemon.zenoh_config import ZenohSettings
+from drivers.config import CanConfig, DrivesConfig, parse_drives
+
+Fraction = Annotated[float, Field(gt=0.0, lt=1.0)]
+
+
+class SafetyConfig(StrictModel):
+    """Brake triggers (DESIGN §9).  Positions in m, angles in rad, world frame.
+
+    workspace_min/max: box for the platform reference point (default: the anchors'
+    bounding box).  tilt_max: largest rotation angle from the home orientation.
+    tracking_error_*: largest |θ_d| parts while tracking or holding.
+    stale_cycles: consecutive cycles an actuator may miss its feedback.
+    feedback_deadline: fraction of the period to wait for feedback after the cycle opens.
+    bus_errors_max: error frames tolerated within one second.
+    """
+
+    workspace_min: tuple[float, float, float] | None = None
+    workspace_max: tuple[float, float, float] | None = None
+    tilt_max: Annotated[float, Field(gt=0.0, le=math.pi)] = 0.6
+    tracking_error_position: PositiveFloat = 0.02
+    tracking_error_orientation: PositiveFloat = 0.05
+    stale_cycles: Annotated[int, Field(ge=1, le=1000)] = 3
+    feedback_deadline: Fraction = 0.5
+    bus_errors_max: Annotated[int, Field(ge=0)] = 5
+
+
+class LoggingConfig(StrictModel):
+    level: Literal["debug", "info", "warning", "error"] = "info"
+
+
+class RecordingConfig(StrictModel):
+    """Optional recordings: cycle telemetry to MCAP, raw CAN to a python-can log file
+    (format by suffix: .log, .asc, .blf, .csv, .trc).  Relative paths are from the config;
+    each run writes a new file named after its start time."""
+
+    telemetry: str | None = None
+    can_log: str | None = None
+
+
+class FileConfig(StrictModel):
+    """The raw file, before the robot is built."""
+
+    robot: str | dict[str, Any]
+    controller: dict[str, Any] = Field(default_factory=dict)
+    drives: dict[str, Any]
+    can: CanConfig = CanConfig()
+    safety: SafetyConfig = SafetyConfig()
+    trajectory: TrajectoryLimits = TrajectoryLimits()
+    zenoh: dict[str, Any] = Field(default_factory=dict)
+    logging: LoggingConfig = LoggingConfig()
+    recording: RecordingConfig = RecordingConfig()
+    sim: dict[str, Any] = Field(default_factory=dict)  # sim_bus.config validates it
+
+
+class DaemonConfig:
+    """A loaded, checked config: the robot and every section as validated objects."""
+
+    def __init__(self, raw: FileConfig, robot: Robot, base: Path) -> None:
+        self.raw = raw
+        self.robot = robot
+        self.base = base
+        self.controller: ControllerSpec = parse_controller(raw.controller, "controller")
+        self.drives: DrivesConfig = parse_drives(raw.drives, "drives")
+        if len(self.drives.nodes) != robot.n_cables:
+            raise ConfigError(
+                f"drives.nodes lists {len(self.drives.nodes)} drives for {robot.n_cables} cables"
+            )
+        self.can = raw.can
+        self.safety = raw.safety
+        self.trajectory = raw.trajectory
+        self.zenoh: ZenohSettings = validate_section(ZenohSettings, raw.zenoh, "zenoh")
+        self.logging = raw.logging
+        self.recording = raw.recording
+        self.sim = raw.sim
+        lo, hi = workspace_box(robot, raw.safety)
+        self.workspace_min, self.workspace_max = lo, hi
+
+    def path(self, relative: str) -> Path:
+        """A path from the config, resolved against the config file's directory."""
+        p = Path(relative)
+        return p if p.is_absolute() else self.base / p
+
+
+def workspace_box(robot: Robot, safety: SafetyConfig) -> tuple[np.ndarray, np.ndarray]:
+    """The configured workspace box, else the anchors' bounding box."""
+    anchors = robot.geometry.anchors
+    lo = np.asarray(safety.workspace_min) if safety.workspace_min else anchors.min(axis=0)
+    hi = np.asarray(safety.workspace_max) if safety.workspace_max else anchors.max(axis=0)
+    if np.any(lo >= hi):
+        raise ConfigError(f"safety: workspace_min {lo.tolist()} must lie below {hi.tolist()}")
+    return lo.astype(float), hi.astype(float)
+
+
+def load_config(path: str | Path) -> DaemonConfig:
+    """Read, validate and sanity-check a daemon config file."""
+    path = Path(path)
+    return parse_config(load_yaml(path), path.resolve().parent, str(path))
+
+
+def parse_config(data: Any, base: Path, source: str = "config") -> DaemonConfig:
+    """Validate a config mapping; relative paths in it are taken from `base`."""
+    raw = validate_section(FileConfig, data, source)
+    config = DaemonConfig(raw, Robot.from_reference(raw.robot, base), base)
+    check_geometry(config)
+    return config
+
+
+def check_geometry(config: DaemonConfig) -> None:
+    """The home pose's static wrench in W and its position in the workspace box
+    (ConfigError if not); Robot itself refuses a rank-deficient Λ at home."""
+    robot = config.robot
+    home = robot.home
+    Lam = robot.jacobian(home)
+    solver = tension_solver(robot, config.controller)
+    zero = np.zeros(robot.n_cables)
+    result = solver.solve(Lam, robot.bias_wrench(home, np.zeros(6)), zero, zero)
+    if not result.feasible:
+        raise ConfigError(f"robot: the home pose is not in the wrench set W: {result.reason}")
+    p = home.position
+    if np.any(p < config.workspace_min) or np.any(p > config.workspace_max):
+        raise ConfigError(f"safety: the home position {p.tolist()} lies outside the workspace box")

@@ -1,0 +1,105 @@
+"""Logging set-up: journald-friendly under systemd, timestamped on a terminal.
+
+journald stamps every line itself and reads a line's priority from an sd-daemon prefix
+("<3>" = error, see sd-daemon(3)), so under systemd lines carry that prefix and no
+timestamp; elsewhere they carry a timestamp and the level name.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import stat
+import sys
+from collections.abc import Mapping
+from typing import TextIO
+
+from cdpr.description import ConfigError
+
+LEVELS = {
+    "debug": logging.DEBUG,
+    "info": logging.INFO,
+    "warning": logging.WARNING,
+    "error": logging.ERROR,
+    "critical": logging.CRITICAL,
+}
+
+PLAIN_FORMAT = "%(asctime)s.%(msecs)03d %(levelname)s %(name)s: %(message)s"
+PLAIN_DATEFMT = "%Y-%m-%d %H:%M:%S"
+
+
+def parse_level(name: str) -> int:
+    """The logging level for a name such as 'info' (any case); ConfigError otherwise."""
+    level = LEVELS.get(name.strip().lower()) if isinstance(name, str) else None
+    if level is None:
+        raise ConfigError(f"logging level {name!r} is unknown; use one of: {', '.join(LEVELS)}")
+    return level
+
+
+def syslog_priority(levelno: int) -> int:
+    """The syslog priority (0 emerg … 7 debug) for a Python logging level."""
+    if levelno >= logging.CRITICAL:
+        return 2
+    if levelno >= logging.ERROR:
+        return 3
+    if levelno >= logging.WARNING:
+        return 4
+    if levelno >= logging.INFO:
+        return 6
+    return 7
+
+
+class JournaldFormatter(logging.Formatter):
+    """'<p>logger: message' with the priority prefix on EVERY line, so the lines of a
+    traceback keep the record's priority (journald splits a stream at newlines)."""
+
+    def __init__(self) -> None:
+        super().__init__("%(name)s: %(message)s")
+
+    def format(self, record: logging.LogRecord) -> str:
+        prefix = f"<{syslog_priority(record.levelno)}>"
+        return "\n".join(prefix + line for line in super().format(record).splitlines())
+
+
+def journald_detected(
+    stream: TextIO | None = None, environ: Mapping[str, str] | None = None
+) -> bool:
+    """True when `stream` (default stderr) is connected to the journal.
+
+    JOURNAL_STREAM ("device:inode", set by systemd when stdout or stderr goes to the
+    journal) is authoritative: it must match the stream's file.  Without it, INVOCATION_ID
+    (set for every systemd service) counts only if the stream is a socket, the way journald
+    and syslog receive output; a service writing to a file (StandardError=file:…) or a
+    terminal keeps timestamps.
+    """
+    env = os.environ if environ is None else environ
+    target = sys.stderr if stream is None else stream
+    try:
+        info = os.fstat(target.fileno())
+    except (AttributeError, OSError, ValueError):
+        return False  # no real file behind it (e.g. captured by a test runner)
+    journal_stream = env.get("JOURNAL_STREAM")
+    if journal_stream is not None:
+        return journal_stream == f"{info.st_dev}:{info.st_ino}"
+    return "INVOCATION_ID" in env and stat.S_ISSOCK(info.st_mode)
+
+
+def configure_logging(level: str, journald: bool | None = None) -> logging.Handler:
+    """Send log records at `level` and above to stderr, in the journald format when
+    `journald` is true (None: detect it).  Idempotent: a second call replaces the handler
+    installed by the first and leaves other handlers alone.  Returns the new handler."""
+    levelno = parse_level(level)
+    use_journald = journald_detected() if journald is None else journald
+    handler = logging.StreamHandler(sys.stderr)
+    if use_journald:
+        handler.setFormatter(JournaldFormatter())
+    else:
+        handler.setFormatter(logging.Formatter(PLAIN_FORMAT, PLAIN_DATEFMT))
+    handler.set_name("cdprd")
+    root = logging.getLogger()
+    for old in [h for h in root.handlers if h.get_name() == "cdprd"]:
+        root.removeHandler(old)
+        old.close()
+    root.addHandler(handler)
+    root.setLevel(levelno)
+    return handler

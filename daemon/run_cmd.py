@@ -1,0 +1,76 @@
+"""`cdprd run` (the service) and `cdprd sim` (the simulator as its own process)."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import sys
+
+from cdpr import ConfigError
+from daemon.app import open_bus, serve
+from daemon.config import DaemonConfig, load_config
+from daemon.logsetup import configure_logging
+
+
+def add_parsers(sub: argparse._SubParsersAction) -> None:
+    run = sub.add_parser(
+        "run",
+        help="run the daemon (hardware per the config's can section, or --sim)",
+        description="Run the cdprd service.  It starts IDLE with every cable held; "
+        "planners enable it and send trajectories over zenoh.",
+    )
+    run.add_argument("--config", required=True, help="daemon config YAML")
+    run.add_argument(
+        "--sim", action="store_true", help="drive an in-process simulator instead of hardware"
+    )
+    run.add_argument("--log-level", help="override logging.level (debug, info, warning, error)")
+    run.set_defaults(handler=run_command)
+    sim = sub.add_parser(
+        "sim",
+        help="run the simulator as its own process on the config's bus",
+        description="Same as `python -m sim_bus`; see its --help for fault flags.",
+        add_help=False,
+    )
+    sim.add_argument("rest", nargs=argparse.REMAINDER)
+    sim.set_defaults(handler=sim_command)
+
+
+def load_or_exit(path: str) -> DaemonConfig:
+    try:
+        return load_config(path)
+    except ConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        raise SystemExit(1) from None
+
+
+def run_command(args: argparse.Namespace) -> int:
+    config = load_or_exit(args.config)
+    try:
+        configure_logging(args.log_level or config.logging.level)
+    except ConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    return asyncio.run(_run(config, args.sim))
+
+
+async def _run(config: DaemonConfig, sim: bool) -> int:
+    if not sim:
+        bus = open_bus(config)
+        try:
+            return await serve(config, bus)
+        finally:
+            bus.shutdown()
+    from daemon.simulated import InProcessSimulator
+
+    simulator = InProcessSimulator(config)
+    simulator.start()
+    try:
+        return await serve(config, simulator.daemon_bus)
+    finally:
+        simulator.close()
+
+
+def sim_command(args: argparse.Namespace) -> int:
+    from sim_bus.__main__ import main as sim_main
+
+    return sim_main(args.rest)

@@ -1,0 +1,256 @@
+"""The safety state machine and its brake triggers (DESIGN §9), pure logic.
+
+States: INIT → IDLE (drives holding, brakes on) → HOLD (enabled, holding a pose) →
+TRACKING → HOLD …; any fault → BRAKED; leaving BRAKED needs every fault condition gone
+AND an explicit reset, which lands in IDLE.  The service asks `check_*` every cycle and
+brakes on the first Fault returned; each Fault carries one readable line naming the
+trigger and the values.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+from cdpr import Robot
+from cdpr.controller import ControlOutput
+from daemon.config import DaemonConfig
+from drivers.base import DriveState, Feedback, NodeStatus
+
+
+class SafetyState(enum.Enum):
+    INIT = "init"
+    IDLE = "idle"
+    HOLD = "hold"
+    TRACKING = "tracking"
+    BRAKED = "braked"
+
+
+class Trigger(enum.Enum):
+    """Why the daemon braked; the names appear in logs, events and state."""
+
+    OUT_OF_WORKSPACE = "out_of_workspace"  # wrench not in W
+    POSE_LIMIT = "pose_limit"
+    LENGTH_LIMIT = "length_limit"
+    TRACKING_ERROR = "tracking_error"
+    FK_RESIDUAL = "fk_residual"
+    STALE_FEEDBACK = "stale_feedback"
+    DRIVE_FAULT = "drive_fault"
+    HEARTBEAT_LOST = "heartbeat_lost"
+    BUS_ERROR = "bus_error"
+    NAN = "nan"
+    CONTROLLER_EXCEPTION = "controller_exception"
+    SIGTERM = "sigterm"
+    COMMAND = "command"  # a client asked to brake
+    STARTUP = "startup"  # the drives did not come up
+
+
+@dataclass(frozen=True)
+class Fault:
+    trigger: Trigger
+    message: str
+
+    def line(self) -> str:
+        return f"BRAKE [{self.trigger.value}] {self.message}"
+
+
+# the transitions a command may make; faults go to BRAKED from anywhere
+_ALLOWED = {
+    "enable": {SafetyState.IDLE},
+    "disable": {SafetyState.HOLD, SafetyState.TRACKING},
+    "track": {SafetyState.HOLD, SafetyState.TRACKING},
+    "hold": {SafetyState.HOLD, SafetyState.TRACKING},
+    "finish": {SafetyState.TRACKING},
+    "reset": {SafetyState.BRAKED},
+    "started": {SafetyState.INIT},
+}
+_TARGET = {
+    "enable": SafetyState.HOLD,
+    "disable": SafetyState.IDLE,
+    "track": SafetyState.TRACKING,
+    "hold": SafetyState.HOLD,
+    "finish": SafetyState.HOLD,
+    "reset": SafetyState.IDLE,
+    "started": SafetyState.IDLE,
+}
+
+
+class TransitionError(RuntimeError):
+    """A command not allowed in the current state (the message says which state)."""
+
+
+@dataclass
+class StateMachine:
+    """The states and their transitions; `fault` remembers why it braked."""
+
+    state: SafetyState = SafetyState.INIT
+    fault: Fault | None = None
+    history: list[tuple[SafetyState, SafetyState, str]] = field(default_factory=list)
+
+    def go(self, action: str) -> SafetyState:
+        """Apply `action` (enable, disable, track, hold, finish, reset, started)."""
+        if self.state not in _ALLOWED[action]:
+            allowed = ", ".join(sorted(s.value for s in _ALLOWED[action]))
+            raise TransitionError(
+                f"cannot {action} while {self.state.value} (allowed from: {allowed})"
+            )
+        return self._move(_TARGET[action], action)
+
+    def brake(self, fault: Fault) -> bool:
+        """Enter BRAKED for `fault`; False if already braked (the first fault stays)."""
+        if self.state is SafetyState.BRAKED:
+            return False
+        self.fault = fault
+        self._move(SafetyState.BRAKED, fault.trigger.value)
+        return True
+
+    def reset(self, active: Sequence[Fault]) -> SafetyState:
+        """Leave BRAKED for IDLE, only when no fault condition is active."""
+        if active:
+            raise TransitionError(
+                "cannot reset while faults persist: " + "; ".join(f.message for f in active)
+            )
+        state = self.go("reset")
+        self.fault = None
+        return state
+
+    def _move(self, target: SafetyState, why: str) -> SafetyState:
+        self.history.append((self.state, target, why))
+        del self.history[:-100]
+        self.state = target
+        return target
+
+    @property
+    def moving(self) -> bool:
+        """True while the controller commands force (HOLD or TRACKING)."""
+        return self.state in (SafetyState.HOLD, SafetyState.TRACKING)
+
+
+class SafetyMonitor:
+    """The per-cycle brake triggers, configured from the daemon config."""
+
+    def __init__(self, config: DaemonConfig) -> None:
+        self.robot: Robot = config.robot
+        self.limits = config.safety
+        self.heartbeat_timeout = config.drives.heartbeat_timeout
+        self.workspace_min = config.workspace_min.tolist()
+        self.workspace_max = config.workspace_max.tolist()
+        self.home_quaternion = config.robot.home.quaternion.tolist()
+        self.stale = [0] * config.robot.n_cables
+        self._error_stamps: list[float] = []
+
+    # -- inputs every cycle --------------------------------------------------------
+
+    def check_drives(
+        self, feedback: Sequence[Feedback], status: Sequence[NodeStatus], now: float
+    ) -> list[Fault]:
+        """Drive faults, heartbeat loss, NaN feedback and length limits."""
+        faults = []
+        for k, (fb, st) in enumerate(zip(feedback, status, strict=True)):
+            if st.state is DriveState.FAULT:
+                faults.append(
+                    Fault(
+                        Trigger.DRIVE_FAULT,
+                        f"drive {k} reports fault 0x{st.fault_code:04x}: {st.fault or 'unknown'}",
+                    )
+                )
+            age = now - st.heartbeat_stamp
+            if age > self.heartbeat_timeout:
+                heard = (
+                    "never heard" if math.isinf(age) else f"last heartbeat {age * 1e3:.0f} ms ago"
+                )
+                faults.append(
+                    Fault(
+                        Trigger.HEARTBEAT_LOST,
+                        f"drive {k}: {heard} (timeout {self.heartbeat_timeout * 1e3:.0f} ms)",
+                    )
+                )
+            if fb.count and not (math.isfinite(fb.length) and math.isfinite(fb.rate)):
+                faults.append(
+                    Fault(Trigger.NAN, f"drive {k} feedback length {fb.length}, rate {fb.rate}")
+                )
+        lengths = [fb.length for fb in feedback if fb.count and math.isfinite(fb.length)]
+        if len(lengths) == len(feedback):  # NaN is reported above, not as a length
+            problems = self.robot.length_violations(lengths)
+            if problems:
+                faults.append(Fault(Trigger.LENGTH_LIMIT, "; ".join(problems)))
+        return faults
+
+    def check_freshness(self, fresh: Sequence[bool]) -> Fault | None:
+        """Count consecutive cycles without feedback per actuator."""
+        worst = None
+        for k, ok in enumerate(fresh):
+            self.stale[k] = 0 if ok else self.stale[k] + 1
+            if self.stale[k] >= self.limits.stale_cycles and worst is None:
+                worst = Fault(
+                    Trigger.STALE_FEEDBACK,
+                    f"drive {k}: no feedback for {self.stale[k]} consecutive cycles "
+                    f"(limit {self.limits.stale_cycles})",
+                )
+        return worst
+
+    def bus_error(self, now: float, what: str) -> Fault | None:
+        """Record one bus error (error frame, send failure, bus state); a Fault once more
+        than bus_errors_max happened within one second, or at once for bus-off."""
+        self._error_stamps.append(now)
+        self._error_stamps = [t for t in self._error_stamps if now - t <= 1.0]
+        if "bus-off" in what or len(self._error_stamps) > self.limits.bus_errors_max:
+            return Fault(
+                Trigger.BUS_ERROR,
+                f"{what}; {len(self._error_stamps)} bus errors in the last second "
+                f"(limit {self.limits.bus_errors_max})",
+            )
+        return None
+
+    def bus_errors_active(self, now: float) -> bool:
+        return any(now - t <= 1.0 for t in self._error_stamps)
+
+    def check_output(self, output: ControlOutput) -> Fault | None:
+        """Controller result: FK, wrench in W, NaN, pose limits, tracking error."""
+        if not output.feasible:
+            reason = output.reason
+            trigger = Trigger.FK_RESIDUAL if "kinematics" in reason else Trigger.OUT_OF_WORKSPACE
+            if "non-finite" in reason:
+                trigger = Trigger.NAN
+            return Fault(trigger, f"{reason} (FK residual {output.fk_residual:.3g} m)")
+        commands = output.commands.tolist()
+        if not all(map(math.isfinite, commands)):
+            return Fault(Trigger.NAN, f"non-finite force command {commands}")
+        pose = output.pose
+        position = pose.position.tolist()
+        for axis, (p, lo, hi) in enumerate(
+            zip(position, self.workspace_min, self.workspace_max, strict=True)
+        ):
+            if not lo <= p <= hi:
+                return Fault(
+                    Trigger.POSE_LIMIT,
+                    f"position {'xyz'[axis]} = {p:.4f} m outside [{lo:.3f}, {hi:.3f}] m",
+                )
+        # rotation angle from home through the quaternions: 2 acos |<q, q_home>|
+        w, x, y, z = pose.quaternion.tolist()
+        hw, hx, hy, hz = self.home_quaternion
+        tilt = 2.0 * math.acos(min(1.0, abs(w * hw + x * hx + y * hy + z * hz)))
+        if tilt > self.limits.tilt_max:
+            return Fault(
+                Trigger.POSE_LIMIT,
+                f"rotation {math.degrees(tilt):.2f} deg from home exceeds "
+                f"{math.degrees(self.limits.tilt_max):.2f} deg",
+            )
+        ex, ey, ez, rx, ry, rz = output.theta_d.tolist()
+        e_pos = math.sqrt(ex * ex + ey * ey + ez * ez)
+        e_rot = math.sqrt(rx * rx + ry * ry + rz * rz)
+        if e_pos > self.limits.tracking_error_position:
+            return Fault(
+                Trigger.TRACKING_ERROR,
+                f"position error {e_pos * 1e3:.2f} mm exceeds "
+                f"{self.limits.tracking_error_position * 1e3:.2f} mm",
+            )
+        if e_rot > self.limits.tracking_error_orientation:
+            return Fault(
+                Trigger.TRACKING_ERROR,
+                f"orientation error {math.degrees(e_rot):.3f} deg exceeds "
+                f"{math.degrees(self.limits.tracking_error_orientation):.3f} deg",
+            )
+        return None

@@ -1,0 +1,563 @@
+"""The cdprd service: the control cycle on the CAN bus, the safety state machine, and
+the commands planners send (DESIGN §8–§10).
+
+One asyncio loop does everything time-critical: a timerfd opens each cycle (SYNC for
+SYNC-driven drives), received frames are drained into the driver as they arrive, and
+the cycle runs the moment every actuator's feedback is in (or at the deadline): the
+controller step, the safety checks, then all command frames.  Commands from zenoh
+arrive on the same loop, between cycles.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import gc
+import logging
+import math
+import time
+from collections.abc import Awaitable, Callable
+from typing import Any
+
+import can
+import numpy as np
+
+from cdpr import Pose
+from cdpr.controller import (
+    ControlOutput,
+    ParallelController,
+    static_tensions,
+    tension_solver,
+    wrench_check,
+)
+from cdpr.pose import retract
+from cdpr.trajectory import (
+    Reference,
+    Trajectory,
+    TrajectoryError,
+    approach,
+    goto,
+    validation_steps,
+)
+from daemon.api import CommandError
+from daemon.bus_port import BusPort
+from daemon.config import DaemonConfig
+from daemon.cycle_stats import CycleStats
+from daemon.safety import Fault, SafetyMonitor, SafetyState, StateMachine, Trigger
+from drivers.base import ActuatorDriver, DriverError, FrameError, Timing
+from drivers.clock import PeriodicTimer
+from drivers.factory import make_driver
+
+log = logging.getLogger("cdprd")
+
+STARTUP_TIMEOUT = 5.0  # s for the drives to come up
+VALIDATION_SLICE = 4e-4  # s of trajectory validation between returns to the event loop
+EventSink = Callable[[dict[str, Any]], None]
+
+
+class Service:
+    """One robot on one bus.  `run()` until `stop()`; implements daemon.api.DaemonHandler."""
+
+    def __init__(self, config: DaemonConfig, bus: can.BusABC) -> None:
+        self.config = config
+        self.robot = robot = config.robot
+        self.n = robot.n_cables
+        self.driver: ActuatorDriver = make_driver(config.drives, robot)
+        self.controller = ParallelController(robot, config.controller)
+        self.period = self.controller.period
+        self.stats = CycleStats(config.controller.rate_hz)
+        self.machine = StateMachine()
+        self.monitor = SafetyMonitor(config)
+        self.port = BusPort(bus, self._on_frames)
+        self.port.on_send_error = self._on_bus_error
+        self.port.on_sent = self._on_sent
+        self._wrench_check = wrench_check(robot, tension_solver(robot, config.controller))
+        self._events: list[EventSink] = []
+        # observers off the safety path: (controller time, output) after every control
+        # step, and (frame, received?) for every frame in or out
+        self.cycle_listeners: list[Callable[[float, ControlOutput], None]] = []
+        self.frame_listeners: list[Callable[[can.Message, bool], None]] = []
+        self._t0 = time.monotonic()
+        self._timer: PeriodicTimer | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._stopped: asyncio.Event | None = None
+        self._exit_code = 0
+        self._busy = False  # an enable or reset sequence is talking to the drives
+        # cycle bookkeeping
+        self._waiting = False
+        self._opened = 0.0
+        self._counts = [0] * self.n
+        self._deadline: asyncio.TimerHandle | None = None
+        self._last_rx = 0.0
+        self._held = np.full(self.n, np.nan)  # last finite measured lengths
+        self._trajectory: Trajectory | None = None
+        self.last_output = None
+        self.faults: list[Fault] = []  # conditions active at the last check
+
+    # -- lifecycle --------------------------------------------------------------------
+
+    def now(self) -> float:
+        """Controller time: seconds since the service started (monotonic)."""
+        return time.monotonic() - self._t0
+
+    def subscribe(self, sink: EventSink) -> None:
+        """Receive every event (state changes, faults, trajectory decisions)."""
+        self._events.append(sink)
+
+    async def start(self) -> None:
+        """Open the bus, bring the drives up (held), start the cycle; IDLE on success,
+        BRAKED (STARTUP) if the drives do not come up."""
+        gc.collect()  # now, not while the drives' watchdogs wait for the first cycle
+        loop = asyncio.get_running_loop()
+        self._loop = loop
+        self._stopped = asyncio.Event()
+        self.port.open(loop)
+        self._timer = PeriodicTimer(self.period)
+        loop.add_reader(self._timer.fileno(), self._on_tick)
+        try:
+            await asyncio.wait_for(self.driver.start(self.port, time.monotonic), STARTUP_TIMEOUT)
+        except (TimeoutError, DriverError) as exc:
+            self._brake(Fault(Trigger.STARTUP, f"drives did not start: {exc or 'timeout'}"))
+            return
+        self.machine.go("started")
+        self._emit({"event": "state", "state": "idle", "why": "drives started"})
+        gc.freeze()  # start-up objects never need scanning again
+
+    async def wait_stopped(self) -> int:
+        assert self._stopped is not None
+        await self._stopped.wait()
+        return self._exit_code
+
+    def stop(self, trigger: Trigger = Trigger.SIGTERM) -> None:
+        """Brake (if anything moves), then end `wait_stopped` with exit code 0."""
+        if self.machine.moving or self.machine.state is SafetyState.INIT:
+            self._brake(Fault(trigger, "stop requested: braking before exit"))
+        else:
+            self._send(self.driver.brake(self._hold_lengths(), self.config.drives.brake))
+        if self._stopped is not None:
+            self._stopped.set()
+
+    def close(self) -> None:
+        if self._timer is not None and self._loop is not None:
+            self._loop.remove_reader(self._timer.fileno())
+            self._timer.close()
+            self._timer = None
+        if self._deadline is not None:
+            self._deadline.cancel()
+        self.port.close()
+        gc.unfreeze()
+
+    # -- the cycle ---------------------------------------------------------------------
+
+    def _on_tick(self) -> None:
+        timer = self._timer
+        if timer is None:
+            return
+        expired = timer.expirations()
+        if expired == 0:
+            return
+        now = time.monotonic()
+        self.stats.overruns += expired - 1
+        k = math.floor((now - timer.start) / self.period + 1e-9)
+        self.stats.jitter.add(now - (timer.start + k * self.period))
+        if self._waiting:  # the previous cycle never completed: close it now
+            self._run_cycle(now, deadline=True)
+        self._opened = now
+        if self.driver.timing is Timing.SYNC:
+            self._counts = [fb.count for fb in self.driver.feedback]
+        self._waiting = True
+        self._send(self.driver.cycle_start())
+        if self._all_fresh():
+            self._run_cycle(now, deadline=False)
+        else:
+            loop = self._loop
+            assert loop is not None
+            deadline = self.config.safety.feedback_deadline * self.period
+            self._deadline = loop.call_at(loop.time() + deadline, self._on_deadline)
+
+    def _on_deadline(self) -> None:
+        self._deadline = None
+        if self._waiting:
+            self.stats.deadline_misses += 1
+            self._run_cycle(time.monotonic(), deadline=True)
+
+    def _all_fresh(self) -> bool:
+        counts = self._counts
+        return all(fb.count > c for fb, c in zip(self.driver.feedback, counts, strict=True))
+
+    def _on_sent(self, frame: can.Message) -> None:
+        for listener in self.frame_listeners:
+            listener(frame, False)
+
+    def _on_frames(self, frames: list[can.Message], now: float) -> None:
+        for listener in self.frame_listeners:
+            for msg in frames:
+                listener(msg, True)
+        receive = self.driver.receive
+        for msg in frames:
+            if msg.is_error_frame:
+                self._on_bus_error(f"error frame 0x{msg.arbitration_id:x}")
+                continue
+            if receive(msg, now) is not None:
+                self._last_rx = now
+        if self._waiting and self._all_fresh():
+            self._run_cycle(now, deadline=False)
+
+    def _run_cycle(self, now: float, deadline: bool) -> None:
+        started = time.monotonic()
+        self._waiting = False
+        if self._deadline is not None:
+            self._deadline.cancel()
+            self._deadline = None
+        feedback = self.driver.feedback
+        fresh = [fb.count > c for fb, c in zip(feedback, self._counts, strict=True)]
+        self._counts = [fb.count for fb in feedback]
+        self.stats.cycles += 1
+        for k, fb in enumerate(feedback):
+            if math.isfinite(fb.length):
+                self._held[k] = fb.length
+        faults = self.monitor.check_drives(feedback, self.driver.status, now)
+        stale = self.monitor.check_freshness(fresh)
+        if stale is not None and self.machine.state is not SafetyState.INIT:
+            faults.append(stale)
+        if self.monitor.bus_errors_active(now):
+            faults.append(Fault(Trigger.BUS_ERROR, "bus errors within the last second"))
+        self.faults = faults
+        state = self.machine.state
+        if faults and state in (SafetyState.IDLE, SafetyState.HOLD, SafetyState.TRACKING):
+            self._brake(faults[0])
+        elif self.machine.moving and not self._busy:
+            self._control(now)
+        elif state is not SafetyState.INIT:
+            self._send(self.driver.keepalive())
+        done = time.monotonic()
+        self.stats.compute.add(done - started)
+        if not deadline and self._last_rx:
+            self.stats.latency.add(done - self._last_rx)
+
+    def _control(self, now: float) -> None:
+        feedback = self.driver.feedback
+        lengths = [fb.length for fb in feedback]
+        rates = [fb.rate for fb in feedback]
+        t = now - self._t0
+        try:
+            output = self.controller.step(t, lengths, rates)
+        except Exception as exc:
+            log.exception("controller step raised")
+            self._brake(Fault(Trigger.CONTROLLER_EXCEPTION, f"{type(exc).__name__}: {exc}"))
+            return
+        self.last_output = output
+        for listener in self.cycle_listeners:
+            listener(t, output)
+        fault = self.monitor.check_output(output)
+        if fault is not None:
+            self._brake(fault)
+            return
+        try:
+            frames = self.driver.commands(output.commands)
+        except FrameError as exc:
+            self._brake(Fault(Trigger.NAN, str(exc)))
+            return
+        self._send(frames)
+        trajectory = self._trajectory
+        if (
+            self.machine.state is SafetyState.TRACKING
+            and trajectory is not None
+            and t >= trajectory.end_time
+        ):
+            self._trajectory = None
+            self.machine.go("finish")
+            self._emit({"event": "trajectory_done", "t": t})
+
+    # -- faults --------------------------------------------------------------------------
+
+    def _brake(self, fault: Fault) -> None:
+        """Freeze every cable (driver brake frames) and enter BRAKED, logging one line."""
+        self._send(self.driver.brake(self._hold_lengths(), self.config.drives.brake))
+        self._trajectory = None
+        if self.machine.brake(fault):
+            deliberate = fault.trigger in (Trigger.SIGTERM, Trigger.COMMAND)
+            log.log(logging.WARNING if deliberate else logging.ERROR, fault.line())
+            self._emit({"event": "brake", "trigger": fault.trigger.value, "message": fault.message})
+
+    def _hold_lengths(self) -> list[float]:
+        return self._held.tolist()
+
+    def _on_bus_error(self, what: str) -> None:
+        self.stats.bus_errors += 1
+        fault = self.monitor.bus_error(time.monotonic(), what)
+        if fault is not None and self.machine.state is not SafetyState.BRAKED:
+            self._brake(fault)
+
+    def _send(self, frames: list[can.Message]) -> None:
+        for frame in frames:
+            self.port.send(frame)
+
+    def _emit(self, event: dict[str, Any]) -> None:
+        event.setdefault("t", self.now())
+        event.setdefault("state", self.machine.state.value)
+        for sink in self._events:
+            sink(event)
+
+    # -- commands (daemon.api.DaemonHandler) -----------------------------------------------
+
+    def command(self, name: str, args: dict[str, Any]) -> dict[str, Any] | Awaitable[dict]:
+        """Run one command; the reply body, or an awaitable of it for commands that wait
+        for the drives (enable, reset).  CommandError when refused."""
+        handler = _COMMANDS.get(name)
+        if handler is None:
+            raise CommandError("unknown_command", f"unknown command {name!r}")
+        if self._busy and name != "status" and name != "brake":
+            raise CommandError("invalid_state", "the drives are busy with enable or reset")
+        return handler(self, args)
+
+    async def _enable(self, args: dict[str, Any]) -> dict[str, Any]:
+        self._require(SafetyState.IDLE, "enable")
+        if self.faults:
+            raise CommandError(
+                "invalid_state", "cannot enable: " + "; ".join(f.message for f in self.faults)
+            )
+        pose = self._measured_pose()
+        holding = -static_tensions(self.robot, self.controller.tension, pose)
+        self._busy = True
+        try:
+            await self.driver.enable(self.port, self._hold_lengths(), holding.tolist())
+        except DriverError as exc:
+            self._brake(Fault(Trigger.DRIVE_FAULT, f"enable failed: {exc}"))
+            raise CommandError("drive_error", f"enable failed: {exc}") from None
+        finally:
+            self._busy = False
+        if self.machine.state is not SafetyState.IDLE:  # braked meanwhile
+            raise CommandError("invalid_state", f"enable aborted: {self.machine.fault.line()}")
+        self.controller.reset(pose)
+        self.machine.go("enable")
+        self._emit({"event": "state", "why": "enabled"})
+        return self.status()
+
+    def _disable(self, args: dict[str, Any]) -> dict[str, Any]:
+        self._require_moving("disable")
+        self._send(self.driver.brake(self._hold_lengths(), self.config.drives.brake))
+        self._trajectory = None
+        self.machine.go("disable")
+        self._emit({"event": "state", "why": "disabled"})
+        return self.status()
+
+    def _hold(self, args: dict[str, Any]) -> dict[str, Any]:
+        self._require_moving("hold")
+        current = self.controller.source.sample(self.now())
+        speed = float(np.linalg.norm(current.twist[:3]))
+        spin = float(np.linalg.norm(current.twist[3:]))
+        limits = self.config.trajectory
+        lead = 0.5 * max(speed / limits.linear_accel, spin / limits.angular_accel)
+        target = retract(current.pose, current.twist * lead)
+        stop = goto(current, target, limits, start=self.now())
+        self._trajectory = None
+        self.controller.follow(stop)
+        if self.machine.state is SafetyState.TRACKING:
+            self.machine.go("hold")
+        self._emit({"event": "state", "why": "hold"})
+        return self.status()
+
+    def _brake_command(self, args: dict[str, Any]) -> dict[str, Any]:
+        self._brake(Fault(Trigger.COMMAND, str(args.get("reason") or "brake requested")))
+        return self.status()
+
+    async def _reset(self, args: dict[str, Any]) -> dict[str, Any]:
+        self._require(SafetyState.BRAKED, "reset")
+        # drive faults latch in the drives until cleared; every other condition must be gone
+        causes = [f for f in self.faults if f.trigger is not Trigger.DRIVE_FAULT]
+        if causes:
+            raise CommandError(
+                "invalid_state",
+                "cannot reset while faults persist: " + "; ".join(f.message for f in causes),
+            )
+        self._busy = True
+        try:
+            await self.driver.reset_faults(self.port)
+        except DriverError as exc:
+            raise CommandError("drive_error", f"fault reset failed: {exc}") from None
+        finally:
+            self._busy = False
+        await asyncio.sleep(3 * self.period)  # let fresh feedback and heartbeats arrive
+        try:
+            self.machine.reset(self.faults)
+        except Exception as exc:
+            raise CommandError("invalid_state", str(exc)) from None
+        self._emit({"event": "state", "why": "reset"})
+        return self.status()
+
+    async def _goto(self, args: dict[str, Any]) -> dict[str, Any]:
+        self._require_moving("goto")
+        target = args.get("pose")
+        if not isinstance(target, Pose):
+            raise CommandError("bad_request", "goto needs a target pose")
+        limits = self.config.trajectory
+        planned = await self._plan_ahead(
+            lambda current, start: goto(current, target, limits, start=start), "goto"
+        )
+        return self._run(planned, "goto")
+
+    def _status(self, args: dict[str, Any]) -> dict[str, Any]:
+        return self.status()
+
+    async def submit_trajectory(
+        self, trajectory: Trajectory, start: float | None
+    ) -> dict[str, Any]:
+        """Validate and run `trajectory`, its times relative to `start` (a unix time it
+        may not begin before) or to now, after a smooth approach from the current
+        reference.  Rejected: nothing changes and CommandError names the limit, the
+        waypoint and the value.  Validation runs between control cycles."""
+        self._require_moving("run a trajectory")
+        if start is not None and start < time.time() - 1e-3:
+            raise CommandError("rejected", f"trajectory start {start:.3f} lies in the past")
+        await self._validate(trajectory, "trajectory")
+        limits = self.config.trajectory
+
+        def plan(current: Reference, begin: float) -> Trajectory:
+            not_before = begin if start is None else max(begin, self.now() + start - time.time())
+            shifted = trajectory.shifted(not_before - trajectory.start_time)
+            planned = approach(current, shifted, limits)
+            if planned.start_time < begin:  # the blend would start in the past
+                planned = approach(current, shifted, limits, start=begin)
+            return planned
+
+        planned = await self._plan_ahead(plan, "trajectory", blend_only=True)
+        return self._run(planned, "trajectory")
+
+    async def _validate(self, trajectory: Trajectory, what: str) -> None:
+        """DESIGN §7 validation, pausing for the event loop every VALIDATION_SLICE."""
+        steps = validation_steps(trajectory, self.robot, self.config.trajectory, self._wrench_check)
+        mark = time.perf_counter()
+        try:
+            for _ in steps:
+                if time.perf_counter() - mark > VALIDATION_SLICE:
+                    await asyncio.sleep(0)
+                    mark = time.perf_counter()
+        except TrajectoryError as exc:
+            raise _rejected(what, exc) from None
+
+    async def _plan_ahead(
+        self,
+        make: Callable[[Reference, float], Trajectory],
+        what: str,
+        blend_only: bool = False,
+    ) -> Trajectory:
+        """A transition from the current reference, planned to begin a little ahead (its
+        validation takes time) and validated; replanned if validation outlasted the lead.
+        `blend_only`: validate only the first segment (the rest already was)."""
+        lead = 0.05
+        for _ in range(3):
+            begin = self.now() + lead
+            current = self.controller.source.sample(begin)
+            try:
+                planned = make(current, begin)
+            except TrajectoryError as exc:
+                raise _rejected(what, exc) from None
+            check = planned
+            if blend_only and len(planned.knots) > 1:
+                check = Trajectory(list(planned.knots[:2]))
+            await self._validate(check, what)
+            self._require_moving(f"run a {what}")  # braked meanwhile: nothing changes
+            if self.now() <= planned.start_time:
+                return planned
+            lead *= 3
+        raise CommandError("busy", f"{what}: validation kept outlasting the planning lead")
+
+    def _run(self, trajectory: Trajectory, what: str) -> dict[str, Any]:
+        """Follow a validated trajectory from the next cycle."""
+        self.controller.follow(trajectory)
+        self._trajectory = trajectory
+        if self.machine.state is SafetyState.HOLD:
+            self.machine.go("track")
+        return {
+            "accepted": True,
+            "what": what,
+            "start": trajectory.start_time,
+            "end": trajectory.end_time,
+            "duration": trajectory.duration,
+        }
+
+    def _require(self, state: SafetyState, action: str) -> None:
+        if self.machine.state is not state:
+            raise CommandError(
+                "invalid_state",
+                f"cannot {action} while {self.machine.state.value} (needs {state.value})",
+            )
+
+    def _require_moving(self, action: str) -> None:
+        if not self.machine.moving:
+            raise CommandError(
+                "invalid_state", f"cannot {action} while {self.machine.state.value} (enable first)"
+            )
+
+    def _measured_pose(self) -> Pose:
+        """The platform pose from the current lengths, stretch-corrected with the static
+        tensions of the pose (the platform is at rest when enabling): forward
+        kinematics alternated with the statics, starting from the home pose."""
+        lengths = self._held
+        if not np.all(np.isfinite(lengths)):
+            raise CommandError("invalid_state", "no feedback from every drive yet")
+        robot, solver = self.robot, self.controller.tension
+        pose = robot.home
+        for _ in range(3):
+            tensions = static_tensions(robot, solver, pose)
+            fk = robot.forward_kinematics(robot.stretched_lengths(lengths, tensions), pose)
+            pose = fk.pose
+        if not fk.converged:
+            raise CommandError("invalid_state", f"forward kinematics failed: {fk.reason}")
+        return pose
+
+    # -- state ---------------------------------------------------------------------------
+
+    def status(self) -> dict[str, Any]:
+        """Safety state, fault and active conditions (the reply to most commands)."""
+        fault = self.machine.fault
+        return {
+            "state": self.machine.state.value,
+            "fault": None
+            if fault is None
+            else {"trigger": fault.trigger.value, "message": fault.message},
+            "conditions": [f.message for f in self.faults],
+            "drives": [{"state": s.state.value, "fault": s.fault} for s in self.driver.status],
+        }
+
+    def state(self) -> dict[str, Any]:
+        """The published state: pose, twist, lengths, tensions, forces, safety, timing."""
+        out = self.last_output
+        feedback = self.driver.feedback
+        state: dict[str, Any] = {
+            "t": self.now(),
+            **self.status(),
+            "lengths": [fb.length for fb in feedback],
+            "rates": [fb.rate for fb in feedback],
+            "cycle": self.stats.summary(),
+        }
+        if out is not None and self.machine.moving:
+            q = out.pose.quaternion.tolist()
+            state.update(
+                pose={
+                    "position": out.pose.position.tolist(),
+                    "quaternion": {"w": q[0], "x": q[1], "y": q[2], "z": q[3]},
+                },
+                twist=out.twist.tolist(),
+                tensions=out.tensions.tolist(),
+                forces=out.commands.tolist(),
+                tracking_error=out.theta_d.tolist(),
+            )
+        return state
+
+
+_COMMANDS: dict[str, Callable[[Service, dict[str, Any]], Any]] = {
+    "enable": Service._enable,
+    "disable": Service._disable,
+    "hold": Service._hold,
+    "brake": Service._brake_command,
+    "reset": Service._reset,
+    "goto": Service._goto,
+    "status": Service._status,
+}
+
+
+def _rejected(what: str, exc: TrajectoryError) -> CommandError:
+    """A rejection that names the limit, the waypoint and the value (DESIGN §7)."""
+    details = {"limit": exc.limit, "waypoint": exc.waypoint, "value": exc.value}
+    return CommandError("rejected", f"{what} rejected: {exc}", **details)

@@ -1,0 +1,78 @@
+"""An in-process daemon + simulator over the loop bus, for integration tests."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from daemon.config import DaemonConfig, parse_config
+from daemon.safety import SafetyState
+from daemon.service import Service
+from daemon.simulated import InProcessSimulator
+
+CONFIGS = Path(__file__).resolve().parent.parent / "config"
+DRIVER_CONFIGS = {
+    "cia402": CONFIGS / "reference8-cia402.yaml",
+    "odrive": CONFIGS / "reference8-odrive.yaml",
+}
+
+
+class Stack:
+    """Service + simulator in the running loop; `plant` is the simulated truth."""
+
+    def __init__(self, config: DaemonConfig) -> None:
+        self.config = config
+        self.sim = InProcessSimulator(config)
+        self.service = Service(config, self.sim.daemon_bus)
+        self.events: list[dict] = []
+        self.service.subscribe(self.events.append)
+
+    @property
+    def plant(self):
+        return self.sim.robot.plant
+
+    async def __aenter__(self) -> Stack:
+        self.sim.start()
+        await self.service.start()
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        self.service.close()
+        self.sim.close()
+
+    async def enable(self) -> None:
+        await self.service.command("enable", {})
+        assert self.service.machine.state is SafetyState.HOLD
+
+    async def until(self, condition: Callable[[], bool], timeout: float) -> float:
+        """Wait until `condition()` holds; the seconds it took (AssertionError on timeout)."""
+        start = time.monotonic()
+        while not condition():
+            if time.monotonic() - start > timeout:
+                raise AssertionError(f"condition not met within {timeout} s")
+            await asyncio.sleep(0.002)
+        return time.monotonic() - start
+
+    async def watch(self, duration: float) -> tuple[np.ndarray, float]:
+        """Sample the true platform position and the lowest cable tension for `duration`
+        seconds: (positions, lowest tension seen)."""
+        positions, lowest = [], np.inf
+        end = time.monotonic() + duration
+        while time.monotonic() < end:
+            positions.append(self.plant.pose.position.copy())
+            lowest = min(lowest, float(self.plant.tensions.min()))
+            await asyncio.sleep(0.005)
+        return np.array(positions), lowest
+
+
+def config_for(protocol: str, **overrides: object) -> DaemonConfig:
+    """An example config, with top-level sections replaced by `overrides`."""
+    path = DRIVER_CONFIGS[protocol]
+    data = yaml.safe_load(path.read_text())
+    data.update(overrides)
+    return parse_config(data, path.parent, str(path))

@@ -1,0 +1,73 @@
+"""The daemon config: the examples load, every problem names its key, geometry sanity."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import yaml
+
+from cdpr import ConfigError
+from cdpr.description import load_yaml, validate_section
+from daemon.cli import main
+from daemon.config import FileConfig, load_config, parse_config
+
+CONFIG = Path(__file__).resolve().parent.parent / "config"
+
+
+@pytest.mark.parametrize("name", ["reference8-cia402.yaml", "reference8-odrive.yaml"])
+def test_examples_load(name: str) -> None:
+    config = load_config(CONFIG / name)
+    assert config.robot.name == "reference8"
+    assert len(config.drives.nodes) == config.robot.n_cables == 8
+    assert config.zenoh.listen[0].startswith("tcp/127.0.0.1:")
+
+
+def test_hardware_template_is_a_valid_file() -> None:
+    raw = validate_section(FileConfig, load_yaml(CONFIG / "hardware-template.yaml"), "template")
+    assert raw.can.interface == "socketcan" and raw.can.channel == "can0"
+    assert raw.drives["brake"] == "holding_brake"
+
+
+def _data() -> dict:
+    return yaml.safe_load((CONFIG / "reference8-cia402.yaml").read_text())
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        (lambda d: d["drives"].update(bogus=1), "bogus"),
+        (lambda d: d["drives"].update(nodes=[1, 2, 3]), "3 drives for 8 cables"),
+        (lambda d: d["drives"].update(brake="holding_brake"), "has_holding_brake"),
+        (lambda d: d["safety"].update(tracking_error_position=-1), "tracking_error_position"),
+        (lambda d: d["can"].update(bitrate="fast"), "bitrate"),
+        (lambda d: d.update(robot="no/such/robot.yaml"), "cannot read"),
+        (lambda d: d["zenoh"].update(listen=["tcp/0.0.0.0:7447"]), "expose"),
+        (
+            lambda d: d["safety"].update(workspace_min=[-1, -1, 1.5], workspace_max=[1, 1, 2]),
+            "outside the workspace box",
+        ),
+    ],
+)
+def test_problems_name_the_key(change, message: str) -> None:
+    data = _data()
+    change(data)
+    with pytest.raises(ConfigError, match=message):
+        parse_config(data, CONFIG, "test.yaml")
+
+
+def test_check_config_summarises_a_daemon_config(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["check-config", str(CONFIG / "reference8-cia402.yaml")]) == 0
+    out = capsys.readouterr().out
+    assert "drives: cia402 nodes [1, 2, 3, 4, 5, 6, 7, 8]" in out
+    assert "zenoh: prefix cdpr/reference8" in out
+
+
+def test_check_config_fails_with_the_problem(tmp_path: Path, capsys) -> None:
+    data = _data()
+    data["drives"]["protocol"] = "canopen-ish"
+    data["robot"] = str(CONFIG / "robots" / "reference8.yaml")
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(yaml.safe_dump(data))
+    assert main(["check-config", str(bad)]) == 1
+    assert "protocol" in capsys.readouterr().err

@@ -1,0 +1,284 @@
+"""Daemon + simulator in one process over the loop bus, for both drivers (DESIGN §13,
+the in-process integration layer): start held, enable, hold, track, and for each
+injected fault: the brake fires within its bound and the platform stops without a
+slack cable or a fall; reset after the fault clears; SIGTERM brakes and exits 0.
+
+Real time, bounded: every wait has a timeout.  Bounds are in control cycles or in
+millimetres of the simulated truth, never on wall-clock speed."""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import os
+import signal
+
+import numpy as np
+import pytest
+
+from cdpr import Pose
+from daemon.api import CommandError
+from daemon.app import serve
+from daemon.safety import SafetyState, Trigger
+from daemon.simulated import InProcessSimulator
+from tests.daemon_stack import Stack, config_for
+
+pytestmark = pytest.mark.timeout(60)
+PROTOCOLS = ["cia402", "odrive"]
+
+
+def run(coro):
+    return asyncio.run(asyncio.wait_for(coro, 45))
+
+
+def _target(config, dx=0.1, dy=0.05, dz=0.1) -> Pose:
+    home = config.robot.home
+    return Pose(home.position + np.array([dx, dy, dz]), home.quaternion)
+
+
+def _heartbeat_cycles(config) -> int:
+    return math.ceil(config.drives.heartbeat_period * config.controller.rate_hz)
+
+
+def _braked_by(stack: Stack) -> Trigger | None:
+    fault = stack.service.machine.fault
+    return None if fault is None else fault.trigger
+
+
+def _assert_no_fall(positions: np.ndarray, lowest: float, allowed_mm: float = 2.0) -> None:
+    drift = np.linalg.norm(positions - positions[0], axis=1).max() * 1e3
+    assert drift < allowed_mm, f"platform moved {drift:.2f} mm after braking"
+    assert lowest > 0.0, f"a cable went slack (lowest tension {lowest:.1f} N)"
+
+
+@pytest.mark.parametrize("protocol", PROTOCOLS)
+def test_starts_held_then_enables_holds_and_tracks(protocol: str) -> None:
+    async def scenario() -> None:
+        config = config_for(protocol)
+        async with Stack(config) as stack:
+            service = stack.service
+            assert service.machine.state is SafetyState.IDLE
+            positions, lowest = await stack.watch(0.3)  # held by the drives, not moving
+            _assert_no_fall(positions, lowest, allowed_mm=0.5)
+            with pytest.raises(CommandError, match="invalid_state"):
+                await service.command("goto", {"pose": _target(config)})
+            await stack.enable()
+            positions, lowest = await stack.watch(0.3)
+            _assert_no_fall(positions, lowest, allowed_mm=0.5)
+            target = _target(config)
+            reply = await service.command("goto", {"pose": target})
+            assert reply["accepted"] and service.machine.state is SafetyState.TRACKING
+            await stack.until(lambda: service.machine.state is SafetyState.HOLD, 5.0)
+            await asyncio.sleep(0.3)
+            error_mm = np.linalg.norm(stack.plant.pose.position - target.position) * 1e3
+            assert error_mm < 1.0, f"{error_mm:.3f} mm from the goto target"
+            assert service.machine.fault is None
+            assert [e["why"] for e in stack.events if e["event"] == "state"][:2] == [
+                "drives started",
+                "enabled",
+            ]
+
+    run(scenario())
+
+
+@pytest.mark.parametrize("protocol", PROTOCOLS)
+def test_drive_fault_brakes_holds_and_resets(protocol: str) -> None:
+    async def scenario() -> None:
+        async with Stack(config_for(protocol)) as stack:
+            service = stack.service
+            await stack.enable()
+            await asyncio.sleep(0.1)
+            cycles = service.stats.cycles
+            stack.sim.runner._send(stack.sim.robot.drive_fault(3))
+            await stack.until(lambda: service.machine.state is SafetyState.BRAKED, 1.0)
+            # 402 drives report at once (EMCY); ODrives in their next heartbeat
+            bound = 3 + (0 if protocol == "cia402" else _heartbeat_cycles(stack.config))
+            assert service.stats.cycles - cycles <= bound, f"braked later than {bound} cycles"
+            assert _braked_by(stack) is Trigger.DRIVE_FAULT
+            assert "drive 3" in service.machine.fault.message
+            positions, lowest = await stack.watch(0.4)
+            _assert_no_fall(positions, lowest)
+            with pytest.raises(CommandError, match="invalid_state"):
+                await service.command("enable", {})
+            await service.command("reset", {})
+            assert service.machine.state is SafetyState.IDLE
+            await stack.enable()
+            positions, lowest = await stack.watch(0.2)
+            _assert_no_fall(positions, lowest, allowed_mm=0.5)
+
+    run(scenario())
+
+
+@pytest.mark.parametrize("protocol", PROTOCOLS)
+def test_silent_node_brakes_on_stale_feedback(protocol: str) -> None:
+    async def scenario() -> None:
+        async with Stack(config_for(protocol)) as stack:
+            service = stack.service
+            await stack.enable()
+            cycles = service.stats.cycles
+            stack.sim.robot.silence(5)
+            await stack.until(lambda: service.machine.state is SafetyState.BRAKED, 1.0)
+            limit = stack.config.safety.stale_cycles
+            assert service.stats.cycles - cycles <= limit + 2
+            assert _braked_by(stack) in (Trigger.STALE_FEEDBACK, Trigger.HEARTBEAT_LOST)
+            assert "drive 5" in service.machine.fault.message
+            positions, lowest = await stack.watch(0.4)
+            _assert_no_fall(positions, lowest)
+            with pytest.raises(CommandError, match="faults persist"):
+                await service.command("reset", {})
+            stack.sim.robot.silence(5, False)
+            await asyncio.sleep(0.2)
+            await service.command("reset", {})
+            assert service.machine.state is SafetyState.IDLE
+
+    run(scenario())
+
+
+@pytest.mark.parametrize("protocol", PROTOCOLS)
+def test_stuck_encoder_during_a_move_brakes(protocol: str) -> None:
+    async def scenario() -> None:
+        config = config_for(protocol)
+        async with Stack(config) as stack:
+            service = stack.service
+            await stack.enable()
+            stack.sim.robot.stick_encoder(2)
+            await service.command("goto", {"pose": _target(config, dx=0.3, dy=0.0, dz=0.0)})
+            await stack.until(lambda: service.machine.state is SafetyState.BRAKED, 2.0)
+            assert _braked_by(stack) in (Trigger.FK_RESIDUAL, Trigger.TRACKING_ERROR)
+            # the stuck drive cannot hold its own cable exactly (its encoder lies), so the
+            # platform coasts a little before the other seven stop it
+            positions, lowest = await stack.watch(0.8)
+            excursion = np.linalg.norm(positions - positions[0], axis=1).max() * 1e3
+            assert excursion < 20.0, f"{excursion:.1f} mm after braking"
+            _assert_no_fall(positions[3 * len(positions) // 4 :], lowest, allowed_mm=0.5)
+
+    run(scenario())
+
+
+@pytest.mark.parametrize("protocol", PROTOCOLS)
+def test_snapped_cable_brakes_and_the_platform_stays_up(protocol: str) -> None:
+    async def scenario() -> None:
+        async with Stack(config_for(protocol)) as stack:
+            service = stack.service
+            await stack.enable()
+            z0 = stack.plant.pose.position[2]
+            stack.sim.robot.snap_cable(1)  # a lower cable
+            await stack.until(lambda: service.machine.state is SafetyState.BRAKED, 1.0)
+            assert _braked_by(stack) in (
+                Trigger.FK_RESIDUAL,
+                Trigger.TRACKING_ERROR,
+                Trigger.OUT_OF_WORKSPACE,
+            )
+            await asyncio.sleep(0.4)
+            drop_mm = (z0 - stack.plant.pose.position[2]) * 1e3
+            assert drop_mm < 20.0, f"platform dropped {drop_mm:.1f} mm"
+
+    run(scenario())
+
+
+@pytest.mark.parametrize("protocol", PROTOCOLS)
+def test_bus_error_frames_brake(protocol: str) -> None:
+    from sim_bus.frame_faults import error_frame
+
+    async def scenario() -> None:
+        async with Stack(config_for(protocol)) as stack:
+            service = stack.service
+            await stack.enable()
+            limit = stack.config.safety.bus_errors_max
+            for _ in range(limit + 1):
+                stack.sim.runner._send([error_frame()])
+            await stack.until(lambda: service.machine.state is SafetyState.BRAKED, 1.0)
+            assert _braked_by(stack) is Trigger.BUS_ERROR
+            positions, lowest = await stack.watch(0.3)
+            _assert_no_fall(positions, lowest)
+
+    run(scenario())
+
+
+@pytest.mark.parametrize("protocol", PROTOCOLS)
+def test_controller_exception_and_nan_brake(protocol: str) -> None:
+    async def scenario() -> None:
+        async with Stack(config_for(protocol)) as stack:
+            service = stack.service
+            await stack.enable()
+            real_step = service.controller.step
+
+            def broken(*args):
+                raise np.linalg.LinAlgError("singular matrix")
+
+            service.controller.step = broken
+            await stack.until(lambda: service.machine.state is SafetyState.BRAKED, 1.0)
+            assert _braked_by(stack) is Trigger.CONTROLLER_EXCEPTION
+            assert "LinAlgError: singular matrix" in service.machine.fault.message
+            positions, lowest = await stack.watch(0.3)
+            _assert_no_fall(positions, lowest)
+
+            service.controller.step = real_step
+            await service.command("reset", {})
+            await stack.enable()
+
+            def nan_commands(*args):
+                out = real_step(*args)
+                return out._replace(commands=out.commands * math.nan)
+
+            service.controller.step = nan_commands
+            await stack.until(lambda: service.machine.state is SafetyState.BRAKED, 1.0)
+            assert _braked_by(stack) is Trigger.NAN
+
+    run(scenario())
+
+
+@pytest.mark.parametrize("protocol", PROTOCOLS)
+def test_tracking_error_bound_brakes(protocol: str) -> None:
+    async def scenario() -> None:
+        config = config_for(protocol, safety={"tracking_error_position": 0.0005})
+        async with Stack(config) as stack:
+            service = stack.service
+            await stack.enable()
+            # a disturbance the controller needs time to reject: 40 N sideways
+            stack.plant._disturbance = lambda t: (40.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+            await stack.until(lambda: service.machine.state is SafetyState.BRAKED, 2.0)
+            assert _braked_by(stack) is Trigger.TRACKING_ERROR
+            assert "exceeds 0.50 mm" in service.machine.fault.message
+
+    run(scenario())
+
+
+@pytest.mark.parametrize("protocol", PROTOCOLS)
+def test_a_dead_daemon_leaves_the_platform_held_by_the_drive_watchdogs(protocol: str) -> None:
+    async def scenario() -> None:
+        async with Stack(config_for(protocol)) as stack:
+            await stack.enable()
+            await asyncio.sleep(0.1)
+            stack.service.close()  # the daemon vanishes mid-HOLD: no brake frames sent
+            positions, lowest = await stack.watch(0.6)
+            _assert_no_fall(positions, lowest, allowed_mm=3.0)
+            assert all(d.actuation.value != "torque" for d in stack.sim.robot.drives)
+
+    run(scenario())
+
+
+@pytest.mark.parametrize("protocol", PROTOCOLS)
+def test_sigterm_brakes_and_exits_zero(protocol: str) -> None:
+    async def scenario() -> int:
+        config = config_for(protocol)
+        sim = InProcessSimulator(config)
+        sim.start()
+        loop = asyncio.get_running_loop()
+        try:
+
+            async def enable_then_terminate(service) -> None:
+                await service.command("enable", {})
+                loop.call_later(0.2, os.kill, os.getpid(), signal.SIGTERM)
+                await asyncio.sleep(30)
+
+            code = await serve(
+                config, sim.daemon_bus, zenoh=False, after_start=enable_then_terminate
+            )
+            held = [d.actuation.value for d in sim.robot.drives]
+            assert "torque" not in held
+            return code
+        finally:
+            sim.close()
+
+    assert run(scenario()) == 0

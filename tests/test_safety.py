@@ -1,0 +1,156 @@
+"""The safety state machine and each brake trigger of the monitor (DESIGN §9), as pure logic."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cdpr.controller import ParallelController
+from daemon.config import load_config
+from daemon.safety import (
+    Fault,
+    SafetyMonitor,
+    SafetyState,
+    StateMachine,
+    TransitionError,
+    Trigger,
+)
+from drivers.base import DriveState, Feedback, NodeStatus
+
+CONFIG = Path(__file__).resolve().parent.parent / "config" / "reference8-cia402.yaml"
+
+
+@pytest.fixture(scope="module")
+def config():
+    return load_config(CONFIG)
+
+
+def test_normal_life_cycle_and_reset_needs_faults_gone() -> None:
+    sm = StateMachine()
+    assert sm.state is SafetyState.INIT and not sm.moving
+    with pytest.raises(TransitionError, match="cannot enable while init"):
+        sm.go("enable")
+    sm.go("started")
+    sm.go("enable")
+    assert sm.state is SafetyState.HOLD and sm.moving
+    sm.go("track")
+    sm.go("finish")
+    assert sm.state is SafetyState.HOLD
+    fault = Fault(Trigger.TRACKING_ERROR, "position error 30 mm")
+    assert sm.brake(fault)
+    assert not sm.brake(Fault(Trigger.NAN, "later"))  # the first fault is kept
+    assert sm.state is SafetyState.BRAKED and sm.fault is fault
+    with pytest.raises(TransitionError, match="faults persist: drive 3 hot"):
+        sm.reset([Fault(Trigger.DRIVE_FAULT, "drive 3 hot")])
+    assert sm.state is SafetyState.BRAKED
+    sm.reset([])
+    assert sm.state is SafetyState.IDLE and sm.fault is None
+    with pytest.raises(TransitionError, match="cannot track while idle"):
+        sm.go("track")
+
+
+def test_fault_line_names_trigger_and_values() -> None:
+    line = Fault(Trigger.STALE_FEEDBACK, "drive 2: no feedback for 3 cycles").line()
+    assert line == "BRAKE [stale_feedback] drive 2: no feedback for 3 cycles"
+
+
+def _healthy(n: int, lengths: list[float]) -> tuple[list[Feedback], list[NodeStatus]]:
+    feedback = [Feedback(length=ell, rate=0.0, stamp=1.0, count=5) for ell in lengths]
+    status = [NodeStatus(state=DriveState.ENABLED, heartbeat_stamp=1.0) for _ in range(n)]
+    return feedback, status
+
+
+def test_drive_checks(config) -> None:
+    robot = config.robot
+    monitor = SafetyMonitor(config)
+    lengths = robot.cable_lengths(robot.home).tolist()
+    feedback, status = _healthy(robot.n_cables, lengths)
+    assert monitor.check_drives(feedback, status, now=1.1) == []
+
+    status[2] = NodeStatus(DriveState.FAULT, "overcurrent", 0x2310, heartbeat_stamp=1.0)
+    (fault,) = monitor.check_drives(feedback, status, now=1.1)
+    assert fault.trigger is Trigger.DRIVE_FAULT and "drive 2" in fault.message
+    assert "0x2310" in fault.message and "overcurrent" in fault.message
+
+    _, status = _healthy(robot.n_cables, lengths)
+    # every drive is 500 ms silent; one fault per drive, the first names drive 0
+    faults = monitor.check_drives(feedback, status, now=1.5)
+    assert len(faults) == robot.n_cables
+    assert faults[0].trigger is Trigger.HEARTBEAT_LOST and "500 ms ago" in faults[0].message
+
+    feedback[4] = Feedback(length=math.nan, rate=0.0, stamp=1.0, count=6)
+    faults = monitor.check_drives(feedback, status, now=1.1)
+    assert [f.trigger for f in faults] == [Trigger.NAN]
+
+    feedback, _ = _healthy(robot.n_cables, lengths)
+    feedback[1] = Feedback(length=robot.length_max[1] + 0.01, rate=0.0, stamp=1.0, count=6)
+    (fault,) = monitor.check_drives(feedback, status, now=1.1)
+    assert fault.trigger is Trigger.LENGTH_LIMIT and "cable 1" in fault.message
+
+
+def test_stale_feedback_counts_consecutive_cycles(config) -> None:
+    monitor = SafetyMonitor(config)
+    n = config.robot.n_cables
+    limit = config.safety.stale_cycles
+    fresh = [True] * n
+    stale = [True] * n
+    stale[5] = False
+    for _ in range(limit - 1):
+        assert monitor.check_freshness(stale) is None
+    assert monitor.check_freshness(fresh) is None  # a fresh cycle restarts the count
+    for _ in range(limit - 1):
+        assert monitor.check_freshness(stale) is None
+    fault = monitor.check_freshness(stale)
+    assert fault is not None and fault.trigger is Trigger.STALE_FEEDBACK
+    assert f"drive 5: no feedback for {limit} consecutive cycles" in fault.message
+
+
+def test_bus_errors_within_one_second(config) -> None:
+    monitor = SafetyMonitor(config)
+    limit = config.safety.bus_errors_max
+    for i in range(limit):
+        assert monitor.bus_error(10.0 + i * 0.01, "error frame") is None
+    assert monitor.bus_error(12.0, "error frame") is None  # the old ones aged out
+    fault = SafetyMonitor(config).bus_error(0.0, "bus-off")
+    assert fault is not None and fault.trigger is Trigger.BUS_ERROR
+
+
+def _output_at(config, pose, reference=None):
+    """A real controller output at `pose` holding `reference` (default: the same pose)."""
+    robot = config.robot
+    ctrl = ParallelController(robot, config.controller)
+    ctrl.reset(reference or pose)
+    tensions = ctrl.tension.limits.t_ref
+    lengths = robot.drum_lengths(robot.cable_lengths(pose), tensions)
+    return ctrl.step(0.0, lengths, np.zeros(robot.n_cables))
+
+
+def test_output_checks(config) -> None:
+    from cdpr import Pose
+
+    robot = config.robot
+    monitor = SafetyMonitor(config)
+    home = robot.home
+    assert monitor.check_output(_output_at(config, home)) is None
+
+    off = Pose(home.position + np.array([0.05, 0.0, 0.0]), home.quaternion)
+    fault = monitor.check_output(_output_at(config, off, reference=home))
+    assert fault is not None and fault.trigger is Trigger.TRACKING_ERROR
+    assert "position error" in fault.message and "exceeds 20.00 mm" in fault.message
+
+    half = math.sin(0.35)
+    tilted = Pose(home.position, (math.cos(0.35), half, 0.0, 0.0))  # 40 deg about x
+    fault = monitor.check_output(_output_at(config, tilted))
+    assert fault is not None and fault.trigger in (Trigger.POSE_LIMIT, Trigger.OUT_OF_WORKSPACE)
+
+    out = _output_at(config, home)
+    bad = out._replace(commands=np.full(robot.n_cables, np.nan))
+    assert monitor.check_output(bad).trigger is Trigger.NAN
+    infeasible = out._replace(feasible=False, reason="wrench not in W: cable 3 t >= 20 N")
+    fault = monitor.check_output(infeasible)
+    assert fault.trigger is Trigger.OUT_OF_WORKSPACE and "cable 3" in fault.message
+    lost = out._replace(feasible=False, reason="forward kinematics: residual 5 mm")
+    assert monitor.check_output(lost).trigger is Trigger.FK_RESIDUAL
