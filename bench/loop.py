@@ -18,9 +18,7 @@ import json
 import time
 from pathlib import Path
 
-import yaml
-
-from daemon.config import parse_config
+from daemon.config import load_config
 from daemon.service import Service
 from daemon.simulated import InProcessSimulator
 
@@ -28,11 +26,12 @@ CONFIGS = Path(__file__).resolve().parent.parent / "config"
 
 
 async def measure(protocol: str, rate_hz: float, seconds: float) -> dict[str, float]:
-    path = CONFIGS / f"reference8-{protocol}.yaml"
-    data = yaml.safe_load(path.read_text())
-    data["controller"]["rate_hz"] = rate_hz
-    data["drives"]["feedback_rate_hz"] = rate_hz
-    config = parse_config(data, path.parent, str(path))
+
+    def at_rate(data: dict) -> None:
+        data["controller"]["rate_hz"] = rate_hz
+        data["drives"]["feedback_rate_hz"] = rate_hz
+
+    config = load_config(CONFIGS / f"reference8-{protocol}.yaml", at_rate)
     sim = InProcessSimulator(config)
     sim.start()
     service = Service(config, sim.daemon_bus)

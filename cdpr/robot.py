@@ -66,13 +66,17 @@ class Robot:
         return cls.from_dict(load_yaml(path), source=str(path))
 
     @classmethod
-    def from_reference(cls, value: str | dict, base: Path) -> Robot:
+    def from_reference(cls, value: Any, base: Path, source: str = "robot") -> Robot:
         """The `robot:` entry of a daemon config: a file path (relative to `base`, the
         config file's directory) or an inline description."""
         if isinstance(value, str):
             path = Path(value)
             return cls.from_yaml(path if path.is_absolute() else base / path)
-        return cls.from_dict(value)
+        if isinstance(value, dict):
+            return cls.from_dict(value, source)
+        raise ConfigError(
+            f"{source}: expected a mapping or a path to a robot file, got {type(value).__name__}"
+        )
 
     @property
     def n_cables(self) -> int:

@@ -89,16 +89,7 @@ def load_config(path: str | Path) -> tuple[Robot, ControllerSpec]:
     data = load_yaml(path)
     if not (isinstance(data, dict) and "robot" in data):
         return Robot.from_dict(data, source=str(path)), ControllerSpec()
-    robot = data["robot"]
-    if isinstance(robot, str):
-        loaded = Robot.from_yaml(path.parent / robot)
-    elif isinstance(robot, dict):
-        loaded = Robot.from_dict(robot, source=f"{path}: robot")
-    else:
-        raise ConfigError(
-            f"{path}: robot: expected a mapping or a path to a robot file, "
-            f"got {type(robot).__name__}"
-        )
+    loaded = Robot.from_reference(data["robot"], path.parent, source=f"{path}: robot")
     return loaded, parse_controller(data.get("controller"), source=f"{path}: controller")
 
 

@@ -31,7 +31,7 @@ def open_bus(config: DaemonConfig) -> can.BusABC:
     """The python-can bus the config names (hardware, vcan, socketcand, ...)."""
     c = config.can
     try:
-        return can.Bus(interface=c.interface, channel=c.channel, bitrate=c.bitrate, **c.options)
+        return c.open()
     except (can.CanError, OSError, ValueError, ImportError) as exc:
         raise SystemExit(
             f"cannot open CAN bus interface={c.interface} channel={c.channel}: {exc}"

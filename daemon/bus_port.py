@@ -33,7 +33,6 @@ class BusPort:
         self._loop: asyncio.AbstractEventLoop | None = None
         self._watch: BusWatch | None = None
         self._waiters: list[tuple[Callable[[can.Message], bool], asyncio.Future]] = []
-        self.send_errors = 0
         self.on_send_error: Callable[[str], None] | None = None
         self.on_sent: Callable[[can.Message], None] | None = None
 
@@ -92,12 +91,7 @@ class BusPort:
         if self.on_sent is not None:
             self.on_sent(message)
 
-    def send_all(self, messages: list[can.Message]) -> None:
-        for message in messages:
-            self.send(message)
-
     def _error(self, what: str) -> None:
-        self.send_errors += 1
         if self.on_send_error is not None:
             self.on_send_error(what)
         else:

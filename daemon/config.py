@@ -9,6 +9,7 @@ geometry is checked for sense (Λ full rank at home, the home pose's static wren
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -119,10 +120,18 @@ def workspace_box(robot: Robot, safety: SafetyConfig) -> tuple[np.ndarray, np.nd
     return lo.astype(float), hi.astype(float)
 
 
-def load_config(path: str | Path) -> DaemonConfig:
-    """Read, validate and sanity-check a daemon config file."""
+def load_config(
+    path: str | Path, edit: Callable[[dict[str, Any]], None] | None = None
+) -> DaemonConfig:
+    """Read, validate and sanity-check a daemon config file; `edit` may change the
+    mapping first (the demo's loopback port, a benchmark's rate, a test's section)."""
     path = Path(path)
-    return parse_config(load_yaml(path), path.resolve().parent, str(path))
+    data = load_yaml(path)
+    if edit is not None:
+        if not isinstance(data, dict):
+            raise ConfigError(f"{path}: expected a mapping at the top level")
+        edit(data)
+    return parse_config(data, path.resolve().parent, str(path))
 
 
 def parse_config(data: Any, base: Path, source: str = "config") -> DaemonConfig:

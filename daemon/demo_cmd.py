@@ -12,22 +12,23 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import math
 import socket
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from cdpr import ConfigError
+from cdpr import ConfigError, Pose
 from cdpr.controller import ControlOutput
-from cdpr.pose import liediff
 from daemon.app import serve
-from daemon.config import DaemonConfig, parse_config
+from daemon.config import DaemonConfig, load_config
 from daemon.logsetup import configure_logging
 from daemon.service import Service
+
+if TYPE_CHECKING:
+    from sim_bus.tracking import TrackingFigures
 
 DEFAULT_CONFIG = Path(__file__).resolve().parent.parent / "config" / "reference8-cia402.yaml"
 
@@ -56,18 +57,16 @@ def run(args: argparse.Namespace) -> int:
 
 def _loopback_config(path: Path) -> DaemonConfig:
     """The config with zenoh on a free loopback port, so a running daemon is not hit."""
-    from cdpr.description import load_yaml
-
-    data = load_yaml(path)
-    if not isinstance(data, dict):
-        raise ConfigError(f"{path}: expected a mapping at the top level")
     with socket.socket() as probe:
         probe.bind(("127.0.0.1", 0))
         port = probe.getsockname()[1]
-    zenoh = dict(data.get("zenoh") or {})
-    zenoh.update(listen=[f"tcp/127.0.0.1:{port}"], connect=[], mode="peer", expose=False)
-    data["zenoh"] = zenoh
-    return parse_config(data, path.resolve().parent, str(path))
+
+    def loopback(data: dict[str, Any]) -> None:
+        zenoh = dict(data.get("zenoh") or {})
+        zenoh.update(listen=[f"tcp/127.0.0.1:{port}"], connect=[], mode="peer", expose=False)
+        data["zenoh"] = zenoh
+
+    return load_config(path, loopback)
 
 
 async def _demo(config: DaemonConfig, plot: str | None) -> int:
@@ -77,12 +76,10 @@ async def _demo(config: DaemonConfig, plot: str | None) -> int:
     trajectory = figure_eight(config.robot)
     simulator = InProcessSimulator(config)
     plant = simulator.robot.plant
-    samples: list[tuple[float, Any, Any, list[float], list[float]]] = []
+    samples: list[tuple[float, Pose, Pose, list[float]]] = []
 
     def record(t: float, out: ControlOutput) -> None:
-        samples.append(
-            (t, out.reference.pose, plant.pose, plant.tensions.tolist(), out.commands.tolist())
-        )
+        samples.append((t, out.reference.pose, plant.pose, plant.tensions.tolist()))
 
     result: dict[str, Any] = {}
 
@@ -104,11 +101,14 @@ async def _demo(config: DaemonConfig, plot: str | None) -> int:
         return 1
     start = result["client"]["start"]
     figures = _summary(samples, start, start + trajectory.duration)
+    if figures is None:
+        print("demo: no control cycle while the trajectory ran", file=sys.stderr)
+        return 1
     _print(config, result, figures, trajectory.duration)
     if plot:
         _plot(samples, Path(plot))
         print(f"plot written to {plot}")
-    ok = result["state"] == "hold" and figures["rms_mm"] < 5.0
+    ok = result["state"] == "hold" and figures.rms_mm < 5.0
     return code if ok else 1
 
 
@@ -129,37 +129,18 @@ def _client_flight(endpoint: str, trajectory) -> dict[str, Any]:
         return {"start": float(result.get("start", 0.0)), "reply": reply}
 
 
-def _summary(samples, t0: float, t1: float) -> dict[str, float]:
+def _summary(samples, t0: float, t1: float) -> TrackingFigures | None:
     """Tracking error of the true platform against the reference while tracking."""
-    pos, rot, low, high = [], [], math.inf, -math.inf
-    for t, ref, true, tensions, _ in samples:
-        if t0 <= t <= t1:
-            err = liediff(ref, true)
-            pos.append(float(np.linalg.norm(err[:3])))
-            rot.append(float(np.linalg.norm(err[3:])))
-            low, high = min(low, min(tensions)), max(high, max(tensions))
-    if not pos:
-        return {
-            "rms_mm": math.inf,
-            "max_mm": math.inf,
-            "rms_deg": math.inf,
-            "min_tension": math.nan,
-            "max_tension": math.nan,
-            "slack_events": 0,
-        }
-    p, r = np.array(pos), np.array(rot)
-    return {
-        "rms_mm": float(np.sqrt(np.mean(p**2)) * 1e3),
-        "max_mm": float(p.max() * 1e3),
-        "rms_deg": float(np.degrees(np.sqrt(np.mean(r**2)))),
-        "min_tension": low,
-        "max_tension": high,
-        "slack_events": int(low <= 0.0),
-    }
+    from sim_bus.tracking import tracking_figures
+
+    window = [s for s in samples if t0 <= s[0] <= t1]
+    if not window:
+        return None
+    return tracking_figures([s[1] for s in window], [s[2] for s in window], [s[3] for s in window])
 
 
 def _print(
-    config: DaemonConfig, result: dict[str, Any], f: dict[str, float], duration: float
+    config: DaemonConfig, result: dict[str, Any], f: TrackingFigures, duration: float
 ) -> None:
     stats = result["stats"]
     print(
@@ -172,12 +153,12 @@ def _print(
         "trajectory accepted over zenoh"
     )
     print(
-        f"tracking error (simulated platform vs reference): RMS {f['rms_mm']:.2f} mm, "
-        f"max {f['max_mm']:.2f} mm, orientation RMS {f['rms_deg']:.3f} deg"
+        f"tracking error (simulated platform vs reference): RMS {f.rms_mm:.2f} mm, "
+        f"max {f.max_mm:.2f} mm, orientation RMS {f.rms_deg:.3f} deg"
     )
     print(
-        f"cable tensions: {f['min_tension']:.0f} .. {f['max_tension']:.0f} N, "
-        f"slack events {f['slack_events']}"
+        f"cable tensions: {f.min_tension:.0f} .. {f.max_tension:.0f} N, "
+        f"slack events {f.slack_events}"
     )
     print(
         f"cycle: {stats['cycles']} cycles, compute p50/p99 {stats['compute']['p50_us']:.0f}/"

@@ -9,8 +9,10 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Annotated, Any, Literal
 
+import can
 from pydantic import Field, model_validator
 
+from cdpr import Robot
 from cdpr.description import FiniteFloat, PositiveFloat, StrictModel, validate_section
 from drivers.base import BrakeMode, Scaling
 
@@ -75,6 +77,10 @@ class DrivesConfig(StrictModel):
                 raise ValueError(f"{name} has {len(value)} entries for {len(self.nodes)} nodes")
         return self
 
+    def scalings_for(self, robot: Robot) -> list[Scaling]:
+        """One Scaling per cable of `robot` (drum radii from its description)."""
+        return self.scalings([a.drum_radius for a in robot.actuators])
+
     def scalings(self, drum_radii: Sequence[float]) -> list[Scaling]:
         """One Scaling per cable, drum radii from the robot description."""
         if len(drum_radii) != len(self.nodes):
@@ -103,6 +109,12 @@ class CanConfig(StrictModel):
     channel: str = "can0"
     bitrate: Annotated[int, Field(gt=0, le=8_000_000)] = 1_000_000
     options: dict[str, Any] = Field(default_factory=dict)
+
+    def open(self) -> can.BusABC:
+        """The python-can bus these arguments name."""
+        return can.Bus(
+            interface=self.interface, channel=self.channel, bitrate=self.bitrate, **self.options
+        )
 
 
 def parse_drives(data: Any, source: str = "drives") -> DrivesConfig:

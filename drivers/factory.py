@@ -9,7 +9,7 @@ from drivers.config import DrivesConfig
 
 def make_driver(config: DrivesConfig, robot: Robot) -> ActuatorDriver:
     """The configured protocol's driver for `robot`'s cables (drum radii from the robot)."""
-    scalings = config.scalings([a.drum_radius for a in robot.actuators])
+    scalings = config.scalings_for(robot)
     if config.protocol == "cia402":
         from drivers.cia402.host import Cia402Driver
 

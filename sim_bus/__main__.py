@@ -121,9 +121,7 @@ def frame_fault_flags(args: argparse.Namespace) -> dict:
 
 async def simulate(setup: SimSetup, args: argparse.Namespace) -> int:
     c = setup.can
-    bus: can.BusABC = can.Bus(
-        interface=c.interface, channel=c.channel, bitrate=c.bitrate, **c.options
-    )
+    bus: can.BusABC = c.open()
     flags = frame_fault_flags(args)
     faults = parse_frame_faults(flags, "command line") if flags else setup.sim.frame_faults
     device_bus = FaultyBus(bus, faults) if faults.named_rules() else bus
@@ -142,9 +140,7 @@ async def simulate(setup: SimSetup, args: argparse.Namespace) -> int:
     runner.start()
     try:
         if address is not None:
-            served_bus = can.Bus(
-                interface=c.interface, channel=c.channel, bitrate=c.bitrate, **c.options
-            )
+            served_bus = c.open()  # the server's own reader of the same bus
             server = SocketcandServer(served_bus, address[0], address[1], channel=c.channel)
             await server.start()
             print(

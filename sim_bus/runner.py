@@ -34,8 +34,6 @@ class SimulatorRunner:
         self._timer: PeriodicTimer | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._watch: BusWatch | None = None
-        self.frames_in = 0
-        self.frames_out = 0
         self.send_errors = 0
         self._delays = hasattr(bus, "tick")
 
@@ -78,7 +76,6 @@ class SimulatorRunner:
         if self.meter is not None:
             self.meter.add_many(frames)
         for msg in frames:
-            self.frames_in += 1
             out.extend(self.robot.handle(msg, t))
         self._send(out)
 
@@ -91,7 +88,6 @@ class SimulatorRunner:
     def _handle_one(self, msg: can.Message) -> None:
         if self.meter is not None:
             self.meter.add(msg)
-        self.frames_in += 1
         self._send(self.robot.handle(msg, self.t))
 
     def _send(self, frames: list[can.Message]) -> None:
@@ -101,6 +97,5 @@ class SimulatorRunner:
             except can.CanError:
                 self.send_errors += 1
             else:
-                self.frames_out += 1
                 if self.meter is not None:
                     self.meter.add(frame)

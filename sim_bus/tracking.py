@@ -11,6 +11,7 @@ run (the daemon would brake there).
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from typing import NamedTuple, Protocol
 
 import numpy as np
@@ -35,6 +36,43 @@ class TrackingController(Protocol):
     def follow(self, source: Trajectory) -> None: ...
 
     def step(self, t: float, lengths: ArrayLike, length_rates: ArrayLike) -> object: ...
+
+
+class TrackingFigures(NamedTuple):
+    """Error of the true poses against their references, and the cable tensions."""
+
+    rms_mm: float
+    max_mm: float
+    rms_deg: float
+    max_deg: float
+    min_tension: float
+    max_tension: float
+    slack_events: int  # samples where some cable went below SLACK_TENSION (after a taut one)
+
+
+def tracking_figures(
+    references: Sequence[Pose], poses: Sequence[Pose], tensions: ArrayLike
+) -> TrackingFigures:
+    """Figures of one run: the pose at sample i against reference i, tensions (N) one
+    row per sample."""
+    pos_err, ang_err = [], []
+    for ref, pose in zip(references, poses, strict=True):
+        error = liediff(ref, pose)
+        pos_err.append(math.hypot(*error[:3].tolist()))
+        ang_err.append(math.degrees(math.hypot(*error[3:].tolist())))
+    pos, ang = np.array(pos_err) * 1e3, np.array(ang_err)
+    tensions = np.asarray(tensions, dtype=float)
+    slack = np.any(tensions < SLACK_TENSION, axis=1)
+    onsets = int(np.count_nonzero(slack[1:] & ~slack[:-1]) + slack[0])
+    return TrackingFigures(
+        float(np.sqrt(np.mean(pos**2))),
+        float(pos.max()),
+        float(np.sqrt(np.mean(ang**2))),
+        float(ang.max()),
+        float(tensions.min()),
+        float(tensions.max()),
+        onsets,
+    )
 
 
 class TrackingResult(NamedTuple):
@@ -85,23 +123,7 @@ def run_tracking(
 
 
 def _figures(trajectory: Trajectory, rec: Recording, fault: str) -> TrackingResult:
-    pos_err, ang_err = [], []
-    for i, t in enumerate(rec.t.tolist()):
-        error = liediff(trajectory.sample(t).pose, rec.pose(i))
-        pos_err.append(math.hypot(*error[:3].tolist()))
-        ang_err.append(math.degrees(math.hypot(*error[3:].tolist())))
-    pos, ang = np.array(pos_err) * 1e3, np.array(ang_err)
-    tensions = rec.tensions
-    slack = np.any(tensions < SLACK_TENSION, axis=1)
-    onsets = int(np.count_nonzero(slack[1:] & ~slack[:-1]) + slack[0])
-    return TrackingResult(
-        float(np.sqrt(np.mean(pos**2))),
-        float(pos.max()),
-        float(np.sqrt(np.mean(ang**2))),
-        float(ang.max()),
-        float(tensions.min()),
-        float(tensions.max()),
-        onsets,
-        fault,
-        rec,
-    )
+    times = rec.t.tolist()
+    references = [trajectory.sample(t).pose for t in times]
+    poses = [rec.pose(i) for i in range(len(times))]
+    return TrackingResult(*tracking_figures(references, poses, rec.tensions), fault, rec)

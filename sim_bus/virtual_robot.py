@@ -13,7 +13,6 @@ cable); frame-level faults (drops, delays, corruption, error frames) are sim_bus
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
 
 import can
 
@@ -47,7 +46,7 @@ class PositionServo:
 
 def make_virtual_drives(config: DrivesConfig, robot: Robot) -> list[VirtualDrive]:
     """One device per cable, of the configured protocol, scaled like the host side."""
-    scalings = config.scalings([a.drum_radius for a in robot.actuators])
+    scalings = config.scalings_for(robot)
     if config.protocol == "cia402":
         from sim_bus.devices.cia402 import Cia402Drive
 
@@ -181,8 +180,3 @@ class VirtualRobot:
             if not math.isfinite(forces[k]):
                 forces[k] = 0.0
         plant.set_commands(forces)
-
-    # -- views ------------------------------------------------------------------------
-
-    def tensions(self) -> Sequence[float]:
-        return self.plant.tensions.tolist()

@@ -8,9 +8,8 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
-import yaml
 
-from daemon.config import DaemonConfig, parse_config
+from daemon.config import DaemonConfig, load_config
 from daemon.safety import SafetyState
 from daemon.service import Service
 from daemon.simulated import InProcessSimulator
@@ -72,7 +71,4 @@ class Stack:
 
 def config_for(protocol: str, **overrides: object) -> DaemonConfig:
     """An example config, with top-level sections replaced by `overrides`."""
-    path = DRIVER_CONFIGS[protocol]
-    data = yaml.safe_load(path.read_text())
-    data.update(overrides)
-    return parse_config(data, path.parent, str(path))
+    return load_config(DRIVER_CONFIGS[protocol], lambda data: data.update(overrides))

@@ -456,7 +456,6 @@ def test_driver_basics_and_config_errors() -> None:
     driver = host()
     assert driver.timing is Timing.SYNC and driver.n == 3
     assert [m.arbitration_id for m in driver.cycle_start()] == [0x80]
-    assert Cia402Driver.from_config(drives_config(), [RADIUS] * 3).scalings == driver.scalings
     odrive = parse_drives({"protocol": "odrive", "nodes": [1]})
     with pytest.raises(ValueError, match="protocol cia402"):
         Cia402Driver(odrive, odrive.scalings([RADIUS]))

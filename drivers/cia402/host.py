@@ -169,12 +169,6 @@ class Cia402Driver(ActuatorDriver):
         self.position: list[int | None] = [None] * self.n  # last position actual (increments)
         self._standing: list[tuple[int, bytes]] = []  # frames keepalive() repeats
 
-    @classmethod
-    def from_config(
-        cls, config: DrivesConfig, drum_radii: Sequence[float], eds: str | Path = EDS_PATH
-    ) -> Cia402Driver:
-        return cls(config, config.scalings(drum_radii), eds)
-
     # -- cycle ----------------------------------------------------------------------------
 
     def cycle_start(self) -> list[can.Message]:
