@@ -66,6 +66,7 @@ class MemoryLink:
         self.sent: list[can.Message] = []
         self.mute: set[int] = set()
         self.drop: Callable[[can.Message], bool] = lambda message: False
+        self.every_tick: Callable[[], None] = lambda: None  # e.g. the daemon's cycle
         self.advance(0.0)
 
     def _from(self, device: Cia402Drive, frames: list[can.Message]) -> None:
@@ -87,6 +88,7 @@ class MemoryLink:
         self, match: Callable[[can.Message], bool], timeout: float, what: str
     ) -> can.Message:
         deadline = self.t + timeout
+        self.every_tick()  # the bus is shared: other frames may go out between two steps
         while True:
             while self.queue:
                 message = self.queue.popleft()
@@ -99,6 +101,7 @@ class MemoryLink:
 
     def advance(self, dt: float) -> None:
         self.t += dt
+        self.every_tick()
         for device in self.devices:
             self._from(device, device.on_tick(self.t))
 
@@ -887,6 +890,23 @@ def test_rpdo_timeout_brakes_faults_and_resets_without_moving() -> None:
     assert [(s.state, s.fault) for s in driver.status] == [(DriveState.HOLDING, None)] * 3
     link.run(driver.enable(link, [1.5, 1.62, 1.5], [0.0] * 3))
     assert all(d.state is State.OPERATION_ENABLED and d.hold is None for d in devices)
+
+
+def test_keepalive_during_a_fault_reset_does_not_re_enable_the_drives() -> None:
+    """The daemon's cycle keeps sending keepalive() while reset_faults runs: the repeated
+    brake frames (enable operation, mode 8) must not push a drive the reset is stepping
+    through SWITCH ON DISABLED -> READY -> SWITCHED ON on to OPERATION ENABLED."""
+    driver, devices, link = make_bus()
+    link.run(driver.enable(link, [1.5] * 3, [0.0] * 3))
+    link.cycle([-60.0] * 3)
+    link.advance(0.06)  # RPDO deadline: every drive faults and holds by itself
+    link.deliver()
+    for frame in driver.brake([1.5] * 3, BrakeMode.POSITION_HOLD):
+        link.send(frame)
+    link.every_tick = lambda: [link.send(frame) for frame in driver.keepalive()]
+    link.run(driver.reset_faults(link))
+    for device in devices:
+        assert device.state is State.SWITCHED_ON and device.actuation is Actuation.POSITION
 
 
 def test_rpdo_timeout_with_holding_brakes() -> None:

@@ -437,6 +437,10 @@ class Cia402Driver(ActuatorDriver):
         for i, node in enumerate(self.nodes):
             self._require_started(i)
             state = await self._read_state(link, i)
+            if state in _FAULTED or state in (State.SWITCH_ON_DISABLED, State.READY_TO_SWITCH_ON):
+                # keepalive() must not send this node "enable operation" while the reset
+                # steps it through the state machine; it holds by its own latched reaction
+                self._release_standing(i)
             if state in _FAULTED:
                 # bit 7 low first, so the reset is a rising edge whatever was sent before
                 await self._write(link, i, CONTROLWORD, 0, Command.DISABLE_VOLTAGE.value)
@@ -458,6 +462,11 @@ class Cia402Driver(ActuatorDriver):
             await self._refresh_status(link, i)
 
     # -- sequence helpers -----------------------------------------------------------------
+
+    def _release_standing(self, i: int) -> None:
+        """Stop repeating brake/enable frames to drive i (keepalive)."""
+        mine = (self._rpdo1[i], self._rpdo2[i])
+        self._standing = [(can_id, data) for can_id, data in self._standing if can_id not in mine]
 
     def _names(self, indices: Iterable[int]) -> str:
         return ", ".join(str(self.nodes[i]) for i in sorted(indices))
