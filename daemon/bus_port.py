@@ -17,7 +17,7 @@ from collections.abc import Callable
 import can
 
 from drivers.base import DriverError
-from drivers.bus import BusWatch, drain
+from drivers.bus import BusWatch, frame_io
 
 log = logging.getLogger(__name__)
 
@@ -29,6 +29,7 @@ class BusPort:
 
     def __init__(self, bus: can.BusABC, sink: FrameSink) -> None:
         self.bus = bus
+        self._io = frame_io(bus)
         self._sink = sink
         self._loop: asyncio.AbstractEventLoop | None = None
         self._watch: BusWatch | None = None
@@ -37,8 +38,18 @@ class BusPort:
         self.on_sent: Callable[[can.Message], None] | None = None
 
     def open(self, loop: asyncio.AbstractEventLoop) -> None:
-        """Start delivering received frames on `loop`."""
+        """Start delivering received frames on `loop`; frames queued before this are
+        stale and dropped (a drive streaming at 500 Hz fills the socket's queue while the
+        daemon starts, and handing that backlog over in one go stalled the start-up
+        long enough to trip the drives' watchdogs)."""
         self._loop = loop
+        try:
+            stale = len(self._io.drain())
+        except can.CanError as exc:
+            self._error(f"receive failed: {exc}")
+        else:
+            if stale:
+                log.debug("dropped %d frames queued before the daemon opened the bus", stale)
         self._watch = BusWatch(self.bus, loop, self._drain, lambda msg: self._deliver([msg]))
 
     def close(self) -> None:
@@ -54,7 +65,7 @@ class BusPort:
 
     def _drain(self) -> None:
         try:
-            frames = drain(self.bus)
+            frames = self._io.drain()
         except can.CanError as exc:
             self._error(f"receive failed: {exc}")
             return
@@ -84,7 +95,7 @@ class BusPort:
     def send(self, message: can.Message) -> None:
         """Send one frame; a failure is counted and reported, never raised."""
         try:
-            self.bus.send(message, timeout=0.0)
+            self._io.send(message)
         except can.CanError as exc:
             self._error(f"send of 0x{message.arbitration_id:03x} failed: {exc}")
             return

@@ -94,6 +94,12 @@ class DaemonConfig:
             raise ConfigError(
                 f"drives.nodes lists {len(self.drives.nodes)} drives for {robot.n_cables} cables"
             )
+        if self.drives.streamed and self.drives.feedback_rate_hz < self.controller.rate_hz:
+            raise ConfigError(
+                f"drives.feedback_rate_hz ({self.drives.feedback_rate_hz:g}) is below "
+                f"controller.rate_hz ({self.controller.rate_hz:g}): most cycles would find no "
+                "fresh feedback"
+            )
         self.can = raw.can
         self.safety = raw.safety
         self.trajectory = raw.trajectory

@@ -35,7 +35,7 @@ class InProcessSimulator:
             device_bus = FaultyBus(device_bus, sim.frame_faults)
         self.daemon_bus = LoopBus(channel=channel, bitrate=bitrate)
         self.robot = VirtualRobot(config.robot, config.drives, sim.plant)
-        self.runner = SimulatorRunner(self.robot, device_bus)
+        self.runner = SimulatorRunner(self.robot, device_bus, wake_period=sim.wake(config.drives))
         self._device_bus = device_bus
 
     def start(self) -> None:

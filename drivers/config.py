@@ -77,6 +77,12 @@ class DrivesConfig(StrictModel):
                 raise ValueError(f"{name} has {len(value)} entries for {len(self.nodes)} nodes")
         return self
 
+    @property
+    def streamed(self) -> bool:
+        """True when the drives stream feedback at feedback_rate_hz (ODrive) instead of
+        answering the host's SYNC (CiA 402)."""
+        return self.protocol == "odrive"
+
     def scalings_for(self, robot: Robot) -> list[Scaling]:
         """One Scaling per cable of `robot` (drum radii from its description)."""
         return self.scalings([a.drum_radius for a in robot.actuators])

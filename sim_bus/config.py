@@ -10,8 +10,10 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, NamedTuple
 
+from pydantic import model_validator
+
 from cdpr import ConfigError, Robot
-from cdpr.description import StrictModel, load_yaml, validate_section
+from cdpr.description import PositiveFloat, StrictModel, load_yaml, validate_section
 from drivers.config import CanConfig, DrivesConfig, parse_drives
 from sim_bus.frame_faults import FrameFaultConfig
 from sim_bus.plant import PlantConfig
@@ -20,11 +22,36 @@ from sim_bus.plant import PlantConfig
 class SimConfig(StrictModel):
     """`sim:` section.  plant: sim_bus.plant.PlantConfig keys; frame_faults:
     sim_bus.frame_faults keys; serve_socketcand: "127.0.0.1:PORT" to serve the bus to
-    other processes in the socketcand protocol."""
+    other processes in the socketcand protocol; wake_period: seconds between the
+    simulator's own wake-ups (default: the plant step), see `wake`."""
 
     plant: PlantConfig = PlantConfig()
     frame_faults: FrameFaultConfig = FrameFaultConfig()
     serve_socketcand: str | None = None
+    wake_period: PositiveFloat | None = None
+
+    @model_validator(mode="after")
+    def _wake_not_below_step(self) -> SimConfig:
+        if self.wake_period is not None and self.wake_period < self.plant.step:
+            raise ValueError(
+                f"wake_period ({self.wake_period} s) is shorter than plant.step "
+                f"({self.plant.step} s)"
+            )
+        return self
+
+    def wake(self, drives: DrivesConfig) -> float:
+        """The runner's wake-up period.  The plant integrates in plant.step steps either
+        way, catching up at every wake-up and every frame; wake-ups only time what the
+        drives do on their own (heartbeats, watchdogs, streamed feedback), so a longer
+        period saves CPU (each wake-up is a few system calls: costly in user-mode Linux).
+        It may not exceed the interval of streamed feedback (ConfigError)."""
+        period = self.wake_period or self.plant.step
+        if drives.streamed and period > 1.0 / drives.feedback_rate_hz + 1e-12:
+            raise ConfigError(
+                f"sim.wake_period ({period} s) exceeds the interval of the drives' streamed "
+                f"feedback (1 / drives.feedback_rate_hz = {1.0 / drives.feedback_rate_hz:g} s)"
+            )
+        return period
 
 
 class SimSetup(NamedTuple):

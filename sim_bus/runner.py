@@ -1,9 +1,10 @@
 """Run a VirtualRobot on a python-can bus in real time, as a task of an asyncio loop.
 
-The plant advances on its own timerfd (one plant step per period) and whenever a frame
-arrives, so a SYNC is answered with the state at the moment it was seen.  Buses with a
-file descriptor are drained by the loop itself; others through a Notifier thread.
-Frames the drives send pass through optional frame faults and a bus-load meter.
+The plant advances (in whole plant steps) on its own timerfd, every `wake_period`
+(default: one plant step), and whenever a frame arrives, so a SYNC is answered with the
+state at the moment it was seen.  Buses with a file descriptor are drained by the loop
+itself; others through a Notifier thread.  Frames the drives send pass through optional
+frame faults and a bus-load meter.
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ from collections.abc import Callable
 
 import can
 
-from drivers.bus import BusWatch, drain
+from drivers.bus import BusWatch, frame_io
 from drivers.clock import PeriodicTimer
 from sim_bus.busload import BusLoadMeter
 from sim_bus.virtual_robot import VirtualRobot
@@ -24,10 +25,16 @@ class SimulatorRunner:
     """`start()` on a running loop, `close()` to stop; `t` is simulated time (s)."""
 
     def __init__(
-        self, robot: VirtualRobot, bus: can.BusABC, meter: BusLoadMeter | None = None
+        self,
+        robot: VirtualRobot,
+        bus: can.BusABC,
+        meter: BusLoadMeter | None = None,
+        wake_period: float | None = None,
     ) -> None:
         self.robot = robot
+        self.wake_period = wake_period or robot.plant.config.step
         self.bus = bus
+        self._io = frame_io(bus)
         self.meter = meter  # bus-load accounting of every frame seen and sent
         self._schedule: list[tuple[float, Callable[[], list[can.Message]]]] = []
         self._t0 = 0.0
@@ -45,7 +52,7 @@ class SimulatorRunner:
         loop = asyncio.get_running_loop()
         self._loop = loop
         self._t0 = time.monotonic() - self.robot.t
-        self._timer = PeriodicTimer(self.robot.plant.config.step)
+        self._timer = PeriodicTimer(self.wake_period)
         loop.add_reader(self._timer.fileno(), self._on_tick)
         self._watch = BusWatch(self.bus, loop, self._drain, self._handle_one)
 
@@ -72,7 +79,7 @@ class SimulatorRunner:
     def _drain(self) -> None:
         out = []
         t = self.t
-        frames = drain(self.bus)
+        frames = self._io.drain()
         if self.meter is not None:
             self.meter.add_many(frames)
         for msg in frames:
@@ -93,7 +100,7 @@ class SimulatorRunner:
     def _send(self, frames: list[can.Message]) -> None:
         for frame in frames:
             try:
-                self.bus.send(frame)
+                self._io.send(frame)
             except can.CanError:
                 self.send_errors += 1
             else:

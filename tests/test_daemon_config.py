@@ -47,6 +47,12 @@ def _data() -> dict:
             lambda d: d["safety"].update(workspace_min=[-1, -1, 1.5], workspace_max=[1, 1, 2]),
             "outside the workspace box",
         ),
+        (
+            lambda d: d["drives"].update(
+                protocol="odrive", nodes=list(range(8)), feedback_rate_hz=400
+            ),
+            r"drives.feedback_rate_hz \(400\) is below controller.rate_hz \(500\)",
+        ),
     ],
 )
 def test_problems_name_the_key(change, message: str) -> None:
