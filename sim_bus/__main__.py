@@ -3,7 +3,8 @@
 It answers as the config's drives on the bus the config names (the in-process loop bus,
 socketcan such as vcan0, or a socketcand server), optionally serves its bus to other
 processes in the socketcand protocol (`--serve-socketcand 127.0.0.1:PORT`), injects
-device and frame faults on a schedule, and prints the bus load every few seconds.
+device and frame faults on a schedule (or device faults typed on standard input with
+`--fault-input`, one `KIND:CABLE` per line), and prints the bus load every few seconds.
 """
 
 from __future__ import annotations
@@ -11,6 +12,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import logging
+import os
 import signal
 import sys
 from collections.abc import Callable
@@ -30,15 +32,17 @@ log = logging.getLogger("sim_bus")
 DEVICE_FAULTS = ("silent", "stuck", "drive", "snap")
 
 
-def parse_device_fault(text: str) -> tuple[str, int, float]:
-    """KIND:CABLE@T, e.g. snap:3@2.5 (cable 3 snaps at t = 2.5 s)."""
+def parse_device_fault(text: str, when: bool = True) -> tuple[str, int, float]:
+    """KIND:CABLE@T, e.g. snap:3@2.5 (cable 3 snaps at t = 2.5 s); with `when` False,
+    KIND:CABLE (now) and t is 0."""
+    form = "KIND:CABLE@SECONDS" if when else "KIND:CABLE"
     try:
         kind, rest = text.split(":", 1)
-        cable, at = rest.split("@", 1)
+        cable, at = rest.split("@", 1) if when else (rest, "0")
         parsed = (kind, int(cable), float(at))
     except ValueError:
         raise argparse.ArgumentTypeError(
-            f"fault {text!r}: expected KIND:CABLE@SECONDS, KIND one of {', '.join(DEVICE_FAULTS)}"
+            f"fault {text!r}: expected {form}, KIND one of {', '.join(DEVICE_FAULTS)}"
         ) from None
     if parsed[0] not in DEVICE_FAULTS:
         raise argparse.ArgumentTypeError(
@@ -88,6 +92,11 @@ def build_parser() -> argparse.ArgumentParser:
         default=[],
         help="device fault KIND:CABLE@SECONDS, KIND in silent, stuck, drive, snap (repeatable)",
     )
+    parser.add_argument(
+        "--fault-input",
+        action="store_true",
+        help="also read faults from standard input, one KIND:CABLE per line, injected at once",
+    )
     parser.add_argument("--drop", type=float, default=0.0, help="drop this fraction of frames")
     parser.add_argument(
         "--corrupt", type=float, default=0.0, help="corrupt this fraction of frames"
@@ -127,7 +136,7 @@ async def simulate(setup: SimSetup, args: argparse.Namespace) -> int:
     device_bus = FaultyBus(bus, faults) if faults.named_rules() else bus
     robot = VirtualRobot(setup.robot, setup.drives, setup.sim.plant)
     meter = BusLoadMeter(c.bitrate)
-    runner = SimulatorRunner(robot, device_bus, meter)
+    runner = SimulatorRunner(robot, device_bus, meter, setup.sim.wake(setup.drives))
     for kind, cable, at in args.fault:
         runner.at(at, fault_action(robot, kind, cable))
     server = None
@@ -151,6 +160,9 @@ async def simulate(setup: SimSetup, args: argparse.Namespace) -> int:
             f"{c.interface}:{c.channel}",
             flush=True,
         )
+        if args.fault_input:
+            fault_input = FaultInput(robot, runner, sys.stdin.fileno())
+            loop.add_reader(sys.stdin.fileno(), fault_input.on_readable)
         if args.duration:
             loop.call_later(args.duration, stop.set)
         while not stop.is_set():
@@ -171,6 +183,33 @@ async def simulate(setup: SimSetup, args: argparse.Namespace) -> int:
         if served_bus is not None:
             served_bus.shutdown()
         device_bus.shutdown()
+
+
+class FaultInput:
+    """--fault-input: KIND:CABLE lines on a file descriptor (stdin), each injected at
+    once; a bad line is answered on stderr and changes nothing."""
+
+    def __init__(self, robot: VirtualRobot, runner: SimulatorRunner, fd: int) -> None:
+        self._robot, self._runner, self._fd = robot, runner, fd
+        self._pending = b""
+
+    def on_readable(self) -> None:
+        chunk = os.read(self._fd, 4096)
+        if not chunk:  # end of input: nothing more will come
+            asyncio.get_running_loop().remove_reader(self._fd)
+            return
+        *lines, self._pending = (self._pending + chunk).split(b"\n")
+        for raw in lines:
+            line = raw.decode(errors="replace").strip()
+            if line:
+                self._inject(line)
+
+    def _inject(self, line: str) -> None:
+        try:
+            kind, cable, _ = parse_device_fault(line, when=False)
+            self._runner.at(self._runner.t, fault_action(self._robot, kind, cable))
+        except (argparse.ArgumentTypeError, ConfigError) as exc:
+            print(f"error: {exc}", file=sys.stderr, flush=True)
 
 
 def _address(text: str | None) -> tuple[str, int] | None:

@@ -79,3 +79,40 @@ def test_simulator_process_serves_its_drives_over_socketcand() -> None:
         except subprocess.TimeoutExpired:
             proc.kill()
     assert proc.returncode == 0
+
+
+@pytest.mark.timeout(60)
+def test_faults_typed_on_standard_input_are_injected_at_once() -> None:
+    args = [sys.executable, "-m", "sim_bus", "--config", str(CONFIG), "--fault-input"]
+    args += ["--serve-socketcand", "127.0.0.1:0", "--duration", "20"]
+    proc = subprocess.Popen(
+        args,
+        cwd=ROOT,
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        match = re.search(r"127\.0\.0\.1:(\d+) channel (\S+)", proc.stdout.readline())
+        assert match
+        bus = can.Bus(
+            interface="socketcand", host="127.0.0.1", port=int(match.group(1)), channel=match[2]
+        )
+        try:
+            bus.send(can.Message(arbitration_id=0x000, data=[0x01, 0], is_extended_id=False))
+            proc.stdin.write("drive:9\nnonsense\n")
+            proc.stdin.flush()
+            assert not [m for m in _frames(bus, 1.0) if 0x081 <= m.arbitration_id <= 0x088]
+            proc.stdin.write("drive:4\n")  # cable 4 is node 5
+            proc.stdin.flush()
+            emcy = [m for m in _frames(bus, 2.0) if 0x081 <= m.arbitration_id <= 0x088]
+            assert [m.arbitration_id for m in emcy] == [0x085]
+        finally:
+            bus.shutdown()
+    finally:
+        proc.terminate()
+        _, err = proc.communicate(timeout=10)
+    assert proc.returncode == 0
+    assert "fault on cable 9: the robot has cables 0..7" in err
+    assert "fault 'nonsense': expected KIND:CABLE" in err
