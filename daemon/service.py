@@ -42,6 +42,7 @@ from daemon.api import CommandError
 from daemon.bus_port import BusPort
 from daemon.config import DaemonConfig
 from daemon.cycle_stats import CycleStats
+from daemon.gc_policy import CollectorPolicy
 from daemon.safety import Fault, SafetyMonitor, SafetyState, StateMachine, Trigger
 from drivers.base import ActuatorDriver, DriverError, FrameError, Timing
 from drivers.clock import PeriodicTimer
@@ -92,6 +93,8 @@ class Service:
         self._trajectory: Trajectory | None = None
         self.last_output = None
         self.faults: list[Fault] = []  # conditions active at the last check
+        self.collector = CollectorPolicy()
+        self._extrapolation_limit = 2.0 / config.drives.feedback_rate_hz
 
     # -- lifecycle --------------------------------------------------------------------
 
@@ -120,7 +123,7 @@ class Service:
             return
         self.machine.go("started")
         self._emit({"event": "state", "state": "idle", "why": "drives started"})
-        gc.freeze()  # start-up objects never need scanning again
+        self.collector.start()
 
     async def wait_stopped(self) -> int:
         assert self._stopped is not None
@@ -144,7 +147,7 @@ class Service:
         if self._deadline is not None:
             self._deadline.cancel()
         self.port.close()
-        gc.unfreeze()
+        self.collector.close()
 
     # -- the cycle ---------------------------------------------------------------------
 
@@ -233,10 +236,19 @@ class Service:
         self.stats.compute.add(done - started)
         if not deadline and self._last_rx:
             self.stats.latency.add(done - self._last_rx)
+        self.collector.after_cycle()  # the commands are out: now
 
     def _control(self, now: float) -> None:
         feedback = self.driver.feedback
-        lengths = [fb.length for fb in feedback]
+        if self.driver.timing is Timing.CYCLIC:
+            # Streamed feedback: each cable was sampled at its own time, up to one stream
+            # interval ago; carried forward to this instant with its rate, the lengths
+            # describe one pose and lose the age lag (DESIGN §8).  Never by more than two
+            # intervals: older samples are late, and their rate noise would grow with age.
+            reach = self._extrapolation_limit
+            lengths = [fb.length + fb.rate * min(now - fb.stamp, reach) for fb in feedback]
+        else:
+            lengths = [fb.length for fb in feedback]
         rates = [fb.rate for fb in feedback]
         t = now - self._t0
         try:
@@ -529,7 +541,11 @@ class Service:
             **self.status(),
             "lengths": [fb.length for fb in feedback],
             "rates": [fb.rate for fb in feedback],
-            "cycle": self.stats.summary(),
+            "cycle": {**self.stats.summary(), "gc": self.collector.stats.summary()},
+            "frames": {
+                "accepted": self.driver.counters.accepted,
+                "rejected": dict(self.driver.counters.rejected),
+            },
         }
         if out is not None and self.machine.moving:
             q = out.pose.quaternion.tolist()
@@ -542,6 +558,7 @@ class Service:
                 tensions=out.tensions.tolist(),
                 forces=out.commands.tolist(),
                 tracking_error=out.theta_d.tolist(),
+                fk_residual=out.fk_residual,
             )
         return state
 

@@ -286,9 +286,12 @@ class Cia402Driver(ActuatorDriver):
 
     def _update_state(self, i: int, statusword: int, mode: int) -> None:
         status = self.status[i]
-        status.state = state = drive_state(
-            decode_statusword(statusword), mode, bool(statusword & STATUS_HOLD)
-        )
+        state = drive_state(decode_statusword(statusword), mode, bool(statusword & STATUS_HOLD))
+        if status.fault_code:
+            # An EMCY is a fault (DESIGN §9) even while the statusword looks healthy: it
+            # stays until an error-reset EMCY (code 0) or reset_faults.
+            state = DriveState.FAULT
+        status.state = state
         if state is DriveState.FAULT and status.fault is None:
             status.fault = "statusword reports FAULT (no EMCY received)"
 
