@@ -555,6 +555,22 @@ def test_emcy_heartbeat_and_fault_texts() -> None:
     assert status.state is DriveState.FAULT and "statusword reports FAULT" in status.fault
 
 
+def test_an_emcy_stays_a_fault_while_the_statusword_looks_healthy() -> None:
+    """An EMCY (even one forged on the bus) is a fault until an error-reset EMCY: the
+    next healthy statusword does not hide it before the daemon's safety check runs."""
+    driver = host()
+    status = driver.status[1]
+    enabled = encode_statusword(State.OPERATION_ENABLED)
+    driver.receive(codec.encode_tpdo1(2, enabled, 0, MODE_CST), 1.0)
+    assert status.state is not DriveState.FAULT
+    driver.receive(codec.encode_emcy(2, 0x2310, 0x03), 1.1)
+    driver.receive(codec.encode_tpdo1(2, enabled, 0, MODE_CST), 1.2)
+    assert status.state is DriveState.FAULT and status.fault_code == 0x2310
+    driver.receive(codec.encode_emcy(2, 0, 0), 1.3)
+    driver.receive(codec.encode_tpdo1(2, enabled, 0, MODE_CST), 1.4)
+    assert status.state is not DriveState.FAULT and status.fault is None
+
+
 HOSTILE = [
     (0x181, b"\x00" * 6, "TPDO1 length"),
     (0x181, b"\x00" * 8, "TPDO1 length"),
