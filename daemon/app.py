@@ -12,6 +12,8 @@ import asyncio
 import logging
 import signal
 from collections.abc import Awaitable, Callable
+from pathlib import Path
+from typing import Any, TypeVar
 
 import can
 
@@ -25,6 +27,7 @@ from daemon.systemd import Notifier, Progress, run_watchdog
 log = logging.getLogger("cdprd")
 
 ServiceHook = Callable[[Service], Awaitable[None]]
+Recorder = TypeVar("Recorder", TelemetryRecorder, CanRecorder)
 
 
 def open_bus(config: DaemonConfig) -> can.BusABC:
@@ -89,8 +92,11 @@ async def serve(
         watchdog.cancel()
         return code
     finally:
+        # braked and shutting down: another SIGTERM/SIGINT (an impatient operator) must
+        # not kill the clean-up half way and leave the recordings unfinished; it is logged
+        # and ignored for the rest of the loop's life (closing the loop restores defaults)
         for sig in (signal.SIGTERM, signal.SIGINT):
-            loop.remove_signal_handler(sig)
+            loop.add_signal_handler(sig, log.warning, "already stopping: signal ignored")
         if interface is not None:
             await interface.close()
         for writer in writers:
@@ -102,11 +108,13 @@ async def serve(
 
 def _recorders(config: DaemonConfig, service: Service) -> list:
     """Telemetry (MCAP) and raw CAN recorders the config asks for, attached to the
-    service's observers; each file is named after the session's start time."""
+    service's observers; each file is named after the session's start time.  A file
+    that cannot be created stops the start-up with one line naming the key and the file."""
     recorders: list = []
     rec = config.recording
     if rec.telemetry:
-        telemetry = TelemetryRecorder(session_path(config.path(rec.telemetry)))
+        path = config.path(rec.telemetry)
+        telemetry = _open("recording.telemetry", TelemetryRecorder, path, recorders)
 
         def record_cycle(t: float, out: ControlOutput) -> None:
             ref = out.reference.pose
@@ -127,7 +135,25 @@ def _recorders(config: DaemonConfig, service: Service) -> list:
         service.cycle_listeners.append(record_cycle)
         recorders.append(telemetry)
     if rec.can_log:
-        frames = CanRecorder(session_path(config.path(rec.can_log)))
+        path = config.path(rec.can_log)
+        channel = config.can.channel  # names the frames sent (they carry none on SocketCAN)
+        frames = _open("recording.can_log", CanRecorder, path, recorders, channel=channel)
         service.frame_listeners.append(lambda msg, rx: frames.record(msg, rx=rx))
         recorders.append(frames)
     return recorders
+
+
+def _open(
+    key: str, make: Callable[..., Recorder], path: Path, opened: list, **options: Any
+) -> Recorder:
+    """`make(file, **options)` for this session's file.  If the file cannot be created
+    (missing or read-only directory, bad suffix, ...): close the recorders already
+    `opened` and exit with an error naming `key` and the file, not a traceback."""
+    file = session_path(path)
+    try:
+        return make(file, **options)
+    except (OSError, ValueError) as exc:
+        for recorder in opened:
+            recorder.close()
+        reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+        raise SystemExit(f"error: {key}: cannot record to {file}: {reason}") from None

@@ -24,6 +24,8 @@ from __future__ import annotations
 import asyncio
 import copy
 import datetime
+import heapq
+import itertools
 import json
 import logging
 import math
@@ -407,7 +409,13 @@ class CanRecorder(_Spool[tuple[can.Message, bool, float]]):
     """Received and sent CAN frames to a python-can log file; the format follows the
     suffix (CAN_LOG_SUFFIXES: Vector ASC/BLF, CSV, can-utils .log, PCAN TRC), readable
     with `can.LogReader` and the usual tools.  .csv keeps neither direction nor channel.
-    `channel` names frames that carry none (frames the driver builds for sending)."""
+    `channel` names frames that carry none (frames the driver builds for sending).
+
+    Frames are written in time order.  A received frame carries the time it arrived but
+    reaches the recorder only when the loop drains the bus, possibly after a frame the
+    daemon sent later; so each frame waits, sorted by time, until a frame stamped
+    `reorder` seconds later has been recorded or the file is closed (`written` counts
+    frames once sorted)."""
 
     def __init__(
         self,
@@ -416,6 +424,7 @@ class CanRecorder(_Spool[tuple[can.Message, bool, float]]):
         channel: str | None = None,
         capacity: int = 16384,
         budget: float = 0.0002,
+        reorder: float = 0.05,
     ) -> None:
         self.path = Path(path)
         suffix = self.path.suffix.lower()
@@ -424,8 +433,14 @@ class CanRecorder(_Spool[tuple[can.Message, bool, float]]):
                 f"CAN recording {self.path}: suffix {suffix or '(none)'!r} is not one of "
                 f"{', '.join(CAN_LOG_SUFFIXES)}"
             )
+        if not reorder >= 0:
+            raise ValueError(f"CAN recording {path}: reorder must be a time >= 0 s, not {reorder}")
         super().__init__(f"CAN recording {path}", capacity, budget)
         self.channel = channel
+        self.reorder = reorder
+        self._held: list[tuple[float, int, can.Message]] = []  # heap by (time, arrival)
+        self._arrival = itertools.count()
+        self._newest = -math.inf
         _refuse_existing(self.path, "CAN recording")
         self._logger = can.Logger(self.path)
 
@@ -445,7 +460,11 @@ class CanRecorder(_Spool[tuple[can.Message, bool, float]]):
             message.timestamp = timestamp
             if message.channel is None:
                 message.channel = self.channel
-        self._logger.on_message_received(message)
+        held = self._held
+        heapq.heappush(held, (timestamp, next(self._arrival), message))
+        self._newest = max(self._newest, timestamp)
+        while held and held[0][0] <= self._newest - self.reorder:
+            self._logger.on_message_received(heapq.heappop(held)[2])
 
     def _sync(self) -> None:
         stream = getattr(self._logger, "file", None)
@@ -453,4 +472,8 @@ class CanRecorder(_Spool[tuple[can.Message, bool, float]]):
             stream.flush()
 
     def _finish(self) -> None:
-        self._logger.stop()
+        try:
+            while self._held:
+                self._logger.on_message_received(heapq.heappop(self._held)[2])
+        finally:
+            self._logger.stop()

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import signal
 import sys
 
 from cdpr import ConfigError
@@ -50,7 +51,13 @@ def run_command(args: argparse.Namespace) -> int:
     except ConfigError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    return asyncio.run(_run(config, args.sim))
+    try:
+        return asyncio.run(_run(config, args.sim))
+    finally:
+        # stopped, braked and closed: a repeated SIGTERM/SIGINT while the interpreter exits
+        # (zenoh's teardown takes ~0.3 s) must not turn a clean exit into death by signal
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            signal.signal(sig, signal.SIG_IGN)
 
 
 async def _run(config: DaemonConfig, sim: bool) -> int:
