@@ -7,14 +7,27 @@ Keys under the prefix (default cdpr/<robot>):
     events       trajectory accepted / rejected, and the service's state changes and faults
     alive        liveliness token, present while the interface runs
 
-Threads.  zenoh calls the callbacks on its own threads.  They check the size, decode the
-JSON and the schema (daemon/messages.py: bad input is answered there and then, and never
-reaches the handler) and hand the decoded request to the event loop through a BOUNDED
-queue.  A full queue drops the message, counts it and, for a query, replies "busy" at
-once.  The loop side takes at most MESSAGES_PER_PASS messages per queue per loop pass
-before yielding to the other callbacks (the control cycle), then calls the handler and
-replies.  So a flood costs bounded memory, and each loop pass at most one handler call
-per queue (commands, trajectories) plus one event publication.
+Threads.  zenoh calls the callbacks on its own threads, and they do little there: a
+command (at most MAX_COMMAND_BYTES) is decoded and schema-checked (bad input is answered
+at once and never reaches the handler); a trajectory is size-checked and copied, and a
+small one (DECODE_ON_ARRIVAL_BYTES) decoded and its head checked too.  Each goes to the
+event loop through a BOUNDED queue; a full queue drops the message, counts it and, for
+a query, replies "busy" at once.  The loop takes at most MESSAGES_PER_PASS messages per
+queue per loop pass before yielding to the other callbacks (the control cycle).  So a
+flood costs bounded memory, and each loop pass at most one handler call per queue plus
+one event publication.
+
+Trajectories run one at a time.  Parsing one (JSON, schema, the curve through the
+waypoints: ~7 ms for 100 waypoints, ~1 s for 10000) happens in a parse thread, never on
+the loop (except a move of two waypoints, ~0.1 ms); the loop calls the handler with the
+result and awaits its validation, while the next one is parsed.  The parse thread must
+not delay the loop either: while it computes, the loop would wait for the GIL up to the
+switch interval (5 ms) and, on a loaded host, for a CPU.  So it pauses every PARSE_SLICE
+(a profile hook, _Yielding: cdpr's parser has no points to pause at), runs at the lowest
+OS priority, uses at most PARSE_SHARE of a core in a long flood, and long JSON is decoded
+in pieces (daemon.messages.decode_json) so that no single C call holds the GIL long.  Of
+the commands, one whose handler returns an awaitable (enable, reset, goto) runs at a
+time; another such command meanwhile is answered "busy" and never started.
 
 One queryable serves cmd/** (rather than one per command) so that an unknown command gets
 a clear error reply, and so that a wildcard query (cmd/*) is refused instead of running
@@ -27,10 +40,13 @@ import asyncio
 import contextlib
 import inspect
 import logging
+import os
+import sys
 import threading
 import time
 from collections import Counter, deque
 from collections.abc import Awaitable, Callable
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any, Generic, TypeVar
 
 import zenoh
@@ -40,14 +56,16 @@ from daemon.api import CommandError, DaemonHandler
 from daemon.messages import (
     EVENT_KEY,
     VERSION_KEY,
+    TrajectoryMessage,
     TrajectoryRequest,
     check_size,
+    check_trajectory_head,
     decode_command,
     decode_json,
-    decode_trajectory,
     encode,
     error_body,
     jsonable,
+    parse_waypoints,
     reply_error,
     reply_ok,
     request_id,
@@ -59,14 +77,33 @@ log = logging.getLogger(__name__)
 MESSAGES_PER_PASS = 1  # per queue and loop pass: the control cycle waits for at most one
 # handler call per queue (a pass costs tens of µs, so throughput hardly suffers)
 CLOSE_GRACE = 1.0  # s: how long close() waits for commands still running (enable, reset)
+MAX_COMMAND_BYTES = 16 * 1024  # commands are small: decoding one on a zenoh thread is short
+PARSE_SLICE = 2e-4  # s: the parse thread works at most about this long at a time,
+PARSE_PAUSE = 1e-5  # s: then sleeps at least this long (see _Yielding)
+PARSE_NICE = 19  # and runs at the lowest OS priority (see _lower_priority)
+PARSE_SHARE = 0.25  # of one core: what the parse thread may use in a long flood, after
+PARSE_BURST = 0.5  # s of CPU time it may use at once (a planner never notices the limit)
+DECODE_ON_ARRIVAL_BYTES = 8 * 1024  # a trajectory this small is decoded (<= ~0.1 ms) and
+# its head checked on the zenoh thread; bad ones are answered at once and never queued
+INLINE_WAYPOINTS = 2  # a decoded trajectory of at most 2 waypoints is parsed on the loop
+# (a move from A to B: no spline system to solve, ~0.1 ms), longer ones in the parse thread
+_Parsed = TrajectoryRequest | tuple[str | None, CommandError]  # or (id, why refused)
+_TrajectoryItem = tuple[bytes | TrajectoryMessage, zenoh.Query | None]  # queued, and who asks
 _Item = TypeVar("_Item")
 
 
 class _Inbox(Generic[_Item]):
-    """A bounded hand-over of items from any thread to `process` on the event loop."""
+    """A bounded hand-over of items from any thread to `process` on the event loop.
+
+    When `process` returns a future, the next item waits until that future is done (one
+    job at a time); the running item does not count against the depth.
+    """
 
     def __init__(
-        self, loop: asyncio.AbstractEventLoop, depth: int, process: Callable[[_Item], None]
+        self,
+        loop: asyncio.AbstractEventLoop,
+        depth: int,
+        process: Callable[[_Item], asyncio.Future[Any] | None],
     ) -> None:
         self._loop = loop
         self._loop_thread = threading.get_ident()  # built on the loop thread
@@ -75,6 +112,7 @@ class _Inbox(Generic[_Item]):
         self._items: deque[_Item] = deque()
         self._lock = threading.Lock()
         self._scheduled = False
+        self._running = False
         self._closed = False
         self.dropped = 0
         self.high_water = 0
@@ -97,7 +135,8 @@ class _Inbox(Generic[_Item]):
                 return False
             self._items.append(item)
             self.high_water = max(self.high_water, len(self._items))
-            wake, self._scheduled = not self._scheduled, True
+            wake = not (self._scheduled or self._running)
+            self._scheduled = self._scheduled or wake
         if wake:
             try:
                 if threading.get_ident() == self._loop_thread:
@@ -122,8 +161,47 @@ class _Inbox(Generic[_Item]):
                     self._scheduled = False
                     return
                 item = self._items.popleft()
-            self._process(item)
+            job = self._process(item)
+            if job is not None and not job.done():
+                with self._lock:
+                    self._scheduled, self._running = False, True
+                job.add_done_callback(self._job_done)
+                return
         self._loop.call_soon(self._drain)  # more may wait: let other callbacks run first
+
+    def _job_done(self, _job: asyncio.Future[Any]) -> None:
+        with self._lock:
+            self._running = False
+            self._scheduled = bool(self._items)
+        if self._scheduled:
+            self._drain()
+
+
+class _Yielding:
+    """A profile hook for the parse thread: every PARSE_SLICE it sleeps PARSE_PAUSE.
+
+    CPython makes a thread that wants the GIL wait up to the switch interval (5 ms) for a
+    busy one, and on a loaded host the kernel may not run the loop at once while the
+    parse thread computes; cdpr's parser has no points to pause at.  So at every
+    function call and return in the parse thread this hook checks the clock and, after
+    PARSE_SLICE of work, sleeps: the loop, if it waits, gets the GIL and a CPU meanwhile.
+    """
+
+    def __init__(self) -> None:
+        self._since = time.perf_counter()
+
+    def __call__(self, _frame: object, _event: str, _arg: object) -> None:
+        if time.perf_counter() - self._since > PARSE_SLICE:
+            time.sleep(PARSE_PAUSE)
+            self._since = time.perf_counter()
+
+
+def _lower_priority() -> None:
+    """Run the calling thread at nice PARSE_NICE (Linux: the nice value is per thread), so
+    that the kernel runs the loop first whenever both want a CPU."""
+    if sys.platform.startswith("linux"):  # elsewhere the nice value is the process's
+        with contextlib.suppress(OSError):
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), PARSE_NICE)
 
 
 class ZenohInterface:
@@ -157,9 +235,14 @@ class ZenohInterface:
         self._session: zenoh.Session | None = None
         self._entities: list[Any] = []
         self._tasks: set[asyncio.Future[Any]] = set()
+        self._command_task: asyncio.Future[Any] | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
+        self._parser: ThreadPoolExecutor | None = None
+        self._parse_credit = PARSE_BURST  # s of CPU time the parse thread may use now
+        self._credit_time = 0.0  # (monotonic) when the credit was reckoned
+        self._submission: asyncio.Future[Any] | None = None  # the verdict awaited
         self._commands: _Inbox[tuple[str, dict[str, Any], zenoh.Query]] | None = None
-        self._trajectories: _Inbox[tuple[TrajectoryRequest, zenoh.Query | None]] | None = None
+        self._trajectories: _Inbox[_TrajectoryItem] | None = None
         self._events: _Inbox[bytes] | None = None
         self._state_timer: asyncio.TimerHandle | None = None
         self._next_state = 0.0
@@ -180,8 +263,15 @@ class ZenohInterface:
         self._commands = _Inbox(loop, depth, self._run_command)
         self._trajectories = _Inbox(loop, depth, self._run_trajectory)
         self._events = _Inbox(loop, depth, self._put_event)
+        self._parser = ThreadPoolExecutor(
+            1, thread_name_prefix="cdprd-trajectory-parse", initializer=_lower_priority
+        )
         conf = build_zenoh_config(self.settings)
-        session = await loop.run_in_executor(None, zenoh.open, conf)
+        try:
+            session = await loop.run_in_executor(None, zenoh.open, conf)
+        except BaseException:
+            self._parser.shutdown(wait=False)
+            raise
         self._session = session
         drop = zenoh.CongestionControl.DROP  # a congested network never blocks the loop
         self._state_pub = session.declare_publisher(self.key("state"), congestion_control=drop)
@@ -207,21 +297,25 @@ class ZenohInterface:
             self._state_timer.cancel()
         for entity in self._entities:
             _quietly(entity.undeclare)
+        assert self._commands is not None and self._trajectories is not None
+        waiting = self._trajectories.close()  # the running one may finish, no other starts
         if self._tasks:
             await asyncio.wait(self._tasks, timeout=CLOSE_GRACE)
         for task in list(self._tasks):
             task.cancel()
+        if self._tasks:
+            await asyncio.wait(self._tasks)  # their busy answers
         gone = CommandError("busy", "the daemon is shutting down")
-        assert self._commands is not None and self._trajectories is not None
         for name, _args, query in self._commands.close():
             self._reply(query, reply_error(name, gone), ok=False)
-        for request, query in self._trajectories.close():
-            self._trajectory_outcome(request.id, query, None, gone)
-        assert self._events is not None
+        for item, query in waiting:
+            self._trajectory_outcome(_id(item), query, None, gone)
+        assert self._events is not None and self._parser is not None
         for payload in self._events.close():
             self._put_event(payload)
         for publisher in (self._state_pub, self._event_pub):
             _quietly(publisher.undeclare)
+        self._parser.shutdown(wait=False, cancel_futures=True)
         await asyncio.get_running_loop().run_in_executor(None, session.close)
 
     async def __aenter__(self) -> ZenohInterface:
@@ -264,7 +358,7 @@ class ZenohInterface:
     # -- statistics ------------------------------------------------------------------------
 
     def stats(self) -> dict[str, Any]:
-        """Counters (received, refused, dropped, ...) and the queues' high-water marks."""
+        """Counters and the queues' high-water marks (docs/zenoh.md, "Flow control")."""
         with self._count_lock:
             out: dict[str, Any] = dict(self._counts)
         for name, inbox in (
@@ -281,29 +375,19 @@ class ZenohInterface:
         with self._count_lock:
             self._counts[name] += 1
 
-    def _count_refusal(self, error: CommandError) -> None:
-        """Bad input is "refused"; a full queue counts its own drops."""
-        if error.code != "busy":
-            self._count("refused")
-
     # -- zenoh threads ---------------------------------------------------------------------
 
     def _on_trajectory_put(self, sample: zenoh.Sample) -> None:
         try:
-            if self._closing:
-                return
-            self._count("trajectory_puts")
-            if sample.kind != zenoh.SampleKind.PUT:
+            if self._closing or sample.kind != zenoh.SampleKind.PUT:
                 return  # a delete: nothing to run
-            request = self._decode_trajectory(str(sample.key_expr), sample.payload)
-            if isinstance(request, CommandError | tuple):
-                ident, error = request if isinstance(request, tuple) else (None, request)
-                self._count_refusal(error)
-                self._interface_event(_rejected_event(ident, error))
-                return
+            self._count("trajectory_puts")
+            item = self._take_trajectory(str(sample.key_expr), sample.payload)
             assert self._trajectories is not None
-            if not self._trajectories.offer((request, None)):
-                self._interface_event(_rejected_event(request.id, _busy("trajectory")))
+            if isinstance(item, tuple):
+                self._trajectory_refused(*item, None)
+            elif not self._trajectories.offer((item, None)):
+                self._trajectory_refused(_id(item), _busy("trajectory"), None)
         except Exception:
             self._count("callback_errors")
             log.exception("trajectory put callback failed")
@@ -314,50 +398,47 @@ class ZenohInterface:
                 self._reply(query, reply_error("trajectory", _busy("trajectory")), ok=False)
                 return
             self._count("trajectory_queries")
-            request = self._decode_trajectory(str(query.key_expr), query.payload)
-            if isinstance(request, CommandError | tuple):
-                ident, error = request if isinstance(request, tuple) else (None, request)
-                self._count_refusal(error)
-                self._interface_event(_rejected_event(ident, error))
-                self._reply(query, reply_error("trajectory", error, ident), ok=False)
-                return
+            item = self._take_trajectory(str(query.key_expr), query.payload)
             assert self._trajectories is not None
-            if not self._trajectories.offer((request, query)):
-                self._reply(
-                    query, reply_error("trajectory", _busy("trajectory"), request.id), False
-                )
+            if isinstance(item, tuple):
+                self._trajectory_refused(*item, query)
+            elif not self._trajectories.offer((item, query)):
+                self._trajectory_refused(_id(item), _busy("trajectory"), query)
         except Exception:
             self._count("callback_errors")
             log.exception("trajectory query callback failed")
             _quietly(query.drop)
 
-    def _decode_trajectory(
+    def _take_trajectory(
         self, key: str, payload: zenoh.ZBytes | None
-    ) -> TrajectoryRequest | CommandError | tuple[str | None, CommandError]:
-        """The request, or the error (with the sender's id when it could be read)."""
+    ) -> bytes | TrajectoryMessage | tuple[str | None, CommandError]:
+        """What to queue: the payload, or a small one decoded with its head checked; or
+        (the sender's id if known, why not)."""
         if key != self.key("trajectory"):
-            return CommandError(
+            return None, CommandError(
                 "bad_request", f"send trajectories to the exact key {self.key('trajectory')}"
             )
         assert self._trajectories is not None
-        if not self._trajectories.has_room():  # do not parse what would be dropped
+        if not self._trajectories.has_room():  # do not read what would be dropped
             self._trajectories.drop()
-            return _busy("trajectory")
+            return None, _busy("trajectory")
         if payload is None or len(payload) == 0:
-            return CommandError("bad_request", "a trajectory message needs a JSON payload")
+            return None, CommandError("bad_request", "a trajectory message needs a JSON payload")
         try:
             check_size(len(payload), self.settings.max_message_bytes)
-            data = decode_json(payload.to_bytes(), self.settings.max_message_bytes)
         except CommandError as exc:
-            return exc
-        ident = request_id(data)
+            return None, exc
+        raw = payload.to_bytes()
+        if len(raw) > DECODE_ON_ARRIVAL_BYTES:
+            return raw
         try:
-            return decode_trajectory(data, self.limits)
+            data = decode_json(raw, self.settings.max_message_bytes)
         except CommandError as exc:
-            return ident, exc
-        except Exception as exc:  # a bug in a decoder must not reach the sender as silence
-            log.exception("trajectory decoding raised")
-            return ident, CommandError("internal", f"decoding failed: {type(exc).__name__}")
+            return None, exc
+        try:
+            return check_trajectory_head(data, self.limits)
+        except CommandError as exc:
+            return request_id(data), exc
 
     def _on_command_query(self, query: zenoh.Query) -> None:
         name = "?"
@@ -376,19 +457,71 @@ class ZenohInterface:
             payload = query.payload
             data = None
             if payload is not None and len(payload) > 0:
-                check_size(len(payload), self.settings.max_message_bytes)
-                data = decode_json(payload.to_bytes(), self.settings.max_message_bytes)
+                limit = min(MAX_COMMAND_BYTES, self.settings.max_message_bytes)
+                check_size(len(payload), limit, "max_command_bytes")
+                data = decode_json(payload.to_bytes(), limit)
             args = decode_command(name, data, self.limits.unit_tolerance)
             assert self._commands is not None
             if not self._commands.offer((name, args, query)):
                 self._reply(query, reply_error(name, _busy(name)), ok=False)
         except CommandError as exc:
-            self._count("refused")
+            self._count("commands_refused")
             self._reply(query, reply_error(name, exc), ok=False)
         except Exception:
             self._count("callback_errors")
             log.exception("command query callback failed")
             _quietly(query.drop)
+
+    # -- parsing: in the parse thread, or on the loop for the smallest ---------------------
+
+    def _parse_payload(self, payload: bytes) -> _Parsed:
+        """A whole message, from its bytes."""
+        try:
+            data = decode_json(payload, self.settings.max_message_bytes)
+        except CommandError as exc:
+            return None, exc
+        try:
+            message = check_trajectory_head(data, self.limits)
+        except CommandError as exc:
+            return request_id(data), exc
+        return self._parse_waypoints(message)
+
+    def _parse_waypoints(self, message: TrajectoryMessage) -> _Parsed:
+        try:
+            return parse_waypoints(message, self.limits)
+        except CommandError as exc:
+            return message.id, exc
+        except Exception as exc:  # a bug in a decoder must not reach the sender as silence
+            log.exception("trajectory decoding raised")
+            return message.id, CommandError("internal", f"decoding failed: {type(exc).__name__}")
+
+    async def _parse(self, item: bytes | TrajectoryMessage) -> _Parsed:
+        assert self._loop is not None
+        if isinstance(item, TrajectoryMessage) and item.waypoints <= INLINE_WAYPOINTS:
+            return self._parse_waypoints(item)
+        return await self._loop.run_in_executor(self._parser, self._parse_in_thread, item)
+
+    def _parse_in_thread(self, item: bytes | TrajectoryMessage) -> _Parsed:
+        """Parse in the parse thread, pausing every PARSE_SLICE (_Yielding), within its CPU
+        budget: PARSE_BURST seconds at once, PARSE_SHARE of a core in the long run, so
+        that a flood of long trajectories leaves CPU time to the loop (and the host)."""
+        now = time.monotonic()
+        credit = min(PARSE_BURST, self._parse_credit + (now - self._credit_time) * PARSE_SHARE)
+        if credit < 0.0:
+            time.sleep(-credit / PARSE_SHARE)
+            credit = 0.0
+        began = time.thread_time()
+        sys.setprofile(_Yielding())
+        try:
+            if isinstance(item, bytes):
+                parsed = self._parse_payload(item)
+            else:
+                parsed = self._parse_waypoints(item)
+        finally:
+            sys.setprofile(None)
+        self._parse_credit = credit - (time.thread_time() - began)
+        self._credit_time = time.monotonic()
+        return parsed
 
     # -- event loop ------------------------------------------------------------------------
 
@@ -402,12 +535,21 @@ class ZenohInterface:
         except Exception as exc:
             self._reply(query, reply_error(name, _internal(name, exc)), ok=False)
             return
-        if inspect.isawaitable(result):
-            task = asyncio.ensure_future(self._finish_command(name, result, query))
-            self._tasks.add(task)
-            task.add_done_callback(self._tasks.discard)
-        else:
+        if not inspect.isawaitable(result):
             self._reply(query, reply_ok(name, result), ok=True)
+        elif self._command_task is not None and inspect.iscoroutine(result):
+            result.close()  # never started: nothing happened
+            self._count("commands_busy")
+            busy = CommandError("busy", f"{name}: another command is still running, retry")
+            self._reply(query, reply_error(name, busy), ok=False)
+        else:
+            task = self._track(self._finish_command(name, result, query))
+            self._command_task = task
+            task.add_done_callback(self._command_done)
+
+    def _command_done(self, task: asyncio.Future[Any]) -> None:
+        if self._command_task is task:
+            self._command_task = None
 
     async def _finish_command(
         self, name: str, pending: Awaitable[dict[str, Any]], query: zenoh.Query
@@ -424,39 +566,94 @@ class ZenohInterface:
         else:
             self._reply(query, reply_ok(name, result), ok=True)
 
-    def _run_trajectory(self, item: tuple[TrajectoryRequest, zenoh.Query | None]) -> None:
-        request, query = item
+    def _run_trajectory(self, item: _TrajectoryItem) -> asyncio.Future[Any] | None:
+        """Submit one trajectory, or start the job that parses and submits it.
+
+        Submissions run one at a time: an awaitable verdict (validation) holds the slot.
+        The future returned is done once the job's trajectory is parsed and holds the
+        slot, so the next one is parsed while this one is validated, and one parsed
+        trajectory waits at most.  A small trajectory arriving with the slot free is
+        parsed and submitted right here."""
+        message, query = item
+        free = self._submission is None or self._submission.done()
+        if (
+            free
+            and isinstance(message, TrajectoryMessage)
+            and message.waypoints <= INLINE_WAYPOINTS
+        ):
+            self._submit(self._parse_waypoints(message), query)
+            return None
+        assert self._loop is not None
+        handed_over = self._loop.create_future()
+        job = self._track(self._trajectory_job(message, query, handed_over))
+        job.add_done_callback(lambda _: handed_over.done() or handed_over.set_result(None))
+        return handed_over
+
+    async def _trajectory_job(
+        self,
+        item: bytes | TrajectoryMessage,
+        query: zenoh.Query | None,
+        handed_over: asyncio.Future[None],
+    ) -> None:
+        """Parse, wait for the submission slot, submit."""
         try:
-            result = self._handler.submit_trajectory(request.trajectory, request.start)
+            parsed = await self._parse(item)
+            while self._submission is not None and not self._submission.done():
+                await asyncio.wait([self._submission])
+        except asyncio.CancelledError:
+            self._trajectory_outcome(_id(item), query, None, _busy("trajectory"))
+            raise
+        handed_over.set_result(None)
+        self._submit(parsed, query)
+
+    def _submit(self, parsed: _Parsed, query: zenoh.Query | None) -> None:
+        """Refuse, or call the handler (the slot is free); an awaitable verdict takes it."""
+        if isinstance(parsed, tuple):
+            self._trajectory_refused(*parsed, query)
+            return
+        try:
+            result = self._handler.submit_trajectory(parsed.trajectory, parsed.start)
         except CommandError as exc:
-            self._trajectory_outcome(request.id, query, None, exc)
+            self._trajectory_outcome(parsed.id, query, None, exc)
         except Exception as exc:
-            self._trajectory_outcome(request.id, query, None, _internal("trajectory", exc))
+            self._trajectory_outcome(parsed.id, query, None, _internal("trajectory", exc))
         else:
             if inspect.isawaitable(result):  # validation between control cycles
-                task = asyncio.ensure_future(self._finish_trajectory(request, result, query))
-                self._tasks.add(task)
-                task.add_done_callback(self._tasks.discard)
+                self._submission = self._track(self._verdict(parsed.id, query, result))
             else:
-                self._trajectory_outcome(request.id, query, result, None)
+                self._trajectory_outcome(parsed.id, query, result, None)
 
-    async def _finish_trajectory(
-        self,
-        request: TrajectoryRequest,
-        pending: Awaitable[dict[str, Any]],
-        query: zenoh.Query | None,
+    async def _verdict(
+        self, ident: str | None, query: zenoh.Query | None, pending: Awaitable[dict[str, Any]]
     ) -> None:
         try:
             result = await pending
         except CommandError as exc:
-            self._trajectory_outcome(request.id, query, None, exc)
+            self._trajectory_outcome(ident, query, None, exc)
         except asyncio.CancelledError:
-            self._trajectory_outcome(request.id, query, None, _busy("trajectory"))
+            self._trajectory_outcome(ident, query, None, _busy("trajectory"))
             raise
         except Exception as exc:
-            self._trajectory_outcome(request.id, query, None, _internal("trajectory", exc))
+            self._trajectory_outcome(ident, query, None, _internal("trajectory", exc))
         else:
-            self._trajectory_outcome(request.id, query, result, None)
+            self._trajectory_outcome(ident, query, result, None)
+
+    def _track(self, coroutine: Awaitable[None]) -> asyncio.Future[Any]:
+        task = asyncio.ensure_future(coroutine)
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+        return task
+
+    def _trajectory_refused(
+        self, ident: str | None, error: CommandError, query: zenoh.Query | None
+    ) -> None:
+        """Bad input or a full queue (any thread): the rejected event, and the reply.
+        (A full queue counts its own drops.)"""
+        if error.code != "busy":
+            self._count("trajectories_refused")
+        self._interface_event(_rejected_event(ident, error))
+        if query is not None:
+            self._reply(query, reply_error("trajectory", error, ident), ok=False)
 
     def _trajectory_outcome(
         self,
@@ -465,7 +662,9 @@ class ZenohInterface:
         result: dict[str, Any] | None,
         error: CommandError | None,
     ) -> None:
-        """The accepted / rejected event, and the reply when the trajectory came by query."""
+        """The handler's verdict: the accepted / rejected event, and the reply when the
+        trajectory came by query."""
+        self._count("trajectories_accepted" if error is None else "trajectories_rejected")
         if error is None:
             self._enqueue_event(
                 {EVENT_KEY: "trajectory_accepted", "id": ident, "result": result}, limit=None
@@ -518,8 +717,15 @@ class ZenohInterface:
                 query.reply_err(encode(body))
         except zenoh.ZError:  # the querier gave up (timeout) or left
             self._count("replies_failed")
+        else:
+            self._count("replies")
         finally:
             _quietly(query.drop)
+
+
+def _id(item: bytes | TrajectoryMessage) -> str | None:
+    """The sender's id of a queued trajectory, if it was decoded on arrival."""
+    return None if isinstance(item, bytes) else item.id
 
 
 def _rejected_event(ident: str | None, error: CommandError) -> dict[str, Any]:
