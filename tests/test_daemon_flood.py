@@ -48,6 +48,7 @@ from daemon.messages import (
     parse_waypoints,
 )
 from daemon.zenoh_config import ZenohSettings, client_zenoh_config
+from tests.loopback import free_port
 
 ROOT = Path(__file__).resolve().parent.parent
 CONFIG = ROOT / "config" / "reference8-cia402.yaml"
@@ -57,12 +58,6 @@ QUEUE_DEPTH = 16  # the default zenoh.queue_depth
 SECONDS = 3.0  # of flood
 RATE = 2000.0  # puts per second
 RSS_BOUND = 96 * 2**20  # queues of raw payloads (16 x 2 MiB), one decoded ~2 MB message
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def wait_for(condition: Any, timeout: float, what: str) -> None:

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import json
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -16,15 +15,11 @@ import pytest
 import yaml
 import zenoh
 
+from tests.loopback import free_port
+
 ROOT = Path(__file__).resolve().parent.parent
 CONFIG = ROOT / "config" / "reference8-cia402.yaml"
 PREFIX = "cdpr/reference8"
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _session(port: int) -> zenoh.Session:
@@ -54,7 +49,7 @@ def _wait(condition, timeout: float) -> None:
 
 @pytest.mark.timeout(90)
 def test_plain_zenoh_client_drives_a_simulated_daemon(tmp_path: Path) -> None:
-    port = _free_port()
+    port = free_port()
     data = yaml.safe_load(CONFIG.read_text())
     data["robot"] = str(ROOT / "config" / "robots" / "reference8.yaml")
     data["zenoh"]["listen"] = [f"tcp/127.0.0.1:{port}"]

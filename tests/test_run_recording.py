@@ -10,7 +10,6 @@ import json
 import math
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -23,18 +22,13 @@ from mcap.reader import make_reader
 
 from daemon.client import CdprClient, UnreachableError
 from daemon.recording import CYCLE_SCHEMA, CYCLE_SCHEMA_NAME, CYCLE_TOPIC, CanRecorder
+from tests.loopback import free_port
 
 ROOT = Path(__file__).resolve().parent.parent
 CONFIG = ROOT / "config" / "reference8-cia402.yaml"
 PREFIX = "cdpr/reference8"
 SYNC_ID, TPDO1_BASE, RPDO1_BASE = 0x080, 0x180, 0x200  # drivers/cia402/codec.py
 TARGET = (0.08, 0.0, 1.3)  # m; the trajectory's last waypoint (home is (0, 0, 1.25))
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _write_config(tmp_path: Path, port: int, recording: dict[str, str]) -> tuple[Path, dict]:
@@ -119,7 +113,7 @@ def _finite(value: object) -> bool:
 
 @pytest.mark.timeout(60)
 def test_a_flight_is_recorded_to_mcap_and_a_can_log(tmp_path: Path) -> None:
-    port = _free_port()
+    port = free_port()
     recordings = tmp_path / "rec"
     recordings.mkdir()
     config, data = _write_config(
@@ -240,7 +234,7 @@ def test_an_unwritable_recording_stops_start_up_with_a_clear_error(
     read_only.mkdir(mode=0o555)
     if where == "read-only" and os.access(read_only, os.W_OK):
         pytest.skip("running as root: a read-only directory is writable")
-    config, _ = _write_config(tmp_path, _free_port(), recording)
+    config, _ = _write_config(tmp_path, free_port(), recording)
     proc = _start(config)
     out = _finish(proc, impatient=False)  # it must exit by itself
     assert proc.returncode > 0, out  # exited with an error, not killed

@@ -23,18 +23,13 @@ import pytest
 import yaml
 
 from daemon.client import CdprClient, RequestError
+from tests.loopback import free_port
 
 ROOT = Path(__file__).resolve().parent.parent
 CONFIG = ROOT / "config" / "reference8-cia402.yaml"
 PREFIX = "cdpr/reference8"
 WATCHDOG_USEC = 200_000  # the daemon pings every 0.1 s
 QUAT = {"w": 1.0, "x": 0.0, "y": 0.0, "z": 0.0}
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 class NotifySocket:
@@ -177,7 +172,7 @@ def _trajectory(end: list[float], duration: float) -> dict:
 
 @pytest.mark.timeout(60)
 def test_notifications_over_a_run_and_sigterm(tmp_path: Path, notify: NotifySocket) -> None:
-    port = _free_port()
+    port = free_port()
     proc = _start(_config(tmp_path, port), notify)
     events: list[dict] = []
     try:
@@ -230,7 +225,7 @@ def test_notifications_over_a_run_and_sigterm(tmp_path: Path, notify: NotifySock
 def test_a_restarted_daemon_comes_up_idle_and_never_moves(
     tmp_path: Path, notify: NotifySocket
 ) -> None:
-    port = _free_port()
+    port = free_port()
     config = _config(tmp_path, port)
     first = _start(config, notify)
     try:

@@ -12,7 +12,6 @@ import itertools
 import json
 import math
 import shutil
-import socket
 import subprocess
 import sys
 import threading
@@ -42,6 +41,7 @@ from daemon.zenoh_config import (
     is_local,
 )
 from daemon.zenoh_io import ZenohInterface
+from tests.loopback import free_port
 
 PREFIX = "cdpr/standin"
 IDENTITY = {"w": 1.0, "x": 0.0, "y": 0.0, "z": 0.0}
@@ -53,12 +53,6 @@ TRAJECTORY = {
     ],
 }
 WAIT = 10.0  # s: upper bound on every wait for the other side (never reached when healthy)
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 class StandIn:

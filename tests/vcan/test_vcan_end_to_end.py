@@ -28,7 +28,6 @@ import json
 import os
 import re
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -46,6 +45,7 @@ import yaml
 
 from daemon.client import CdprClient, ClientError
 from drivers.cia402 import codec as cia402
+from tests.loopback import free_port
 
 pytestmark = [pytest.mark.vcan, pytest.mark.timeout(240)]
 
@@ -90,12 +90,6 @@ ODRIVE = Protocol(
     malformed=2,
     emergency="042#",  # Estop to node 2
 )
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _write_config(protocol: Protocol, directory: Path, port: int) -> Path:
@@ -228,7 +222,7 @@ def _stop(proc: subprocess.Popen, sig: int = signal.SIGTERM, timeout: float = 20
 
 @contextlib.contextmanager
 def running_stack(protocol: Protocol, directory: Path) -> Iterator[Stack]:
-    port = _free_port()
+    port = free_port()
     config = _write_config(protocol, directory, port)
     capture = directory / "candump.log"
     logs = directory / "logs"
