@@ -11,14 +11,16 @@ forces f0 = m0 (Lambda alpha_c + c), the tension distribution f_p = F(tau_c, f_b
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple, Protocol
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.linalg.lapack import dposv
+from scipy.linalg.lapack import dpotrs
 
 from cdpr.control_spec import ControllerSpec
-from cdpr.pose import Pose, liediff, retract
+from cdpr.forward_kinematics import FKResult
+from cdpr.pose import Pose, liediff, liediff6, retract
 from cdpr.robot import Robot
 from cdpr.tension import TensionLimits, TensionSolver, make_tension_solver
 from cdpr.trajectory import Reference, WrenchCheck
@@ -105,7 +107,7 @@ class ParallelController:
         self._pose = pose
         self._twist = _ZERO6.copy()
         self._tensions = static_tensions(self.robot, self.tension, pose)
-        self._rate_bias = _ZERO6.copy()
+        self._rate_bias = [0.0] * 6  # floats: see _measure_twist
 
     def follow(self, source: ReferenceSource) -> None:
         """Track `source` from the next cycle (a validated, jump-free trajectory)."""
@@ -132,8 +134,8 @@ class ParallelController:
         if not fk.converged:
             return self._fault(ref, fk.pose, fk.residual, f"forward kinematics: {fk.reason}")
         pose = fk.pose
-        twist = self._measure_twist(pose, fk.jacobian, length_rates)
-        if not np.isfinite(twist @ twist):
+        twist = self._measure_twist(pose, fk, length_rates)
+        if not math.isfinite(sum(twist.tolist())):  # NaN or inf in it
             return self._fault(ref, pose, fk.residual, "non-finite twist from the drives' rates")
         self._pose, self._twist = pose, twist
 
@@ -149,9 +151,9 @@ class ParallelController:
         else:
             Lam, c, M, mu = robot.model_terms(pose, twist)
             Lam_r = robot.jacobian(ref.pose)
-        tau_c = M @ alpha_c + mu
-        f_b = robot.k0 * (Lam_r @ ref.twist)
-        f0 = robot.m0 * (Lam @ alpha_c + c)
+        tau_c = M.dot(alpha_c) + mu  # ndarray.dot: see the cdpr.kinematics docstring
+        f_b = robot.k0 * Lam_r.dot(ref.twist)
+        f0 = robot.m0 * (Lam.dot(alpha_c) + c)
         result = self.tension.solve(Lam, tau_c, f_b, f0)
         if result.feasible:
             commands = result.forces + f_b
@@ -175,9 +177,10 @@ class ParallelController:
             result.tensions,
         )
 
-    def _measure_twist(self, pose: Pose, Lam: Array, length_rates: ArrayLike) -> Array:
-        """phi = Lambda^+ l' (least squares) corrected for cable stretch, or filtered
-        differences of forward-kinematics poses.
+    def _measure_twist(self, pose: Pose, fk: FKResult, length_rates: ArrayLike) -> Array:
+        """phi = Lambda^+ l' (least squares, with forward kinematics' Lambda and its
+        normal-equations factor) corrected for cable stretch, or filtered differences of
+        forward-kinematics poses.
 
         Drums report l', but a stretching cable's length also moves with its tension
         (L' = l' (1 + t/EA) + l t'/EA), a large error for a tilting platform whose
@@ -189,13 +192,20 @@ class ParallelController:
             raw = liediff(self._pose, pose) / self.period
             return self._twist + self._smoothing * (raw - self._twist)
         rates = np.asarray(length_rates, dtype=float).reshape(-1)
-        _, drive, info = dposv(Lam.T @ Lam, Lam.T @ rates)
-        if info != 0:
+        if fk.normal_factor is None:  # singular normal equations
             return np.full(6, np.nan)
-        if self._stretch_corrected:
-            raw = liediff(self._pose, pose) / self.period
-            self._rate_bias += self._smoothing * (raw - drive - self._rate_bias)
-        return drive + self._rate_bias
+        drive, _ = dpotrs(fk.normal_factor, rates.dot(fk.jacobian))
+        if not self._stretch_corrected:
+            return drive
+        # the filter on 6 floats: per-call numpy overhead dominates at this size
+        s, period = self._smoothing, self.period
+        self._rate_bias = bias = [
+            b + s * (r / period - d - b)
+            for b, r, d in zip(
+                self._rate_bias, liediff6(self._pose, pose), drive.tolist(), strict=True
+            )
+        ]
+        return drive + bias
 
     def _fault(self, ref: Reference, pose: Pose, residual: float, reason: str) -> ControlOutput:
         nan6, nan_n = np.full(6, np.nan), np.full(self.robot.n_cables, np.nan)

@@ -8,6 +8,11 @@ c = R c_b the centre of mass offset and I_c = R I_b R^T the inertia about it:
     mu_p = [m w x (w x c) - m g ; w x (I_c w) + m c x (w x (w x c)) - m c x g]
 
 mu carries +dV/deta: gravity is compensated (the paper's "-dv/deta" is a sign slip).
+
+The scalar code uses the inertia about p, I_p = I_c - m[c]x[c]x = R I_pb R^T, whose
+platform-frame value I_pb = I_b + m (|c_b|^2 I - c_b c_b^T) is constant, and
+w x (I_c w) + m c x (w x (w x c)) = w x (I_p w) (the terms beyond w x (I_c w) both
+equal m (w . c)(c x w)): the same M_p and mu_p with fewer operations.
 """
 
 from __future__ import annotations
@@ -32,7 +37,9 @@ class PlatformInertia:
         self.center_of_mass = tuple(float(c) for c in center_of_mass)
         self.inertia = np.array(inertia, dtype=float)
         self.gravity = tuple(float(c) for c in gravity)
-        self._I = tuple(self.inertia.reshape(9).tolist())
+        cb = np.array(self.center_of_mass)
+        about_p = self.inertia + self.mass * (cb @ cb * np.eye(3) - np.outer(cb, cb))
+        self._I_p = tuple(about_p.reshape(9).tolist())  # I_pb, see the module docstring
 
     def mass_and_bias(self, R: Sequence[float], phi: Sequence[float]) -> list[float]:
         """[M_p | mu_p], 6 x 7 row-major as 42 floats, for rotation R and twist phi."""
@@ -42,8 +49,8 @@ class PlatformInertia:
         cx = r00 * bx + r01 * by + r02 * bz
         cy = r10 * bx + r11 * by + r12 * bz
         cz = r20 * bx + r21 * by + r22 * bz
-        i00, i01, i02, i10, i11, i12, i20, i21, i22 = self._I
-        # T = R I_b, then I_c = T R^T (symmetric)
+        i00, i01, i02, i10, i11, i12, i20, i21, i22 = self._I_p
+        # T = R I_pb, then I_p = T R^T (symmetric)
         t00 = r00 * i00 + r01 * i10 + r02 * i20
         t01 = r00 * i01 + r01 * i11 + r02 * i21
         t02 = r00 * i02 + r01 * i12 + r02 * i22
@@ -53,41 +60,33 @@ class PlatformInertia:
         t20 = r20 * i00 + r21 * i10 + r22 * i20
         t21 = r20 * i01 + r21 * i11 + r22 * i21
         t22 = r20 * i02 + r21 * i12 + r22 * i22
-        c00 = t00 * r00 + t01 * r01 + t02 * r02
-        c01 = t00 * r10 + t01 * r11 + t02 * r12
-        c02 = t00 * r20 + t01 * r21 + t02 * r22
-        c11 = t10 * r10 + t11 * r11 + t12 * r12
-        c12 = t10 * r20 + t11 * r21 + t12 * r22
-        c22 = t20 * r20 + t21 * r21 + t22 * r22
-        # inertia about p: I_c + m (|c|^2 I - c c^T)
-        mc2 = m * (cx * cx + cy * cy + cz * cz)
-        p00 = c00 + mc2 - m * cx * cx
-        p11 = c11 + mc2 - m * cy * cy
-        p22 = c22 + mc2 - m * cz * cz
-        p01 = c01 - m * cx * cy
-        p02 = c02 - m * cx * cz
-        p12 = c12 - m * cy * cz
+        p00 = t00 * r00 + t01 * r01 + t02 * r02
+        p01 = t00 * r10 + t01 * r11 + t02 * r12
+        p02 = t00 * r20 + t01 * r21 + t02 * r22
+        p11 = t10 * r10 + t11 * r11 + t12 * r12
+        p12 = t10 * r20 + t11 * r21 + t12 * r22
+        p22 = t20 * r20 + t21 * r21 + t22 * r22
         mcx, mcy, mcz = m * cx, m * cy, m * cz
         wx, wy, wz = phi[3], phi[4], phi[5]
         gx, gy, gz = self.gravity
-        # a = w x (w x c), centripetal acceleration of the CoM relative to p
+        # a = w x (w x c) - g: the acceleration of the CoM relative to p, and gravity
         vx = wy * cz - wz * cy
         vy = wz * cx - wx * cz
         vz = wx * cy - wy * cx
         ax = wy * vz - wz * vy - gx
         ay = wz * vx - wx * vz - gy
         az = wx * vy - wy * vx - gz
-        # I_c w and w x (I_c w)
-        hx = c00 * wx + c01 * wy + c02 * wz
-        hy = c01 * wx + c11 * wy + c12 * wz
-        hz = c02 * wx + c12 * wy + c22 * wz
+        # I_p w, then w x (I_p w) - m c x g
+        hx = p00 * wx + p01 * wy + p02 * wz
+        hy = p01 * wx + p11 * wy + p12 * wz
+        hz = p02 * wx + p12 * wy + p22 * wz
         return [
             m, 0.0, 0.0, 0.0, mcz, -mcy, m * ax,
             0.0, m, 0.0, -mcz, 0.0, mcx, m * ay,
             0.0, 0.0, m, mcy, -mcx, 0.0, m * az,
-            0.0, -mcz, mcy, p00, p01, p02, wy * hz - wz * hy + mcy * az - mcz * ay,
-            mcz, 0.0, -mcx, p01, p11, p12, wz * hx - wx * hz + mcz * ax - mcx * az,
-            -mcy, mcx, 0.0, p02, p12, p22, wx * hy - wy * hx + mcx * ay - mcy * ax,
+            0.0, -mcz, mcy, p00, p01, p02, wy * hz - wz * hy + mcz * gy - mcy * gz,
+            mcz, 0.0, -mcx, p01, p11, p12, wz * hx - wx * hz + mcx * gz - mcz * gx,
+            -mcy, mcx, 0.0, p02, p12, p22, wx * hy - wy * hx + mcy * gx - mcx * gy,
         ]  # fmt: skip
 
 

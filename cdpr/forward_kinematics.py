@@ -9,14 +9,15 @@ The solver never raises on a bad measurement (NaN, impossible lengths): it retur
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy.linalg.lapack import dposv, dpotrs
+from scipy.linalg.lapack import dposv, dpotrf, dpotrs
 
-from cdpr.kinematics import CableGeometry
+from cdpr.kinematics import CableGeometry, to_array
 from cdpr.pose import Pose
 from cdpr.so3 import quat_to_r9, rotate_quat_by_rotvec
 
@@ -29,7 +30,10 @@ class FKResult(NamedTuple):
 
     `jacobian` is Lambda at the solver's last linearisation point, less than one step
     tolerance-scale step (<= 1e-4 m / rad) from `pose` when converged: accurate enough
-    for the least-squares twist of the same cycle, and free.
+    for the least-squares twist of the same cycle, and free.  `normal_factor` is the
+    Cholesky factor of jacobian^T jacobian (upper triangle, as LAPACK dpotrf leaves it),
+    so that such a least-squares solve is one dpotrs call.  Both are None unless
+    converged (the factor also where jacobian^T jacobian is singular).
     """
 
     pose: Pose
@@ -38,6 +42,7 @@ class FKResult(NamedTuple):
     converged: bool
     reason: str = ""
     jacobian: np.ndarray | None = None
+    normal_factor: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -60,19 +65,22 @@ def solve_forward_kinematics(
     Lambda^T e and |e|^2 at once.
     """
     n = geometry.n
-    meas = np.asarray(lengths, dtype=float).reshape(-1)
-    if meas.shape[0] != n:
-        raise ValueError(f"expected {n} cable lengths, got {meas.shape[0]}")
-    if not math.isfinite(meas @ meas):
-        k = int(np.flatnonzero(~np.isfinite(meas))[0])
-        return FKResult(guess, math.inf, 0, False, f"non-finite length {meas[k]} at cable {k}")
+    m = np.asarray(lengths, dtype=float).ravel().tolist()
+    if len(m) != n:
+        raise ValueError(f"expected {n} cable lengths, got {len(m)}")
+    # a NaN or inf among them; finite lengths sum to inf only when absurdly large, and
+    # those fail the residual check
+    if not math.isfinite(sum(m)):
+        for k, length in enumerate(m):
+            if not math.isfinite(length):
+                reason = f"non-finite length {length} at cable {k}"
+                return FKResult(guess, math.inf, 0, False, reason)
     evaluate = geometry.evaluate
     tolerance2 = settings.step_tolerance**2
-    m = meas.tolist()
-    p = guess.position.tolist()
-    q = tuple(guess.quaternion.tolist())
-    table = np.array(evaluate(p, quat_to_r9(*q), measured=m)).reshape(n, 7)
-    S = table.T @ table
+    p = guess.position_tuple
+    q = guess.quaternion_tuple
+    table = to_array(evaluate(p, quat_to_r9(*q), measured=m)).reshape(n, 7)
+    S = table.T.dot(table)  # ndarray.dot: see the cdpr.kinematics docstring
     cost = float(S[6, 6])
     lam = 0.0
     for it in range(1, settings.max_iterations + 1):
@@ -86,38 +94,42 @@ def solve_forward_kinematics(
         if info != 0:  # singular normal equations: damp harder
             lam = max(lam * 10.0, _LM_START)
             if lam > _LM_GIVE_UP:
-                return _result(p, q, cost, it, n, "singular Jacobian", settings, guess, table)
+                reason = "singular Jacobian"
+                return _result(p, q, cost, it, n, reason, settings, guess, table[:, :6])
             continue
         dx, dy, dz, wx, wy, wz = x.tolist()
-        step2 = max(dx * dx + dy * dy + dz * dz, wx * wx + wy * wy + wz * wz)  # squared
+        step2 = _longer2(dx * dx + dy * dy + dz * dz, wx * wx + wy * wy + wz * wz)
         p_new = [p[0] - dx, p[1] - dy, p[2] - dz]
         q_new = rotate_quat_by_rotvec(q, -wx, -wy, -wz)
         if not lam and step2 < tolerance2:
             # linearised cost after the step: |e|^2 - g . A^-1 g
-            cost_new = cost - float(g @ x)
-            return _result(p_new, q_new, cost_new, it, n, "", settings, guess, table)
+            cost_new = cost - float(g.dot(x))
+            J = table[:, :6]
+            return _result(p_new, q_new, cost_new, it, n, "", settings, guess, J, chol)
         if not lam and step2 < _CHORD_BELOW2:
             # quadratic regime: one more step with this factorisation and Jacobian needs
             # only the lengths; its error is ~ step x next step, far below tolerance
-            done = _chord_finish(geometry, m, p_new, q_new, table[:, :6], chol, tolerance2)
+            done = _chord_finish(geometry, m, p_new, q_new, table, chol, tolerance2)
             if done is not None:
                 p_new, q_new, chord_cost = done
-                return _result(p_new, q_new, chord_cost, it + 1, n, "", settings, guess, table)
-        table = np.array(evaluate(p_new, quat_to_r9(*q_new), measured=m)).reshape(n, 7)
-        S_new = table.T @ table
+                J = table[:, :6]
+                return _result(p_new, q_new, chord_cost, it + 1, n, "", settings, guess, J, chol)
+        table = to_array(evaluate(p_new, quat_to_r9(*q_new), measured=m)).reshape(n, 7)
+        S_new = table.T.dot(table)
         cost_new = float(S_new[6, 6])
         if cost_new <= cost or not math.isfinite(cost):
             p, q, S, cost = p_new, q_new, S_new, cost_new
             lam = lam * 0.1 if lam > _LM_START else 0.0
             if step2 < tolerance2:
-                return _result(p, q, cost, it, n, "", settings, guess, table)
+                return _result(p, q, cost, it, n, "", settings, guess, table[:, :6])
         else:
             lam = max(lam * 10.0, _LM_START)
             if lam > _LM_GIVE_UP:
                 reason = "no descent direction"
-                return _result(p, q, cost, it, n, reason, settings, guess, table)
+                return _result(p, q, cost, it, n, reason, settings, guess, table[:, :6])
     reason = f"no convergence in {settings.max_iterations} iterations"
-    return _result(p, q, cost, settings.max_iterations, n, reason, settings, guess, table)
+    iterations = settings.max_iterations
+    return _result(p, q, cost, iterations, n, reason, settings, guess, table[:, :6])
 
 
 def _chord_finish(
@@ -125,32 +137,40 @@ def _chord_finish(
     meas: list[float],
     p: list[float],
     q: tuple[float, float, float, float],
-    J: np.ndarray,
+    table: np.ndarray,
     chol: np.ndarray,
     tolerance2: float,
 ) -> tuple[list[float], tuple[float, float, float, float], float] | None:
-    """A simplified-Newton step reusing the last Jacobian and its Cholesky factor.
-    Returns the final (p, q, linearised cost), or None if the step is not yet short
-    (tolerance2 is the squared step tolerance)."""
-    e = np.array(geometry.evaluate(p, quat_to_r9(*q), jacobian=False, measured=meas))
-    g = J.T @ e
+    """A simplified-Newton step reusing the last Jacobian (the table [Lambda | L - l] of
+    the last evaluation) and its Cholesky factor.  Returns the final (p, q, linearised
+    cost), or None if the step is not yet short (tolerance2 is the squared step
+    tolerance)."""
+    residuals = geometry.evaluate(p, quat_to_r9(*q), jacobian=False, measured=meas)
+    g = np.array(residuals).dot(table)[:6]  # Lambda^T e (the table is contiguous)
     x, info = dpotrs(chol, g)
     if info != 0:
         return None
     dx, dy, dz, wx, wy, wz = x.tolist()
-    if max(dx * dx + dy * dy + dz * dz, wx * wx + wy * wy + wz * wz) >= tolerance2:
+    if _longer2(dx * dx + dy * dy + dz * dz, wx * wx + wy * wy + wz * wz) >= tolerance2:
         return None
     p_new = [p[0] - dx, p[1] - dy, p[2] - dz]
     q_new = rotate_quat_by_rotvec(q, -wx, -wy, -wz)
-    return p_new, q_new, float(e @ e) - float(g @ x)
+    return p_new, q_new, sum([r * r for r in residuals]) - float(g.dot(x))
 
 
 _CHORD_BELOW2 = 1e-4**2  # squared step length below which the chord finish is tried
+
+
+def _longer2(translation2: float, rotation2: float) -> float:
+    """The squared step length, max(|dp|^2, |dw|^2) (builtin max is slower for 2 floats)."""
+    return translation2 if translation2 > rotation2 else rotation2
+
+
 _DIAG = np.diag_indices(6)
 
 
 def _result(
-    p: list[float],
+    p: Sequence[float],
     q: tuple[float, float, float, float],
     cost: float,
     iterations: int,
@@ -158,8 +178,11 @@ def _result(
     reason: str,
     settings: FKSettings,
     fallback: Pose,
-    table: np.ndarray,
+    jacobian: np.ndarray,
+    factor: np.ndarray | None = None,
 ) -> FKResult:
+    """The FKResult.  `factor` is the Cholesky factor of the normal equations of
+    `jacobian` when the caller has it (an undamped last step), else it is computed here."""
     residual = math.sqrt(max(cost, 0.0) / n) if math.isfinite(cost) else math.inf
     if not (math.isfinite(sum(p)) and math.isfinite(sum(q))):
         return FKResult(fallback, math.inf, iterations, False, "diverged to non-finite values")
@@ -167,5 +190,9 @@ def _result(
         reason = (
             f"length residual {residual:.3g} m exceeds max_residual {settings.max_residual:.3g} m"
         )
-    jacobian = None if reason else table[:, :6]
-    return FKResult(Pose._from_unit(p, q), residual, iterations, not reason, reason, jacobian)
+    if reason:
+        return FKResult(Pose._from_unit(p, q), residual, iterations, False, reason)
+    if factor is None:
+        factor, info = dpotrf(jacobian.T @ jacobian)
+        factor = None if info else factor
+    return FKResult(Pose._from_unit(p, q), residual, iterations, True, "", jacobian, factor)

@@ -13,18 +13,37 @@ distance of B from the swivel axis), which gives c.
 
 This is scalar Python on floats: for 6-12 cables it is several times faster than
 numpy, whose per-call overhead dominates at this size (see PERF-FACTS).  A readable
-numpy reference lives in cdpr.reference and the tests hold the two equal.
+numpy reference lives in cdpr.reference and the tests hold the two equal.  For the same
+reason the hot paths elsewhere (forward kinematics, the controller, the tension
+distribution) multiply small arrays with ndarray.dot, which costs about half of the @
+operator's matmul-ufunc dispatch, and keep operands contiguous (a product copies a
+strided operand every time).
 """
 
 from __future__ import annotations
 
+import functools
 import math
-from collections.abc import Sequence
+import struct
+from collections.abc import Callable, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
 
 Matrix9 = Sequence[float]  # row-major rotation matrix as 9 floats
+
+
+def to_array(values: list[float]) -> NDArray[np.float64]:
+    """np.array(values) for a list of floats, such as the table CableGeometry.evaluate
+    returns: struct packs the floats in one C loop and numpy views the (writable) bytes,
+    half the cost of np.array or np.fromiter, whose per-element conversion is generic
+    (it dominates for the 56-entry tables of the hot path)."""
+    return np.frombuffer(bytearray(_packer(len(values))(*values)))
+
+
+@functools.cache
+def _packer(count: int) -> Callable[..., bytes]:
+    return struct.Struct(f"{count}d").pack
 
 
 class CableGeometry:
@@ -81,27 +100,31 @@ class CableGeometry:
                 uz = dz * inv
             else:
                 length, ux, uy, uz, pframe = pulley_length_direction(dx, dy, dz, pulley)
-            if jacobian:
-                table += (ux, uy, uz, ry * uz - rz * uy, rz * ux - rx * uz, rx * uy - ry * ux)
             if phi is None:
-                table.append(length - ref)
-                continue
-            # attachment velocity xd = v + w x r, and centripetal acceleration w x (w x r)
-            wrx = wy * rz - wz * ry
-            wry = wz * rx - wx * rz
-            wrz = wx * ry - wy * rx
-            xdx = vx + wrx
-            xdy = vy + wry
-            xdz = vz + wrz
-            centripetal = (
-                ux * (wy * wrz - wz * wry) + uy * (wz * wrx - wx * wrz) + uz * (wx * wry - wy * wrx)
-            )
-            if pulley is None:
-                ud = ux * xdx + uy * xdy + uz * xdz
-                quad = (xdx * xdx + xdy * xdy + xdz * xdz - ud * ud) * inv
+                last = length - ref
             else:
-                quad = pulley_curvature(pframe, ux, uy, uz, xdx, xdy, xdz)
-            table.append(centripetal + quad)
+                # attachment velocity xd = v + w x r, centripetal acceleration w x (w x r)
+                wrx = wy * rz - wz * ry
+                wry = wz * rx - wx * rz
+                wrz = wx * ry - wy * rx
+                xdx = vx + wrx
+                xdy = vy + wry
+                xdz = vz + wrz
+                centripetal = (
+                    ux * (wy * wrz - wz * wry)
+                    + uy * (wz * wrx - wx * wrz)
+                    + uz * (wx * wry - wy * wrx)
+                )
+                if pulley is None:
+                    ud = ux * xdx + uy * xdy + uz * xdz
+                    quad = (xdx * xdx + xdy * xdy + xdz * xdz - ud * ud) * inv
+                else:
+                    quad = pulley_curvature(pframe, ux, uy, uz, xdx, xdy, xdz)
+                last = centripetal + quad
+            if jacobian:  # the whole row in one extend
+                table += (ux, uy, uz, ry * uz - rz * uy, rz * ux - rx * uz, rx * uy - ry * ux, last)
+            else:
+                table.append(last)
         return table
 
 

@@ -24,9 +24,12 @@ class Pose:
 
     ``Pose(position=(x, y, z), quaternion=(w, x, y, z))``; the quaternion must be
     unit within QUATERNION_NORM_TOLERANCE and is stored normalised with w >= 0.
+
+    The values are kept as tuples of floats, which the scalar hot paths read directly
+    (position_tuple, quaternion_tuple); the read-only arrays are built on first access.
     """
 
-    __slots__ = ("_R", "_p", "_q")
+    __slots__ = ("_R", "_p", "_pt", "_q", "_qt")
 
     def __init__(
         self,
@@ -46,23 +49,20 @@ class Pose:
             raise ValueError(
                 f"pose quaternion {q.tolist()} has norm {norm:.9g}; a unit quaternion is required"
             )
-        p.setflags(write=False)
-        self._p = p
-        self._q = so3.canonical_quat(q / norm)
-        self._q.setflags(write=False)
-        self._R: NDArray[np.float64] | None = None
+        self._pt = tuple(p.tolist())
+        self._qt = tuple(so3.canonical_quat(q / norm).tolist())
+        self._p = self._q = self._R = None
 
     @classmethod
     def _from_unit(cls, position: Sequence[float], quaternion: Sequence[float]) -> Pose:
-        """Fast path for values the model computed itself: finite, unit quaternion."""
+        """Fast path for values the model computed itself: Python floats, finite, unit
+        quaternion."""
         self = cls.__new__(cls)
-        p = np.array(position, dtype=float)
-        p.setflags(write=False)
-        q = np.array(quaternion, dtype=float)
-        if q[0] < 0.0:
-            q = -q
-        q.setflags(write=False)
-        self._p, self._q, self._R = p, q, None
+        if quaternion[0] < 0.0:
+            quaternion = [-c for c in quaternion]
+        self._pt = tuple(position)
+        self._qt = tuple(quaternion)
+        self._p = self._q = self._R = None
         return self
 
     @classmethod
@@ -78,47 +78,70 @@ class Pose:
     @property
     def position(self) -> NDArray[np.float64]:
         """Reference point p in the world frame (m), read-only array."""
+        if self._p is None:
+            self._p = _read_only(self._pt)
         return self._p
 
     @property
     def quaternion(self) -> NDArray[np.float64]:
         """Unit quaternion (w, x, y, z), w >= 0, read-only array."""
+        if self._q is None:
+            self._q = _read_only(self._qt)
         return self._q
+
+    @property
+    def position_tuple(self) -> tuple[float, float, float]:
+        """The position as a tuple of floats (for scalar code)."""
+        return self._pt
+
+    @property
+    def quaternion_tuple(self) -> tuple[float, float, float, float]:
+        """The quaternion (w, x, y, z), w >= 0, as a tuple of floats (for scalar code)."""
+        return self._qt
 
     @property
     def rotation(self) -> NDArray[np.float64]:
         """Rotation matrix R (platform -> world), read-only array."""
         if self._R is None:
-            R = so3.quat_to_matrix(self._q)
-            R.setflags(write=False)
-            self._R = R
+            self._R = _read_only(so3.quat_to_r9(*self._qt)).reshape(3, 3)
         return self._R
 
     def as_dict(self) -> dict:
         """Interface form: position list and quaternion as an object with named keys."""
-        w, x, y, z = self._q.tolist()
-        return {"position": self._p.tolist(), "quaternion": {"w": w, "x": x, "y": y, "z": z}}
+        w, x, y, z = self._qt
+        return {"position": list(self._pt), "quaternion": {"w": w, "x": x, "y": y, "z": z}}
 
     def __repr__(self) -> str:
-        p = ", ".join(f"{c:.6g}" for c in self._p)
-        q = ", ".join(f"{c:.6g}" for c in self._q)
+        p = ", ".join(f"{c:.6g}" for c in self._pt)
+        q = ", ".join(f"{c:.6g}" for c in self._qt)
         return f"Pose(position=({p}), quaternion=({q}))"
 
     def __eq__(self, other: object) -> bool:
         if not isinstance(other, Pose):
             return NotImplemented
-        return bool(np.array_equal(self._p, other._p) and np.array_equal(self._q, other._q))
+        return self._pt == other._pt and self._qt == other._qt
 
     def __hash__(self) -> int:
-        return hash((tuple(self._p.tolist()), tuple(self._q.tolist())))
+        return hash((self._pt, self._qt))
+
+
+def _read_only(values: Sequence[float]) -> NDArray[np.float64]:
+    a = np.array(values, dtype=float)
+    a.setflags(write=False)
+    return a
 
 
 def liediff(eta1: Pose, eta2: Pose) -> NDArray[np.float64]:
     """The paper's eta2 (-) eta1 in mixed coordinates: (p2 - p1, log(R2 R1^T))."""
-    w1, x1, y1, z1 = eta1._q.tolist()
-    dq = so3.quat_mul4(*eta2._q.tolist(), w1, -x1, -y1, -z1)
-    (a, b, c), (d, e, f) = eta1._p.tolist(), eta2._p.tolist()
-    return np.array((d - a, e - b, f - c, *so3.quat4_to_rotvec(*dq)))
+    return np.array(liediff6(eta1, eta2))
+
+
+def liediff6(eta1: Pose, eta2: Pose) -> tuple[float, float, float, float, float, float]:
+    """liediff as a tuple of 6 floats; scalar hot path."""
+    w1, x1, y1, z1 = eta1._qt
+    dq = so3.quat_mul4(*eta2._qt, w1, -x1, -y1, -z1)
+    (a, b, c), (d, e, f) = eta1._pt, eta2._pt
+    return (d - a, e - b, f - c, *so3.quat4_to_rotvec(*dq))
 
 
 def retract(eta: Pose, theta: Sequence[float] | NDArray[np.float64]) -> Pose:
@@ -126,6 +149,6 @@ def retract(eta: Pose, theta: Sequence[float] | NDArray[np.float64]) -> Pose:
     dx, dy, dz, wx, wy, wz = np.asarray(theta, dtype=float).reshape(6).tolist()
     if not math.isfinite(dx + dy + dz + wx + wy + wz):
         raise ValueError(f"cannot retract by a non-finite tangent vector {theta!r}")
-    q = so3.rotate_quat_by_rotvec(tuple(eta.quaternion.tolist()), wx, wy, wz)
-    x, y, z = eta.position.tolist()
+    q = so3.rotate_quat_by_rotvec(eta._qt, wx, wy, wz)
+    x, y, z = eta._pt
     return Pose._from_unit((x + dx, y + dy, z + dz), q)

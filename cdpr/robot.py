@@ -11,7 +11,7 @@ from numpy.typing import ArrayLike, NDArray
 from cdpr.description import ActuatorSpec, ConfigError, RobotSpec, load_yaml, parse_robot
 from cdpr.dynamics import PlatformInertia, modal_masses
 from cdpr.forward_kinematics import FKResult, FKSettings, solve_forward_kinematics
-from cdpr.kinematics import CableGeometry
+from cdpr.kinematics import CableGeometry, to_array
 from cdpr.pose import Pose
 from cdpr.so3 import quat_to_r9
 
@@ -41,7 +41,8 @@ class Robot:
             spec.gravity,
         )
         self.m0 = np.array([a.m0 for a in self.actuators])
-        self._sqrt_m0 = np.sqrt(self.m0)[:, None]
+        # sqrt(m0_k) for each entry of a flat n x 7 table (1-d: cheaper than broadcasting)
+        self._sqrt_m0_flat = np.repeat(np.sqrt(self.m0), 7)
         self.k0 = np.array([a.k0 for a in self.actuators])
         self.t_min = np.array([a.t_min for a in self.actuators])
         self.force_max = np.array([a.force_max for a in self.actuators])
@@ -99,9 +100,9 @@ class Robot:
 
     def bias_accel(self, pose: Pose, twist: ArrayLike) -> Array:
         """c(eta, phi) with l_ddot = Lambda alpha + c."""
-        R = quat_to_r9(*pose.quaternion.tolist())
+        R = quat_to_r9(*pose.quaternion_tuple)
         phi = _twist_list(twist)
-        return np.array(self.geometry.evaluate(pose.position.tolist(), R, phi, jacobian=False))
+        return np.array(self.geometry.evaluate(pose.position_tuple, R, phi, jacobian=False))
 
     def stretched_lengths(self, drum_lengths: ArrayLike, tensions: ArrayLike) -> Array:
         """Geometric cable lengths from the lengths the drums paid out, under `tensions`
@@ -116,9 +117,9 @@ class Robot:
 
     def _table(self, pose: Pose) -> Array:
         """n x 7 table [Lambda | L]."""
-        R = quat_to_r9(*pose.quaternion.tolist())
-        flat = self.geometry.evaluate(pose.position.tolist(), R)
-        return np.array(flat).reshape(self.geometry.n, 7)
+        R = quat_to_r9(*pose.quaternion_tuple)
+        flat = self.geometry.evaluate(pose.position_tuple, R)
+        return to_array(flat).reshape(self.geometry.n, 7)
 
     def forward_kinematics(self, lengths: ArrayLike, guess: Pose | None = None) -> FKResult:
         """Y(l): warm-start from `guess` (e.g. the last pose), else cold-start from home.
@@ -133,21 +134,31 @@ class Robot:
 
     def dynamics(self, pose: Pose, twist: ArrayLike) -> tuple[Array, Array]:
         """(M, mu) at (eta, phi): tau = M alpha + mu, actuator inertia m0 included."""
-        return self.model_terms(pose, twist)[2:]
+        G = self._model(pose, twist)[1]
+        return G[:6, :6], G[:6, 6]
 
     def model_terms(self, pose: Pose, twist: ArrayLike) -> tuple[Array, Array, Array, Array]:
         """(Lambda, c, M, mu) at (eta, phi) from one kinematics pass: what a control
-        cycle needs of the model."""
+        cycle needs of the model.  Lambda is contiguous: a control cycle multiplies with
+        it several times (see the cdpr.kinematics docstring)."""
+        table, G = self._model(pose, twist)
+        return np.ascontiguousarray(table[:, :6]), table[:, 6], G[:6, :6], G[:6, 6]
+
+    def _model(self, pose: Pose, twist: ArrayLike) -> tuple[Array, Array]:
+        """The n x 7 table [Lambda | c] and a 7 x 7 matrix whose first 6 rows are [M | mu]."""
         phi = _twist_list(twist)
-        R = quat_to_r9(*pose.quaternion.tolist())
-        table = np.array(self.geometry.evaluate(pose.position.tolist(), R, phi))
-        table = table.reshape(self.geometry.n, 7)
+        R = quat_to_r9(*pose.quaternion_tuple)
+        n = self.geometry.n
+        flat = self.geometry.evaluate(pose.position_tuple, R, phi)
+        flat += self.platform.mass_and_bias(R, phi)  # [M_p | mu_p], 6 x 7
+        data = to_array(flat)
+        table = data[: 7 * n].reshape(n, 7)
         # rows [Lambda_k | c_k] scaled by sqrt(m0_k): their Gram matrix holds
         # Lambda^T D Lambda and Lambda^T D c; the platform part is added to it
-        scaled = table * self._sqrt_m0
-        G = scaled.T @ scaled
-        G[:6] += np.array(self.platform.mass_and_bias(R, phi)).reshape(6, 7)
-        return table[:, :6], table[:, 6], G[:6, :6], G[:6, 6]
+        scaled = (data[: 7 * n] * self._sqrt_m0_flat).reshape(n, 7)
+        G = scaled.T.dot(scaled)
+        G[:6] += data[7 * n :].reshape(6, 7)
+        return table, G
 
     def mass_matrix(self, pose: Pose) -> Array:
         """M(eta) = M_p + Lambda^T diag(m0) Lambda (6 x 6, symmetric positive definite)."""

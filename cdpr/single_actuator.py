@@ -123,7 +123,12 @@ class DiscreteController:
     def __init__(self, Ad: Array, Bd: Array, Cd: Array, Dd: Array, channels: int) -> None:
         self.Ad, self.Bd, self.Cd, self.Dd = Ad, Bd, Cd, Dd
         self.channels = channels
-        self.state = np.zeros((Ad.shape[0], channels))
+        self._order = Dd.shape[1]
+        # [a; x[k+1]] = K [eps[k]; x[k]]: one matrix product per sample (per-call numpy
+        # overhead dominates at this size); the state is the lower rows of that stack
+        self._K = np.block([[Dd, Cd], [Bd, Ad]])
+        self._stack = np.zeros((self._order + Ad.shape[0], channels))
+        self.state = self._stack[self._order :]  # a view: (states, channels)
 
     def reset(self) -> None:
         """Zero the state (integrators, filters): on enable and after a brake."""
@@ -131,11 +136,10 @@ class DiscreteController:
 
     def step(self, error: Array) -> Array:
         """One sample: `error` is l x channels ([e; e'; ...]); returns a (channels,)."""
-        a = (self.Dd @ error)[0]
-        if self.state.shape[0]:
-            a += (self.Cd @ self.state)[0]
-            self.state = self.Ad @ self.state + self.Bd @ error
-        return a
+        self._stack[: self._order] = error
+        out = self._K.dot(self._stack)
+        self.state[:] = out[1:]
+        return out[0]
 
 
 class SingleActuatorTracker:

@@ -182,6 +182,8 @@ def rotate_quat_by_rotvec(
     q: tuple[float, float, float, float], wx: float, wy: float, wz: float
 ) -> tuple[float, float, float, float]:
     """exp(w) * q, renormalised: the rotation part of a mixed-coordinate step."""
-    r = quat_mul4(*rotvec_to_quat4(wx, wy, wz), *q)
-    n = 1.0 / math.sqrt(r[0] * r[0] + r[1] * r[1] + r[2] * r[2] + r[3] * r[3])
-    return (r[0] * n, r[1] * n, r[2] * n, r[3] * n)
+    aw, ax, ay, az = rotvec_to_quat4(wx, wy, wz)
+    bw, bx, by, bz = q
+    w, x, y, z = quat_mul4(aw, ax, ay, az, bw, bx, by, bz)
+    n = 1.0 / math.sqrt(w * w + x * x + y * y + z * z)
+    return (w * n, x * n, y * n, z * n)

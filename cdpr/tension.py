@@ -227,20 +227,21 @@ class _TensionSolverBase:
         ``out`` = (w, t_lo, t_hi) buffers to compute into (OSQP's l and u), else new arrays.
         """
         n = self.n
-        L = _checked(jacobian, (n, 6), "jacobian")
+        # contiguous, and products with ndarray.dot: see the cdpr.kinematics docstring
+        L = np.ascontiguousarray(_checked(jacobian, (n, 6), "jacobian"))
         tau = _checked(wrench, (6,), "wrench")
         fb = _checked(f_b, (n,), "f_b")
         f0 = _checked(f0, (n,), "f0")
         w_out, lo_out, hi_out = (None, None, None) if out is None else out
-        w = np.subtract(f0 @ L, tau, out=w_out)
+        w = np.subtract(f0.dot(L), tau, out=w_out)
         g = f0 + fb
-        # any NaN/inf input makes w or g non-finite (inf * 0 is NaN): one test on the hot path
-        if not math.isfinite(sum(w.tolist()) + sum(g.tolist())):
-            return self._non_finite(L, tau, fb, f0)
         f_max = self._f_max
         hi = np.add(g, f_max, out=hi_out)
-        lo = np.maximum(self._t_min, g - f_max, out=lo_out)
         hi_list = hi.tolist()
+        # any NaN/inf input makes w or t_hi non-finite (inf * 0 is NaN): one test on the hot path
+        if not math.isfinite(sum(w.tolist()) + sum(hi_list)):
+            return self._non_finite(L, tau, fb, f0)
+        lo = np.maximum(self._t_min, g - f_max, out=lo_out)
         if any(map(operator.lt, hi_list, self._t_min_list)):  # t_lo > t_hi somewhere
             k = max(range(n), key=lambda i: self._t_min_list[i] - hi_list[i])
             reason = (
@@ -249,7 +250,7 @@ class _TensionSolverBase:
             )
             t = self._least_norm(L, w)
             return TensionResult(f0 - t, t, False, reason, 0)
-        tol = self.rtol * max(self._f_scale, max(hi_list))
+        tol = self.rtol * max(self._f_scale, *hi_list)
         return _Problem(L, f0, w, g, lo, hi, tol)
 
     def _non_finite(self, L: Array, tau: Array, fb: Array, f0: Array) -> TensionResult:
@@ -263,7 +264,7 @@ class _TensionSolverBase:
 
     def _check(self, p: _Problem, t: Array) -> str:
         """Empty if t satisfies the constraints within p.tol, else the worst violation."""
-        residual = (t @ p.L - p.w).tolist()
+        residual = (t.dot(p.L) - p.w).tolist()
         viol = np.maximum(p.lo - t, t - p.hi).tolist()  # > 0 outside [t_lo, t_hi]
         if not math.isfinite(sum(residual) + sum(viol)):
             return "non-finite tensions"
@@ -294,11 +295,11 @@ class _TensionSolverBase:
         """Tensions nearest t_ref that satisfy Λᵀ t = w, bounds ignored: the QP's optimum
         when they meet every bound, else a finite attempt.  One 6 × 6 Cholesky; a
         least-squares fallback where Λ is rank deficient."""
-        rhs = w - self._t_ref @ L
-        _, x, info = dposv(L.T @ L, rhs)
+        rhs = w - self._t_ref.dot(L)
+        _, x, info = dposv(L.T.dot(L), rhs)
         if info:
             return self._t_ref + np.linalg.lstsq(L.T, rhs, rcond=None)[0]
-        return self._t_ref + L @ x
+        return self._t_ref + L.dot(x)
 
     def _result(self, p: _Problem, t: Array, reason: str, iterations: int) -> TensionResult:
         return TensionResult(p.f0 - t, t, not reason, reason, iterations)
@@ -306,7 +307,7 @@ class _TensionSolverBase:
 
 def _checked(x: ArrayLike, shape: tuple[int, ...], name: str) -> Array:
     """x as a float64 array of the given shape; ValueError naming the argument otherwise."""
-    if type(x) is not np.ndarray or x.dtype != _F64:
+    if type(x) is not np.ndarray or x.dtype is not _F64:  # float64 arrays share one dtype
         try:
             x = np.asarray(x, dtype=float)
         except (TypeError, ValueError) as exc:
@@ -420,6 +421,7 @@ class OsqpTensionSolver(_TensionSolverBase):
         self.direct = self._solver is not None
         self._last: Any = None  # the last solution object (x, prim_inf_cert)
         self._info: Any = None  # the last solve's info (status, iter, ...)
+        self._start: Array | None = None  # tensions to warm-start the next OSQP run from
 
     def _solve(
         self, jacobian: ArrayLike, wrench: ArrayLike, f_b: ArrayLike, f0: ArrayLike
@@ -464,11 +466,19 @@ class OsqpTensionSolver(_TensionSolverBase):
         return TensionResult(p.f0 - x, x, False, reason, iterations)
 
     def _warm_start(self, t: Array) -> None:
-        """Start the next solve from tensions t (duals zero)."""
+        """Start the next OSQP run from tensions t (duals zero).  Passed on only when
+        OSQP runs: most cycles take the interior shortcut, and the call costs more than
+        the copy."""
+        self._start = t.copy()
+
+    def _apply_warm_start(self) -> None:
+        if self._start is None:
+            return
         if self._solver is not None:
-            self._solver.warm_start(t, self._y0)
+            self._solver.warm_start(self._start, self._y0)
         else:
-            self._prob.warm_start(x=t, y=self._y0)
+            self._prob.warm_start(x=self._start, y=self._y0)
+        self._start = None
 
     def _run(self, eps: float | None = None) -> tuple[Array, int, int, int]:
         """Push (A, l, u) and solve; with eps, re-solve the same data at that tolerance.
@@ -476,6 +486,7 @@ class OsqpTensionSolver(_TensionSolverBase):
         Returns (x, status, polish status, iterations).
         """
         s = self._solver
+        self._apply_warm_start()
         if eps is not None:
             self._set_eps(eps, eps)
         try:
@@ -558,11 +569,11 @@ class ClosedFormTensionSolver(_TensionSolverBase):
         fixed: list[tuple[int, float]] = []  # (cable, its tension when it was fixed)
         t = None
         while True:
-            chol, x, info = dposv(Lf.T @ Lf, p.w - base @ L, overwrite_a=1, overwrite_b=1)
+            chol, x, info = dposv(Lf.T.dot(Lf), p.w - base.dot(L), overwrite_a=1, overwrite_b=1)
             pivots = chol.diagonal().tolist()
             if info != 0 or min(pivots) < _RANK_RTOL * max(pivots):
                 return self._rank_deficient(p, t, fixed)
-            t = base + Lf @ x
+            t = base + Lf.dot(x)
             viol = np.maximum(lo - t, t - hi)
             k = int(viol.argmax())
             if not viol[k] > tol:

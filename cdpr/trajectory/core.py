@@ -58,6 +58,8 @@ _HERMITE = np.array(
         [-6.0, -3.0, -0.5, 6.0, -3.0, 0.5],
     ]
 )
+# d/dτ on coefficient columns: (D c)_j = (j + 1) c_(j+1)
+_DERIVATIVE = np.diag(np.arange(1.0, 6.0), 1)
 # ∫₀¹ jerk² dτ as a quadratic form in (c3, c4, c5), then in the Hermite knot data
 _JERK_GRAM = np.array([[36.0, 72.0, 120.0], [72.0, 192.0, 360.0], [120.0, 360.0, 720.0]])
 _JERK_COST = _HERMITE[3:].T @ _JERK_GRAM @ _HERMITE[3:]
@@ -162,8 +164,8 @@ class Trajectory:
             )
         self._waypoints = wps
         self._times: list[float] = times.tolist()
-        self._tables = tables
-        self._quats = [tuple(p.quaternion.tolist()) for p in poses]
+        self._tables = list(tables)  # per segment; a list indexes faster than a 3-d array
+        self._quats = [p.quaternion_tuple for p in poses]
         self._rates = (twists, accels)
         self._set_ends()
 
@@ -205,6 +207,8 @@ class Trajectory:
 
     def sample(self, t: float) -> Reference:
         """(η_r, φ_r, α_r) at time t: evaluates only the segment holding t."""
+        if type(t) is not float:  # e.g. a numpy scalar: it would slow the scalar code below
+            t = float(t)
         times = self._times
         if t >= times[-1]:
             return self._after
@@ -359,7 +363,8 @@ def segment_table(
     step: Array,
     h: float,
 ) -> Array:
-    """Coefficients (6 powers of τ x [p, θ]) of one segment between two knot states.
+    """Coefficients of one segment between two knot states: 6 powers of τ (rows) x
+    [p, θ | their rates | their accels] (18 columns), see evaluate_segment.
 
     `step` = liediff(pose0, pose1).  θ̇ and θ̈ at the end follow from ω = J_l(θ) θ̇ and
     ω̇ = J_l θ̈ + J̇_l θ̇ at θ = step; at the start θ = 0, so θ̇ = ω and θ̈ = ω̇ there.
@@ -386,7 +391,8 @@ def _hermite_coefficients(
     a1: ArrayLike,
     h: float,
 ) -> Array:
-    """Coefficients c_j of τ^j (rows) of the quintic with value, rate, accel at τ = 0, h."""
+    """Coefficients of τ^j (rows) of the quintic with value, rate, accel at τ = 0, h,
+    followed by those of its first and second derivatives (6 + 6 + 6 columns)."""
     data = np.array(
         [
             y0,
@@ -397,23 +403,19 @@ def _hermite_coefficients(
             np.multiply(a1, h * h),
         ]
     )
-    return (_HERMITE @ data) / (h ** np.arange(6.0))[:, None]
+    c = (_HERMITE @ data) / (h ** np.arange(6.0))[:, None]
+    rate = _DERIVATIVE @ c
+    return np.hstack([c, rate, _DERIVATIVE @ rate])
 
 
 def evaluate_segment(table: Array, q0: tuple[float, ...], tau: float) -> Reference:
-    """The reference at τ seconds into a segment (coefficients `table`, start rotation q0)."""
+    """The reference at τ seconds into a segment (`table` from segment_table, start
+    rotation q0).  One product of the powers of τ with the table gives the values, rates
+    and accels of [p, θ] together."""
     t2 = tau * tau
     t3 = t2 * tau
-    basis = np.array(
-        (
-            (1.0, tau, t2, t3, t3 * tau, t3 * t2),
-            (0.0, 1.0, 2.0 * tau, 3.0 * t2, 4.0 * t3, 5.0 * t3 * tau),
-            (0.0, 0.0, 2.0, 6.0 * tau, 12.0 * t2, 20.0 * t3),
-        )
-    )
-    x, v, a = (basis @ table).tolist()
-    q = rotate_quat_by_rotvec(q0, x[3], x[4], x[5])
-    omega, omega_dot = angular_rates(x[3:], v[3:], a[3:])
-    return Reference(
-        Pose._from_unit(x[:3], q), np.array(v[:3] + omega), np.array(a[:3] + omega_dot)
-    )
+    y = np.array((1.0, tau, t2, t3, t3 * tau, t3 * t2)).dot(table).tolist()
+    q = rotate_quat_by_rotvec(q0, y[3], y[4], y[5])
+    omega, omega_dot = angular_rates(y[3:6], y[9:12], y[15:18])
+    rates = np.array(y[6:9] + omega + y[12:15] + omega_dot)  # twist and accel: one conversion
+    return Reference(Pose._from_unit(y[:3], q), rates[:6], rates[6:])

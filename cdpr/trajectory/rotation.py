@@ -29,22 +29,23 @@ def _series(offset: int, derivative: bool) -> tuple[float, ...]:
     )
 
 
-# b = Σ (-1)^k x^2k / (2k+2)!, c = Σ (-1)^k x^2k / (2k+3)!, and β, γ: d/dx of them over x
-_B, _C = _series(2, False), _series(3, False)
-_BETA, _GAMMA = _series(2, True), _series(3, True)
-
-
-def _horner(coefficients: tuple[float, ...], x2: float) -> float:
-    acc = 0.0
-    for a in coefficients:
-        acc = acc * x2 + a
-    return acc
+# b = Σ (-1)^k x^2k / (2k+2)!, c = Σ (-1)^k x^2k / (2k+3)!, and β, γ: d/dx of them over x;
+# one row per power of x², so that one Horner loop evaluates all four series
+_SERIES = tuple(
+    zip(_series(2, False), _series(3, False), _series(2, True), _series(3, True), strict=True)
+)
 
 
 def _jl_coefficients(x2: float) -> tuple[float, float, float, float]:
     """(b, c, β, γ) for |θ|² = x2: J_l = I + b[θ]× + c[θ]×², β = b'(x)/x, γ = c'(x)/x."""
     if x2 < _SERIES_BELOW:  # the closed forms below cancel badly near 0
-        return _horner(_B, x2), _horner(_C, x2), _horner(_BETA, x2), _horner(_GAMMA, x2)
+        b = c = beta = gamma = 0.0
+        for kb, kc, kbeta, kgamma in _SERIES:  # Horner, highest power first
+            b = b * x2 + kb
+            c = c * x2 + kc
+            beta = beta * x2 + kbeta
+            gamma = gamma * x2 + kgamma
+        return b, c, beta, gamma
     x = math.sqrt(x2)
     s, co = math.sin(x), math.cos(x)
     return (

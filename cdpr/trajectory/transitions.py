@@ -126,7 +126,7 @@ def _violation(
 ) -> tuple[str, float, str] | None:
     """The first rate limit the s0 -> s1 segment of duration T exceeds inside, else None."""
     table = segment_table(s0.pose, s0.twist, s0.accel, s1.twist, s1.accel, step, T)
-    q0 = tuple(s0.pose.quaternion.tolist())
+    q0 = s0.pose.quaternion_tuple
     for j in range(1, _CHECKS):
         bad = rate_violation(evaluate_segment(table, q0, T * j / _CHECKS), limits)
         if bad is not None:
