@@ -7,6 +7,11 @@ single-actuator controller on each of the 6 tangent components, the command wren
 tau_c = M alpha_c + mu, the back-EMF part f_b = k0 Lambda(eta_r) phi_r, the no-load
 forces f0 = m0 (Lambda alpha_c + c), the tension distribution f_p = F(tau_c, f_b, f0)
 (not in W: infeasible, the daemon brakes), and the commands f_c = f_p + f_b.
+
+Part of a cycle needs no measurement: the reference sample, the forward-kinematics
+guess, f_b and, with model_at = "reference", Lambda, c, M and mu.  `prepare(t)` does that
+part ahead (a daemon calls it while the drives' feedback is on its way), so that
+`step(t, ...)` is left with what the measurement decides.
 """
 
 from __future__ import annotations
@@ -83,6 +88,16 @@ class ControlOutput(NamedTuple):
     tensions: Array
 
 
+class _Prepared(NamedTuple):
+    """A cycle's measurement-free part (see prepare)."""
+
+    t: float
+    reference: Reference
+    guess: Pose
+    f_b: Array
+    model: tuple[Array, Array, Array, Array] | None  # (Lambda, c, M, mu) at the reference
+
+
 class ParallelController:
     """The paper's controller for `robot` with the settings of `spec` (DESIGN §4-§6)."""
 
@@ -108,10 +123,25 @@ class ParallelController:
         self._twist = _ZERO6.copy()
         self._tensions = static_tensions(self.robot, self.tension, pose)
         self._rate_bias = [0.0] * 6  # floats: see _measure_twist
+        self._prepared: _Prepared | None = None
 
     def follow(self, source: ReferenceSource) -> None:
         """Track `source` from the next cycle (a validated, jump-free trajectory)."""
         self.source = source
+        self._prepared = None  # sampled from the old source
+
+    def prepare(self, t: float) -> None:
+        """Compute the measurement-free part of the step at time t ahead of it: the
+        reference sample, the forward-kinematics guess, f_b and, with model_at =
+        "reference", the model terms.  step(t, ...) uses it; a step at another time,
+        reset() and follow() discard it."""
+        robot = self.robot
+        ref = self.source.sample(t)
+        guess = retract(self._pose, self._twist * self.period)
+        model = robot.model_terms(ref.pose, ref.twist) if self._at_reference else None
+        Lam_r = model[0] if model is not None else robot.jacobian(ref.pose)
+        f_b = robot.k0 * Lam_r.dot(ref.twist)  # ndarray.dot: see the cdpr.kinematics docstring
+        self._prepared = _Prepared(t, ref, guess, f_b, model)
 
     @property
     def pose(self) -> Pose:
@@ -126,8 +156,12 @@ class ParallelController:
     def step(self, t: float, lengths: ArrayLike, length_rates: ArrayLike) -> ControlOutput:
         """One control cycle at time t (s) from the measured lengths and rates."""
         robot = self.robot
-        ref = self.source.sample(t)
-        guess = retract(self._pose, self._twist * self.period)
+        if self._prepared is None or self._prepared.t != t:
+            self.prepare(t)
+        prepared = self._prepared
+        assert prepared is not None
+        self._prepared = None
+        ref, guess = prepared.reference, prepared.guess
         # the encoders measure the drums; the last planned tensions stretch the cables
         lengths = np.asarray(lengths, dtype=float)
         fk = robot.forward_kinematics(robot.stretched_lengths(lengths, self._tensions), guess)
@@ -145,14 +179,12 @@ class ParallelController:
             self._error[1] = theta_d_rate
         alpha_c = ref.accel + self.loop.step(self._error)
 
-        if self._at_reference:
-            Lam, c, M, mu = robot.model_terms(ref.pose, ref.twist)
-            Lam_r = Lam
+        if prepared.model is not None:
+            Lam, c, M, mu = prepared.model
         else:
             Lam, c, M, mu = robot.model_terms(pose, twist)
-            Lam_r = robot.jacobian(ref.pose)
-        tau_c = M.dot(alpha_c) + mu  # ndarray.dot: see the cdpr.kinematics docstring
-        f_b = robot.k0 * Lam_r.dot(ref.twist)
+        f_b = prepared.f_b
+        tau_c = M.dot(alpha_c) + mu
         f0 = robot.m0 * (Lam.dot(alpha_c) + c)
         result = self.tension.solve(Lam, tau_c, f_b, f0)
         if result.feasible:

@@ -63,6 +63,13 @@ class BusPort:
 
     # -- input --------------------------------------------------------------------
 
+    def poll(self) -> None:
+        """Deliver the frames queued now, without waiting for the loop to notice them:
+        after the loop was held up, frames that arrived in time may still sit in the
+        socket when a timer fires.  A no-op where a Notifier thread reads the bus."""
+        if self._watch is not None and self._watch.polled:
+            self._drain()
+
     def _drain(self) -> None:
         try:
             frames = self._io.drain()

@@ -41,6 +41,7 @@ class CycleStats:
         self.period = 1.0 / rate_hz
         self.jitter = Ring(window)  # |wake - scheduled tick|
         self.compute = Ring(window)  # cycle run time (controller + encode + send)
+        self.prepare = Ring(window)  # the controller's work done ahead of the feedback
         self.latency = Ring(window)  # last feedback frame received -> last command sent
         self.cycles = 0
         self.deadline_misses = 0  # feedback incomplete at the deadline
@@ -56,5 +57,6 @@ class CycleStats:
             "bus_errors": self.bus_errors,
             "jitter": self.jitter.summary_us(),
             "compute": self.compute.summary_us(),
+            "prepare": self.prepare.summary_us(),
             "latency": self.latency.summary_us(),
         }

@@ -163,7 +163,7 @@ class Service:
         k = math.floor((now - timer.start) / self.period + 1e-9)
         self.stats.jitter.add(now - (timer.start + k * self.period))
         if self._waiting:  # the previous cycle never completed: close it now
-            self._run_cycle(now, deadline=True)
+            self._close_waiting_cycle()
         self._opened = now
         if self.driver.timing is Timing.SYNC:
             self._counts = [fb.count for fb in self.driver.feedback]
@@ -171,14 +171,36 @@ class Service:
         self._send(self.driver.cycle_start())
         if self._all_fresh():
             self._run_cycle(now, deadline=False)
-        else:
-            loop = self._loop
-            assert loop is not None
-            deadline = self.config.safety.feedback_deadline * self.period
-            self._deadline = loop.call_at(loop.time() + deadline, self._on_deadline)
+            return
+        loop = self._loop
+        assert loop is not None
+        deadline = self.config.safety.feedback_deadline * self.period
+        self._deadline = loop.call_at(loop.time() + deadline, self._on_deadline)
+        if self.machine.moving and not self._busy:
+            self._prepare(now)
+
+    def _prepare(self, now: float) -> None:
+        """The controller's measurement-free work for the cycle opened at `now`, done
+        while the feedback is on its way: off the path from the last feedback frame to
+        the commands."""
+        started = time.monotonic()
+        try:
+            self.controller.prepare(now - self._t0)
+        except Exception:  # the step repeats the work and brakes on the error
+            return
+        self.stats.prepare.add(time.monotonic() - started)
 
     def _on_deadline(self) -> None:
         self._deadline = None
+        if self._waiting:
+            self._close_waiting_cycle()
+
+    def _close_waiting_cycle(self) -> None:
+        """The wait for this cycle's feedback is over: run it with what has arrived.
+        Frames already queued count (they came in time while the loop was held up, and
+        the timer that ends the wait may run before the loop reads them); only feedback
+        still missing after that is a miss."""
+        self.port.poll()  # completes the cycle if the missing frames are queued
         if self._waiting:
             self.stats.deadline_misses += 1
             self._run_cycle(time.monotonic(), deadline=True)
@@ -229,7 +251,7 @@ class Service:
         if faults and state in (SafetyState.IDLE, SafetyState.HOLD, SafetyState.TRACKING):
             self._brake(faults[0])
         elif self.machine.moving and not self._busy:
-            self._control(now)
+            self._control()
         elif state is not SafetyState.INIT:
             self._send(self.driver.keepalive())
         done = time.monotonic()
@@ -238,19 +260,22 @@ class Service:
             self.stats.latency.add(done - self._last_rx)
         self.collector.after_cycle()  # the commands are out: now
 
-    def _control(self, now: float) -> None:
+    def _control(self) -> None:
+        """Controller step, checks and commands for the cycle opened at `self._opened`:
+        the cycle's instant, when SYNC latched the drives' positions."""
         feedback = self.driver.feedback
+        instant = self._opened
         if self.driver.timing is Timing.CYCLIC:
-            # Streamed feedback: each cable was sampled at its own time, up to one stream
-            # interval ago; carried forward to this instant with its rate, the lengths
-            # describe one pose and lose the age lag (DESIGN §8).  Never by more than two
-            # intervals: older samples are late, and their rate noise would grow with age.
+            # Streamed feedback: each cable was sampled at its own time; carried to the
+            # cycle's instant with its rate, the lengths describe one pose (DESIGN §8).
+            # Never forward by more than two intervals: older samples are late, and their
+            # rate noise would grow with age.
             reach = self._extrapolation_limit
-            lengths = [fb.length + fb.rate * min(now - fb.stamp, reach) for fb in feedback]
+            lengths = [fb.length + fb.rate * min(instant - fb.stamp, reach) for fb in feedback]
         else:
             lengths = [fb.length for fb in feedback]
         rates = [fb.rate for fb in feedback]
-        t = now - self._t0
+        t = instant - self._t0
         try:
             output = self.controller.step(t, lengths, rates)
         except Exception as exc:

@@ -115,6 +115,12 @@ class BusWatch:
 
             self._notifier = can.Notifier(bus, [from_thread], timeout=0.1)
 
+    @property
+    def polled(self) -> bool:
+        """True when the loop reads the bus itself (a file descriptor), so a caller on
+        the loop may also drain it; False when a Notifier thread owns the reading."""
+        return self._fd >= 0
+
     def close(self) -> None:
         if self._fd >= 0:
             self._loop.remove_reader(self._fd)

@@ -145,3 +145,42 @@ def test_outputs_satisfy_the_papers_relations(reference8: Robot) -> None:
     np.testing.assert_allclose(out.commands, out.f_p + out.f_b, atol=1e-12)
     np.testing.assert_allclose(out.f_b, reference8.k0 * (reference8.jacobian(ref.pose) @ ref.twist))
     assert np.all(out.tensions >= reference8.t_min - 1e-6)
+
+
+@pytest.mark.parametrize("model_at", ["reference", "measured"])
+def test_prepared_steps_equal_plain_steps(reference8: Robot, model_at: str) -> None:
+    """prepare(t) ahead of step(t, ...) changes nothing but when the work is done."""
+    spec = ControllerSpec(model_at=model_at)
+    trajectory = STANDARD_SET["figure_eight"](reference8)
+    run = run_tracking(reference8, trajectory, ParallelController(reference8, spec))
+    rec = run.recording
+    plain, ahead = ParallelController(reference8, spec), ParallelController(reference8, spec)
+    for controller in (plain, ahead):
+        controller.reset(rec.pose(0))
+        controller.follow(trajectory)
+    for k in range(min(len(rec), 600)):  # every cycle: the controllers carry state
+        t = float(rec.t[k])
+        ahead.prepare(t)
+        a = plain.step(t, rec.measured_lengths[k], rec.measured_rates[k])
+        b = ahead.step(t, rec.measured_lengths[k], rec.measured_rates[k])
+        assert a.feasible and b.feasible
+        np.testing.assert_array_equal(a.commands, b.commands)
+        np.testing.assert_array_equal(a.tensions, b.tensions)
+        assert a.pose == b.pose
+
+
+def test_a_preparation_is_dropped_by_follow_and_by_another_time(reference8: Robot) -> None:
+    controller = ParallelController(reference8)
+    lengths = reference8.drum_lengths(
+        reference8.cable_lengths(reference8.home), controller._tensions
+    )
+    trajectory = STANDARD_SET["vertical_lift"](reference8)
+    controller.follow(trajectory)
+    controller.prepare(0.5)
+    out = controller.step(1.0, lengths, np.zeros(8))  # not the prepared time
+    assert out.reference.pose == trajectory.sample(1.0).pose
+    controller.prepare(1.002)
+    moved = Pose.from_rotvec(reference8.home.position + np.array([0.0, 0.0, 0.01]), np.zeros(3))
+    controller.follow(Hold(moved))  # a new source after the preparation
+    out = controller.step(1.002, lengths, np.zeros(8))
+    assert out.reference.pose == moved

@@ -282,3 +282,68 @@ def test_sigterm_brakes_and_exits_zero(protocol: str) -> None:
             sim.close()
 
     assert run(scenario()) == 0
+
+
+def test_the_cycle_prepares_the_controller_while_the_feedback_is_on_its_way() -> None:
+    """CiA 402: each moving cycle's measurement-free controller work runs at the SYNC,
+    and the step of that cycle uses it (same cycle instant); idle cycles prepare nothing."""
+
+    async def scenario() -> None:
+        config = config_for("cia402")
+        async with Stack(config) as stack:
+            service = stack.service
+            controller = service.controller
+            prepared, stepped = [], []
+            prepare, step = controller.prepare, controller.step
+
+            def spy_prepare(t: float) -> None:
+                prepared.append(t)
+                prepare(t)
+
+            def spy_step(t: float, lengths, rates):
+                ahead = controller._prepared
+                stepped.append((t, ahead is not None and ahead.t == t))
+                return step(t, lengths, rates)
+
+            controller.prepare, controller.step = spy_prepare, spy_step
+            await asyncio.sleep(0.1)
+            assert prepared == [] and stepped == []  # idle: no controller work
+            await stack.enable()
+            reply = await service.command("goto", {"pose": _target(config)})
+            assert reply["accepted"]
+            await asyncio.sleep(0.3)
+            assert service.machine.fault is None
+            assert len(stepped) > 50
+            used = [t for t, ready in stepped if ready]
+            assert len(used) > 0.9 * len(stepped)  # the rest: feedback in at the SYNC
+            assert set(used) <= set(prepared)
+            assert service.stats.prepare.values().size > 50
+
+    run(scenario())
+
+
+def test_feedback_queued_when_the_wait_ends_counts_as_in_time() -> None:
+    """After the loop was held up, the feedback may sit in the bus when the deadline
+    timer runs: the cycle uses it and no miss is counted.  Feedback really missing at
+    the deadline still is a miss."""
+
+    async def scenario() -> None:
+        config = config_for("cia402")
+        async with Stack(config) as stack:
+            service = stack.service
+            await stack.enable()
+            await stack.until(lambda: service._waiting, 1.0)
+            # no await from here: the loop cannot read the bus or run the deadline
+            cycles, misses = service.stats.cycles, service.stats.deadline_misses
+            stack.sim.runner._drain()  # the drives see the SYNC and answer into the bus
+            service._on_deadline()
+            assert service.stats.cycles == cycles + 1
+            assert service.stats.deadline_misses == misses
+            assert not service._waiting
+            await stack.until(lambda: service._waiting, 1.0)
+            cycles = service.stats.cycles
+            service._on_deadline()  # the drives have not seen this SYNC yet
+            assert service.stats.cycles == cycles + 1
+            assert service.stats.deadline_misses == misses + 1
+
+    run(scenario())
