@@ -68,9 +68,9 @@ async def serve(
         for sig in (signal.SIGTERM, signal.SIGINT):
             loop.add_signal_handler(sig, service.stop)
         notifier.ready()
-        notifier.status(
-            f"{service.machine.state.value}; {config.robot.name} on {config.can.channel}"
-        )
+        update_status = _status_updates(notifier, service, config)
+        service.subscribe(update_status)
+        update_status({})
         watchdog = asyncio.create_task(
             run_watchdog(notifier, Progress(lambda: service.stats.cycles))
         )
@@ -104,6 +104,29 @@ async def serve(
         for recorder in recorders:
             recorder.close()
         service.close()
+
+
+def _status_text(service: Service, config: DaemonConfig) -> str:
+    """`systemctl status`'s one line: the safety state, the fault that braked, where."""
+    fault = service.machine.fault
+    state = service.machine.state.value
+    where = f"{config.robot.name} on {config.can.channel}"
+    return f"{state}; {where}" if fault is None else f"{state}: {fault.line()}; {where}"
+
+
+def _status_updates(
+    notifier: Notifier, service: Service, config: DaemonConfig
+) -> Callable[[dict], None]:
+    """An event sink that keeps STATUS= current: sent when the line changes."""
+    last = [""]
+
+    def on_event(event: dict) -> None:
+        text = _status_text(service, config)
+        if text != last[0]:
+            last[0] = text
+            notifier.status(text)
+
+    return on_event
 
 
 def _recorders(config: DaemonConfig, service: Service) -> list:

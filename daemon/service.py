@@ -505,6 +505,7 @@ class Service:
         self._trajectory = trajectory
         if self.machine.state is SafetyState.HOLD:
             self.machine.go("track")
+            self._emit({"event": "state", "why": f"{what} accepted"})
         return {
             "accepted": True,
             "what": what,

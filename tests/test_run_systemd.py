@@ -213,6 +213,10 @@ def test_notifications_over_a_run_and_sigterm(tmp_path: Path, notify: NotifySock
     ]
     assert any(i < ready for i, _ in statuses), "no STATUS= progress before READY=1"
     assert any("idle" in text and "reference8" in text for _, text in statuses), statuses
+    # STATUS= follows the safety state while running, the braking fault included
+    after_ready = [text.split(";")[0] for i, text in statuses if ready <= i]
+    assert after_ready[:3] == ["idle", "hold", "tracking"], statuses
+    assert any(t.startswith("braked: BRAKE [sigterm]") for t in after_ready), statuses
     assert all(text.isprintable() for _, text in statuses)
     # the watchdog, fed every WATCHDOG_USEC / 2 between READY=1 and STOPPING=1 (loosely)
     pings = [t for t, batch in messages[ready:stopping] if batch == ["WATCHDOG=1"]]
