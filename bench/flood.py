@@ -28,9 +28,9 @@ what the flooder sent and got back.  Mixes (what the puts are):
     python bench/flood.py [--json] [--seconds 5] [--rate 2000] [--mix refused]
 
 The default mix, "refused", measures the interface's own costs.  With "valid", "large"
-or "all" the service accepts trajectories while the robot moves, and each acceptance
-costs the loop ~20 ms of approach planning (cdpr.trajectory.approach, in the service):
-the robot may brake, which the output then says ("state_after", "fault").
+or "all" the service also accepts trajectories while the robot moves: their validation
+and approach planning run in the control cycle's slack (Service._in_slack).  Should the
+robot brake, the output says so ("state_after", "fault").
 """
 
 from __future__ import annotations

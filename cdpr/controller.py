@@ -50,6 +50,28 @@ class Hold:
         return self.reference
 
 
+class Switch:
+    """`before` until time `at`, `after` from then on: a transition planned to begin at
+    `at` from `before`'s state there takes over exactly when it begins (following it
+    earlier would jump to its start state, held at rest)."""
+
+    def __init__(self, before: ReferenceSource, after: ReferenceSource, at: float) -> None:
+        self.before, self.after, self.at = before, after, at
+
+    def sample(self, t: float) -> Reference:
+        return self.after.sample(t) if t >= self.at else self.before.sample(t)
+
+
+def _pending(source: ReferenceSource, t: float) -> ReferenceSource:
+    """`source` without the switches made by time t (what came before them is over)."""
+    if not isinstance(source, Switch):
+        return source
+    if source.at <= t:
+        return _pending(source.after, t)
+    before = _pending(source.before, t)
+    return source if before is source.before else Switch(before, source.after, source.at)
+
+
 def tension_solver(robot: Robot, spec: ControllerSpec) -> TensionSolver:
     """The tension distribution the controller config asks for (method, reference)."""
     limits = TensionLimits.from_robot(robot, spec.tension.reference)
@@ -124,9 +146,13 @@ class ParallelController:
         self._tensions = static_tensions(self.robot, self.tension, pose)
         self._rate_bias = [0.0] * 6  # floats: see _measure_twist
         self._prepared: _Prepared | None = None
+        self._last_t = -math.inf  # the time of the last step
 
-    def follow(self, source: ReferenceSource) -> None:
-        """Track `source` from the next cycle (a validated, jump-free trajectory)."""
+    def follow(self, source: ReferenceSource, at: float | None = None) -> None:
+        """Track `source` (a validated trajectory) from the next cycle, or from time `at`
+        (the current source until then; `source` must begin there from its state)."""
+        if at is not None:
+            source = Switch(_pending(self.source, self._last_t), source, at)
         self.source = source
         self._prepared = None  # sampled from the old source
 
@@ -161,6 +187,7 @@ class ParallelController:
         prepared = self._prepared
         assert prepared is not None
         self._prepared = None
+        self._last_t = t
         ref, guess = prepared.reference, prepared.guess
         # the encoders measure the drums; the last planned tensions stretch the cables
         lengths = np.asarray(lengths, dtype=float)

@@ -15,8 +15,8 @@ import gc
 import logging
 import math
 import time
-from collections.abc import Awaitable, Callable
-from typing import Any
+from collections.abc import Awaitable, Callable, Generator
+from typing import Any, Literal, TypeVar
 
 import can
 import numpy as np
@@ -34,8 +34,8 @@ from cdpr.trajectory import (
     Reference,
     Trajectory,
     TrajectoryError,
-    approach,
-    goto,
+    approach_steps,
+    goto_steps,
     validation_steps,
 )
 from daemon.api import CommandError
@@ -51,8 +51,11 @@ from drivers.factory import make_driver
 log = logging.getLogger("cdprd")
 
 STARTUP_TIMEOUT = 5.0  # s for the drives to come up
-VALIDATION_SLICE = 4e-4  # s of trajectory validation between returns to the event loop
+SLACK_MARGIN = 3e-4  # s before a tick at which background work stops (> its longest step)
+PLANNING_LEAD = 0.05  # s ahead of now a planned transition begins (planning takes time)
+HOLD_LEAD = 0.01  # the same for a hold: a stop plans in a few ms and should not wait
 EventSink = Callable[[dict[str, Any]], None]
+Result = TypeVar("Result")
 
 
 class Service:
@@ -88,6 +91,8 @@ class Service:
         self._opened = 0.0
         self._counts = [0] * self.n
         self._deadline: asyncio.TimerHandle | None = None
+        self._slack_waiters: list[asyncio.Future[None]] = []  # background work (_in_slack)
+        self._holds = 0  # hold commands so far
         self._last_rx = 0.0
         self._held = np.full(self.n, np.nan)  # last finite measured lengths
         self._trajectory: Trajectory | None = None
@@ -146,6 +151,7 @@ class Service:
             self._timer = None
         if self._deadline is not None:
             self._deadline.cancel()
+        self._wake_slack_waiters()
         self.port.close()
         self.collector.close()
 
@@ -259,6 +265,8 @@ class Service:
         if not deadline and self._last_rx:
             self.stats.latency.add(done - self._last_rx)
         self.collector.after_cycle()  # the commands are out: now
+        if self._slack_waiters:
+            self._wake_slack_waiters()
 
     def _control(self) -> None:
         """Controller step, checks and commands for the cycle opened at `self._opened`:
@@ -378,17 +386,22 @@ class Service:
         self._emit({"event": "state", "why": "disabled"})
         return self.status()
 
-    def _hold(self, args: dict[str, Any]) -> dict[str, Any]:
+    async def _hold(self, args: dict[str, Any]) -> dict[str, Any]:
         self._require_moving("hold")
-        current = self.controller.source.sample(self.now())
-        speed = float(np.linalg.norm(current.twist[:3]))
-        spin = float(np.linalg.norm(current.twist[3:]))
         limits = self.config.trajectory
-        lead = 0.5 * max(speed / limits.linear_accel, spin / limits.angular_accel)
-        target = retract(current.pose, current.twist * lead)
-        stop = goto(current, target, limits, start=self.now())
+
+        def stop(current: Reference, begin: float) -> Generator[None, None, Trajectory]:
+            """To rest about where the current motion would stop under full deceleration."""
+            speed = float(np.linalg.norm(current.twist[:3]))
+            spin = float(np.linalg.norm(current.twist[3:]))
+            coast = 0.5 * max(speed / limits.linear_accel, spin / limits.angular_accel)
+            target = retract(current.pose, current.twist * coast)
+            return goto_steps(current, target, limits, start=begin)
+
+        self._holds += 1  # plans under way when the hold came are dropped
+        planned = await self._plan_ahead(stop, "hold", lead=HOLD_LEAD, validate="none")
         self._trajectory = None
-        self.controller.follow(stop)
+        self.controller.follow(planned, at=planned.start_time)
         if self.machine.state is SafetyState.TRACKING:
             self.machine.go("hold")
         self._emit({"event": "state", "why": "hold"})
@@ -429,7 +442,7 @@ class Service:
             raise CommandError("bad_request", "goto needs a target pose")
         limits = self.config.trajectory
         planned = await self._plan_ahead(
-            lambda current, start: goto(current, target, limits, start=start), "goto"
+            lambda current, start: goto_steps(current, target, limits, start=start), "goto"
         )
         return self._run(planned, "goto")
 
@@ -449,59 +462,98 @@ class Service:
         await self._validate(trajectory, "trajectory")
         limits = self.config.trajectory
 
-        def plan(current: Reference, begin: float) -> Trajectory:
+        def plan(current: Reference, begin: float) -> Generator[None, None, Trajectory]:
             not_before = begin if start is None else max(begin, self.now() + start - time.time())
             shifted = trajectory.shifted(not_before - trajectory.start_time)
-            planned = approach(current, shifted, limits)
+            planned = yield from approach_steps(current, shifted, limits)
             if planned.start_time < begin:  # the blend would start in the past
-                planned = approach(current, shifted, limits, start=begin)
+                planned = yield from approach_steps(current, shifted, limits, start=begin)
             return planned
 
-        planned = await self._plan_ahead(plan, "trajectory", blend_only=True)
+        planned = await self._plan_ahead(plan, "trajectory", validate="blend")
         return self._run(planned, "trajectory")
 
+    async def _in_slack(self, steps: Generator[Any, None, Result]) -> Result:
+        """Run a step generator (validation, transition planning) to its result in the
+        cycle's slack: from the end of one cycle's work until SLACK_MARGIN before the
+        next tick, so that it never delays the handling of feedback or the commands."""
+        while True:
+            await self._slack()
+            timer = self._timer
+            until = math.inf if timer is None else timer.next_expiry() - SLACK_MARGIN
+            while True:  # at least one step per period, however short the slack
+                try:
+                    next(steps)
+                except StopIteration as done:
+                    return done.value
+                if time.monotonic() >= until:
+                    break
+
+    async def _slack(self) -> None:
+        """Return at once when no cycle is open and the next tick is not due within
+        SLACK_MARGIN, else when the coming cycle has run."""
+        timer, loop = self._timer, self._loop
+        if timer is None or loop is None:
+            return
+        if not self._waiting and timer.next_expiry() - time.monotonic() > SLACK_MARGIN:
+            return
+        done = loop.create_future()
+        self._slack_waiters.append(done)
+        await done
+
+    def _wake_slack_waiters(self) -> None:
+        waiters, self._slack_waiters = self._slack_waiters, []
+        for waiter in waiters:
+            if not waiter.done():
+                waiter.set_result(None)
+
     async def _validate(self, trajectory: Trajectory, what: str) -> None:
-        """DESIGN §7 validation, pausing for the event loop every VALIDATION_SLICE."""
+        """DESIGN §7 validation, between control cycles."""
         steps = validation_steps(trajectory, self.robot, self.config.trajectory, self._wrench_check)
-        mark = time.perf_counter()
         try:
-            for _ in steps:
-                if time.perf_counter() - mark > VALIDATION_SLICE:
-                    await asyncio.sleep(0)
-                    mark = time.perf_counter()
+            await self._in_slack(steps)
         except TrajectoryError as exc:
             raise _rejected(what, exc) from None
 
     async def _plan_ahead(
         self,
-        make: Callable[[Reference, float], Trajectory],
+        make: Callable[[Reference, float], Generator[Any, None, Trajectory]],
         what: str,
-        blend_only: bool = False,
+        lead: float = PLANNING_LEAD,
+        validate: Literal["all", "blend", "none"] = "all",
     ) -> Trajectory:
-        """A transition from the current reference, planned to begin a little ahead (its
-        validation takes time) and validated; replanned if validation outlasted the lead.
-        `blend_only`: validate only the first segment (the rest already was)."""
-        lead = 0.05
+        """A transition from the current reference, planned (between control cycles) to
+        begin `lead` seconds ahead and validated; replanned if another command changed the
+        reference meanwhile, or with a longer lead if the work outlasted it.  `validate`:
+        the whole result, only its first segment (the rest already was), or nothing (a
+        hold: stopping may not be refused)."""
+        holds = self._holds
         for _ in range(3):
             begin = self.now() + lead
-            current = self.controller.source.sample(begin)
+            source = self.controller.source
+            current = source.sample(begin)
             try:
-                planned = make(current, begin)
+                planned = await self._in_slack(make(current, begin))
             except TrajectoryError as exc:
                 raise _rejected(what, exc) from None
-            check = planned
-            if blend_only and len(planned.knots) > 1:
-                check = Trajectory(list(planned.knots[:2]))
-            await self._validate(check, what)
+            if validate == "blend":
+                await self._validate(Trajectory(list(planned.knots[:2])), what)
+            elif validate == "all":
+                await self._validate(planned, what)
             self._require_moving(f"run a {what}")  # braked meanwhile: nothing changes
+            if self._holds != holds and what != "hold":
+                raise CommandError("invalid_state", f"{what} dropped: a hold came meanwhile")
+            if self.controller.source is not source:  # another command moved it meanwhile
+                continue
             if self.now() <= planned.start_time:
                 return planned
             lead *= 3
-        raise CommandError("busy", f"{what}: validation kept outlasting the planning lead")
+        raise CommandError("busy", f"{what}: planning kept outlasting its lead")
 
     def _run(self, trajectory: Trajectory, what: str) -> dict[str, Any]:
-        """Follow a validated trajectory from the next cycle."""
-        self.controller.follow(trajectory)
+        """Follow a validated trajectory (planned from the current reference) from its
+        start; tracking from now."""
+        self.controller.follow(trajectory, at=trajectory.start_time)
         self._trajectory = trajectory
         if self.machine.state is SafetyState.HOLD:
             self.machine.go("track")

@@ -77,6 +77,9 @@ log = logging.getLogger(__name__)
 MESSAGES_PER_PASS = 1  # per queue and loop pass: the control cycle waits for at most one
 # handler call per queue (a pass costs tens of µs, so throughput hardly suffers)
 CLOSE_GRACE = 1.0  # s: how long close() waits for commands still running (enable, reset)
+# the commands that wait for the drives or for planning and validation: one at a time
+# (another meanwhile gets "busy"); a hold plans too but must never be turned away
+_ONE_AT_A_TIME = ("enable", "reset", "goto")
 MAX_COMMAND_BYTES = 16 * 1024  # commands are small: decoding one on a zenoh thread is short
 PARSE_SLICE = 2e-4  # s: the parse thread works at most about this long at a time,
 PARSE_PAUSE = 1e-5  # s: then sleeps at least this long (see _Yielding)
@@ -537,15 +540,21 @@ class ZenohInterface:
             return
         if not inspect.isawaitable(result):
             self._reply(query, reply_ok(name, result), ok=True)
-        elif self._command_task is not None and inspect.iscoroutine(result):
+        elif (
+            name in _ONE_AT_A_TIME
+            and self._command_task is not None
+            and inspect.iscoroutine(result)
+        ):
             result.close()  # never started: nothing happened
             self._count("commands_busy")
             busy = CommandError("busy", f"{name}: another command is still running, retry")
             self._reply(query, reply_error(name, busy), ok=False)
-        else:
+        elif name in _ONE_AT_A_TIME:
             task = self._track(self._finish_command(name, result, query))
             self._command_task = task
             task.add_done_callback(self._command_done)
+        else:  # a hold plans its stop for a few ms, and never waits for the slot
+            self._track(self._finish_command(name, result, query))
 
     def _command_done(self, task: asyncio.Future[Any]) -> None:
         if self._command_task is task:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import math
 import os
 import struct
 import time
@@ -67,6 +68,13 @@ class PeriodicTimer:
 
     def fileno(self) -> int:
         return self._fd
+
+    def next_expiry(self) -> float:
+        """The monotonic time of the next expiry."""
+        now = time.monotonic()
+        if now < self.start:
+            return self.start
+        return self.start + (math.floor((now - self.start) / self.period) + 1) * self.period
 
     def expirations(self) -> int:
         """Periods elapsed since the last call (0 if woken spuriously)."""

@@ -184,3 +184,27 @@ def test_a_preparation_is_dropped_by_follow_and_by_another_time(reference8: Robo
     controller.follow(Hold(moved))  # a new source after the preparation
     out = controller.step(1.002, lengths, np.zeros(8))
     assert out.reference.pose == moved
+
+
+def test_a_source_followed_from_a_time_takes_over_then(reference8: Robot) -> None:
+    """follow(source, at): the current reference until `at`, the new one from then; a
+    later follow drops the switches already past."""
+    controller = ParallelController(reference8)
+    lengths = reference8.drum_lengths(
+        reference8.cable_lengths(reference8.home), controller._tensions
+    )
+    first = controller.source
+    lift = STANDARD_SET["vertical_lift"](reference8)
+    controller.follow(lift, at=0.5)
+    assert controller.source.sample(0.499).pose == first.sample(0.499).pose
+    assert controller.source.sample(0.5).pose == lift.sample(0.5).pose
+    out = controller.step(0.4, lengths, np.zeros(8))
+    assert out.reference.pose == reference8.home  # still the hold before the switch
+    moved = Hold(
+        Pose(reference8.home.position + np.array([0.0, 0.0, 0.01]), np.array([1.0, 0, 0, 0]))
+    )
+    controller.follow(moved, at=0.6)  # the switch at 0.5 is still ahead: kept
+    assert controller.source.before.before is first
+    controller.step(0.55, lengths, np.zeros(8))
+    controller.follow(Hold(reference8.home), at=0.7)  # the switch at 0.5 is past: dropped
+    assert controller.source.before.before is lift

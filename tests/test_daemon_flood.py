@@ -1,17 +1,17 @@
 """A zenoh flood against a RUNNING daemon (`cdprd run --sim`, its own process) while the
 robot tracks a trajectory (issue 7, DESIGN §9-§10).
 
-Another process (bench/flood.py --flooder, mix "refused") puts ~2000 messages a second
-on <prefix>/trajectory for a few seconds — 100-waypoint trajectories that parse but start
-in the past (so the service refuses them after the whole decoding cost), malformed,
-deeply nested, oversized and ~2 MB ones — and sends a command or trajectory query every
-tenth put.  (Trajectories the service accepts are left out: each one accepted while the
-robot moves costs the loop ~20 ms of approach planning in the service, measured by
-bench/flood.py --mix valid.)  The daemon must keep control (never BRAKED: a stalled loop
-would let the drives' 50 ms watchdogs or the stale-feedback check brake it), answer
-every query exactly once (possibly "busy"), keep its queues within their depth and its
-memory bounded, and account for every message in the published `interface` counters.
-Timing figures are bench/flood.py's business, not asserted here.
+Another process (bench/flood.py --flooder, mix "all") puts ~2000 messages a second on
+<prefix>/trajectory for a few seconds — valid trajectories (short moves near home, and
+100-waypoint circles) that the service accepts while the robot moves, 100-waypoint
+trajectories that parse but start in the past (so the service refuses them after the
+whole decoding cost), malformed, deeply nested, oversized and ~2 MB ones — and sends a
+command or trajectory query every tenth put.  The daemon must keep control (never
+BRAKED: a stalled loop would let the drives' 50 ms watchdogs or the stale-feedback check
+brake it, and a jump of the reference the tracking-error bound), answer every query
+exactly once (possibly "busy"), keep its queues within their depth and its memory
+bounded, and account for every message in the published `interface` counters.  Timing
+figures are bench/flood.py's business, not asserted here.
 """
 
 from __future__ import annotations
@@ -152,7 +152,7 @@ def test_a_flood_leaves_the_running_daemon_in_control(tmp_path: Path) -> None:
             first = len(states)
             done = subprocess.run(
                 [sys.executable, str(FLOODER), "--flooder", endpoint, "--prefix", PREFIX,
-                 "--seconds", str(SECONDS), "--rate", str(RATE), "--mix", "refused"],
+                 "--seconds", str(SECONDS), "--rate", str(RATE), "--mix", "all"],
                 capture_output=True, text=True, timeout=90, check=True,
             )  # fmt: skip
             flood = json.loads(done.stdout)
@@ -197,6 +197,7 @@ def test_a_flood_leaves_the_running_daemon_in_control(tmp_path: Path) -> None:
     assert flood["replies"].get("busy", 0) > 0  # ... and said so
     assert counters["trajectories_refused"] > 0  # bad input, by the interface
     assert counters["trajectories_rejected"] > 0  # parsed, then refused by the service
+    assert counters["trajectories_accepted"] > 1  # ours, and flood trajectories while moving
     assert rss_after - rss_before < RSS_BOUND
 
 
@@ -317,8 +318,14 @@ class Handler:
         self.running[kind] -= 1
         return {"done": True}
 
+    async def _plan(self) -> dict[str, Any]:
+        await asyncio.sleep(0)  # a hold plans its stop between cycles: awaitable, short
+        return {"state": "hold"}
+
     def command(self, name: str, args: dict[str, Any]) -> Any:
         self.calls.append(name)
+        if name == "hold":
+            return self._plan()
         return self._wait("command") if name in ("enable", "goto") else {"state": "hold"}
 
     def submit_trajectory(self, trajectory: Any, start: float | None) -> Any:
@@ -358,16 +365,17 @@ def test_trajectories_one_at_a_time_parsed_off_the_loop_and_long_commands_singly
                     session.put("cdpr/t/trajectory", json.dumps(body))
                 session.get("cdpr/t/cmd/enable", on_reply, timeout=10.0)
                 await until(lambda: handler.calls.count("enable") == 1)
-                for name in ("goto", "status"):  # goto waits for enable: busy; status not
+                # goto waits for enable: busy; status and hold never wait for the slot
+                for name in ("goto", "status", "hold"):
                     body = json.dumps({"position": [0, 0, 1]}) if name == "goto" else None
                     session.get(f"cdpr/t/cmd/{name}", on_reply, payload=body, timeout=10.0)
-                await until(lambda: len(replies) == 2)
+                await until(lambda: len(replies) == 3)
                 await asyncio.sleep(0.3)  # the trajectories wait for the first verdict
                 assert [c for c in handler.calls if c.startswith("trajectory")] == [
                     "trajectory 100"
                 ]
                 handler.release.set()
-                await until(lambda: len(replies) == 3)
+                await until(lambda: len(replies) == 4)
                 await until(lambda: interface.stats().get("trajectories_accepted") == 3)
                 stats = interface.stats()
         assert handler.most_running == {"command": 1, "trajectory": 1}  # one at a time
@@ -378,9 +386,9 @@ def test_trajectories_one_at_a_time_parsed_off_the_loop_and_long_commands_singly
         for waypoints, thread in parsed_on:
             assert (thread == loop_thread) is (waypoints == 2)
         codes = {r["command"]: r.get("error", {}).get("code") for r in replies}
-        assert codes == {"goto": "busy", "status": None, "enable": None}
+        assert codes == {"goto": "busy", "status": None, "hold": None, "enable": None}
         assert handler.calls.count("goto") == 1  # called, but its coroutine never started
-        assert stats["commands_busy"] == 1 and stats["replies"] == 3
+        assert stats["commands_busy"] == 1 and stats["replies"] == 4
 
     asyncio.run(scenario())
 

@@ -347,3 +347,61 @@ def test_feedback_queued_when_the_wait_ends_counts_as_in_time() -> None:
             assert service.stats.deadline_misses == misses + 1
 
     run(scenario())
+
+
+def test_trajectories_accepted_while_moving_keep_the_reference_continuous() -> None:
+    """Each accepted trajectory (or hold) takes over when its blend begins, from the state
+    the reference has then: the reference never jumps, however often it is replaced."""
+    from cdpr.trajectory import Trajectory, Waypoint
+
+    async def scenario() -> None:
+        config = config_for("cia402")
+        async with Stack(config) as stack:
+            service = stack.service
+            refs: list[tuple[float, np.ndarray]] = []
+            service.cycle_listeners.append(
+                lambda t, out: refs.append((t, out.reference.pose.position.copy()))
+            )
+            await stack.enable()
+            reply = await service.command("goto", {"pose": _target(config, 0.2, 0.0, 0.0)})
+            assert reply["accepted"]
+            home = config.robot.home
+            for k in range(6):
+                await asyncio.sleep(0.08)  # moving fast when the next one arrives
+                end = Pose(home.position + np.array([0.0, 0.1 * (-1) ** k, 0.05]), home.quaternion)
+                trajectory = Trajectory([Waypoint(0.0, home), Waypoint(0.6, end)])
+                reply = await service.submit_trajectory(trajectory, None)
+                assert reply["accepted"]
+            await asyncio.sleep(0.05)
+            await service.command("hold", {})
+            await asyncio.sleep(0.3)
+            assert service.machine.fault is None
+        t = np.array([t for t, _ in refs])
+        positions = np.array([p for _, p in refs])
+        speeds = np.linalg.norm(np.diff(positions, axis=0), axis=1) / np.diff(t)
+        limit = config.trajectory.linear_speed
+        assert speeds.max() > 0.3 * limit  # it did move fast
+        assert speeds.max() <= 1.01 * limit, f"the reference jumped at {speeds.max():.2f} m/s"
+
+    run(scenario())
+
+
+def test_a_hold_drops_the_plans_under_way() -> None:
+    async def scenario() -> None:
+        config = config_for("cia402")
+        async with Stack(config) as stack:
+            service = stack.service
+            await stack.enable()
+            pending = asyncio.ensure_future(
+                service.command("goto", {"pose": _target(config, 0.2, 0.0, 0.0)})
+            )
+            await asyncio.sleep(0)  # the goto has started planning
+            await service.command("hold", {})
+            with pytest.raises(CommandError, match="dropped: a hold came meanwhile"):
+                await pending
+            await asyncio.sleep(0.2)
+            assert service.machine.state is SafetyState.HOLD and service.machine.fault is None
+            error_mm = np.linalg.norm(stack.plant.pose.position - config.robot.home.position)
+            assert error_mm * 1e3 < 1.0  # never went anywhere
+
+    run(scenario())

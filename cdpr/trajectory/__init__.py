@@ -9,7 +9,7 @@ trajectory against rate, cable-length and wrench limits before it runs, and `app
 from cdpr.trajectory.core import SCHEMA_VERSION, Reference, Trajectory, TrajectoryError, Waypoint
 from cdpr.trajectory.limits import TrajectoryLimits, WrenchCheck, validate, validation_steps
 from cdpr.trajectory.parse import parse_trajectory
-from cdpr.trajectory.transitions import approach, goto
+from cdpr.trajectory.transitions import approach, approach_steps, goto, goto_steps, run_steps
 
 __all__ = [
     "SCHEMA_VERSION",
@@ -20,8 +20,11 @@ __all__ = [
     "Waypoint",
     "WrenchCheck",
     "approach",
+    "approach_steps",
     "goto",
+    "goto_steps",
     "parse_trajectory",
+    "run_steps",
     "validate",
     "validation_steps",
 ]

@@ -60,6 +60,7 @@ _HERMITE = np.array(
 )
 # d/dτ on coefficient columns: (D c)_j = (j + 1) c_(j+1)
 _DERIVATIVE = np.diag(np.arange(1.0, 6.0), 1)
+_POWERS = np.arange(6.0)  # of τ, the rows of a segment table
 # ∫₀¹ jerk² dτ as a quadratic form in (c3, c4, c5), then in the Hermite knot data
 _JERK_GRAM = np.array([[36.0, 72.0, 120.0], [72.0, 192.0, 360.0], [120.0, 360.0, 720.0]])
 _JERK_COST = _HERMITE[3:].T @ _JERK_GRAM @ _HERMITE[3:]
@@ -230,6 +231,31 @@ class Trajectory:
         )
         out._times = [w.t for w in out._waypoints]
         out._tables, out._quats, out._rates = self._tables, self._quats, self._rates
+        out._set_ends()
+        return out
+
+    def after_blend(self, first: Waypoint, shift: float) -> Trajectory:
+        """This trajectory shifted by `shift`, preceded by one segment from `first` (its
+        pose, twist and accel all given) into its start state.  The segments already
+        built are reused: the cost is one segment whatever the length."""
+        if first.twist is None or first.accel is None:
+            raise ValueError("the blend's first waypoint needs its twist and accel")
+        out = self.shifted(shift)
+        h = out._times[0] - first.t
+        if not h >= MIN_SEGMENT:
+            raise TrajectoryError(
+                "times_increasing", f"the blend would last {h:.6g} s (< {MIN_SEGMENT:g} s)"
+            )
+        twists, accels = self._rates
+        step = liediff(first.pose, self._waypoints[0].pose)
+        table = segment_table(first.pose, first.twist, first.accel, twists[0], accels[0], step, h)
+        if not np.all(np.isfinite(table)):
+            raise TrajectoryError("finite", "the blend into this trajectory is not finite")
+        out._waypoints = (first, *out._waypoints)
+        out._times = [first.t, *out._times]
+        out._tables = [table, *self._tables]
+        out._quats = [first.pose.quaternion_tuple, *self._quats]
+        out._rates = (np.vstack([first.twist, twists]), np.vstack([first.accel, accels]))
         out._set_ends()
         return out
 
@@ -406,6 +432,16 @@ def _hermite_coefficients(
     c = (_HERMITE @ data) / (h ** np.arange(6.0))[:, None]
     rate = _DERIVATIVE @ c
     return np.hstack([c, rate, _DERIVATIVE @ rate])
+
+
+def segment_rates(table: Array, taus: Array) -> tuple[Array, Array]:
+    """Twists and accels (k x 6 each) at the k times `taus` into a segment: the rates of
+    evaluate_segment for many samples at once (a transition's limit check)."""
+    y = (taus[:, None] ** _POWERS).dot(table).T  # 18 rows: values, rates, accels of [p, θ]
+    omega, omega_dot = angular_rates(y[3:6], y[9:12], y[15:18])
+    twists = np.column_stack([*y[6:9], *omega])
+    accels = np.column_stack([*y[12:15], *omega_dot])
+    return twists, accels
 
 
 def evaluate_segment(table: Array, q0: tuple[float, ...], tau: float) -> Reference:

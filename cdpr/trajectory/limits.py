@@ -53,6 +53,26 @@ def rate_violation(ref: Reference, limits: TrajectoryLimits) -> tuple[str, float
     return None
 
 
+def first_rate_violation(
+    twists: NDArray[np.float64], accels: NDArray[np.float64], limits: TrajectoryLimits
+) -> tuple[int, str, float, str] | None:
+    """rate_violation over samples at once (rows of `twists` and `accels`, k x 6): the
+    first sample exceeding a limit and the first limit it exceeds, as (row, limit name,
+    value, unit), else None."""
+    sources = (twists, accels)
+    sizes = np.stack(
+        [np.linalg.norm(sources[which][:, part], axis=1) for _, _, which, part in _RATES], axis=1
+    )
+    bad = ~(sizes <= [getattr(limits, name) for name, *_ in _RATES])  # NaN fails too
+    rows = np.flatnonzero(bad.any(axis=1))
+    if rows.size == 0:
+        return None
+    row = int(rows[0])
+    col = int(bad[row].argmax())
+    name, unit, _, _ = _RATES[col]
+    return row, name, float(sizes[row, col]), unit
+
+
 def validate(
     trajectory: Trajectory,
     robot: Robot,

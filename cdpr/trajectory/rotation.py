@@ -8,7 +8,7 @@ J_l = I + b[θ]× + c[θ]×² with b = (1 - cos x)/x², c = (x - sin x)/x³, x =
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -37,17 +37,35 @@ _SERIES = tuple(
 
 
 def _jl_coefficients(x2: float) -> tuple[float, float, float, float]:
-    """(b, c, β, γ) for |θ|² = x2: J_l = I + b[θ]× + c[θ]×², β = b'(x)/x, γ = c'(x)/x."""
-    if x2 < _SERIES_BELOW:  # the closed forms below cancel badly near 0
-        b = c = beta = gamma = 0.0
-        for kb, kc, kbeta, kgamma in _SERIES:  # Horner, highest power first
-            b = b * x2 + kb
-            c = c * x2 + kc
-            beta = beta * x2 + kbeta
-            gamma = gamma * x2 + kgamma
-        return b, c, beta, gamma
-    x = math.sqrt(x2)
-    s, co = math.sin(x), math.cos(x)
+    """(b, c, β, γ) for |θ|² = x2: J_l = I + b[θ]× + c[θ]×², β = b'(x)/x, γ = c'(x)/x.
+    x2 may also be an array of samples (then each coefficient is an array)."""
+    if isinstance(x2, np.ndarray):
+        small = x2 < _SERIES_BELOW
+        series = _series_coefficients(x2)
+        closed = _closed_coefficients(np.where(small, 1.0, x2), np.sqrt, np.sin, np.cos)
+        return tuple(np.where(small, a, b) for a, b in zip(series, closed, strict=True))
+    if x2 < _SERIES_BELOW:
+        return _series_coefficients(x2)
+    return _closed_coefficients(x2, math.sqrt, math.sin, math.cos)
+
+
+def _series_coefficients(x2: float) -> tuple[float, float, float, float]:
+    """(b, c, β, γ) from their Taylor series: the closed forms cancel badly near 0."""
+    b = c = beta = gamma = 0.0
+    for kb, kc, kbeta, kgamma in _SERIES:  # Horner, highest power first
+        b = b * x2 + kb
+        c = c * x2 + kc
+        beta = beta * x2 + kbeta
+        gamma = gamma * x2 + kgamma
+    return b, c, beta, gamma
+
+
+def _closed_coefficients(
+    x2: float, sqrt: Callable[[float], float], sin: Callable[[float], float], cos: Callable
+) -> tuple[float, float, float, float]:
+    """(b, c, β, γ) in closed form, with the math or the numpy functions."""
+    x = sqrt(x2)
+    s, co = sin(x), cos(x)
     return (
         (1.0 - co) / x2,
         (x - s) / (x2 * x),
@@ -67,7 +85,8 @@ def left_jacobian(theta: ArrayLike) -> NDArray[np.float64]:
 def angular_rates(
     theta: Sequence[float], theta_dot: Sequence[float], theta_ddot: Sequence[float]
 ) -> tuple[list[float], list[float]]:
-    """World-frame ω and ω̇ of R = exp(θ) R0: ω = J_l θ̇, ω̇ = J_l θ̈ + J̇_l θ̇.
+    """World-frame ω and ω̇ of R = exp(θ) R0: ω = J_l θ̇, ω̇ = J_l θ̈ + J̇_l θ̇.  Each
+    argument is 3 floats, or 3 arrays of samples (then ω and ω̇ are 3 arrays each).
 
     J̇_l θ̇ = β s (θ×θ̇) + γ s θ×(θ×θ̇) + c θ̇×(θ×θ̇) with s = θ·θ̇.  Scalar hot path.
     """

@@ -5,11 +5,18 @@ segment every Trajectory is made of, so the reference stays C² across the joint
 rest to rest the segment is the minimum-jerk profile along the straight line and the
 geodesic, and its duration has a closed form; otherwise the shortest duration whose
 sampled speeds and accelerations respect the limits is searched for.
+
+The search checks a few dozen candidate durations, 127 samples each.  `goto_steps` and
+`approach_steps` are the same functions as generators that yield after every candidate
+(`run_steps` drives one to its result): a daemon planning while its control cycle runs on
+the same event loop can return to the loop between candidates.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Generator
+from typing import TypeVar
 
 import numpy as np
 
@@ -19,26 +26,46 @@ from cdpr.trajectory.core import (
     Trajectory,
     TrajectoryError,
     Waypoint,
-    evaluate_segment,
+    segment_rates,
     segment_table,
 )
-from cdpr.trajectory.limits import TrajectoryLimits, rate_violation
+from cdpr.trajectory.limits import TrajectoryLimits, first_rate_violation, rate_violation
 
 MIN_BLEND = 1e-3  # s: the shortest transition (a goto to where the reference already is)
 _PEAK_SPEED = 15.0 / 8.0  # max of s'(τ) for the minimum-jerk s = 10τ³ - 15τ⁴ + 6τ⁵
 _PEAK_ACCEL = 10.0 / math.sqrt(3.0)  # max of |s''(τ)|
 _CHECKS = 128  # samples per candidate duration
+_SAMPLES = np.arange(1, _CHECKS) / _CHECKS  # the interior samples, as fractions of it
 _GROW = 1.25  # candidate durations grow geometrically from a lower bound ...
 _BISECTIONS = 12  # ... then the first feasible one is refined
 _MARGIN = 1.02  # final duration stretch: headroom for peaks between the samples
+
+Result = TypeVar("Result")
+Steps = Generator[None, None, Result]
+
+
+def run_steps(steps: Steps[Result]) -> Result:
+    """Drive a step generator (goto_steps, approach_steps) to its result."""
+    while True:
+        try:
+            next(steps)
+        except StopIteration as done:
+            return done.value
 
 
 def goto(
     current: Reference, target: Pose, limits: TrajectoryLimits, start: float = 0.0
 ) -> Trajectory:
     """From the current reference state at time `start` to `target`, arriving at rest."""
+    return run_steps(goto_steps(current, target, limits, start))
+
+
+def goto_steps(
+    current: Reference, target: Pose, limits: TrajectoryLimits, start: float = 0.0
+) -> Steps[Trajectory]:
+    """`goto`, yielding between candidate durations."""
     end = Reference(target, np.zeros(6), np.zeros(6))
-    T = _blend_duration(current, end, limits)
+    T = yield from _blend_duration(current, end, limits)
     first = Waypoint(start, current.pose, current.twist, current.accel)
     return Trajectory([first, Waypoint(start + T, target)])
 
@@ -52,25 +79,30 @@ def approach(
     the trajectory follows unchanged, shifted to begin where the blend ends.  No blend
     is added when the current state already is the trajectory's start state.
     """
-    knots = trajectory.knots
-    end = Reference(knots[0].pose, knots[0].twist, knots[0].accel)
+    return run_steps(approach_steps(current, trajectory, limits, start))
+
+
+def approach_steps(
+    current: Reference, trajectory: Trajectory, limits: TrajectoryLimits, start: float | None = None
+) -> Steps[Trajectory]:
+    """`approach`, yielding between candidate durations."""
+    knot = trajectory.knots[0]
+    end = Reference(knot.pose, knot.twist, knot.accel)
     if (
         current.pose == end.pose
         and np.array_equal(current.twist, end.twist)
         and np.array_equal(current.accel, end.accel)
     ):
         return trajectory if start is None else trajectory.shifted(start - trajectory.start_time)
-    T = _blend_duration(current, end, limits)
+    T = yield from _blend_duration(current, end, limits)
     t0 = trajectory.start_time - T if start is None else start
-    offset = t0 + T - trajectory.start_time
-    return Trajectory(
-        [Waypoint(t0, current.pose, current.twist, current.accel)]
-        + [Waypoint(k.t + offset, k.pose, k.twist, k.accel) for k in knots]
-    )
+    first = Waypoint(t0, current.pose, current.twist, current.accel)
+    return trajectory.after_blend(first, t0 + T - trajectory.start_time)
 
 
-def _blend_duration(s0: Reference, s1: Reference, limits: TrajectoryLimits) -> float:
-    """The shortest duration of the s0 -> s1 segment that keeps the rate limits."""
+def _blend_duration(s0: Reference, s1: Reference, limits: TrajectoryLimits) -> Steps[float]:
+    """The shortest duration of the s0 -> s1 segment that keeps the rate limits (a step
+    after each candidate checked)."""
     for name, state in (("current reference", s0), ("target state", s1)):
         bad = rate_violation(state, limits)
         if bad is not None:
@@ -100,6 +132,7 @@ def _blend_duration(s0: Reference, s1: Reference, limits: TrajectoryLimits) -> f
     )
     infeasible = None
     while (bad := _violation(s0, s1, step, span, limits)) is not None:
+        yield
         if span > limits.max_duration:
             limit, value, unit = bad
             raise TrajectoryError(
@@ -113,6 +146,7 @@ def _blend_duration(s0: Reference, s1: Reference, limits: TrajectoryLimits) -> f
     if infeasible is not None:
         lo = infeasible
         for _ in range(_BISECTIONS):
+            yield
             mid = 0.5 * (lo + span)
             if _violation(s0, s1, step, mid, limits) is None:
                 span = mid
@@ -126,9 +160,5 @@ def _violation(
 ) -> tuple[str, float, str] | None:
     """The first rate limit the s0 -> s1 segment of duration T exceeds inside, else None."""
     table = segment_table(s0.pose, s0.twist, s0.accel, s1.twist, s1.accel, step, T)
-    q0 = s0.pose.quaternion_tuple
-    for j in range(1, _CHECKS):
-        bad = rate_violation(evaluate_segment(table, q0, T * j / _CHECKS), limits)
-        if bad is not None:
-            return bad
-    return None
+    hit = first_rate_violation(*segment_rates(table, T * _SAMPLES), limits)
+    return None if hit is None else hit[1:]

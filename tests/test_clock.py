@@ -1,0 +1,31 @@
+"""drivers.clock.PeriodicTimer: the timerfd that opens every control cycle."""
+
+from __future__ import annotations
+
+import math
+import time
+
+import pytest
+
+from drivers.clock import PeriodicTimer
+
+
+def test_expiries_lie_on_the_grid_from_start() -> None:
+    period = 0.01
+    start = time.monotonic() + 0.02
+    with PeriodicTimer(period, start) as timer:
+        assert timer.next_expiry() == start  # before the first expiry
+        assert timer.expirations() == 0  # nothing elapsed yet, never blocks
+        time.sleep(0.02 + 3.5 * period)  # at least 3 expiries after start
+        now = time.monotonic()
+        following = timer.next_expiry()
+        assert now < following <= now + period
+        k = (following - start) / period
+        assert math.isclose(k, round(k), abs_tol=1e-6)
+        assert timer.expirations() >= 4  # start, then 3 more periods at least
+
+
+def test_a_period_must_be_positive() -> None:
+    for period in (0.0, -1.0, math.nan):
+        with pytest.raises(ValueError, match="period must be positive"):
+            PeriodicTimer(period)
