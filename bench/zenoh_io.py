@@ -52,6 +52,9 @@ class StandIn:
     def submit_trajectory(self, trajectory: Any, start: float | None) -> dict[str, Any]:
         return {"accepted": True, "duration": trajectory.duration}
 
+    async def slack(self) -> None:
+        return  # no control cycle here
+
     def state(self) -> dict[str, Any]:
         return {
             "state": "TRACKING",

@@ -82,6 +82,11 @@ class DaemonHandler(Protocol):
         """
         ...
 
+    async def slack(self) -> None:
+        """Return when the control cycle has slack (no cycle waiting for its feedback, the
+        next one not due): the interface publishes the state then, off the cycle's way."""
+        ...
+
     def state(self) -> dict[str, Any]:
         """The state snapshot to publish now (docs/zenoh.md, "State and events").
 

@@ -478,7 +478,7 @@ class Service:
         cycle's slack: from the end of one cycle's work until SLACK_MARGIN before the
         next tick, so that it never delays the handling of feedback or the commands."""
         while True:
-            await self._slack()
+            await self.slack()
             timer = self._timer
             until = math.inf if timer is None else timer.next_expiry() - SLACK_MARGIN
             while True:  # at least one step per period, however short the slack
@@ -489,17 +489,18 @@ class Service:
                 if time.monotonic() >= until:
                     break
 
-    async def _slack(self) -> None:
-        """Return at once when no cycle is open and the next tick is not due within
-        SLACK_MARGIN, else when the coming cycle has run."""
-        timer, loop = self._timer, self._loop
-        if timer is None or loop is None:
-            return
-        if not self._waiting and timer.next_expiry() - time.monotonic() > SLACK_MARGIN:
-            return
-        done = loop.create_future()
-        self._slack_waiters.append(done)
-        await done
+    async def slack(self) -> None:
+        """Return when no cycle is open and the next tick is more than SLACK_MARGIN away
+        (at once if so; daemon.api.DaemonHandler)."""
+        while True:
+            timer, loop = self._timer, self._loop
+            if timer is None or loop is None:
+                return
+            if not self._waiting and timer.next_expiry() - time.monotonic() > SLACK_MARGIN:
+                return
+            done = loop.create_future()
+            self._slack_waiters.append(done)
+            await done  # the coming cycle has run
 
     def _wake_slack_waiters(self) -> None:
         waiters, self._slack_waiters = self._slack_waiters, []

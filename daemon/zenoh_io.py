@@ -247,8 +247,7 @@ class ZenohInterface:
         self._commands: _Inbox[tuple[str, dict[str, Any], zenoh.Query]] | None = None
         self._trajectories: _Inbox[_TrajectoryItem] | None = None
         self._events: _Inbox[bytes] | None = None
-        self._state_timer: asyncio.TimerHandle | None = None
-        self._next_state = 0.0
+        self._state_task: asyncio.Task[None] | None = None
 
     # -- keys ------------------------------------------------------------------------------
 
@@ -285,8 +284,7 @@ class ZenohInterface:
             session.declare_queryable(self.key("cmd/**"), self._on_command_query),
             session.liveliness().declare_token(self.key("alive")),
         ]
-        self._next_state = loop.time()
-        self._state_timer = loop.call_soon(self._publish_state)
+        self._state_task = loop.create_task(self._publish_states())
         log.info("zenoh interface on %s (listen %s)", self.prefix, self.settings.listen_endpoints)
 
     async def close(self) -> None:
@@ -296,8 +294,8 @@ class ZenohInterface:
         if session is None:
             return
         self._closing = True
-        if self._state_timer is not None:
-            self._state_timer.cancel()
+        if self._state_task is not None:
+            self._state_task.cancel()
         for entity in self._entities:
             _quietly(entity.undeclare)
         assert self._commands is not None and self._trajectories is not None
@@ -685,8 +683,24 @@ class ZenohInterface:
             if query is not None:
                 self._reply(query, reply_error("trajectory", error, ident), ok=False)
 
+    async def _publish_states(self) -> None:
+        """The state at `state_rate_hz`, each in the control cycle's slack (a snapshot
+        costs a few hundred microseconds, which must not land between a SYNC and its
+        feedback).  A whole period late: skipped, never a burst to catch up."""
+        loop = asyncio.get_running_loop()
+        period = 1.0 / self.settings.state_rate_hz
+        due = loop.time()
+        while True:
+            await asyncio.sleep(due - loop.time())
+            await self._handler.slack()
+            self._publish_state()
+            due += period
+            now = loop.time()
+            if due <= now:
+                self._count("state_late")
+                due = now + period
+
     def _publish_state(self) -> None:
-        assert self._loop is not None
         try:
             body = self._handler.state()
             self._state_seq += 1
@@ -701,13 +715,6 @@ class ZenohInterface:
             failures = self._counts["state_errors"]
             if failures == 1 or failures % 1000 == 0:
                 log.exception("publishing the state failed (%d times)", failures)
-        period = 1.0 / self.settings.state_rate_hz
-        now = self._loop.time()
-        self._next_state += period
-        if self._next_state <= now:  # a whole period late: skip, never burst to catch up
-            self._count("state_late")
-            self._next_state = now + period
-        self._state_timer = self._loop.call_at(self._next_state, self._publish_state)
 
     def _put_event(self, payload: bytes) -> None:
         try:

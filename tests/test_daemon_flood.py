@@ -332,6 +332,9 @@ class Handler:
         self.calls.append(f"trajectory {len(trajectory.waypoints)}")
         return self._wait("trajectory")
 
+    async def slack(self) -> None:
+        return  # no control cycle here
+
     def state(self) -> dict[str, Any]:
         return {"state": "hold"}
 

@@ -12,6 +12,7 @@ import asyncio
 import math
 import os
 import signal
+import time
 
 import numpy as np
 import pytest
@@ -403,5 +404,38 @@ def test_a_hold_drops_the_plans_under_way() -> None:
             assert service.machine.state is SafetyState.HOLD and service.machine.fault is None
             error_mm = np.linalg.norm(stack.plant.pose.position - config.robot.home.position)
             assert error_mm * 1e3 < 1.0  # never went anywhere
+
+    run(scenario())
+
+
+def test_background_work_runs_only_in_the_cycles_slack() -> None:
+    """Validation and planning steps never run while a cycle waits for its feedback, nor
+    within SLACK_MARGIN of the next tick (give or take the one step that crosses it)."""
+    from daemon.service import SLACK_MARGIN
+
+    async def scenario() -> None:
+        config = config_for("cia402")
+        async with Stack(config) as stack:
+            service = stack.service
+            await stack.enable()
+            seen: list[tuple[bool, float]] = []
+
+            def steps():
+                for _ in range(3000):
+                    lead = service._timer.next_expiry() - time.monotonic()
+                    seen.append((service._waiting, lead))
+                    busy = time.perf_counter() + 5e-5
+                    while time.perf_counter() < busy:  # a 50 us step
+                        pass
+                    yield
+                return "done"
+
+            assert await service._in_slack(steps()) == "done"
+            cycles = service.stats.cycles
+            assert service.machine.fault is None
+        assert not any(waiting for waiting, _ in seen)
+        late = sum(lead < SLACK_MARGIN - 1e-4 for _, lead in seen)  # > one step past
+        assert late <= 0.01 * len(seen)
+        assert cycles > 0
 
     run(scenario())

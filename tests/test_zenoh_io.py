@@ -64,6 +64,7 @@ class StandIn:
         self.refuse_enable = True
         self.delay = 0.0  # s of busy work per call (to make the loop the bottleneck)
         self.state_calls = 0
+        self.slack_waits = 0
 
     def _record(self, *call: Any) -> None:
         self.threads.add(threading.get_ident())
@@ -98,6 +99,9 @@ class StandIn:
 
             return validate()
         return {"duration": trajectory.duration}
+
+    async def slack(self) -> None:
+        self.slack_waits += 1  # a stand-in: no control cycle, slack at once
 
     def state(self) -> dict[str, Any]:
         self.threads.add(threading.get_ident())
@@ -291,6 +295,8 @@ def test_a_plain_zenoh_process_commands_and_sees_replies_state_and_events(
     assert calls[2][1]["pose"] == Pose((0.1, 0.2, 1.3))
     assert sum(c[0] == "trajectory" for c in calls) == 2  # by-put and by-get, not broken-put
     assert running.handler.threads == {running.loop_thread}  # only ever on the loop thread
+    # every state snapshot was taken after waiting for the control cycle's slack
+    assert 0 < running.handler.state_calls <= running.handler.slack_waits
 
 
 def test_awaitable_replies_and_events_from_any_thread(running: Running) -> None:
