@@ -65,6 +65,11 @@ HOME = (0.0, 0.0, 1.25)
 MIXES = ("parse", "valid", "large", "hostile", "all", "refused")
 
 
+# A query waits in the daemon's queue (16 deep) behind the trajectories before it: each
+# parsed within the parse thread's CPU budget (a ~2 MB one can leave it seconds in debt)
+# and validated in the control cycle's slack, so seconds under a flood; the client waits.
+REPLY_TIMEOUT = 30.0  # s
+
 # -- the messages ---------------------------------------------------------------------------
 
 
@@ -175,7 +180,9 @@ def flooder(endpoint: str, prefix: str, seconds: float, rate: float, mix: str) -
         def ask(key: str, body: bytes | None) -> None:
             i = len(replies)
             replies[i] = []
-            session.get(f"{prefix}/{key}", lambda r: on_reply(i, r), payload=body, timeout=10.0)
+            session.get(
+                f"{prefix}/{key}", lambda r: on_reply(i, r), payload=body, timeout=REPLY_TIMEOUT
+            )
 
         block = zenoh.CongestionControl.BLOCK  # every put reaches the daemon
         publisher = session.declare_publisher(f"{prefix}/trajectory", congestion_control=block)
@@ -195,7 +202,7 @@ def flooder(endpoint: str, prefix: str, seconds: float, rate: float, mix: str) -
                     ask(*queries[len(replies) % len(queries)])
             time.sleep(0.001)
         elapsed = time.monotonic() - start
-        deadline = time.monotonic() + 12.0
+        deadline = time.monotonic() + REPLY_TIMEOUT + 2.0
         while time.monotonic() < deadline and any(not r for r in replies.values()):
             time.sleep(0.05)
     codes = Counter(code for r in replies.values() for code in r)

@@ -156,7 +156,14 @@ def test_a_flood_leaves_the_running_daemon_in_control(tmp_path: Path) -> None:
                 capture_output=True, text=True, timeout=90, check=True,
             )  # fmt: skip
             flood = json.loads(done.stdout)
-            wait_for(lambda: balanced(states[-1]["interface"]), 20.0, "every message decided")
+            try:
+                wait_for(lambda: balanced(states[-1]["interface"]), 40.0, "every decision")
+            except AssertionError:
+                last = states[-1]
+                pytest.fail(
+                    f"not every message decided: {last['interface']} (state seq {last['seq']}, "
+                    f"{len(states)} states, state {last['state']})"
+                )
             rss_after = process.memory_info().rss
             during = states[first:]
             counters = states[-1]["interface"]
