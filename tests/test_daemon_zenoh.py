@@ -5,7 +5,6 @@ unchanged, a valid one accepted and flown, state and events seen; SIGTERM exits 
 from __future__ import annotations
 
 import json
-import signal
 import subprocess
 import sys
 import time
@@ -16,6 +15,7 @@ import yaml
 import zenoh
 
 from tests.loopback import free_port
+from tests.processes import finish
 
 ROOT = Path(__file__).resolve().parent.parent
 CONFIG = ROOT / "config" / "reference8-cia402.yaml"
@@ -109,11 +109,6 @@ def test_plain_zenoh_client_drives_a_simulated_daemon(tmp_path: Path) -> None:
         finally:
             session.close()
     finally:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            out, _ = proc.communicate(timeout=15)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            out, _ = proc.communicate()
+        out = finish(proc)
     assert proc.returncode == 0, out
     assert "BRAKE [sigterm]" in out

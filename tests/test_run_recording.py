@@ -9,7 +9,6 @@ import itertools
 import json
 import math
 import os
-import signal
 import subprocess
 import sys
 import time
@@ -23,6 +22,7 @@ from mcap.reader import make_reader
 from daemon.client import CdprClient, UnreachableError
 from daemon.recording import CYCLE_SCHEMA, CYCLE_SCHEMA_NAME, CYCLE_TOPIC, CanRecorder
 from tests.loopback import free_port
+from tests.processes import finish, stop_impatiently
 
 ROOT = Path(__file__).resolve().parent.parent
 CONFIG = ROOT / "config" / "reference8-cia402.yaml"
@@ -52,18 +52,11 @@ def _start(config: Path) -> subprocess.Popen:
 
 
 def _finish(proc: subprocess.Popen, impatient: bool = True) -> str:
-    """SIGTERM every 20 ms until the daemon exits, as an impatient operator would (or
-    with `impatient` false just wait), and its output; killed if it hangs."""
-    end = time.monotonic() + 15.0
-    while impatient and proc.poll() is None and time.monotonic() < end:
-        proc.send_signal(signal.SIGTERM)
-        time.sleep(0.02)
-    try:
-        out, _ = proc.communicate(timeout=15)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        out, _ = proc.communicate()
-    return out
+    """SIGTERM every 20 ms until the daemon exits (or with `impatient` false just wait),
+    and its output."""
+    if impatient:
+        stop_impatiently(proc)
+    return finish(proc, terminate=False)
 
 
 def _connect(port: int, proc: subprocess.Popen, timeout: float = 20.0) -> CdprClient:

@@ -24,6 +24,7 @@ import yaml
 
 from daemon.client import CdprClient, RequestError
 from tests.loopback import free_port
+from tests.processes import finish, stop_impatiently
 
 ROOT = Path(__file__).resolve().parent.parent
 CONFIG = ROOT / "config" / "reference8-cia402.yaml"
@@ -110,26 +111,6 @@ def _start(config: Path, notify: NotifySocket) -> subprocess.Popen:
     )
 
 
-def _finish(proc: subprocess.Popen) -> str:
-    """SIGTERM (if still running) and the daemon's output; killed if it hangs."""
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGTERM)
-    try:
-        out, _ = proc.communicate(timeout=15)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        out, _ = proc.communicate()
-    return out
-
-
-def _stop_impatiently(proc: subprocess.Popen, timeout: float = 15.0) -> None:
-    """SIGTERM every 20 ms until the daemon exits, as an impatient operator would."""
-    end = time.monotonic() + timeout
-    while proc.poll() is None and time.monotonic() < end:
-        proc.send_signal(signal.SIGTERM)
-        time.sleep(0.02)
-
-
 def _listening(pid: int, port: int) -> bool:
     return any(
         c.status == psutil.CONN_LISTEN and c.laddr.port == port
@@ -152,7 +133,7 @@ def _ready_client(
     try:
         notify.wait_for("READY=1", 30.0, after)
     except AssertionError:
-        pytest.fail(f"no READY=1 from the daemon: {_finish(proc)}")
+        pytest.fail(f"no READY=1 from the daemon: {finish(proc)}")
     assert _listening(proc.pid, port), "READY=1 before zenoh listens"
     client = CdprClient(PREFIX, f"tcp/127.0.0.1:{port}", timeout=5.0)
     status = client.status()
@@ -186,13 +167,13 @@ def test_notifications_over_a_run_and_sigterm(tmp_path: Path, notify: NotifySock
             sigterm_at = time.monotonic()
             proc.send_signal(signal.SIGTERM)
             stopping = notify.wait_for("STOPPING=1", 10.0)
-            _stop_impatiently(proc)  # more SIGTERMs must not cut the clean-up short
+            stop_impatiently(proc)  # more SIGTERMs must not cut the clean-up short
             end = time.monotonic() + 2.0  # the interface publishes queued events as it closes
             while not any(e.get("event") == "brake" for e in events) and time.monotonic() < end:
                 time.sleep(0.02)
             subscriber.undeclare()
     finally:
-        out = _finish(proc)
+        out = finish(proc)
     assert proc.returncode == 0, out
     assert "BRAKE [sigterm]" in out, out
     assert "Traceback" not in out and "sd_notify" not in out, out  # no failed notification
@@ -238,7 +219,7 @@ def test_a_restarted_daemon_comes_up_idle_and_never_moves(
             client.send_trajectory(_trajectory([-0.1, 0.05, 1.3], 3.0))
             _wait_state(client, "tracking", 5.0)
     finally:
-        out = _finish(first)  # stopped mid-flight
+        out = finish(first)  # stopped mid-flight
     assert first.returncode == 0 and "BRAKE [sigterm]" in out, out
 
     done = len(notify.snapshot())
@@ -263,7 +244,7 @@ def test_a_restarted_daemon_comes_up_idle_and_never_moves(
             subscriber.undeclare()
             assert client.status()["state"] == "idle"
     finally:
-        out = _finish(second)
+        out = finish(second)
     assert second.returncode == 0, out
     assert "BRAKE" not in out, out  # nothing moved, nothing to brake
     assert {s["state"] for s in states} == {"idle"}
