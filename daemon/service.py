@@ -36,6 +36,7 @@ from cdpr.trajectory import (
     TrajectoryError,
     approach_steps,
     goto_steps,
+    run_steps,
     validation_steps,
 )
 from daemon.api import CommandError
@@ -399,7 +400,17 @@ class Service:
             return goto_steps(current, target, limits, start=begin)
 
         self._holds += 1  # plans under way when the hold came are dropped
-        planned = await self._plan_ahead(stop, "hold", lead=HOLD_LEAD, validate="none")
+        try:
+            planned = await self._plan_ahead(
+                stop, "hold", lead=HOLD_LEAD, validate="none", attempts=2
+            )
+        except CommandError as exc:
+            if exc.code != "busy":
+                raise
+            # a hold is never refused for want of time: plan it in one piece (~5 ms on
+            # the loop, an occasional late cycle) rather than let the robot carry on
+            begin = self.now() + HOLD_LEAD
+            planned = run_steps(stop(self.controller.source.sample(begin), begin))
         self._trajectory = None
         self.controller.follow(planned, at=planned.start_time)
         if self.machine.state is SafetyState.TRACKING:
@@ -522,14 +533,16 @@ class Service:
         what: str,
         lead: float = PLANNING_LEAD,
         validate: Literal["all", "blend", "none"] = "all",
+        attempts: int = 3,
     ) -> Trajectory:
         """A transition from the current reference, planned (between control cycles) to
         begin `lead` seconds ahead and validated; replanned if another command changed the
-        reference meanwhile, or with a longer lead if the work outlasted it.  `validate`:
+        reference meanwhile, or with a longer lead if the work outlasted it (`attempts` in
+        all, then CommandError "busy").  `validate`:
         the whole result, only its first segment (the rest already was), or nothing (a
         hold: stopping may not be refused)."""
         holds = self._holds
-        for _ in range(3):
+        for _ in range(attempts):
             begin = self.now() + lead
             source = self.controller.source
             current = source.sample(begin)

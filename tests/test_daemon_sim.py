@@ -439,3 +439,30 @@ def test_background_work_runs_only_in_the_cycles_slack() -> None:
         assert cycles > 0
 
     run(scenario())
+
+
+def test_a_hold_is_never_refused_for_want_of_planning_time(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """With no lead at all, planning in the slack always comes too late: the hold is then
+    planned in one piece and still stops the robot."""
+    import daemon.service
+
+    async def scenario() -> None:
+        config = config_for("cia402")
+        async with Stack(config) as stack:
+            service = stack.service
+            await stack.enable()
+            assert (await service.command("goto", {"pose": _target(config, 0.2, 0.0, 0.0)}))[
+                "accepted"
+            ]
+            await asyncio.sleep(0.15)  # moving
+            monkeypatch.setattr(daemon.service, "HOLD_LEAD", 0.0)
+            reply = await service.command("hold", {})
+            assert reply["state"] == "hold"
+            await asyncio.sleep(0.5)
+            positions, lowest = await stack.watch(0.2)
+            _assert_no_fall(positions, lowest, allowed_mm=0.5)  # stopped
+            assert service.machine.fault is None
+
+    run(scenario())
