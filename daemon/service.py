@@ -167,8 +167,7 @@ class Service:
             return
         now = time.monotonic()
         self.stats.overruns += expired - 1
-        k = math.floor((now - timer.start) / self.period + 1e-9)
-        self.stats.jitter.add(now - (timer.start + k * self.period))
+        self.stats.jitter.add(now - timer.last_expiry(now))
         if self._waiting:  # the previous cycle never completed: close it now
             self._close_waiting_cycle()
         self._opened = now

@@ -26,8 +26,9 @@ switch interval (5 ms) and, on a loaded host, for a CPU.  So it pauses every PAR
 (a profile hook, _Yielding: cdpr's parser has no points to pause at), runs at the lowest
 OS priority, uses at most PARSE_SHARE of a core in a long flood, and long JSON is decoded
 in pieces (daemon.messages.decode_json) so that no single C call holds the GIL long.  Of
-the commands, one whose handler returns an awaitable (enable, reset, goto) runs at a
-time; another such command meanwhile is answered "busy" and never started.
+the commands that wait for the drives or for planning (enable, reset, goto:
+_ONE_AT_A_TIME) one runs at a time; another one meanwhile is answered "busy" and never
+started.  A hold, which plans its stop for a few ms, is never turned away.
 
 One queryable serves cmd/** (rather than one per command) so that an unknown command gets
 a clear error reply, and so that a wildcard query (cmd/*) is refused instead of running

@@ -69,12 +69,19 @@ class PeriodicTimer:
     def fileno(self) -> int:
         return self._fd
 
+    def last_expiry(self, now: float) -> float:
+        """The monotonic time of the latest expiry at or before `now` (a wake-up's
+        lateness is `now` minus this); `start` while the first is still ahead."""
+        if now < self.start:
+            return self.start
+        return self.start + math.floor((now - self.start) / self.period + 1e-9) * self.period
+
     def next_expiry(self) -> float:
         """The monotonic time of the next expiry."""
         now = time.monotonic()
         if now < self.start:
             return self.start
-        return self.start + (math.floor((now - self.start) / self.period) + 1) * self.period
+        return self.last_expiry(now) + self.period
 
     def expirations(self) -> int:
         """Periods elapsed since the last call (0 if woken spuriously)."""

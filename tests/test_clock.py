@@ -29,3 +29,13 @@ def test_a_period_must_be_positive() -> None:
     for period in (0.0, -1.0, math.nan):
         with pytest.raises(ValueError, match="period must be positive"):
             PeriodicTimer(period)
+
+
+def test_the_last_expiry_is_the_grid_point_at_or_before_now() -> None:
+    period, start = 0.01, 100.0
+    with PeriodicTimer(period, time.monotonic() + 60.0) as timer:
+        timer.start = start  # the grid arithmetic only; the fd never fires here
+        assert timer.last_expiry(99.0) == start  # the first one is still ahead
+        assert timer.last_expiry(100.0) == start
+        assert timer.last_expiry(100.0349) == pytest.approx(100.03)
+        assert timer.last_expiry(100.03) == pytest.approx(100.03)  # on a tick: that one
