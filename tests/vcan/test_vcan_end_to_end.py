@@ -98,6 +98,11 @@ def _write_config(protocol: Protocol, directory: Path, port: int) -> Path:
     data["can"] = {"interface": "socketcan", "channel": CHANNEL, "bitrate": 1_000_000}
     data["controller"]["rate_hz"] = RATE_HZ
     data["controller"]["pid"] = {"kp": 60.0, "ki": 20.0, "kd": 10.0}  # tuned for 100 Hz
+    # The guest delays commands by two or three cycles at times (late timers, stalls,
+    # the simulator's coarse wakes).  At 100 Hz the cables' elastic mode (30-50 Hz,
+    # `cdprd analyze`) then decides stability: in lock-step this loop holds with up to
+    # 5 cycles of delay with the model at the measured pose, only 2 at the reference.
+    data["controller"]["model_at"] = "measured"
     data["zenoh"]["listen"] = [f"tcp/127.0.0.1:{port}"]
     # UML's timers are coarse and its processes stall for tens of milliseconds (see the
     # module docstring): wider feedback deadlines and drive watchdogs than on hardware
@@ -131,12 +136,15 @@ class Watch:
     """State samples and events the daemon publishes, gathered from zenoh threads."""
 
     states: list[dict[str, Any]] = field(default_factory=list)
+    arrivals: list[float] = field(default_factory=list)
+    """time.monotonic() at which each of `states` arrived."""
     events: list[dict[str, Any]] = field(default_factory=list)
     lock: threading.Lock = field(default_factory=threading.Lock)
 
     def on_state(self, sample: dict[str, Any]) -> None:
         with self.lock:
             self.states.append(sample)
+            self.arrivals.append(time.monotonic())
 
     def on_event(self, event: dict[str, Any]) -> None:
         with self.lock:
@@ -159,11 +167,42 @@ class Watch:
                 if predicate(sample):
                     return sample
             time.sleep(0.02)
-        last = self.latest() if self.states else {}
+        raise AssertionError(f"{what}: not seen within {timeout} s; {self._last_words()}")
+
+    def wait_settled(
+        self, timeout: float, span: float = 0.5, within: float = 0.0003
+    ) -> dict[str, Any]:
+        """The first state sample that ends `span` seconds of samples whose positions
+        all lie within `within` metres of it: the platform has stopped moving.  Right
+        after a trajectory the servos are still closing the last millimetres."""
+
+        def settled() -> dict[str, Any] | None:
+            with self.lock:
+                now = self.arrivals[-1] if self.arrivals else 0.0
+                recent = [
+                    s
+                    for s, t in zip(self.states, self.arrivals, strict=True)
+                    if t >= now - span and "pose" in s
+                ]
+                covered = bool(self.arrivals) and self.arrivals[0] < now - span
+            if not covered or len(recent) < 3:
+                return None
+            last = _position(recent[-1])
+            spread = max(np.linalg.norm(_position(s) - last) for s in recent)
+            return recent[-1] if spread < within else None
+
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            if (sample := settled()) is not None:
+                return sample
+            time.sleep(0.05)
         raise AssertionError(
-            f"{what}: not seen within {timeout} s; last state {last.get('state')!r}, "
-            f"fault {last.get('fault')!r}"
+            f"the platform did not settle within {timeout} s; {self._last_words()}"
         )
+
+    def _last_words(self) -> str:
+        last = self.latest() if self.states else {}
+        return f"last state {last.get('state')!r}, fault {last.get('fault')!r}"
 
     def wait_event(self, name: str, timeout: float, since: int = 0) -> dict[str, Any]:
         end = time.monotonic() + timeout
@@ -308,7 +347,7 @@ def _check_flight(stack: Stack, flight: list[dict[str, Any]]) -> None:
 
 def _garbage_is_refused(stack: Stack) -> None:
     watch = stack.watch
-    before = watch.wait_state(lambda s: "pose" in s, 5, "a state sample")
+    before = watch.wait_settled(15)
     for frame in stack.protocol.garbage:
         _cansend(frame)
     after = watch.wait_state(
