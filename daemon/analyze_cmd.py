@@ -21,7 +21,8 @@ low, high, total, analysed, skipped {rank, lengths, tensions}, modal_mass_range,
 settling_time_range, max_overshoot, all_stable, points [poses, modes without poles]},
 robustness {m0, sweep_end, largest_stable_mass, stable_to_sweep_end,
 largest_modal_mass, covers_workspace, sweep [{mass, stable, spectral_radius,
-settling_time, overshoot}]}, plots [files].  Non-finite numbers are null.
+settling_time, overshoot}]}, latency_tolerance {seconds, periods, limiting_mass,
+searched_to, mass_range}, plots [files].  Non-finite numbers are null.
 """
 
 from __future__ import annotations
@@ -163,8 +164,23 @@ def _text_lines(a: Analysis, plots: list[str]) -> list[str]:
     if a.covers_workspace and edge is not None and not rob.stable_to_sweep_end:
         claim += f" (margin x{edge / largest:.2f})"
     lines.append(claim)
+    lines.append(_latency_line(a))
     lines += [f"wrote {name}" for name in plots]
     return lines
+
+
+def _latency_line(a: Analysis) -> str:
+    lat, period = a.latency, a.spec.period
+    masses = f"{lat.masses.min():.3g} to {lat.masses.max():.3g} kg"
+    if lat.seconds is None:
+        return f"latency tolerance: none, the {lat.limiting_mass:.3g} kg loop is unstable as it is"
+    line = (
+        f"latency tolerance: stable for masses {masses} while the drives apply each command "
+        f"up to {1e3 * lat.seconds:.3g} ms ({lat.periods(period):.2f} periods) after its sample"
+    )
+    if lat.limiting_mass is None:
+        return line + " (the scan's end)"
+    return line + f"; beyond, the {lat.limiting_mass:.3g} kg loop goes unstable first"
 
 
 def _mode_table(p: PoseAnalysis) -> list[str]:
@@ -270,6 +286,13 @@ def to_json(a: Analysis, config: str, shrink: float, plots: list[str]) -> dict[s
                     }
                     for loop in rob.sweep
                 ],
+            },
+            "latency_tolerance": {
+                "seconds": a.latency.seconds,
+                "periods": a.latency.periods(spec.period),
+                "limiting_mass": a.latency.limiting_mass,
+                "searched_to": a.latency.searched_to,
+                "mass_range": [a.latency.masses.min(), a.latency.masses.max()],
             },
             "plots": plots,
         }

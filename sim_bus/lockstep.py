@@ -1,16 +1,18 @@
 """Lock-step co-simulation: a controller callback driving a simulated plant.
 
 Simulated time only: each control cycle at t_k = k / rate_hz the runner reads the
-drives' measurements, calls ``controller(t_k, lengths, rates)``, and holds the
-returned force commands (zero-order hold) over [t_k, t_k+1) — or, with
-``delay_cycles = d``, over [t_k+d, t_k+d+1), the first d cycles keeping the plant's
-held commands — then advances the plant by whole plant steps.  Deterministic, and as
-fast as the plant steps.  Each cycle records the plant's true state at t_k (after the
-commands took effect) with the measurement and the commands, for tests and tools.
+drives' measurements, calls ``controller(t_k, lengths, rates)``, and the drives apply
+the returned force commands at t_k + ``latency`` (default at once; a whole number of
+plant steps) and hold them (zero-order hold) until the next ones take effect; until
+the first one does, the plant's held commands stay.  The plant advances by whole plant
+steps.  Deterministic, and as fast as the plant steps.  Each cycle records the plant's
+true state at t_k (after the commands due then took effect) with the measurement and
+the commands, for tests and tools.
 """
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -47,7 +49,7 @@ class Simulated(Protocol):
 class Recording:
     """Time series of a run, one row per control cycle: ``t`` (s), ``measured_lengths``
     and ``measured_rates`` (what the controller saw), ``commands`` (what it returned),
-    ``applied`` (what the drives held over the cycle: delayed and saturated), and the
+    ``applied`` (what the drives held at t_k: delayed and saturated), and the
     plant's true state (Plant: position, quaternion, twist, lengths, rates,
     cable_lengths, tensions, forces).  Every series is a numpy array, read as an
     attribute or by name."""
@@ -87,20 +89,24 @@ def run_lockstep(
     controller: Controller,
     duration: float,
     rate_hz: float,
-    delay_cycles: int = 0,
+    latency: float = 0.0,
 ) -> Recording:
     """Run `controller` at `rate_hz` on `plant` for `duration` seconds of simulated
-    time (see the module docstring); returns the Recording."""
+    time, its commands applied `latency` seconds late (see the module docstring);
+    returns the Recording."""
     step = plant.config.step
     steps_per_cycle = round(1.0 / (rate_hz * step))
     if steps_per_cycle < 1 or abs(steps_per_cycle * step * rate_hz - 1.0) > 1e-9:
         raise ValueError(
             f"the control period 1/{rate_hz} s is not a whole number of {step} s plant steps"
         )
-    if delay_cycles < 0:
-        raise ValueError(f"delay_cycles must be >= 0, got {delay_cycles}")
+    late_steps = round(latency / step) if math.isfinite(latency) else -1
+    if late_steps < 0 or abs(late_steps * step - latency) > 1e-9:
+        raise ValueError(
+            f"latency must be a whole number (>= 0) of {step} s plant steps, got {latency}"
+        )
     cycles = round(duration * rate_hz)
-    pending: deque[list[float]] = deque([plant.commands.tolist()] * delay_cycles)
+    pending: deque[tuple[int, list[float]]] = deque()  # (plant step due, commands)
     rows: dict[str, list[Any]] = {
         "t": [],
         "measured_lengths": [],
@@ -108,19 +114,21 @@ def run_lockstep(
         "commands": [],
         "applied": [],
     }
-    for _ in range(cycles):
+    for k in range(cycles):
         t = plant.time
         lengths, rates = plant.measure()
         commands = np.asarray(controller(t, lengths, rates), dtype=float).reshape(-1).tolist()
-        pending.append(commands)
-        plant.set_commands(pending.popleft())
-        rows["t"].append(t)
-        rows["measured_lengths"].append(lengths)
-        rows["measured_rates"].append(rates)
-        rows["commands"].append(commands)
-        rows["applied"].append(plant.commands)
-        for name, value in plant.snapshot().items():
-            rows.setdefault(name, []).append(value)
-        for _ in range(steps_per_cycle):
+        pending.append((k * steps_per_cycle + late_steps, commands))
+        for j in range(k * steps_per_cycle, (k + 1) * steps_per_cycle):
+            while pending and pending[0][0] <= j:
+                plant.set_commands(pending.popleft()[1])
+            if j == k * steps_per_cycle:
+                rows["t"].append(t)
+                rows["measured_lengths"].append(lengths)
+                rows["measured_rates"].append(rates)
+                rows["commands"].append(commands)
+                rows["applied"].append(plant.commands)
+                for name, value in plant.snapshot().items():
+                    rows.setdefault(name, []).append(value)
             plant.step()
     return Recording({name: np.array(values, dtype=float) for name, values in rows.items()})

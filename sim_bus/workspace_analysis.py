@@ -3,7 +3,7 @@
 The paper's Assertion: along each eigenvector sigma_i of N = M^-1 Lambda^T Lambda the
 robot's small-signal error obeys the single-actuator closed loop with effective mass
 m_i = 1 / eig_i(N) in [m0, inf] (Lemma 1).  So the robot's modes at a pose are those of
-sim_bus.analysis.loop_modes with m = m_i, and gains that keep the rig stable for every
+sim_bus.analysis.Rig.loop with m = m_i, and gains that keep the rig stable for every
 m from m0 up to the largest modal mass of the workspace work everywhere (claim 1).
 
 The rig uses the first cable's actuator, the robot's cable stiffness (EA), a cable as
@@ -13,6 +13,10 @@ tension gives the platform (internal_stiffness): model_at = measured cancels it 
 the cables and actuators (exactly only when they are fast against it), model_at =
 reference leaves it in the loop.  Each analysed pose reports it per unit modal mass, to
 be compared with the controller's own stiffness (k_p for a PID).
+
+Latency tolerance: how late the drives may apply a command, after the sample it answers,
+before the rig goes unstable at some mass between the lightest and the heaviest modal
+mass found.  The cable's elastic mode (tens of Hz) is what delay destabilises.
 """
 
 from __future__ import annotations
@@ -29,10 +33,8 @@ from scipy.linalg import eigh
 from cdpr import Pose, Robot, retract
 from cdpr.control_spec import ControllerSpec
 from cdpr.controller import static_tensions, tension_solver
-from cdpr.description import ActuatorSpec
-from cdpr.single_actuator import Discretisation, LinearController
 from cdpr.tension import TensionSolver
-from sim_bus.analysis import LoopModes, loop_modes, robust_mass_range
+from sim_bus.analysis import LoopModes, Rig
 from sim_bus.plant.config import CableConfig, PlantConfig
 
 Array = NDArray[np.float64]
@@ -40,6 +42,7 @@ Progress = Callable[[int, int], None]  # (done, total)
 
 SKIP_REASONS = ("rank", "lengths", "tensions")  # why a grid pose is not analysed
 SWEEP_END = 1e4  # kg: the robustness sweep covers [m0, SWEEP_END]
+LATENCY_MASSES = 24  # masses log-spaced over the modal masses found, for the latency scan
 _ZERO6 = np.zeros(6)
 
 
@@ -95,7 +98,7 @@ class PredictedMode(NamedTuple):
 
 
 def predicted_mode(loop: LoopModes) -> PredictedMode:
-    """Summarise loop_modes' result: dominant pole, resonance, step figures."""
+    """Summarise Rig.loop's result: dominant pole, resonance, step figures."""
     poles = loop.poles[np.isfinite(loop.poles)]
     s = poles[0]
     oscillatory = poles[poles.imag > 1e-9]
@@ -116,34 +119,6 @@ def predicted_mode(loop: LoopModes) -> PredictedMode:
         loop.overshoot,
         poles,
     )
-
-
-class Rig(NamedTuple):
-    """The single-actuator rig that predicts the robot's modes (see module docstring)."""
-
-    actuator: ActuatorSpec
-    controller: LinearController
-    period: float
-    method: Discretisation
-    config: PlantConfig
-    cable_length: float  # m
-    preload: float  # N
-
-    def loop(self, mass: float) -> LoopModes:
-        """loop_modes of this rig with effective mass `mass` (finite, >= m0)."""
-        return loop_modes(
-            self.actuator,
-            mass,
-            self.controller,
-            self.period,
-            self.config,
-            self.cable_length,
-            self.preload,
-            self.method,
-        )
-
-    def mode(self, mass: float) -> PredictedMode:
-        return predicted_mode(self.loop(mass))
 
 
 def rig_for(robot: Robot, spec: ControllerSpec, config: PlantConfig | None = None) -> Rig:
@@ -202,7 +177,7 @@ def analyse_pose(robot: Robot, rig: Rig, tension: TensionSolver, pose: Pose) -> 
     K = internal_stiffness(robot, pose, static.tensions)
     M = robot.mass_matrix(pose)
     per_mass = np.einsum("ij,ji->i", basis.duals, np.linalg.solve(M, K @ basis.vectors))
-    modes = tuple(rig.mode(float(m)) for m in basis.masses)
+    modes = tuple(predicted_mode(rig.loop(float(m))) for m in basis.masses)
     return PoseAnalysis(pose, "", "", basis.masses, modes, per_mass)
 
 
@@ -294,16 +269,7 @@ class Robustness(NamedTuple):
 def robustness(rig: Rig, sweep_end: float = SWEEP_END, points: int = 60) -> Robustness:
     """Sweep the rig's effective mass from m0 to `sweep_end`; bisect the first loss of
     stability to 0.1 %."""
-    sweep = robust_mass_range(
-        rig.actuator,
-        rig.controller,
-        rig.period,
-        rig.config,
-        rig.cable_length,
-        rig.preload,
-        largest=sweep_end,
-        points=points,
-    )
+    sweep = rig.sweep(sweep_end, points)
     first_unstable = next((k for k, loop in enumerate(sweep) if not loop.stable), None)
     if first_unstable is None:
         return Robustness(tuple(sweep), sweep[-1].mass, True)
@@ -312,8 +278,50 @@ def robustness(rig: Rig, sweep_end: float = SWEEP_END, points: int = 60) -> Robu
     lo, hi = sweep[first_unstable - 1].mass, sweep[first_unstable].mass
     while hi / lo > 1.001:
         mid = math.sqrt(lo * hi)
-        lo, hi = (mid, hi) if rig.loop(mid).stable else (lo, mid)
+        lo, hi = (mid, hi) if rig.stable(mid) else (lo, mid)
     return Robustness(tuple(sweep), lo, False)
+
+
+class LatencyTolerance(NamedTuple):
+    """How late the commands may take effect (after the sample they answer) before the
+    rig goes unstable at one of the masses checked: the cables' elastic mode turns
+    with the delay's phase, and heavy modal masses put it lowest."""
+
+    masses: Array  # the effective masses checked (kg)
+    seconds: float | None  # every latency in [0, seconds] is stable; None: not even 0
+    limiting_mass: float | None  # the mass that goes unstable just beyond; None: none
+    searched_to: float  # s: stable up to here when limiting_mass is None
+
+    def periods(self, period: float) -> float | None:
+        return None if self.seconds is None else self.seconds / period
+
+
+def latency_tolerance(
+    rig: Rig, masses: Array, most_periods: float = 4.0, step: float = 0.05
+) -> LatencyTolerance:
+    """Scan the latency from 0 in `step` periods up to `most_periods` periods and bisect
+    the first loss of stability at any of `masses` to 0.1 % of a period."""
+    masses = np.sort(np.asarray(masses, dtype=float))[::-1]  # heavy ones fail first
+    period = rig.period
+
+    def unstable_at(latency: float) -> float | None:
+        return next((float(m) for m in masses if not rig.stable(float(m), latency)), None)
+
+    searched_to = most_periods * period
+    if unstable_at(0.0) is not None:
+        return LatencyTolerance(masses, None, unstable_at(0.0), 0.0)
+    good = 0.0
+    for k in range(1, round(most_periods / step) + 1):
+        latency = k * step * period
+        if unstable_at(latency) is None:
+            good = latency
+            continue
+        bad = latency
+        while bad - good > 1e-3 * period:
+            mid = 0.5 * (good + bad)
+            good, bad = (mid, bad) if unstable_at(mid) is None else (good, mid)
+        return LatencyTolerance(masses, good, unstable_at(bad), searched_to)
+    return LatencyTolerance(masses, searched_to, None, searched_to)
 
 
 class Analysis(NamedTuple):
@@ -325,6 +333,7 @@ class Analysis(NamedTuple):
     home: PoseAnalysis
     grid: WorkspaceGrid
     robustness: Robustness
+    latency: LatencyTolerance  # over the modal masses found (home and grid)
 
     @property
     def largest_modal_mass(self) -> float:
@@ -352,4 +361,11 @@ def analyse(
     tension = tension_solver(robot, spec)
     home = analyse_pose(robot, rig, tension, robot.home)
     grid = workspace_grid(robot, rig, tension, points_per_axis, shrink, progress)
-    return Analysis(robot.name, spec, rig, home, grid, robustness(rig))
+    found = np.concatenate(
+        [[rig.actuator.m0]] + [p.masses for p in (home, *grid.points) if p.feasible]
+    )
+    found = found[np.isfinite(found)]
+    masses = np.geomspace(found.min(), found.max(), LATENCY_MASSES)
+    return Analysis(
+        robot.name, spec, rig, home, grid, robustness(rig), latency_tolerance(rig, masses)
+    )

@@ -60,12 +60,16 @@ def test_text_names_home_modal_masses_and_the_largest_stable_mass(
     assert "robustness: largest stable mass 53.7 kg" in out
     assert "claim 1 (the gains cover every modal mass found, up to" in out and ": yes" in out
     assert "predicted modes at home" in out
+    assert "latency tolerance: stable for masses 1.9 to" in out and "periods) after" in out
     assert err == ""  # stderr is no TTY under pytest: no progress bar
 
 
 def test_json_has_the_documented_keys_and_agrees_with_the_model(reference8_json: dict) -> None:
     d = reference8_json
-    assert set(d) == {"robot", "config", "controller", "rig", "home", "grid", "robustness", "plots"}
+    assert set(d) == {
+        "robot", "config", "controller", "rig", "home", "grid", "robustness",
+        "latency_tolerance", "plots",
+    }  # fmt: skip
     assert d["controller"]["law"] == "pid" and d["controller"]["gains"]["kp"] == 100.0
     assert set(d["rig"]) == {"m0", "k0", "cable_length", "cable_stiffness", "preload"}
     robot = load_robot("reference8")
@@ -89,6 +93,24 @@ def test_json_has_the_documented_keys_and_agrees_with_the_model(reference8_json:
     assert rob["largest_modal_mass"] >= max(home["modal_masses"])
     assert rob["largest_modal_mass"] < rob["largest_stable_mass"]
     assert rob["m0"] == 1.9 and rob["sweep"][0]["mass"] == pytest.approx(1.9)
+
+
+def test_latency_tolerance_is_the_edge_of_the_rigs_stability(reference8_json: dict) -> None:
+    """At the reported latency every checked mass is stable; a little later the limiting
+    one is not.  For reference8 at 500 Hz that is about one period: the heaviest modal
+    masses put the cables' elastic mode lowest, where a delay's phase hurts most."""
+    from sim_bus.workspace_analysis import rig_for
+
+    lat = reference8_json["latency_tolerance"]
+    assert set(lat) == {"seconds", "periods", "limiting_mass", "searched_to", "mass_range"}
+    low, high = lat["mass_range"]
+    assert low == pytest.approx(1.9)
+    assert high == pytest.approx(reference8_json["robustness"]["largest_modal_mass"])
+    assert 0.5 < lat["periods"] < 1.5 and lat["seconds"] == pytest.approx(lat["periods"] / 500)
+    assert low <= lat["limiting_mass"] <= high
+    rig = rig_for(load_robot("reference8"), analyze_cmd.load_config(REFERENCE8)[1])
+    assert all(rig.stable(m, lat["seconds"]) for m in np.geomspace(low, high, 24))
+    assert not rig.stable(lat["limiting_mass"], lat["seconds"] + 0.01 / 500)
 
 
 def test_grid_flags_the_infeasible_points(capsys: pytest.CaptureFixture[str]) -> None:

@@ -58,21 +58,41 @@ def test_commands_are_held_over_the_cycle(robot: Robot) -> None:
 
 
 @pytest.mark.parametrize("delay", [0, 1, 3])
-def test_delay_cycles_shift_the_applied_commands(robot: Robot, delay: int) -> None:
+def test_whole_cycles_of_latency_shift_the_applied_commands(robot: Robot, delay: int) -> None:
     plant = Plant(robot)
     initial = plant.commands.copy()
     hold = -equilibrium_tensions(robot, robot.home)
-    rec = run_lockstep(plant, lambda t, *_: hold + 1000.0 * t, 0.02, 500, delay_cycles=delay)
+    rec = run_lockstep(plant, lambda t, *_: hold + 1000.0 * t, 0.02, 500, latency=delay * 2e-3)
     np.testing.assert_array_equal(rec.applied[:delay], np.tile(initial, (delay, 1)))
     np.testing.assert_allclose(rec.applied[delay:], rec.commands[: len(rec) - delay])
+
+
+def test_a_fraction_of_a_cycle_of_latency_splits_the_hold(robot: Robot) -> None:
+    """Commands due 3 ms after their 5 ms cycle starts: the plant holds the previous
+    ones for 3 of the cycle's 5 steps, then the new ones (seen through plant.step)."""
+    plant = Plant(robot)
+    hold = -equilibrium_tensions(robot, robot.home)
+    held: list[np.ndarray] = []
+    step = plant.step
+
+    def recording_step() -> None:
+        held.append(plant.commands.copy())
+        step()
+
+    plant.step = recording_step  # type: ignore[method-assign]
+    rec = run_lockstep(plant, lambda t, *_: hold + 1000.0 * t, 0.02, 200, latency=3e-3)
+    held_arr = np.array(held).reshape(len(rec), 5, -1)
+    np.testing.assert_allclose(held_arr[1:, :3], held_arr[:-1, 3:4].repeat(3, axis=1))
+    np.testing.assert_allclose(held_arr[:, 3:], np.repeat(rec.commands[:, None], 2, axis=1))
 
 
 def test_bad_timing_is_refused(robot: Robot) -> None:
     plant = Plant(robot)
     with pytest.raises(ValueError, match="not a whole number"):
         run_lockstep(plant, lambda *_: plant.commands, 0.1, 300)
-    with pytest.raises(ValueError, match="delay_cycles"):
-        run_lockstep(plant, lambda *_: plant.commands, 0.1, 500, delay_cycles=-1)
+    for latency in (-2e-3, 1.5e-3, float("nan")):
+        with pytest.raises(ValueError, match="latency must be a whole number"):
+            run_lockstep(plant, lambda *_: plant.commands, 0.1, 500, latency=latency)
 
 
 def test_recording_round_trip(robot: Robot, tmp_path) -> None:

@@ -25,7 +25,7 @@ from scipy.optimize import least_squares
 from cdpr import Pose, Robot, liediff, retract
 from cdpr.control_spec import DEFAULT_PID, ControllerSpec
 from cdpr.controller import ParallelController, static_tensions, tension_solver
-from sim_bus.analysis import robust_mass_range
+from sim_bus.analysis import Rig
 from sim_bus.comparison import standard_set_figures
 from sim_bus.scenarios import STANDARD_SET
 from sim_bus.workspace_analysis import PoseAnalysis, analyse_pose, modal_basis, rig_for
@@ -54,13 +54,8 @@ def test_rig_gains_cover_every_modal_mass_of_the_workspace(reference8: Robot) ->
     masses = _workspace_modal_masses(reference8)
     assert masses.min() >= reference8.m0.min() - 1e-9  # Lemma 1: m_i in [m0, inf)
     largest = 2.0 * masses.max()  # a factor 2 margin on the heaviest mode
-    loops = robust_mass_range(
-        reference8.actuators[0],
-        spec.linear_controller(),
-        spec.period,
-        largest=largest,
-        points=25,
-    )
+    rig = Rig(reference8.actuators[0], spec.linear_controller(), spec.period)
+    loops = rig.sweep(largest, points=25)
     unstable = [round(m.mass, 2) for m in loops if not m.stable]
     assert not unstable, f"rig loop unstable at effective masses {unstable} kg"
 
@@ -86,7 +81,7 @@ def test_unchanged_gains_settle_the_robot_across_the_workspace(
 
 # -- claim 2: the robot's modes are the rig's with load m_i ---------------------------
 #
-# Rig side: loop_modes with the modal mass m_i (sim_bus.workspace_analysis.rig_for: the
+# Rig side: Rig.loop with the modal mass m_i (sim_bus.workspace_analysis.rig_for: the
 # robot's cable stiffness, mean cable length and static tension).  Robot side: the
 # platform starts at rest displaced along sigma_i (eigenvector of M^-1 Lambda^T Lambda)
 # from the pose the controller holds; the error's modal coordinate pi_i . theta must
