@@ -25,7 +25,10 @@ what the flooder sent and got back.  Mixes (what the puts are):
     refused  all but what the service would accept (parse and hostile), so that the
              robot keeps tracking its own trajectory: the interface's costs alone
 
-    python bench/flood.py [--json] [--seconds 5] [--rate 2000] [--mix refused]
+    python bench/flood.py [--json] [--seconds 5] [--rate 2000] [--mix refused] [--limit HZ]
+
+--limit sets zenoh.ingress_limits_hz to HZ for `trajectory` and `cmd/*`: zenoh then
+drops what comes faster before the daemon sees it (docs/zenoh.md, "Flow control").
 
 The default mix, "refused", measures the interface's own costs.  With "valid", "large"
 or "all" the service also accepts trajectories while the robot moves: their validation
@@ -271,7 +274,7 @@ def cycle_figures(stats: CycleStats) -> dict[str, float]:
     return out
 
 
-async def measure(seconds: float, rate: float, mix: str) -> dict[str, Any]:
+async def measure(seconds: float, rate: float, mix: str, limit: float | None) -> dict[str, Any]:
     """Set up, then the quiet and the flood phase; what it measured.  If the robot braked
     before the flood (a host too busy even without one), "braked_before" says in which
     phase and there are no flood figures."""
@@ -279,6 +282,8 @@ async def measure(seconds: float, rate: float, mix: str) -> dict[str, Any]:
 
     def edit(data: dict) -> None:
         data["zenoh"]["listen"] = [endpoint]
+        if limit is not None:
+            data["zenoh"]["ingress_limits_hz"] = {"trajectory": limit, "cmd/*": limit}
 
     config = load_config(CONFIG, edit)
     process = psutil.Process()
@@ -354,14 +359,20 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=5.0, help="per phase")
     parser.add_argument("--rate", type=float, default=2000.0, help="puts per second")
     parser.add_argument("--mix", choices=MIXES, default="refused")
+    parser.add_argument("--limit", type=float, help="ingress limit (Hz) per limited key")
     parser.add_argument("--flooder", metavar="ENDPOINT", help=argparse.SUPPRESS)
     parser.add_argument("--prefix", default=PREFIX, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.flooder:
         print(json.dumps(flooder(args.flooder, args.prefix, args.seconds, args.rate, args.mix)))
         return
-    out = asyncio.run(measure(args.seconds, args.rate, args.mix))
-    out["setup"] = {"seconds": args.seconds, "rate": args.rate, "mix": args.mix}
+    out = asyncio.run(measure(args.seconds, args.rate, args.mix, args.limit))
+    out["setup"] = {
+        "seconds": args.seconds,
+        "rate": args.rate,
+        "mix": args.mix,
+        "limit": args.limit,
+    }
     print(json.dumps(out) if args.json else json.dumps(out, indent=1))
 
 

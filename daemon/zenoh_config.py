@@ -28,6 +28,7 @@ _LOCAL_PROTOCOLS = ("unixsock-stream",)  # no network address at all
 _OWNED_PATHS = ("mode", "listen", "connect", "scouting", "transport/shared_memory")
 _RX_LIMIT = "transport/link/rx/max_message_size"
 _PREFIX_PATTERN = r"^[A-Za-z0-9_\-.]+(/[A-Za-z0-9_\-.]+)*$"
+_RELATIVE_KEY_PATTERN = r"^([A-Za-z0-9_\-.]+|\*\*?)(/([A-Za-z0-9_\-.]+|\*\*?))*$"
 
 
 class ZenohSettings(StrictModel):
@@ -54,6 +55,11 @@ class ZenohSettings(StrictModel):
     max_waypoints: int = Field(10000, ge=2)
     queue_depth: int = Field(16, ge=1, le=4096)
     """Per inbound queue (trajectories, commands) and for outgoing events; overflow drops."""
+    ingress_limits_hz: dict[str, PositiveFloat] = Field(default_factory=dict)
+    """Per key under the prefix (`trajectory`, `cmd/status`, `cmd/*`, ...): zenoh drops
+    inbound puts and queries on it that come sooner than 1/limit after the last one it
+    let through, before the daemon sees them: a flood then costs the control loop
+    nothing, a dropped query times out at its sender.  Empty: no limits."""
     config: dict[str, Any] = Field(default_factory=dict)
     """Raw zenoh config (json5 keys, e.g. transport, access_control); see docs/zenoh.md."""
 
@@ -66,6 +72,17 @@ class ZenohSettings(StrictModel):
                 "no wildcards, no leading or trailing '/'"
             )
         return prefix
+
+    @field_validator("ingress_limits_hz")
+    @classmethod
+    def _limited_keys(cls, limits: dict[str, float]) -> dict[str, float]:
+        for key in limits:
+            if not re.fullmatch(_RELATIVE_KEY_PATTERN, key):
+                raise ValueError(
+                    f"{key!r} is not a key under the prefix: key chunks (letters, digits, "
+                    "_ - ., or a * / ** wildcard) joined by '/', no leading '/'"
+                )
+        return limits
 
     @field_validator("listen", "connect")
     @classmethod
@@ -88,6 +105,11 @@ class ZenohSettings(StrictModel):
 
     @model_validator(mode="after")
     def _placement(self) -> ZenohSettings:
+        if self.ingress_limits_hz and "downsampling" in self.config:
+            raise ValueError(
+                "zenoh.ingress_limits_hz and a raw zenoh.config downsampling both set "
+                "zenoh's downsampling: use one of them"
+            )
         if self.mode == "client" and self.listen:
             raise ValueError("a client does not listen: remove zenoh.listen or use mode: peer")
         if self.mode == "client" and not self.connect:
@@ -120,10 +142,18 @@ class ZenohSettings(StrictModel):
         return self.prefix if self.prefix is not None else f"cdpr/{robot_name}"
 
 
-def build_zenoh_config(settings: ZenohSettings) -> zenoh.Config:
-    """The daemon's zenoh.Config: raw keys first, then the typed fields on top of them."""
+def build_zenoh_config(settings: ZenohSettings, prefix: str) -> zenoh.Config:
+    """The daemon's zenoh.Config for keys under `prefix`: raw keys first, then the typed
+    fields on top of them."""
     conf = zenoh.Config()
     _apply_raw(conf, settings.config)
+    if settings.ingress_limits_hz:
+        rules = [
+            {"key_expr": f"{prefix}/{key}", "freq": hz}
+            for key, hz in settings.ingress_limits_hz.items()
+        ]
+        downsampling = [{"flows": ["ingress"], "messages": ["put", "query"], "rules": rules}]
+        conf.insert_json5("downsampling", json.dumps(downsampling))
     if conf.get_json(_RX_LIMIT) == zenoh.Config().get_json(_RX_LIMIT):
         # zenoh itself drops anything far above our limit; moderately oversized messages
         # still arrive, so that the sender gets a clear "too large" reply

@@ -269,7 +269,7 @@ class ZenohInterface:
         self._parser = ThreadPoolExecutor(
             1, thread_name_prefix="cdprd-trajectory-parse", initializer=_lower_priority
         )
-        conf = build_zenoh_config(self.settings)
+        conf = build_zenoh_config(self.settings, self.prefix)
         try:
             session = await loop.run_in_executor(None, zenoh.open, conf)
         except BaseException:

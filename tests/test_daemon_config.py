@@ -11,6 +11,7 @@ from cdpr import ConfigError
 from cdpr.description import load_yaml, validate_section
 from daemon.cli import main
 from daemon.config import FileConfig, load_config, parse_config
+from daemon.zenoh_config import ZenohSettings
 
 CONFIG = Path(__file__).resolve().parent.parent / "config"
 
@@ -27,6 +28,8 @@ def test_hardware_template_is_a_valid_file() -> None:
     raw = validate_section(FileConfig, load_yaml(CONFIG / "hardware-template.yaml"), "template")
     assert raw.can.interface == "socketcan" and raw.can.channel == "can0"
     assert raw.drives["brake"] == "holding_brake"
+    zenoh = validate_section(ZenohSettings, raw.zenoh, "zenoh")
+    assert zenoh.ingress_limits_hz == {"trajectory": 20.0, "cmd/*": 20.0}
 
 
 def _data() -> dict:

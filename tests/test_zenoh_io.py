@@ -660,7 +660,7 @@ def shared_memory(conf: zenoh.Config) -> bool:
 
 
 def test_default_config_is_loopback_only_without_multicast_or_gossip() -> None:
-    conf = build_zenoh_config(validate_section(ZenohSettings, {}, "zenoh"))
+    conf = build_zenoh_config(validate_section(ZenohSettings, {}, "zenoh"), PREFIX)
     assert scouting(conf) == (False, False)
     assert json.loads(conf.get_json("listen/endpoints")) == ["tcp/127.0.0.1:7447"]
     assert json.loads(conf.get_json("connect/endpoints")) == []
@@ -695,8 +695,65 @@ def test_multicast_and_gossip_are_on_only_when_explicitly_allowed(
     data["expose"] = multicast  # multicast scouting needs expose: true
     if mode == "client":
         data["connect"] = ["tcp/127.0.0.1:7447"]
-    conf = build_zenoh_config(validate_section(ZenohSettings, data, "zenoh"))
+    conf = build_zenoh_config(validate_section(ZenohSettings, data, "zenoh"), PREFIX)
     assert scouting(conf) == (multicast, gossip)
+
+
+def test_ingress_limits_become_zenoh_downsampling_rules_under_the_prefix() -> None:
+    limits = {"trajectory": 5.0, "cmd/*": 20.0}
+    settings = validate_section(ZenohSettings, {"ingress_limits_hz": limits}, "zenoh")
+    (entry,) = json.loads(build_zenoh_config(settings, PREFIX).get_json("downsampling"))
+    assert entry["flows"] == ["ingress"] and set(entry["messages"]) == {"put", "query"}
+    rules = {rule["key_expr"]: rule["freq"] for rule in entry["rules"]}
+    assert rules == {f"{PREFIX}/trajectory": 5.0, f"{PREFIX}/cmd/*": 20.0}
+    default = build_zenoh_config(validate_section(ZenohSettings, {}, "zenoh"), PREFIX)
+    assert json.loads(default.get_json("downsampling")) == []
+
+
+@pytest.mark.parametrize(
+    ("limits", "message"),
+    [
+        ({"/trajectory": 5}, "not a key under the prefix"),
+        ({"cmd/**x": 5}, "not a key under the prefix"),
+        ({"": 5}, "not a key under the prefix"),
+        ({"trajectory": 0}, "greater than 0"),
+        ({"trajectory": "fast"}, "valid number"),
+    ],
+)
+def test_bad_ingress_limits_name_the_key(limits: dict, message: str) -> None:
+    with pytest.raises(ConfigError, match=message) as caught:
+        validate_section(ZenohSettings, {"ingress_limits_hz": limits}, "zenoh")
+    assert "ingress_limits_hz" in str(caught.value)
+
+
+def test_ingress_limits_and_raw_downsampling_are_exclusive() -> None:
+    rule = {"key_expr": "a", "freq": 1.0}
+    raw = {"downsampling": [{"flows": ["ingress"], "messages": ["put"], "rules": [rule]}]}
+    with pytest.raises(ConfigError, match="use one of them"):
+        validate_section(
+            ZenohSettings, {"ingress_limits_hz": {"trajectory": 1.0}, "config": raw}, "zenoh"
+        )
+
+
+def test_zenoh_drops_what_comes_faster_than_the_ingress_limit() -> None:
+    """With trajectory limited to 2 Hz, a burst of ten puts reaches the daemon as one,
+    unlimited keys are served as usual, and a put half a second later is let through."""
+    served = Running(StandIn(), ingress_limits_hz={"trajectory": 2.0})
+    try:
+        counts = served.interface.stats
+        with served.session() as session:
+            assert ask(session, "cmd/status")["ok"]
+            for _ in range(10):
+                session.put(f"{PREFIX}/trajectory", b"not json")
+            wait_until(lambda: counts().get("trajectory_puts", 0) >= 1, "the first put")
+            time.sleep(0.3)
+            assert counts()["trajectory_puts"] == 1
+            assert ask(session, "cmd/status")["ok"]  # another key: not limited
+            time.sleep(0.3)
+            session.put(f"{PREFIX}/trajectory", b"not json")
+            wait_until(lambda: counts()["trajectory_puts"] == 2, "the put after 0.6 s")
+    finally:
+        served.stop()
 
 
 @pytest.mark.parametrize(
