@@ -113,6 +113,25 @@ def test_latency_tolerance_is_the_edge_of_the_rigs_stability(reference8_json: di
     assert not rig.stable(lat["limiting_mass"], lat["seconds"] + 0.01 / 500)
 
 
+def test_latency_line_says_when_the_scan_ended_or_nothing_was_stable() -> None:
+    from types import SimpleNamespace
+
+    from cdpr.control_spec import ControllerSpec
+    from sim_bus.workspace_analysis import LatencyTolerance
+
+    masses = np.array([24.7, 1.9])
+    spec = ControllerSpec()
+    line = analyze_cmd._latency_line
+    whole = LatencyTolerance(masses, 0.008, None, 0.008)
+    assert line(SimpleNamespace(latency=whole, spec=spec)).endswith(
+        "up to 8 ms (4.00 periods) after its sample (the scan's end)"
+    )
+    none = LatencyTolerance(masses, None, 24.7, 0.0)
+    assert line(SimpleNamespace(latency=none, spec=spec)) == (
+        "latency tolerance: none, the 24.7 kg loop is unstable as it is"
+    )
+
+
 def test_grid_flags_the_infeasible_points(capsys: pytest.CaptureFixture[str]) -> None:
     """suspended6 cannot hold the corners of its grid box with t >= t_min: each one is
     skipped with the reason, and counted."""

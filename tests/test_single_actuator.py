@@ -12,6 +12,7 @@ from cdpr.single_actuator import LinearController, SingleActuatorTracker, pid
 from sim_bus.analysis import Rig
 from sim_bus.lockstep import run_lockstep
 from sim_bus.rig import SingleActuatorRig
+from sim_bus.workspace_analysis import latency_tolerance
 from tests.conftest import load_robot
 
 PERIOD = 1 / 500
@@ -160,6 +161,18 @@ def test_analysis_predicts_the_rig_with_late_commands(load: float, latency: floa
         assert np.max(np.abs(error[-250:])) < 5e-5
     else:
         assert np.max(np.abs(error[-250:])) > 1e-3
+
+
+def test_latency_tolerance_reports_the_scan_end_and_loops_unstable_without_delay() -> None:
+    """Soft gains bear the whole scan (4 periods); absurd ones fail without any delay,
+    and the heaviest mass is named as the one that fails first."""
+    actuator = load_robot("reference8").actuators[0]
+    masses = np.array([actuator.m0, 5.0, 20.0])
+    soft = latency_tolerance(Rig(actuator, pid(10.0, 0.0, 3.0), PERIOD), masses)
+    assert soft.seconds == soft.searched_to == pytest.approx(4 * PERIOD)
+    assert soft.limiting_mass is None
+    wild = latency_tolerance(Rig(actuator, pid(1e6, 0.0, 1e4), PERIOD), masses)
+    assert wild.seconds is None and wild.limiting_mass == 20.0 and wild.periods(PERIOD) is None
 
 
 def test_heavier_loads_are_less_damped_by_back_emf() -> None:
