@@ -54,7 +54,7 @@ class CycleStats:
         self.jitter = Ring(window)  # |wake - scheduled tick|
         self.compute = Ring(window)  # cycle run time (controller + encode + send)
         self.prepare = Ring(window)  # the controller's work done ahead of the feedback
-        self.latency = Ring(window)  # last feedback frame received -> last command sent
+        self.latency = Ring(window)  # last feedback frame (or the tick) -> last command
         self.cycles = 0
         self.deadline_misses = 0  # feedback incomplete at the deadline
         self.overruns = 0  # whole periods skipped (timer expirations > 1)

@@ -263,7 +263,8 @@ class Service:
         done = time.monotonic()
         self.stats.compute.add(done - started)
         if not deadline and self._last_rx:
-            self.stats.latency.add(done - self._last_rx)
+            # streamed feedback may be complete before the tick: then from the tick
+            self.stats.latency.add(done - max(self._last_rx, self._opened))
         self.collector.after_cycle()  # the commands are out: now
         if self._slack_waiters:
             self._wake_slack_waiters()
