@@ -384,12 +384,7 @@ class ZenohInterface:
             if self._closing or sample.kind != zenoh.SampleKind.PUT:
                 return  # a delete: nothing to run
             self._count("trajectory_puts")
-            item = self._take_trajectory(str(sample.key_expr), sample.payload)
-            assert self._trajectories is not None
-            if isinstance(item, tuple):
-                self._trajectory_refused(*item, None)
-            elif not self._trajectories.offer((item, None)):
-                self._trajectory_refused(_id(item), _busy("trajectory"), None)
+            self._queue_trajectory(str(sample.key_expr), sample.payload, None)
         except Exception:
             self._count("callback_errors")
             log.exception("trajectory put callback failed")
@@ -400,16 +395,22 @@ class ZenohInterface:
                 self._reply(query, reply_error("trajectory", _busy("trajectory")), ok=False)
                 return
             self._count("trajectory_queries")
-            item = self._take_trajectory(str(query.key_expr), query.payload)
-            assert self._trajectories is not None
-            if isinstance(item, tuple):
-                self._trajectory_refused(*item, query)
-            elif not self._trajectories.offer((item, query)):
-                self._trajectory_refused(_id(item), _busy("trajectory"), query)
+            self._queue_trajectory(str(query.key_expr), query.payload, query)
         except Exception:
             self._count("callback_errors")
             log.exception("trajectory query callback failed")
             _quietly(query.drop)
+
+    def _queue_trajectory(
+        self, key: str, payload: zenoh.ZBytes | None, query: zenoh.Query | None
+    ) -> None:
+        """Queue a trajectory message (put, or query) for the loop, or refuse it now."""
+        item = self._take_trajectory(key, payload)
+        assert self._trajectories is not None
+        if isinstance(item, tuple):
+            self._trajectory_refused(*item, query)
+        elif not self._trajectories.offer((item, query)):
+            self._trajectory_refused(_id(item), _busy("trajectory"), query)
 
     def _take_trajectory(
         self, key: str, payload: zenoh.ZBytes | None
@@ -431,8 +432,10 @@ class ZenohInterface:
         except CommandError as exc:
             return None, exc
         raw = payload.to_bytes()
-        if len(raw) > DECODE_ON_ARRIVAL_BYTES:
-            return raw
+        return raw if len(raw) > DECODE_ON_ARRIVAL_BYTES else self._decode_head(raw)
+
+    def _decode_head(self, raw: bytes) -> TrajectoryMessage | tuple[str | None, CommandError]:
+        """The JSON decoded and the message's head checked; or (the id if known, why not)."""
         try:
             data = decode_json(raw, self.settings.max_message_bytes)
         except CommandError as exc:
@@ -478,15 +481,8 @@ class ZenohInterface:
 
     def _parse_payload(self, payload: bytes) -> _Parsed:
         """A whole message, from its bytes."""
-        try:
-            data = decode_json(payload, self.settings.max_message_bytes)
-        except CommandError as exc:
-            return None, exc
-        try:
-            message = check_trajectory_head(data, self.limits)
-        except CommandError as exc:
-            return request_id(data), exc
-        return self._parse_waypoints(message)
+        head = self._decode_head(payload)
+        return head if isinstance(head, tuple) else self._parse_waypoints(head)
 
     def _parse_waypoints(self, message: TrajectoryMessage) -> _Parsed:
         try:
