@@ -35,7 +35,7 @@ import pytest
 import yaml
 import zenoh
 
-from cdpr.trajectory import TrajectoryLimits
+from cdpr.trajectory import TrajectoryLimits, parse_trajectory
 from daemon import messages, zenoh_io
 from daemon.api import CommandError
 from daemon.messages import (
@@ -44,7 +44,6 @@ from daemon.messages import (
     _decode_in_pieces,
     check_trajectory_head,
     decode_json,
-    decode_trajectory,
     parse_waypoints,
 )
 from daemon.zenoh_config import ZenohSettings, client_zenoh_config
@@ -292,15 +291,18 @@ def test_the_c_decoder_never_gets_a_long_piece(monkeypatch: pytest.MonkeyPatch) 
     assert seen and max(seen) <= JSON_PIECE
 
 
-def test_head_then_waypoints_is_decode_trajectory() -> None:
+def test_head_then_waypoints_is_the_whole_message() -> None:
+    """The head keeps the id and start apart; the waypoints parse as cdpr parses them."""
     limits = TrajectoryLimits(max_waypoints=50)
-    body = {"id": "p", "start": 1.7e9, "waypoints": [waypoint(0.0), waypoint(1.0, 1.3)]}
+    waypoints = [waypoint(0.0), waypoint(1.0, 1.3)]
+    body = {"id": "p", "start": 1.7e9, "waypoints": waypoints}
     head = check_trajectory_head(body, limits)
     assert (head.id, head.start, head.waypoints) == ("p", 1.7e9, 2)
     assert "id" not in head.body and "start" not in head.body
-    split, whole = parse_waypoints(head, limits), decode_trajectory(body, limits)
-    assert (split.id, split.start) == (whole.id, whole.start)
-    assert split.trajectory.as_dict() == whole.trajectory.as_dict()
+    split = parse_waypoints(head, limits)
+    assert (split.id, split.start) == ("p", 1.7e9)
+    whole = parse_trajectory({"waypoints": waypoints}, limits)
+    assert split.trajectory.as_dict() == whole.as_dict()
     with pytest.raises(CommandError, match="51 waypoints exceed the limit of 50"):
         check_trajectory_head({"waypoints": [waypoint(k) for k in range(51)]}, limits)
 
