@@ -308,19 +308,24 @@ def latency_tolerance(
         return next((float(m) for m in masses if not rig.stable(float(m), latency)), None)
 
     searched_to = most_periods * period
-    if unstable_at(0.0) is not None:
-        return LatencyTolerance(masses, None, unstable_at(0.0), 0.0)
+    failing = unstable_at(0.0)
+    if failing is not None:
+        return LatencyTolerance(masses, None, failing, 0.0)
     good = 0.0
     for k in range(1, round(most_periods / step) + 1):
-        latency = k * step * period
-        if unstable_at(latency) is None:
-            good = latency
+        bad = k * step * period
+        failing = unstable_at(bad)
+        if failing is None:
+            good = bad
             continue
-        bad = latency
         while bad - good > 1e-3 * period:
             mid = 0.5 * (good + bad)
-            good, bad = (mid, bad) if unstable_at(mid) is None else (good, mid)
-        return LatencyTolerance(masses, good, unstable_at(bad), searched_to)
+            at_mid = unstable_at(mid)
+            if at_mid is None:
+                good = mid
+            else:
+                bad, failing = mid, at_mid
+        return LatencyTolerance(masses, good, failing, searched_to)
     return LatencyTolerance(masses, searched_to, None, searched_to)
 
 
@@ -338,8 +343,8 @@ class Analysis(NamedTuple):
     @property
     def largest_modal_mass(self) -> float:
         """Over home and the analysed grid poses (kg; nan when none was analysed)."""
-        masses = [p.masses for p in (self.home, *self.grid.points) if p.feasible]
-        return float(np.concatenate(masses).max()) if masses else math.nan
+        masses = _modal_masses_found(self.home, self.grid)
+        return float(masses.max()) if masses.size else math.nan
 
     @property
     def covers_workspace(self) -> bool:
@@ -361,11 +366,15 @@ def analyse(
     tension = tension_solver(robot, spec)
     home = analyse_pose(robot, rig, tension, robot.home)
     grid = workspace_grid(robot, rig, tension, points_per_axis, shrink, progress)
-    found = np.concatenate(
-        [[rig.actuator.m0]] + [p.masses for p in (home, *grid.points) if p.feasible]
-    )
-    found = found[np.isfinite(found)]
-    masses = np.geomspace(found.min(), found.max(), LATENCY_MASSES)
+    found = _modal_masses_found(home, grid)
+    m0 = rig.actuator.m0  # the lightest any modal mass can be (Lemma 1)
+    masses = np.geomspace(m0, max(m0, *found[np.isfinite(found)]), LATENCY_MASSES)
     return Analysis(
         robot.name, spec, rig, home, grid, robustness(rig), latency_tolerance(rig, masses)
     )
+
+
+def _modal_masses_found(home: PoseAnalysis, grid: WorkspaceGrid) -> Array:
+    """Every modal mass of home and the analysed grid poses (kg)."""
+    found = [p.masses for p in (home, *grid.points) if p.feasible]
+    return np.concatenate(found) if found else np.empty(0)
