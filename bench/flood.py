@@ -43,7 +43,6 @@ import asyncio
 import json
 import math
 import random
-import socket
 import sys
 import time
 from collections import Counter
@@ -52,6 +51,7 @@ from typing import Any
 
 import numpy as np
 import psutil
+from timing import free_endpoint
 
 from cdpr.trajectory import parse_trajectory
 from daemon.config import load_config
@@ -221,12 +221,6 @@ def flooder(endpoint: str, prefix: str, seconds: float, rate: float, mix: str) -
 
 
 # -- the daemon (this process) -----------------------------------------------------------------
-
-
-def free_endpoint() -> str:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return f"tcp/127.0.0.1:{s.getsockname()[1]}"
 
 
 class LagProbe:

@@ -1,8 +1,10 @@
-"""Shared bits of the benchmarks: the reference robot and per-call timing summaries."""
+"""Shared bits of the benchmarks: the reference robot, per-call timing summaries, and a
+free zenoh endpoint on loopback."""
 
 from __future__ import annotations
 
 import gc
+import socket
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -42,3 +44,10 @@ def print_timings(results: dict[str, dict[str, float]]) -> None:
     """One human-readable line per timed item: median and p99 in microseconds."""
     for name, r in results.items():
         print(f"{name:18s} median {r['median_us']:9.2f} us   p99 {r['p99_us']:9.2f} us")
+
+
+def free_endpoint() -> str:
+    """A tcp/127.0.0.1 zenoh endpoint on a port free now (loopback only)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return f"tcp/127.0.0.1:{s.getsockname()[1]}"

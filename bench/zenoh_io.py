@@ -26,7 +26,6 @@ import argparse
 import asyncio
 import json
 import math
-import socket
 import subprocess
 import sys
 import threading
@@ -35,7 +34,7 @@ from typing import Any
 
 import numpy as np
 import zenoh
-from timing import print_timings, summary_us
+from timing import free_endpoint, print_timings, summary_us
 
 from daemon.zenoh_config import ZenohSettings, client_zenoh_config
 from daemon.zenoh_io import ZenohInterface
@@ -186,12 +185,6 @@ def measure(
             "state_messages": len(stamps),
         },
     }
-
-
-def free_endpoint() -> str:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return f"tcp/127.0.0.1:{s.getsockname()[1]}"
 
 
 def main() -> None:
