@@ -8,10 +8,10 @@ encode + send), the controller's work done ahead while the feedback is on its wa
 (prepare), latency from the last feedback frame of a cycle (or its tick, when streamed
 ODrive feedback was complete before it) to the last command frame sent, deadline misses
 + overruns per 10^4 cycles, and the process's CPU share (daemon and simulator together:
-they share the loop).  Figures are for this machine
-(2 vCPU); nothing here is hard real time (PERF-FACTS).  `timer_floor_misses_per_1e4` is
-the host's share: overruns of a bare timerfd loop that does nothing else, at the same
-rate for the same time (a vCPU not run for a few ms misses periods whatever runs on it).
+they share the loop).  Figures are for this machine (2 vCPU); nothing here is hard real
+time (PERF-FACTS).  `timer_floor_misses_per_1e4` is the host's share: overruns of a bare
+timerfd loop that does nothing else, at the same rate for the same time (a vCPU not run
+for a few ms misses periods whatever runs on it).
 """
 
 from __future__ import annotations

@@ -59,7 +59,7 @@ class ZenohSettings(StrictModel):
     """Per key under the prefix (`trajectory`, `cmd/status`, `cmd/*`, ...): zenoh drops
     inbound puts and queries on it that come sooner than 1/limit after the last one it
     let through, before the daemon sees them: a flood then costs the control loop
-    nothing, a dropped query times out at its sender.  Empty: no limits."""
+    next to nothing, a dropped query times out at its sender.  Empty: no limits."""
     config: dict[str, Any] = Field(default_factory=dict)
     """Raw zenoh config (json5 keys, e.g. transport, access_control); see docs/zenoh.md."""
 
