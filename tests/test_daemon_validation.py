@@ -188,7 +188,7 @@ def test_a_start_ahead_while_moving_waits_for_the_motion_and_never_jumps() -> No
             )
             await stack.enable()
             await service.command("goto", {"pose": _home(config, dx=0.3)})  # ~0.9 s
-            await asyncio.sleep(0.1)
+            # its approach (~0.6 s from the goto's end) would begin 0.4 s from now
             trajectory = Trajectory(
                 [Waypoint(0.0, _home(config, dy=0.1)), Waypoint(1.0, _home(config, dy=0.2))]
             )
