@@ -25,7 +25,8 @@ from cdpr.description import (
     load_yaml,
     validate_section,
 )
-from cdpr.trajectory import TrajectoryLimits
+from cdpr.pose_limits import PoseLimits
+from cdpr.trajectory import TrajectoryLimits, sampled_pose_limits
 from daemon.zenoh_config import ZenohSettings
 from drivers.config import CanConfig, DrivesConfig, parse_drives
 
@@ -37,7 +38,9 @@ class SafetyConfig(StrictModel):
 
     workspace_min/max: box for the platform reference point (default: the anchors'
     bounding box).  tilt_max: largest rotation angle from the home orientation.
-    tracking_error_*: largest |θ_d| parts while tracking or holding.
+    tracking_error_*: largest |θ_d| parts while tracking or holding.  Trajectories are
+    validated inside the box and tilt less these (and a sampling margin): the measured
+    pose, within them of the reference, then stays inside the box and the tilt.
     stale_cycles: consecutive cycles an actuator may miss its feedback.
     feedback_deadline: fraction of the period to wait for feedback after the cycle opens.
     bus_errors_max: error frames tolerated within one second.
@@ -109,6 +112,15 @@ class DaemonConfig:
         self.sim = raw.sim
         lo, hi = workspace_box(robot, raw.safety)
         self.workspace_min, self.workspace_max = lo, hi
+        # the runtime check on the measured pose, and what validation holds each sampled
+        # reference to: less the tracking-error bounds, then the sampling margin
+        self.pose_limits = PoseLimits(
+            tuple(lo.tolist()), tuple(hi.tolist()), robot.home.quaternion_tuple, raw.safety.tilt_max
+        )
+        tracked = self.pose_limits.shrunk(
+            raw.safety.tracking_error_position, raw.safety.tracking_error_orientation
+        )
+        self.reference_limits = sampled_pose_limits(tracked, raw.trajectory)
 
     def path(self, relative: str) -> Path:
         """A path from the config, resolved against the config file's directory."""
@@ -149,8 +161,9 @@ def parse_config(data: Any, base: Path, source: str = "config") -> DaemonConfig:
 
 
 def check_geometry(config: DaemonConfig) -> None:
-    """The home pose's static wrench in W and its position in the workspace box
-    (ConfigError if not); Robot itself refuses a rank-deficient Λ at home."""
+    """The home pose's static wrench in W and the home pose inside the limits trajectories
+    are validated against (ConfigError if not); Robot itself refuses a rank-deficient Λ
+    at home."""
     robot = config.robot
     home = robot.home
     Lam = robot.jacobian(home)
@@ -159,6 +172,18 @@ def check_geometry(config: DaemonConfig) -> None:
     result = solver.solve(Lam, robot.bias_wrench(home, np.zeros(6)), zero, zero)
     if not result.feasible:
         raise ConfigError(f"robot: the home pose is not in the wrench set W: {result.reason}")
-    p = home.position
-    if np.any(p < config.workspace_min) or np.any(p > config.workspace_max):
-        raise ConfigError(f"safety: the home position {p.tolist()} lies outside the workspace box")
+    bad = config.reference_limits.violation(home)
+    if bad is None:
+        return
+    if bad.limit == "tilt_max":
+        raise ConfigError(
+            f"safety: tilt_max ({config.safety.tilt_max:g} rad) leaves no room for a trajectory "
+            f"once tracking_error_orientation ({config.safety.tracking_error_orientation:g} "
+            f"rad) is kept from it: {bad.detail}"
+        )
+    raise ConfigError(
+        f"safety: the home position {home.position.tolist()} lies outside the workspace box "
+        "(workspace_min/workspace_max, default the anchors' bounding box) shrunk by "
+        f"tracking_error_position ({config.safety.tracking_error_position:g} m), inside "
+        f"which trajectories must stay: {bad.detail}"
+    )

@@ -135,9 +135,7 @@ class SafetyMonitor:
         self.robot: Robot = config.robot
         self.limits = config.safety
         self.heartbeat_timeout = config.drives.heartbeat_timeout
-        self.workspace_min = config.workspace_min.tolist()
-        self.workspace_max = config.workspace_max.tolist()
-        self.home_quaternion = config.robot.home.quaternion.tolist()
+        self.pose_limits = config.pose_limits
         self.stale = [0] * config.robot.n_cables
         self._error_stamps: list[float] = []
 
@@ -218,26 +216,9 @@ class SafetyMonitor:
         commands = output.commands.tolist()
         if not all(map(math.isfinite, commands)):
             return Fault(Trigger.NAN, f"non-finite force command {commands}")
-        pose = output.pose
-        position = pose.position.tolist()
-        for axis, (p, lo, hi) in enumerate(
-            zip(position, self.workspace_min, self.workspace_max, strict=True)
-        ):
-            if not lo <= p <= hi:
-                return Fault(
-                    Trigger.POSE_LIMIT,
-                    f"position {'xyz'[axis]} = {p:.4f} m outside [{lo:.3f}, {hi:.3f}] m",
-                )
-        # rotation angle from home through the quaternions: 2 acos |<q, q_home>|
-        w, x, y, z = pose.quaternion.tolist()
-        hw, hx, hy, hz = self.home_quaternion
-        tilt = 2.0 * math.acos(min(1.0, abs(w * hw + x * hx + y * hy + z * hz)))
-        if tilt > self.limits.tilt_max:
-            return Fault(
-                Trigger.POSE_LIMIT,
-                f"rotation {math.degrees(tilt):.2f} deg from home exceeds "
-                f"{math.degrees(self.limits.tilt_max):.2f} deg",
-            )
+        bad = self.pose_limits.violation(output.pose)
+        if bad is not None:
+            return Fault(Trigger.POSE_LIMIT, bad.detail)
         ex, ey, ez, rx, ry, rz = output.theta_d.tolist()
         e_pos = math.sqrt(ex * ex + ey * ey + ez * ez)
         e_rot = math.sqrt(rx * rx + ry * ry + rz * rz)

@@ -30,11 +30,13 @@ from cdpr.controller import (
     wrench_check,
 )
 from cdpr.pose import retract
+from cdpr.pose_limits import PoseLimits
 from cdpr.trajectory import (
     Reference,
     Trajectory,
     TrajectoryError,
     approach_steps,
+    check_start_delay,
     goto_steps,
     run_steps,
     validation_steps,
@@ -55,6 +57,7 @@ STARTUP_TIMEOUT = 5.0  # s for the drives to come up
 SLACK_MARGIN = 3e-4  # s before a tick at which background work stops (> its longest step)
 PLANNING_LEAD = 0.05  # s ahead of now a planned transition begins (planning takes time)
 HOLD_LEAD = 0.01  # the same for a hold: a stop plans in a few ms and should not wait
+SETTLE_ATTEMPTS = 3  # plans of an approach that begins later, from the state it begins at
 EventSink = Callable[[dict[str, Any]], None]
 Result = TypeVar("Result")
 
@@ -97,6 +100,7 @@ class Service:
         self._last_rx = 0.0
         self._held = np.full(self.n, np.nan)  # last finite measured lengths
         self._trajectory: Trajectory | None = None
+        self._scheduled: list[Trajectory] = []  # accepted, beginning later, by start time
         self.last_output = None
         self.faults: list[Fault] = []  # conditions active at the last check
         self.collector = CollectorPolicy()
@@ -304,6 +308,11 @@ class Service:
             self._brake(Fault(Trigger.NAN, str(exc)))
             return
         self._send(frames)
+        while self._scheduled and t >= self._scheduled[0].start_time:
+            self._trajectory = self._scheduled.pop(0)
+            if self.machine.state is SafetyState.HOLD:
+                self.machine.go("track")
+                self._emit({"event": "state", "why": "trajectory started"})
         trajectory = self._trajectory
         if (
             self.machine.state is SafetyState.TRACKING
@@ -320,6 +329,7 @@ class Service:
         """Freeze every cable (driver brake frames) and enter BRAKED, logging one line."""
         self._send(self.driver.brake(self._hold_lengths(), self.config.drives.brake))
         self._trajectory = None
+        self._scheduled.clear()
         if self.machine.brake(fault):
             deliberate = fault.trigger in (Trigger.SIGTERM, Trigger.COMMAND)
             log.log(logging.WARNING if deliberate else logging.ERROR, fault.line())
@@ -383,6 +393,7 @@ class Service:
         self._require_moving("disable")
         self._send(self.driver.brake(self._hold_lengths(), self.config.drives.brake))
         self._trajectory = None
+        self._scheduled.clear()
         self.machine.go("disable")
         self._emit({"event": "state", "why": "disabled"})
         return self.status()
@@ -412,6 +423,7 @@ class Service:
             begin = self.now() + HOLD_LEAD
             planned = run_steps(stop(self.controller.source.sample(begin), begin))
         self._trajectory = None
+        self._scheduled.clear()
         self.controller.follow(planned, at=planned.start_time)
         if self.machine.state is SafetyState.TRACKING:
             self.machine.go("hold")
@@ -464,22 +476,41 @@ class Service:
         self, trajectory: Trajectory, start: float | None
     ) -> dict[str, Any]:
         """Validate and run `trajectory`, its times relative to `start` (a unix time it
-        may not begin before) or to now, after a smooth approach from the current
-        reference.  Rejected: nothing changes and CommandError names the limit, the
-        waypoint and the value.  Validation runs between control cycles."""
+        may not begin before, at most trajectory.max_start_delay ahead) or to now, after a
+        smooth approach from the current reference.  Rejected: nothing changes and
+        CommandError names the limit, the waypoint and the value.  Validation runs between
+        control cycles.  Until a later start's approach begins the robot carries on (HOLD,
+        or TRACKING what runs); it is TRACKING from then until the trajectory ends."""
         self._require_moving("run a trajectory")
-        if start is not None and start < time.time() - 1e-3:
-            raise CommandError("rejected", f"trajectory start {start:.3f} lies in the past")
-        await self._validate(trajectory, "trajectory")
         limits = self.config.trajectory
+        if start is not None:
+            if start < time.time() - 1e-3:
+                raise CommandError("rejected", f"trajectory start {start:.3f} lies in the past")
+            try:
+                check_start_delay(start - time.time(), limits)
+            except TrajectoryError as exc:
+                raise _rejected("trajectory", exc) from None
+        await self._validate(trajectory, "trajectory", self.config.reference_limits)
 
         def plan(current: Reference, begin: float) -> Generator[None, None, Trajectory]:
             not_before = begin if start is None else max(begin, self.now() + start - time.time())
             shifted = trajectory.shifted(not_before - trajectory.start_time)
-            planned = yield from approach_steps(current, shifted, limits)
-            if planned.start_time < begin:  # the blend would start in the past
-                planned = yield from approach_steps(current, shifted, limits, start=begin)
-            return planned
+            source, state = self.controller.source, current
+            for _ in range(SETTLE_ATTEMPTS):
+                planned = yield from approach_steps(state, shifted, limits)
+                if planned.start_time < begin:  # the blend would start in the past
+                    return (yield from approach_steps(current, shifted, limits, start=begin))
+                # it begins later: from the state the reference has then, or it would jump
+                then = source.sample(planned.start_time)
+                if _same_state(then, state):
+                    return planned
+                state = then
+            raise TrajectoryError(
+                "start",
+                f"the current motion is still under way at t={planned.start_time:.6g} s, when "
+                "the approach to this start would begin: start later, or hold first",
+                waypoint=0,
+            )
 
         planned = await self._plan_ahead(plan, "trajectory", validate="blend")
         return self._run(planned, "trajectory")
@@ -519,9 +550,12 @@ class Service:
             if not waiter.done():
                 waiter.set_result(None)
 
-    async def _validate(self, trajectory: Trajectory, what: str) -> None:
-        """DESIGN §7 validation, between control cycles."""
-        steps = validation_steps(trajectory, self.robot, self.config.trajectory, self._wrench_check)
+    async def _validate(self, trajectory: Trajectory, what: str, pose_limits: PoseLimits) -> None:
+        """DESIGN §7 validation, between control cycles; every sampled pose inside
+        `pose_limits`."""
+        steps = validation_steps(
+            trajectory, self.robot, self.config.trajectory, self._wrench_check, pose_limits
+        )
         try:
             await self._in_slack(steps)
         except TrajectoryError as exc:
@@ -540,7 +574,8 @@ class Service:
         reference meanwhile, or with a longer lead if the work outlasted it (`attempts` in
         all, then CommandError "busy").  `validate`:
         the whole result, only its first segment (the rest already was), or nothing (a
-        hold: stopping may not be refused)."""
+        hold: stopping may not be refused); inside the validation pose limits, or no
+        further out than where the transition starts (it may start outside them)."""
         holds = self._holds
         for _ in range(attempts):
             begin = self.now() + lead
@@ -550,10 +585,12 @@ class Service:
                 planned = await self._in_slack(make(current, begin))
             except TrajectoryError as exc:
                 raise _rejected(what, exc) from None
+            inside = self.config.reference_limits.widened_to(planned.waypoints[0].pose)
             if validate == "blend":
-                await self._validate(Trajectory(list(planned.knots[:2])), what)
+                blend = Trajectory(list(planned.knots[:2]))
+                await self._validate(blend, f"{what}'s approach", inside)
             elif validate == "all":
-                await self._validate(planned, what)
+                await self._validate(planned, what, inside)
             self._require_moving(f"run a {what}")  # braked meanwhile: nothing changes
             if self._holds != holds and what != "hold":
                 raise CommandError("invalid_state", f"{what} dropped: a hold came meanwhile")
@@ -566,12 +603,18 @@ class Service:
 
     def _run(self, trajectory: Trajectory, what: str) -> dict[str, Any]:
         """Follow a validated trajectory (planned from the current reference) from its
-        start; tracking from now."""
+        start: TRACKING from now if it begins within the planning lead, else from its
+        start (the control cycle switches then; until then the robot carries on)."""
         self.controller.follow(trajectory, at=trajectory.start_time)
-        self._trajectory = trajectory
-        if self.machine.state is SafetyState.HOLD:
-            self.machine.go("track")
-            self._emit({"event": "state", "why": f"{what} accepted"})
+        # what was scheduled to begin after it never will (the new source takes over)
+        self._scheduled = [s for s in self._scheduled if s.start_time < trajectory.start_time]
+        if trajectory.start_time > self.now() + PLANNING_LEAD:
+            self._scheduled.append(trajectory)
+        else:
+            self._trajectory = trajectory
+            if self.machine.state is SafetyState.HOLD:
+                self.machine.go("track")
+                self._emit({"event": "state", "why": f"{what} accepted"})
         return {
             "accepted": True,
             "what": what,
@@ -664,6 +707,12 @@ _COMMANDS: dict[str, Callable[[Service, dict[str, Any]], Any]] = {
     "goto": Service._goto,
     "status": Service._status,
 }
+
+
+def _same_state(a: Reference, b: Reference) -> bool:
+    """The same pose, twist and accel: a transition from one continues the other."""
+    same_rates = np.array_equal(a.twist, b.twist) and np.array_equal(a.accel, b.accel)
+    return a.pose == b.pose and same_rates
 
 
 def _rejected(what: str, exc: TrajectoryError) -> CommandError:

@@ -65,6 +65,41 @@ def test_problems_name_the_key(change, message: str) -> None:
         parse_config(data, CONFIG, "test.yaml")
 
 
+@pytest.mark.parametrize(
+    ("safety", "words"),
+    [
+        (
+            {"tilt_max": 0.04, "tracking_error_orientation": 0.05},
+            r"safety: tilt_max \(0.04 rad\) leaves no room .* tracking_error_orientation \(0.05",
+        ),
+        (
+            {"workspace_min": [-1.5, -1.5, 1.24], "tracking_error_position": 0.02},
+            r"home position .* outside the workspace box \(workspace_min/workspace_max.*shrunk "
+            r"by tracking_error_position \(0.02 m\).*position z = 1.2500 m outside \[1.2601",
+        ),
+        (
+            {"workspace_max": [0.03, 1.5, 2.5], "tracking_error_position": 0.05},
+            r"shrunk by tracking_error_position \(0.05 m\).*position x = 0.0000 m outside",
+        ),
+    ],
+)
+def test_margins_that_leave_trajectories_no_room_are_refused(safety: dict, words: str) -> None:
+    """Trajectories must stay inside the box and tilt less the tracking-error bounds: a
+    config where that excludes the home pose is refused, naming the keys."""
+    data = _data()
+    data["safety"].update(safety)
+    with pytest.raises(ConfigError, match=words):
+        parse_config(data, CONFIG, "test.yaml")
+
+
+def test_the_example_margins_leave_room() -> None:
+    config = parse_config(_data(), CONFIG, "test.yaml")
+    inner = config.reference_limits
+    assert inner.lower[2] == pytest.approx(0.02, abs=1e-4)  # the floor less 2 cm
+    assert inner.tilt_max == pytest.approx(0.55, abs=1e-3)  # 0.6 rad less 0.05 rad
+    assert config.pose_limits.tilt_max == 0.6
+
+
 def test_check_config_summarises_a_daemon_config(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["check-config", str(CONFIG / "reference8-cia402.yaml")]) == 0
     out = capsys.readouterr().out

@@ -7,6 +7,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from cdpr.controller import ParallelController
 from daemon.config import load_config
@@ -154,3 +156,105 @@ def test_output_checks(config) -> None:
     assert fault.trigger is Trigger.OUT_OF_WORKSPACE and "cable 3" in fault.message
     lost = out._replace(feasible=False, reason="forward kinematics: residual 5 mm")
     assert monitor.check_output(lost).trigger is Trigger.FK_RESIDUAL
+
+
+# a box tight enough that random trajectories run along its faces, and the tilt limit
+FENCED = {"workspace_min": [-0.3, -0.3, 1.0], "workspace_max": [0.3, 0.3, 1.6], "tilt_max": 0.4}
+
+
+@pytest.fixture(scope="module")
+def fenced():
+    return load_config(CONFIG, lambda data: data["safety"].update(FENCED))
+
+
+def _outward(reference, home, e_p: float, e_r: float):
+    """The measured pose that tracks `reference` within (e_p, e_r) and is the worst for
+    the pose limits: out through the nearest face of the box, turned on away from home."""
+    from cdpr import Pose, liediff
+    from cdpr.so3 import exp_so3
+
+    lo, hi = np.array(FENCED["workspace_min"]), np.array(FENCED["workspace_max"])
+    p = reference.position
+    face = int(np.argmin(np.minimum(p - lo, hi - p)))
+    out = np.zeros(3)
+    out[face] = -e_p if p[face] - lo[face] < hi[face] - p[face] else e_p
+    rv = liediff(home, reference)[3:]
+    angle = float(np.linalg.norm(rv))
+    turn = rv / angle * e_r if angle > 1e-9 else np.array([e_r, 0.0, 0.0])
+    return Pose.from_matrix(p + out, exp_so3(turn) @ reference.rotation)
+
+
+# of the way across the limits: on a face (but for rounding) or anywhere
+fraction = st.one_of(st.just(1e-7), st.just(1.0 - 1e-7), st.floats(0.0, 1.0))
+
+
+@settings(max_examples=60)
+@given(
+    corners=st.lists(st.tuples(fraction, fraction, fraction), min_size=2, max_size=4),
+    turns=st.lists(st.tuples(fraction, st.floats(-math.pi, math.pi)), min_size=4, max_size=4),
+    gaps=st.lists(st.floats(1.5, 3.0), min_size=3, max_size=3),
+    stops=st.booleans(),
+)
+def test_an_accepted_trajectory_never_trips_the_pose_limits(
+    fenced, corners, turns, gaps, stops
+) -> None:
+    """Validated against the config's reference limits, a trajectory followed exactly, or
+    by a measured pose as far out as the tracking-error bounds allow, passes every
+    runtime output check, sampled at every control cycle.  With `stops` the waypoints are
+    at rest (straight segments along the faces), else the spline may overshoot them."""
+    from cdpr import Pose, liediff
+    from cdpr.trajectory import Trajectory, TrajectoryError, Waypoint, validate
+
+    config = fenced
+    limits = config.reference_limits
+    lo, hi = np.array(limits.lower), np.array(limits.upper)
+    home = config.robot.home
+    times = np.cumsum([0.0, *gaps])
+    waypoints = []
+    for t, corner, (share, azimuth) in zip(times, corners, turns, strict=False):
+        axis = np.array([math.cos(azimuth), math.sin(azimuth), 0.3])
+        rotvec = axis / np.linalg.norm(axis) * share * limits.tilt_max
+        pose = Pose.from_rotvec(lo + np.array(corner) * (hi - lo), rotvec)
+        rest = np.zeros(6) if stops else None
+        waypoints.append(Waypoint(t, pose, rest, rest))
+    trajectory = Trajectory(waypoints)
+    try:
+        validate(trajectory, config.robot, config.trajectory, pose_limits=limits)
+    except TrajectoryError as exc:
+        assert exc.limit in (
+            "workspace_min",
+            "workspace_max",
+            "tilt_max",
+            "linear_speed",
+            "angular_speed",
+            "linear_accel",
+            "angular_accel",
+            "cable_length",
+        )
+        return
+    monitor = SafetyMonitor(config)
+    base = _output_at(config, home)
+    e_p = config.safety.tracking_error_position * (1.0 - 1e-9)
+    e_r = config.safety.tracking_error_orientation * (1.0 - 1e-9)
+    period = 1.0 / config.controller.rate_hz
+    for t in np.arange(trajectory.start_time, trajectory.end_time + period, period):
+        reference = trajectory.sample(float(t)).pose
+        for measured in (reference, _outward(reference, home, e_p, e_r)):
+            output = base._replace(pose=measured, theta_d=liediff(reference, measured))
+            assert monitor.check_output(output) is None, (t, measured)
+
+
+def test_the_runtime_check_brakes_just_outside_what_validation_allows(fenced) -> None:
+    """The margins are not more than needed: beyond the tracking bounds, the same worst
+    case trips the runtime pose check at the edge of what validation accepts."""
+    from cdpr import Pose, liediff
+
+    config = fenced
+    limits = config.reference_limits
+    monitor = SafetyMonitor(config)
+    base = _output_at(config, config.robot.home)
+    edge = Pose((*limits.lower[:2], 1.3), (1.0, 0.0, 0.0, 0.0))
+    assert limits.violation(edge) is None
+    over = Pose(edge.position - np.array([0.0201, 0.0, 0.0]), edge.quaternion)
+    fault = monitor.check_output(base._replace(pose=over, theta_d=liediff(edge, over)))
+    assert fault.trigger is Trigger.POSE_LIMIT and "position x = -0.3000 m" in fault.message

@@ -2,12 +2,19 @@
 
 Waypoints become a C² pose reference (`Trajectory`), sampled once per control cycle;
 `parse_trajectory` reads the interface form (JSON / YAML), `validate` checks a whole
-trajectory against rate, cable-length and wrench limits before it runs, and `approach`
+trajectory against rate, pose, cable-length and wrench limits before it runs, and `approach`
 / `goto` build jump-free transitions from the current reference.
 """
 
 from cdpr.trajectory.core import SCHEMA_VERSION, Reference, Trajectory, TrajectoryError, Waypoint
-from cdpr.trajectory.limits import TrajectoryLimits, WrenchCheck, validate, validation_steps
+from cdpr.trajectory.limits import (
+    TrajectoryLimits,
+    WrenchCheck,
+    check_start_delay,
+    sampled_pose_limits,
+    validate,
+    validation_steps,
+)
 from cdpr.trajectory.parse import parse_trajectory
 from cdpr.trajectory.transitions import approach, approach_steps, goto, goto_steps, run_steps
 
@@ -21,10 +28,12 @@ __all__ = [
     "WrenchCheck",
     "approach",
     "approach_steps",
+    "check_start_delay",
     "goto",
     "goto_steps",
     "parse_trajectory",
     "run_steps",
+    "sampled_pose_limits",
     "validate",
     "validation_steps",
 ]

@@ -1,13 +1,16 @@
 """Trajectory limits (a config section) and the whole-trajectory check before it runs.
 
 A rejected trajectory changes nothing; the TrajectoryError says which waypoint segment,
-which limit and which value (DESIGN §7).
+which limit and which value (DESIGN §7).  The pose limits every sample is held to come
+from the runtime's (cdpr.pose_limits), shrunk so that an accepted trajectory never trips
+the runtime check (`sampled_pose_limits`).
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable, Iterator
+from typing import Annotated
 
 import numpy as np
 from numpy.typing import NDArray
@@ -15,6 +18,7 @@ from pydantic import Field
 
 from cdpr.description import PositiveFloat, StrictModel
 from cdpr.pose import Pose
+from cdpr.pose_limits import PoseLimits
 from cdpr.robot import Robot
 from cdpr.trajectory.core import Reference, Trajectory, TrajectoryError
 
@@ -31,6 +35,8 @@ class TrajectoryLimits(StrictModel):
     sample_period: PositiveFloat = 0.01  # s, validation step along the path
     max_waypoints: int = Field(10000, ge=2)
     max_duration: PositiveFloat = 3600.0  # s, bounds the validation work too
+    # s from now to a requested start; strict: a bool or a string is an error, not a number
+    max_start_delay: Annotated[PositiveFloat, Field(strict=True)] = 60.0
     unit_tolerance: float = Field(1e-6, gt=0.0, le=1e-2)  # |‖q‖ - 1| normalised silently
 
 
@@ -73,20 +79,56 @@ def first_rate_violation(
     return row, name, float(sizes[row, col]), unit
 
 
+def sampled_pose_limits(path: PoseLimits, limits: TrajectoryLimits) -> PoseLimits:
+    """The pose limits each validation sample must keep for the whole path, between the
+    samples too, to stay inside `path`.
+
+    Samples lie at most h = limits.sample_period apart.  Between two of them a position
+    coordinate strays at most linear_accel·h²/8 beyond the larger of its two sampled
+    values (|p̈| <= linear_accel).  For the tilt, c(t) = <q(t), q_home> has
+    |c̈| <= |q̈| <= angular_accel/2 + angular_speed²/4, so c drops at most
+    δ = (angular_accel/2 + angular_speed²/4)·h²/8 below the smaller sampled value:
+    samples with tilt <= 2 acos(cos(tilt_max/2) + δ) keep the path's tilt <= tilt_max.
+    """
+    h2 = limits.sample_period**2
+    position = limits.linear_accel * h2 / 8.0
+    delta = (limits.angular_accel / 2.0 + limits.angular_speed**2 / 4.0) * h2 / 8.0
+    orientation = 0.0
+    if path.tilt_max > 0.0:  # else it is empty already
+        sampled = 2.0 * math.acos(min(1.0, math.cos(path.tilt_max / 2.0) + delta))
+        orientation = path.tilt_max - sampled
+    return path.shrunk(position, orientation)
+
+
+def check_start_delay(delay: float, limits: TrajectoryLimits) -> None:
+    """TrajectoryError if a requested start lies more than max_start_delay seconds ahead
+    (the start is when waypoint 0 is due)."""
+    if not delay <= limits.max_start_delay:
+        raise TrajectoryError(
+            "max_start_delay",
+            f"the start lies {delay:.6g} s ahead, beyond the limit {limits.max_start_delay:g} s",
+            waypoint=0,
+            value=delay,
+        )
+
+
 def validate(
     trajectory: Trajectory,
     robot: Robot,
     limits: TrajectoryLimits,
     wrench_check: WrenchCheck | None = None,
+    pose_limits: PoseLimits | None = None,
 ) -> None:
     """Raise TrajectoryError on the first problem along the path, else return.
 
-    Samples every limits.sample_period from the start and at every waypoint time:
-    rate limits, cable lengths within [length_min, length_max], and, if given,
-    ``wrench_check(pose, twist, accel)`` (None when the wrench is in W, else a reason).
-    The waypoint index reported is that of the segment holding the failing instant.
+    If given, every waypoint's pose is checked against `pose_limits` first (naming that
+    waypoint).  Then samples every limits.sample_period from the start and at every
+    waypoint time: rate limits, `pose_limits`, cable lengths within [length_min,
+    length_max], and, if given, ``wrench_check(pose, twist, accel)`` (None when the
+    wrench is in W, else a reason).  The waypoint index reported for a sample is that of
+    the segment holding the failing instant.
     """
-    for _ in validation_steps(trajectory, robot, limits, wrench_check):
+    for _ in validation_steps(trajectory, robot, limits, wrench_check, pose_limits):
         pass
 
 
@@ -95,9 +137,10 @@ def validation_steps(
     robot: Robot,
     limits: TrajectoryLimits,
     wrench_check: WrenchCheck | None = None,
+    pose_limits: PoseLimits | None = None,
 ) -> Iterator[float]:
-    """`validate` one sample at a time: yields each sampled time once it passed, so a
-    caller sharing an event loop with a control cycle can pause between samples."""
+    """`validate` one step at a time: yields each checked waypoint's and sample's time once
+    it passed, so a caller sharing an event loop with a control cycle can pause between."""
     count = len(trajectory.waypoints)
     if count > limits.max_waypoints:
         raise TrajectoryError(
@@ -111,6 +154,10 @@ def validation_steps(
             f"duration {trajectory.duration:.6g} s exceeds the limit {limits.max_duration:g} s",
             value=trajectory.duration,
         )
+    if pose_limits is not None:
+        for index, w in enumerate(trajectory.waypoints):
+            _check_pose(pose_limits, w.pose, index, f"at t={w.t:.6g} s")
+            yield w.t
     steps = math.floor(trajectory.duration / limits.sample_period)
     grid = trajectory.start_time + limits.sample_period * np.arange(steps + 1)
     knots = [w.t for w in trajectory.waypoints]
@@ -127,6 +174,8 @@ def validation_steps(
                 waypoint=index,
                 value=size,
             )
+        if pose_limits is not None:
+            _check_pose(pose_limits, ref.pose, index, at)
         lengths = robot.cable_lengths(ref.pose)
         for k, (ell, lo, hi) in enumerate(
             zip(lengths.tolist(), robot.length_min, robot.length_max, strict=True)
@@ -143,3 +192,9 @@ def validation_steps(
             if reason is not None:
                 raise TrajectoryError("wrench_set", f"{reason} {at}", waypoint=index)
         yield t
+
+
+def _check_pose(pose_limits: PoseLimits, pose: Pose, index: int, at: str) -> None:
+    bad = pose_limits.violation(pose)
+    if bad is not None:
+        raise TrajectoryError(bad.limit, f"{bad.detail} {at}", waypoint=index, value=bad.value)
