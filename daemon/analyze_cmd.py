@@ -90,8 +90,8 @@ def load_config(path: str | Path) -> tuple[Robot, ControllerSpec]:
     data = load_yaml(path)
     if not (isinstance(data, dict) and "robot" in data):
         return Robot.from_dict(data, source=str(path)), ControllerSpec()
-    loaded = Robot.from_reference(data["robot"], path.parent, source=f"{path}: robot")
-    return loaded, parse_controller(data.get("controller"), source=f"{path}: controller")
+    loaded = Robot.from_reference(data["robot"], path.parent, source=str(path))
+    return loaded, parse_controller(data.get("controller"), source=str(path))
 
 
 # -- text ---------------------------------------------------------------------------

@@ -98,7 +98,7 @@ def test_rank_deficient_geometry_is_rejected(data: dict) -> None:
 def test_yaml_errors_name_the_file(tmp_path: Path) -> None:
     bad = tmp_path / "bad.yaml"
     bad.write_text("name: x\nplatform: [unclosed\n")
-    with pytest.raises(ConfigError, match=r"bad\.yaml: not valid YAML"):
+    with pytest.raises(ConfigError, match=r"bad\.yaml: line 3, column 1: not valid YAML: .*line 2"):
         Robot.from_yaml(bad)
     with pytest.raises(ConfigError, match="cannot read"):
         Robot.from_yaml(tmp_path / "missing.yaml")
