@@ -71,7 +71,7 @@ from daemon.messages import (
     reply_ok,
     request_id,
 )
-from daemon.zenoh_config import ZenohSettings, build_zenoh_config
+from daemon.zenoh_config import ZenohSettings, build_zenoh_config, zenoh_reason
 
 log = logging.getLogger(__name__)
 
@@ -94,6 +94,11 @@ INLINE_WAYPOINTS = 2  # a decoded trajectory of at most 2 waypoints is parsed on
 _Parsed = TrajectoryRequest | tuple[str | None, CommandError]  # or (id, why refused)
 _TrajectoryItem = tuple[bytes | TrajectoryMessage, zenoh.Query | None]  # queued, and who asks
 _Item = TypeVar("_Item")
+
+
+class SessionError(RuntimeError):
+    """zenoh could not open the daemon's session (an endpoint already in use, a router
+    that cannot be reached, ...): one line naming the key, the endpoints and why."""
 
 
 class _Inbox(Generic[_Item]):
@@ -272,8 +277,10 @@ class ZenohInterface:
         conf = build_zenoh_config(self.settings, self.prefix)
         try:
             session = await loop.run_in_executor(None, zenoh.open, conf)
-        except BaseException:
+        except BaseException as exc:
             self._parser.shutdown(wait=False)
+            if isinstance(exc, zenoh.ZError):
+                raise SessionError(self._open_failure(exc)) from None
             raise
         self._session = session
         drop = zenoh.CongestionControl.DROP  # a congested network never blocks the loop
@@ -287,6 +294,12 @@ class ZenohInterface:
         ]
         self._state_task = loop.create_task(self._publish_states())
         log.info("zenoh interface on %s (listen %s)", self.prefix, self.settings.listen_endpoints)
+
+    def _open_failure(self, exc: zenoh.ZError) -> str:
+        peer = self.settings.mode == "peer"
+        key = "zenoh.listen" if peer else "zenoh.connect"
+        endpoints = self.settings.listen_endpoints if peer else self.settings.connect
+        return f"{key}: {', '.join(endpoints)}: cannot open the zenoh session: {zenoh_reason(exc)}"
 
     async def close(self) -> None:
         """Stop taking requests, answer the waiting ones "busy", publish the events still
