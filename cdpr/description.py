@@ -35,6 +35,7 @@ Section = TypeVar("Section", bound=BaseModel)
 
 
 CONFIG_MAX_BYTES = 1 << 20  # a config or robot file larger than this is refused unread
+AXIS_TOLERANCE = 1e-6  # |norm - 1| of a pulley axis that is normalised rather than refused
 
 
 class ConfigError(ValueError):
@@ -63,7 +64,7 @@ class QuaternionSpec(StrictModel):
 
     @model_validator(mode="after")
     def _unit(self) -> QuaternionSpec:
-        norm = math.sqrt(self.w**2 + self.x**2 + self.y**2 + self.z**2)
+        norm = math.hypot(self.w, self.x, self.y, self.z)  # no overflow for huge parts
         if abs(norm - 1.0) > 1e-6:
             raise ValueError(f"quaternion norm is {norm:.9g}; a unit quaternion is required")
         return self
@@ -79,17 +80,19 @@ class PoseSpec(StrictModel):
 
 class PulleySpec(StrictModel):
     """Standard pulley model: the cable runs along `axis` into a pulley of `radius`
-    that swivels about that axis through the anchor point, then leaves tangentially."""
+    that swivels about that axis through the anchor point, then leaves tangentially.
+    `axis` is a unit vector: normalised within AXIS_TOLERANCE, refused beyond it (as a
+    quaternion is), so that the file holds the direction that is used."""
 
     radius: PositiveFloat
     axis: Vec3 = (0.0, 0.0, 1.0)
 
     @field_validator("axis")
     @classmethod
-    def _normalise_axis(cls, v: Vec3) -> Vec3:
-        n = math.sqrt(sum(c * c for c in v))
-        if n < 1e-9:
-            raise ValueError("pulley axis must be a non-zero vector")
+    def _unit_axis(cls, v: Vec3) -> Vec3:
+        n = math.hypot(*v)
+        if not abs(n - 1.0) <= AXIS_TOLERANCE:
+            raise ValueError(f"pulley axis must be a unit vector; its norm is {n:.9g}")
         return (v[0] / n, v[1] / n, v[2] / n)
 
 
@@ -212,25 +215,41 @@ def _first_message(exc: ValidationError) -> str:
 # pydantic adds the member of a union that failed to the key path ("float", "list[...]",
 # "function-after[...]"): noise to an operator, so such parts are left out of KEY
 _UNION_MEMBERS = frozenset({"bool", "int", "float", "str", "none", "list", "dict", "tuple"})
+_SHOULD = "Input should be "
 
 
 def format_validation_error(exc: ValidationError, source: str = "", key: str = "") -> str:
-    """One line per problem: 'SOURCE: KEY.PATH: message (got value)'."""
-    lines: list[str] = []
+    """One line per problem: 'SOURCE: KEY.PATH: message (got value)'; the members of a
+    union that all failed on one key share a line ('a valid number, or a valid array')."""
+    problems: list[list[str]] = []  # [path, message, shown value]
     for err in exc.errors():
         loc = [str(p) for p in err["loc"] if not _union_member(p)]
         path = ".".join(p for p in (key, *loc) if p)
         msg = " ".join(err["msg"].removeprefix("Value error, ").split())
         got = err.get("input")
-        shown = "" if isinstance(got, dict | list) or got is None else f" (got {_clip(got)})"
-        line = ": ".join(p for p in (source, path, f"{msg}{shown}") if p)
-        if line not in lines:
-            lines.append(line)
-    return "\n".join(lines)
+        shown = "" if isinstance(got, dict | list) else f" (got {_show_value(got)})"
+        last = problems[-1] if problems else ["", "", ""]
+        if (last[0], last[2]) != (path, shown):
+            problems.append([path, msg, shown])
+        elif last[1].startswith(_SHOULD) and msg.startswith(_SHOULD):
+            alternative = msg.removeprefix(_SHOULD)
+            if alternative not in last[1]:
+                last[1] += f", or {alternative}"
+        elif msg != last[1]:
+            problems.append([path, msg, shown])
+    lines = [[source, path, msg + shown] for path, msg, shown in problems]
+    return "\n".join(": ".join(part for part in line if part) for line in lines)
 
 
 def _union_member(part: int | str) -> bool:
     return isinstance(part, str) and ("[" in part or part in _UNION_MEMBERS)
+
+
+def _show_value(value: Any) -> str:
+    """A value as the file spells it: null, true, false, a number, a quoted string."""
+    if value is None or isinstance(value, bool):
+        return json.dumps(value)
+    return _clip(value)
 
 
 def _clip(value: Any, limit: int = 80) -> str:

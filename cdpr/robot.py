@@ -86,7 +86,12 @@ class Robot:
         to `base`, the config file's directory) or an inline description."""
         if isinstance(value, str):
             path = Path(value)
-            return cls.from_yaml(path if path.is_absolute() else base / path)
+            path = path if path.is_absolute() else base / path
+            try:
+                data = load_yaml(path)
+            except ConfigError as exc:  # unreadable, or not YAML: name the key too
+                raise exc.within(f"{source}: {key}") from None
+            return cls.from_dict(data, source=show_path(path))
         if isinstance(value, dict):
             return cls.from_dict(value, source, key)
         raise ConfigError(

@@ -43,6 +43,7 @@ _FLOAT = re.compile(
     r"(?:[-+]?(?:\.[0-9]+|[0-9]+(?:\.[0-9]*)?)(?:[eE][-+]?[0-9]+)?"
     r"|[-+]?\.(?:inf|Inf|INF)|\.(?:nan|NaN|NAN))\Z"
 )
+_SURROGATE = re.compile("[\ud800-\udfff]")
 _INT_DIGITS = len(str(INT_BOUND))  # longer digit strings are out of range unconverted
 
 
@@ -103,7 +104,10 @@ class _CoreConstructor(BaseConstructor):
     def construct_str(self, node: Node) -> str:
         if not isinstance(node, ScalarNode):
             raise _refuse(f"{_kind(node)} cannot be a string", node)
-        return self.construct_scalar(node)
+        value = self.construct_scalar(node)
+        if _SURROGATE.search(value):  # only a "\ud800" escape makes one
+            raise _refuse("a lone surrogate escape (\\ud800-\\udfff) is not a character", node)
+        return value
 
     def construct_seq(self, node: Node) -> list[Any]:
         if not isinstance(node, SequenceNode):

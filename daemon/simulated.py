@@ -29,13 +29,13 @@ class InProcessSimulator:
 
     def __init__(self, config: DaemonConfig) -> None:
         sim = sim_section(config)
+        self.robot = simulated_robot(config, sim)  # a ConfigError before any bus is open
         channel = f"cdprd-sim-{os.getpid()}-{next(_channels)}"
         bitrate = config.can.bitrate
         device_bus: can.BusABC = LoopBus(channel=channel, bitrate=bitrate)
         if sim.frame_faults.named_rules():
             device_bus = FaultyBus(device_bus, sim.frame_faults)
         self.daemon_bus = LoopBus(channel=channel, bitrate=bitrate)
-        self.robot = simulated_robot(config, sim)
         self.runner = SimulatorRunner(self.robot, device_bus, wake_period=sim.wake(config.drives))
         self._device_bus = device_bus
 

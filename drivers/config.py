@@ -17,14 +17,14 @@ from cdpr.description import FiniteFloat, PositiveFloat, StrictModel, validate_s
 from drivers.base import BrakeMode, Scaling
 
 
-def _not_a_bool(value: Any) -> Any:
-    """pydantic matches the literal 1 to true (they are equal in Python): refuse it."""
-    if isinstance(value, bool):
-        raise ValueError("a direction is 1 or -1, not true or false")
+def _an_int(value: Any) -> Any:
+    """pydantic matches the literal 1 to true and to 1.0 (equal in Python): refuse them."""
+    if type(value) is not int:
+        raise ValueError("Input should be the integer 1 or -1")
     return value
 
 
-Direction = Annotated[Literal[1, -1], BeforeValidator(_not_a_bool)]
+Direction = Annotated[Literal[1, -1], BeforeValidator(_an_int)]
 PositiveSeconds = Annotated[float, Field(gt=0.0, le=10.0, allow_inf_nan=False)]
 
 
