@@ -52,7 +52,7 @@ from typing import Any, Generic, TypeVar
 
 import zenoh
 
-from cdpr.trajectory import SCHEMA_VERSION, TrajectoryLimits
+from cdpr.trajectory import SCHEMA_VERSION, TrajectoryError, TrajectoryLimits
 from daemon.api import CommandError, DaemonHandler
 from daemon.messages import (
     EVENT_KEY,
@@ -67,6 +67,7 @@ from daemon.messages import (
     error_body,
     jsonable,
     parse_waypoints,
+    rejection,
     reply_error,
     reply_ok,
     request_id,
@@ -473,7 +474,7 @@ class ZenohInterface:
                     f"commands need an exact key such as {self.key('cmd/status')}, not {key}",
                 )
             payload = query.payload
-            data = None
+            data: Any = {}  # no payload: no arguments (docs/zenoh.md, "Commands")
             if payload is not None and len(payload) > 0:
                 limit = min(MAX_COMMAND_BYTES, self.settings.max_message_bytes)
                 check_size(len(payload), limit, "max_command_bytes")
@@ -544,7 +545,7 @@ class ZenohInterface:
             self._reply(query, reply_error(name, exc), ok=False)
             return
         except Exception as exc:
-            self._reply(query, reply_error(name, _internal(name, exc)), ok=False)
+            self._reply(query, reply_error(name, _failure(name, exc)), ok=False)
             return
         if not inspect.isawaitable(result):
             self._reply(query, reply_ok(name, result), ok=True)
@@ -579,7 +580,7 @@ class ZenohInterface:
             self._reply(query, reply_error(name, _busy(name)), ok=False)
             raise
         except Exception as exc:
-            self._reply(query, reply_error(name, _internal(name, exc)), ok=False)
+            self._reply(query, reply_error(name, _failure(name, exc)), ok=False)
         else:
             self._reply(query, reply_ok(name, result), ok=True)
 
@@ -633,7 +634,7 @@ class ZenohInterface:
         except CommandError as exc:
             self._trajectory_outcome(parsed.id, query, None, exc)
         except Exception as exc:
-            self._trajectory_outcome(parsed.id, query, None, _internal("trajectory", exc))
+            self._trajectory_outcome(parsed.id, query, None, _failure("trajectory", exc))
         else:
             if inspect.isawaitable(result):  # validation between control cycles
                 self._submission = self._track(self._verdict(parsed.id, query, result))
@@ -651,7 +652,7 @@ class ZenohInterface:
             self._trajectory_outcome(ident, query, None, _busy("trajectory"))
             raise
         except Exception as exc:
-            self._trajectory_outcome(ident, query, None, _internal("trajectory", exc))
+            self._trajectory_outcome(ident, query, None, _failure("trajectory", exc))
         else:
             self._trajectory_outcome(ident, query, result, None)
 
@@ -760,6 +761,15 @@ def _rejected_event(ident: str | None, error: CommandError) -> dict[str, Any]:
 
 def _busy(what: str) -> CommandError:
     return CommandError("busy", f"too many {what} requests waiting: this one was dropped, retry")
+
+
+def _failure(what: str, exc: Exception) -> CommandError:
+    """The refusal for an exception the handler let out: a TrajectoryError still names a
+    limit the request breaks ("rejected", with its details); anything else is a bug."""
+    if isinstance(exc, TrajectoryError):
+        log.warning("%s: a TrajectoryError reached the interface: %s", what, exc)
+        return rejection(what, exc)
+    return _internal(what, exc)
 
 
 def _internal(what: str, exc: Exception) -> CommandError:

@@ -29,7 +29,7 @@ from hypothesis import strategies as st
 
 from cdpr import Pose
 from cdpr.description import ConfigError, validate_section
-from cdpr.trajectory import Trajectory, parse_trajectory
+from cdpr.trajectory import Trajectory, TrajectoryError, parse_trajectory
 from daemon.api import CommandError
 from daemon.cli import main
 from daemon.client import CdprClient, ClientError, RequestError, UnreachableError
@@ -376,6 +376,12 @@ HOSTILE_COMMANDS = [
     ("cmd/enable/now", None, "unknown_command", "unknown command 'enable/now'"),
     ("cmd/enable", b'{"force": true}', "bad_request", "unknown key(s) 'force'"),
     ("cmd/status", b"[1]", "bad_request", "expected a JSON object"),
+    ("cmd/disable", b"null", "bad_request", "disable: expected a JSON object, got null"),
+    ("cmd/hold", b"null", "bad_request", "hold: expected a JSON object, got null"),
+    ("cmd/brake", b"null", "bad_request", "brake: expected a JSON object, got null"),
+    ("cmd/reset", b"null", "bad_request", "reset: expected a JSON object, got null"),
+    ("cmd/hold", b"3", "bad_request", "hold: expected a JSON object, got int"),
+    ("cmd/disable", b'"now"', "bad_request", "disable: expected a JSON object, got str"),
     ("cmd/goto", b'{"position": [0, 0, NaN]}', "bad_request", "NaN is not a JSON number"),
     ("cmd/goto", b'{"position": [0, 0]}', "bad_request", "expected [x, y, z]"),
     ("cmd/goto", b'{"position": [0, "0", 1]}', "bad_request", "position[1]: expected a number"),
@@ -918,6 +924,51 @@ def test_client_reports_the_rejection_reason(running: Running) -> None:
         sub.undeclare()
 
 
+class Escaping(StandIn):
+    """A handler from which a TrajectoryError escapes, at once (goto), from an awaited
+    reply (hold) and from an awaited verdict (trajectory): as when planning outside the
+    service's own try blocks breaks a limit."""
+
+    def command(self, name: str, args: dict[str, Any]) -> Any:
+        if name == "goto":
+            raise TrajectoryError("linear_speed", "1.5 m/s above 1 m/s", waypoint=0, value=1.5)
+        if name == "hold":
+
+            async def plan() -> dict[str, Any]:
+                raise TrajectoryError("max_duration", "the stop would last 9e+99 s")
+
+            return plan()
+        return super().command(name, args)
+
+    def submit_trajectory(self, trajectory: Trajectory, start: float | None) -> Any:
+        async def validate() -> dict[str, Any]:
+            raise TrajectoryError("cable_length", "cable 3 at 4.5 m", waypoint=1, value=4.5)
+
+        return validate()
+
+
+def test_a_trajectory_error_from_the_handler_is_a_rejection_not_internal() -> None:
+    served = Running(Escaping())
+    session = served.session()
+    try:
+        goto = ask(session, "cmd/goto", json.dumps({"position": [0.1, 0.0, 1.3]}))
+        hold = ask(session, "cmd/hold")
+        trajectory = ask(session, "trajectory", json.dumps(TRAJECTORY))
+    finally:
+        session.close()
+        served.stop()
+    assert goto["error"] == {
+        "code": "rejected",
+        "reason": "goto rejected: waypoint 0: linear_speed: 1.5 m/s above 1 m/s",
+        "limit": "linear_speed",
+        "waypoint": 0,
+        "value": 1.5,
+    }
+    assert hold["error"]["code"] == "rejected" and hold["error"]["limit"] == "max_duration"
+    assert trajectory["error"]["code"] == "rejected"
+    assert (trajectory["error"]["limit"], trajectory["error"]["waypoint"]) == ("cable_length", 1)
+
+
 BIG_PUTS = r"""
 import json, sys, zenoh
 
@@ -1082,3 +1133,4 @@ def test_several_daemons_behind_a_router_with_access_control(
         for served in robots.values():
             served.stop()
         router.close()
+
