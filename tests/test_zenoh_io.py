@@ -28,7 +28,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from cdpr import Pose
-from cdpr.description import ConfigError, validate_section
+from cdpr.description import ConfigError, load_yaml, validate_section
 from cdpr.trajectory import Trajectory, TrajectoryError, parse_trajectory
 from daemon.api import CommandError
 from daemon.cli import main
@@ -1134,3 +1134,69 @@ def test_several_daemons_behind_a_router_with_access_control(
             served.stop()
         router.close()
 
+
+# -- on one host: only the daemon speaks for the robot (config/hardware-template.yaml) ---
+
+TEMPLATE = DOCS.parent.parent / "config" / "hardware-template.yaml"
+FORGED = b'{"version": 1, "forged": true}'
+
+
+def template_zenoh(access_control: bool) -> ZenohSettings:
+    """The hardware template's zenoh section on a free loopback port, with its access
+    control or without it."""
+    section = load_yaml(TEMPLATE)["zenoh"]
+    section["listen"] = [f"tcp/127.0.0.1:{free_port()}"]
+    if not access_control:
+        del section["config"]["access_control"]
+    return validate_section(ZenohSettings, section, str(TEMPLATE), "zenoh")
+
+
+def test_the_templates_access_control_is_the_documented_one() -> None:
+    documented = yaml.safe_load(docs_block("only-the-daemon-speaks"))["zenoh"]["config"]
+    assert load_yaml(TEMPLATE)["zenoh"]["config"] == documented
+
+
+@pytest.mark.parametrize("access_control", [True, False])
+def test_with_the_templates_zenoh_section_only_the_daemon_speaks(access_control: bool) -> None:
+    """Another local process publishes state and events, holds an alive token of a daemon
+    that is not there and answers commands under the prefix.  With the template's zenoh
+    section none of it reaches a planner; without its access control (the control case)
+    it does."""
+    served = Running(StandIn(), template_zenoh(access_control))
+    forger, planner = served.session(), served.session()
+    seen: list[tuple[str, bytes]] = []
+    declared: list[Any] = []  # kept: zenoh undeclares what is dropped
+    try:
+        declared += [
+            planner.declare_subscriber(
+                f"{PREFIX}/**", lambda s: seen.append((str(s.key_expr), s.payload.to_bytes()))
+            ),
+            forger.declare_queryable(f"{PREFIX}/cmd/**", lambda q: q.reply(q.key_expr, FORGED)),
+            forger.liveliness().declare_token("cdpr/ghost/alive"),
+        ]
+        wait_until(lambda: len(seen) >= 1, "the daemon's state")
+        for key in ("state", "events"):
+            forger.put(f"{PREFIX}/{key}", FORGED)
+        list(forger.get(f"{PREFIX}/trajectory", timeout=WAIT))  # after the puts, on one link
+
+        def alive() -> list[str]:
+            tokens = planner.liveliness().get("cdpr/*/alive", timeout=WAIT)
+            return sorted(str(r.ok.key_expr) for r in tokens if r.ok is not None)
+
+        forged = {f"{PREFIX}/state", f"{PREFIX}/events"}
+        if not access_control:
+            wait_until(lambda: {k for k, p in seen if p == FORGED} == forged, "the forged puts")
+            wait_until(lambda: "cdpr/ghost/alive" in alive(), "the forged token")
+            return
+        states = len(seen)
+        wait_until(lambda: len(seen) >= states + 3, "three more states")  # forged ones came by
+        status = ask(planner, "cmd/status")
+        tokens = alive()
+    finally:
+        declared.clear()
+        forger.close()
+        planner.close()
+        served.stop()
+    assert FORGED not in {payload for _, payload in seen}
+    assert status["ok"] and status["result"]["command"] == "status"  # the daemon answered
+    assert tokens == [f"{PREFIX}/alive"]
