@@ -8,8 +8,8 @@ numbers, yes/no/on/off, dates, 1_000) and tags written raw, lines duplicated, by
 are not UTF-8 text.  Every case must end with exit code 0, or 1 and lines
 `error: FILE: ...`, never an exception; and an accepted config must hold every value
 the case wrote exactly as written (same type and value; an integer where a float is
-expected is the one conversion allowed).  A few cases also run as `python -m daemon.cli`
-processes, for check-config and for run.
+expected is the one conversion allowed).  A few cases also run as `python -m daemon.cli
+check-config` processes (tests/test_cli.py runs `run` on the hostile configs it names).
 """
 
 from __future__ import annotations
