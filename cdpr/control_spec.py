@@ -111,6 +111,6 @@ class ControllerSpec(StrictModel):
 DEFAULT_PID = PidSpec(kp=100.0, ki=50.0, kd=20.0)
 
 
-def parse_controller(data: Any, source: str = "controller") -> ControllerSpec:
+def parse_controller(data: Any, source: str = "config", key: str = "controller") -> ControllerSpec:
     """Validate a plain dict; ConfigError names every bad key."""
-    return validate_section(ControllerSpec, {} if data is None else data, source)
+    return validate_section(ControllerSpec, {} if data is None else data, source, key)

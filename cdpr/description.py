@@ -1,12 +1,16 @@
 """Robot description: the YAML/dict schema, validated with errors that name the key.
 
 pydantic does the validation (types, ranges, unknown keys) because it reports the
-path of every bad key; the model code never sees an unvalidated value.
+path of every bad key; the model code never sees an unvalidated value.  Validation is
+strict (validate_section): a number must be a number (an integer will do for a float,
+a boolean never), a string a string, a flag true or false; nothing is converted.
 """
 
 from __future__ import annotations
 
+import json
 import math
+import stat
 from pathlib import Path
 from typing import Annotated, Any, TypeVar
 
@@ -21,6 +25,8 @@ from pydantic import (
     model_validator,
 )
 
+from cdpr import strict_yaml
+
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
 PositiveFloat = Annotated[float, Field(gt=0.0, allow_inf_nan=False)]
 NonNegativeFloat = Annotated[float, Field(ge=0.0, allow_inf_nan=False)]
@@ -28,12 +34,22 @@ Vec3 = tuple[FiniteFloat, FiniteFloat, FiniteFloat]
 Section = TypeVar("Section", bound=BaseModel)
 
 
+CONFIG_MAX_BYTES = 1 << 20  # a config or robot file larger than this is refused unread
+AXIS_TOLERANCE = 1e-6  # |norm - 1| of a pulley axis that is normalised rather than refused
+
+
 class ConfigError(ValueError):
-    """A configuration problem; the message names the key path and the problem."""
+    """A configuration problem: one line per problem, 'WHERE: KEY: problem', where WHERE
+    is the file (or the source of the data) and KEY the key path."""
+
+    def within(self, where: str) -> ConfigError:
+        """The same problems, each line prefixed with `where` (the file or key they are in)."""
+        return ConfigError("\n".join(f"{where}: {line}" for line in str(self).splitlines()))
 
 
 class StrictModel(BaseModel):
-    """Config sections: unknown keys are errors, values immutable once validated."""
+    """Config sections: unknown keys are errors, values immutable once validated.
+    Validate input with validate_section, which is strict (see the module docstring)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
@@ -48,7 +64,7 @@ class QuaternionSpec(StrictModel):
 
     @model_validator(mode="after")
     def _unit(self) -> QuaternionSpec:
-        norm = math.sqrt(self.w**2 + self.x**2 + self.y**2 + self.z**2)
+        norm = math.hypot(self.w, self.x, self.y, self.z)  # no overflow for huge parts
         if abs(norm - 1.0) > 1e-6:
             raise ValueError(f"quaternion norm is {norm:.9g}; a unit quaternion is required")
         return self
@@ -64,17 +80,19 @@ class PoseSpec(StrictModel):
 
 class PulleySpec(StrictModel):
     """Standard pulley model: the cable runs along `axis` into a pulley of `radius`
-    that swivels about that axis through the anchor point, then leaves tangentially."""
+    that swivels about that axis through the anchor point, then leaves tangentially.
+    `axis` is a unit vector: normalised within AXIS_TOLERANCE, refused beyond it (as a
+    quaternion is), so that the file holds the direction that is used."""
 
     radius: PositiveFloat
     axis: Vec3 = (0.0, 0.0, 1.0)
 
     @field_validator("axis")
     @classmethod
-    def _normalise_axis(cls, v: Vec3) -> Vec3:
-        n = math.sqrt(sum(c * c for c in v))
-        if n < 1e-9:
-            raise ValueError("pulley axis must be a non-zero vector")
+    def _unit_axis(cls, v: Vec3) -> Vec3:
+        n = math.hypot(*v)
+        if not abs(n - 1.0) <= AXIS_TOLERANCE:
+            raise ValueError(f"pulley axis must be a unit vector; its norm is {n:.9g}")
         return (v[0] / n, v[1] / n, v[2] / n)
 
 
@@ -169,26 +187,20 @@ class RobotSpec(StrictModel):
     home: PoseSpec
     forward_kinematics: ForwardKinematicsSpec = ForwardKinematicsSpec()
 
-    @model_validator(mode="before")
-    @classmethod
-    def _merge_actuator_overrides(cls, data: Any) -> Any:
+    @model_validator(mode="after")
+    def _merged_actuators_valid(self) -> RobotSpec:
         """Check each cable's merged actuator (defaults + overrides) is itself valid."""
-        if not isinstance(data, dict):
-            return data
-        defaults = data.get("actuator")
-        cables = data.get("cables")
-        if isinstance(defaults, dict) and isinstance(cables, list):
-            for i, cable in enumerate(cables):
-                if isinstance(cable, dict) and isinstance(cable.get("actuator"), dict):
-                    overrides = {k: v for k, v in cable["actuator"].items() if v is not None}
-                    merged = {**defaults, **overrides}
-                    try:
-                        ActuatorSpec.model_validate(merged)
-                    except ValidationError as exc:
-                        raise ValueError(
-                            f"cables.{i}.actuator (merged with defaults): {_first_message(exc)}"
-                        ) from None
-        return data
+        defaults = self.actuator.model_dump()
+        for i, cable in enumerate(self.cables):
+            overrides = cable.actuator.model_dump(exclude_none=True)
+            if overrides:
+                try:
+                    ActuatorSpec.model_validate({**defaults, **overrides})
+                except ValidationError as exc:
+                    raise ValueError(
+                        f"cables.{i}.actuator (merged with defaults): {_first_message(exc)}"
+                    ) from None
+        return self
 
     def actuator_of(self, index: int) -> ActuatorSpec:
         """The actuator parameters of cable `index` (defaults with its overrides)."""
@@ -200,42 +212,121 @@ def _first_message(exc: ValidationError) -> str:
     return format_validation_error(exc).splitlines()[0]
 
 
-def format_validation_error(exc: ValidationError, root: str = "") -> str:
-    """One line per problem: 'key.path: message (got value)'."""
-    lines = []
+# pydantic adds the member of a union that failed to the key path ("float", "list[...]",
+# "function-after[...]"): noise to an operator, so such parts are left out of KEY
+_UNION_MEMBERS = frozenset({"bool", "int", "float", "str", "none", "list", "dict", "tuple"})
+_SHOULD = "Input should be "
+
+
+def format_validation_error(exc: ValidationError, source: str = "", key: str = "") -> str:
+    """One line per problem: 'SOURCE: KEY.PATH: message (got value)'; the members of a
+    union that all failed on one key share a line ('a valid number, or a valid array')."""
+    problems: list[list[str]] = []  # [path, message, shown value]
     for err in exc.errors():
-        loc = ".".join(str(p) for p in err["loc"])
-        key = ".".join(p for p in (root, loc) if p)
-        msg = err["msg"].removeprefix("Value error, ")
+        loc = [str(p) for p in err["loc"] if not _union_member(p)]
+        path = ".".join(p for p in (key, *loc) if p)
+        msg = " ".join(err["msg"].removeprefix("Value error, ").split())
         got = err.get("input")
-        shown = "" if isinstance(got, dict | list) or got is None else f" (got {got!r})"
-        lines.append(f"{key}: {msg}{shown}" if key else f"{msg}{shown}")
-    return "\n".join(lines)
+        shown = "" if isinstance(got, dict | list) else f" (got {_show_value(got)})"
+        last = problems[-1] if problems else ["", "", ""]
+        if (last[0], last[2]) != (path, shown):
+            problems.append([path, msg, shown])
+        elif last[1].startswith(_SHOULD) and msg.startswith(_SHOULD):
+            alternative = msg.removeprefix(_SHOULD)
+            if alternative not in last[1]:
+                last[1] += f", or {alternative}"
+        elif msg != last[1]:
+            problems.append([path, msg, shown])
+    lines = [[source, path, msg + shown] for path, msg, shown in problems]
+    return "\n".join(": ".join(part for part in line if part) for line in lines)
 
 
-def validate_section(model: type[Section], data: Any, source: str) -> Section:
-    """Validate a plain dict (from YAML or JSON) as `model`; ConfigError names every bad key."""
+def _union_member(part: int | str) -> bool:
+    return isinstance(part, str) and ("[" in part or part in _UNION_MEMBERS)
+
+
+def _show_value(value: Any) -> str:
+    """A value as the file spells it: null, true, false, a number, a quoted string."""
+    if value is None or isinstance(value, bool):
+        return json.dumps(value)
+    return _clip(value)
+
+
+def _clip(value: Any, limit: int = 80) -> str:
+    """repr(value), shortened to about `limit` characters (a value may be a whole file)."""
+    text = repr(value)
+    return text if len(text) <= limit else f"{text[: limit - 5]}...{text[-1]}"
+
+
+def validate_section(model: type[Section], data: Any, source: str, key: str = "") -> Section:
+    """Validate plain data (from YAML or JSON) as `model`, strictly: pydantic's strict
+    JSON mode, where a list may fill a tuple and a string an enum, an integer a float,
+    and nothing else converts.  ConfigError names every bad key: `source` is the file (or
+    what the data came from), `key` the path of the section in it."""
+    where = ": ".join(p for p in (source, key) if p)
     if not isinstance(data, dict):
-        raise ConfigError(f"{source}: expected a mapping, got {type(data).__name__}")
+        raise ConfigError(f"{where}: expected a mapping, got {_type_name(data)}")
     try:
-        return model.model_validate(data)
+        text = json.dumps(data, allow_nan=True)
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"{where}: not plain data: {exc}") from None
+    try:
+        return model.model_validate_json(text, strict=True)
     except ValidationError as exc:
-        raise ConfigError(f"{source} is invalid:\n{format_validation_error(exc)}") from None
+        raise ConfigError(format_validation_error(exc, source, key)) from None
 
 
-def parse_robot(data: Any, source: str = "robot") -> RobotSpec:
+def _type_name(value: Any) -> str:
+    return "null" if value is None else type(value).__name__
+
+
+def parse_robot(data: Any, source: str = "robot", key: str = "") -> RobotSpec:
     """Validate a robot description; raises ConfigError naming every bad key."""
-    return validate_section(RobotSpec, data, source)
+    return validate_section(RobotSpec, data, source, key)
 
 
-def load_yaml(path: str | Path) -> Any:
-    """Read a YAML file; ConfigError (naming the file and line) when it does not parse."""
+def load_yaml(path: str | Path, max_bytes: int = CONFIG_MAX_BYTES) -> Any:
+    """Read a YAML file (strict_yaml: YAML 1.2 core types, bounded) of at most
+    `max_bytes`; ConfigError naming the file, and the line where there is one."""
     path = Path(path)
+    text = read_text(path, max_bytes)
     try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read: {exc.strerror}") from None
-    try:
-        return yaml.safe_load(text)
+        return strict_yaml.parse(text, max_nodes=max_bytes // 2)
     except yaml.YAMLError as exc:
-        raise ConfigError(f"{path}: not valid YAML: {exc}") from None
+        raise ConfigError(f"{show_path(path)}: {strict_yaml.describe(exc)}") from None
+
+
+def read_text(path: Path, max_bytes: int) -> str:
+    """The UTF-8 text of the regular file at `path`, at most `max_bytes` long; ConfigError
+    otherwise (a directory, a device such as /dev/zero, a pipe, too long, not UTF-8)."""
+    shown = show_path(path)
+    try:
+        mode = path.stat().st_mode
+        regular = stat.S_ISREG(mode)
+        if regular:
+            with path.open("rb") as file:
+                data = file.read(max_bytes + 1)
+    except OSError as exc:
+        raise ConfigError(f"{shown}: cannot read: {exc.strerror or exc}") from None
+    except ValueError as exc:  # e.g. a NUL character in the path
+        raise ConfigError(f"{shown}: cannot read: {exc}") from None
+    if not regular:
+        kind = "a directory" if stat.S_ISDIR(mode) else "a device, pipe or socket"
+        raise ConfigError(f"{shown}: cannot read: {kind}, not a regular file")
+    if len(data) > max_bytes:
+        raise ConfigError(f"{shown}: cannot read: longer than {max_bytes} bytes")
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = data.count(b"\n", 0, exc.start) + 1
+        raise ConfigError(
+            f"{shown}: line {line}: not UTF-8 text (byte 0x{data[exc.start]:02x} at offset "
+            f"{exc.start})"
+        ) from None
+
+
+def show_path(path: str | Path) -> str:
+    """A path as error messages print it: as is, or quoted if it holds a line break or
+    another character that is not printable, shortened if very long."""
+    text = str(path)
+    return text if text.isprintable() and len(text) <= 200 else _clip(text, 200)

@@ -8,7 +8,14 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from cdpr.description import ActuatorSpec, ConfigError, RobotSpec, load_yaml, parse_robot
+from cdpr.description import (
+    ActuatorSpec,
+    ConfigError,
+    RobotSpec,
+    load_yaml,
+    parse_robot,
+    show_path,
+)
 from cdpr.dynamics import PlatformInertia, modal_masses
 from cdpr.forward_kinematics import FKResult, FKSettings, solve_forward_kinematics
 from cdpr.kinematics import CableGeometry, to_array
@@ -57,26 +64,39 @@ class Robot:
         self._check_home()
 
     @classmethod
-    def from_dict(cls, data: Any, source: str = "robot") -> Robot:
-        """Validate and build; ConfigError names each bad key."""
-        return cls(parse_robot(data, source))
+    def from_dict(cls, data: Any, source: str = "robot", key: str = "") -> Robot:
+        """Validate and build; ConfigError names each bad key (`source`: the file or what
+        the data came from, `key`: where the description sits in it)."""
+        spec = parse_robot(data, source, key)
+        try:
+            return cls(spec)
+        except ConfigError as exc:
+            raise exc.within(": ".join(p for p in (source, key) if p)) from None
 
     @classmethod
     def from_yaml(cls, path: str | Path) -> Robot:
         """Load a robot description file (see config/robots/)."""
-        return cls.from_dict(load_yaml(path), source=str(path))
+        return cls.from_dict(load_yaml(path), source=show_path(path))
 
     @classmethod
-    def from_reference(cls, value: Any, base: Path, source: str = "robot") -> Robot:
-        """The `robot:` entry of a daemon config: a file path (relative to `base`, the
-        config file's directory) or an inline description."""
+    def from_reference(
+        cls, value: Any, base: Path, source: str = "config", key: str = "robot"
+    ) -> Robot:
+        """The `robot:` entry (`key`) of a daemon config (`source`): a file path (relative
+        to `base`, the config file's directory) or an inline description."""
         if isinstance(value, str):
             path = Path(value)
-            return cls.from_yaml(path if path.is_absolute() else base / path)
+            path = path if path.is_absolute() else base / path
+            try:
+                data = load_yaml(path)
+            except ConfigError as exc:  # unreadable, or not YAML: name the key too
+                raise exc.within(f"{source}: {key}") from None
+            return cls.from_dict(data, source=show_path(path))
         if isinstance(value, dict):
-            return cls.from_dict(value, source)
+            return cls.from_dict(value, source, key)
         raise ConfigError(
-            f"{source}: expected a mapping or a path to a robot file, got {type(value).__name__}"
+            f"{source}: {key}: expected a mapping or a path to a robot file, "
+            f"got {type(value).__name__}"
         )
 
     @property
@@ -186,14 +206,32 @@ class Robot:
         return out
 
     def _check_home(self) -> None:
-        lengths, Lam = self.lengths_and_jacobian(self.home)
+        """At the home pose every cable has a finite length and a direction (a zero-length
+        cable has none), within its limits, and Lambda has full rank."""
+        home, geometry = self.home, self.geometry
+        R = np.array(quat_to_r9(*home.quaternion_tuple)).reshape(3, 3)
+        with np.errstate(all="ignore"):
+            spans = home.position + geometry.attachments @ R.T - geometry.anchors
+            spans = np.linalg.norm(spans, axis=1)
+        if not np.all(np.isfinite(spans)):
+            raise ConfigError("cables: the cable geometry at the home pose is not finite")
+        for k, (span, pulley) in enumerate(zip(spans.tolist(), geometry.pulleys, strict=True)):
+            if pulley is None and not span > 1e-9:
+                raise ConfigError(
+                    f"cables.{k}: the cable has zero length at the home pose (its attachment "
+                    "meets its anchor)"
+                )
+        try:
+            lengths, Lam = self.lengths_and_jacobian(home)
+        except ZeroDivisionError:  # an attachment at the centre of its pulley
+            raise ConfigError("cables: a pulley cable has no direction at the home pose") from None
         problems = self.length_violations(lengths)
         if problems:
-            raise ConfigError(f"{self.name}: home pose puts " + "; ".join(problems))
+            raise ConfigError("home: the home pose puts " + "; ".join(problems))
         sv = np.linalg.svd(Lam, compute_uv=False)
-        if sv[-1] < 1e-6 * sv[0]:
+        if not sv[-1] >= 1e-6 * sv[0]:
             raise ConfigError(
-                f"{self.name}: Jacobian Lambda is rank deficient at the home pose "
+                "home: Jacobian Lambda is rank deficient at the home pose "
                 f"(singular values {np.array2string(sv, precision=3)})"
             )
 

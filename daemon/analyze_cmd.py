@@ -39,6 +39,7 @@ import numpy as np
 from cdpr import ConfigError, Robot
 from cdpr.control_spec import DEFAULT_PID, ControllerSpec, parse_controller
 from cdpr.description import load_yaml
+from daemon.run_cmd import report
 
 if TYPE_CHECKING:
     from sim_bus.workspace_analysis import Analysis, PoseAnalysis, PredictedMode, Progress
@@ -68,7 +69,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         robot, spec = load_config(args.config)
     except ConfigError as exc:
-        print(f"error: {exc}", file=sys.stderr)
+        report(exc)
         return 1
     show = args.progress or sys.stderr.isatty()
     analysis = analyse(robot, spec, args.grid, args.shrink, progress=_bar() if show else None)
@@ -90,8 +91,8 @@ def load_config(path: str | Path) -> tuple[Robot, ControllerSpec]:
     data = load_yaml(path)
     if not (isinstance(data, dict) and "robot" in data):
         return Robot.from_dict(data, source=str(path)), ControllerSpec()
-    loaded = Robot.from_reference(data["robot"], path.parent, source=f"{path}: robot")
-    return loaded, parse_controller(data.get("controller"), source=f"{path}: controller")
+    loaded = Robot.from_reference(data["robot"], path.parent, source=str(path))
+    return loaded, parse_controller(data.get("controller"), source=str(path))
 
 
 # -- text ---------------------------------------------------------------------------

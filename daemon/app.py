@@ -37,7 +37,8 @@ def open_bus(config: DaemonConfig) -> can.BusABC:
         return c.open()
     except (can.CanError, OSError, ValueError, ImportError) as exc:
         raise SystemExit(
-            f"cannot open CAN bus interface={c.interface} channel={c.channel}: {exc}"
+            f"error: {config.source}: can: cannot open the bus interface={c.interface} "
+            f"channel={c.channel}: {' '.join(str(exc).split())}"
         ) from None
 
 
@@ -59,11 +60,14 @@ async def serve(
         notifier.status("starting drives")
         await service.start()
         if zenoh:
-            from daemon.zenoh_io import ZenohInterface
+            from daemon.zenoh_io import SessionError, ZenohInterface
 
             prefix = config.zenoh.key_prefix(config.robot.name)
             interface = ZenohInterface(config.zenoh, service, prefix, config.trajectory)
-            await interface.start()
+            try:
+                await interface.start()
+            except SessionError as exc:  # e.g. the port is in use: one line, exit 1
+                raise SystemExit(f"error: {config.source}: {exc}") from None
             service.subscribe(interface.publish_event)
         for sig in (signal.SIGTERM, signal.SIGINT):
             loop.add_signal_handler(sig, service.stop)
@@ -137,7 +141,8 @@ def _recorders(config: DaemonConfig, service: Service) -> list:
     rec = config.recording
     if rec.telemetry:
         path = config.path(rec.telemetry)
-        telemetry = _open("recording.telemetry", TelemetryRecorder, path, recorders)
+        key = f"{config.source}: recording.telemetry"
+        telemetry = _open(key, TelemetryRecorder, path, recorders)
 
         def record_cycle(t: float, out: ControlOutput) -> None:
             ref = out.reference.pose
@@ -160,7 +165,8 @@ def _recorders(config: DaemonConfig, service: Service) -> list:
     if rec.can_log:
         path = config.path(rec.can_log)
         channel = config.can.channel  # names the frames sent (they carry none on SocketCAN)
-        frames = _open("recording.can_log", CanRecorder, path, recorders, channel=channel)
+        key = f"{config.source}: recording.can_log"
+        frames = _open(key, CanRecorder, path, recorders, channel=channel)
         service.frame_listeners.append(lambda msg, rx: frames.record(msg, rx=rx))
         recorders.append(frames)
     return recorders

@@ -10,21 +10,25 @@ import numpy as np
 from cdpr import ConfigError, Robot
 from cdpr.description import load_yaml
 from daemon import analyze_cmd, client_cmd, demo_cmd, run_cmd
-from daemon.config import load_config
 
 
 def check_config(path: str) -> int:
     """Validate a daemon config (or a bare robot description) and print a readable
-    summary; 0 if it is sound, 1 with the problem named if not."""
+    summary; 0 if it is sound, 1 with each problem named (`error: FILE: KEY: problem`)
+    if not.  A daemon config passes only if `run` would take it and the simulator of
+    `run --sim` can be built from it."""
     try:
         data = load_yaml(path)
         if isinstance(data, dict) and "drives" in data:
-            config = load_config(path)
+            from daemon.simulated import sim_section, simulated_robot
+
+            config = run_cmd.load_checked(path)
+            simulated_robot(config, sim_section(config))
             robot = config.robot
         else:
             config, robot = None, Robot.from_yaml(path)
     except ConfigError as exc:
-        print(f"error: {exc}", file=sys.stderr)
+        run_cmd.report(exc)
         return 1
     home = robot.home
     lengths = robot.cable_lengths(home)

@@ -21,7 +21,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from cdpr.description import ConfigError, load_yaml
+from cdpr.description import ConfigError, load_yaml, read_text
 from daemon.client import (
     DEFAULT_CONNECT,
     DEFAULT_TIMEOUT,
@@ -32,6 +32,7 @@ from daemon.client import (
 )
 
 EXIT_OK, EXIT_REFUSED, EXIT_USAGE, EXIT_UNREACHABLE = 0, 1, 2, 3
+REQUEST_FILE_MAX_BYTES = 64 << 20  # a trajectory file (the daemon limits what it takes)
 _SIMPLE = {
     "status": "print the daemon's safety state",
     "enable": "enable the drives (IDLE -> ENABLED, holding the current pose)",
@@ -148,22 +149,19 @@ def _prepare_goto(args: argparse.Namespace) -> Action:
 
 
 def _read_mapping(path: str) -> dict[str, Any]:
-    """A YAML or JSON file holding a mapping of strict-JSON values."""
+    """A YAML or JSON file (a regular file of at most REQUEST_FILE_MAX_BYTES) holding a
+    mapping of strict-JSON values."""
     file = Path(path)
     try:
         if file.suffix.lower() == ".json":
-            data = json.loads(file.read_text(encoding="utf-8"))
+            data = json.loads(read_text(file, REQUEST_FILE_MAX_BYTES))
         else:
-            data = load_yaml(file)
+            data = load_yaml(file, REQUEST_FILE_MAX_BYTES)
         json.dumps(data, allow_nan=False)
-    except OSError as exc:
-        raise _UsageError(f"{path}: cannot read: {exc.strerror}") from None
     except ConfigError as exc:
         raise _UsageError(str(exc)) from None
     except ValueError as exc:  # bad JSON, NaN / Infinity
         raise _UsageError(f"{path}: not strict JSON data: {exc}") from None
-    except TypeError as exc:  # YAML dates and the like
-        raise _UsageError(f"{path}: holds a value JSON cannot carry: {exc}") from None
     if not isinstance(data, dict):
         raise _UsageError(f"{path}: expected a mapping, got {type(data).__name__}")
     return data

@@ -22,7 +22,9 @@ from cdpr.controller import tension_solver
 from cdpr.description import (
     PositiveFloat,
     StrictModel,
+    Vec3,
     load_yaml,
+    show_path,
     validate_section,
 )
 from cdpr.pose_limits import PoseLimits
@@ -46,8 +48,8 @@ class SafetyConfig(StrictModel):
     bus_errors_max: error frames tolerated within one second.
     """
 
-    workspace_min: tuple[float, float, float] | None = None
-    workspace_max: tuple[float, float, float] | None = None
+    workspace_min: Vec3 | None = None
+    workspace_max: Vec3 | None = None
     tilt_max: Annotated[float, Field(gt=0.0, le=math.pi)] = 0.6
     tracking_error_position: PositiveFloat = 0.02
     tracking_error_orientation: PositiveFloat = 0.05
@@ -85,32 +87,38 @@ class FileConfig(StrictModel):
 
 
 class DaemonConfig:
-    """A loaded, checked config: the robot and every section as validated objects."""
+    """A loaded, checked config: the robot and every section as validated objects.
+    `source` names the file in error messages."""
 
-    def __init__(self, raw: FileConfig, robot: Robot, base: Path) -> None:
+    def __init__(self, raw: FileConfig, robot: Robot, base: Path, source: str = "config") -> None:
         self.raw = raw
         self.robot = robot
         self.base = base
-        self.controller: ControllerSpec = parse_controller(raw.controller, "controller")
-        self.drives: DrivesConfig = parse_drives(raw.drives, "drives")
+        self.source = source
+        self.controller: ControllerSpec = parse_controller(raw.controller, source)
+        self.drives: DrivesConfig = parse_drives(raw.drives, source)
         if len(self.drives.nodes) != robot.n_cables:
             raise ConfigError(
-                f"drives.nodes lists {len(self.drives.nodes)} drives for {robot.n_cables} cables"
+                f"{source}: drives.nodes: lists {len(self.drives.nodes)} drives for "
+                f"{robot.n_cables} cables"
             )
         if self.drives.streamed and self.drives.feedback_rate_hz < self.controller.rate_hz:
             raise ConfigError(
-                f"drives.feedback_rate_hz ({self.drives.feedback_rate_hz:g}) is below "
+                f"{source}: drives.feedback_rate_hz ({self.drives.feedback_rate_hz:g}) is below "
                 f"controller.rate_hz ({self.controller.rate_hz:g}): most cycles would find no "
                 "fresh feedback"
             )
         self.can = raw.can
         self.safety = raw.safety
         self.trajectory = raw.trajectory
-        self.zenoh: ZenohSettings = validate_section(ZenohSettings, raw.zenoh, "zenoh")
+        self.zenoh: ZenohSettings = validate_section(ZenohSettings, raw.zenoh, source, "zenoh")
         self.logging = raw.logging
         self.recording = raw.recording
         self.sim = raw.sim
-        lo, hi = workspace_box(robot, raw.safety)
+        try:
+            lo, hi = workspace_box(robot, raw.safety)
+        except ConfigError as exc:
+            raise exc.within(source) from None
         self.workspace_min, self.workspace_max = lo, hi
         # the runtime check on the measured pose, and what validation holds each sampled
         # reference to: less the tracking-error bounds, then the sampling margin
@@ -134,7 +142,9 @@ def workspace_box(robot: Robot, safety: SafetyConfig) -> tuple[np.ndarray, np.nd
     lo = np.asarray(safety.workspace_min) if safety.workspace_min else anchors.min(axis=0)
     hi = np.asarray(safety.workspace_max) if safety.workspace_max else anchors.max(axis=0)
     if np.any(lo >= hi):
-        raise ConfigError(f"safety: workspace_min {lo.tolist()} must lie below {hi.tolist()}")
+        raise ConfigError(
+            f"safety.workspace_min: {lo.tolist()} must lie below workspace_max {hi.tolist()}"
+        )
     return lo.astype(float), hi.astype(float)
 
 
@@ -147,15 +157,16 @@ def load_config(
     data = load_yaml(path)
     if edit is not None:
         if not isinstance(data, dict):
-            raise ConfigError(f"{path}: expected a mapping at the top level")
+            raise ConfigError(f"{show_path(path)}: expected a mapping at the top level")
         edit(data)
-    return parse_config(data, path.resolve().parent, str(path))
+    return parse_config(data, path.resolve().parent, show_path(path))
 
 
 def parse_config(data: Any, base: Path, source: str = "config") -> DaemonConfig:
-    """Validate a config mapping; relative paths in it are taken from `base`."""
+    """Validate a config mapping; relative paths in it are taken from `base`.  `source`
+    (the file) starts every line of a ConfigError."""
     raw = validate_section(FileConfig, data, source)
-    config = DaemonConfig(raw, Robot.from_reference(raw.robot, base), base)
+    config = DaemonConfig(raw, Robot.from_reference(raw.robot, base, source), base, source)
     check_geometry(config)
     return config
 
@@ -171,19 +182,22 @@ def check_geometry(config: DaemonConfig) -> None:
     zero = np.zeros(robot.n_cables)
     result = solver.solve(Lam, robot.bias_wrench(home, np.zeros(6)), zero, zero)
     if not result.feasible:
-        raise ConfigError(f"robot: the home pose is not in the wrench set W: {result.reason}")
+        raise ConfigError(
+            f"{config.source}: robot: the home pose is not in the wrench set W: {result.reason}"
+        )
     bad = config.reference_limits.violation(home)
     if bad is None:
         return
+    safety, where = config.safety, f"{config.source}: safety:"
     if bad.limit == "tilt_max":
         raise ConfigError(
-            f"safety: tilt_max ({config.safety.tilt_max:g} rad) leaves no room for a trajectory "
-            f"once tracking_error_orientation ({config.safety.tracking_error_orientation:g} "
-            f"rad) is kept from it: {bad.detail}"
+            f"{where} tilt_max ({safety.tilt_max:g} rad) leaves no room for a trajectory "
+            f"once tracking_error_orientation ({safety.tracking_error_orientation:g} rad) "
+            f"is kept from it: {bad.detail}"
         )
     raise ConfigError(
-        f"safety: the home position {home.position.tolist()} lies outside the workspace box "
-        "(workspace_min/workspace_max, default the anchors' bounding box) shrunk by "
-        f"tracking_error_position ({config.safety.tracking_error_position:g} m), inside "
-        f"which trajectories must stay: {bad.detail}"
+        f"{where} the home position {home.position.tolist()} lies outside the workspace "
+        "box (workspace_min/workspace_max, default the anchors' bounding box) shrunk by "
+        f"tracking_error_position ({safety.tracking_error_position:g} m), inside which "
+        f"trajectories must stay: {bad.detail}"
     )

@@ -25,6 +25,7 @@ from cdpr.controller import ControlOutput
 from daemon.app import serve
 from daemon.config import DaemonConfig, load_config
 from daemon.logsetup import configure_logging
+from daemon.run_cmd import report
 from daemon.service import Service
 
 if TYPE_CHECKING:
@@ -50,7 +51,7 @@ def run(args: argparse.Namespace) -> int:
         configure_logging(args.log_level)
         config = _loopback_config(Path(args.config))
     except ConfigError as exc:
-        print(f"error: {exc}", file=sys.stderr)
+        report(exc)
         return 1
     return asyncio.run(_demo(config, args.plot))
 

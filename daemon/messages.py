@@ -276,6 +276,13 @@ def parse_waypoints(message: TrajectoryMessage, limits: TrajectoryLimits) -> Tra
     return TrajectoryRequest(message.id, message.start, trajectory)
 
 
+def rejection(what: str, exc: TrajectoryError) -> CommandError:
+    """A TrajectoryError as the refusal "rejected", naming the limit, the waypoint, the
+    field and the value (DESIGN §7)."""
+    details = trajectory_error_details(exc)
+    return CommandError("rejected", clip(f"{what} rejected: {exc}"), **details)
+
+
 def trajectory_error_details(exc: TrajectoryError) -> dict[str, Any]:
     """The machine-readable part of a TrajectoryError, as CommandError details
     (the service can raise CommandError("rejected", str(exc), **these))."""
@@ -288,15 +295,15 @@ def trajectory_error_details(exc: TrajectoryError) -> dict[str, Any]:
 def decode_command(
     name: str, data: Any, unit_tolerance: float = QUATERNION_NORM_TOLERANCE
 ) -> dict[str, Any]:
-    """Command `name` with body `data` (None: no payload) -> the handler's args."""
+    """Command `name` with body `data` -> the handler's args.  The body is a JSON object
+    (an empty payload stands for {}); null, an array, a number or a string is refused,
+    since a command must never run on a body that is not what its sender meant."""
     if name not in COMMANDS:
         raise CommandError(
             "unknown_command",
             clip(f"unknown command {name!r} (commands: {', '.join(COMMANDS)})"),
             field="command",
         )
-    if data is None:
-        data = {}
     _check_object(data, name)
     _no_unknown_keys(data, (VERSION_KEY, *_ARGS.get(name, ())), name)
     _check_version(data.get(VERSION_KEY, SCHEMA_VERSION))

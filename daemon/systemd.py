@@ -113,7 +113,17 @@ class Notifier:
 
 
 def _status_field(text: str) -> str:
-    return "STATUS=" + " ".join(text.splitlines())
+    """STATUS=<text> as one printable line of valid UTF-8.  The text may carry a brake
+    reason from the network: a line break would end the field, and a lone surrogate (a
+    JSON "\\ud800" escape) cannot be encoded at all; so characters that are not printable
+    become spaces, surrogates U+FFFD."""
+    return "STATUS=" + " ".join("".join(map(_printable, text)).split())
+
+
+def _printable(char: str) -> str:
+    if char.isprintable():
+        return char
+    return "\ufffd" if "\ud800" <= char <= "\udfff" else " "
 
 
 class Progress:

@@ -236,7 +236,7 @@ def _apply_raw(conf: zenoh.Config, raw: dict[str, Any]) -> None:
         except (ValueError, TypeError) as exc:  # not JSON-able
             raise ValueError(f"{key}: {exc}") from None
         except zenoh.ZError as exc:
-            raise ValueError(f"{key}: {_zenoh_message(exc)}") from None
+            raise ValueError(f"{key}: {zenoh_reason(exc)}") from None
 
 
 def _place(conf: zenoh.Config, mode: str, listen: Sequence[str], connect: Sequence[str]) -> None:
@@ -252,8 +252,11 @@ def _restrict(conf: zenoh.Config, multicast: bool, gossip: bool, shared_memory: 
     conf.insert_json5("transport/shared_memory/enabled", json.dumps(shared_memory))
 
 
-def _zenoh_message(exc: Exception) -> str:
-    """The readable part of a zenoh config error (drop the Rust wrapping and location)."""
+def zenoh_reason(exc: Exception) -> str:
+    """The readable part of a zenoh error, on one line (the Rust wrapping and the source
+    locations dropped)."""
     text = str(exc)
     found = re.search(r'msg: "((?:[^"\\]|\\.)*)"', text)
-    return found.group(1).replace('\\"', '"') if found else text.split(" at /", 1)[0].strip()
+    if found:
+        return found.group(1).replace('\\"', '"')
+    return " ".join(re.sub(r" at \S+\.rs:\d+\.?", "", text).split())

@@ -52,7 +52,7 @@ from typing import Any, Generic, TypeVar
 
 import zenoh
 
-from cdpr.trajectory import SCHEMA_VERSION, TrajectoryLimits
+from cdpr.trajectory import SCHEMA_VERSION, TrajectoryError, TrajectoryLimits
 from daemon.api import CommandError, DaemonHandler
 from daemon.messages import (
     EVENT_KEY,
@@ -67,11 +67,12 @@ from daemon.messages import (
     error_body,
     jsonable,
     parse_waypoints,
+    rejection,
     reply_error,
     reply_ok,
     request_id,
 )
-from daemon.zenoh_config import ZenohSettings, build_zenoh_config
+from daemon.zenoh_config import ZenohSettings, build_zenoh_config, zenoh_reason
 
 log = logging.getLogger(__name__)
 
@@ -94,6 +95,11 @@ INLINE_WAYPOINTS = 2  # a decoded trajectory of at most 2 waypoints is parsed on
 _Parsed = TrajectoryRequest | tuple[str | None, CommandError]  # or (id, why refused)
 _TrajectoryItem = tuple[bytes | TrajectoryMessage, zenoh.Query | None]  # queued, and who asks
 _Item = TypeVar("_Item")
+
+
+class SessionError(RuntimeError):
+    """zenoh could not open the daemon's session (an endpoint already in use, a router
+    that cannot be reached, ...): one line naming the key, the endpoints and why."""
 
 
 class _Inbox(Generic[_Item]):
@@ -272,8 +278,10 @@ class ZenohInterface:
         conf = build_zenoh_config(self.settings, self.prefix)
         try:
             session = await loop.run_in_executor(None, zenoh.open, conf)
-        except BaseException:
+        except BaseException as exc:
             self._parser.shutdown(wait=False)
+            if isinstance(exc, zenoh.ZError):
+                raise SessionError(self._open_failure(exc)) from None
             raise
         self._session = session
         drop = zenoh.CongestionControl.DROP  # a congested network never blocks the loop
@@ -287,6 +295,12 @@ class ZenohInterface:
         ]
         self._state_task = loop.create_task(self._publish_states())
         log.info("zenoh interface on %s (listen %s)", self.prefix, self.settings.listen_endpoints)
+
+    def _open_failure(self, exc: zenoh.ZError) -> str:
+        peer = self.settings.mode == "peer"
+        key = "zenoh.listen" if peer else "zenoh.connect"
+        endpoints = self.settings.listen_endpoints if peer else self.settings.connect
+        return f"{key}: {', '.join(endpoints)}: cannot open the zenoh session: {zenoh_reason(exc)}"
 
     async def close(self) -> None:
         """Stop taking requests, answer the waiting ones "busy", publish the events still
@@ -460,7 +474,7 @@ class ZenohInterface:
                     f"commands need an exact key such as {self.key('cmd/status')}, not {key}",
                 )
             payload = query.payload
-            data = None
+            data: Any = {}  # no payload: no arguments (docs/zenoh.md, "Commands")
             if payload is not None and len(payload) > 0:
                 limit = min(MAX_COMMAND_BYTES, self.settings.max_message_bytes)
                 check_size(len(payload), limit, "max_command_bytes")
@@ -531,7 +545,7 @@ class ZenohInterface:
             self._reply(query, reply_error(name, exc), ok=False)
             return
         except Exception as exc:
-            self._reply(query, reply_error(name, _internal(name, exc)), ok=False)
+            self._reply(query, reply_error(name, _failure(name, exc)), ok=False)
             return
         if not inspect.isawaitable(result):
             self._reply(query, reply_ok(name, result), ok=True)
@@ -566,7 +580,7 @@ class ZenohInterface:
             self._reply(query, reply_error(name, _busy(name)), ok=False)
             raise
         except Exception as exc:
-            self._reply(query, reply_error(name, _internal(name, exc)), ok=False)
+            self._reply(query, reply_error(name, _failure(name, exc)), ok=False)
         else:
             self._reply(query, reply_ok(name, result), ok=True)
 
@@ -620,7 +634,7 @@ class ZenohInterface:
         except CommandError as exc:
             self._trajectory_outcome(parsed.id, query, None, exc)
         except Exception as exc:
-            self._trajectory_outcome(parsed.id, query, None, _internal("trajectory", exc))
+            self._trajectory_outcome(parsed.id, query, None, _failure("trajectory", exc))
         else:
             if inspect.isawaitable(result):  # validation between control cycles
                 self._submission = self._track(self._verdict(parsed.id, query, result))
@@ -638,7 +652,7 @@ class ZenohInterface:
             self._trajectory_outcome(ident, query, None, _busy("trajectory"))
             raise
         except Exception as exc:
-            self._trajectory_outcome(ident, query, None, _internal("trajectory", exc))
+            self._trajectory_outcome(ident, query, None, _failure("trajectory", exc))
         else:
             self._trajectory_outcome(ident, query, result, None)
 
@@ -747,6 +761,15 @@ def _rejected_event(ident: str | None, error: CommandError) -> dict[str, Any]:
 
 def _busy(what: str) -> CommandError:
     return CommandError("busy", f"too many {what} requests waiting: this one was dropped, retry")
+
+
+def _failure(what: str, exc: Exception) -> CommandError:
+    """The refusal for an exception the handler let out: a TrajectoryError still names a
+    limit the request breaks ("rejected", with its details); anything else is a bug."""
+    if isinstance(exc, TrajectoryError):
+        log.warning("%s: a TrajectoryError reached the interface: %s", what, exc)
+        return rejection(what, exc)
+    return _internal(what, exc)
 
 
 def _internal(what: str, exc: Exception) -> CommandError:

@@ -10,13 +10,21 @@ from collections.abc import Sequence
 from typing import Annotated, Any, Literal
 
 import can
-from pydantic import Field, model_validator
+from pydantic import BeforeValidator, Field, model_validator
 
 from cdpr import Robot
 from cdpr.description import FiniteFloat, PositiveFloat, StrictModel, validate_section
 from drivers.base import BrakeMode, Scaling
 
-Direction = Literal[1, -1]
+
+def _an_int(value: Any) -> Any:
+    """pydantic matches the literal 1 to true and to 1.0 (equal in Python): refuse them."""
+    if type(value) is not int:
+        raise ValueError("Input should be the integer 1 or -1")
+    return value
+
+
+Direction = Annotated[Literal[1, -1], BeforeValidator(_an_int)]
 PositiveSeconds = Annotated[float, Field(gt=0.0, le=10.0, allow_inf_nan=False)]
 
 
@@ -123,6 +131,6 @@ class CanConfig(StrictModel):
         )
 
 
-def parse_drives(data: Any, source: str = "drives") -> DrivesConfig:
+def parse_drives(data: Any, source: str = "config", key: str = "drives") -> DrivesConfig:
     """Validate a `drives:` section; ConfigError names the key and the problem."""
-    return validate_section(DrivesConfig, data, source)
+    return validate_section(DrivesConfig, data, source, key)

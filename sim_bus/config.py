@@ -13,7 +13,7 @@ from typing import Any, NamedTuple
 from pydantic import model_validator
 
 from cdpr import ConfigError, Robot
-from cdpr.description import PositiveFloat, StrictModel, load_yaml, validate_section
+from cdpr.description import PositiveFloat, StrictModel, load_yaml, show_path, validate_section
 from drivers.config import CanConfig, DrivesConfig, parse_drives
 from sim_bus.frame_faults import FrameFaultConfig
 from sim_bus.plant import PlantConfig
@@ -61,21 +61,23 @@ class SimSetup(NamedTuple):
     sim: SimConfig
 
 
-def parse_sim(data: Any, source: str = "sim") -> SimConfig:
-    return validate_section(SimConfig, {} if data is None else data, source)
+def parse_sim(data: Any, source: str = "config", key: str = "sim") -> SimConfig:
+    """Validate a `sim:` section; ConfigError names the key and the problem."""
+    return validate_section(SimConfig, {} if data is None else data, source, key)
 
 
 def load_sim_setup(path: str | Path) -> SimSetup:
     """Read the simulator's sections of a daemon config file (ConfigError names the key)."""
     path = Path(path)
+    source = show_path(path)
     data = load_yaml(path)
     if not isinstance(data, dict):
-        raise ConfigError(f"{path}: expected a mapping at the top level")
+        raise ConfigError(f"{source}: expected a mapping at the top level")
     for key in ("robot", "drives"):
         if key not in data:
-            raise ConfigError(f"{path}: missing section {key!r}")
-    robot = Robot.from_reference(data["robot"], path.resolve().parent)
-    drives = parse_drives(data["drives"], f"{path}: drives")
-    can = validate_section(CanConfig, data.get("can", {}), f"{path}: can")
-    sim = parse_sim(data.get("sim"), f"{path}: sim")
+            raise ConfigError(f"{source}: missing section {key!r}")
+    robot = Robot.from_reference(data["robot"], path.resolve().parent, source)
+    drives = parse_drives(data["drives"], source)
+    can = validate_section(CanConfig, data.get("can", {}), source, "can")
+    sim = parse_sim(data.get("sim"), source)
     return SimSetup(robot, drives, can, sim)

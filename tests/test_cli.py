@@ -2,12 +2,17 @@
 
 from __future__ import annotations
 
+import os
+import socket
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
 
 from daemon.cli import main
 from tests.conftest import ROBOTS
+from tests.loopback import free_port
 
 
 def test_check_config_summarises_a_robot(capsys: pytest.CaptureFixture[str]) -> None:
@@ -24,3 +29,171 @@ def test_check_config_fails_naming_the_key(
     (tmp_path / "r.yaml").write_text(text)
     assert main(["check-config", str(tmp_path / "r.yaml")]) == 1
     assert "platform.mass: Input should be greater than 0 (got -10.0)" in capsys.readouterr().err
+
+
+# -- hostile and careless configs: one line each, never a traceback (issue 22, item 6) ---
+
+CONFIG = ROBOTS.parent
+EXAMPLE = (CONFIG / "reference8-cia402.yaml").read_text()
+ROBOT = (ROBOTS / "reference8.yaml").read_text()
+
+
+def example(*changes: tuple[str, str], inline_robot: bool = False) -> str:
+    """The cia402 example with text replacements; its robot file inline if asked."""
+    robot = f"robot: {ROBOTS / 'reference8.yaml'}"
+    if inline_robot:
+        body = "".join(f"  {line}\n" if line.strip() else "\n" for line in ROBOT.splitlines())
+        robot = f"robot:\n{body}"
+    text = EXAMPLE.replace("robot: robots/reference8.yaml", robot)
+    for old, new in changes:
+        assert old in text, old
+        text = text.replace(old, new, 1)
+    return text
+
+
+ZERO_LENGTH = (  # cable 0's anchor where its attachment is at the home pose (0, 0, 1.25)
+    "{anchor: [1.50, 1.50, 2.50], attachment: [0.20, -0.20, 0.30]}",
+    "{anchor: [0.20, -0.20, 1.55], attachment: [0.20, -0.20, 0.30]}",
+)
+NAMED = {  # case: (file content, the problem each error line names after 'error: FILE: ')
+    "not UTF-8": (b"# r\xe9glages\n" + EXAMPLE.encode(), "line 1: not UTF-8 text (byte 0xe9"),
+    "5000-deep lists": (
+        example() + "extra: " + "[" * 5000 + "]" * 5000 + "\n",
+        "nested deeper than 64 levels",
+    ),
+    "5000-deep mappings": (
+        example() + "extra: " + "{a: " * 5000 + "1" + "}" * 5000 + "\n",
+        "nested deeper than 64 levels",
+    ),
+    "5000-digit integer": (
+        example(("rate_hz: 500", "rate_hz: " + "9" * 5000)),
+        "integer of 5000 digits is out of range (64 bits)",
+    ),
+    "a zero-length cable": (
+        example(ZERO_LENGTH, inline_robot=True),
+        "robot: cables.0: the cable has zero length at the home pose",
+    ),
+    "an unknown sim key": (
+        example(("  plant:\n", "  plant_typo: 1\n  plant:\n")),
+        "sim.plant_typo: Extra inputs are not permitted (got 1)",
+    ),
+    "a plant mismatch of the wrong size": (
+        example(("step: 0.001\n", "step: 0.001\n    mismatch: {anchor_offsets: [[0, 0, 0]]}\n")),
+        "sim.plant: mismatch.anchor_offsets: 1 offsets for 8 cables",
+    ),
+    "watchdog_timeout: true": (
+        example(("watchdog_timeout: 0.05", "watchdog_timeout: true")),
+        "drives.watchdog_timeout: Input should be a valid number (got true)",
+    ),
+    "max_residual: true": (
+        example(("max_residual: 2.0e-3", "max_residual: true"), inline_robot=True),
+        "robot.forward_kinematics.max_residual: Input should be a valid number (got true)",
+    ),
+    "string node ids": (
+        example(("nodes: [1, 2,", 'nodes: ["1", 2,')),
+        "drives.nodes.0: Input should be a valid integer (got '1')",
+    ),
+    "rate_hz: 8:20": (
+        example(("rate_hz: 500", "rate_hz: 8:20")),
+        "controller.rate_hz: Input should be a valid number (got '8:20')",
+    ),
+    "yes as a boolean": (
+        example(("  brake: position_hold", "  has_holding_brake: yes\n  brake: position_hold")),
+        "drives.has_holding_brake: Input should be a valid boolean (got 'yes')",
+    ),
+    "a float for an integer": (
+        example(("stale_cycles: 3", "stale_cycles: 3.0")),
+        "safety.stale_cycles: Input should be a valid integer (got 3.0)",
+    ),
+    "a string for a number": (
+        example(("bitrate: 1000000", 'bitrate: "1000000"')),
+        "can.bitrate: Input should be a valid integer (got '1000000')",
+    ),
+    "direction: true": (
+        example(("direction: 1 ", "direction: true ")),
+        "drives.direction: Input should be the integer 1 or -1, or a valid array (got true)",
+    ),
+    "a key given twice": (
+        example(("rate_hz: 500", "rate_hz: 500\n  rate_hz: 100")),
+        "duplicate key 'rate_hz'",
+    ),
+    "a lone surrogate": (
+        example(("level: info", 'level: "info\\ud800"')),
+        "a lone surrogate escape (\\ud800-\\udfff) is not a character",
+    ),
+    "a huge quaternion part": (
+        example(("quaternion: {w: 1.0,", "quaternion: {w: 1.0e+300,"), inline_robot=True),
+        "robot.home.quaternion: quaternion norm is 1e+300; a unit quaternion is required",
+    ),
+    "a robot file that is /dev/zero": (
+        example((f"robot: {ROBOTS / 'reference8.yaml'}", "robot: /dev/zero")),
+        "robot: /dev/zero: cannot read: a device, pipe or socket, not a regular file",
+    ),
+    "a file over 1 MiB": (example() + "#" * (1 << 20) + "\n", "cannot read: longer than"),
+}
+
+
+@pytest.mark.parametrize("case", NAMED)
+def test_check_config_names_file_key_and_problem_in_one_line(
+    case: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    content, problem = NAMED[case]
+    path = tmp_path / "cdprd.yaml"
+    path.write_bytes(content if isinstance(content, bytes) else content.encode())
+    assert main(["check-config", str(path)]) == 1
+    (line,) = capsys.readouterr().err.splitlines()
+    assert line.startswith(f"error: {path}: ") and problem in line, line
+
+
+@pytest.mark.parametrize("kind", ["device", "directory", "pipe"])
+def test_check_config_refuses_a_path_that_is_not_a_regular_file(
+    kind: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """/dev/zero used to be read until MemoryError, a named pipe until a writer came."""
+    path = {"device": Path("/dev/zero"), "directory": tmp_path, "pipe": tmp_path / "fifo"}[kind]
+    if kind == "pipe":
+        os.mkfifo(path)
+    assert main(["check-config", str(path)]) == 1
+    (line,) = capsys.readouterr().err.splitlines()
+    assert line.startswith(f"error: {path}: cannot read: a ") and "not a regular file" in line
+
+
+def cdprd(*args: str) -> subprocess.Popen[str]:
+    """`python -m daemon.cli ARGS` from this checkout, stdout and stderr captured."""
+    command = [sys.executable, "-m", "daemon.cli", *args]
+    pipe = subprocess.PIPE
+    return subprocess.Popen(command, cwd=CONFIG.parent, stdout=pipe, stderr=pipe, text=True)
+
+
+@pytest.mark.timeout(120)
+def test_run_refuses_what_check_config_refuses_with_the_same_lines(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    cases = ["not UTF-8", "an unknown sim key", "rate_hz: 8:20"]
+    cases.append("a plant mismatch of the wrong size")
+    runs = []
+    for i, case in enumerate(cases):
+        content = NAMED[case][0]
+        path = tmp_path / f"cdprd{i}.yaml"
+        path.write_bytes(content if isinstance(content, bytes) else content.encode())
+        assert main(["check-config", str(path)]) == 1
+        runs.append((case, capsys.readouterr().err, cdprd("run", "--sim", "--config", str(path))))
+    for case, expected, proc in runs:
+        _out, err = proc.communicate(timeout=60)
+        assert proc.returncode == 1 and err == expected, f"{case}: {err}"
+
+
+@pytest.mark.timeout(120)
+def test_run_with_its_zenoh_port_taken_exits_with_one_line(tmp_path: Path) -> None:
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", free_port()))
+        taken.listen()
+        endpoint = f"tcp/127.0.0.1:{taken.getsockname()[1]}"
+        path = tmp_path / "cdprd.yaml"
+        path.write_text(example(("tcp/127.0.0.1:7447", endpoint)))
+        proc = cdprd("run", "--sim", "--config", str(path))
+        _out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 1, err
+    (line,) = err.splitlines()
+    assert line.startswith(f"error: {path}: zenoh.listen: {endpoint}: cannot open the zenoh")
+    assert "Address already in use" in line

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import re
 from pathlib import Path
 
 import numpy as np
@@ -11,6 +12,7 @@ import yaml
 from scipy.optimize import linprog
 
 from cdpr import ConfigError, Robot
+from cdpr.description import load_yaml
 from tests.conftest import ROBOTS
 
 
@@ -56,7 +58,7 @@ def test_example_robots_load(robot: Robot) -> None:
         ),
         (
             lambda d: d["cables"][0].update(pulley={"radius": 0.03, "axis": [0, 0, 0]}),
-            "cables.0.pulley.axis: pulley axis must be a non-zero vector",
+            "cables.0.pulley.axis: pulley axis must be a unit vector; its norm is 0",
         ),
         (lambda d: d.update(cables=d["cables"][:5]), "cables: List should have at least 6 items"),
         (lambda d: d.update(name="has space"), "name: String should match pattern"),
@@ -98,7 +100,7 @@ def test_rank_deficient_geometry_is_rejected(data: dict) -> None:
 def test_yaml_errors_name_the_file(tmp_path: Path) -> None:
     bad = tmp_path / "bad.yaml"
     bad.write_text("name: x\nplatform: [unclosed\n")
-    with pytest.raises(ConfigError, match=r"bad\.yaml: not valid YAML"):
+    with pytest.raises(ConfigError, match=r"bad\.yaml: line 3, column 1: not valid YAML: .*line 2"):
         Robot.from_yaml(bad)
     with pytest.raises(ConfigError, match="cannot read"):
         Robot.from_yaml(tmp_path / "missing.yaml")
@@ -137,3 +139,47 @@ def test_spec_round_trips_through_a_plain_dict(robot: Robot) -> None:
     """model_dump() output (unset overrides as None) builds the same robot again."""
     again = Robot.from_dict(robot.spec.model_dump())
     assert again.spec == robot.spec
+
+
+@pytest.mark.parametrize(
+    ("written", "read"),
+    [
+        ("8:20", "8:20"),  # YAML 1.1: the base-60 integer 500
+        ("yes", "yes"),  # YAML 1.1: true
+        ("off", "off"),  # YAML 1.1: false
+        ("1_000", "1_000"),  # YAML 1.1: 1000
+        ("2001-12-14", "2001-12-14"),  # YAML 1.1 (PyYAML): a date
+        ("1e3", 1000.0),  # YAML 1.1 (PyYAML): a string
+        ("0o17", 15),
+        ("true", True),
+        ("~", None),
+    ],
+)
+def test_config_files_read_as_yaml_1_2_core(tmp_path: Path, written: str, read: object) -> None:
+    (tmp_path / "c.yaml").write_text(f"value: {written}\n")
+    value = load_yaml(tmp_path / "c.yaml")["value"]
+    assert type(value) is type(read) and value == read
+
+
+@pytest.mark.parametrize(
+    ("text", "problem"),
+    [
+        ("a: 1\na: 2\n", "line 2, column 1: duplicate key 'a'"),
+        ("1: x\n", "line 1, column 1: the mapping key 1 is not a string: quote it"),
+        ("a: !!binary aGk=\n", "the tag tag:yaml.org,2002:binary is not supported"),
+        ("a: !!int 1.5\n", "'1.5' is not an integer"),
+        ("a: &x [*x]\n", "an alias refers to a node that contains it"),
+        (  # "billion laughs": nine nodes spelling out 10^8 values
+            "a: &a [x, x, x, x, x, x, x, x, x, x]\n"
+            + "".join(
+                f"{k}: &{k} [{', '.join([f'*{j}'] * 10)}]\n"
+                for j, k in zip("abcdefg", "bcdefgh", strict=True)
+            ),
+            "values once aliases are expanded",
+        ),
+    ],
+)
+def test_config_yaml_beyond_plain_data_is_refused(tmp_path: Path, text: str, problem: str) -> None:
+    (tmp_path / "c.yaml").write_text(text)
+    with pytest.raises(ConfigError, match=re.escape(problem)):
+        load_yaml(tmp_path / "c.yaml")

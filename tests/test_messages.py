@@ -155,7 +155,7 @@ def test_request_id_is_read_even_from_a_rejected_message() -> None:
 def test_commands_take_no_arguments_but_goto_and_brake() -> None:
     for name in COMMANDS:
         if name != "goto":
-            assert decode_command(name, None) == {}
+            assert decode_command(name, {}) == {}
             assert decode_command(name, {"version": 1}) == {}
     assert decode_command("brake", {"reason": "operator"}) == {"reason": "operator"}
     args = decode_command("goto", {"position": {"x": 0.1, "y": 0.0, "z": 1.2}})
@@ -171,6 +171,10 @@ def test_commands_take_no_arguments_but_goto_and_brake() -> None:
         ("jump", None, "unknown_command", "unknown command 'jump'"),
         ("enable", {"force": True}, "bad_request", "unknown key(s) 'force'"),
         ("status", [], "bad_request", "expected a JSON object, got list"),
+        ("disable", None, "bad_request", "disable: expected a JSON object, got null"),
+        ("hold", 0, "bad_request", "hold: expected a JSON object, got int"),
+        ("brake", "stop", "bad_request", "brake: expected a JSON object, got str"),
+        ("reset", [], "bad_request", "reset: expected a JSON object, got list"),
         ("status", {"version": 3}, "bad_request", "unsupported schema version 3"),
         ("brake", {"reason": "x" * 201}, "bad_request", "brake.reason"),
         ("goto", {}, "bad_request", "missing key 'position'"),

@@ -256,3 +256,28 @@ def test_a_restarted_daemon_comes_up_idle_and_never_moves(
     assert np.ptp(lengths, axis=0).max() < 2e-4
     fields = [f for _, batch in notify.snapshot()[done:] for f in batch]
     assert fields.count("READY=1") == 1 and fields.count("STOPPING=1") == 1, fields
+
+
+@pytest.mark.timeout(60)
+def test_a_brake_reason_that_is_not_text_brakes_and_reaches_status_as_one_line(
+    tmp_path: Path, notify: NotifySocket
+) -> None:
+    """A JSON "\\ud800" escape (a lone surrogate) and a line break in a brake reason:
+    the brake is acknowledged, STATUS= carries the reason as one printable line."""
+    port = free_port()
+    proc = _start(_config(tmp_path, port), notify)
+    try:
+        with _ready_client(notify, proc, port) as client:
+            status = client.brake("stop \ud800 now\nplease")
+            assert status["state"] == "braked", status
+            expected = "STATUS=braked: BRAKE [command] stop \ufffd now please; reference8"
+            end = time.monotonic() + 5.0
+            while not any(
+                field.startswith(expected) for _, batch in notify.snapshot() for field in batch
+            ):
+                assert time.monotonic() < end, notify.snapshot()
+                time.sleep(0.02)
+    finally:
+        out = finish(proc)
+    assert proc.returncode == 0, out
+    assert "Traceback" not in out and "sd_notify" not in out, out

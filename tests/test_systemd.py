@@ -67,6 +67,19 @@ def test_ready_status_watchdog_stopping_reach_a_path_socket(path_socket):
     assert not notifier.enabled and not notifier.watchdog()
 
 
+def test_status_from_untrusted_text_is_one_printable_utf8_line(path_socket):
+    """A brake reason arrives over zenoh: a lone surrogate (JSON "\\ud800") cannot be
+    encoded, control characters would break or forge KEY=VALUE lines."""
+    sock, address = path_socket
+    notifier = Notifier({"NOTIFY_SOCKET": address})
+    assert notifier.status("braked: BRAKE [command] stop \ud800 now\r\nREADY=1\x00\x1b[2J")
+    data = sock.recv(4096)
+    assert data.decode("utf-8").split("\n") == [
+        "STATUS=braked: BRAKE [command] stop \ufffd now READY=1 [2J"
+    ]
+    notifier.close()
+
+
 def test_abstract_namespace_address():
     name = f"cdprd-test-{uuid.uuid4().hex}"
     sock = _listener(b"\0" + name.encode())

@@ -28,8 +28,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from cdpr import Pose
-from cdpr.description import ConfigError, validate_section
-from cdpr.trajectory import Trajectory, parse_trajectory
+from cdpr.description import ConfigError, load_yaml, validate_section
+from cdpr.trajectory import Trajectory, TrajectoryError, parse_trajectory
 from daemon.api import CommandError
 from daemon.cli import main
 from daemon.client import CdprClient, ClientError, RequestError, UnreachableError
@@ -376,6 +376,12 @@ HOSTILE_COMMANDS = [
     ("cmd/enable/now", None, "unknown_command", "unknown command 'enable/now'"),
     ("cmd/enable", b'{"force": true}', "bad_request", "unknown key(s) 'force'"),
     ("cmd/status", b"[1]", "bad_request", "expected a JSON object"),
+    ("cmd/disable", b"null", "bad_request", "disable: expected a JSON object, got null"),
+    ("cmd/hold", b"null", "bad_request", "hold: expected a JSON object, got null"),
+    ("cmd/brake", b"null", "bad_request", "brake: expected a JSON object, got null"),
+    ("cmd/reset", b"null", "bad_request", "reset: expected a JSON object, got null"),
+    ("cmd/hold", b"3", "bad_request", "hold: expected a JSON object, got int"),
+    ("cmd/disable", b'"now"', "bad_request", "disable: expected a JSON object, got str"),
     ("cmd/goto", b'{"position": [0, 0, NaN]}', "bad_request", "NaN is not a JSON number"),
     ("cmd/goto", b'{"position": [0, 0]}', "bad_request", "expected [x, y, z]"),
     ("cmd/goto", b'{"position": [0, "0", 1]}', "bad_request", "position[1]: expected a number"),
@@ -918,6 +924,51 @@ def test_client_reports_the_rejection_reason(running: Running) -> None:
         sub.undeclare()
 
 
+class Escaping(StandIn):
+    """A handler from which a TrajectoryError escapes, at once (goto), from an awaited
+    reply (hold) and from an awaited verdict (trajectory): as when planning outside the
+    service's own try blocks breaks a limit."""
+
+    def command(self, name: str, args: dict[str, Any]) -> Any:
+        if name == "goto":
+            raise TrajectoryError("linear_speed", "1.5 m/s above 1 m/s", waypoint=0, value=1.5)
+        if name == "hold":
+
+            async def plan() -> dict[str, Any]:
+                raise TrajectoryError("max_duration", "the stop would last 9e+99 s")
+
+            return plan()
+        return super().command(name, args)
+
+    def submit_trajectory(self, trajectory: Trajectory, start: float | None) -> Any:
+        async def validate() -> dict[str, Any]:
+            raise TrajectoryError("cable_length", "cable 3 at 4.5 m", waypoint=1, value=4.5)
+
+        return validate()
+
+
+def test_a_trajectory_error_from_the_handler_is_a_rejection_not_internal() -> None:
+    served = Running(Escaping())
+    session = served.session()
+    try:
+        goto = ask(session, "cmd/goto", json.dumps({"position": [0.1, 0.0, 1.3]}))
+        hold = ask(session, "cmd/hold")
+        trajectory = ask(session, "trajectory", json.dumps(TRAJECTORY))
+    finally:
+        session.close()
+        served.stop()
+    assert goto["error"] == {
+        "code": "rejected",
+        "reason": "goto rejected: waypoint 0: linear_speed: 1.5 m/s above 1 m/s",
+        "limit": "linear_speed",
+        "waypoint": 0,
+        "value": 1.5,
+    }
+    assert hold["error"]["code"] == "rejected" and hold["error"]["limit"] == "max_duration"
+    assert trajectory["error"]["code"] == "rejected"
+    assert (trajectory["error"]["limit"], trajectory["error"]["waypoint"]) == ("cable_length", 1)
+
+
 BIG_PUTS = r"""
 import json, sys, zenoh
 
@@ -1082,3 +1133,70 @@ def test_several_daemons_behind_a_router_with_access_control(
         for served in robots.values():
             served.stop()
         router.close()
+
+
+# -- on one host: only the daemon speaks for the robot (config/hardware-template.yaml) ---
+
+TEMPLATE = DOCS.parent.parent / "config" / "hardware-template.yaml"
+FORGED = b'{"version": 1, "forged": true}'
+
+
+def template_zenoh(access_control: bool) -> ZenohSettings:
+    """The hardware template's zenoh section on a free loopback port, with its access
+    control or without it."""
+    section = load_yaml(TEMPLATE)["zenoh"]
+    section["listen"] = [f"tcp/127.0.0.1:{free_port()}"]
+    if not access_control:
+        del section["config"]["access_control"]
+    return validate_section(ZenohSettings, section, str(TEMPLATE), "zenoh")
+
+
+def test_the_templates_access_control_is_the_documented_one() -> None:
+    documented = yaml.safe_load(docs_block("only-the-daemon-speaks"))["zenoh"]["config"]
+    assert load_yaml(TEMPLATE)["zenoh"]["config"] == documented
+
+
+@pytest.mark.parametrize("access_control", [True, False])
+def test_with_the_templates_zenoh_section_only_the_daemon_speaks(access_control: bool) -> None:
+    """Another local process publishes state and events, holds an alive token of a daemon
+    that is not there and answers commands under the prefix.  With the template's zenoh
+    section none of it reaches a planner; without its access control (the control case)
+    it does."""
+    served = Running(StandIn(), template_zenoh(access_control))
+    forger, planner = served.session(), served.session()
+    seen: list[tuple[str, bytes]] = []
+    declared: list[Any] = []  # kept: zenoh undeclares what is dropped
+    try:
+        declared += [
+            planner.declare_subscriber(
+                f"{PREFIX}/**", lambda s: seen.append((str(s.key_expr), s.payload.to_bytes()))
+            ),
+            forger.declare_queryable(f"{PREFIX}/cmd/**", lambda q: q.reply(q.key_expr, FORGED)),
+            forger.liveliness().declare_token("cdpr/ghost/alive"),
+        ]
+        wait_until(lambda: len(seen) >= 1, "the daemon's state")
+        for key in ("state", "events"):
+            forger.put(f"{PREFIX}/{key}", FORGED)
+        list(forger.get(f"{PREFIX}/trajectory", timeout=WAIT))  # after the puts, on one link
+
+        def alive() -> list[str]:
+            tokens = planner.liveliness().get("cdpr/*/alive", timeout=WAIT)
+            return sorted(str(r.ok.key_expr) for r in tokens if r.ok is not None)
+
+        forged = {f"{PREFIX}/state", f"{PREFIX}/events"}
+        if not access_control:
+            wait_until(lambda: {k for k, p in seen if p == FORGED} == forged, "the forged puts")
+            wait_until(lambda: "cdpr/ghost/alive" in alive(), "the forged token")
+            return
+        states = len(seen)
+        wait_until(lambda: len(seen) >= states + 3, "three more states")  # forged ones came by
+        status = ask(planner, "cmd/status")
+        tokens = alive()
+    finally:
+        declared.clear()
+        forger.close()
+        planner.close()
+        served.stop()
+    assert FORGED not in {payload for _, payload in seen}
+    assert status["ok"] and status["result"]["command"] == "status"  # the daemon answered
+    assert tokens == [f"{PREFIX}/alive"]
