@@ -158,6 +158,8 @@ def _mutate_data(data: Any, rng: random.Random, written: dict) -> str:
         path = rng.choice(paths)
         value = _other_value(_parent(data, path)[path[-1]], rng)
         _parent(data, path)[path[-1]] = value
+        for inner in [p for p in written if p[: len(path)] == path]:
+            del written[inner]  # an earlier change inside what this one replaced is gone
         written[path] = value
         return f"{_dotted(path)} := {_short(value)}"
     if kind == "delete":
