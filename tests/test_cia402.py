@@ -656,12 +656,14 @@ def test_malformed_floods_change_nothing(hostile: list[tuple[int, bytes, str]]) 
 
 def test_brake_frames_position_hold() -> None:
     driver = host()
-    driver.position[2] = 777  # cable 2 last reported 777 increments
+    driver.position[2] = 777  # cable 2 last reported 777 increments: a frame, not trusted
     frames = driver.brake([1.5, 2.0, math.nan], BrakeMode.POSITION_HOLD)
-    assert [f.arbitration_id for f in frames] == [0x301, 0x302, 0x303]
-    decoded = [codec.decode_rpdo2(f.arbitration_id, f.data) for f in frames]
+    assert [f.arbitration_id for f in frames] == [0x301, 0x302, 0x203]
+    decoded = [codec.decode_rpdo2(f.arbitration_id, f.data) for f in frames[:2]]
     expected_1 = round(driver.scalings[0].position(1.5))
-    assert decoded == [(0x0F, expected_1, MODE_CSP), (0x0F, 0, MODE_CSP), (0x0F, 777, MODE_CSP)]
+    assert decoded == [(0x0F, expected_1, MODE_CSP), (0x0F, 0, MODE_CSP)]
+    # no trusted length for cable 2: power stage off, never a hold at a reported position
+    assert codec.decode_rpdo1(0x203, frames[2].data) == (0x07, 0, MODE_CST)
     assert [bytes(f.data) for f in driver.keepalive()] == [bytes(f.data) for f in frames]
     driver.commands([0.0] * 3)
     assert driver.keepalive() == []

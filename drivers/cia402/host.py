@@ -16,7 +16,9 @@ Brake (DESIGN §9; never a quick stop, which only ramps torque to zero and lets 
 suspended platform fall):
 - POSITION_HOLD: RPDO2 with "enable operation", mode 8 (cyclic synchronous position) and
   the current length as target position; one frame per drive, acted on at reception.
-  A non-finite or out-of-range length falls back to the drive's last reported position.
+  The lengths are the host's trusted ones (never a raw frame's value, which may be
+  forged): a non-finite or out-of-range one means none is trusted for that drive, which
+  was then never enabled by this host, and it gets the power-stage-off frame below.
 - HOLDING_BRAKE: RPDO1 with "disable operation" (OPERATION ENABLED -> SWITCHED ON), zero
   torque: the drive engages its holding brake as its power stage goes off.  Asked of a
   bus whose drives have no holding brake, brake() holds position instead.
@@ -205,9 +207,9 @@ class Cia402Driver(ActuatorDriver):
         return frames
 
     def brake(self, lengths: Sequence[float], mode: BrakeMode) -> list[can.Message]:
-        """Freeze every cable (module docstring).  Never raises: a missing or unusable
-        length falls back to the drive's last reported position, and a drive never heard
-        from (so never enabled by this host) gets the power-stage-off frame."""
+        """Freeze every cable (module docstring).  Never raises: a drive without a usable
+        length (none trusted yet, so never enabled by this host) gets the power-stage-off
+        frame, never a hold at a position some frame reported."""
         if mode is BrakeMode.HOLDING_BRAKE and not self.config.has_holding_brake:
             mode = BrakeMode.POSITION_HOLD
         standing = []
@@ -236,12 +238,12 @@ class Cia402Driver(ActuatorDriver):
         ]
 
     def _hold_target(self, i: int, length: float) -> int | None:
-        """Position (increments) holding cable i at `length`, else at its last report."""
+        """Position (increments) holding cable i at `length`; None if it has none."""
         if _isfinite(length):
             position = self.scalings[i].position(length)
             if I32_MIN <= position <= I32_MAX:
                 return round(position)
-        return self.position[i]
+        return None
 
     # -- input ----------------------------------------------------------------------------
 
