@@ -977,6 +977,26 @@ def test_a_rebooted_drive_faults_until_started_again() -> None:
     assert driver.status[1].state is DriveState.HOLDING and driver.status[1].fault is None
 
 
+def test_a_boot_up_heartbeat_from_an_operational_drive_stays_a_fault() -> None:
+    """A boot-up heartbeat (even a forged one, the drive still operational and sending
+    healthy statuswords) means the drive lost its configuration and position: a FAULT
+    naming the node until start() runs again, not hidden by the next TPDO1."""
+    driver, _, link = make_bus()
+    link.run(driver.enable(link, [1.5] * 3, [0.0] * 3))
+    link.cycle([-60.0] * 3)
+    link.cycle([-60.0] * 3)
+    assert driver.status[1].state is DriveState.ENABLED
+    driver.receive(codec.encode_heartbeat(2, NmtState.BOOT_UP), link.t)
+    for _ in range(3):  # the real drive goes on answering every SYNC
+        link.cycle([-60.0] * 3)
+    status = driver.status[1]
+    assert status.state is DriveState.FAULT
+    assert status.fault.startswith("node 2: the drive restarted (boot-up heartbeat")
+    assert driver.status[0].state is DriveState.ENABLED
+    with pytest.raises(DriverError, match=r"node 2 is not started .*restarted"):
+        link.run(driver.reset_faults(link))
+
+
 def test_heartbeats_keep_arriving_after_start() -> None:
     driver, _, link = make_bus()
     first = [s.heartbeat_stamp for s in driver.status]
