@@ -266,7 +266,9 @@ class VirtualDrive(ABC):
     The simulator calls `measure` with the winch's true drum length and rate every
     plant step, `on_frame` for every frame on the bus, and `on_tick` at least every
     millisecond; it applies `actuation`, `force`, `target_length` and `brake_engaged`
-    to the winch.
+    to the winch.  `glitch` (m) is added to the length the drive reports, in its
+    feedback frames only: a corrupted feedback channel; its own position loop keeps
+    the true encoder.
     """
 
     def __init__(self, node_id: int, scaling: Scaling) -> None:
@@ -278,6 +280,7 @@ class VirtualDrive(ABC):
         self.brake_engaged = True  # holding brakes are fail-safe: on while unpowered
         self.length = 0.0  # m, the encoder's view, set by measure()
         self.rate = 0.0
+        self.glitch = 0.0  # m added to the reported length (a fault the simulator injects)
 
     def measure(self, length: float, rate: float) -> None:
         """The winch's drum length (m) and rate (m/s) as the drive's encoder sees them."""

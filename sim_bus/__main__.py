@@ -29,7 +29,8 @@ from sim_bus.virtual_robot import VirtualRobot
 
 log = logging.getLogger("sim_bus")
 
-DEVICE_FAULTS = ("silent", "stuck", "drive", "snap")
+DEVICE_FAULTS = ("silent", "stuck", "glitch", "drive", "snap")
+GLITCH = 0.1  # m a glitching drive's reported length jumps by
 
 
 def parse_device_fault(text: str, when: bool = True) -> tuple[str, int, float]:
@@ -70,6 +71,8 @@ def fault_action(robot: VirtualRobot, kind: str, cable: int) -> Callable[[], lis
             robot.silence(cable)
         elif kind == "stuck":
             robot.stick_encoder(cable)
+        elif kind == "glitch":
+            robot.glitch_encoder(cable, GLITCH)
         elif kind == "snap":
             robot.snap_cable(cable)
         else:
@@ -90,7 +93,8 @@ def build_parser() -> argparse.ArgumentParser:
         type=parse_device_fault,
         action="append",
         default=[],
-        help="device fault KIND:CABLE@SECONDS, KIND in silent, stuck, drive, snap (repeatable)",
+        help="device fault KIND:CABLE@SECONDS, KIND in silent, stuck, glitch (the reported "
+        f"length jumps {GLITCH} m), drive, snap (repeatable)",
     )
     parser.add_argument(
         "--fault-input",
