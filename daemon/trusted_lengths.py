@@ -24,9 +24,11 @@ four at home): the message names every cable that disagrees as much.  N is linea
 a recent measured pose (`follow_pose`), again once the pose moved REFRESH_DISTANCE; the
 change is one cycle's, so cable stretch and the linearisation barely enter.
 
-A complete cycle (every cable fresh and finite) that is consistent is trusted, except the
-cables that failed a per-cable check (they keep their last trusted sample); an
-inconsistent one updates nothing, and neither does a cycle missing a cable's sample.
+Every cycle's values are judged, a cable's stale value too (a frame may have changed it
+since the last cycle).  A complete cycle (every cable fresh and finite) that is
+consistent is trusted, except the cables that failed a per-cable check (they keep their
+last trusted sample); an inconsistent one updates nothing, and neither does a cycle
+missing a cable's sample.
 
 There is no history for the first set (nor after `retrust`): it is trusted when forward
 kinematics fits one pose to it within the robot's max_residual (the bound the controller
@@ -110,10 +112,12 @@ class TrustedLengths:
         fresh: Sequence[bool],
         instant: float,
     ) -> list[Implausible]:
-        """Judge one cycle's `lengths` (m) and `rates` (m/s), all sampled at `instant`
-        (s, monotonic), `fresh[k]` when cable k has a new sample; update `held` with
-        what passes.  Returns the drives whose feedback is implausible (empty: none).
-        Non-finite values are neither trusted nor reported here (the NaN trigger is)."""
+        """Judge one cycle's `lengths` (m) and `rates` (m/s), sampled at `instant` (s,
+        monotonic) or, where `fresh[k]` is False, earlier: every value is judged, a stale
+        one too (a frame may have changed it since the last cycle, and the controller
+        would use it), but only a cycle fresh on every cable updates `held`.  Returns
+        the drives whose feedback is implausible (empty: none).  Non-finite values are
+        neither trusted nor reported here (the NaN trigger is)."""
         if self._first:
             return self._check_first(lengths, rates, fresh, instant)
         held = self.held
@@ -123,9 +127,10 @@ class TrustedLengths:
         complete = True
         for k in range(self.n):
             x, v = lengths[k], rates[k]
-            if not (fresh[k] and isfinite(x) and isfinite(v)):
+            if not (isfinite(x) and isfinite(v)):
                 complete = False
                 continue
+            complete = complete and fresh[k]
             problem = self._per_cable(k, x, v, instant)
             if problem is None:
                 change[k] = x - held[k]

@@ -241,6 +241,19 @@ def test_a_cycle_without_every_sample_trusts_nothing() -> None:
     assert trust.held == lengths_at()
 
 
+def test_a_stale_value_is_judged_too() -> None:
+    """A frame that arrived after the last cycle changed cable 2's value without counting
+    as this cycle's sample (its real answer is late): the controller would use it, so it
+    is judged like any other."""
+    trust = trusted_at_home()
+    sample = lengths_at()
+    sample[2] = 4.1
+    stale = [True] * 8
+    stale[2] = False
+    assert [f.cable for f in trust.check(sample, STILL, stale, PERIOD)] == [2]
+    assert trust.held == lengths_at()
+
+
 def test_far_from_where_it_was_linearised_the_check_follows_the_pose() -> None:
     """Far from where it was linearised the null space no longer removes a rigid motion:
     a long fast move looks inconsistent after a while, unless the check follows the
