@@ -186,10 +186,11 @@ class TrustedLengths:
             return Implausible(
                 k, self.nodes[k], v, f"rate {v:+.4f} m/s exceeds max_cable_speed {speed:g} m/s"
             )
+        trusted = self.held[k]
         elapsed = instant - self._times[k]
-        if elapsed == math.inf:  # nothing trusted yet (a retrusted cable has a sample)
+        if elapsed == math.inf or x == trusted:  # nothing trusted yet, or the same sample
             return None
-        trusted, slack, tolerance = self.held[k], self.slack, self.tolerance
+        slack, tolerance = self.slack, self.tolerance
         step = x - trusted
         bound = speed * (elapsed + slack) + tolerance
         if abs(step) > bound:

@@ -241,6 +241,20 @@ def test_a_cycle_without_every_sample_trusts_nothing() -> None:
     assert trust.held == lengths_at()
 
 
+def test_a_stale_sample_already_trusted_is_not_judged_again() -> None:
+    """After a 50 ms stall a moving cable's old sample (no newer one came) does not
+    disagree with its own rate: it is the trusted sample itself."""
+    velocity = (0.5, 0.0, 0.0, 0.0)
+    trust, at, t = moving(velocity)
+    stale = [True] * 8
+    stale[0] = False
+    previous = [a - v * PERIOD for a, v in zip(at, velocity, strict=True)]
+    _, last_rates, _ = step_on(previous, velocity)
+    sample, rates, _ = step_on(at, velocity, dt=0.05)
+    sample[0], rates[0] = lengths_at(*at)[0], last_rates[0]  # cable 0's last sample
+    assert trust.check(sample, rates, stale, t + 0.05) == []
+
+
 def test_a_stale_value_is_judged_too() -> None:
     """A frame that arrived after the last cycle changed cable 2's value without counting
     as this cycle's sample (its real answer is late): the controller would use it, so it
