@@ -17,12 +17,13 @@ import can
 import numpy as np
 import pytest
 
+from daemon.config import DaemonConfig, load_config
 from daemon.safety import SafetyState, Trigger
 from drivers.cia402 import codec as cia402
 from drivers.cia402.codec import NmtState
 from drivers.odrive import codec as odrive
 from drivers.odrive.codec import Cmd
-from tests.daemon_stack import Stack, config_for
+from tests.daemon_stack import DRIVER_CONFIGS, Stack
 
 pytestmark = pytest.mark.timeout(60)
 PROTOCOLS = ["cia402", "odrive"]
@@ -33,6 +34,15 @@ TURN_ALLOWED = 5e-3  # rad its true orientation may turn (2 mm at the platform's
 
 def run(coro):
     return asyncio.run(asyncio.wait_for(coro, 45))
+
+
+def config_for(protocol: str) -> DaemonConfig:
+    """The example config with patient drive watchdogs: on a busy host a stalled loop
+    would otherwise end a run by a watchdog fault before the trust checks are seen."""
+    return load_config(
+        DRIVER_CONFIGS[protocol],
+        lambda data: data["drives"].update(watchdog_timeout=0.2, heartbeat_timeout=1.0),
+    )
 
 
 class Forger:
