@@ -35,7 +35,8 @@ kinematics fits one pose to it within the robot's max_residual (the bound the co
 applies every cycle), the cables stretched by `rest_tensions` (at rest), and every cable
 within its rate and step bounds of any earlier trusted sample.  A first set that fails
 names the cable with the largest normalised residual and is retried at most every RETRY
-seconds (a failing fit can take a millisecond).  With six cables there is no redundancy:
+seconds (a failing fit can take a millisecond); after `retrust` a failure keeps the
+trusted set and its checks.  With six cables there is no redundancy:
 only the per-cable checks protect, and any first set that FK solves is trusted.
 
 Pure and synchronous: lists of floats in, verdicts out; no asyncio, no I/O.
@@ -170,7 +171,8 @@ class TrustedLengths:
 
     def retrust(self) -> None:
         """Check the next complete set like the first one (an explicit reset: the
-        measurements are trusted again if they fit one pose).  `held` stays meanwhile."""
+        measurements are trusted again if they fit one pose).  `held` stays meanwhile,
+        and stays trusted if that set fails."""
         self._first = True
         self._next_attempt = -math.inf
 
@@ -289,6 +291,8 @@ class TrustedLengths:
             self._pose = None  # the next attempt starts from home, not from a failed fit
         self._failed = flagged
         self._next_attempt = instant + RETRY
+        # a retrust gets one attempt; then the trusted set is judged against as before
+        self._first = not all(map(math.isfinite, self.held))
         return flagged
 
     def _linearise(self, pose: Pose) -> None:

@@ -170,6 +170,31 @@ def test_a_glitching_encoder_brakes_naming_the_drive_and_nothing_moves(
     run(scenario())
 
 
+@pytest.mark.parametrize("protocol", PROTOCOLS)
+def test_reset_judges_the_feedback_afresh(protocol: str) -> None:
+    """A cable that stays off is a condition reset will not clear while it cannot fit
+    one pose with the others (a forged 4.1 m); one that does fit (1.5 mm, within the
+    robot's FK residual bound: indistinguishable from calibration) is trusted afresh by
+    reset, as a restart would."""
+
+    async def scenario() -> None:
+        async with Stack(config_for(protocol)) as stack:
+            service = stack.service
+            await asyncio.sleep(0.2)
+            stack.sim.robot.glitch_encoder(0, FORGED - service.trust.held[0])
+            await stack.until(lambda: service.machine.state is SafetyState.BRAKED, 1.0)
+            with pytest.raises(Exception, match=r"faults persist: drive 0 \(node \d+\)"):
+                await service.command("reset", {})
+            stack.sim.robot.glitch_encoder(0, 1.5e-3)
+            await asyncio.sleep(0.1)
+            assert any("drive 0" in f.message for f in service.faults)  # still not trusted
+            await service.command("reset", {})
+            assert service.machine.state is SafetyState.IDLE
+            assert service.faults == []
+
+    run(scenario())
+
+
 def test_a_forged_boot_up_heartbeat_is_a_drive_fault() -> None:
     """A CiA 402 drive that rebooted lost its configuration and position: a boot-up
     heartbeat (here forged: the drive stays operational) brakes naming it, and reset is

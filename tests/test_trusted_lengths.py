@@ -296,3 +296,8 @@ def test_retrust_judges_the_next_set_afresh_and_keeps_the_hold_until_then() -> N
     [problem] = trust.check(forged, STILL, FRESH, 10.0)
     assert 0 in named(problem)
     assert trust.held == settled
+    # one attempt: afterwards an offset that would fit one pose is judged as before
+    offset = list(settled)
+    offset[0] += 2e-3
+    assert [f.cable for f in trust.check(offset, STILL, FRESH, 10.0 + RETRY)] == [0]
+    assert trust.held == settled
