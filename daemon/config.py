@@ -46,6 +46,13 @@ class SafetyConfig(StrictModel):
     stale_cycles: consecutive cycles an actuator may miss its feedback.
     feedback_deadline: fraction of the period to wait for feedback after the cycle opens.
     bus_errors_max: error frames tolerated within one second.
+    max_cable_speed: the fastest a drum pays cable out or winds it in (m/s: the drive's
+      top speed through gear and drum).  A reported rate above it, or a length that
+      moved faster since the cable's last trusted sample, is implausible feedback
+      (daemon.trusted_lengths); it must exceed what the trajectory limits allow.
+    feedback_tolerance: encoder noise, quantisation and cable stretch allowed between two
+      samples (m): the allowance beyond max_cable_speed, and the most one cable may
+      disagree with the pose the others give.
     """
 
     workspace_min: Vec3 | None = None
@@ -56,6 +63,8 @@ class SafetyConfig(StrictModel):
     stale_cycles: Annotated[int, Field(ge=1, le=1000)] = 3
     feedback_deadline: Fraction = 0.5
     bus_errors_max: Annotated[int, Field(ge=0)] = 5
+    max_cable_speed: PositiveFloat = 3.0
+    feedback_tolerance: PositiveFloat = 1e-3
 
 
 class LoggingConfig(StrictModel):
@@ -129,6 +138,13 @@ class DaemonConfig:
             raw.safety.tracking_error_position, raw.safety.tracking_error_orientation
         )
         self.reference_limits = sampled_pose_limits(tracked, raw.trajectory)
+        fastest = fastest_cable_rate(robot, raw.trajectory)
+        if raw.safety.max_cable_speed <= fastest:
+            raise ConfigError(
+                f"{source}: safety.max_cable_speed: {raw.safety.max_cable_speed:g} m/s must "
+                f"exceed the fastest cable rate the trajectory limits allow ({fastest:.3g} m/s: "
+                "linear_speed + angular_speed x the farthest attachment)"
+            )
 
     def path(self, relative: str) -> Path:
         """A path from the config, resolved against the config file's directory."""
@@ -146,6 +162,12 @@ def workspace_box(robot: Robot, safety: SafetyConfig) -> tuple[np.ndarray, np.nd
             f"safety.workspace_min: {lo.tolist()} must lie below workspace_max {hi.tolist()}"
         )
     return lo.astype(float), hi.astype(float)
+
+
+def fastest_cable_rate(robot: Robot, limits: TrajectoryLimits) -> float:
+    """An upper bound of |l'| = |u . (v + w x r)| for any motion within `limits` (m/s)."""
+    reach = float(np.linalg.norm(robot.geometry.attachments, axis=1).max())
+    return limits.linear_speed + limits.angular_speed * reach
 
 
 def load_config(

@@ -36,6 +36,7 @@ class Trigger(enum.Enum):
     LENGTH_LIMIT = "length_limit"
     TRACKING_ERROR = "tracking_error"
     FK_RESIDUAL = "fk_residual"
+    IMPLAUSIBLE_FEEDBACK = "implausible_feedback"  # a drive's length or rate not trusted
     STALE_FEEDBACK = "stale_feedback"
     DRIVE_FAULT = "drive_fault"
     HEARTBEAT_LOST = "heartbeat_lost"

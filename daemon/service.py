@@ -47,6 +47,7 @@ from daemon.config import DaemonConfig
 from daemon.cycle_stats import CycleStats
 from daemon.gc_policy import CollectorPolicy
 from daemon.safety import Fault, SafetyMonitor, SafetyState, StateMachine, Trigger
+from daemon.trusted_lengths import TrustedLengths
 from drivers.base import ActuatorDriver, DriverError, FrameError, Timing
 from drivers.clock import PeriodicTimer
 from drivers.factory import make_driver
@@ -98,7 +99,17 @@ class Service:
         self._slack_waiters: list[asyncio.Future[None]] = []  # background work (_in_slack)
         self._holds = 0  # hold commands so far
         self._last_rx = 0.0
-        self._held = np.full(self.n, np.nan)  # last finite measured lengths
+        # the lengths a brake or keepalive holds: the last plausible measurements
+        # (rate, step, consistency); a sample may be taken up to a period late and the
+        # host be held up for ~10 ms (PERF-FACTS), which the step bound allows for
+        self.trust = TrustedLengths(
+            robot,
+            config.drives.nodes,
+            max_speed=config.safety.max_cable_speed,
+            tolerance=config.safety.feedback_tolerance,
+            slack=2.0 * self.period + 0.01,
+            rest_tensions=static_tensions(robot, self.controller.tension, robot.home),
+        )
         self._trajectory: Trajectory | None = None
         self._scheduled: list[Trajectory] = []  # accepted, beginning later, by start time
         self.last_output = None
@@ -247,36 +258,6 @@ class Service:
         fresh = [fb.count > c for fb, c in zip(feedback, self._counts, strict=True)]
         self._counts = [fb.count for fb in feedback]
         self.stats.cycles += 1
-        for k, fb in enumerate(feedback):
-            if math.isfinite(fb.length):
-                self._held[k] = fb.length
-        faults = self.monitor.check_drives(feedback, self.driver.status, now)
-        stale = self.monitor.check_freshness(fresh)
-        if stale is not None and self.machine.state is not SafetyState.INIT:
-            faults.append(stale)
-        if self.monitor.bus_errors_active(now):
-            faults.append(Fault(Trigger.BUS_ERROR, "bus errors within the last second"))
-        self.faults = faults
-        state = self.machine.state
-        if faults and state in (SafetyState.IDLE, SafetyState.HOLD, SafetyState.TRACKING):
-            self._brake(faults[0])
-        elif self.machine.moving and not self._busy:
-            self._control()
-        elif state is not SafetyState.INIT:
-            self._send(self.driver.keepalive())
-        done = time.monotonic()
-        self.stats.compute.add(done - started)
-        if not deadline and self._last_rx:
-            # streamed feedback may be complete before the tick: then from the tick
-            self.stats.latency.add(done - max(self._last_rx, self._opened))
-        self.collector.after_cycle()  # the commands are out: now
-        if self._slack_waiters:
-            self._wake_slack_waiters()
-
-    def _control(self) -> None:
-        """Controller step, checks and commands for the cycle opened at `self._opened`:
-        the cycle's instant, when SYNC latched the drives' positions."""
-        feedback = self.driver.feedback
         instant = self._opened
         if self.driver.timing is Timing.CYCLIC:
             # Streamed feedback: each cable was sampled at its own time; carried to the
@@ -288,7 +269,36 @@ class Service:
         else:
             lengths = [fb.length for fb in feedback]
         rates = [fb.rate for fb in feedback]
-        t = instant - self._t0
+        implausible = self.trust.check(lengths, rates, fresh, instant)
+        faults = [Fault(Trigger.IMPLAUSIBLE_FEEDBACK, f.message()) for f in implausible]
+        faults += self.monitor.check_drives(feedback, self.driver.status, now)
+        stale = self.monitor.check_freshness(fresh)
+        if stale is not None and self.machine.state is not SafetyState.INIT:
+            faults.append(stale)
+        if self.monitor.bus_errors_active(now):
+            faults.append(Fault(Trigger.BUS_ERROR, "bus errors within the last second"))
+        self.faults = faults
+        state = self.machine.state
+        if faults and state in (SafetyState.IDLE, SafetyState.HOLD, SafetyState.TRACKING):
+            self._brake(faults[0])
+        elif self.machine.moving and not self._busy:
+            self._control(lengths, rates)
+        elif state is not SafetyState.INIT:
+            self._send(self.driver.keepalive())
+        done = time.monotonic()
+        self.stats.compute.add(done - started)
+        if not deadline and self._last_rx:
+            # streamed feedback may be complete before the tick: then from the tick
+            self.stats.latency.add(done - max(self._last_rx, self._opened))
+        self.collector.after_cycle()  # the commands are out: now
+        if self._slack_waiters:
+            self._wake_slack_waiters()
+
+    def _control(self, lengths: list[float], rates: list[float]) -> None:
+        """Controller step, checks and commands for the cycle opened at `self._opened`:
+        the cycle's instant, when SYNC latched the drives' positions.  `lengths` and
+        `rates` passed the plausibility checks (an implausible one brakes instead)."""
+        t = self._opened - self._t0
         try:
             output = self.controller.step(t, lengths, rates)
         except Exception as exc:
@@ -308,6 +318,7 @@ class Service:
             self._brake(Fault(Trigger.NAN, str(exc)))
             return
         self._send(frames)
+        self.trust.follow_pose(output.pose)
         while self._scheduled and t >= self._scheduled[0].start_time:
             self._trajectory = self._scheduled.pop(0)
             if self.machine.state is SafetyState.HOLD:
@@ -336,7 +347,9 @@ class Service:
             self._emit({"event": "brake", "trigger": fault.trigger.value, "message": fault.message})
 
     def _hold_lengths(self) -> list[float]:
-        return self._held.tolist()
+        """The last trusted lengths (NaN for a cable never trusted: no drive was
+        enabled then, and the driver keeps it so)."""
+        return list(self.trust.held)
 
     def _on_bus_error(self, what: str) -> None:
         self.stats.bus_errors += 1
@@ -436,6 +449,11 @@ class Service:
 
     async def _reset(self, args: dict[str, Any]) -> dict[str, Any]:
         self._require(SafetyState.BRAKED, "reset")
+        if any(f.trigger is Trigger.IMPLAUSIBLE_FEEDBACK for f in self.faults):
+            # judged afresh like the first lengths at start-up: trusted again if they fit
+            # one pose and stayed within the step bounds (a cable still off stays a fault)
+            self.trust.retrust()
+            await asyncio.sleep(3 * self.period)
         # drive faults latch in the drives until cleared; every other condition must be gone
         causes = [f for f in self.faults if f.trigger is not Trigger.DRIVE_FAULT]
         if causes:
@@ -640,7 +658,7 @@ class Service:
         """The platform pose from the current lengths, stretch-corrected with the static
         tensions of the pose (the platform is at rest when enabling): forward
         kinematics alternated with the statics, starting from the home pose."""
-        lengths = self._held
+        lengths = np.array(self.trust.held)
         if not np.all(np.isfinite(lengths)):
             raise CommandError("invalid_state", "no feedback from every drive yet")
         robot, solver = self.robot, self.controller.tension

@@ -227,7 +227,9 @@ class ActuatorDriver(ABC):
     @abstractmethod
     def brake(self, lengths: Sequence[float], mode: BrakeMode) -> list[can.Message]:
         """Frames that freeze every cable at `lengths` (m) by `mode`.  Must not need an
-        answer to take effect."""
+        answer to take effect.  `lengths` are trusted (daemon.trusted_lengths), never a
+        raw frame's value; NaN where none is trusted, and the driver then holds the drive
+        without a target of its own choosing (its own estimate, or power stage off)."""
 
     @abstractmethod
     def disable(self) -> list[can.Message]:
@@ -264,7 +266,9 @@ class VirtualDrive(ABC):
     The simulator calls `measure` with the winch's true drum length and rate every
     plant step, `on_frame` for every frame on the bus, and `on_tick` at least every
     millisecond; it applies `actuation`, `force`, `target_length` and `brake_engaged`
-    to the winch.
+    to the winch.  `glitch` (m) is added to the length the drive reports, in its
+    feedback frames only: a corrupted feedback channel; its own position loop keeps
+    the true encoder.
     """
 
     def __init__(self, node_id: int, scaling: Scaling) -> None:
@@ -276,6 +280,7 @@ class VirtualDrive(ABC):
         self.brake_engaged = True  # holding brakes are fail-safe: on while unpowered
         self.length = 0.0  # m, the encoder's view, set by measure()
         self.rate = 0.0
+        self.glitch = 0.0  # m added to the reported length (a fault the simulator injects)
 
     def measure(self, length: float, rate: float) -> None:
         """The winch's drum length (m) and rate (m/s) as the drive's encoder sees them."""

@@ -5,17 +5,24 @@ socketcan such as vcan0, or a socketcand server), optionally serves its bus to o
 processes in the socketcand protocol (`--serve-socketcand 127.0.0.1:PORT`), injects
 device and frame faults on a schedule (or device faults typed on standard input with
 `--fault-input`, one `KIND:CABLE` per line), and prints the bus load every few seconds.
+`--truth-log FILE` writes the platform's TRUE pose (the plant's, not what the drives
+report) as one JSON line every TRUTH_PERIOD s, flushed at once, for tests and
+experiments that must see what really moved: {"t": simulated s, "position": [x, y, z],
+"quaternion": {"w", "x", "y", "z"}, "lowest_tension": N}.
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
+import json
 import logging
 import os
 import signal
 import sys
 from collections.abc import Callable
+from typing import TextIO
 
 import can
 
@@ -29,7 +36,9 @@ from sim_bus.virtual_robot import VirtualRobot
 
 log = logging.getLogger("sim_bus")
 
-DEVICE_FAULTS = ("silent", "stuck", "drive", "snap")
+DEVICE_FAULTS = ("silent", "stuck", "glitch", "drive", "snap")
+GLITCH = 0.1  # m a glitching drive's reported length jumps by
+TRUTH_PERIOD = 0.02  # s between two lines of --truth-log
 
 
 def parse_device_fault(text: str, when: bool = True) -> tuple[str, int, float]:
@@ -70,6 +79,8 @@ def fault_action(robot: VirtualRobot, kind: str, cable: int) -> Callable[[], lis
             robot.silence(cable)
         elif kind == "stuck":
             robot.stick_encoder(cable)
+        elif kind == "glitch":
+            robot.glitch_encoder(cable, GLITCH)
         elif kind == "snap":
             robot.snap_cable(cable)
         else:
@@ -90,7 +101,8 @@ def build_parser() -> argparse.ArgumentParser:
         type=parse_device_fault,
         action="append",
         default=[],
-        help="device fault KIND:CABLE@SECONDS, KIND in silent, stuck, drive, snap (repeatable)",
+        help="device fault KIND:CABLE@SECONDS, KIND in silent, stuck, glitch (the reported "
+        f"length jumps {GLITCH} m), drive, snap (repeatable)",
     )
     parser.add_argument(
         "--fault-input",
@@ -108,6 +120,12 @@ def build_parser() -> argparse.ArgumentParser:
         default=0.0,
         metavar="PERIOD",
         help="an error frame every PERIOD seconds",
+    )
+    parser.add_argument(
+        "--truth-log",
+        metavar="FILE",
+        type=argparse.FileType("w", encoding="utf-8"),
+        help=f"write the platform's true pose as JSON lines every {TRUTH_PERIOD} s",
     )
     parser.add_argument("--duration", type=float, default=0.0, help="stop after SECONDS (0: run)")
     parser.add_argument("--report-every", type=float, default=5.0, help="bus-load report period")
@@ -163,6 +181,8 @@ async def simulate(setup: SimSetup, args: argparse.Namespace) -> int:
         if args.fault_input:
             fault_input = FaultInput(robot, runner, sys.stdin.fileno())
             loop.add_reader(sys.stdin.fileno(), fault_input.on_readable)
+        if args.truth_log:
+            truth = asyncio.create_task(log_truth(robot, args.truth_log, stop))
         if args.duration:
             loop.call_later(args.duration, stop.set)
         while not stop.is_set():
@@ -175,6 +195,8 @@ async def simulate(setup: SimSetup, args: argparse.Namespace) -> int:
                     f"({report.window_frames} frames/s at {c.bitrate} bit/s)",
                     flush=True,
                 )
+        if args.truth_log:
+            await truth
         return 0
     finally:
         runner.close()
@@ -183,6 +205,25 @@ async def simulate(setup: SimSetup, args: argparse.Namespace) -> int:
         if served_bus is not None:
             served_bus.shutdown()
         device_bus.shutdown()
+
+
+async def log_truth(robot: VirtualRobot, out: TextIO, stop: asyncio.Event) -> None:
+    """--truth-log: the plant's pose every TRUTH_PERIOD s until `stop`."""
+    plant = robot.plant
+    with out:
+        while not stop.is_set():
+            pose = plant.pose
+            w, x, y, z = pose.quaternion.tolist()
+            line = {
+                "t": plant.time,
+                "position": pose.position.tolist(),
+                "quaternion": {"w": w, "x": x, "y": y, "z": z},
+                "lowest_tension": float(plant.tensions.min()),
+            }
+            out.write(json.dumps(line) + "\n")
+            out.flush()
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(stop.wait(), TRUTH_PERIOD)
 
 
 class FaultInput:

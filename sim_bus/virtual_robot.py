@@ -6,8 +6,9 @@ after it (heartbeats, cyclic feedback, watchdogs).  `handle(frame, t)` first bri
 plant up to t, so a SYNC at t is answered with the state at t.  Nothing here touches a
 bus or a wall clock: the asyncio runner (sim_bus.runner) and the tests drive it.
 
-Device-level faults live here (a silent node, a stuck encoder, a drive fault, a snapped
-cable); frame-level faults (drops, delays, corruption, error frames) are sim_bus.frame_faults.
+Device-level faults live here (a silent node, a stuck encoder, a glitching one, a drive
+fault, a snapped cable); frame-level faults (drops, delays, corruption, error frames) are
+sim_bus.frame_faults.
 """
 
 from __future__ import annotations
@@ -123,6 +124,12 @@ class VirtualRobot:
         """Drive k's encoder freezes at its current reading."""
         drive = self.drives[k]
         self.stuck[k] = (drive.length, 0.0) if stuck else None
+
+    def glitch_encoder(self, k: int, offset: float) -> None:
+        """Drive k reports its length `offset` metres off (0: the glitch ends), in its
+        feedback frames only: its own position loop keeps the true encoder, so whatever
+        moves the platform is the host's doing."""
+        self.drives[k].glitch = offset
 
     def drive_fault(
         self, k: int, code: int | None = None, text: str = "overcurrent"

@@ -656,12 +656,14 @@ def test_malformed_floods_change_nothing(hostile: list[tuple[int, bytes, str]]) 
 
 def test_brake_frames_position_hold() -> None:
     driver = host()
-    driver.position[2] = 777  # cable 2 last reported 777 increments
+    driver.position[2] = 777  # cable 2 last reported 777 increments: a frame, not trusted
     frames = driver.brake([1.5, 2.0, math.nan], BrakeMode.POSITION_HOLD)
-    assert [f.arbitration_id for f in frames] == [0x301, 0x302, 0x303]
-    decoded = [codec.decode_rpdo2(f.arbitration_id, f.data) for f in frames]
+    assert [f.arbitration_id for f in frames] == [0x301, 0x302, 0x203]
+    decoded = [codec.decode_rpdo2(f.arbitration_id, f.data) for f in frames[:2]]
     expected_1 = round(driver.scalings[0].position(1.5))
-    assert decoded == [(0x0F, expected_1, MODE_CSP), (0x0F, 0, MODE_CSP), (0x0F, 777, MODE_CSP)]
+    assert decoded == [(0x0F, expected_1, MODE_CSP), (0x0F, 0, MODE_CSP)]
+    # no trusted length for cable 2: power stage off, never a hold at a reported position
+    assert codec.decode_rpdo1(0x203, frames[2].data) == (0x07, 0, MODE_CST)
     assert [bytes(f.data) for f in driver.keepalive()] == [bytes(f.data) for f in frames]
     driver.commands([0.0] * 3)
     assert driver.keepalive() == []
@@ -973,6 +975,26 @@ def test_a_rebooted_drive_faults_until_started_again() -> None:
         link.run(driver.reset_faults(link))
     link.run(driver.start(link, lambda: link.t))
     assert driver.status[1].state is DriveState.HOLDING and driver.status[1].fault is None
+
+
+def test_a_boot_up_heartbeat_from_an_operational_drive_stays_a_fault() -> None:
+    """A boot-up heartbeat (even a forged one, the drive still operational and sending
+    healthy statuswords) means the drive lost its configuration and position: a FAULT
+    naming the node until start() runs again, not hidden by the next TPDO1."""
+    driver, _, link = make_bus()
+    link.run(driver.enable(link, [1.5] * 3, [0.0] * 3))
+    link.cycle([-60.0] * 3)
+    link.cycle([-60.0] * 3)
+    assert driver.status[1].state is DriveState.ENABLED
+    driver.receive(codec.encode_heartbeat(2, NmtState.BOOT_UP), link.t)
+    for _ in range(3):  # the real drive goes on answering every SYNC
+        link.cycle([-60.0] * 3)
+    status = driver.status[1]
+    assert status.state is DriveState.FAULT
+    assert status.fault.startswith("node 2: the drive restarted (boot-up heartbeat")
+    assert driver.status[0].state is DriveState.ENABLED
+    with pytest.raises(DriverError, match=r"node 2 is not started .*restarted"):
+        link.run(driver.reset_faults(link))
 
 
 def test_heartbeats_keep_arriving_after_start() -> None:

@@ -56,6 +56,11 @@ def _data() -> dict:
             ),
             r"drives.feedback_rate_hz \(400\) is below controller.rate_hz \(500\)",
         ),
+        (
+            lambda d: d["safety"].update(max_cable_speed=1.5),
+            r"safety.max_cable_speed \(1.5 m/s\) must exceed the fastest cable rate the "
+            r"trajectory limits allow \(1.82 m/s",
+        ),
     ],
 )
 def test_problems_name_the_key(change, message: str) -> None:

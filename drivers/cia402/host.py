@@ -16,7 +16,9 @@ Brake (DESIGN §9; never a quick stop, which only ramps torque to zero and lets 
 suspended platform fall):
 - POSITION_HOLD: RPDO2 with "enable operation", mode 8 (cyclic synchronous position) and
   the current length as target position; one frame per drive, acted on at reception.
-  A non-finite or out-of-range length falls back to the drive's last reported position.
+  The lengths are the host's trusted ones (never a raw frame's value, which may be
+  forged): a non-finite or out-of-range one means none is trusted for that drive, which
+  was then never enabled by this host, and it gets the power-stage-off frame below.
 - HOLDING_BRAKE: RPDO1 with "disable operation" (OPERATION ENABLED -> SWITCHED ON), zero
   torque: the drive engages its holding brake as its power stage goes off.  Asked of a
   bus whose drives have no holding brake, brake() holds position instead.
@@ -155,6 +157,9 @@ class Cia402Driver(ActuatorDriver):
         self.torque_limited = [0] * self.n  # commands clamped to +-max_torque
         self.nmt_state: list[NmtState | None] = [None] * self.n
         self._started = [False] * self.n
+        # a started drive left OPERATIONAL (boot-up or NMT change): it lost its
+        # configuration and, after a reboot, its position; a FAULT until start() again
+        self._lost = [False] * self.n
         self._rpdo1 = [RPDO1_BASE + node for node in self.nodes]
         self._rpdo2 = [RPDO2_BASE + node for node in self.nodes]
         self._routes: dict[int, tuple[Callable[[int, int, bytearray, float], int | None], int]] = {}
@@ -205,9 +210,9 @@ class Cia402Driver(ActuatorDriver):
         return frames
 
     def brake(self, lengths: Sequence[float], mode: BrakeMode) -> list[can.Message]:
-        """Freeze every cable (module docstring).  Never raises: a missing or unusable
-        length falls back to the drive's last reported position, and a drive never heard
-        from (so never enabled by this host) gets the power-stage-off frame."""
+        """Freeze every cable (module docstring).  Never raises: a drive without a usable
+        length (none trusted yet, so never enabled by this host) gets the power-stage-off
+        frame, never a hold at a position some frame reported."""
         if mode is BrakeMode.HOLDING_BRAKE and not self.config.has_holding_brake:
             mode = BrakeMode.POSITION_HOLD
         standing = []
@@ -236,12 +241,12 @@ class Cia402Driver(ActuatorDriver):
         ]
 
     def _hold_target(self, i: int, length: float) -> int | None:
-        """Position (increments) holding cable i at `length`, else at its last report."""
+        """Position (increments) holding cable i at `length`; None if it has none."""
         if _isfinite(length):
             position = self.scalings[i].position(length)
             if I32_MIN <= position <= I32_MAX:
                 return round(position)
-        return self.position[i]
+        return None
 
     # -- input ----------------------------------------------------------------------------
 
@@ -287,9 +292,10 @@ class Cia402Driver(ActuatorDriver):
     def _update_state(self, i: int, statusword: int, mode: int) -> None:
         status = self.status[i]
         state = drive_state(decode_statusword(statusword), mode, bool(statusword & STATUS_HOLD))
-        if status.fault_code:
+        if status.fault_code or self._lost[i]:
             # An EMCY is a fault (DESIGN §9) even while the statusword looks healthy: it
-            # stays until an error-reset EMCY (code 0) or reset_faults.
+            # stays until an error-reset EMCY (code 0) or reset_faults.  So does a restart
+            # (a boot-up heartbeat, even a forged one), until start() runs again.
             state = DriveState.FAULT
         status.state = state
         if state is DriveState.FAULT and status.fault is None:
@@ -313,12 +319,15 @@ class Cia402Driver(ActuatorDriver):
         self.nmt_state[i] = state
         if self._started[i] and state is not NmtState.OPERATIONAL:
             self._started[i] = False
+            self._lost[i] = True
             status = self.status[i]
             status.state, status.fault_code = DriveState.FAULT, 0
             status.fault = (
-                "the drive restarted (boot-up); it needs start() again"
+                f"node {self.nodes[i]}: the drive restarted (boot-up heartbeat while "
+                "operational): its configuration and position are lost; it needs start() again"
                 if state is NmtState.BOOT_UP
-                else f"NMT state {state.name.lower()}: PDOs stopped; it needs start() again"
+                else f"node {self.nodes[i]}: NMT state {state.name.lower()}: PDOs stopped; "
+                "it needs start() again"
             )
 
     # -- sequences ------------------------------------------------------------------------
@@ -333,7 +342,7 @@ class Cia402Driver(ActuatorDriver):
             (BRAKE_REACTION, 0, int(config.brake is BrakeMode.HOLDING_BRAKE)),
         )
         for i, node in enumerate(self.nodes):
-            self._started[i] = False
+            self._started[i] = self._lost[i] = False
             link.send(encode_nmt(NmtCommand.ENTER_PRE_OPERATIONAL, node))
             device_type = await self._read(link, i, DEVICE_TYPE)
             if device_type & 0xFFFF != DEVICE_PROFILE_402:

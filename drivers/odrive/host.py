@@ -307,9 +307,9 @@ class OdriveDriver(ActuatorDriver):
         return out
 
     def brake(self, lengths: Sequence[float], mode: BrakeMode) -> list[can.Message]:
-        """Freeze every cable (see the module docstring).  A non-finite length holds at
-        the newest measured length; with neither, the mode change alone holds at the
-        drive's own position estimate."""
+        """Freeze every cable (see the module docstring).  `lengths` are the host's
+        trusted ones; where one is non-finite (none trusted), the mode change alone holds
+        at the drive's own position estimate, never at a length some frame reported."""
         if len(lengths) != self.n:
             raise ValueError(f"{len(lengths)} lengths for {self.n} ODrive actuators")
         out: list[can.Message] = []
@@ -319,8 +319,7 @@ class OdriveDriver(ActuatorDriver):
                 out.append(encode_set_axis_state(node, AxisState.IDLE))
                 self._set_intent(i, Intent.HOLD_BRAKE, None)
                 continue
-            length = lengths[i] if math.isfinite(lengths[i]) else self.feedback[i].length
-            hold = self._hold_payload(i, length)
+            hold = self._hold_payload(i, lengths[i])
             out.extend(self._hold_frames(i, hold))
             self._set_intent(i, Intent.HOLD_POSITION, hold)
         return out

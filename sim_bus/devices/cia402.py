@@ -184,7 +184,7 @@ class Cia402Drive(VirtualDrive):
             (STATUSWORD, 0): lambda: encode_statusword(self.state, self.hold is not None),
             (CONTROLWORD, 0): lambda: self.controlword,
             (MODE_DISPLAY, 0): lambda: self.mode,
-            (POSITION_ACTUAL, 0): self._position,
+            (POSITION_ACTUAL, 0): self._reported_position,
             (VELOCITY_ACTUAL, 0): self._velocity,
             (ERROR_CODE, 0): lambda: self.fault_code,
             (ERROR_REGISTER, 0): lambda: error_register(self.fault_code),
@@ -245,6 +245,10 @@ class Cia402Drive(VirtualDrive):
 
     def _position(self) -> int:
         return _i32(self.scaling.position(self.length))
+
+    def _reported_position(self) -> int:
+        """Position actual as the drive reports it (TPDO1, SDO): with any glitch."""
+        return _i32(self.scaling.position(self.length + self.glitch))
 
     def _velocity(self) -> int:
         return _i32(self.scaling.velocity(self.rate))
@@ -341,7 +345,7 @@ class Cia402Drive(VirtualDrive):
             return []
         statusword = encode_statusword(self.state, self.hold is not None)
         return [
-            encode_tpdo1(self.node_id, statusword, self._position(), self.mode),
+            encode_tpdo1(self.node_id, statusword, self._reported_position(), self.mode),
             encode_tpdo2(self.node_id, self._velocity()),
         ]
 

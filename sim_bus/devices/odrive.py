@@ -203,7 +203,7 @@ class OdriveAxis(VirtualDrive):
     def _estimate(self) -> can.Message:
         scaling = self.scaling
         return encode_encoder_estimates(
-            self.node_id, scaling.position(self.length), scaling.velocity(self.rate)
+            self.node_id, scaling.position(self.length + self.glitch), scaling.velocity(self.rate)
         )
 
     def _on_estop(self, message: can.Message, now: float) -> list[can.Message]:

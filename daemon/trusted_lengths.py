@@ -1,0 +1,308 @@
+"""Trusted cable lengths: which measured lengths the daemon may believe (DESIGN §9).
+
+The brake and the idle keepalive hold every cable at a length; that length must be one
+the robot really has, never a raw frame's value: a forged feedback frame or a glitching
+encoder would otherwise make the brake drive the robot.  `TrustedLengths` keeps, per
+cable, the last measurement that passed the checks below, and names the drive whose
+feedback failed one.  Per cable, against its own last trusted sample taken `elapsed`
+seconds before (cycle instants; `slack`: how much later a sample may really have been
+taken or seen than its instant says):
+
+- rate: the reported rate is at most `max_speed` (the fastest the drive can wind);
+- step: the length moved at most max_speed x (elapsed + slack) + tolerance;
+- own rate: the length moved as its rates say, mean rate x elapsed, within tolerance +
+  mean rate x slack: tight while the cable stands still, where a glitch or a forged
+  frame would otherwise pass the step bound unnamed.
+
+Across cables (consistency): with n > 6 cables the lengths are redundant.  A rigid
+motion changes them by Lambda dx, which has no component in the left null space N of
+Lambda; one cable off by e leaves N N^T e_k e, largest on that cable when normalised by
+|N_k| (Cauchy-Schwarz).  The change since the trusted set whose largest normalised
+residual |N_k . N^T d| / |N_k| exceeds the tolerance is inconsistent.  Cables whose rows
+N_k are parallel cannot be told apart this way (reference8 pairs them in two groups of
+four at home): the message names every cable that disagrees as much.  N is linearised at
+a recent measured pose (`follow_pose`), again once the pose moved REFRESH_DISTANCE; the
+change is one cycle's, so cable stretch and the linearisation barely enter.
+
+Every cycle's values are judged, a cable's stale value too (a frame may have changed it
+since the last cycle).  A complete cycle (every cable fresh and finite) that is
+consistent is trusted, except the cables that failed a per-cable check (they keep their
+last trusted sample); an inconsistent one updates nothing, and neither does a cycle
+missing a cable's sample.
+
+There is no history for the first set (nor after `retrust`): it is trusted when forward
+kinematics fits one pose to it within the robot's max_residual (the bound the controller
+applies every cycle), the cables stretched by `rest_tensions` (at rest), and every cable
+within its rate and step bounds of any earlier trusted sample.  A first set that fails
+names the cable with the largest normalised residual and is retried at most every RETRY
+seconds (a failing fit can take a millisecond); after `retrust` a failure keeps the
+trusted set and its checks.  With six cables there is no redundancy:
+only the per-cable checks protect, and any first set that FK solves is trusted.
+
+Pure and synchronous: lists of floats in, verdicts out; no asyncio, no I/O.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from cdpr import Pose, Robot
+
+RETRY = 0.1  # s between attempts to trust a first set after one failed
+REFRESH_DISTANCE = 0.05  # m (or rad) the pose may move before N is linearised again
+AS_MUCH = 0.9  # cables within this fraction of the largest residual are as suspect
+_UNOBSERVABLE = 1e-6  # |N_k|^2 below which a cable's error cannot be told from motion
+
+
+@dataclass(frozen=True)
+class Implausible:
+    """One drive's feedback that was not trusted this cycle, and why."""
+
+    cable: int
+    node: int
+    value: float  # the length (m) or rate (m/s) that failed
+    reason: str  # names the value and the bound
+
+    def message(self) -> str:
+        return f"drive {self.cable} (node {self.node}): {self.reason}"
+
+
+class TrustedLengths:
+    """The last trusted length of each cable (`held`, NaN until the first set is
+    trusted) and the checks a new measurement must pass to replace it (module docstring)."""
+
+    def __init__(
+        self,
+        robot: Robot,
+        nodes: Sequence[int],
+        *,
+        max_speed: float,
+        tolerance: float,
+        slack: float,
+        rest_tensions: Sequence[float],
+    ) -> None:
+        self.robot = robot
+        self.n = n = robot.n_cables
+        if len(nodes) != n:
+            raise ValueError(f"{len(nodes)} node ids for {n} cables")
+        self.nodes = list(nodes)
+        self.max_speed = max_speed
+        self.tolerance = tolerance
+        self.slack = slack
+        self.rest_tensions = np.asarray(rest_tensions, dtype=float)
+        self.held = [math.nan] * n
+        self._rates = [0.0] * n  # the rate of each trusted sample
+        self._times = [-math.inf] * n  # the cycle instant of each trusted sample
+        self._first = True  # the next complete set is checked without history
+        self._next_attempt = -math.inf
+        self._failed: list[Implausible] = []  # the last failed first set, while it stands
+        self._basis: list[list[float]] = []  # rows N_k of the left null space of Lambda
+        self._inverse_norms = [0.0] * n  # 1 / |N_k| (0: cable not observable)
+        self._pose: Pose | None = None  # where N was linearised
+
+    # -- every cycle ------------------------------------------------------------------
+
+    def check(
+        self,
+        lengths: Sequence[float],
+        rates: Sequence[float],
+        fresh: Sequence[bool],
+        instant: float,
+    ) -> list[Implausible]:
+        """Judge one cycle's `lengths` (m) and `rates` (m/s), sampled at `instant` (s,
+        monotonic) or, where `fresh[k]` is False, earlier: every value is judged, a stale
+        one too (a frame may have changed it since the last cycle, and the controller
+        would use it), but only a cycle fresh on every cable updates `held`.  Returns
+        the drives whose feedback is implausible (empty: none).  Non-finite values are
+        neither trusted nor reported here (the NaN trigger is)."""
+        if self._first:
+            return self._check_first(lengths, rates, fresh, instant)
+        held = self.held
+        isfinite = math.isfinite
+        flagged: list[Implausible] = []
+        change = [0.0] * self.n
+        complete = True
+        for k in range(self.n):
+            x, v = lengths[k], rates[k]
+            if not (isfinite(x) and isfinite(v)):
+                complete = False
+                continue
+            complete = complete and fresh[k]
+            problem = self._per_cable(k, x, v, instant)
+            if problem is None:
+                change[k] = x - held[k]
+            else:
+                flagged.append(problem)
+        if not complete:
+            return flagged
+        residuals = self._residuals(change)
+        largest = max(residuals, default=0.0)
+        if largest > self.tolerance:
+            worst = residuals.index(largest)
+            if all(f.cable != worst for f in flagged):
+                flagged.append(self._disagrees(worst, lengths[worst], residuals))
+            return flagged
+        rejected = {f.cable for f in flagged}
+        for k in range(self.n):
+            if k not in rejected:
+                held[k] = lengths[k]
+                self._rates[k] = rates[k]
+                self._times[k] = instant
+        return flagged
+
+    def follow_pose(self, pose: Pose) -> None:
+        """A pose measured from trusted lengths (the controller's forward kinematics):
+        the consistency check is linearised there again once it moved REFRESH_DISTANCE."""
+        last = self._pose
+        if last is not None:
+            (x, y, z), (a, b, c) = pose.position_tuple, last.position_tuple
+            w0, x0, y0, z0 = pose.quaternion_tuple
+            w1, x1, y1, z1 = last.quaternion_tuple
+            dot = abs(w0 * w1 + x0 * x1 + y0 * y1 + z0 * z1)
+            angle = 2.0 * math.acos(min(1.0, dot))
+            moved2 = (x - a) ** 2 + (y - b) ** 2 + (z - c) ** 2
+            if moved2 < REFRESH_DISTANCE**2 and angle < REFRESH_DISTANCE:
+                return
+        self._linearise(pose)
+
+    def retrust(self) -> None:
+        """Check the next complete set like the first one (an explicit reset: the
+        measurements are trusted again if they fit one pose).  `held` stays meanwhile,
+        and stays trusted if that set fails."""
+        self._first = True
+        self._next_attempt = -math.inf
+
+    # -- the checks -------------------------------------------------------------------
+
+    def _per_cable(
+        self, k: int, x: float, v: float, instant: float, own_rate: bool = True
+    ) -> Implausible | None:
+        """Rate, step and (with `own_rate`) own-rate checks of cable k's sample (x, v)
+        at `instant`."""
+        speed = self.max_speed
+        if abs(v) > speed:
+            return Implausible(
+                k, self.nodes[k], v, f"rate {v:+.4f} m/s exceeds max_cable_speed {speed:g} m/s"
+            )
+        trusted = self.held[k]
+        elapsed = instant - self._times[k]
+        if elapsed == math.inf or x == trusted:  # nothing trusted yet, or the same sample
+            return None
+        slack, tolerance = self.slack, self.tolerance
+        step = x - trusted
+        bound = speed * (elapsed + slack) + tolerance
+        if abs(step) > bound:
+            return Implausible(
+                k,
+                self.nodes[k],
+                x,
+                f"length {x:.4f} m is {step:+.4f} m from its trusted {trusted:.4f} m after "
+                f"{elapsed * 1e3:.1f} ms (bound {bound:.4f} m at max_cable_speed {speed:g} m/s)",
+            )
+        if not own_rate:
+            return None
+        mean = 0.5 * (v + self._rates[k])
+        expected = mean * elapsed
+        allowed = tolerance + abs(mean) * slack
+        if abs(step - expected) > allowed:
+            return Implausible(
+                k,
+                self.nodes[k],
+                x,
+                f"length {x:.4f} m moved {step * 1e3:+.2f} mm in {elapsed * 1e3:.1f} ms where "
+                f"its rate gives {expected * 1e3:+.2f} mm (allowed {allowed * 1e3:.2f} mm)",
+            )
+        return None
+
+    def _residuals(self, change: Sequence[float]) -> list[float]:
+        """|N_k . N^T change| / |N_k| per cable (m): the part of `change` no rigid motion
+        explains.  For the residuals of a least-squares fit (already in the null space)
+        it is |residual_k| / |N_k|."""
+        basis = self._basis
+        if not basis or not basis[0]:
+            return [0.0] * self.n
+        m = len(basis[0])
+        y = [0.0] * m
+        for row, d in zip(basis, change, strict=True):
+            for j in range(m):
+                y[j] += row[j] * d
+        out = []
+        for row, scale in zip(basis, self._inverse_norms, strict=True):
+            r = 0.0
+            for j in range(m):
+                r += row[j] * y[j]
+            out.append(abs(r) * scale)
+        return out
+
+    def _disagrees(self, k: int, x: float, residuals: list[float], why: str = "") -> Implausible:
+        """Cable k disagrees most with the pose the others give; names the cables that
+        disagree as much (the geometry cannot tell them apart)."""
+        largest = residuals[k]
+        alike = [
+            f"{j} (node {self.nodes[j]})"
+            for j, r in enumerate(residuals)
+            if j != k and r >= AS_MUCH * largest
+        ]
+        reason = (
+            f"length {x:.4f} m disagrees by {largest * 1e3:.2f} mm with the pose the other "
+            f"cables give (feedback_tolerance {self.tolerance * 1e3:.2f} mm)" + why
+        )
+        if alike:
+            reason += f"; drives {', '.join(alike)} disagree as much: the geometry cannot tell"
+            reason += " them apart"
+        return Implausible(k, self.nodes[k], x, reason)
+
+    def _check_first(
+        self,
+        lengths: Sequence[float],
+        rates: Sequence[float],
+        fresh: Sequence[bool],
+        instant: float,
+    ) -> list[Implausible]:
+        """Trust a complete set that fits one pose (module docstring)."""
+        if instant < self._next_attempt:
+            return self._failed
+        if not all(fresh) or not all(map(math.isfinite, [*lengths, *rates])):
+            return self._failed
+        flagged = []
+        for k in range(self.n):
+            problem = self._per_cable(k, lengths[k], rates[k], instant, own_rate=False)
+            if problem is not None:
+                flagged.append(problem)
+        if not flagged:
+            robot = self.robot
+            stretched = robot.stretched_lengths(lengths, self.rest_tensions)
+            fk = robot.forward_kinematics(stretched, self._pose)
+            self._linearise(fk.pose)
+            if fk.converged:
+                self.held[:] = [float(x) for x in lengths]
+                self._rates[:] = [float(v) for v in rates]
+                self._times[:] = [instant] * self.n
+                self._first, self._failed = False, []
+                return []
+            residuals = self._residuals((stretched - robot.cable_lengths(fk.pose)).tolist())
+            worst = residuals.index(max(residuals))
+            why = f"; the lengths fit no pose ({fk.reason})"
+            flagged.append(self._disagrees(worst, float(lengths[worst]), residuals, why))
+            self._pose = None  # the next attempt starts from home, not from a failed fit
+        self._failed = flagged
+        self._next_attempt = instant + RETRY
+        # a retrust gets one attempt; then the trusted set is judged against as before
+        self._first = not all(map(math.isfinite, self.held))
+        return flagged
+
+    def _linearise(self, pose: Pose) -> None:
+        """N at `pose`: an orthonormal basis of the left null space of Lambda."""
+        Lam = self.robot.jacobian(pose)
+        u, _, _ = np.linalg.svd(Lam)
+        basis = u[:, Lam.shape[1] :]
+        norms2 = (basis * basis).sum(axis=1)
+        self._basis = basis.tolist()
+        self._inverse_norms = [
+            1.0 / math.sqrt(s) if s > _UNOBSERVABLE else 0.0 for s in norms2.tolist()
+        ]
+        self._pose = pose
