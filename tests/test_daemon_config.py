@@ -58,7 +58,7 @@ def _data() -> dict:
         ),
         (
             lambda d: d["safety"].update(max_cable_speed=1.5),
-            r"safety.max_cable_speed \(1.5 m/s\) must exceed the fastest cable rate the "
+            r"safety.max_cable_speed: 1.5 m/s must exceed the fastest cable rate the "
             r"trajectory limits allow \(1.82 m/s",
         ),
     ],
