@@ -50,7 +50,7 @@ class BusPort:
         else:
             if stale:
                 log.debug("dropped %d frames queued before the daemon opened the bus", stale)
-        self._watch = BusWatch(self.bus, loop, self._drain, lambda msg: self._deliver([msg]))
+        self._watch = BusWatch(self._io, loop, self._drain, lambda msg: self._deliver([msg]))
 
     def close(self) -> None:
         if self._watch is not None:
