@@ -45,7 +45,10 @@ class SafetyConfig(StrictModel):
     pose, within them of the reference, then stays inside the box and the tilt.
     stale_cycles: consecutive cycles an actuator may miss its feedback.
     feedback_deadline: fraction of the period to wait for feedback after the cycle opens.
-    bus_errors_max: error frames tolerated within one second.
+    bus_errors_max: bus errors (error frames, failed sends) tolerated within one second.
+    bus_lost_exit: seconds from losing the bus (socket closed, interface down, socketcand
+      server gone) to exiting with code 69, braked, for the service manager to restart
+      the daemon; the time lets the fault reach zenoh and systemd.
     """
 
     workspace_min: Vec3 | None = None
@@ -56,6 +59,7 @@ class SafetyConfig(StrictModel):
     stale_cycles: Annotated[int, Field(ge=1, le=1000)] = 3
     feedback_deadline: Fraction = 0.5
     bus_errors_max: Annotated[int, Field(ge=0)] = 5
+    bus_lost_exit: Annotated[float, Field(gt=0.0, le=60.0)] = 1.0
 
 
 class LoggingConfig(StrictModel):
