@@ -11,6 +11,8 @@ from __future__ import annotations
 import asyncio
 import logging
 import signal
+import socket
+import sys
 from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Any, TypeVar
@@ -21,25 +23,44 @@ from cdpr.controller import ControlOutput
 from daemon.config import DaemonConfig
 from daemon.recording import CanRecorder, CycleRecord, TelemetryRecorder, session_path
 from daemon.safety import Trigger
-from daemon.service import Service
+from daemon.service import EXIT_BUS_LOST, Service
 from daemon.systemd import Notifier, Progress, run_watchdog
 
 log = logging.getLogger("cdprd")
 
+SOCKETCAND_CONNECT_TIMEOUT = 2.0  # s
 ServiceHook = Callable[[Service], Awaitable[None]]
 Recorder = TypeVar("Recorder", TelemetryRecorder, CanRecorder)
 
 
 def open_bus(config: DaemonConfig) -> can.BusABC:
-    """The python-can bus the config names (hardware, vcan, socketcand, ...)."""
+    """The python-can bus the config names (hardware, vcan, socketcand, ...); if it
+    cannot be opened, one line on stderr and exit code EXIT_BUS_LOST."""
     c = config.can
     try:
+        if c.interface == "socketcand":
+            _reach_socketcand(c.options)
         return c.open()
     except (can.CanError, OSError, ValueError, ImportError) as exc:
-        raise SystemExit(
+        print(
             f"error: {config.source}: can: cannot open the bus interface={c.interface} "
-            f"channel={c.channel}: {' '.join(str(exc).split())}"
-        ) from None
+            f"channel={c.channel}: {' '.join(str(exc).split())}",
+            file=sys.stderr,
+        )
+        raise SystemExit(EXIT_BUS_LOST) from None
+
+
+def _reach_socketcand(options: dict[str, Any]) -> None:
+    """Connect once to the socketcand server the options name (OSError naming it if
+    none answers).  python-can's client retries a refused connection for 10 s in a busy
+    loop, logging a warning per attempt (hundreds of thousands of lines)."""
+    host, port = options.get("host"), options.get("port")
+    if host is None or port is None:
+        return  # python-can names what is missing
+    try:
+        socket.create_connection((host, port), SOCKETCAND_CONNECT_TIMEOUT).close()
+    except OSError as exc:
+        raise OSError(f"no socketcand server answers at {host}:{port}: {exc}") from None
 
 
 async def serve(

@@ -1,10 +1,15 @@
 """The daemon's end of the CAN bus: frames in on the event loop, frames out, and the
 `Link` that drivers' start-up sequences use to wait for answers.
 
-Buses with a file descriptor (socketcan, the simulator's loop bus) are read by the
-event loop itself, draining every queued frame per wake-up (PERF-FACTS: one frame per
-wake-up costs a loop pass each).  Other buses go through a python-can Notifier thread
+Buses with a file descriptor (socketcan, socketcand, the simulator's loop bus) are read
+by the event loop itself, draining every queued frame per wake-up (PERF-FACTS: one frame
+per wake-up costs a loop pass each).  Other buses go through a python-can Notifier thread
 that hands frames to the loop.
+
+A failed send or receive is never raised: it is logged (one line per kind of failure
+and a count every few seconds: daemon.logsetup limits this logger) and reported to
+`on_error`, or to `on_lost` when it means the bus is gone (drivers.bus.gone).  A lost
+bus stays lost: the port stops reading it, and `expect` fails at once.
 """
 
 from __future__ import annotations
@@ -17,7 +22,7 @@ from collections.abc import Callable
 import can
 
 from drivers.base import DriverError
-from drivers.bus import BusWatch, frame_io
+from drivers.bus import BusWatch, frame_io, gone
 
 log = logging.getLogger(__name__)
 
@@ -34,8 +39,11 @@ class BusPort:
         self._loop: asyncio.AbstractEventLoop | None = None
         self._watch: BusWatch | None = None
         self._waiters: list[tuple[Callable[[can.Message], bool], asyncio.Future]] = []
-        self.on_send_error: Callable[[str], None] | None = None
+        self.on_error: Callable[[str], None] | None = None  # a transient failure
+        self.on_lost: Callable[[str], None] | None = None  # the bus is gone
         self.on_sent: Callable[[can.Message], None] | None = None
+        self.lost: str | None = None  # what ended the bus
+        self.failures = 0  # sends and receives that failed
 
     def open(self, loop: asyncio.AbstractEventLoop) -> None:
         """Start delivering received frames on `loop`; frames queued before this are
@@ -45,21 +53,31 @@ class BusPort:
         self._loop = loop
         try:
             stale = len(self._io.drain())
-        except can.CanError as exc:
-            self._error(f"receive failed: {exc}")
+        except (can.CanError, OSError) as exc:
+            self._failed("receive", exc)
         else:
             if stale:
                 log.debug("dropped %d frames queued before the daemon opened the bus", stale)
-        self._watch = BusWatch(self.bus, loop, self._drain, lambda msg: self._deliver([msg]))
+        if self.lost is None:
+            self._watch = BusWatch(
+                self._io,
+                loop,
+                self._drain,
+                lambda msg: self._deliver([msg]),
+                lambda exc: self._failed("receive", exc),
+            )
 
     def close(self) -> None:
-        if self._watch is not None:
-            self._watch.close()
-            self._watch = None
+        self._stop_reading()
         for _, future in self._waiters:
             if not future.done():
                 future.cancel()
         self._waiters.clear()
+
+    def _stop_reading(self) -> None:
+        if self._watch is not None:
+            self._watch.close()
+            self._watch = None
 
     # -- input --------------------------------------------------------------------
 
@@ -73,8 +91,8 @@ class BusPort:
     def _drain(self) -> None:
         try:
             frames = self._io.drain()
-        except can.CanError as exc:
-            self._error(f"receive failed: {exc}")
+        except (can.CanError, OSError) as exc:
+            self._failed("receive", exc)
             return
         if frames:
             self._deliver(frames)
@@ -103,17 +121,31 @@ class BusPort:
         """Send one frame; a failure is counted and reported, never raised."""
         try:
             self._io.send(message)
-        except can.CanError as exc:
-            self._error(f"send of 0x{message.arbitration_id:03x} failed: {exc}")
+        except (can.CanError, OSError) as exc:
+            self._failed("send", exc)
             return
         if self.on_sent is not None:
             self.on_sent(message)
 
-    def _error(self, what: str) -> None:
-        if self.on_send_error is not None:
-            self.on_send_error(what)
-        else:
-            log.warning("CAN: %s", what)
+    def _failed(self, action: str, exc: Exception) -> None:
+        """A send or receive raised `exc`: log it, then report it as lost or transient."""
+        self.failures += 1
+        what = f"{action} failed: {exc}"
+        log.warning("CAN %s", what)  # the same text again is counted, not repeated
+        if not gone(exc):
+            if self.on_error is not None:
+                self.on_error(what)
+            return
+        if self.lost is not None:
+            return
+        self.lost = what
+        self._stop_reading()
+        for _, future in self._waiters:
+            if not future.done():
+                future.set_exception(DriverError(f"CAN bus lost: {what}"))
+        self._waiters.clear()
+        if self.on_lost is not None:
+            self.on_lost(what)
 
     # -- Link ----------------------------------------------------------------------
 
@@ -122,6 +154,8 @@ class BusPort:
     ) -> can.Message:
         """The next received frame matching `match`; DriverError naming `what` on timeout."""
         assert self._loop is not None, "open() the port first"
+        if self.lost is not None:
+            raise DriverError(f"CAN bus lost: {self.lost}; expected {what}")
         future: asyncio.Future = self._loop.create_future()
         self._waiters.append((match, future))
         try:

@@ -45,7 +45,10 @@ class SafetyConfig(StrictModel):
     pose, within them of the reference, then stays inside the box and the tilt.
     stale_cycles: consecutive cycles an actuator may miss its feedback.
     feedback_deadline: fraction of the period to wait for feedback after the cycle opens.
-    bus_errors_max: error frames tolerated within one second.
+    bus_errors_max: bus errors (error frames, failed sends) tolerated within one second.
+    bus_lost_exit: seconds from losing the bus (socket closed, interface down, socketcand
+      server gone) to exiting with code 69, braked, for the service manager to restart
+      the daemon; the time lets the fault reach zenoh and systemd.
     max_cable_speed: the fastest a drum pays cable out or winds it in (m/s: the drive's
       top speed through gear and drum).  A reported rate above it, or a length that
       moved faster since the cable's last trusted sample, is implausible feedback
@@ -65,6 +68,7 @@ class SafetyConfig(StrictModel):
     bus_errors_max: Annotated[int, Field(ge=0)] = 5
     max_cable_speed: PositiveFloat = 3.0
     feedback_tolerance: PositiveFloat = 1e-3
+    bus_lost_exit: Annotated[float, Field(gt=0.0, le=60.0)] = 1.0
 
 
 class LoggingConfig(StrictModel):

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import enum
 import math
+from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -40,7 +41,8 @@ class Trigger(enum.Enum):
     STALE_FEEDBACK = "stale_feedback"
     DRIVE_FAULT = "drive_fault"
     HEARTBEAT_LOST = "heartbeat_lost"
-    BUS_ERROR = "bus_error"
+    BUS_ERROR = "bus_error"  # too many bus errors, or bus-off
+    BUS_LOST = "bus_lost"  # the bus is gone: brake, then exit for a restart
     NAN = "nan"
     CONTROLLER_EXCEPTION = "controller_exception"
     SIGTERM = "sigterm"
@@ -99,10 +101,17 @@ class StateMachine:
             )
         return self._move(_TARGET[action], action)
 
-    def brake(self, fault: Fault) -> bool:
-        """Enter BRAKED for `fault`; False if already braked (the first fault stays)."""
+    def brake(self, fault: Fault, supersede: bool = False) -> bool:
+        """Enter BRAKED for `fault`; False if already braked: the first fault stays,
+        unless `supersede` (a fault the daemon exits for, such as a lost bus, replaces
+        the one on record, which was most likely its first symptom)."""
         if self.state is SafetyState.BRAKED:
-            return False
+            if not supersede or self.fault == fault:
+                return False
+            self.fault = fault
+            self.history.append((self.state, self.state, fault.trigger.value))
+            del self.history[:-100]
+            return True
         self.fault = fault
         self._move(SafetyState.BRAKED, fault.trigger.value)
         return True
@@ -138,7 +147,10 @@ class SafetyMonitor:
         self.heartbeat_timeout = config.drives.heartbeat_timeout
         self.pose_limits = config.pose_limits
         self.stale = [0] * config.robot.n_cables
-        self._error_stamps: list[float] = []
+        self._error_stamps: deque[float] = deque()  # of the bus errors, oldest first
+        self._last_error = ""
+        self._bus_off: tuple[float, str] = (-math.inf, "")  # when, what
+        self.lost: Fault | None = None  # the bus is gone (for good)
 
     # -- inputs every cycle --------------------------------------------------------
 
@@ -190,21 +202,41 @@ class SafetyMonitor:
                 )
         return worst
 
-    def bus_error(self, now: float, what: str) -> Fault | None:
-        """Record one bus error (error frame, send failure, bus state); a Fault once more
-        than bus_errors_max happened within one second, or at once for bus-off."""
+    def bus_error(self, now: float, what: str, bus_off: bool = False) -> Fault | None:
+        """Record one bus error (error frame, failed send or receive); the bus fault if
+        the condition of `check_bus` now holds."""
         self._error_stamps.append(now)
-        self._error_stamps = [t for t in self._error_stamps if now - t <= 1.0]
-        if "bus-off" in what or len(self._error_stamps) > self.limits.bus_errors_max:
+        self._last_error = what
+        if bus_off:
+            self._bus_off = (now, what)
+        return self.check_bus(now)
+
+    def bus_lost(self, what: str) -> Fault:
+        """The bus is gone (`what` ended it): a fault for good."""
+        if self.lost is None:
+            self.lost = Fault(Trigger.BUS_LOST, f"CAN bus lost: {what}")
+        return self.lost
+
+    def check_bus(self, now: float) -> Fault | None:
+        """The bus condition, the same for braking and for allowing a reset: the bus
+        lost, a bus-off within the last second, or more than bus_errors_max errors
+        within it.  Sporadic errors below the limit are no fault."""
+        if self.lost is not None:
+            return self.lost
+        stamps = self._error_stamps
+        while stamps and now - stamps[0] > 1.0:
+            stamps.popleft()
+        off_at, off_what = self._bus_off
+        if now - off_at <= 1.0:
+            return Fault(Trigger.BUS_ERROR, f"bus-off within the last second ({off_what})")
+        limit = self.limits.bus_errors_max
+        if len(stamps) > limit:
             return Fault(
                 Trigger.BUS_ERROR,
-                f"{what}; {len(self._error_stamps)} bus errors in the last second "
-                f"(limit {self.limits.bus_errors_max})",
+                f"{self._last_error}; {len(stamps)} bus errors in the last second "
+                f"(limit {limit})",
             )
         return None
-
-    def bus_errors_active(self, now: float) -> bool:
-        return any(now - t <= 1.0 for t in self._error_stamps)
 
     def check_output(self, output: ControlOutput) -> Fault | None:
         """Controller result: FK, wrench in W, NaN, pose limits, tracking error."""

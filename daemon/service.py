@@ -14,6 +14,7 @@ import asyncio
 import gc
 import logging
 import math
+import os
 import time
 from collections.abc import Awaitable, Callable, Generator
 from typing import Any, Literal, TypeVar
@@ -49,6 +50,7 @@ from daemon.gc_policy import CollectorPolicy
 from daemon.safety import Fault, SafetyMonitor, SafetyState, StateMachine, Trigger
 from daemon.trusted_lengths import TrustedLengths
 from drivers.base import ActuatorDriver, DriverError, FrameError, Timing
+from drivers.bus import CAN_ERR_BUSOFF
 from drivers.clock import PeriodicTimer
 from drivers.factory import make_driver
 
@@ -59,6 +61,7 @@ SLACK_MARGIN = 3e-4  # s before a tick at which background work stops (> its lon
 PLANNING_LEAD = 0.05  # s ahead of now a planned transition begins (planning takes time)
 HOLD_LEAD = 0.01  # the same for a hold: a stop plans in a few ms and should not wait
 SETTLE_ATTEMPTS = 3  # plans of an approach that begins later, from the state it begins at
+EXIT_BUS_LOST = os.EX_UNAVAILABLE  # 69, sysexits' "service unavailable": the bus is gone
 EventSink = Callable[[dict[str, Any]], None]
 Result = TypeVar("Result")
 
@@ -77,7 +80,8 @@ class Service:
         self.machine = StateMachine()
         self.monitor = SafetyMonitor(config)
         self.port = BusPort(bus, self._on_frames)
-        self.port.on_send_error = self._on_bus_error
+        self.port.on_error = self._on_bus_error
+        self.port.on_lost = self._on_bus_lost
         self.port.on_sent = self._on_sent
         self._wrench_check = wrench_check(robot, tension_solver(robot, config.controller))
         self._events: list[EventSink] = []
@@ -90,6 +94,7 @@ class Service:
         self._loop: asyncio.AbstractEventLoop | None = None
         self._stopped: asyncio.Event | None = None
         self._exit_code = 0
+        self._exit_timer: asyncio.TimerHandle | None = None  # the exit after a lost bus
         self._busy = False  # an enable or reset sequence is talking to the drives
         # cycle bookkeeping
         self._waiting = False
@@ -151,12 +156,14 @@ class Service:
         await self._stopped.wait()
         return self._exit_code
 
-    def stop(self, trigger: Trigger = Trigger.SIGTERM) -> None:
-        """Brake (if anything moves), then end `wait_stopped` with exit code 0."""
+    def stop(self, trigger: Trigger = Trigger.SIGTERM, exit_code: int = 0) -> None:
+        """Brake (if anything moves), then end `wait_stopped` with `exit_code` (a
+        non-zero code given before stays: a later stop does not make a failure clean)."""
         if self.machine.moving or self.machine.state is SafetyState.INIT:
             self._brake(Fault(trigger, "stop requested: braking before exit"))
         else:
             self._send(self.driver.brake(self._hold_lengths(), self.config.drives.brake))
+        self._exit_code = self._exit_code or exit_code
         if self._stopped is not None:
             self._stopped.set()
 
@@ -167,6 +174,8 @@ class Service:
             self._timer = None
         if self._deadline is not None:
             self._deadline.cancel()
+        if self._exit_timer is not None:
+            self._exit_timer.cancel()
         self._wake_slack_waiters()
         self.port.close()
         self.collector.close()
@@ -241,7 +250,9 @@ class Service:
         receive = self.driver.receive
         for msg in frames:
             if msg.is_error_frame:
-                self._on_bus_error(f"error frame 0x{msg.arbitration_id:x}")
+                error_class = msg.arbitration_id
+                bus_off = bool(error_class & CAN_ERR_BUSOFF)
+                self._on_bus_error(f"error frame 0x{error_class:x}", bus_off)
                 continue
             if receive(msg, now) is not None:
                 self._last_rx = now
@@ -275,8 +286,9 @@ class Service:
         stale = self.monitor.check_freshness(fresh)
         if stale is not None and self.machine.state is not SafetyState.INIT:
             faults.append(stale)
-        if self.monitor.bus_errors_active(now):
-            faults.append(Fault(Trigger.BUS_ERROR, "bus errors within the last second"))
+        bus = self.monitor.check_bus(now)
+        if bus is not None:
+            faults.append(bus)
         self.faults = faults
         state = self.machine.state
         if faults and state in (SafetyState.IDLE, SafetyState.HOLD, SafetyState.TRACKING):
@@ -336,12 +348,15 @@ class Service:
 
     # -- faults --------------------------------------------------------------------------
 
-    def _brake(self, fault: Fault) -> None:
-        """Freeze every cable (driver brake frames) and enter BRAKED, logging one line."""
+    def _brake(self, fault: Fault, supersede: bool = False) -> None:
+        """Enter BRAKED (`supersede`: see StateMachine.brake) and freeze every cable
+        (driver brake frames), logging one line.  BRAKED first: a brake frame that fails
+        to send reports a bus error, which must not brake all over again."""
+        braked = self.machine.brake(fault, supersede)
         self._send(self.driver.brake(self._hold_lengths(), self.config.drives.brake))
         self._trajectory = None
         self._scheduled.clear()
-        if self.machine.brake(fault):
+        if braked:
             deliberate = fault.trigger in (Trigger.SIGTERM, Trigger.COMMAND)
             log.log(logging.WARNING if deliberate else logging.ERROR, fault.line())
             self._emit({"event": "brake", "trigger": fault.trigger.value, "message": fault.message})
@@ -351,11 +366,31 @@ class Service:
         enabled then, and the driver keeps it so)."""
         return list(self.trust.held)
 
-    def _on_bus_error(self, what: str) -> None:
+    def _on_bus_error(self, what: str, bus_off: bool = False) -> None:
         self.stats.bus_errors += 1
-        fault = self.monitor.bus_error(time.monotonic(), what)
+        fault = self.monitor.bus_error(time.monotonic(), what, bus_off)
         if fault is not None and self.machine.state is not SafetyState.BRAKED:
             self._brake(fault)
+
+    def _on_bus_lost(self, what: str) -> None:
+        """The bus is gone: brake what can still be reached (those frames may fail too,
+        counted), report it as the fault on record, and exit with EXIT_BUS_LOST after
+        safety.bus_lost_exit seconds, for the service manager to restart the daemon,
+        which comes up IDLE.  The drives' watchdogs hold once the commands stop."""
+        self.stats.bus_errors += 1
+        delay = self.config.safety.bus_lost_exit
+        self._brake(self.monitor.bus_lost(f"{what}; exiting in {delay:g} s"), supersede=True)
+        assert self._loop is not None  # the port reports only once opened on the loop
+        self._exit_timer = self._loop.call_later(delay, self._exit_bus_lost)
+
+    def _exit_bus_lost(self) -> None:
+        log.error(
+            "exiting with code %d: %s (%d sends and receives failed)",
+            EXIT_BUS_LOST,
+            self.port.lost,
+            self.port.failures,
+        )
+        self.stop(Trigger.BUS_LOST, EXIT_BUS_LOST)
 
     def _send(self, frames: list[can.Message]) -> None:
         for frame in frames:

@@ -4,7 +4,12 @@
 python-can bus's raw socket directly, non-blocking: python-can's `send` and `recv`
 each add a select() (and `send` a clock read) to every frame, which doubles the
 system calls per cycle; inside user-mode Linux, where every call traps, that was
-40 us per frame against 10 us raw (measured with tests/vcan/uml.py).
+40 us per frame against 10 us raw (measured with tests/vcan/uml.py).  On socketcand
+(a CAN bus served over TCP) it reads python-can's client socket on the event loop too.
+
+`gone(exc)` tells a failure that means the bus itself is gone (the socket or connection
+closed, the interface down or removed) from a transient one (a full transmit queue, a
+bus-off the controller recovers from): the daemon brakes and exits on the first kind.
 """
 
 from __future__ import annotations
@@ -16,15 +21,69 @@ from collections.abc import Callable
 import can
 from can.interfaces.socketcan import SocketcanBus
 from can.interfaces.socketcan.socketcan import build_can_frame, capture_message
+from can.interfaces.socketcand import SocketCanDaemonBus
+from can.interfaces.socketcand.socketcand import (
+    convert_ascii_message_to_can_message,
+    convert_can_message_to_ascii_message,
+)
+
+# errno values of a send or receive on a bus that is gone: the connection or socket is
+# closed (socketcand's server went away), the interface is down (ENETDOWN) or removed
+# (ENODEV, ENXIO)
+GONE_ERRNOS = frozenset(
+    {
+        errno.EPIPE,
+        errno.ECONNRESET,
+        errno.ECONNABORTED,
+        errno.ENOTCONN,
+        errno.ESHUTDOWN,
+        errno.EBADF,
+        errno.ENETDOWN,
+        errno.ENODEV,
+        errno.ENXIO,
+    }
+)
+CAN_ERR_BUSOFF = 0x40  # error class bit of an error frame: the controller went bus-off
+SOCKETCAND_MAX_LINE = 200  # bytes of an unfinished socketcand message kept (as python-can)
+
+
+class BusGone(can.CanOperationError):
+    """The bus is gone (no error code says so): e.g. the socketcand server closed the
+    connection."""
+
+
+def gone(exc: BaseException) -> bool:
+    """True when `exc`, raised by a send or a receive, means the bus itself is gone:
+    BusGone, or an OSError / can.CanError with an errno in GONE_ERRNOS, itself or as the
+    cause of one (python-can wraps OSErrors)."""
+    seen: BaseException | None = exc
+    while seen is not None:
+        if isinstance(seen, BusGone):
+            return True
+        code = seen.errno if isinstance(seen, OSError) else getattr(seen, "error_code", None)
+        if code in GONE_ERRNOS:
+            return True
+        seen = seen.__cause__
+    return False
 
 
 class FrameIO:
     """`send(frame)` and `drain()` on one python-can bus (this base: python-can's own
-    send with timeout 0 and recv(0) until empty).  Both raise can.CanError on a bus
-    failure; `send` never blocks, a full transmit queue is an error."""
+    send with timeout 0 and recv(0) until empty).  Both raise can.CanError or OSError on
+    a bus failure (`gone` tells which failures end the bus); `send` never blocks, a full
+    transmit queue is an error."""
 
     def __init__(self, bus: can.BusABC) -> None:
         self.bus = bus
+
+    def fileno(self) -> int:
+        """A file descriptor readable while frames are queued, or -1 (none: a Notifier
+        thread must read the bus)."""
+        try:
+            fd = self.bus.fileno()
+        except NotImplementedError:
+            return -1
+        return fd if isinstance(fd, int) else -1
 
     def send(self, frame: can.Message) -> None:
         self.bus.send(frame, timeout=0.0)
@@ -75,45 +134,137 @@ class SocketcanIO(FrameIO):
             frames.append(msg)
 
 
+class SocketcandIO(FrameIO):
+    """python-can's socketcand client through its TCP socket, read on the event loop.
+
+    python-can's own client reads from a Notifier thread, one frame per call (a thread
+    hop and a loop wake-up per frame: feedback came late enough to count as missing),
+    logs a warning whenever a TCP read ends inside a message, and cannot tell a closed
+    connection from a quiet one.  Here `drain` parses every complete message queued
+    (frames and error frames; replies and malformed messages are skipped), and the end
+    of the stream is BusGone.  The socket is non-blocking: a server that stopped
+    reading fails a send (BusGone: a line may have gone out in part) instead of stalling
+    the loop.  Relies on python-can keeping the socket in its private attribute
+    (python-can 4.x; tests/test_socketcand.py checks it)."""
+
+    def __init__(self, bus: SocketCanDaemonBus) -> None:
+        super().__init__(bus)
+        self._socket = bus._SocketCanDaemonBus__socket  # type: ignore[attr-defined]
+        self._socket.setblocking(False)
+        self._channel = bus.channel
+        self._buffer = b""
+        self._closed = False
+
+    def fileno(self) -> int:
+        return self._socket.fileno()
+
+    def send(self, frame: can.Message) -> None:
+        line = convert_can_message_to_ascii_message(frame).encode("ascii")
+        try:
+            self._socket.sendall(line)
+        except BlockingIOError:
+            raise BusGone("the socketcand server stopped reading (send buffer full)") from None
+        except OSError as exc:
+            raise can.CanOperationError(exc.strerror or str(exc), exc.errno) from exc
+
+    def drain(self) -> list[can.Message]:
+        if self._closed:
+            raise BusGone("the socketcand server closed the connection")
+        data = self._buffer
+        while True:
+            try:
+                chunk = self._socket.recv(65536)
+            except BlockingIOError:
+                break
+            except OSError as exc:
+                raise can.CanOperationError(exc.strerror or str(exc), exc.errno) from exc
+            if not chunk:
+                self._closed = True  # the frames read before the end still count
+                break
+            data += chunk
+        frames = []
+        start = data.find(b"<")
+        while start >= 0:
+            end = data.find(b">", start)
+            if end < 0:
+                break
+            line = data[start : end + 1]
+            if line.startswith((b"< frame ", b"< error ")):
+                try:
+                    msg = convert_ascii_message_to_can_message(line.decode("ascii", "replace"))
+                except (ValueError, IndexError):
+                    msg = None  # malformed: skipped, as python-can's client does
+                if msg is not None:
+                    msg.channel = self._channel
+                    frames.append(msg)
+            start = data.find(b"<", end + 1)
+        rest = b"" if start < 0 else data[start:]
+        self._buffer = rest if len(rest) <= SOCKETCAND_MAX_LINE else b""
+        if self._closed and not frames:
+            raise BusGone("the socketcand server closed the connection")
+        return frames
+
+
 def frame_io(bus: can.BusABC) -> FrameIO:
     """The cheapest FrameIO `bus` offers."""
     if isinstance(bus, SocketcanBus):
         return SocketcanIO(bus)
+    if isinstance(bus, SocketCanDaemonBus):
+        return SocketcandIO(bus)
     if callable(getattr(bus, "drain", None)):
         return DrainingIO(bus)
     return FrameIO(bus)
 
 
-class BusWatch:
-    """Runs `on_readable()` on `loop` whenever `bus` has frames queued: through
-    loop.add_reader where the bus has a file descriptor (socketcan, the loop bus), else
-    through a python-can Notifier thread that hands each frame to `deliver(frame)` on the
-    loop."""
+class _ToLoop(can.Listener):
+    """A Notifier's listener that hands frames, and receive errors when `failed` is
+    given, to callbacks on `loop`."""
 
     def __init__(
         self,
-        bus: can.BusABC,
+        loop: asyncio.AbstractEventLoop,
+        deliver: Callable[[can.Message], None],
+        failed: Callable[[Exception], None] | None,
+    ) -> None:
+        self._loop = loop
+        self._deliver = deliver
+        self._failed = failed
+
+    def on_message_received(self, msg: can.Message) -> None:
+        if not self._loop.is_closed():
+            self._loop.call_soon_threadsafe(self._deliver, msg)
+
+    def on_error(self, exc: Exception) -> None:
+        if self._failed is None:
+            raise NotImplementedError  # unhandled: the Notifier's thread ends with it
+        if not self._loop.is_closed():
+            self._loop.call_soon_threadsafe(self._failed, exc)
+
+
+class BusWatch:
+    """Runs `on_readable()` on `loop` whenever the bus of `io` has frames queued:
+    through loop.add_reader where it has a file descriptor (socketcan, socketcand, the
+    loop bus), else through a python-can Notifier thread that hands each frame to
+    `deliver(frame)` and each receive error to `failed(exc)` on the loop (the thread
+    goes on reading: close the watch when the bus is gone)."""
+
+    def __init__(
+        self,
+        io: FrameIO,
         loop: asyncio.AbstractEventLoop,
         on_readable: Callable[[], None],
         deliver: Callable[[can.Message], None],
+        failed: Callable[[Exception], None] | None = None,
     ) -> None:
         self._loop = loop
         self._fd = -1
         self._notifier: can.Notifier | None = None
-        try:
-            fd = bus.fileno()
-        except NotImplementedError:
-            fd = -1
-        if isinstance(fd, int) and fd >= 0:
+        fd = io.fileno()
+        if fd >= 0:
             self._fd = fd
             loop.add_reader(fd, on_readable)
         else:
-
-            def from_thread(msg: can.Message) -> None:
-                if not loop.is_closed():
-                    loop.call_soon_threadsafe(deliver, msg)
-
-            self._notifier = can.Notifier(bus, [from_thread], timeout=0.1)
+            self._notifier = can.Notifier(io.bus, [_ToLoop(loop, deliver, failed)], timeout=0.1)
 
     @property
     def polled(self) -> bool:

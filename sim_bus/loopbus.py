@@ -26,10 +26,16 @@ the frames.  ``shutdown`` is safe while other threads send to the channel.
 make ``send`` raise ``can.CanOperationError``, as a real controller in those states
 would refuse to transmit; receiving is unaffected.  ``bitrate`` is recorded for bus-load
 accounting (sim_bus.busload); frames are delivered instantly, whatever the bitrate.
+
+``set_link(channel, up=False)`` takes a whole channel down, as ``ip link set DEV down``
+does a SocketCAN interface: every send on it fails with ENETDOWN, and every bus on it
+reports ENETDOWN once, on the receive after its queued frames (the fd turns readable
+for it).  A bus used after ``shutdown`` fails with EBADF, like a closed socket.
 """
 
 from __future__ import annotations
 
+import errno
 import os
 import select
 import threading
@@ -44,7 +50,7 @@ DEFAULT_RX_QUEUE_SIZE = 4096
 class _Receiver:
     """One bus's receive side: bounded queue + eventfd, guarded by one lock."""
 
-    __slots__ = ("closed", "dropped", "fd", "lock", "queue")
+    __slots__ = ("closed", "dropped", "error", "fd", "lock", "queue")
 
     def __init__(self, size: int) -> None:
         self.queue: deque[can.Message] = deque(maxlen=size)
@@ -52,37 +58,57 @@ class _Receiver:
         self.fd = os.eventfd(0, os.EFD_NONBLOCK | os.EFD_CLOEXEC)
         self.dropped = 0
         self.closed = False
+        self.error = ""  # reported by the next receive that finds the queue empty
 
     def put(self, msg: can.Message) -> None:
         with self.lock:
             if self.closed:
                 return
             queue = self.queue
-            if not queue:
+            if not queue and not self.error:
                 os.eventfd_write(self.fd, 1)
             elif len(queue) == queue.maxlen:
                 self.dropped += 1
             queue.append(msg)
 
+    def fail(self, error: str) -> None:
+        """Report `error` (ENETDOWN) on a receive once the queued frames are read."""
+        with self.lock:
+            if self.closed:
+                return
+            if not self.queue and not self.error:
+                os.eventfd_write(self.fd, 1)
+            self.error = error
+
     def take_all(self) -> list[can.Message]:
         with self.lock:
             queue = self.queue
             if not queue:
+                self._raise_error()
                 return []
             frames = list(queue)
             queue.clear()
-            os.eventfd_read(self.fd)
+            if not self.error:
+                os.eventfd_read(self.fd)
             return frames
 
     def take_one(self) -> can.Message | None:
         with self.lock:
             queue = self.queue
             if not queue:
+                self._raise_error()
                 return None
             msg = queue.popleft()
-            if not queue:
+            if not queue and not self.error:
                 os.eventfd_read(self.fd)
             return msg
+
+    def _raise_error(self) -> None:
+        """Raise the pending error, if any (under the lock, queue empty)."""
+        error, self.error = self.error, ""
+        if error:
+            os.eventfd_read(self.fd)
+            raise can.CanOperationError(error, errno.ENETDOWN)
 
     def close(self) -> None:
         with self.lock:
@@ -95,14 +121,29 @@ class _Channel:
     """The buses sharing one channel name; `receivers` is replaced, never mutated, so a
     sender iterates a consistent snapshot without taking the registry lock."""
 
-    __slots__ = ("receivers",)
+    __slots__ = ("down", "receivers")
 
     def __init__(self) -> None:
         self.receivers: tuple[_Receiver, ...] = ()
+        self.down = False
 
 
 _channels: dict[str, _Channel] = {}
 _channels_lock = threading.Lock()
+
+
+def set_link(channel: str, up: bool) -> None:
+    """Take the channel's link down (every send fails with ENETDOWN, every bus on it
+    reports ENETDOWN once on receive) or bring it up again, like `ip link set DEV
+    down|up` on SocketCAN.  ValueError if no bus is open on `channel`."""
+    with _channels_lock:
+        chan = _channels.get(channel)
+    if chan is None:
+        raise ValueError(f"no LoopBus is open on channel {channel!r}")
+    was_down, chan.down = chan.down, not up
+    if chan.down and not was_down:
+        for rx in chan.receivers:
+            rx.fail(f"loop bus channel {channel!r}: network is down")
 
 
 class LoopBus(can.BusABC):
@@ -164,6 +205,10 @@ class LoopBus(can.BusABC):
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         """Deliver `msg` (not a copy) to every other bus on the channel, stamped now."""
         self._check_open()
+        if self._channel.down:
+            raise can.CanOperationError(
+                f"{self.channel_info}: network is down", errno.ENETDOWN
+            )
         if self._state is not can.BusState.ACTIVE:
             raise can.CanOperationError(
                 f"{self.channel_info}: cannot send in state {self._state.name}"
@@ -214,4 +259,4 @@ class LoopBus(can.BusABC):
 
     def _check_open(self) -> None:
         if self._is_shutdown:
-            raise can.CanOperationError(f"{self.channel_info} is shut down")
+            raise can.CanOperationError(f"{self.channel_info} is shut down", errno.EBADF)

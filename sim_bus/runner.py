@@ -10,15 +10,18 @@ frame faults and a bus-load meter.
 from __future__ import annotations
 
 import asyncio
+import logging
 import time
 from collections.abc import Callable
 
 import can
 
-from drivers.bus import BusWatch, frame_io
+from drivers.bus import BusWatch, frame_io, gone
 from drivers.clock import PeriodicTimer
 from sim_bus.busload import BusLoadMeter
 from sim_bus.virtual_robot import VirtualRobot
+
+log = logging.getLogger(__name__)
 
 
 class SimulatorRunner:
@@ -42,6 +45,7 @@ class SimulatorRunner:
         self._loop: asyncio.AbstractEventLoop | None = None
         self._watch: BusWatch | None = None
         self.send_errors = 0
+        self.receive_errors = 0
         self._delays = hasattr(bus, "tick")
 
     @property
@@ -54,7 +58,7 @@ class SimulatorRunner:
         self._t0 = time.monotonic() - self.robot.t
         self._timer = PeriodicTimer(self.wake_period)
         loop.add_reader(self._timer.fileno(), self._on_tick)
-        self._watch = BusWatch(self.bus, loop, self._drain, self._handle_one)
+        self._watch = BusWatch(self._io, loop, self._drain, self._handle_one)
 
     def close(self) -> None:
         loop = self._loop
@@ -79,7 +83,15 @@ class SimulatorRunner:
     def _drain(self) -> None:
         out = []
         t = self.t
-        frames = self._io.drain()
+        try:
+            frames = self._io.drain()
+        except (can.CanError, OSError) as exc:
+            self.receive_errors += 1
+            if gone(exc) and self._watch is not None:  # the plant runs on, deaf
+                log.warning("simulator: the bus is gone (%s); no longer reading it", exc)
+                self._watch.close()
+                self._watch = None
+            return
         if self.meter is not None:
             self.meter.add_many(frames)
         for msg in frames:
@@ -101,7 +113,7 @@ class SimulatorRunner:
         for frame in frames:
             try:
                 self._io.send(frame)
-            except can.CanError:
+            except (can.CanError, OSError):
                 self.send_errors += 1
             else:
                 if self.meter is not None:

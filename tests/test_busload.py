@@ -189,6 +189,17 @@ def test_meter_sliding_window_and_totals() -> None:
     assert meter.report(now=5.0).total_frames == 1000  # totals stay
 
 
+def test_the_meter_holds_one_window_of_frames() -> None:
+    """Frames are forgotten as they leave the window, not all at the next report: five
+    seconds of them evicted at once held the simulator's loop ~9 ms, and the daemon
+    braked on stale feedback."""
+    meter = BusLoadMeter(1_000_000, window=1.0)
+    for i in range(5000):  # one frame per ms for 5 s, no report in between
+        meter.add(can.Message(timestamp=i * 1e-3, arbitration_id=0x181, data=bytes(8)))
+        assert len(meter._recent) <= 1001
+    assert meter.report().total_frames == 5000
+
+
 def test_meter_counts_error_frames_and_exact_stuffing() -> None:
     meter = BusLoadMeter(500_000, window=0.1, stuffing="exact")
     meter.add(can.Message(timestamp=1.0, arbitration_id=0, is_extended_id=False))

@@ -202,6 +202,44 @@ def test_bus_error_frames_brake(protocol: str) -> None:
 
 
 @pytest.mark.parametrize("protocol", PROTOCOLS)
+def test_error_frames_below_the_limit_neither_brake_nor_block_a_reset(protocol: str) -> None:
+    """The condition is the trigger: one error frame does not brake (it did), sporadic
+    ones do not refuse a reset (they did, for a second after each), a bus-off does."""
+    from drivers.bus import CAN_ERR_BUSOFF
+    from sim_bus.frame_faults import error_frame
+
+    async def scenario() -> None:
+        async with Stack(config_for(protocol)) as stack:
+            service = stack.service
+            send = stack.sim.runner._send
+            await stack.enable()
+            send([error_frame()])
+            await stack.until(lambda: service.stats.bus_errors == 1, 1.0)
+            cycles = service.stats.cycles
+            await stack.until(lambda: service.stats.cycles >= cycles + 10, 2.0)
+            assert service.machine.state is SafetyState.HOLD, service.machine.fault
+            assert service.faults == []
+            limit = stack.config.safety.bus_errors_max
+            send([error_frame() for _ in range(limit)])  # limit + 1 within the second
+            await stack.until(lambda: service.machine.state is SafetyState.BRAKED, 1.0)
+            assert _braked_by(stack) is Trigger.BUS_ERROR
+            # a second and a bit later (counted in cycles: they cannot run ahead of time)
+            cycles = service.stats.cycles + math.ceil(1.1 * stack.config.controller.rate_hz)
+            await stack.until(lambda: service.stats.cycles >= cycles, 5.0)
+            assert not [f for f in service.faults if f.trigger is Trigger.BUS_ERROR]
+            send([error_frame()])  # errors keep coming, below the limit
+            await stack.until(lambda: service.stats.bus_errors == limit + 2, 1.0)
+            reply = await service.command("reset", {})
+            assert reply["state"] == "idle" and reply["fault"] is None, reply
+            send([error_frame(CAN_ERR_BUSOFF)])
+            await stack.until(lambda: service.machine.state is SafetyState.BRAKED, 1.0)
+            assert _braked_by(stack) is Trigger.BUS_ERROR
+            assert "bus-off" in service.machine.fault.message
+
+    run(scenario())
+
+
+@pytest.mark.parametrize("protocol", PROTOCOLS)
 def test_controller_exception_and_nan_brake(protocol: str) -> None:
     async def scenario() -> None:
         async with Stack(config_for(protocol)) as stack:

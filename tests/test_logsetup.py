@@ -12,9 +12,16 @@ import sys
 from pathlib import Path
 
 import pytest
+from can.interfaces.socketcand.socketcand import convert_ascii_message_to_can_message
 
 from cdpr.description import ConfigError
-from daemon.logsetup import configure_logging, journald_detected, parse_level, syslog_priority
+from daemon.logsetup import (
+    FloodFilter,
+    configure_logging,
+    journald_detected,
+    parse_level,
+    syslog_priority,
+)
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -100,6 +107,56 @@ def test_second_call_replaces_the_handler(capsys):
     assert len(ours) == 1
     logging.getLogger("daemon.test").info("once")
     assert capsys.readouterr().err == "<6>daemon.test: once\n"
+
+
+def _python_can_warning() -> None:
+    """One warning from python-can's own code (its socketcand client, a bad message)."""
+    assert convert_ascii_message_to_can_message("< frame 123 1.0 11") is None
+
+
+def test_python_can_floods_are_one_line_then_a_count():
+    """python-can logged a warning per failed connection attempt in a busy loop (444,621
+    lines in 11 s): each distinct message passes once per interval, the next one after
+    it says how many were held back; other loggers pass untouched."""
+    clock = [100.0]
+    stream = io.StringIO()
+    handler = logging.StreamHandler(stream)
+    handler.addFilter(FloodFilter(interval=5.0, clock=lambda: clock[0]))
+    root = logging.getLogger()
+    root.addHandler(handler)
+    root.setLevel(logging.INFO)
+    try:
+        for _ in range(10_000):
+            _python_can_warning()
+        for _ in range(3):
+            logging.getLogger("cdprd").error("BRAKE [command] stop")
+        logging.getLogger("daemon.bus_port").warning("CAN send failed: Network is down")
+        logging.getLogger("daemon.bus_port").warning("CAN send failed: Network is down")
+        logging.getLogger("daemon.bus_port").warning("CAN receive failed: Network is down")
+        clock[0] += 4.9
+        _python_can_warning()
+        clock[0] += 0.2
+        _python_can_warning()
+        _python_can_warning()
+    finally:
+        root.removeHandler(handler)
+    lines = stream.getvalue().splitlines()
+    missing = "Missing ending character in ascii message: < frame 123 1.0 11"
+    assert lines == [
+        missing,
+        *["BRAKE [command] stop"] * 3,
+        "CAN send failed: Network is down",
+        "CAN receive failed: Network is down",
+        f"{missing} [10000 more in the last 5 s]",
+    ]
+
+
+def test_the_handler_limits_floods(capsys):
+    configure_logging("info", journald=False)
+    for _ in range(10_000):
+        _python_can_warning()
+    lines = capsys.readouterr().err.splitlines()
+    assert len(lines) == 1 and "can.interfaces.socketcand.socketcand" in lines[0], lines[:3]
 
 
 def test_syslog_priority_of_custom_levels():

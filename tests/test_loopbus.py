@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import errno
 import os
 import select
 import subprocess
@@ -168,14 +169,47 @@ def test_shutdown_leaves_the_channel() -> None:
     b.shutdown()
     b.shutdown()  # idempotent
     a.send(frame(1))  # delivered to nobody, no error
-    with pytest.raises(can.CanOperationError, match="shut down"):
+    with pytest.raises(can.CanOperationError, match="shut down") as error:
         b.send(frame(1))
+    assert error.value.error_code == errno.EBADF  # like a closed socket
     with pytest.raises(can.CanOperationError, match="shut down"):
         b.fileno()
     with pytest.raises(OSError):
         os.fstat(fd)  # the eventfd is closed
     a.shutdown()
     assert "gone" not in loopbus._channels
+
+
+def test_a_channel_taken_down_fails_like_a_socketcan_interface() -> None:
+    """`ip link set DEV down`: sends fail with ENETDOWN; each bus reports ENETDOWN once,
+    after the frames it had queued, and its fd is readable until it has; up again, the
+    channel carries frames as before."""
+    with LoopBus("link") as a, LoopBus("link") as b, LoopBus("link") as c:
+        a.send(frame(1))
+        loopbus.set_link("link", up=False)
+        for bus in (a, b, c):
+            with pytest.raises(can.CanOperationError, match="network is down") as error:
+                bus.send(frame(2))
+            assert error.value.error_code == errno.ENETDOWN
+        assert readable(a) and readable(b)
+        assert [m.data for m in b.drain()] == [frame(1).data]  # queued before: delivered
+        assert readable(b)
+        with pytest.raises(can.CanOperationError, match="network is down") as error:
+            b.drain()
+        assert error.value.error_code == errno.ENETDOWN
+        assert not readable(b) and b.drain() == []  # reported once
+        assert c.recv(0).data == frame(1).data
+        with pytest.raises(can.CanOperationError, match="network is down"):
+            c.recv(0)
+        assert c.recv(0) is None
+        loopbus.set_link("link", up=True)
+        with pytest.raises(can.CanOperationError, match="network is down"):
+            a.recv(0)  # still reported once, after coming back up
+        a.send(frame(3))
+        assert b.recv(0).data == frame(3).data and c.recv(0).data == frame(3).data
+        assert not readable(a) and not readable(b) and not readable(c)
+    with pytest.raises(ValueError, match="no LoopBus is open on channel 'link'"):
+        loopbus.set_link("link", up=False)
 
 
 def test_a_sender_thread_loses_nothing_and_leaves_no_stale_wakeup() -> None:

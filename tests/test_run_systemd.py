@@ -9,10 +9,8 @@ from __future__ import annotations
 
 import os
 import signal
-import socket
 import subprocess
 import sys
-import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -25,60 +23,13 @@ import yaml
 from daemon.client import CdprClient, RequestError
 from tests.loopback import free_port
 from tests.processes import finish, stop_impatiently
+from tests.systemd_notify import NotifySocket
 
 ROOT = Path(__file__).resolve().parent.parent
 CONFIG = ROOT / "config" / "reference8-cia402.yaml"
 PREFIX = "cdpr/reference8"
 WATCHDOG_USEC = 200_000  # the daemon pings every 0.1 s
 QUAT = {"w": 1.0, "x": 0.0, "y": 0.0, "z": 0.0}
-
-
-class NotifySocket:
-    """systemd's end of NOTIFY_SOCKET: every datagram, split into its KEY=VALUE lines and
-    stamped with the time it was read, collected by a reader thread (a real service
-    manager always reads; an unread socket fills after ~10 datagrams)."""
-
-    def __init__(self, path: Path) -> None:
-        self.path = path
-        self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
-        self._sock.bind(str(path))
-        self._sock.settimeout(0.05)
-        self.messages: list[tuple[float, list[str]]] = []
-        self._changed = threading.Condition()
-        self._closing = False
-        self._thread = threading.Thread(target=self._read, daemon=True)
-        self._thread.start()
-
-    def _read(self) -> None:
-        while not self._closing:
-            try:
-                data = self._sock.recv(4096)
-            except TimeoutError:
-                continue
-            with self._changed:
-                self.messages.append((time.monotonic(), data.decode().split("\n")))
-                self._changed.notify_all()
-
-    def wait_for(self, field: str, timeout: float, after: int = 0) -> int:
-        """Index of the first message from `after` on that carries `field`."""
-        end = time.monotonic() + timeout
-        with self._changed:
-            while True:
-                for i, (_, fields) in enumerate(self.messages[after:], start=after):
-                    if field in fields:
-                        return i
-                left = end - time.monotonic()
-                assert left > 0, f"no {field} within {timeout} s: {self.messages}"
-                self._changed.wait(left)
-
-    def snapshot(self) -> list[tuple[float, list[str]]]:
-        with self._changed:
-            return list(self.messages)
-
-    def close(self) -> None:
-        self._closing = True
-        self._thread.join(5)
-        self._sock.close()
 
 
 @pytest.fixture

@@ -116,8 +116,50 @@ def test_bus_errors_within_one_second(config) -> None:
     for i in range(limit):
         assert monitor.bus_error(10.0 + i * 0.01, "error frame") is None
     assert monitor.bus_error(12.0, "error frame") is None  # the old ones aged out
-    fault = SafetyMonitor(config).bus_error(0.0, "bus-off")
+    off = SafetyMonitor(config)
+    fault = off.bus_error(0.0, "error frame 0x40", bus_off=True)
     assert fault is not None and fault.trigger is Trigger.BUS_ERROR
+    assert "bus-off" in fault.message and "0x40" in fault.message
+    assert off.check_bus(0.9) == fault and off.check_bus(1.1) is None
+
+
+def test_the_bus_condition_is_the_trigger_not_any_recent_error(config) -> None:
+    """One error frame is no fault (the daemon braked on it, and refused a reset for a
+    second after each sporadic one); more than bus_errors_max within a second is, for as
+    long as they stay within the second."""
+    monitor = SafetyMonitor(config)
+    limit = config.safety.bus_errors_max
+    assert monitor.bus_error(5.0, "error frame 0x88") is None
+    assert monitor.check_bus(5.002) is None
+    for i in range(limit - 1):
+        assert monitor.bus_error(5.1 + i * 0.1, "error frame 0x88") is None
+    assert monitor.check_bus(5.9) is None  # limit errors within the second: still fine
+    fault = monitor.bus_error(5.95, "error frame 0x88")
+    assert fault is not None and fault.trigger is Trigger.BUS_ERROR
+    assert f"{limit + 1} bus errors in the last second (limit {limit})" in fault.message
+    assert monitor.check_bus(6.0) is not None
+    assert monitor.check_bus(6.15) is None  # two have aged out: at the limit again
+    assert monitor.bus_error(6.2, "error frame 0x88") is None  # sporadic: still no fault
+
+
+def test_a_lost_bus_is_a_fault_for_good(config) -> None:
+    monitor = SafetyMonitor(config)
+    lost = monitor.bus_lost("send failed: Network is down")
+    assert lost.trigger is Trigger.BUS_LOST and "send failed: Network is down" in lost.message
+    assert monitor.check_bus(1e6) == lost
+    assert monitor.bus_lost("something later") == lost  # the first cause stays
+
+
+def test_a_fault_the_daemon_exits_for_supersedes_the_one_on_record() -> None:
+    sm = StateMachine()
+    sm.go("started")
+    stale = Fault(Trigger.STALE_FEEDBACK, "drive 0: no feedback")
+    lost = Fault(Trigger.BUS_LOST, "CAN bus lost")
+    assert sm.brake(stale)
+    assert not sm.brake(lost) and sm.fault == stale  # the first fault stays ...
+    assert sm.brake(lost, supersede=True) and sm.fault == lost  # ... unless superseded
+    assert not sm.brake(lost, supersede=True)
+    assert sm.state is SafetyState.BRAKED
 
 
 def _output_at(config, pose, reference=None):

@@ -4,6 +4,7 @@ socketcand client, raw sockets, and a server in another process."""
 from __future__ import annotations
 
 import asyncio
+import errno
 import os
 import select
 import socket
@@ -24,6 +25,7 @@ from can.interfaces.socketcand.socketcand import (
 from hypothesis import given
 from hypothesis import strategies as st
 
+from drivers.bus import BusGone, SocketcandIO, frame_io, gone
 from sim_bus.loopbus import LoopBus
 from sim_bus.socketcand import SocketcandServer, encode_frame, parse_send
 
@@ -329,6 +331,91 @@ def test_any_python_can_bus_through_a_notifier() -> None:
     finally:
         served.shutdown()
         device.shutdown()
+
+
+# ---- the daemon's reading of python-can's client ----------------------------------
+@contextmanager
+def raw_server() -> Iterator[tuple[can.BusABC, socket.socket]]:
+    """python-can's client connected to a bare TCP server that answers its handshake as
+    socketcand does; yields (client bus, the server's end of the connection)."""
+    with socket.create_server(("127.0.0.1", 0)) as listener:
+        ends: list[socket.socket] = []
+
+        def handshake() -> None:
+            conn, _ = listener.accept()
+            conn.sendall(b"< hi >")
+            for _ in ("open", "rawmode"):
+                conn.recv(256)
+                conn.sendall(b"< ok >")
+            ends.append(conn)
+
+        thread = threading.Thread(target=handshake)
+        thread.start()
+        bus = client_at(listener.getsockname()[1])
+        thread.join(TIMEOUT)
+        try:
+            with ends[0] as end:
+                yield bus, end
+        finally:
+            bus.shutdown()
+
+
+def client_at(port: int) -> can.BusABC:
+    return can.Bus(interface="socketcand", host="127.0.0.1", port=port, channel="vcan0")
+
+
+def drained(io: SocketcandIO) -> list[can.Message]:
+    assert select.select([io.fileno()], [], [], TIMEOUT)[0], "socket never readable"
+    return io.drain()
+
+
+def test_the_daemon_reads_the_socketcand_socket_itself() -> None:
+    """On the event loop through the socket's fd (python-can's Notifier thread tripled
+    the SYNC-to-feedback time), every complete message per read, however TCP splits
+    them, and the end of the connection is the bus gone."""
+    with raw_server() as (bus, end):
+        io = frame_io(bus)
+        assert isinstance(io, SocketcandIO) and io.fileno() >= 0
+        end.sendall(b"< frame 181 1.500000 0102 >< ok >< frame 18")
+        assert [(m.arbitration_id, bytes(m.data)) for m in drained(io)] == [(0x181, b"\1\2")]
+        end.sendall(b"2 1.500000 03 >< error 004 1.600000 >< frame 9 >< frame 1234ABCD 1.7  >")
+        got = drained(io)
+        assert [(m.arbitration_id, bytes(m.data), m.is_error_frame) for m in got] == [
+            (0x182, b"\3", False),
+            (0x004, b"\0", True),
+            (0x1234ABCD, b"", False),
+        ]
+        assert got[2].is_extended_id and all(m.channel == "vcan0" for m in got)
+        io.send(std(0x080))
+        io.send(std(0x201, b"\x10\xff"))
+        expected = b"< send 080 0  >< send 201 2 10 ff >"
+        received = b""
+        while len(received) < len(expected):
+            received += end.recv(256)
+        assert received == expected
+        end.sendall(b"< frame 185 2.0 05 >")
+        end.shutdown(socket.SHUT_WR)
+        assert [m.arbitration_id for m in drained(io)] == [0x185]  # before the end
+        with pytest.raises(BusGone, match="closed the connection") as error:
+            drained(io)
+        assert gone(error.value)
+        end.close()
+        with pytest.raises(can.CanError) as error:  # RST: the next send or the one after
+            for _ in range(3):
+                io.send(std(0x080))
+                time.sleep(0.05)
+        assert gone(error.value), error.value
+
+
+def test_a_refused_or_reset_connection_is_the_bus_gone() -> None:
+    assert gone(can.CanOperationError("Network is down", errno.ENETDOWN))
+    assert not gone(can.CanOperationError("Failed to receive: bad data"))
+    wrapped = can.CanError("Failed to receive")
+    wrapped.__cause__ = ConnectionResetError(errno.ECONNRESET, "Connection reset by peer")
+    assert gone(wrapped)
+    assert gone(BrokenPipeError(errno.EPIPE, "Broken pipe"))
+    assert not gone(can.CanOperationError("No buffer space available", errno.ENOBUFS))
+    assert not gone(OSError(errno.EAGAIN, "Resource temporarily unavailable"))
 
 
 # ---- a server in another process ---------------------------------------------------

@@ -508,3 +508,35 @@ def test_daemon_and_simulator_processes_on_vcan0(protocol: Protocol, tmp_path: P
         _check_cia402_capture(stack.capture)
     else:
         _check_odrive_capture(stack.capture)
+
+
+def test_the_daemon_brakes_and_exits_when_vcan0_goes_down(tmp_path: Path) -> None:
+    """`ip link set vcan0 down` under the moving daemon (issue 22 item 3): its sends and
+    its receive fail with ENETDOWN; it brakes with the bus_lost trigger, says so on
+    zenoh, logs a few lines and exits with code 69 for systemd to restart it into IDLE.
+    vcan0 comes back up afterwards."""
+    stack: Stack | None = None
+    try:
+        with running_stack(CIA402, tmp_path) as stack:
+            client, watch = stack.client, stack.watch
+            assert client.enable()["state"] == "hold"
+            watch.wait_state(lambda s: s["state"] == "hold" and "pose" in s, 10, "holding")
+            assert client.goto(GOAL.tolist())["accepted"]
+            since = len(watch.events)
+            try:
+                subprocess.run(["ip", "link", "set", CHANNEL, "down"], check=True, timeout=10)
+                code = stack.daemon.wait(60)  # by itself: safety.bus_lost_exit, then out
+            finally:
+                subprocess.run(["ip", "link", "set", CHANNEL, "up"], check=True, timeout=10)
+            assert code == 69
+            brakes = [e for e in watch.events[since:] if e.get("event") == "brake"]
+            assert brakes and brakes[-1]["trigger"] == "bus_lost", watch.events[since:]
+            assert "Network is down" in brakes[-1]["message"], brakes[-1]
+            assert _stop(stack.simulator) == 0  # it stopped reading the bus, and ran on
+    except BaseException:
+        for log in sorted((tmp_path / "logs").glob("*.log")):
+            print(f"----- {log.name} -----\n{log.read_text()[-4000:]}")
+        raise
+    lines = (tmp_path / "logs" / "daemon.log").read_text().splitlines()
+    assert len(lines) <= 12 and "Traceback" not in "\n".join(lines), lines
+    assert any("exiting with code 69" in line for line in lines), lines
