@@ -23,8 +23,9 @@ import pytest
 import yaml
 
 from cdpr import Pose
-from daemon.app import serve
+from daemon.app import ServiceHook, serve
 from daemon.client import CdprClient
+from daemon.config import DaemonConfig
 from daemon.logsetup import configure_logging
 from daemon.safety import SafetyState
 from daemon.service import EXIT_BUS_LOST, STARTUP_TIMEOUT, Service
@@ -73,6 +74,27 @@ def _statuses(notify: NotifySocket) -> list[str]:
     ]
 
 
+def _serve_with_simulator(
+    config: DaemonConfig, after_start: ServiceHook, link_down: bool = False
+) -> int:
+    """serve() against an in-process simulator (its bus down from the start if
+    `link_down`) until `after_start` returns or the daemon exits; the exit code."""
+
+    async def scenario() -> int:
+        sim = InProcessSimulator(config)
+        sim.start()
+        if link_down:
+            loopbus.set_link(sim.daemon_bus.channel, up=False)
+        try:
+            return await asyncio.wait_for(
+                serve(config, sim.daemon_bus, zenoh=False, after_start=after_start), 30
+            )
+        finally:
+            sim.close()
+
+    return asyncio.run(scenario())
+
+
 @pytest.mark.timeout(60)
 @pytest.mark.parametrize("protocol", ["cia402", "odrive"])
 def test_loop_bus_link_down_brakes_reports_and_exits(
@@ -97,17 +119,7 @@ def test_loop_bus_link_down_brakes_reports_and_exits(
         await service.wait_stopped()
         seen["after"] = service.status()
 
-    async def scenario() -> int:
-        sim = InProcessSimulator(config)
-        sim.start()
-        try:
-            return await asyncio.wait_for(
-                serve(config, sim.daemon_bus, zenoh=False, after_start=fly_then_lose_the_bus), 30
-            )
-        finally:
-            sim.close()
-
-    code = asyncio.run(scenario())
+    code = _serve_with_simulator(config, fly_then_lose_the_bus)
     lines = daemon_log.getvalue().splitlines()
     assert seen["before"] is SafetyState.TRACKING, seen
     assert code == EXIT_BUS_LOST, lines
@@ -135,18 +147,7 @@ def test_a_bus_down_at_start_up_is_lost_at_once(daemon_log: io.StringIO, protoco
         seen["cycles"] = service.stats.cycles  # how long the start-up took, in cycles
         await service.wait_stopped()
 
-    async def scenario() -> int:
-        sim = InProcessSimulator(config)
-        sim.start()
-        loopbus.set_link(sim.daemon_bus.channel, up=False)
-        try:
-            return await asyncio.wait_for(
-                serve(config, sim.daemon_bus, zenoh=False, after_start=look), 30
-            )
-        finally:
-            sim.close()
-
-    code = asyncio.run(scenario())
+    code = _serve_with_simulator(config, look, link_down=True)
     log = daemon_log.getvalue()
     assert code == EXIT_BUS_LOST, log
     fault = seen["status"]["fault"]  # type: ignore[index]

@@ -22,6 +22,7 @@ from cdpr.trajectory import Trajectory, Waypoint
 from daemon.api import CommandError
 from daemon.app import serve
 from daemon.safety import SafetyState
+from daemon.service import Service
 from daemon.simulated import InProcessSimulator
 from daemon.zenoh_config import client_zenoh_config
 from tests.daemon_stack import Stack, config_for
@@ -129,6 +130,17 @@ def test_a_start_days_ahead_is_rejected() -> None:
     run(scenario())
 
 
+def record_references(service: Service) -> list[tuple[float, np.ndarray, str]]:
+    """(t, reference position, safety state) of every control cycle from now on."""
+    refs: list[tuple[float, np.ndarray, str]] = []
+    service.cycle_listeners.append(
+        lambda t, out: refs.append(
+            (t, out.reference.pose.position.copy(), service.machine.state.value)
+        )
+    )
+    return refs
+
+
 def test_a_start_ahead_holds_until_its_approach_begins() -> None:
     """HOLD while it waits (the robot does not move), TRACKING once it begins, HOLD when
     it is done; the reference never jumps."""
@@ -137,12 +149,7 @@ def test_a_start_ahead_holds_until_its_approach_begins() -> None:
         config = config_for("cia402")
         async with Stack(config) as stack:
             service = stack.service
-            refs: list[tuple[float, np.ndarray, str]] = []
-            service.cycle_listeners.append(
-                lambda t, out: refs.append(
-                    (t, out.reference.pose.position.copy(), service.machine.state.value)
-                )
-            )
+            refs = record_references(service)
             await stack.enable()
             trajectory = Trajectory(
                 [Waypoint(0.0, _home(config)), Waypoint(1.0, _home(config, dx=0.1))]
@@ -180,12 +187,7 @@ def test_a_start_ahead_while_moving_waits_for_the_motion_and_never_jumps() -> No
         config = config_for("cia402")
         async with Stack(config) as stack:
             service = stack.service
-            refs: list[tuple[float, np.ndarray, str]] = []
-            service.cycle_listeners.append(
-                lambda t, out: refs.append(
-                    (t, out.reference.pose.position.copy(), service.machine.state.value)
-                )
-            )
+            refs = record_references(service)
             await stack.enable()
             await service.command("goto", {"pose": _home(config, dx=0.3)})  # ~0.9 s
             # its approach (~0.6 s from the goto's end) would begin 0.4 s from now
