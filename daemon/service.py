@@ -551,7 +551,7 @@ class Service:
             except TrajectoryError as exc:
                 raise _rejected(what, exc) from None
             if validate == "blend":
-                await self._validate(Trajectory(list(planned.knots[:2])), what)
+                await self._validate(Trajectory([planned.knot(0), planned.knot(1)]), what)
             elif validate == "all":
                 await self._validate(planned, what)
             self._require_moving(f"run a {what}")  # braked meanwhile: nothing changes
