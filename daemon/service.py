@@ -72,7 +72,7 @@ class Service:
         self.stats = CycleStats(config.controller.rate_hz)
         self.machine = StateMachine()
         self.monitor = SafetyMonitor(config)
-        self.port = BusPort(bus, self._on_frames)
+        self.port = BusPort(bus, self._on_frames, self.driver.receive_ids())
         self.port.on_send_error = self._on_bus_error
         self.port.on_sent = self._on_sent
         self._wrench_check = wrench_check(robot, tension_solver(robot, config.controller))
@@ -637,6 +637,8 @@ class Service:
             "frames": {
                 "accepted": self.driver.counters.accepted,
                 "rejected": dict(self.driver.counters.rejected),
+                "ignored": self.port.ignored,  # on ids no drive uses
+                "dropped": self.port.dropped,  # the loop fell behind the bus
             },
         }
         if out is not None and self.machine.moving:
