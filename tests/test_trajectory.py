@@ -26,6 +26,7 @@ from cdpr.trajectory import (
     validate,
 )
 from cdpr.trajectory.core import MIN_SEGMENT
+from cdpr.trajectory.limits import MAX_WAYPOINTS
 from cdpr.trajectory.rotation import angular_rates, left_jacobian
 from cdpr.trajectory.transitions import MIN_BLEND
 
@@ -625,6 +626,18 @@ def test_validate_counts_waypoints_and_duration(reference8: Robot) -> None:
     )
     err = rejected_by_validate(tr, reference8, TrajectoryLimits(max_duration=15.0))
     assert (err.limit, err.value) == ("max_duration", 20.0)
+
+
+def test_max_waypoints_cannot_be_raised_past_what_the_loop_survives() -> None:
+    """Some work on the daemon's loop still grows with the number of waypoints (see
+    MAX_WAYPOINTS): a config may lower the limit, not raise it."""
+    from pydantic import ValidationError
+
+    assert TrajectoryLimits().max_waypoints == MAX_WAYPOINTS == 10_000
+    assert TrajectoryLimits(max_waypoints=500).max_waypoints == 500
+    with pytest.raises(ValidationError, match="max_waypoints") as info:
+        TrajectoryLimits.model_validate({"max_waypoints": 10_001})
+    assert "less than or equal to 10000" in str(info.value)
 
 
 def test_limits_are_a_strict_config_section() -> None:
