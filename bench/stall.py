@@ -6,7 +6,8 @@ Then, in a separate process so that none of its work lands in this one:
 
 - trajectory: a valid N-waypoint trajectory (a slow circle about home, 10 ms between
   waypoints, under the size limits) is sent as a query on <prefix>/trajectory, and the
-  robot follows it for a second after the reply;
+  robot follows it for a second after the reply (N = 0: nothing is sent, the robot
+  holds for 4 s: the host's own figures, for comparison);
 - can-flood: N frames on CAN ids no drive uses, --rate frames a second (default 10^6,
   a burst; a 1 Mbit/s bus carries at most ~8,000 such frames a second).  With `--bus
   loop` (the simulator in this process on the loop bus) they appear in the daemon's
@@ -67,6 +68,7 @@ SPACING = 0.01  # s between waypoints
 FLOOD_IDS = range(0x6E0, 0x6F0)  # SDO requests to nodes 0x60-0x6F: no drive here uses them
 DEFAULT_SIZES = {"trajectory": [1000, 5000, 10000], "can-flood": [30000]}
 AFTER = 1.0  # s measured after the input was answered (or sent)
+QUIET = 3.0  # s of the quiet reference (size 0), about a 10,000-waypoint message's
 
 
 def circle_trajectory(n: int) -> dict[str, Any]:
@@ -196,6 +198,8 @@ async def hold_and_measure(
             deadline_misses=service.stats.deadline_misses,
             overruns=service.stats.overruns,
             cycles=figures["cycles"],
+            deadline_misses_per_1e4=figures["deadline_misses_per_1e4"],
+            overruns_per_1e4=figures["overruns_per_1e4"],
             braked=service.machine.state is SafetyState.BRAKED,
             state=service.machine.state.value,
             fault=_fault(service),
@@ -224,13 +228,19 @@ async def child(*args: str) -> dict[str, Any]:
 
 
 async def trajectory_run(n: int) -> dict[str, Any]:
+    """n waypoints; 0: nothing sent for QUIET seconds (the host's own misses and gaps)."""
     endpoint = free_endpoint()
     config = daemon_config(endpoint)
     sim = InProcessSimulator(config)
     sim.start()
-    return await hold_and_measure(
-        config, sim.daemon_bus, lambda: child("--send-trajectory", endpoint, str(n)), sim
-    )
+
+    async def disturb() -> dict[str, Any]:
+        if n == 0:
+            await asyncio.sleep(QUIET)
+            return {"sent": None}
+        return await child("--send-trajectory", endpoint, str(n))
+
+    return await hold_and_measure(config, sim.daemon_bus, disturb, sim)
 
 
 async def flood_run_socketcand(n: int, rate: float) -> dict[str, Any]:
@@ -298,7 +308,8 @@ def summarise(runs: list[dict[str, Any]]) -> dict[str, Any]:
     """The median of each figure over the runs, and how many braked."""
     done = [r for r in runs if "loop_gap_ms" in r]
     out: dict[str, Any] = {"runs": len(runs), "braked": sum(bool(r.get("braked")) for r in done)}
-    for key in ("loop_gap_ms", "deadline_misses", "overruns", "cycles"):
+    keys = ("loop_gap_ms", "deadline_misses", "overruns", "cycles")
+    for key in (*keys, "deadline_misses_per_1e4", "overruns_per_1e4"):
         if done:
             out[f"median_{key}"] = statistics.median(r[key] for r in done)
     out["braked_before_input"] = sum(bool(r.get("braked_before")) for r in runs)
