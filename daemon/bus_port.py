@@ -2,9 +2,18 @@
 `Link` that drivers' start-up sequences use to wait for answers.
 
 Buses with a file descriptor (socketcan, socketcand, the simulator's loop bus) are read
-by the event loop itself, draining every queued frame per wake-up (PERF-FACTS: one frame
-per wake-up costs a loop pass each).  Other buses go through a python-can Notifier thread
-that hands frames to the loop.
+by the event loop itself, many queued frames per wake-up (PERF-FACTS: one frame per
+wake-up costs a loop pass each).  Other buses go through a python-can Notifier thread
+that hands frames to the loop.  Either way the sink gets at most FRAMES_PER_PASS frames
+per loop pass, so that a flood cannot hold the loop: the control cycle's timer and
+deadline run between batches, and a flood the loop cannot keep up with ends in stale
+feedback, which brakes, rather than in a loop that no longer runs.
+
+Given the ids the drivers read, the port drops every other frame first, before the
+batches: on SocketCAN the kernel does (receive filters), elsewhere an IdFilter (a set
+lookup a frame), counted in `ignored`.  So a flood on ids no drive uses costs next to
+nothing, and the feedback behind it is not delayed by batches of junk.  Frames lost
+because the loop fell behind a Notifier thread are counted in `dropped`.
 
 A failed send or receive is never raised: it is logged (one line per kind of failure
 and a count every few seconds: daemon.logsetup limits this logger) and reported to
@@ -17,12 +26,13 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
-from collections.abc import Callable
+from collections import deque
+from collections.abc import Callable, Iterable
 
 import can
 
 from drivers.base import DriverError
-from drivers.bus import BusWatch, frame_io, gone
+from drivers.bus import FRAMES_PER_PASS, BusWatch, IdFilter, frame_io, gone
 
 log = logging.getLogger(__name__)
 
@@ -30,12 +40,15 @@ FrameSink = Callable[[list[can.Message], float], None]
 
 
 class BusPort:
-    """Reads frames into `sink(frames, now)` and sends frames; also a drivers.base.Link."""
+    """Reads frames into `sink(frames, now)` and sends frames; also a drivers.base.Link.
+    With `ids`, only error frames and standard frames on those ids are read."""
 
-    def __init__(self, bus: can.BusABC, sink: FrameSink) -> None:
+    def __init__(self, bus: can.BusABC, sink: FrameSink, ids: Iterable[int] | None = None) -> None:
         self.bus = bus
         self._io = frame_io(bus)
         self._sink = sink
+        self._filter = None if ids is None else IdFilter(ids)
+        self._pending: deque[can.Message] = deque()  # read and wanted, not yet delivered
         self._loop: asyncio.AbstractEventLoop | None = None
         self._watch: BusWatch | None = None
         self._waiters: list[tuple[Callable[[can.Message], bool], asyncio.Future]] = []
@@ -59,12 +72,15 @@ class BusPort:
             if stale:
                 log.debug("dropped %d frames queued before the daemon opened the bus", stale)
         if self.lost is None:
+            if self._filter is not None:
+                self._io.receive_only(self._filter.ids)
             self._watch = BusWatch(
                 self._io,
                 loop,
                 self._drain,
-                lambda msg: self._deliver([msg]),
+                self._deliver,
                 lambda exc: self._failed("receive", exc),
+                self._filter,
             )
 
     def close(self) -> None:
@@ -88,14 +104,36 @@ class BusPort:
         if self._watch is not None and self._watch.polled:
             self._drain()
 
+    @property
+    def ignored(self) -> int:
+        """Frames read and dropped for their id (the kernel's drops are not counted)."""
+        return 0 if self._filter is None else self._filter.ignored
+
+    @property
+    def dropped(self) -> int:
+        """Frames lost because the loop fell behind the bus's Notifier thread."""
+        return 0 if self._watch is None else self._watch.dropped
+
     def _drain(self) -> None:
+        if self.lost is not None:
+            return
         try:
-            frames = self._io.drain()
+            frames = self._io.drain(FRAMES_PER_PASS)
         except (can.CanError, OSError) as exc:
             self._failed("receive", exc)
             return
-        if frames:
-            self._deliver(frames)
+        if self._filter is not None:
+            frames = self._filter.wanted(frames)
+        pending = self._pending
+        if not pending and len(frames) <= FRAMES_PER_PASS:
+            if frames:
+                self._deliver(frames)
+            return
+        pending.extend(frames)
+        batch = [pending.popleft() for _ in range(min(FRAMES_PER_PASS, len(pending)))]
+        if pending and self._loop is not None:  # the rest next pass, after the others
+            self._loop.call_soon(self._drain)
+        self._deliver(batch)
 
     def _deliver(self, frames: list[can.Message]) -> None:
         now = time.monotonic()

@@ -79,7 +79,7 @@ class Service:
         self.stats = CycleStats(config.controller.rate_hz)
         self.machine = StateMachine()
         self.monitor = SafetyMonitor(config)
-        self.port = BusPort(bus, self._on_frames)
+        self.port = BusPort(bus, self._on_frames, self.driver.receive_ids())
         self.port.on_error = self._on_bus_error
         self.port.on_lost = self._on_bus_lost
         self.port.on_sent = self._on_sent
@@ -640,7 +640,7 @@ class Service:
                 raise _rejected(what, exc) from None
             inside = self.config.reference_limits.widened_to(planned.waypoints[0].pose)
             if validate == "blend":
-                blend = Trajectory(list(planned.knots[:2]))
+                blend = Trajectory([planned.knot(0), planned.knot(1)])
                 await self._validate(blend, f"{what}'s approach", inside)
             elif validate == "all":
                 await self._validate(planned, what, inside)
@@ -733,6 +733,8 @@ class Service:
             "frames": {
                 "accepted": self.driver.counters.accepted,
                 "rejected": dict(self.driver.counters.rejected),
+                "ignored": self.port.ignored,  # on ids no drive uses
+                "dropped": self.port.dropped,  # the loop fell behind the bus
             },
         }
         if out is not None and self.machine.moving:

@@ -244,6 +244,12 @@ class ActuatorDriver(ABC):
     # -- input --------------------------------------------------------------------------
 
     @abstractmethod
+    def receive_ids(self) -> frozenset[int]:
+        """The standard (11-bit) ids of every frame this driver reads, in the cycle and
+        in its start, enable and reset sequences: the bus may drop all others (and every
+        extended frame) before they reach the daemon."""
+
+    @abstractmethod
     def receive(self, message: can.Message, now: float) -> int | None:
         """Decode one received frame.  Returns the actuator index whose feedback this
         frame refreshed, else None.  Frames for other nodes or protocols are ignored;

@@ -10,13 +10,21 @@ system calls per cycle; inside user-mode Linux, where every call traps, that was
 `gone(exc)` tells a failure that means the bus itself is gone (the socket or connection
 closed, the interface down or removed) from a transient one (a full transmit queue, a
 bus-off the controller recovers from): the daemon brakes and exits on the first kind.
+
+A flood must not hold the event loop: reading frames one at a time stops after a
+`limit` (the rest stays queued in the bus), BusWatch hands frames over from a Notifier
+thread in batches, and frames on ids the host does not read are dropped as early as
+the bus allows: by the kernel on SocketCAN (`receive_only`), else by an `IdFilter`
+before any other work.
 """
 
 from __future__ import annotations
 
 import asyncio
 import errno
-from collections.abc import Callable
+import threading
+from collections import deque
+from collections.abc import Callable, Iterable
 
 import can
 from can.interfaces.socketcan import SocketcanBus
@@ -45,6 +53,8 @@ GONE_ERRNOS = frozenset(
 )
 CAN_ERR_BUSOFF = 0x40  # error class bit of an error frame: the controller went bus-off
 SOCKETCAND_MAX_LINE = 200  # bytes of an unfinished socketcand message kept (as python-can)
+FRAMES_PER_PASS = 128  # frames a reader takes per loop pass, so a flood cannot hold the loop
+THREAD_QUEUE_FRAMES = 4096  # frames a Notifier thread may queue for the loop (oldest dropped)
 
 
 class BusGone(can.CanOperationError):
@@ -65,6 +75,25 @@ def gone(exc: BaseException) -> bool:
             return True
         seen = seen.__cause__
     return False
+
+
+class IdFilter:
+    """The frames a host reads: error frames, and standard (11-bit) frames on `ids`.
+    `wanted` keeps those and counts the others in `ignored`: one set lookup a frame."""
+
+    def __init__(self, ids: Iterable[int]) -> None:
+        self.ids = frozenset(ids)
+        self.ignored = 0
+
+    def wanted(self, frames: list[can.Message]) -> list[can.Message]:
+        ids = self.ids
+        kept = [
+            m
+            for m in frames
+            if m.is_error_frame or (m.arbitration_id in ids and not m.is_extended_id)
+        ]
+        self.ignored += len(frames) - len(kept)
+        return kept
 
 
 class FrameIO:
@@ -88,18 +117,26 @@ class FrameIO:
     def send(self, frame: can.Message) -> None:
         self.bus.send(frame, timeout=0.0)
 
-    def drain(self) -> list[can.Message]:
-        """Every frame queued now, without blocking."""
-        frames = []
-        while (msg := self.bus.recv(0.0)) is not None:
+    def drain(self, limit: int | None = None) -> list[can.Message]:
+        """The frames queued now, oldest first, without blocking: at most `limit` where
+        frames are read one at a time (this base, SocketcanIO); a bus that hands over
+        its whole queue in one call (DrainingIO, SocketcandIO) returns all of it."""
+        frames: list[can.Message] = []
+        while len(frames) != limit and (msg := self.bus.recv(0.0)) is not None:
             frames.append(msg)
         return frames
 
+    def receive_only(self, ids: frozenset[int]) -> None:
+        """Have the bus itself drop standard frames on other ids, and every extended
+        frame, where it can do so below Python (error frames still come).  Here: no
+        such filter, the caller filters (IdFilter)."""
+
 
 class DrainingIO(FrameIO):
-    """A bus with its own `drain()` (the loop bus, the fault-injecting bus)."""
+    """A bus with its own `drain()` (the loop bus, the fault-injecting bus): its whole
+    queue in one call, bounded by the bus (the loop bus's receive queue)."""
 
-    def drain(self) -> list[can.Message]:
+    def drain(self, limit: int | None = None) -> list[can.Message]:
         return self.bus.drain()  # type: ignore[attr-defined]
 
 
@@ -118,10 +155,17 @@ class SocketcanIO(FrameIO):
         except OSError as exc:
             raise can.CanOperationError(f"Failed to transmit: {exc.strerror}", exc.errno) from exc
 
-    def drain(self) -> list[can.Message]:
-        frames = []
+    def receive_only(self, ids: frozenset[int]) -> None:
+        """The kernel's CAN_RAW_FILTER (python-can's filters on a socketcan bus): frames
+        on other ids never wake the daemon.  Error frames have their own filter."""
+        self.bus.set_filters(
+            [{"can_id": i, "can_mask": 0x7FF, "extended": False} for i in sorted(ids)]
+        )
+
+    def drain(self, limit: int | None = None) -> list[can.Message]:
+        frames: list[can.Message] = []
         sock, channel = self._socket, self._channel
-        while True:
+        while len(frames) != limit:
             try:
                 msg = capture_message(sock)
             except can.CanOperationError as exc:
@@ -132,6 +176,7 @@ class SocketcanIO(FrameIO):
                 return frames
             msg.channel = channel
             frames.append(msg)
+        return frames
 
 
 class SocketcandIO(FrameIO):
@@ -167,7 +212,9 @@ class SocketcandIO(FrameIO):
         except OSError as exc:
             raise can.CanOperationError(exc.strerror or str(exc), exc.errno) from exc
 
-    def drain(self) -> list[can.Message]:
+    def drain(self, limit: int | None = None) -> list[can.Message]:
+        """Every complete message read (whatever `limit`: what the socket gave up is
+        parsed now, since the socket will not wake the loop for it again)."""
         if self._closed:
             raise BusGone("the socketcand server closed the connection")
         data = self._buffer
@@ -216,55 +263,64 @@ def frame_io(bus: can.BusABC) -> FrameIO:
     return FrameIO(bus)
 
 
-class _ToLoop(can.Listener):
-    """A Notifier's listener that hands frames, and receive errors when `failed` is
-    given, to callbacks on `loop`."""
-
-    def __init__(
-        self,
-        loop: asyncio.AbstractEventLoop,
-        deliver: Callable[[can.Message], None],
-        failed: Callable[[Exception], None] | None,
-    ) -> None:
-        self._loop = loop
-        self._deliver = deliver
-        self._failed = failed
-
-    def on_message_received(self, msg: can.Message) -> None:
-        if not self._loop.is_closed():
-            self._loop.call_soon_threadsafe(self._deliver, msg)
-
-    def on_error(self, exc: Exception) -> None:
-        if self._failed is None:
-            raise NotImplementedError  # unhandled: the Notifier's thread ends with it
-        if not self._loop.is_closed():
-            self._loop.call_soon_threadsafe(self._failed, exc)
-
-
 class BusWatch:
     """Runs `on_readable()` on `loop` whenever the bus of `io` has frames queued:
     through loop.add_reader where it has a file descriptor (socketcan, socketcand, the
-    loop bus), else through a python-can Notifier thread that hands each frame to
-    `deliver(frame)` and each receive error to `failed(exc)` on the loop (the thread
-    goes on reading: close the watch when the bus is gone)."""
+    loop bus), else through a python-can Notifier thread.  The thread passes frames
+    through `accept` (if given) and queues them (at most THREAD_QUEUE_FRAMES: the oldest
+    are dropped and counted in `dropped`); the loop takes them in batches of at most
+    FRAMES_PER_PASS, one batch per pass, into `deliver(frames)`.  Receive errors on the
+    thread go to `failed(exc)` on the loop (the thread goes on reading: close the watch
+    when the bus is gone)."""
 
     def __init__(
         self,
         io: FrameIO,
         loop: asyncio.AbstractEventLoop,
         on_readable: Callable[[], None],
-        deliver: Callable[[can.Message], None],
+        deliver: Callable[[list[can.Message]], None],
         failed: Callable[[Exception], None] | None = None,
+        accept: IdFilter | None = None,
     ) -> None:
         self._loop = loop
         self._fd = -1
         self._notifier: can.Notifier | None = None
+        self._deliver = deliver
+        self._queue: deque[can.Message] = deque()
+        self._lock = threading.Lock()
+        self._scheduled = False
+        self.dropped = 0
         fd = io.fileno()
         if fd >= 0:
             self._fd = fd
             loop.add_reader(fd, on_readable)
         else:
-            self._notifier = can.Notifier(io.bus, [_ToLoop(loop, deliver, failed)], timeout=0.1)
+            listener = _ThreadListener(self, loop, accept, failed)
+            self._notifier = can.Notifier(io.bus, [listener], timeout=0.1)
+
+    def queue_from_thread(self, msg: can.Message) -> None:
+        """(On the Notifier's thread) queue `msg`; the loop takes it with the next batch."""
+        with self._lock:
+            if len(self._queue) >= THREAD_QUEUE_FRAMES:
+                self._queue.popleft()
+                self.dropped += 1
+            self._queue.append(msg)
+            if self._scheduled:
+                return
+            self._scheduled = True
+        if not self._loop.is_closed():
+            self._loop.call_soon_threadsafe(self._hand_over)
+
+    def _hand_over(self) -> None:
+        """(On the loop) one batch of the frames the thread queued; the rest next pass."""
+        with self._lock:
+            queue = self._queue
+            frames = [queue.popleft() for _ in range(min(FRAMES_PER_PASS, len(queue)))]
+            self._scheduled = bool(queue)
+        if self._scheduled:
+            self._loop.call_soon(self._hand_over)
+        if frames:
+            self._deliver(frames)
 
     @property
     def polled(self) -> bool:
@@ -279,3 +335,30 @@ class BusWatch:
         if self._notifier is not None:
             self._notifier.stop()
             self._notifier = None
+
+
+class _ThreadListener(can.Listener):
+    """A Notifier's listener: frames `accept` wants into the watch's queue, receive
+    errors to `failed` on the loop when given."""
+
+    def __init__(
+        self,
+        watch: BusWatch,
+        loop: asyncio.AbstractEventLoop,
+        accept: IdFilter | None,
+        failed: Callable[[Exception], None] | None,
+    ) -> None:
+        self._watch = watch
+        self._loop = loop
+        self._accept = accept
+        self._failed = failed
+
+    def on_message_received(self, msg: can.Message) -> None:
+        if self._accept is None or self._accept.wanted([msg]):
+            self._watch.queue_from_thread(msg)
+
+    def on_error(self, exc: Exception) -> None:
+        if self._failed is None:
+            raise NotImplementedError  # unhandled: the Notifier's thread ends with it
+        if not self._loop.is_closed():
+            self._loop.call_soon_threadsafe(self._failed, exc)

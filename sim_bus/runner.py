@@ -58,7 +58,7 @@ class SimulatorRunner:
         self._t0 = time.monotonic() - self.robot.t
         self._timer = PeriodicTimer(self.wake_period)
         loop.add_reader(self._timer.fileno(), self._on_tick)
-        self._watch = BusWatch(self._io, loop, self._drain, self._handle_one)
+        self._watch = BusWatch(self._io, loop, self._drain, self._handle)
 
     def close(self) -> None:
         loop = self._loop
@@ -81,8 +81,6 @@ class SimulatorRunner:
             self._drain()
 
     def _drain(self) -> None:
-        out = []
-        t = self.t
         try:
             frames = self._io.drain()
         except (can.CanError, OSError) as exc:
@@ -92,11 +90,7 @@ class SimulatorRunner:
                 self._watch.close()
                 self._watch = None
             return
-        if self.meter is not None:
-            self.meter.add_many(frames)
-        for msg in frames:
-            out.extend(self.robot.handle(msg, t))
-        self._send(out)
+        self._handle(frames)
 
     def at(self, t: float, action: Callable[[], list[can.Message] | None]) -> None:
         """Run `action` (e.g. a device fault) once simulated time reaches `t`; frames it
@@ -104,10 +98,14 @@ class SimulatorRunner:
         self._schedule.append((t, lambda: action() or []))
         self._schedule.sort(key=lambda item: item[0])
 
-    def _handle_one(self, msg: can.Message) -> None:
+    def _handle(self, frames: list[can.Message]) -> None:
+        """Frames from the bus: to the drives, and their answers onto the bus."""
         if self.meter is not None:
-            self.meter.add(msg)
-        self._send(self.robot.handle(msg, self.t))
+            self.meter.add_many(frames)
+        out, t = [], self.t
+        for msg in frames:
+            out.extend(self.robot.handle(msg, t))
+        self._send(out)
 
     def _send(self, frames: list[can.Message]) -> None:
         for frame in frames:

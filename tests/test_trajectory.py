@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Generator
 
 import numpy as np
 import pytest
@@ -19,11 +20,13 @@ from cdpr.trajectory import (
     TrajectoryLimits,
     Waypoint,
     approach,
+    approach_steps,
     goto,
     parse_trajectory,
     validate,
 )
 from cdpr.trajectory.core import MIN_SEGMENT
+from cdpr.trajectory.limits import MAX_WAYPOINTS
 from cdpr.trajectory.rotation import angular_rates, left_jacobian
 from cdpr.trajectory.transitions import MIN_BLEND
 
@@ -625,6 +628,18 @@ def test_validate_counts_waypoints_and_duration(reference8: Robot) -> None:
     assert (err.limit, err.value) == ("max_duration", 20.0)
 
 
+def test_max_waypoints_cannot_be_raised_past_what_the_loop_survives() -> None:
+    """Some work on the daemon's loop still grows with the number of waypoints (see
+    MAX_WAYPOINTS): a config may lower the limit, not raise it."""
+    from pydantic import ValidationError
+
+    assert TrajectoryLimits().max_waypoints == MAX_WAYPOINTS == 10_000
+    assert TrajectoryLimits(max_waypoints=500).max_waypoints == 500
+    with pytest.raises(ValidationError, match="max_waypoints") as info:
+        TrajectoryLimits.model_validate({"max_waypoints": 10_001})
+    assert "less than or equal to 10000" in str(info.value)
+
+
 def test_limits_are_a_strict_config_section() -> None:
     from pydantic import ValidationError
 
@@ -708,6 +723,83 @@ def test_approach_that_no_duration_allows_is_rejected() -> None:
         approach(current, planned(9), TrajectoryLimits(max_duration=30.0))
     assert info.value.limit in {"linear_speed", "linear_accel"}
     assert "no transition" in str(info.value)
+
+
+def long_line(n: int) -> Trajectory:
+    """n waypoints 10 ms apart on a slow line from home (a long planner's message)."""
+    step = np.array([1e-4, 0.0, 0.0])
+    return Trajectory([Waypoint(0.01 * k, Pose(HOME + k * step)) for k in range(n)])
+
+
+def test_each_approach_step_does_work_independent_of_the_length(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A service plans a trajectory's approach between control cycles, one step at a
+    time (Service._in_slack), and shifts the trajectory in the first: the waypoint
+    objects each step makes must not grow with the trajectory's length.  (Copying
+    10,000 waypoints in one step stalled the loop for 200 ms and braked the robot.)"""
+    made = [0]
+    post_init = Waypoint.__post_init__
+
+    def counting(self: Waypoint) -> None:
+        made[0] += 1
+        post_init(self)
+
+    monkeypatch.setattr(Waypoint, "__post_init__", counting)
+    current = moving_state(11, 0.3)
+    most = {}
+    for n in (10, 3000):
+        target = long_line(n)
+
+        def plan(target: Trajectory = target) -> Generator[None, None, Trajectory]:
+            shifted = target.shifted(20.0)  # the service's plan, as in submit_trajectory
+            return (yield from approach_steps(current, shifted, LIMITS))
+
+        steps, counts = plan(), []
+        while True:
+            made[0] = 0
+            try:
+                next(steps)
+            except StopIteration as done:
+                planned = done.value
+                counts.append(made[0])
+                break
+            counts.append(made[0])
+        assert len(counts) > 3 and planned.start_time < 20.0  # it did blend in
+        most[n] = max(counts)
+    assert most[10] == most[3000] <= 1
+    made[0] = 0
+    head = Trajectory([planned.knot(0), planned.knot(1)])  # what the service validates
+    assert made[0] <= 2 and len(head) == 2
+
+
+def test_shifted_and_blended_trajectories_keep_their_waypoints_and_knots() -> None:
+    target = Trajectory(with_interior_twists(random_waypoints(21), 22))
+    moved = target.shifted(3.5).shifted(-1.25)
+    current = moving_state(23, 0.4)
+    tr = approach(current, moved, LIMITS, start=40.0)
+    offset = tr.waypoints[1].t - target.start_time
+    assert len(tr) == len(tr.waypoints) == len(tr.knots) == len(target) + 1
+    assert (tr.start_time, tr.waypoints[0].pose) == (40.0, current.pose)
+    assert tr.end_time == pytest.approx(target.end_time + offset, abs=1e-12)
+    assert tr.duration == pytest.approx(tr.end_time - 40.0, abs=1e-12)
+    for w, original in zip(tr.waypoints[1:], target.waypoints, strict=True):
+        assert w.t == pytest.approx(original.t + offset, abs=1e-12) and w.pose is original.pose
+    for k, knot in enumerate(tr.knots):
+        assert (knot.t, knot.pose) == (tr.waypoints[k].t, tr.waypoints[k].pose)
+        assert_same_state(tr.sample(knot.t), Reference(knot.pose, knot.twist, knot.accel), 1e-9)
+        assert tr.waypoint_index(knot.t) == k
+        assert tr.waypoint_index(math.nextafter(knot.t, -math.inf)) == max(k - 1, 0)
+    assert_same_state(tr.sample(40.0), current, 1e-12)
+    later = tr.shifted(7.0)  # the blend moves with the rest
+    assert later.start_time == 47.0 and len(later) == len(tr)
+    for t in inner_times(tr, 20):
+        assert_same_state(later.sample(t + 7.0), tr.sample(t), 1e-9)
+        assert later.waypoint_index(t + 7.0) == tr.waypoint_index(t)
+    with pytest.raises(IndexError, match="knot 7 of a trajectory of 7 waypoints"):
+        tr.knot(len(tr))
+    with pytest.raises(ValueError, match="begins with a blend already"):
+        tr.after_blend(tr.knot(0), 1.0)
 
 
 def at_rest(pose: Pose) -> Reference:

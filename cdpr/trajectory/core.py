@@ -124,6 +124,14 @@ class Reference(NamedTuple):
     accel: Array
 
 
+class _Blend(NamedTuple):
+    """A segment joined before a trajectory's own first waypoint (Trajectory.after_blend)."""
+
+    first: Waypoint  # its start, twist and accel given
+    table: Array
+    quat: tuple[float, ...]
+
+
 class Trajectory:
     """A C² reference through >= 2 waypoints; `sample(t)` once per control cycle.
 
@@ -132,6 +140,10 @@ class Trajectory:
     Interior waypoint twists (and accels) are honoured exactly; the rates left free
     minimise the integrated squared jerk.  Consecutive orientations are joined along
     the shorter rotation (< π): add waypoints for larger turns.
+
+    `shifted` and `after_blend` cost the same whatever the number of waypoints (a
+    service plans them between control cycles): the result shares the segments built
+    here, and keeps the time shift and the blend segment beside them.
     """
 
     def __init__(self, waypoints: Sequence[Waypoint]) -> None:
@@ -163,60 +175,119 @@ class Trajectory:
             raise TrajectoryError(
                 "finite", "the curve through these waypoints is not finite (values too large?)"
             )
+        # the curve as built: never changed, shared by shifted and blended copies
         self._waypoints = wps
         self._times: list[float] = times.tolist()
         self._tables = list(tables)  # per segment; a list indexes faster than a 3-d array
         self._quats = [p.quaternion_tuple for p in poses]
         self._rates = (twists, accels)
-        self._set_ends()
+        self._place(0.0, None)
 
-    def _set_ends(self) -> None:
-        self._before = Reference(self._waypoints[0].pose, _ZERO6, _ZERO6)
+    def _place(self, shift: float, blend: _Blend | None) -> None:
+        """Set the time shift of the curve built and the blend before it."""
+        self._shift = shift
+        self._blend = blend
+        self._listed: tuple[Waypoint, ...] | None = None  # `waypoints`, made when asked
+        self._body_start = self._times[0] + shift
+        self._start = self._body_start if blend is None else blend.first.t
+        self._end = self._times[-1] + shift
+        first = self._waypoints[0] if blend is None else blend.first
+        self._before = Reference(first.pose, _ZERO6, _ZERO6)
         self._after = Reference(self._waypoints[-1].pose, _ZERO6, _ZERO6)
+
+    def _moved(self, shift: float, blend: _Blend | None) -> Trajectory:
+        """This curve with another time shift and blend (the segments are shared)."""
+        out = Trajectory.__new__(Trajectory)
+        out._waypoints, out._times = self._waypoints, self._times
+        out._tables, out._quats, out._rates = self._tables, self._quats, self._rates
+        out._place(shift, blend)
+        return out
+
+    def __len__(self) -> int:
+        """The number of waypoints (a blend's first one included)."""
+        return len(self._times) + (self._blend is not None)
 
     @property
     def waypoints(self) -> tuple[Waypoint, ...]:
-        """The waypoints as given."""
-        return self._waypoints
+        """The waypoints as given (times shifted, a blend's first one first).  Made on
+        first use for a shifted or blended trajectory: a cost that grows with their
+        number, unlike `knot`, `len` and `sample`."""
+        if self._listed is None:
+            shift, blend = self._shift, self._blend
+            listed = self._waypoints
+            if shift != 0.0:
+                listed = tuple(Waypoint(w.t + shift, w.pose, w.twist, w.accel) for w in listed)
+            self._listed = listed if blend is None else (blend.first, *listed)
+        return self._listed
+
+    def knot(self, index: int) -> Waypoint:
+        """Waypoint `index` (0 <= index < len) with the twist and accel the trajectory
+        has there."""
+        if not 0 <= index < len(self):
+            raise IndexError(f"knot {index} of a trajectory of {len(self)} waypoints")
+        if self._blend is not None:
+            if index == 0:
+                return self._blend.first
+            index -= 1
+        w = self._waypoints[index]
+        twists, accels = self._rates
+        return Waypoint(w.t + self._shift, w.pose, twists[index], accels[index])
 
     @property
     def knots(self) -> tuple[Waypoint, ...]:
-        """The waypoints with the twist and accel the trajectory has there (all set)."""
-        twists, accels = self._rates
-        return tuple(
-            Waypoint(w.t, w.pose, twists[k], accels[k]) for k, w in enumerate(self._waypoints)
-        )
+        """Every `knot`: the waypoints with the trajectory's twist and accel (all set)."""
+        return tuple(self.knot(k) for k in range(len(self)))
 
     @property
     def start_time(self) -> float:
         """Time of the first waypoint (s)."""
-        return self._times[0]
+        return self._start
 
     @property
     def end_time(self) -> float:
         """Time of the last waypoint (s); the last pose is held from then on."""
-        return self._times[-1]
+        return self._end
 
     @property
     def duration(self) -> float:
         """end_time - start_time (s)."""
-        return self._times[-1] - self._times[0]
+        return self._end - self._start
+
+    def _segment(self, t: float) -> int:
+        """The last waypoint of the curve built at or before t (-1 before the first), as
+        a bisection of the shifted times would find it: shifting t back by the shift
+        rounds differently from shifting the times, by at most one waypoint here."""
+        times, shift = self._times, self._shift
+        k = bisect_right(times, t - shift) - 1
+        if k + 1 < len(times) and times[k + 1] + shift <= t:
+            return k + 1
+        if k >= 0 and times[k] + shift > t:
+            return k - 1
+        return k
 
     def waypoint_index(self, t: float) -> int:
         """Index of the waypoint that starts the segment holding t (clipped to the ends)."""
-        return min(max(bisect_right(self._times, t) - 1, 0), len(self._times) - 1)
+        k = self._segment(t)
+        if self._blend is not None:
+            k = k + 1 if t >= self._body_start else 0
+        return min(max(k, 0), len(self) - 1)
 
     def sample(self, t: float) -> Reference:
         """(η_r, φ_r, α_r) at time t: evaluates only the segment holding t."""
         if type(t) is not float:  # e.g. a numpy scalar: it would slow the scalar code below
             t = float(t)
-        times = self._times
-        if t >= times[-1]:
+        if t >= self._end:
             return self._after
-        if t >= times[0]:
-            k = bisect_right(times, t) - 1
-            return evaluate_segment(self._tables[k], self._quats[k], t - times[k])
-        if t < times[0]:
+        if t >= self._body_start:
+            k = self._segment(t)
+            return evaluate_segment(
+                self._tables[k], self._quats[k], t - (self._times[k] + self._shift)
+            )
+        if t >= self._start:  # in the blend
+            blend = self._blend
+            assert blend is not None
+            return evaluate_segment(blend.table, blend.quat, t - blend.first.t)
+        if t < self._start:
             return self._before
         raise ValueError(f"sample time must be a number, got {t!r}")
 
@@ -225,14 +296,11 @@ class Trajectory:
         dt = float(dt)
         if not math.isfinite(dt):
             raise ValueError(f"time shift must be finite, got {dt!r}")
-        out = Trajectory.__new__(Trajectory)
-        out._waypoints = tuple(
-            Waypoint(w.t + dt, w.pose, w.twist, w.accel) for w in self._waypoints
-        )
-        out._times = [w.t for w in out._waypoints]
-        out._tables, out._quats, out._rates = self._tables, self._quats, self._rates
-        out._set_ends()
-        return out
+        blend = self._blend
+        if blend is not None:
+            w = blend.first
+            blend = blend._replace(first=Waypoint(w.t + dt, w.pose, w.twist, w.accel))
+        return self._moved(self._shift + dt, blend)
 
     def after_blend(self, first: Waypoint, shift: float) -> Trajectory:
         """This trajectory shifted by `shift`, preceded by one segment from `first` (its
@@ -240,8 +308,10 @@ class Trajectory:
         built are reused: the cost is one segment whatever the length."""
         if first.twist is None or first.accel is None:
             raise ValueError("the blend's first waypoint needs its twist and accel")
+        if self._blend is not None:
+            raise ValueError("this trajectory begins with a blend already")
         out = self.shifted(shift)
-        h = out._times[0] - first.t
+        h = out._body_start - first.t
         if not h >= MIN_SEGMENT:
             raise TrajectoryError(
                 "times_increasing", f"the blend would last {h:.6g} s (< {MIN_SEGMENT:g} s)"
@@ -251,18 +321,13 @@ class Trajectory:
         table = segment_table(first.pose, first.twist, first.accel, twists[0], accels[0], step, h)
         if not np.all(np.isfinite(table)):
             raise TrajectoryError("finite", "the blend into this trajectory is not finite")
-        out._waypoints = (first, *out._waypoints)
-        out._times = [first.t, *out._times]
-        out._tables = [table, *self._tables]
-        out._quats = [first.pose.quaternion_tuple, *self._quats]
-        out._rates = (np.vstack([first.twist, twists]), np.vstack([first.accel, accels]))
-        out._set_ends()
+        out._place(out._shift, _Blend(first, table, first.pose.quaternion_tuple))
         return out
 
     def as_dict(self) -> dict:
         """Interface form (JSON / YAML ready), the inverse of parse_trajectory."""
         out = []
-        for w in self._waypoints:
+        for w in self.waypoints:
             item = {"t": w.t, **w.pose.as_dict()}
             for name in ("twist", "accel"):
                 vec = getattr(w, name)
@@ -273,7 +338,7 @@ class Trajectory:
 
     def __repr__(self) -> str:
         return (
-            f"Trajectory({len(self._times)} waypoints, t = {self.start_time:.6g} .. "
+            f"Trajectory({len(self)} waypoints, t = {self.start_time:.6g} .. "
             f"{self.end_time:.6g} s)"
         )
 

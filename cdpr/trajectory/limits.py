@@ -23,6 +23,12 @@ from cdpr.robot import Robot
 from cdpr.trajectory.core import Reference, Trajectory, TrajectoryError
 
 WrenchCheck = Callable[[Pose, NDArray[np.float64], NDArray[np.float64]], str | None]
+# The most waypoints a trajectory may have, and the highest max_waypoints a config may
+# set: the daemon's event loop still does a few things whose cost grows with the count
+# (the first validation step sorts the sample times: ~1.5 ms at 10,000; releasing a
+# trajectory the controller is done with: 3-7 ms), and at 10,000 they stay far below the
+# drives' 50 ms watchdog (bench/stall.py).  Longer motions: send them in pieces.
+MAX_WAYPOINTS = 10_000
 
 
 class TrajectoryLimits(StrictModel):
@@ -33,7 +39,7 @@ class TrajectoryLimits(StrictModel):
     linear_accel: PositiveFloat = 5.0  # m/s², |p̈|
     angular_accel: PositiveFloat = 10.0  # rad/s², |ω̇|
     sample_period: PositiveFloat = 0.01  # s, validation step along the path
-    max_waypoints: int = Field(10000, ge=2)
+    max_waypoints: int = Field(MAX_WAYPOINTS, ge=2, le=MAX_WAYPOINTS)  # see MAX_WAYPOINTS
     max_duration: PositiveFloat = 3600.0  # s, bounds the validation work too
     # s from now to a requested start; strict: a bool or a string is an error, not a number
     max_start_delay: Annotated[PositiveFloat, Field(strict=True)] = 60.0

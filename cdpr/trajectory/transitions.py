@@ -86,7 +86,7 @@ def approach_steps(
     current: Reference, trajectory: Trajectory, limits: TrajectoryLimits, start: float | None = None
 ) -> Steps[Trajectory]:
     """`approach`, yielding between candidate durations."""
-    knot = trajectory.knots[0]
+    knot = trajectory.knot(0)
     end = Reference(knot.pose, knot.twist, knot.accel)
     if (
         current.pose == end.pose

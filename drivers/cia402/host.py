@@ -250,6 +250,9 @@ class Cia402Driver(ActuatorDriver):
 
     # -- input ----------------------------------------------------------------------------
 
+    def receive_ids(self) -> frozenset[int]:
+        return frozenset(self._routes) | {SDO_RESPONSE_BASE + node for node in self.nodes}
+
     def receive(self, message: can.Message, now: float) -> int | None:
         if message.is_extended_id or message.is_error_frame:
             return None

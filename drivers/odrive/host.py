@@ -385,6 +385,9 @@ class OdriveDriver(ActuatorDriver):
 
     # -- input ----------------------------------------------------------------------------
 
+    def receive_ids(self) -> frozenset[int]:
+        return frozenset(self._routes)
+
     def receive(self, message: can.Message, now: float) -> int | None:
         route = self._routes.get(message.arbitration_id)
         if (
