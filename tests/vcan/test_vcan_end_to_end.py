@@ -107,6 +107,10 @@ def _write_config(protocol: Protocol, directory: Path, port: int) -> Path:
     # UML's timers are coarse and its processes stall for tens of milliseconds (see the
     # module docstring): wider feedback deadlines and drive watchdogs than on hardware
     data["safety"].update(stale_cycles=10, feedback_deadline=0.9)
+    # ... and a stall of 100+ ms leaves the plausibility checks two samples a long gap
+    # apart, over which noisy rates (and streamed estimates carried forward) predict the
+    # motion to a few mm, not the 1 mm of a steady host
+    data["safety"]["feedback_tolerance"] = 0.01
     data["drives"].update(watchdog_timeout=0.5, heartbeat_timeout=1.0)
     if protocol is ODRIVE:  # 8 x 500 streamed estimates a second saturate the guest
         data["drives"]["feedback_rate_hz"] = 2 * RATE_HZ
