@@ -35,9 +35,9 @@ import can
 import numpy as np
 from timing import per_call_us, summary_us
 
-from sim_bus.busload import FrameShape, cycle_load, message_bits
-from sim_bus.loopbus import LoopBus
-from sim_bus.socketcand import SocketcandServer
+from sim_bus.bus.busload import FrameShape, cycle_load, message_bits
+from sim_bus.bus.loopbus import LoopBus
+from sim_bus.bus.socketcand import SocketcandServer
 
 ROOT = Path(__file__).resolve().parent.parent
 

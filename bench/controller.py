@@ -24,9 +24,9 @@ from timing import REFERENCE8, per_call_us, print_timings
 from cdpr import Robot
 from cdpr.control_spec import ControllerSpec
 from cdpr.controller import ParallelController
-from sim_bus.comparison import standard_set_figures as tracking
-from sim_bus.scenarios import STANDARD_SET
-from sim_bus.tracking import run_tracking
+from tuning.comparison import standard_set_figures as tracking
+from tuning.scenarios import STANDARD_SET
+from tuning.tracking import run_tracking
 
 
 def step_us(robot: Robot, spec: ControllerSpec, calls: int) -> dict[str, float]:

@@ -54,12 +54,12 @@ import psutil
 from timing import free_endpoint
 
 from cdpr.trajectory import parse_trajectory
+from daemon.cli.simulated import InProcessSimulator
 from daemon.config import load_config
-from daemon.cycle_stats import CycleStats
-from daemon.safety import SafetyState
-from daemon.service import Service
-from daemon.simulated import InProcessSimulator
-from daemon.zenoh_io import ZenohInterface
+from daemon.interface.zenoh_io import ZenohInterface
+from daemon.service.cycle_stats import CycleStats
+from daemon.service.safety import SafetyState
+from daemon.service.service import Service
 from drivers.clock import PeriodicTimer
 
 CONFIG = Path(__file__).resolve().parent.parent / "config" / "reference8-cia402.yaml"
@@ -155,7 +155,7 @@ def flooder(endpoint: str, prefix: str, seconds: float, rate: float, mix: str) -
     """Put at `rate` per second for `seconds`, a query every tenth put; the counts."""
     import zenoh
 
-    from daemon.zenoh_config import client_zenoh_config
+    from daemon.config.zenoh_config import client_zenoh_config
 
     round_ = messages(mix, 2 * 1024 * 1024)
     accepting = mix in ("valid", "large", "all")  # else the service accepts nothing

@@ -22,9 +22,9 @@ import json
 import time
 from pathlib import Path
 
+from daemon.cli.simulated import InProcessSimulator
 from daemon.config import load_config
-from daemon.service import Service
-from daemon.simulated import InProcessSimulator
+from daemon.service.service import Service
 from drivers.clock import PeriodicTimer
 
 CONFIGS = Path(__file__).resolve().parent.parent / "config"

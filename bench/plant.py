@@ -2,11 +2,11 @@
 
 The platform moves: a drive-level PD makes each drum follow its home length plus a
 few millimetres of sine (the crossed robot is unstable under constant forces; see
-tests/test_plant.py).  Prints:
+tests/sim_bus/test_plant.py).  Prints:
 
 - `step_us`: median and p99 of one Plant.step() call, in microseconds;
 - `realtime_factor`: simulated seconds per second spent in those Plant.step() calls;
-- `lockstep_realtime_factor`: the same for a whole sim_bus.lockstep run at 500 Hz
+- `lockstep_realtime_factor`: the same for a whole tuning.lockstep run at 500 Hz
   (measurement, controller, recording included; CPU time of the running thread, as
   numpy's BLAS threads may spin on the other CPU).
 
@@ -27,8 +27,8 @@ from numpy.typing import NDArray
 from timing import REFERENCE8, summary_us
 
 from cdpr import Robot
-from sim_bus.lockstep import run_lockstep
 from sim_bus.plant import Plant, equilibrium_tensions
+from tuning.lockstep import run_lockstep
 
 Array = NDArray[np.float64]
 RATE_HZ = 500.0

@@ -53,12 +53,12 @@ import can
 from flood import LagProbe, cycle_figures
 from timing import free_endpoint
 
+from daemon.cli.simulated import InProcessSimulator
 from daemon.config import DaemonConfig, load_config
-from daemon.cycle_stats import CycleStats
-from daemon.safety import SafetyState
-from daemon.service import Service
-from daemon.simulated import InProcessSimulator
-from daemon.zenoh_io import ZenohInterface
+from daemon.interface.zenoh_io import ZenohInterface
+from daemon.service.cycle_stats import CycleStats
+from daemon.service.safety import SafetyState
+from daemon.service.service import Service
 
 ROOT = Path(__file__).resolve().parent.parent
 CONFIG = ROOT / "config" / "reference8-cia402.yaml"
@@ -102,7 +102,7 @@ def send_trajectory(endpoint: str, n: int) -> dict[str, Any]:
     """(Child) the trajectory as a query, once the daemon answers; its reply."""
     import zenoh
 
-    from daemon.zenoh_config import client_zenoh_config
+    from daemon.config.zenoh_config import client_zenoh_config
 
     payload = json.dumps(circle_trajectory(n)).encode()
     with zenoh.open(client_zenoh_config([endpoint])) as session:

@@ -1,4 +1,4 @@
-"""Benchmark of the zenoh interface (daemon/zenoh_io.py) against a STAND-IN handler.
+"""Benchmark of the zenoh interface (daemon/interface/zenoh_io.py) against a STAND-IN handler.
 
 The daemon side runs in a child process: the ZenohInterface on its own asyncio loop with
 a stand-in DaemonHandler that accepts every trajectory at once and returns an 8-cable
@@ -36,8 +36,8 @@ import numpy as np
 import zenoh
 from timing import free_endpoint, print_timings, summary_us
 
-from daemon.zenoh_config import ZenohSettings, client_zenoh_config
-from daemon.zenoh_io import ZenohInterface
+from daemon.config.zenoh_config import ZenohSettings, client_zenoh_config
+from daemon.interface.zenoh_io import ZenohInterface
 
 PREFIX = "cdpr/bench"
 

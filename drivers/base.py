@@ -227,7 +227,7 @@ class ActuatorDriver(ABC):
     @abstractmethod
     def brake(self, lengths: Sequence[float], mode: BrakeMode) -> list[can.Message]:
         """Frames that freeze every cable at `lengths` (m) by `mode`.  Must not need an
-        answer to take effect.  `lengths` are trusted (daemon.trusted_lengths), never a
+        answer to take effect.  `lengths` are trusted (daemon.service.trusted_lengths), never a
         raw frame's value; NaN where none is trusted, and the driver then holds the drive
         without a target of its own choosing (its own estimate, or power stage off)."""
 

@@ -190,7 +190,7 @@ class SocketcandIO(FrameIO):
     of the stream is BusGone.  The socket is non-blocking: a server that stopped
     reading fails a send (BusGone: a line may have gone out in part) instead of stalling
     the loop.  Relies on python-can keeping the socket in its private attribute
-    (python-can 4.x; tests/test_socketcand.py checks it)."""
+    (python-can 4.x; tests/sim_bus/test_socketcand.py checks it)."""
 
     def __init__(self, bus: SocketCanDaemonBus) -> None:
         super().__init__(bus)

@@ -27,11 +27,11 @@ from typing import TextIO
 import can
 
 from cdpr import ConfigError
-from sim_bus.busload import BusLoadMeter
+from sim_bus.bus.busload import BusLoadMeter
+from sim_bus.bus.frame_faults import FaultyBus, parse_frame_faults
+from sim_bus.bus.socketcand import SocketcandServer
 from sim_bus.config import SimSetup, load_sim_setup
-from sim_bus.frame_faults import FaultyBus, parse_frame_faults
 from sim_bus.runner import SimulatorRunner
-from sim_bus.socketcand import SocketcandServer
 from sim_bus.virtual_robot import VirtualRobot
 
 log = logging.getLogger("sim_bus")

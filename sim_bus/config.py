@@ -15,13 +15,13 @@ from pydantic import model_validator
 from cdpr import ConfigError, Robot
 from cdpr.description import PositiveFloat, StrictModel, load_yaml, show_path, validate_section
 from drivers.config import CanConfig, DrivesConfig, parse_drives
-from sim_bus.frame_faults import FrameFaultConfig
+from sim_bus.bus.frame_faults import FrameFaultConfig
 from sim_bus.plant import PlantConfig
 
 
 class SimConfig(StrictModel):
     """`sim:` section.  plant: sim_bus.plant.PlantConfig keys; frame_faults:
-    sim_bus.frame_faults keys; serve_socketcand: "127.0.0.1:PORT" to serve the bus to
+    sim_bus.bus.frame_faults keys; serve_socketcand: "127.0.0.1:PORT" to serve the bus to
     other processes in the socketcand protocol; wake_period: seconds between the
     simulator's own wake-ups (default: the plant step), see `wake`."""
 

@@ -18,7 +18,7 @@ import can
 
 from drivers.bus import BusWatch, frame_io, gone
 from drivers.clock import PeriodicTimer
-from sim_bus.busload import BusLoadMeter
+from sim_bus.bus.busload import BusLoadMeter
 from sim_bus.virtual_robot import VirtualRobot
 
 log = logging.getLogger(__name__)

@@ -8,7 +8,7 @@ bus or a wall clock: the asyncio runner (sim_bus.runner) and the tests drive it.
 
 Device-level faults live here (a silent node, a stuck encoder, a glitching one, a drive
 fault, a snapped cable); frame-level faults (drops, delays, corruption, error frames) are
-sim_bus.frame_faults.
+sim_bus.bus.frame_faults.
 """
 
 from __future__ import annotations

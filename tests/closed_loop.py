@@ -6,8 +6,8 @@ import numpy as np
 
 from cdpr import Pose, Robot, liediff
 from cdpr.controller import ControlOutput, Hold, ParallelController
-from sim_bus.lockstep import Recording, run_lockstep
 from sim_bus.plant import Plant, equilibrium_tensions
+from tuning.lockstep import Recording, run_lockstep
 
 RATE = 500.0
 

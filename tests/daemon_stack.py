@@ -9,10 +9,10 @@ from pathlib import Path
 
 import numpy as np
 
+from daemon.cli.simulated import InProcessSimulator
 from daemon.config import DaemonConfig, load_config
-from daemon.safety import SafetyState
-from daemon.service import Service
-from daemon.simulated import InProcessSimulator
+from daemon.service.safety import SafetyState
+from daemon.service.service import Service
 
 CONFIGS = Path(__file__).resolve().parent.parent / "config"
 DRIVER_CONFIGS = {

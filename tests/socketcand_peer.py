@@ -1,4 +1,4 @@
-"""A separate process for tests/test_socketcand.py and bench/bus.py: a LoopBus served by a
+"""A separate process for tests/sim_bus/test_socketcand.py and bench/bus.py: a LoopBus served by a
 SocketcandServer on 127.0.0.1 (a free port, printed as "PORT <n>"), with a device on the
 same bus that answers every frame with id + 1 and the same data.  Exits when its stdin
 closes or after --lifetime seconds, whichever comes first.
@@ -16,8 +16,8 @@ import sys
 
 import can
 
-from sim_bus.loopbus import LoopBus
-from sim_bus.socketcand import SocketcandServer
+from sim_bus.bus.loopbus import LoopBus
+from sim_bus.bus.socketcand import SocketcandServer
 
 
 async def serve(lifetime: float) -> None:

@@ -29,8 +29,6 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import signal
 
-from sim_bus.plant.config import ActuatorModelConfig
-
 Array = NDArray[np.float64]
 
 
@@ -49,10 +47,12 @@ class ActuatorModel:
     back_emf: float
 
     @classmethod
-    def from_config(cls, config: ActuatorModelConfig, k0: float) -> ActuatorModel:
-        """Realise Assumption 1 for one actuator whose back-EMF constant is k0;
-        ValueError for a model that is not passive at high frequency (q0 < 0)."""
-        C_poly, K_poly, Ct_poly = config.coefficients(k0)
+    def realise(
+        cls, C_poly: list[float], K_poly: list[float], Ct_poly: list[float]
+    ) -> ActuatorModel:
+        """Realise Assumption 1 from its polynomials in s, ascending (C(s), K(s)/s, C~(s):
+        sim_bus.plant.config.ActuatorModelConfig.coefficients); ValueError for a model
+        that is not passive at high frequency (q0 < 0)."""
         q, r = np.polynomial.polynomial.polydiv(K_poly, C_poly)  # ascending, exact
         Q = np.zeros(2)
         Q[: len(q)] = q

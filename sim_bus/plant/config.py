@@ -22,6 +22,7 @@ from cdpr.description import (
     Vec3,
     validate_section,
 )
+from sim_bus.plant.actuator import ActuatorModel
 
 Wrench = tuple[FiniteFloat, FiniteFloat, FiniteFloat, FiniteFloat, FiniteFloat, FiniteFloat]
 Coefficients = list[NonNegativeFloat]
@@ -76,9 +77,7 @@ class ActuatorModelConfig(StrictModel):
                 "allowed (the paper's k_0 ... k_n go with c_2 ... c_n)"
             )
         if self.k is not None:  # else K(s) = k0 s, always realisable
-            from sim_bus.plant.actuator import ActuatorModel  # it imports this module
-
-            ActuatorModel.from_config(self, 0.0)
+            self.model(0.0)
         return self
 
     def coefficients(self, k0: float) -> tuple[list[float], list[float], list[float]]:
@@ -87,6 +86,12 @@ class ActuatorModelConfig(StrictModel):
         C~(s) = 1 + c~_2 s + ..."""
         K = [k0] if self.k is None else list(self.k)
         return _trim([1.0, *self.c]), _trim(K), _trim([1.0, *self.c_tilde])
+
+
+    def model(self, k0: float) -> ActuatorModel:
+        """The realised actuator whose back-EMF constant is k0 (ValueError if the model
+        is not passive at high frequency)."""
+        return ActuatorModel.realise(*self.coefficients(k0))
 
 
 def _trim(poly: list[float]) -> list[float]:

@@ -268,7 +268,7 @@ class Plant:
         return position, twist
 
     def snapshot(self) -> dict[str, Sequence[float]]:
-        """The true state now, as plain lists, for a recording (sim_bus.lockstep)."""
+        """The true state now, as plain lists, for a recording (tuning.lockstep)."""
         position, twist = self._reference_state()
         _, _, table, tensions, _ = self._current()
         return {

@@ -20,7 +20,6 @@ import math
 import operator
 from collections.abc import Sequence
 
-from sim_bus.plant.actuator import ActuatorModel
 from sim_bus.plant.config import PlantConfig
 
 
@@ -38,7 +37,7 @@ class Winches:
         self.h = h = config.substep
         self.stiffness = config.cable.stiffness
         self.damping = config.cable.damping
-        self.models = [ActuatorModel.from_config(config.actuator, float(k)) for k in k0]
+        self.models = [config.actuator.model(float(k)) for k in k0]
         self.order = self.models[0].order
         self.mass = [float(m) + a.q1 for m, a in zip(m0, self.models, strict=True)]
         self.force_max = [float(f) for f in force_max]

@@ -43,7 +43,7 @@ import numpy as np
 import pytest
 import yaml
 
-from daemon.client import CdprClient, ClientError
+from daemon.interface.client import CdprClient, ClientError
 from drivers.cia402 import codec as cia402
 from tests.loopback import free_port
 

@@ -11,7 +11,7 @@ import subprocess
 import can
 import pytest
 
-from daemon.bus_port import BusPort
+from daemon.service.bus_port import BusPort
 from drivers.bus import FRAMES_PER_PASS
 
 pytestmark = [pytest.mark.vcan, pytest.mark.timeout(120)]

@@ -1,0 +1,82 @@
+"""The `cdprd` command line."""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+
+from cdpr import ConfigError, Robot
+from cdpr.description import load_yaml
+from daemon.cli import analyze_cmd, client_cmd, demo_cmd, run_cmd
+
+
+def check_config(path: str) -> int:
+    """Validate a daemon config (or a bare robot description) and print a readable
+    summary; 0 if it is sound, 1 with each problem named (`error: FILE: KEY: problem`)
+    if not.  A daemon config passes only if `run` would take it and the simulator of
+    `run --sim` can be built from it."""
+    try:
+        data = load_yaml(path)
+        if isinstance(data, dict) and "drives" in data:
+            from daemon.cli.simulated import sim_section, simulated_robot
+
+            config = run_cmd.load_checked(path)
+            simulated_robot(config, sim_section(config))
+            robot = config.robot
+        else:
+            config, robot = None, Robot.from_yaml(path)
+    except ConfigError as exc:
+        run_cmd.report(exc)
+        return 1
+    home = robot.home
+    lengths = robot.cable_lengths(home)
+    masses = robot.modal_masses(home)
+    print(f"robot {robot.name}: {robot.n_cables} cables, platform {robot.platform.mass:g} kg")
+    print(
+        f"home position {np.round(home.position, 4).tolist()} m, "
+        f"quaternion {np.round(home.quaternion, 6).tolist()}"
+    )
+    print(f"cable lengths at home: {np.round(lengths, 4).tolist()} m")
+    shown = ", ".join("inf" if np.isinf(m) else f"{m:.3g}" for m in masses)
+    print(f"modal masses at home (Lemma 1, kg): {shown}")
+    if config is not None:
+        d, c = config.drives, config.can
+        print(
+            f"drives: {d.protocol} nodes {d.nodes}, brake {d.brake.value}, "
+            f"watchdog {d.watchdog_timeout * 1e3:g} ms"
+        )
+        print(f"bus: {c.interface} {c.channel} at {c.bitrate} bit/s")
+        print(
+            f"controller: {config.controller.rate_hz:g} Hz, model at {config.controller.model_at}; "
+            f"home pose in W: yes"
+        )
+        prefix = config.zenoh.key_prefix(robot.name)
+        listen = ", ".join(config.zenoh.listen_endpoints)
+        print(f"zenoh: prefix {prefix}, listening on {listen}")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="cdprd", description="Hardware-interface daemon for cable-driven parallel robots."
+    )
+    sub = parser.add_subparsers(dest="command", required=True)
+    check = sub.add_parser("check-config", help="validate a daemon config or robot file")
+    check.add_argument("file", help="e.g. config/reference8-cia402.yaml or config/robots/*.yaml")
+    analyze_cmd.add_parser(sub)
+    client_cmd.add_parsers(sub)
+    run_cmd.add_parsers(sub)
+    demo_cmd.add_parser(sub)
+    args = parser.parse_args(argv)
+    if hasattr(args, "handler"):
+        return args.handler(args)
+    if hasattr(args, "run"):
+        return args.run(args)
+    if args.command == "analyze":
+        return analyze_cmd.run(args)
+    if args.command == "check-config":
+        return check_config(args.file)
+    parser.error(f"unknown command {args.command}")
+    return 2
+

@@ -1,0 +1,7 @@
+"""`python -m daemon.cli`: the cdprd command line."""
+
+import sys
+
+from daemon.cli import main
+
+sys.exit(main())

@@ -1,0 +1,194 @@
+"""The `cdprd` client commands: send a trajectory, run a command, print the daemon's reply.
+
+    cdprd send FILE [--start now|UNIX_TIME] [--id ID]    (FILE: YAML or JSON trajectory)
+    cdprd status | enable | disable | hold | reset
+    cdprd brake [--reason TEXT]
+    cdprd goto x y z [qw qx qy qz]
+    common options: --prefix cdpr/<robot>  --connect tcp/127.0.0.1:7447  --timeout S
+                    --zenoh-config FILE (raw zenoh keys, e.g. TLS certificates)
+
+Exit codes: 0 accepted / done, 1 the daemon refused (the reason is printed), 2 usage
+(bad arguments, unreadable file, several daemons and no --prefix), 3 no daemon reachable.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from cdpr.description import ConfigError, load_yaml, read_text
+from daemon.interface.client import (
+    DEFAULT_CONNECT,
+    DEFAULT_TIMEOUT,
+    CdprClient,
+    ClientError,
+    RequestError,
+    UnreachableError,
+)
+
+EXIT_OK, EXIT_REFUSED, EXIT_USAGE, EXIT_UNREACHABLE = 0, 1, 2, 3
+REQUEST_FILE_MAX_BYTES = 64 << 20  # a trajectory file (the daemon limits what it takes)
+_SIMPLE = {
+    "status": "print the daemon's safety state",
+    "enable": "enable the drives (IDLE -> ENABLED, holding the current pose)",
+    "disable": "stop moving and disable the drives (brakes on)",
+    "hold": "stop smoothly and hold the pose",
+    "reset": "leave BRAKED once the fault is gone",
+}
+
+
+Action = Callable[[CdprClient], Any]
+
+
+class _UsageError(Exception):
+    """A bad argument or input file (exit 2)."""
+
+
+def add_parsers(subparsers: argparse._SubParsersAction) -> None:
+    """Register the client commands; each sets `run` (args -> exit code)."""
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument(
+        "--prefix",
+        help="key prefix of the daemon, e.g. cdpr/reference8 "
+        "(default: the only daemon answering on cdpr/*/alive)",
+    )
+    common.add_argument(
+        "--connect",
+        default=DEFAULT_CONNECT,
+        help=f"zenoh endpoint of the daemon or router (default {DEFAULT_CONNECT})",
+    )
+    common.add_argument(
+        "--zenoh-config",
+        metavar="FILE",
+        help="YAML or JSON file of raw zenoh keys for the session, e.g. transport.link.tls "
+        "for a TLS endpoint (docs/zenoh.md)",
+    )
+    common.add_argument(
+        "--timeout",
+        type=float,
+        default=DEFAULT_TIMEOUT,
+        help=f"seconds to wait for the reply (default {DEFAULT_TIMEOUT:g})",
+    )
+    send = subparsers.add_parser(
+        "send", parents=[common], help="send a trajectory file (YAML or JSON) and await the verdict"
+    )
+    send.add_argument("file", help="trajectory in the form of docs/zenoh.md")
+    send.add_argument("--start", default="now", help='"now" (default) or a unix time in seconds')
+    send.add_argument("--id", help="request id echoed in the reply and the events")
+    send.set_defaults(run=_runner("send", _prepare_send))
+    for name, text in _SIMPLE.items():
+        sub = subparsers.add_parser(name, parents=[common], help=text)
+        sub.set_defaults(run=_runner(name, _prepare_request(name)))
+    brake = subparsers.add_parser(
+        "brake", parents=[common], help="brake now (cable lengths frozen)"
+    )
+    brake.add_argument("--reason", help="why, recorded with the fault")
+    brake.set_defaults(run=_runner("brake", lambda args: lambda c: c.brake(args.reason)))
+    goto = subparsers.add_parser("goto", parents=[common], help="move smoothly to a pose")
+    goto.add_argument(
+        "pose", nargs="+", metavar="x y z [qw qx qy qz]", help="position (m), quaternion"
+    )
+    goto.set_defaults(run=_runner("goto", _prepare_goto))
+
+
+def _runner(
+    name: str, prepare: Callable[[argparse.Namespace], Action]
+) -> Callable[[argparse.Namespace], int]:
+    """args -> exit code: check the arguments (`prepare`, before any network), connect,
+    run the action, print the result or the reason."""
+
+    def run(args: argparse.Namespace) -> int:
+        try:
+            if not (args.timeout > 0 and math.isfinite(args.timeout)):
+                raise _UsageError(f"--timeout must be a positive number of seconds: {args.timeout}")
+            action = prepare(args)
+            raw = None if args.zenoh_config is None else _read_mapping(args.zenoh_config)
+            with CdprClient(
+                args.prefix, args.connect, timeout=args.timeout, zenoh_config=raw
+            ) as client:
+                result = action(client)
+        except _UsageError as exc:
+            print(f"usage error: {exc}", file=sys.stderr)
+            return EXIT_USAGE
+        except UnreachableError as exc:
+            print(f"error: no daemon reachable: {exc}", file=sys.stderr)
+            return EXIT_UNREACHABLE
+        except RequestError as exc:
+            print(f"{name}: refused ({exc.code}): {exc.reason}", file=sys.stderr)
+            error = exc.reply.get("error", {})
+            details = {k: v for k, v in error.items() if k not in ("code", "reason")}
+            if details:
+                print(f"  {json.dumps(details)}", file=sys.stderr)
+            return EXIT_REFUSED
+        except ClientError as exc:  # several daemons and no --prefix, a foreign reply
+            print(f"usage error: {exc}", file=sys.stderr)
+            return EXIT_USAGE
+        print(json.dumps(result, indent=2 if name == "status" else None))
+        return EXIT_OK
+
+    return run
+
+
+def _prepare_send(args: argparse.Namespace) -> Action:
+    body, start = _read_mapping(args.file), _start(args.start)
+    return lambda client: client.send_trajectory(body, start=start, request_id=args.id)
+
+
+def _prepare_request(name: str) -> Callable[[argparse.Namespace], Action]:
+    return lambda _args: lambda client: client.request(name)
+
+
+def _prepare_goto(args: argparse.Namespace) -> Action:
+    position, quaternion = _pose(args.pose)
+    return lambda client: client.goto(position, quaternion)
+
+
+def _read_mapping(path: str) -> dict[str, Any]:
+    """A YAML or JSON file (a regular file of at most REQUEST_FILE_MAX_BYTES) holding a
+    mapping of strict-JSON values."""
+    file = Path(path)
+    try:
+        if file.suffix.lower() == ".json":
+            data = json.loads(read_text(file, REQUEST_FILE_MAX_BYTES))
+        else:
+            data = load_yaml(file, REQUEST_FILE_MAX_BYTES)
+        json.dumps(data, allow_nan=False)
+    except ConfigError as exc:
+        raise _UsageError(str(exc)) from None
+    except ValueError as exc:  # bad JSON, NaN / Infinity
+        raise _UsageError(f"{path}: not strict JSON data: {exc}") from None
+    if not isinstance(data, dict):
+        raise _UsageError(f"{path}: expected a mapping, got {type(data).__name__}")
+    return data
+
+
+def _start(text: str) -> float | None:
+    if text == "now":
+        return None
+    try:
+        start = float(text)
+    except ValueError:
+        raise _UsageError(
+            f'--start: expected "now" or a unix time in seconds, got {text!r}'
+        ) from None
+    if not (math.isfinite(start) and start > 0.0):
+        raise _UsageError(f"--start: {text!r} is not a unix time in seconds")
+    return start
+
+
+def _pose(values: list[str]) -> tuple[list[float], dict[str, float] | None]:
+    if len(values) not in (3, 7):
+        raise _UsageError(f"goto takes x y z [qw qx qy qz]: 3 or 7 numbers, got {len(values)}")
+    try:
+        numbers = [float(v) for v in values]
+    except ValueError as exc:
+        raise _UsageError(f"goto: {exc}") from None
+    if not all(math.isfinite(v) for v in numbers):
+        raise _UsageError("goto: every number must be finite")
+    quaternion = None if len(numbers) == 3 else dict(zip("wxyz", numbers[3:], strict=True))
+    return numbers[:3], quaternion

@@ -1,0 +1,72 @@
+"""The in-process simulator behind `cdprd run --sim` and `cdprd demo`.
+
+With `analyze`, the only place the daemon imports sim_bus (DESIGN §2): the simulator
+runs as a task in the daemon's own event loop on a private in-process loop bus, so the
+service under test is byte for byte the one that drives hardware.
+"""
+
+from __future__ import annotations
+
+import itertools
+import os
+
+import can
+
+from cdpr import ConfigError
+from daemon.config import DaemonConfig
+from sim_bus.bus.frame_faults import FaultyBus
+from sim_bus.bus.loopbus import LoopBus
+from sim_bus.config import SimConfig, parse_sim
+from sim_bus.runner import SimulatorRunner
+from sim_bus.virtual_robot import VirtualRobot
+
+_channels = itertools.count()
+
+
+class InProcessSimulator:
+    """Simulator + the daemon's bus to it.  `start()` inside the running loop (before
+    the service starts), `close()` after the service stopped."""
+
+    def __init__(self, config: DaemonConfig) -> None:
+        sim = sim_section(config)
+        self.robot = simulated_robot(config, sim)  # a ConfigError before any bus is open
+        channel = f"cdprd-sim-{os.getpid()}-{next(_channels)}"
+        bitrate = config.can.bitrate
+        device_bus: can.BusABC = LoopBus(channel=channel, bitrate=bitrate)
+        if sim.frame_faults.named_rules():
+            device_bus = FaultyBus(device_bus, sim.frame_faults)
+        self.daemon_bus = LoopBus(channel=channel, bitrate=bitrate)
+        self.runner = SimulatorRunner(self.robot, device_bus, wake_period=sim.wake(config.drives))
+        self._device_bus = device_bus
+
+    def start(self) -> None:
+        self.runner.start()
+
+    def close(self) -> None:
+        self.runner.close()
+        self._device_bus.shutdown()
+        self.daemon_bus.shutdown()
+
+
+def sim_section(config: DaemonConfig) -> SimConfig:
+    """The config's `sim:` section validated, its wake-up period checked against the
+    drives; ConfigError names the file and the key."""
+    sim = parse_sim(config.sim, config.source)
+    try:
+        sim.wake(config.drives)
+    except ConfigError as exc:
+        raise exc.within(config.source) from None
+    return sim
+
+
+def simulated_robot(config: DaemonConfig, sim: SimConfig) -> VirtualRobot:
+    """The simulated robot of `sim` (from sim_section); ConfigError, naming the file, when
+    it cannot be built: e.g. a plant mismatch whose true robot has no static equilibrium
+    at its home pose."""
+    where = f"{config.source}: sim.plant"
+    try:
+        return VirtualRobot(config.robot, config.drives, sim.plant)
+    except ConfigError as exc:
+        raise exc.within(where) from None
+    except ValueError as exc:  # no static equilibrium (sim_bus.plant.statics)
+        raise ConfigError(f"{where}: {exc}") from None

@@ -1,0 +1,229 @@
+"""The daemon's config file (DESIGN §11): one YAML per robot, validated at load.
+
+Sections: robot (a path relative to this file, or inline), controller, drives, can,
+safety, trajectory (limits), zenoh, logging, recording, sim (the simulator used by
+`run --sim`, `demo` and `sim`).  Every problem is a ConfigError naming the key; the
+geometry is checked for sense (Λ full rank at home, the home pose's static wrench in W).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import numpy as np
+from pydantic import Field
+
+from cdpr import ConfigError, Robot
+from cdpr.control_spec import ControllerSpec, parse_controller
+from cdpr.controller import tension_solver
+from cdpr.description import (
+    PositiveFloat,
+    StrictModel,
+    Vec3,
+    load_yaml,
+    show_path,
+    validate_section,
+)
+from cdpr.pose_limits import PoseLimits
+from cdpr.trajectory import TrajectoryLimits, sampled_pose_limits
+from daemon.config.zenoh_config import ZenohSettings
+from drivers.config import CanConfig, DrivesConfig, parse_drives
+
+Fraction = Annotated[float, Field(gt=0.0, lt=1.0)]
+
+
+class SafetyConfig(StrictModel):
+    """Brake triggers (DESIGN §9).  Positions in m, angles in rad, world frame.
+
+    workspace_min/max: box for the platform reference point (default: the anchors'
+    bounding box).  tilt_max: largest rotation angle from the home orientation.
+    tracking_error_*: largest |θ_d| parts while tracking or holding.  Trajectories are
+    validated inside the box and tilt less these (and a sampling margin): the measured
+    pose, within them of the reference, then stays inside the box and the tilt.
+    stale_cycles: consecutive cycles an actuator may miss its feedback.
+    feedback_deadline: fraction of the period to wait for feedback after the cycle opens.
+    bus_errors_max: bus errors (error frames, failed sends) tolerated within one second.
+    bus_lost_exit: seconds from losing the bus (socket closed, interface down, socketcand
+      server gone) to exiting with code 69, braked, for the service manager to restart
+      the daemon; the time lets the fault reach zenoh and systemd.
+    max_cable_speed: the fastest a drum pays cable out or winds it in (m/s: the drive's
+      top speed through gear and drum).  A reported rate above it, or a length that
+      moved faster since the cable's last trusted sample, is implausible feedback
+      (daemon.service.trusted_lengths); it must exceed what the trajectory limits allow.
+    feedback_tolerance: encoder noise, quantisation and cable stretch allowed between two
+      samples (m): the allowance beyond max_cable_speed, and the most one cable may
+      disagree with the pose the others give.
+    """
+
+    workspace_min: Vec3 | None = None
+    workspace_max: Vec3 | None = None
+    tilt_max: Annotated[float, Field(gt=0.0, le=math.pi)] = 0.6
+    tracking_error_position: PositiveFloat = 0.02
+    tracking_error_orientation: PositiveFloat = 0.05
+    stale_cycles: Annotated[int, Field(ge=1, le=1000)] = 3
+    feedback_deadline: Fraction = 0.5
+    bus_errors_max: Annotated[int, Field(ge=0)] = 5
+    max_cable_speed: PositiveFloat = 3.0
+    feedback_tolerance: PositiveFloat = 1e-3
+    bus_lost_exit: Annotated[float, Field(gt=0.0, le=60.0)] = 1.0
+
+
+class LoggingConfig(StrictModel):
+    level: Literal["debug", "info", "warning", "error"] = "info"
+
+
+class RecordingConfig(StrictModel):
+    """Optional recordings: cycle telemetry to MCAP, raw CAN to a python-can log file
+    (format by suffix: .log, .asc, .blf, .csv, .trc).  Relative paths are from the config;
+    each run writes a new file named after its start time."""
+
+    telemetry: str | None = None
+    can_log: str | None = None
+
+
+class FileConfig(StrictModel):
+    """The raw file, before the robot is built."""
+
+    robot: str | dict[str, Any]
+    controller: dict[str, Any] = Field(default_factory=dict)
+    drives: dict[str, Any]
+    can: CanConfig = CanConfig()
+    safety: SafetyConfig = SafetyConfig()
+    trajectory: TrajectoryLimits = TrajectoryLimits()
+    zenoh: dict[str, Any] = Field(default_factory=dict)
+    logging: LoggingConfig = LoggingConfig()
+    recording: RecordingConfig = RecordingConfig()
+    sim: dict[str, Any] = Field(default_factory=dict)  # sim_bus.config validates it
+
+
+class DaemonConfig:
+    """A loaded, checked config: the robot and every section as validated objects.
+    `source` names the file in error messages."""
+
+    def __init__(self, raw: FileConfig, robot: Robot, base: Path, source: str = "config") -> None:
+        self.raw = raw
+        self.robot = robot
+        self.base = base
+        self.source = source
+        self.controller: ControllerSpec = parse_controller(raw.controller, source)
+        self.drives: DrivesConfig = parse_drives(raw.drives, source)
+        if len(self.drives.nodes) != robot.n_cables:
+            raise ConfigError(
+                f"{source}: drives.nodes: lists {len(self.drives.nodes)} drives for "
+                f"{robot.n_cables} cables"
+            )
+        if self.drives.streamed and self.drives.feedback_rate_hz < self.controller.rate_hz:
+            raise ConfigError(
+                f"{source}: drives.feedback_rate_hz ({self.drives.feedback_rate_hz:g}) is below "
+                f"controller.rate_hz ({self.controller.rate_hz:g}): most cycles would find no "
+                "fresh feedback"
+            )
+        self.can = raw.can
+        self.safety = raw.safety
+        self.trajectory = raw.trajectory
+        self.zenoh: ZenohSettings = validate_section(ZenohSettings, raw.zenoh, source, "zenoh")
+        self.logging = raw.logging
+        self.recording = raw.recording
+        self.sim = raw.sim
+        try:
+            lo, hi = workspace_box(robot, raw.safety)
+        except ConfigError as exc:
+            raise exc.within(source) from None
+        self.workspace_min, self.workspace_max = lo, hi
+        # the runtime check on the measured pose, and what validation holds each sampled
+        # reference to: less the tracking-error bounds, then the sampling margin
+        self.pose_limits = PoseLimits(
+            tuple(lo.tolist()), tuple(hi.tolist()), robot.home.quaternion_tuple, raw.safety.tilt_max
+        )
+        tracked = self.pose_limits.shrunk(
+            raw.safety.tracking_error_position, raw.safety.tracking_error_orientation
+        )
+        self.reference_limits = sampled_pose_limits(tracked, raw.trajectory)
+        fastest = fastest_cable_rate(robot, raw.trajectory)
+        if raw.safety.max_cable_speed <= fastest:
+            raise ConfigError(
+                f"{source}: safety.max_cable_speed: {raw.safety.max_cable_speed:g} m/s must "
+                f"exceed the fastest cable rate the trajectory limits allow ({fastest:.3g} m/s: "
+                "linear_speed + angular_speed x the farthest attachment)"
+            )
+
+    def path(self, relative: str) -> Path:
+        """A path from the config, resolved against the config file's directory."""
+        p = Path(relative)
+        return p if p.is_absolute() else self.base / p
+
+
+def workspace_box(robot: Robot, safety: SafetyConfig) -> tuple[np.ndarray, np.ndarray]:
+    """The configured workspace box, else the anchors' bounding box."""
+    anchors = robot.geometry.anchors
+    lo = np.asarray(safety.workspace_min) if safety.workspace_min else anchors.min(axis=0)
+    hi = np.asarray(safety.workspace_max) if safety.workspace_max else anchors.max(axis=0)
+    if np.any(lo >= hi):
+        raise ConfigError(
+            f"safety.workspace_min: {lo.tolist()} must lie below workspace_max {hi.tolist()}"
+        )
+    return lo.astype(float), hi.astype(float)
+
+
+def fastest_cable_rate(robot: Robot, limits: TrajectoryLimits) -> float:
+    """An upper bound of |l'| = |u . (v + w x r)| for any motion within `limits` (m/s)."""
+    reach = float(np.linalg.norm(robot.geometry.attachments, axis=1).max())
+    return limits.linear_speed + limits.angular_speed * reach
+
+
+def load_config(
+    path: str | Path, edit: Callable[[dict[str, Any]], None] | None = None
+) -> DaemonConfig:
+    """Read, validate and sanity-check a daemon config file; `edit` may change the
+    mapping first (the demo's loopback port, a benchmark's rate, a test's section)."""
+    path = Path(path)
+    data = load_yaml(path)
+    if edit is not None:
+        if not isinstance(data, dict):
+            raise ConfigError(f"{show_path(path)}: expected a mapping at the top level")
+        edit(data)
+    return parse_config(data, path.resolve().parent, show_path(path))
+
+
+def parse_config(data: Any, base: Path, source: str = "config") -> DaemonConfig:
+    """Validate a config mapping; relative paths in it are taken from `base`.  `source`
+    (the file) starts every line of a ConfigError."""
+    raw = validate_section(FileConfig, data, source)
+    config = DaemonConfig(raw, Robot.from_reference(raw.robot, base, source), base, source)
+    check_geometry(config)
+    return config
+
+
+def check_geometry(config: DaemonConfig) -> None:
+    """The home pose's static wrench in W and the home pose inside the limits trajectories
+    are validated against (ConfigError if not); Robot itself refuses a rank-deficient Λ
+    at home."""
+    robot = config.robot
+    home = robot.home
+    Lam = robot.jacobian(home)
+    solver = tension_solver(robot, config.controller)
+    zero = np.zeros(robot.n_cables)
+    result = solver.solve(Lam, robot.bias_wrench(home, np.zeros(6)), zero, zero)
+    if not result.feasible:
+        raise ConfigError(
+            f"{config.source}: robot: the home pose is not in the wrench set W: {result.reason}"
+        )
+    bad = config.reference_limits.violation(home)
+    if bad is None:
+        return
+    safety, where = config.safety, f"{config.source}: safety:"
+    if bad.limit == "tilt_max":
+        raise ConfigError(
+            f"{where} tilt_max ({safety.tilt_max:g} rad) leaves no room for a trajectory "
+            f"once tracking_error_orientation ({safety.tracking_error_orientation:g} rad) "
+            f"is kept from it: {bad.detail}"
+        )
+    raise ConfigError(
+        f"{where} the home position {home.position.tolist()} lies outside the workspace "
+        "box (workspace_min/workspace_max, default the anchors' bounding box) shrunk by "
+        f"tracking_error_position ({safety.tracking_error_position:g} m), inside which "
+        f"trajectories must stay: {bad.detail}"
+    )

@@ -1,0 +1,475 @@
+"""JSON messages of the zenoh interface: schemas, strict decoding, encoding (DESIGN §10).
+
+Every message carries {"version": 1} (the same key and number as the trajectory form of
+cdpr.trajectory; optional on input, always present on output).  Quaternions are objects
+{"w", "x", "y", "z"}; vectors are [x, y, z] lists (also {"x", "y", "z"} on input).
+
+Inputs (objects; unknown keys, wrong types, NaN/Infinity tokens are refused):
+
+    <prefix>/trajectory   put, or get with the body as the query payload
+        {"version": 1, "id": "plan-42", "start": "now",     # or a unix time (s)
+         "waypoints": [{"t": 0.0, "position": [..], "quaternion": {..}}, ...]}
+        "id" (optional, 1..128 characters) is echoed in the reply and the events;
+        "start": when the first waypoint is due ("now", the default: at once);
+        "waypoints": as documented in cdpr/trajectory/parse.py.
+    <prefix>/cmd/<name>   get; payload optional (none, {} or {"version": 1}), except
+        goto:  {"position": [x, y, z], "quaternion": {"w", "x", "y", "z"}}
+               (quaternion optional: identity)
+        brake: {"reason": "operator stop"}  (optional)
+
+Outputs:
+
+    reply   {"version": 1, "ok": true, "command": "enable", "result": {..handler body..}}
+            {"version": 1, "ok": false, "command": "goto",
+             "error": {"code": "bad_request", "reason": "...", "field": "position", ..}}
+            (trajectory replies also carry "id"; errors are sent with Query.reply_err)
+    event   {"version": 1, "seq": 7, "time": 1718000000.25, "event": "trajectory_rejected",
+             "id": "plan-42", "error": {..}}      (see EVENT_KEY)
+    state   {"version": 1, "seq": 1234, "time": 1718000000.02, **handler.state(),
+             "interface": {counters of received, refused and dropped messages}}
+
+"time" is the sender's unix time (s).  Non-finite numbers are sent as null.
+"""
+
+from __future__ import annotations
+
+import enum
+import json
+import math
+import re
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from cdpr.pose import QUATERNION_NORM_TOLERANCE, Pose
+from cdpr.trajectory import (
+    SCHEMA_VERSION,
+    Trajectory,
+    TrajectoryError,
+    TrajectoryLimits,
+    parse_trajectory,
+)
+from daemon.service.api import COMMANDS, CommandError
+
+VERSION_KEY = "version"
+MAX_ID_CHARS = 128
+MAX_REASON_CHARS = 600  # error texts echo input (e.g. unknown keys): keep replies small
+EVENT_KEY = "event"  # the name of an event: trajectory_accepted / _rejected (interface),
+# state, fault, ... (service)
+MAX_BRAKE_REASON = 200
+_ARGS = {"goto": ("position", "quaternion"), "brake": ("reason",)}
+_IDENTITY = {"w": 1.0, "x": 0.0, "y": 0.0, "z": 0.0}
+_XYZ = ("x", "y", "z")
+_WXYZ = ("w", "x", "y", "z")
+ONE_PIECE_JSON_BYTES = 32 * 1024
+"""Payloads up to this size are decoded by one call of the C decoder (<= ~0.5 ms); longer
+ones piece by piece (see decode_json), so that no call holds the GIL for long."""
+JSON_PIECE = 16 * 1024  # characters: the most the C decoder reads at once in a long payload
+MAX_JSON_DEPTH = 1000  # nesting, as deep as the C decoder goes
+_WINDOWS = (512, JSON_PIECE)  # try a short piece first: most values are small
+_WHITESPACE = re.compile(r"[ \t\n\r]*")
+
+
+@dataclass(frozen=True)
+class TrajectoryRequest:
+    """A decoded trajectory message: the sender's id, the start time, the trajectory."""
+
+    id: str | None
+    start: float | None  # unix time (s), None: as soon as possible
+    trajectory: Trajectory
+
+
+@dataclass(frozen=True)
+class TrajectoryMessage:
+    """A trajectory message whose head is checked (check_trajectory_head): the sender's
+    id, the start time, the body still to parse and how many waypoints it lists."""
+
+    id: str | None
+    start: float | None
+    body: dict[str, Any]
+    waypoints: int
+
+
+def decode_json(payload: bytes, max_bytes: int) -> Any:
+    """Strict JSON: size-limited, UTF-8, no NaN/Infinity tokens, nesting within Python's
+    recursion limit.
+
+    The C decoder holds the GIL for a whole call (~6-15 µs per KiB), so a payload above
+    ONE_PIECE_JSON_BYTES is decoded piece by piece: containers are walked here, each
+    value of at most JSON_PIECE characters goes to the C decoder at once, and a string or
+    number longer than that is refused.  The result is the same as json.loads's.
+    """
+    check_size(len(payload), max_bytes)
+    try:
+        text = payload.decode("utf-8")
+        if len(payload) <= ONE_PIECE_JSON_BYTES:
+            return _DECODER.decode(text)
+        return _decode_in_pieces(text)
+    except RecursionError:
+        raise CommandError("bad_request", "JSON nested too deeply") from None
+    except UnicodeDecodeError as exc:
+        raise CommandError("bad_request", f"payload is not UTF-8 text: {exc.reason}") from None
+    except ValueError as exc:  # json.JSONDecodeError or a refused constant
+        raise CommandError("bad_request", f"invalid JSON: {exc}") from None
+
+
+def _decode_in_pieces(text: str) -> Any:
+    """json.loads(text), handing the C decoder at most JSON_PIECE characters at a time."""
+    size = len(text)
+    stack: list[list[Any]] = []  # [container, the key of the value being read (objects)]
+    pos = _skip_space(text, 0)
+    while True:
+        value, end = _value_in_piece(text, pos)
+        if end >= 0:
+            pos = end
+        else:  # a container longer than a piece: walk it
+            if len(stack) >= MAX_JSON_DEPTH:
+                raise RecursionError
+            value = [] if text[pos] == "[" else {}
+            pos = _skip_space(text, pos + 1)
+            if text.startswith("]" if isinstance(value, list) else "}", pos):
+                pos += 1
+            else:
+                stack.append([value, None])
+                if isinstance(value, dict):
+                    pos = _member_key(text, pos, stack[-1])
+                continue
+        while True:  # put the value in its container; close finished containers
+            if not stack:
+                pos = _skip_space(text, pos)
+                if pos != size:
+                    raise json.JSONDecodeError("Extra data", text, pos)
+                return value
+            frame = stack[-1]
+            container = frame[0]
+            if isinstance(container, list):
+                container.append(value)
+            else:
+                container[frame[1]] = value
+            pos = _skip_space(text, pos)
+            char = text[pos : pos + 1]
+            if char == ",":
+                pos = _skip_space(text, pos + 1)
+                if isinstance(container, dict):
+                    pos = _member_key(text, pos, frame)
+                break
+            if char != ("]" if isinstance(container, list) else "}"):
+                raise json.JSONDecodeError("Expecting ',' delimiter", text, pos)
+            stack.pop()
+            value, pos = container, pos + 1
+
+
+def _value_in_piece(text: str, pos: int) -> tuple[Any, int]:
+    """(the value at pos, where it ends), or (None, -1) for a container longer than a
+    piece; JSONDecodeError for bad JSON and for strings and numbers that long."""
+    for window in _WINDOWS:
+        piece = text[pos : pos + window]
+        try:
+            value, end = _DECODER.raw_decode(piece)
+        except json.JSONDecodeError as exc:
+            error = exc
+            continue
+        if end < len(piece) or pos + end >= len(text):  # a number cut at the piece's end
+            return value, pos + end  # is not whole
+        error = None
+    if pos + len(piece) < len(text):  # the value goes on beyond the piece
+        if text[pos] in "[{":
+            return None, -1
+        if error is None or error.pos >= len(piece) or error.msg.startswith("Unterminated"):
+            raise json.JSONDecodeError(
+                f"a string or number longer than {JSON_PIECE} characters", text, pos
+            )
+    assert error is not None
+    raise json.JSONDecodeError(error.msg, text, pos + error.pos)
+
+
+def _member_key(text: str, pos: int, frame: list[Any]) -> int:
+    """Read '"key" :' at pos into frame[1]; the position of the member's value."""
+    if text[pos : pos + 1] != '"':
+        raise json.JSONDecodeError("Expecting property name enclosed in double quotes", text, pos)
+    piece = text[pos + 1 : pos + 1 + JSON_PIECE]
+    try:
+        frame[1], end = json.decoder.scanstring(piece, 0, True)
+    except json.JSONDecodeError as exc:
+        if pos + 1 + len(piece) < len(text) and exc.msg.startswith("Unterminated"):
+            message = f"a string longer than {JSON_PIECE} characters"
+            raise json.JSONDecodeError(message, text, pos) from None
+        raise json.JSONDecodeError(exc.msg, text, pos + 1 + exc.pos) from None
+    pos = _skip_space(text, pos + 1 + end)
+    if text[pos : pos + 1] != ":":
+        raise json.JSONDecodeError("Expecting ':' delimiter", text, pos)
+    return _skip_space(text, pos + 1)
+
+
+def _skip_space(text: str, pos: int) -> int:
+    while True:
+        end = _WHITESPACE.match(text, pos, pos + JSON_PIECE).end()
+        if end < pos + JSON_PIECE:
+            return end
+        pos = end
+
+
+def check_size(size: int, max_bytes: int, limit: str = "max_message_bytes") -> None:
+    """Refuse a message above `max_bytes` (the `limit` named in the error) unread."""
+    if size > max_bytes:
+        raise CommandError(
+            "bad_request",
+            f"message of {size} bytes exceeds the limit of {max_bytes} bytes",
+            limit=limit,
+            value=size,
+        )
+
+
+def request_id(data: Any) -> str | None:
+    """The sender's id if there is a valid one (also for messages rejected otherwise)."""
+    if isinstance(data, dict):
+        value = data.get("id")
+        if isinstance(value, str) and 0 < len(value) <= MAX_ID_CHARS:
+            return value
+    return None
+
+
+def decode_trajectory(data: Any, limits: TrajectoryLimits) -> TrajectoryRequest:
+    """A trajectory message -> TrajectoryRequest; CommandError names the problem.
+
+    Schema problems give code "bad_request"; a well-formed trajectory that breaks a rule
+    of its own (times not increasing, a non-unit quaternion, ...) gives "rejected".
+    Either way the error carries the failing limit, waypoint and field.  The same as
+    parse_waypoints(check_trajectory_head(data, limits), limits).
+    """
+    return parse_waypoints(check_trajectory_head(data, limits), limits)
+
+
+def check_trajectory_head(data: Any, limits: TrajectoryLimits) -> TrajectoryMessage:
+    """The cheap part of decode_trajectory (O(1) and a count): everything but the
+    waypoints themselves, which parse_waypoints reads (~0.07 ms a waypoint)."""
+    _check_object(data, "trajectory")
+    body = dict(data)
+    _check_version(body.pop(VERSION_KEY, SCHEMA_VERSION))
+    ident = body.pop("id", None)
+    if ident is not None and request_id({"id": ident}) is None:
+        raise CommandError(
+            "bad_request", f"id: expected a string of 1..{MAX_ID_CHARS} characters", field="id"
+        )
+    start = _start_time(body.pop("start", "now"))
+    waypoints = body.get("waypoints")
+    if isinstance(waypoints, list) and len(waypoints) > limits.max_waypoints:
+        raise CommandError(
+            "rejected",
+            f"{len(waypoints)} waypoints exceed the limit of {limits.max_waypoints}",
+            limit="max_waypoints",
+            value=len(waypoints),
+            field="waypoints",
+        )
+    count = len(waypoints) if isinstance(waypoints, list) else 0
+    return TrajectoryMessage(ident, start, body, count)
+
+
+def parse_waypoints(message: TrajectoryMessage, limits: TrajectoryLimits) -> TrajectoryRequest:
+    """The rest of decode_trajectory: the waypoints, and the C² curve through them."""
+    try:
+        trajectory = parse_trajectory(message.body, limits)
+    except TrajectoryError as exc:
+        code = "bad_request" if exc.limit == "schema" else "rejected"
+        raise CommandError(code, clip(str(exc)), **trajectory_error_details(exc)) from None
+    return TrajectoryRequest(message.id, message.start, trajectory)
+
+
+def rejection(what: str, exc: TrajectoryError) -> CommandError:
+    """A TrajectoryError as the refusal "rejected", naming the limit, the waypoint, the
+    field and the value (DESIGN §7)."""
+    details = trajectory_error_details(exc)
+    return CommandError("rejected", clip(f"{what} rejected: {exc}"), **details)
+
+
+def trajectory_error_details(exc: TrajectoryError) -> dict[str, Any]:
+    """The machine-readable part of a TrajectoryError, as CommandError details
+    (the service can raise CommandError("rejected", str(exc), **these))."""
+    details = {"limit": exc.limit, "waypoint": exc.waypoint, "field": exc.field}
+    if exc.value is not None and math.isfinite(exc.value):
+        details["value"] = exc.value
+    return {k: v for k, v in details.items() if v is not None}
+
+
+def decode_command(
+    name: str, data: Any, unit_tolerance: float = QUATERNION_NORM_TOLERANCE
+) -> dict[str, Any]:
+    """Command `name` with body `data` -> the handler's args.  The body is a JSON object
+    (an empty payload stands for {}); null, an array, a number or a string is refused,
+    since a command must never run on a body that is not what its sender meant."""
+    if name not in COMMANDS:
+        raise CommandError(
+            "unknown_command",
+            clip(f"unknown command {name!r} (commands: {', '.join(COMMANDS)})"),
+            field="command",
+        )
+    _check_object(data, name)
+    _no_unknown_keys(data, (VERSION_KEY, *_ARGS.get(name, ())), name)
+    _check_version(data.get(VERSION_KEY, SCHEMA_VERSION))
+    if name == "brake":
+        reason = data.get("reason")
+        if reason is None:
+            return {}
+        if not isinstance(reason, str) or len(reason) > MAX_BRAKE_REASON:
+            raise CommandError(
+                "bad_request",
+                f"brake.reason: expected a string of up to {MAX_BRAKE_REASON} characters",
+                field="reason",
+            )
+        return {"reason": reason}
+    if name != "goto":
+        return {}
+    if "position" not in data:
+        raise CommandError("bad_request", "goto: missing key 'position'", field="position")
+    position = _vec3(data["position"], "position")
+    quaternion = _unit_quaternion(data.get("quaternion", _IDENTITY), "quaternion", unit_tolerance)
+    return {"pose": Pose(position, quaternion)}
+
+
+def reply_ok(command: str, result: dict[str, Any], ident: str | None = None) -> dict[str, Any]:
+    head = _with_id({VERSION_KEY: SCHEMA_VERSION, "ok": True, "command": command}, ident)
+    return {**head, "result": result}
+
+
+def reply_error(command: str, error: CommandError, ident: str | None = None) -> dict[str, Any]:
+    head = _with_id({VERSION_KEY: SCHEMA_VERSION, "ok": False, "command": command}, ident)
+    return {**head, "error": error_body(error)}
+
+
+def error_body(error: CommandError) -> dict[str, Any]:
+    """{"code", "reason", then the details (limit, waypoint, field, value, ...)}."""
+    return {"code": error.code, "reason": clip(error.reason), **error.details}
+
+
+def encode(message: dict[str, Any]) -> bytes:
+    """Compact strict JSON; numpy values become plain numbers, non-finite ones null."""
+    return json.dumps(jsonable(message), separators=(",", ":"), allow_nan=False).encode()
+
+
+def jsonable(value: Any) -> Any:
+    """A JSON-safe copy: numpy -> Python, tuples -> lists, NaN/inf -> None, other -> str."""
+    if value is None or isinstance(value, bool | str | int):
+        return value
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {str(k): jsonable(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [jsonable(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return jsonable(value.tolist())
+    if isinstance(value, np.generic):
+        return jsonable(value.item())
+    if isinstance(value, enum.Enum):
+        return value.name
+    return clip(str(value), 200)
+
+
+def clip(text: str, limit: int = MAX_REASON_CHARS) -> str:
+    return text if len(text) <= limit else text[: limit - 15] + " ... (clipped)"
+
+
+def _with_id(message: dict[str, Any], ident: str | None) -> dict[str, Any]:
+    return message if ident is None else {**message, "id": ident}
+
+
+def _refuse_constant(token: str) -> Any:
+    raise ValueError(f"{token} is not a JSON number (non-finite values are refused)")
+
+
+_DECODER = json.JSONDecoder(parse_constant=_refuse_constant)
+
+
+def _check_object(data: Any, what: str) -> None:
+    if not isinstance(data, dict):
+        raise CommandError("bad_request", f"{what}: expected a JSON object, got {_kind(data)}")
+
+
+def _check_version(version: Any) -> None:
+    if type(version) is not int or version != SCHEMA_VERSION:
+        raise CommandError(
+            "bad_request",
+            clip(f"version: unsupported schema version {version!r} (this daemon speaks 1)"),
+            field=VERSION_KEY,
+        )
+
+
+def _no_unknown_keys(body: dict[str, Any], allowed: tuple[str, ...], where: str) -> None:
+    unknown = sorted(repr(k) for k in body if k not in allowed)
+    if unknown:
+        raise CommandError(
+            "bad_request",
+            clip(f"{where}: unknown key(s) {', '.join(unknown)} (allowed: {', '.join(allowed)})"),
+            field=where,
+        )
+
+
+def _start_time(value: Any) -> float | None:
+    if value == "now":
+        return None
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise CommandError(
+            "bad_request",
+            f'start: expected "now" or a unix time in seconds, got {_kind(value)}',
+            field="start",
+        )
+    start = float(value) if abs(value) < 1e300 else math.inf
+    if not (math.isfinite(start) and start > 0.0):
+        raise CommandError(
+            "bad_request", f"start: {start!r} is not a unix time in seconds", field="start"
+        )
+    return start
+
+
+def _number(x: Any, where: str) -> float:
+    if isinstance(x, bool) or not isinstance(x, int | float):
+        raise CommandError(
+            "bad_request", f"{where}: expected a number, got {_kind(x)}", field=where
+        )
+    value = float(x) if abs(x) < 1e300 else math.inf
+    if not math.isfinite(value):
+        raise CommandError("bad_request", f"{where}: not a finite number", field=where)
+    return value
+
+
+def _vec3(x: Any, where: str) -> tuple[float, ...]:
+    if isinstance(x, dict):
+        _no_unknown_keys(x, _XYZ, where)
+        if set(x) != set(_XYZ):
+            raise CommandError("bad_request", f"{where}: needs x, y and z", field=where)
+        return tuple(_number(x[k], f"{where}.{k}") for k in _XYZ)
+    if not isinstance(x, list) or len(x) != 3:
+        raise CommandError(
+            "bad_request",
+            f"{where}: expected [x, y, z] or {{x, y, z}}, got {_kind(x)}",
+            field=where,
+        )
+    return tuple(_number(c, f"{where}[{k}]") for k, c in enumerate(x))
+
+
+def _unit_quaternion(x: Any, where: str, tolerance: float) -> tuple[float, ...]:
+    if not isinstance(x, dict):
+        raise CommandError(
+            "bad_request",
+            f"{where}: a quaternion is an object {{w, x, y, z}}, got {_kind(x)}",
+            field=where,
+        )
+    _no_unknown_keys(x, _WXYZ, where)
+    if set(x) != set(_WXYZ):
+        raise CommandError("bad_request", f"{where}: needs w, x, y and z", field=where)
+    w, qx, qy, qz = (_number(x[k], f"{where}.{k}") for k in _WXYZ)
+    norm = math.sqrt(w * w + qx * qx + qy * qy + qz * qz)
+    if not abs(norm - 1.0) <= tolerance:
+        raise CommandError(
+            "rejected",
+            f"{where} has norm {norm:.9g}; a unit quaternion (within {tolerance:g}) is required",
+            field=where,
+            limit="unit_quaternion",
+            value=norm,
+        )
+    return (w / norm, qx / norm, qy / norm, qz / norm)
+
+
+def _kind(x: Any) -> str:
+    return "null" if x is None else type(x).__name__

@@ -1,0 +1,96 @@
+"""The contract between the zenoh interface (daemon/interface/zenoh_io.py) and the daemon service.
+
+The interface owns the network side: it decodes and schema-checks every message, so the
+service only ever sees well-formed requests.  The service owns the robot: it decides
+whether a command or a trajectory is acceptable now.
+
+Threading: every DaemonHandler method is called ON THE EVENT LOOP thread, one call at a
+time, and must return promptly (it shares the loop with the control cycle).
+`ZenohInterface.publish_event({"event": "state", ...})` may be called from any thread;
+it never blocks (a full queue drops the event and counts it).
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Awaitable
+from typing import TYPE_CHECKING, Any, Protocol
+
+if TYPE_CHECKING:
+    from cdpr.trajectory import Trajectory
+
+COMMANDS = ("enable", "disable", "hold", "brake", "reset", "goto", "status")
+"""The command names, each served on `<prefix>/cmd/<name>`."""
+
+ERROR_CODES = (
+    "bad_request",  # malformed or ill-typed input (the interface says which field)
+    "unknown_command",  # not one of COMMANDS
+    "invalid_state",  # well-formed, but not allowed in the current safety state
+    "rejected",  # a trajectory or goto the robot cannot follow (limit, workspace, ...)
+    "drive_error",  # the drives did not do what the command needed
+    "busy",  # the interface's queue was full or it is shutting down: retry later
+    "internal",  # the handler raised something other than CommandError (a bug)
+)
+"""The documented machine codes; a new one is a lower-case snake_case word."""
+
+
+class CommandError(Exception):
+    """A request the service refuses: `code` for machines, `reason` for people.
+
+    `details` (JSON-able: str, int, finite float, bool, None, lists and dicts of them) is
+    added to the error body, e.g. {"limit": "cable_length", "waypoint": 3, "value": 2.1}.
+    """
+
+    def __init__(self, code: str, reason: str, **details: Any) -> None:
+        if not isinstance(code, str) or not re.fullmatch(r"[a-z][a-z0-9_]*", code):
+            code, reason = "internal", f"bad CommandError code {code!r}: {reason}"
+        super().__init__(f"{code}: {reason}")
+        self.code = code
+        self.reason = reason
+        self.details = details
+
+
+class DaemonHandler(Protocol):
+    """Implemented by the service; every method runs on the event-loop thread."""
+
+    def command(
+        self, name: str, args: dict[str, Any]
+    ) -> dict[str, Any] | Awaitable[dict[str, Any]]:
+        """Run command `name` (one of COMMANDS): the JSON reply body, or an awaitable of it
+        for commands that wait for the drives (the reply is sent when it completes).
+
+        args, already validated: {} for every command except
+            goto:  {"pose": cdpr.pose.Pose}  (unit quaternion, normalised)
+            brake: {"reason": str} or {}     (the sender's reason, <= 200 characters)
+        Raise CommandError to refuse (e.g. "invalid_state" for enable while BRAKED).
+        """
+        ...
+
+    def submit_trajectory(
+        self, trajectory: Trajectory, start: float | None
+    ) -> dict[str, Any] | Awaitable[dict[str, Any]]:
+        """Accept a parsed, schema-checked trajectory to run, or raise CommandError;
+        or return an awaitable of that (e.g. to validate a long path between cycles).
+
+        start: the unix time (s) at which the trajectory's first waypoint is due, or None
+        for "as soon as possible".  The service validates against the robot (limits,
+        workspace, approach from the current reference) and either accepts, returning
+        a JSON-able body (e.g. {"start": 1718.2, "duration": 4.0}), or raises
+        CommandError("rejected", reason, limit=..., waypoint=..., value=...).
+        The interface publishes the trajectory_accepted / trajectory_rejected event
+        itself (with the sender's id); the service does not.
+        """
+        ...
+
+    async def slack(self) -> None:
+        """Return when the control cycle has slack (no cycle waiting for its feedback, the
+        next one not due): the interface publishes the state then, off the cycle's way."""
+        ...
+
+    def state(self) -> dict[str, Any]:
+        """The state snapshot to publish now (docs/zenoh.md, "State and events").
+
+        The interface adds version, seq, time and its own counters ("interface");
+        non-finite floats are sent as null; numpy arrays and scalars are accepted.
+        """
+        ...

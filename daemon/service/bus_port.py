@@ -1,0 +1,202 @@
+"""The daemon's end of the CAN bus: frames in on the event loop, frames out, and the
+`Link` that drivers' start-up sequences use to wait for answers.
+
+Buses with a file descriptor (socketcan, socketcand, the simulator's loop bus) are read
+by the event loop itself, many queued frames per wake-up (PERF-FACTS: one frame per
+wake-up costs a loop pass each).  Other buses go through a python-can Notifier thread
+that hands frames to the loop.  Either way the sink gets at most FRAMES_PER_PASS frames
+per loop pass, so that a flood cannot hold the loop: the control cycle's timer and
+deadline run between batches, and a flood the loop cannot keep up with ends in stale
+feedback, which brakes, rather than in a loop that no longer runs.
+
+Given the ids the drivers read, the port drops every other frame first, before the
+batches: on SocketCAN the kernel does (receive filters), elsewhere an IdFilter (a set
+lookup a frame), counted in `ignored`.  So a flood on ids no drive uses costs next to
+nothing, and the feedback behind it is not delayed by batches of junk.  Frames lost
+because the loop fell behind a Notifier thread are counted in `dropped`.
+
+A failed send or receive is never raised: it is logged (one line per kind of failure
+and a count every few seconds: daemon.process.logsetup limits this logger) and reported to
+`on_error`, or to `on_lost` when it means the bus is gone (drivers.bus.gone).  A lost
+bus stays lost: the port stops reading it, and `expect` fails at once.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from collections import deque
+from collections.abc import Callable, Iterable
+
+import can
+
+from drivers.base import DriverError
+from drivers.bus import FRAMES_PER_PASS, BusWatch, IdFilter, frame_io, gone
+
+log = logging.getLogger(__name__)
+
+FrameSink = Callable[[list[can.Message], float], None]
+
+
+class BusPort:
+    """Reads frames into `sink(frames, now)` and sends frames; also a drivers.base.Link.
+    With `ids`, only error frames and standard frames on those ids are read."""
+
+    def __init__(self, bus: can.BusABC, sink: FrameSink, ids: Iterable[int] | None = None) -> None:
+        self.bus = bus
+        self._io = frame_io(bus)
+        self._sink = sink
+        self._filter = None if ids is None else IdFilter(ids)
+        self._pending: deque[can.Message] = deque()  # read and wanted, not yet delivered
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._watch: BusWatch | None = None
+        self._waiters: list[tuple[Callable[[can.Message], bool], asyncio.Future]] = []
+        self.on_error: Callable[[str], None] | None = None  # a transient failure
+        self.on_lost: Callable[[str], None] | None = None  # the bus is gone
+        self.on_sent: Callable[[can.Message], None] | None = None
+        self.lost: str | None = None  # what ended the bus
+        self.failures = 0  # sends and receives that failed
+
+    def open(self, loop: asyncio.AbstractEventLoop) -> None:
+        """Start delivering received frames on `loop`; frames queued before this are
+        stale and dropped (a drive streaming at 500 Hz fills the socket's queue while the
+        daemon starts, and handing that backlog over in one go stalled the start-up
+        long enough to trip the drives' watchdogs)."""
+        self._loop = loop
+        try:
+            stale = len(self._io.drain())
+        except (can.CanError, OSError) as exc:
+            self._failed("receive", exc)
+        else:
+            if stale:
+                log.debug("dropped %d frames queued before the daemon opened the bus", stale)
+        if self.lost is None:
+            if self._filter is not None:
+                self._io.receive_only(self._filter.ids)
+            self._watch = BusWatch(
+                self._io,
+                loop,
+                self._drain,
+                self._deliver,
+                lambda exc: self._failed("receive", exc),
+                self._filter,
+            )
+
+    def close(self) -> None:
+        self._stop_reading()
+        for _, future in self._waiters:
+            if not future.done():
+                future.cancel()
+        self._waiters.clear()
+
+    def _stop_reading(self) -> None:
+        if self._watch is not None:
+            self._watch.close()
+            self._watch = None
+
+    # -- input --------------------------------------------------------------------
+
+    def poll(self) -> None:
+        """Deliver the frames queued now, without waiting for the loop to notice them:
+        after the loop was held up, frames that arrived in time may still sit in the
+        socket when a timer fires.  A no-op where a Notifier thread reads the bus."""
+        if self._watch is not None and self._watch.polled:
+            self._drain()
+
+    @property
+    def ignored(self) -> int:
+        """Frames read and dropped for their id (the kernel's drops are not counted)."""
+        return 0 if self._filter is None else self._filter.ignored
+
+    @property
+    def dropped(self) -> int:
+        """Frames lost because the loop fell behind the bus's Notifier thread."""
+        return 0 if self._watch is None else self._watch.dropped
+
+    def _drain(self) -> None:
+        if self.lost is not None:
+            return
+        try:
+            frames = self._io.drain(FRAMES_PER_PASS)
+        except (can.CanError, OSError) as exc:
+            self._failed("receive", exc)
+            return
+        if self._filter is not None:
+            frames = self._filter.wanted(frames)
+        pending = self._pending
+        if not pending and len(frames) <= FRAMES_PER_PASS:
+            if frames:
+                self._deliver(frames)
+            return
+        pending.extend(frames)
+        batch = [pending.popleft() for _ in range(min(FRAMES_PER_PASS, len(pending)))]
+        if pending and self._loop is not None:  # the rest next pass, after the others
+            self._loop.call_soon(self._drain)
+        self._deliver(batch)
+
+    def _deliver(self, frames: list[can.Message]) -> None:
+        now = time.monotonic()
+        self._sink(frames, now)
+        if self._waiters:
+            for msg in frames:
+                self._wake(msg)
+
+    def _wake(self, msg: can.Message) -> None:
+        keep = []
+        for match, future in self._waiters:
+            if future.done():
+                continue
+            if match(msg):
+                future.set_result(msg)
+            else:
+                keep.append((match, future))
+        self._waiters = keep
+
+    # -- output -------------------------------------------------------------------
+
+    def send(self, message: can.Message) -> None:
+        """Send one frame; a failure is counted and reported, never raised."""
+        try:
+            self._io.send(message)
+        except (can.CanError, OSError) as exc:
+            self._failed("send", exc)
+            return
+        if self.on_sent is not None:
+            self.on_sent(message)
+
+    def _failed(self, action: str, exc: Exception) -> None:
+        """A send or receive raised `exc`: log it, then report it as lost or transient."""
+        self.failures += 1
+        what = f"{action} failed: {exc}"
+        log.warning("CAN %s", what)  # the same text again is counted, not repeated
+        if not gone(exc):
+            if self.on_error is not None:
+                self.on_error(what)
+            return
+        if self.lost is not None:
+            return
+        self.lost = what
+        self._stop_reading()
+        for _, future in self._waiters:
+            if not future.done():
+                future.set_exception(DriverError(f"CAN bus lost: {what}"))
+        self._waiters.clear()
+        if self.on_lost is not None:
+            self.on_lost(what)
+
+    # -- Link ----------------------------------------------------------------------
+
+    async def expect(
+        self, match: Callable[[can.Message], bool], timeout: float, what: str
+    ) -> can.Message:
+        """The next received frame matching `match`; DriverError naming `what` on timeout."""
+        assert self._loop is not None, "open() the port first"
+        if self.lost is not None:
+            raise DriverError(f"CAN bus lost: {self.lost}; expected {what}")
+        future: asyncio.Future = self._loop.create_future()
+        self._waiters.append((match, future))
+        try:
+            return await asyncio.wait_for(future, timeout)
+        except TimeoutError:
+            raise DriverError(f"no answer within {timeout * 1e3:.0f} ms: {what}") from None

@@ -1,0 +1,777 @@
+"""The cdprd service: the control cycle on the CAN bus, the safety state machine, and
+the commands planners send (DESIGN §8–§10).
+
+One asyncio loop does everything time-critical: a timerfd opens each cycle (SYNC for
+SYNC-driven drives), received frames are drained into the driver as they arrive, and
+the cycle runs the moment every actuator's feedback is in (or at the deadline): the
+controller step, the safety checks, then all command frames.  Commands from zenoh
+arrive on the same loop, between cycles.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import gc
+import logging
+import math
+import os
+import time
+from collections.abc import Awaitable, Callable, Generator
+from typing import Any, Literal, TypeVar
+
+import can
+import numpy as np
+
+from cdpr import Pose
+from cdpr.controller import (
+    ControlOutput,
+    ParallelController,
+    static_tensions,
+    tension_solver,
+    wrench_check,
+)
+from cdpr.pose import retract
+from cdpr.pose_limits import PoseLimits
+from cdpr.trajectory import (
+    Reference,
+    Trajectory,
+    TrajectoryError,
+    approach_steps,
+    check_start_delay,
+    goto_steps,
+    run_steps,
+    validation_steps,
+)
+from daemon.config import DaemonConfig
+from daemon.service.api import CommandError
+from daemon.service.bus_port import BusPort
+from daemon.service.cycle_stats import CycleStats
+from daemon.service.gc_policy import CollectorPolicy
+from daemon.service.safety import Fault, SafetyMonitor, SafetyState, StateMachine, Trigger
+from daemon.service.trusted_lengths import TrustedLengths
+from drivers.base import ActuatorDriver, DriverError, FrameError, Timing
+from drivers.bus import CAN_ERR_BUSOFF
+from drivers.clock import PeriodicTimer
+from drivers.factory import make_driver
+
+log = logging.getLogger("cdprd")
+
+STARTUP_TIMEOUT = 5.0  # s for the drives to come up
+SLACK_MARGIN = 3e-4  # s before a tick at which background work stops (> its longest step)
+PLANNING_LEAD = 0.05  # s ahead of now a planned transition begins (planning takes time)
+HOLD_LEAD = 0.01  # the same for a hold: a stop plans in a few ms and should not wait
+SETTLE_ATTEMPTS = 3  # plans of an approach that begins later, from the state it begins at
+EXIT_BUS_LOST = os.EX_UNAVAILABLE  # 69, sysexits' "service unavailable": the bus is gone
+EventSink = Callable[[dict[str, Any]], None]
+Result = TypeVar("Result")
+
+
+class Service:
+    """One robot on one bus.  `run()` until `stop()`; implements
+    daemon.service.api.DaemonHandler."""
+
+    def __init__(self, config: DaemonConfig, bus: can.BusABC) -> None:
+        self.config = config
+        self.robot = robot = config.robot
+        self.n = robot.n_cables
+        self.driver: ActuatorDriver = make_driver(config.drives, robot)
+        self.controller = ParallelController(robot, config.controller)
+        self.period = self.controller.period
+        self.stats = CycleStats(config.controller.rate_hz)
+        self.machine = StateMachine()
+        self.monitor = SafetyMonitor(config)
+        self.port = BusPort(bus, self._on_frames, self.driver.receive_ids())
+        self.port.on_error = self._on_bus_error
+        self.port.on_lost = self._on_bus_lost
+        self.port.on_sent = self._on_sent
+        self._wrench_check = wrench_check(robot, tension_solver(robot, config.controller))
+        self._events: list[EventSink] = []
+        # observers off the safety path: (controller time, output) after every control
+        # step, and (frame, received?) for every frame in or out
+        self.cycle_listeners: list[Callable[[float, ControlOutput], None]] = []
+        self.frame_listeners: list[Callable[[can.Message, bool], None]] = []
+        self._t0 = time.monotonic()
+        self._timer: PeriodicTimer | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._stopped: asyncio.Event | None = None
+        self._exit_code = 0
+        self._exit_timer: asyncio.TimerHandle | None = None  # the exit after a lost bus
+        self._busy = False  # an enable or reset sequence is talking to the drives
+        # cycle bookkeeping
+        self._waiting = False
+        self._opened = 0.0
+        self._counts = [0] * self.n
+        self._deadline: asyncio.TimerHandle | None = None
+        self._slack_waiters: list[asyncio.Future[None]] = []  # background work (_in_slack)
+        self._holds = 0  # hold commands so far
+        self._last_rx = 0.0
+        # the lengths a brake or keepalive holds: the last plausible measurements
+        # (rate, step, consistency); a sample may be taken up to a period late and the
+        # host be held up for ~10 ms (PERF-FACTS), which the step bound allows for
+        self.trust = TrustedLengths(
+            robot,
+            config.drives.nodes,
+            max_speed=config.safety.max_cable_speed,
+            tolerance=config.safety.feedback_tolerance,
+            slack=2.0 * self.period + 0.01,
+            rest_tensions=static_tensions(robot, self.controller.tension, robot.home),
+        )
+        self._trajectory: Trajectory | None = None
+        self._scheduled: list[Trajectory] = []  # accepted, beginning later, by start time
+        self.last_output = None
+        self.faults: list[Fault] = []  # conditions active at the last check
+        self.collector = CollectorPolicy()
+        self._extrapolation_limit = 2.0 / config.drives.feedback_rate_hz
+
+    # -- lifecycle --------------------------------------------------------------------
+
+    def now(self) -> float:
+        """Controller time: seconds since the service started (monotonic)."""
+        return time.monotonic() - self._t0
+
+    def subscribe(self, sink: EventSink) -> None:
+        """Receive every event (state changes, faults, trajectory decisions)."""
+        self._events.append(sink)
+
+    async def start(self) -> None:
+        """Open the bus, bring the drives up (held), start the cycle; IDLE on success,
+        BRAKED (STARTUP) if the drives do not come up."""
+        gc.collect()  # now, not while the drives' watchdogs wait for the first cycle
+        loop = asyncio.get_running_loop()
+        self._loop = loop
+        self._stopped = asyncio.Event()
+        self.port.open(loop)
+        self._timer = PeriodicTimer(self.period)
+        loop.add_reader(self._timer.fileno(), self._on_tick)
+        try:
+            await asyncio.wait_for(self.driver.start(self.port, time.monotonic), STARTUP_TIMEOUT)
+        except (TimeoutError, DriverError) as exc:
+            self._brake(Fault(Trigger.STARTUP, f"drives did not start: {exc or 'timeout'}"))
+            return
+        self.machine.go("started")
+        self._emit({"event": "state", "state": "idle", "why": "drives started"})
+        self.collector.start()
+
+    async def wait_stopped(self) -> int:
+        assert self._stopped is not None
+        await self._stopped.wait()
+        return self._exit_code
+
+    def stop(self, trigger: Trigger = Trigger.SIGTERM, exit_code: int = 0) -> None:
+        """Brake (if anything moves), then end `wait_stopped` with `exit_code` (a
+        non-zero code given before stays: a later stop does not make a failure clean)."""
+        if self.machine.moving or self.machine.state is SafetyState.INIT:
+            self._brake(Fault(trigger, "stop requested: braking before exit"))
+        else:
+            self._send(self.driver.brake(self._hold_lengths(), self.config.drives.brake))
+        self._exit_code = self._exit_code or exit_code
+        if self._stopped is not None:
+            self._stopped.set()
+
+    def close(self) -> None:
+        if self._timer is not None and self._loop is not None:
+            self._loop.remove_reader(self._timer.fileno())
+            self._timer.close()
+            self._timer = None
+        if self._deadline is not None:
+            self._deadline.cancel()
+        if self._exit_timer is not None:
+            self._exit_timer.cancel()
+        self._wake_slack_waiters()
+        self.port.close()
+        self.collector.close()
+
+    # -- the cycle ---------------------------------------------------------------------
+
+    def _on_tick(self) -> None:
+        timer = self._timer
+        if timer is None:
+            return
+        expired = timer.expirations()
+        if expired == 0:
+            return
+        now = time.monotonic()
+        self.stats.overruns += expired - 1
+        self.stats.jitter.add(now - timer.last_expiry(now))
+        if self._waiting:  # the previous cycle never completed: close it now
+            self._close_waiting_cycle()
+        self._opened = now
+        if self.driver.timing is Timing.SYNC:
+            self._counts = [fb.count for fb in self.driver.feedback]
+        self._waiting = True
+        self._send(self.driver.cycle_start())
+        if self._all_fresh():
+            self._run_cycle(now, deadline=False)
+            return
+        loop = self._loop
+        assert loop is not None
+        deadline = self.config.safety.feedback_deadline * self.period
+        self._deadline = loop.call_at(loop.time() + deadline, self._on_deadline)
+        if self.machine.moving and not self._busy:
+            self._prepare(now)
+
+    def _prepare(self, now: float) -> None:
+        """The controller's measurement-free work for the cycle opened at `now`, done
+        while the feedback is on its way: off the path from the last feedback frame to
+        the commands."""
+        started = time.monotonic()
+        try:
+            self.controller.prepare(now - self._t0)
+        except Exception:  # the step repeats the work and brakes on the error
+            return
+        self.stats.prepare.add(time.monotonic() - started)
+
+    def _on_deadline(self) -> None:
+        self._deadline = None
+        if self._waiting:
+            self._close_waiting_cycle()
+
+    def _close_waiting_cycle(self) -> None:
+        """The wait for this cycle's feedback is over: run it with what has arrived.
+        Frames already queued count (they came in time while the loop was held up, and
+        the timer that ends the wait may run before the loop reads them); only feedback
+        still missing after that is a miss."""
+        self.port.poll()  # completes the cycle if the missing frames are queued
+        if self._waiting:
+            self.stats.deadline_misses += 1
+            self._run_cycle(time.monotonic(), deadline=True)
+
+    def _all_fresh(self) -> bool:
+        counts = self._counts
+        return all(fb.count > c for fb, c in zip(self.driver.feedback, counts, strict=True))
+
+    def _on_sent(self, frame: can.Message) -> None:
+        for listener in self.frame_listeners:
+            listener(frame, False)
+
+    def _on_frames(self, frames: list[can.Message], now: float) -> None:
+        for listener in self.frame_listeners:
+            for msg in frames:
+                listener(msg, True)
+        receive = self.driver.receive
+        for msg in frames:
+            if msg.is_error_frame:
+                error_class = msg.arbitration_id
+                bus_off = bool(error_class & CAN_ERR_BUSOFF)
+                self._on_bus_error(f"error frame 0x{error_class:x}", bus_off)
+                continue
+            if receive(msg, now) is not None:
+                self._last_rx = now
+        if self._waiting and self._all_fresh():
+            self._run_cycle(now, deadline=False)
+
+    def _run_cycle(self, now: float, deadline: bool) -> None:
+        started = time.monotonic()
+        self._waiting = False
+        if self._deadline is not None:
+            self._deadline.cancel()
+            self._deadline = None
+        feedback = self.driver.feedback
+        fresh = [fb.count > c for fb, c in zip(feedback, self._counts, strict=True)]
+        self._counts = [fb.count for fb in feedback]
+        self.stats.cycles += 1
+        instant = self._opened
+        if self.driver.timing is Timing.CYCLIC:
+            # Streamed feedback: each cable was sampled at its own time; carried to the
+            # cycle's instant with its rate, the lengths describe one pose (DESIGN §8).
+            # Never forward by more than two intervals: older samples are late, and their
+            # rate noise would grow with age.
+            reach = self._extrapolation_limit
+            lengths = [fb.length + fb.rate * min(instant - fb.stamp, reach) for fb in feedback]
+        else:
+            lengths = [fb.length for fb in feedback]
+        rates = [fb.rate for fb in feedback]
+        implausible = self.trust.check(lengths, rates, fresh, instant)
+        faults = [Fault(Trigger.IMPLAUSIBLE_FEEDBACK, f.message()) for f in implausible]
+        faults += self.monitor.check_drives(feedback, self.driver.status, now)
+        stale = self.monitor.check_freshness(fresh)
+        if stale is not None and self.machine.state is not SafetyState.INIT:
+            faults.append(stale)
+        bus = self.monitor.check_bus(now)
+        if bus is not None:
+            faults.append(bus)
+        self.faults = faults
+        state = self.machine.state
+        if faults and state in (SafetyState.IDLE, SafetyState.HOLD, SafetyState.TRACKING):
+            self._brake(faults[0])
+        elif self.machine.moving and not self._busy:
+            self._control(lengths, rates)
+        elif state is not SafetyState.INIT:
+            self._send(self.driver.keepalive())
+        done = time.monotonic()
+        self.stats.compute.add(done - started)
+        if not deadline and self._last_rx:
+            # streamed feedback may be complete before the tick: then from the tick
+            self.stats.latency.add(done - max(self._last_rx, self._opened))
+        self.collector.after_cycle()  # the commands are out: now
+        if self._slack_waiters:
+            self._wake_slack_waiters()
+
+    def _control(self, lengths: list[float], rates: list[float]) -> None:
+        """Controller step, checks and commands for the cycle opened at `self._opened`:
+        the cycle's instant, when SYNC latched the drives' positions.  `lengths` and
+        `rates` passed the plausibility checks (an implausible one brakes instead)."""
+        t = self._opened - self._t0
+        try:
+            output = self.controller.step(t, lengths, rates)
+        except Exception as exc:
+            log.exception("controller step raised")
+            self._brake(Fault(Trigger.CONTROLLER_EXCEPTION, f"{type(exc).__name__}: {exc}"))
+            return
+        self.last_output = output
+        for listener in self.cycle_listeners:
+            listener(t, output)
+        fault = self.monitor.check_output(output)
+        if fault is not None:
+            self._brake(fault)
+            return
+        try:
+            frames = self.driver.commands(output.commands)
+        except FrameError as exc:
+            self._brake(Fault(Trigger.NAN, str(exc)))
+            return
+        self._send(frames)
+        self.trust.follow_pose(output.pose)
+        while self._scheduled and t >= self._scheduled[0].start_time:
+            self._trajectory = self._scheduled.pop(0)
+            if self.machine.state is SafetyState.HOLD:
+                self.machine.go("track")
+                self._emit({"event": "state", "why": "trajectory started"})
+        trajectory = self._trajectory
+        if (
+            self.machine.state is SafetyState.TRACKING
+            and trajectory is not None
+            and t >= trajectory.end_time
+        ):
+            self._trajectory = None
+            self.machine.go("finish")
+            self._emit({"event": "trajectory_done", "t": t})
+
+    # -- faults --------------------------------------------------------------------------
+
+    def _brake(self, fault: Fault, supersede: bool = False) -> None:
+        """Enter BRAKED (`supersede`: see StateMachine.brake) and freeze every cable
+        (driver brake frames), logging one line.  BRAKED first: a brake frame that fails
+        to send reports a bus error, which must not brake all over again."""
+        braked = self.machine.brake(fault, supersede)
+        self._send(self.driver.brake(self._hold_lengths(), self.config.drives.brake))
+        self._trajectory = None
+        self._scheduled.clear()
+        if braked:
+            deliberate = fault.trigger in (Trigger.SIGTERM, Trigger.COMMAND)
+            log.log(logging.WARNING if deliberate else logging.ERROR, fault.line())
+            self._emit({"event": "brake", "trigger": fault.trigger.value, "message": fault.message})
+
+    def _hold_lengths(self) -> list[float]:
+        """The last trusted lengths (NaN for a cable never trusted: no drive was
+        enabled then, and the driver keeps it so)."""
+        return list(self.trust.held)
+
+    def _on_bus_error(self, what: str, bus_off: bool = False) -> None:
+        self.stats.bus_errors += 1
+        fault = self.monitor.bus_error(time.monotonic(), what, bus_off)
+        if fault is not None and self.machine.state is not SafetyState.BRAKED:
+            self._brake(fault)
+
+    def _on_bus_lost(self, what: str) -> None:
+        """The bus is gone: brake what can still be reached (those frames may fail too,
+        counted), report it as the fault on record, and exit with EXIT_BUS_LOST after
+        safety.bus_lost_exit seconds, for the service manager to restart the daemon,
+        which comes up IDLE.  The drives' watchdogs hold once the commands stop."""
+        self.stats.bus_errors += 1
+        delay = self.config.safety.bus_lost_exit
+        self._brake(self.monitor.bus_lost(f"{what}; exiting in {delay:g} s"), supersede=True)
+        assert self._loop is not None  # the port reports only once opened on the loop
+        self._exit_timer = self._loop.call_later(delay, self._exit_bus_lost)
+
+    def _exit_bus_lost(self) -> None:
+        log.error(
+            "exiting with code %d: %s (%d sends and receives failed)",
+            EXIT_BUS_LOST,
+            self.port.lost,
+            self.port.failures,
+        )
+        self.stop(Trigger.BUS_LOST, EXIT_BUS_LOST)
+
+    def _send(self, frames: list[can.Message]) -> None:
+        for frame in frames:
+            self.port.send(frame)
+
+    def _emit(self, event: dict[str, Any]) -> None:
+        event.setdefault("t", self.now())
+        event.setdefault("state", self.machine.state.value)
+        for sink in self._events:
+            sink(event)
+
+    # -- commands (daemon.service.api.DaemonHandler) -----------------------------------------------
+
+    def command(self, name: str, args: dict[str, Any]) -> dict[str, Any] | Awaitable[dict]:
+        """Run one command; the reply body, or an awaitable of it for commands that wait
+        for the drives (enable, reset).  CommandError when refused."""
+        handler = _COMMANDS.get(name)
+        if handler is None:
+            raise CommandError("unknown_command", f"unknown command {name!r}")
+        if self._busy and name != "status" and name != "brake":
+            raise CommandError("invalid_state", "the drives are busy with enable or reset")
+        return handler(self, args)
+
+    async def _enable(self, args: dict[str, Any]) -> dict[str, Any]:
+        self._require(SafetyState.IDLE, "enable")
+        if self.faults:
+            raise CommandError(
+                "invalid_state", "cannot enable: " + "; ".join(f.message for f in self.faults)
+            )
+        pose = self._measured_pose()
+        holding = -static_tensions(self.robot, self.controller.tension, pose)
+        self._busy = True
+        try:
+            await self.driver.enable(self.port, self._hold_lengths(), holding.tolist())
+        except DriverError as exc:
+            self._brake(Fault(Trigger.DRIVE_FAULT, f"enable failed: {exc}"))
+            raise CommandError("drive_error", f"enable failed: {exc}") from None
+        finally:
+            self._busy = False
+        if self.machine.state is not SafetyState.IDLE:  # braked meanwhile
+            raise CommandError("invalid_state", f"enable aborted: {self.machine.fault.line()}")
+        self.controller.reset(pose)
+        self.machine.go("enable")
+        self._emit({"event": "state", "why": "enabled"})
+        return self.status()
+
+    def _disable(self, args: dict[str, Any]) -> dict[str, Any]:
+        self._require_moving("disable")
+        self._send(self.driver.brake(self._hold_lengths(), self.config.drives.brake))
+        self._trajectory = None
+        self._scheduled.clear()
+        self.machine.go("disable")
+        self._emit({"event": "state", "why": "disabled"})
+        return self.status()
+
+    async def _hold(self, args: dict[str, Any]) -> dict[str, Any]:
+        self._require_moving("hold")
+        limits = self.config.trajectory
+
+        def stop(current: Reference, begin: float) -> Generator[None, None, Trajectory]:
+            """To rest about where the current motion would stop under full deceleration."""
+            speed = float(np.linalg.norm(current.twist[:3]))
+            spin = float(np.linalg.norm(current.twist[3:]))
+            coast = 0.5 * max(speed / limits.linear_accel, spin / limits.angular_accel)
+            target = retract(current.pose, current.twist * coast)
+            return goto_steps(current, target, limits, start=begin)
+
+        self._holds += 1  # plans under way when the hold came are dropped
+        try:
+            planned = await self._plan_ahead(
+                stop, "hold", lead=HOLD_LEAD, validate="none", attempts=2
+            )
+        except CommandError as exc:
+            if exc.code != "busy":
+                raise
+            # a hold is never refused for want of time: plan it in one piece (~5 ms on
+            # the loop, an occasional late cycle) rather than let the robot carry on
+            begin = self.now() + HOLD_LEAD
+            planned = run_steps(stop(self.controller.source.sample(begin), begin))
+        self._trajectory = None
+        self._scheduled.clear()
+        self.controller.follow(planned, at=planned.start_time)
+        if self.machine.state is SafetyState.TRACKING:
+            self.machine.go("hold")
+        self._emit({"event": "state", "why": "hold"})
+        return self.status()
+
+    def _brake_command(self, args: dict[str, Any]) -> dict[str, Any]:
+        self._brake(Fault(Trigger.COMMAND, str(args.get("reason") or "brake requested")))
+        return self.status()
+
+    async def _reset(self, args: dict[str, Any]) -> dict[str, Any]:
+        self._require(SafetyState.BRAKED, "reset")
+        if any(f.trigger is Trigger.IMPLAUSIBLE_FEEDBACK for f in self.faults):
+            # judged afresh like the first lengths at start-up: trusted again if they fit
+            # one pose and stayed within the step bounds (a cable still off stays a fault)
+            self.trust.retrust()
+            await asyncio.sleep(3 * self.period)
+        # drive faults latch in the drives until cleared; every other condition must be gone
+        causes = [f for f in self.faults if f.trigger is not Trigger.DRIVE_FAULT]
+        if causes:
+            raise CommandError(
+                "invalid_state",
+                "cannot reset while faults persist: " + "; ".join(f.message for f in causes),
+            )
+        self._busy = True
+        try:
+            await self.driver.reset_faults(self.port)
+        except DriverError as exc:
+            raise CommandError("drive_error", f"fault reset failed: {exc}") from None
+        finally:
+            self._busy = False
+        await asyncio.sleep(3 * self.period)  # let fresh feedback and heartbeats arrive
+        try:
+            self.machine.reset(self.faults)
+        except Exception as exc:
+            raise CommandError("invalid_state", str(exc)) from None
+        self._emit({"event": "state", "why": "reset"})
+        return self.status()
+
+    async def _goto(self, args: dict[str, Any]) -> dict[str, Any]:
+        self._require_moving("goto")
+        target = args.get("pose")
+        if not isinstance(target, Pose):
+            raise CommandError("bad_request", "goto needs a target pose")
+        limits = self.config.trajectory
+        planned = await self._plan_ahead(
+            lambda current, start: goto_steps(current, target, limits, start=start), "goto"
+        )
+        return self._run(planned, "goto")
+
+    def _status(self, args: dict[str, Any]) -> dict[str, Any]:
+        return self.status()
+
+    async def submit_trajectory(
+        self, trajectory: Trajectory, start: float | None
+    ) -> dict[str, Any]:
+        """Validate and run `trajectory`, its times relative to `start` (a unix time it
+        may not begin before, at most trajectory.max_start_delay ahead) or to now, after a
+        smooth approach from the current reference.  Rejected: nothing changes and
+        CommandError names the limit, the waypoint and the value.  Validation runs between
+        control cycles.  Until a later start's approach begins the robot carries on (HOLD,
+        or TRACKING what runs); it is TRACKING from then until the trajectory ends."""
+        self._require_moving("run a trajectory")
+        limits = self.config.trajectory
+        if start is not None:
+            if start < time.time() - 1e-3:
+                raise CommandError("rejected", f"trajectory start {start:.3f} lies in the past")
+            try:
+                check_start_delay(start - time.time(), limits)
+            except TrajectoryError as exc:
+                raise _rejected("trajectory", exc) from None
+        await self._validate(trajectory, "trajectory", self.config.reference_limits)
+
+        def plan(current: Reference, begin: float) -> Generator[None, None, Trajectory]:
+            not_before = begin if start is None else max(begin, self.now() + start - time.time())
+            shifted = trajectory.shifted(not_before - trajectory.start_time)
+            source, state = self.controller.source, current
+            for _ in range(SETTLE_ATTEMPTS):
+                planned = yield from approach_steps(state, shifted, limits)
+                if planned.start_time < begin:  # the blend would start in the past
+                    return (yield from approach_steps(current, shifted, limits, start=begin))
+                # it begins later: from the state the reference has then, or it would jump
+                then = source.sample(planned.start_time)
+                if _same_state(then, state):
+                    return planned
+                state = then
+            raise TrajectoryError(
+                "start",
+                f"the current motion is still under way at t={planned.start_time:.6g} s, when "
+                "the approach to this start would begin: start later, or hold first",
+                waypoint=0,
+            )
+
+        planned = await self._plan_ahead(plan, "trajectory", validate="blend")
+        return self._run(planned, "trajectory")
+
+    async def _in_slack(self, steps: Generator[Any, None, Result]) -> Result:
+        """Run a step generator (validation, transition planning) to its result in the
+        cycle's slack: from the end of one cycle's work until SLACK_MARGIN before the
+        next tick, so that it never delays the handling of feedback or the commands."""
+        while True:
+            await self.slack()
+            timer = self._timer
+            until = math.inf if timer is None else timer.next_expiry() - SLACK_MARGIN
+            while True:  # at least one step per period, however short the slack
+                try:
+                    next(steps)
+                except StopIteration as done:
+                    return done.value
+                if time.monotonic() >= until:
+                    break
+
+    async def slack(self) -> None:
+        """Return when no cycle is open and the next tick is more than SLACK_MARGIN away
+        (at once if so; daemon.service.api.DaemonHandler)."""
+        while True:
+            timer, loop = self._timer, self._loop
+            if timer is None or loop is None:
+                return
+            if not self._waiting and timer.next_expiry() - time.monotonic() > SLACK_MARGIN:
+                return
+            done = loop.create_future()
+            self._slack_waiters.append(done)
+            await done  # the coming cycle has run
+
+    def _wake_slack_waiters(self) -> None:
+        waiters, self._slack_waiters = self._slack_waiters, []
+        for waiter in waiters:
+            if not waiter.done():
+                waiter.set_result(None)
+
+    async def _validate(self, trajectory: Trajectory, what: str, pose_limits: PoseLimits) -> None:
+        """DESIGN §7 validation, between control cycles; every sampled pose inside
+        `pose_limits`."""
+        steps = validation_steps(
+            trajectory, self.robot, self.config.trajectory, self._wrench_check, pose_limits
+        )
+        try:
+            await self._in_slack(steps)
+        except TrajectoryError as exc:
+            raise _rejected(what, exc) from None
+
+    async def _plan_ahead(
+        self,
+        make: Callable[[Reference, float], Generator[Any, None, Trajectory]],
+        what: str,
+        lead: float = PLANNING_LEAD,
+        validate: Literal["all", "blend", "none"] = "all",
+        attempts: int = 3,
+    ) -> Trajectory:
+        """A transition from the current reference, planned (between control cycles) to
+        begin `lead` seconds ahead and validated; replanned if another command changed the
+        reference meanwhile, or with a longer lead if the work outlasted it (`attempts` in
+        all, then CommandError "busy").  `validate`:
+        the whole result, only its first segment (the rest already was), or nothing (a
+        hold: stopping may not be refused); inside the validation pose limits, or no
+        further out than where the transition starts (it may start outside them)."""
+        holds = self._holds
+        for _ in range(attempts):
+            begin = self.now() + lead
+            source = self.controller.source
+            current = source.sample(begin)
+            try:
+                planned = await self._in_slack(make(current, begin))
+            except TrajectoryError as exc:
+                raise _rejected(what, exc) from None
+            inside = self.config.reference_limits.widened_to(planned.waypoints[0].pose)
+            if validate == "blend":
+                blend = Trajectory([planned.knot(0), planned.knot(1)])
+                await self._validate(blend, f"{what}'s approach", inside)
+            elif validate == "all":
+                await self._validate(planned, what, inside)
+            self._require_moving(f"run a {what}")  # braked meanwhile: nothing changes
+            if self._holds != holds and what != "hold":
+                raise CommandError("invalid_state", f"{what} dropped: a hold came meanwhile")
+            if self.controller.source is not source:  # another command moved it meanwhile
+                continue
+            if self.now() <= planned.start_time:
+                return planned
+            lead *= 3
+        raise CommandError("busy", f"{what}: planning kept outlasting its lead")
+
+    def _run(self, trajectory: Trajectory, what: str) -> dict[str, Any]:
+        """Follow a validated trajectory (planned from the current reference) from its
+        start: TRACKING from now if it begins within the planning lead, else from its
+        start (the control cycle switches then; until then the robot carries on)."""
+        self.controller.follow(trajectory, at=trajectory.start_time)
+        # what was scheduled to begin after it never will (the new source takes over)
+        self._scheduled = [s for s in self._scheduled if s.start_time < trajectory.start_time]
+        if trajectory.start_time > self.now() + PLANNING_LEAD:
+            self._scheduled.append(trajectory)
+        else:
+            self._trajectory = trajectory
+            if self.machine.state is SafetyState.HOLD:
+                self.machine.go("track")
+                self._emit({"event": "state", "why": f"{what} accepted"})
+        return {
+            "accepted": True,
+            "what": what,
+            "start": trajectory.start_time,
+            "end": trajectory.end_time,
+            "duration": trajectory.duration,
+        }
+
+    def _require(self, state: SafetyState, action: str) -> None:
+        if self.machine.state is not state:
+            raise CommandError(
+                "invalid_state",
+                f"cannot {action} while {self.machine.state.value} (needs {state.value})",
+            )
+
+    def _require_moving(self, action: str) -> None:
+        if not self.machine.moving:
+            raise CommandError(
+                "invalid_state", f"cannot {action} while {self.machine.state.value} (enable first)"
+            )
+
+    def _measured_pose(self) -> Pose:
+        """The platform pose from the current lengths, stretch-corrected with the static
+        tensions of the pose (the platform is at rest when enabling): forward
+        kinematics alternated with the statics, starting from the home pose."""
+        lengths = np.array(self.trust.held)
+        if not np.all(np.isfinite(lengths)):
+            raise CommandError("invalid_state", "no feedback from every drive yet")
+        robot, solver = self.robot, self.controller.tension
+        pose = robot.home
+        for _ in range(3):
+            tensions = static_tensions(robot, solver, pose)
+            fk = robot.forward_kinematics(robot.stretched_lengths(lengths, tensions), pose)
+            pose = fk.pose
+        if not fk.converged:
+            raise CommandError("invalid_state", f"forward kinematics failed: {fk.reason}")
+        return pose
+
+    # -- state ---------------------------------------------------------------------------
+
+    def status(self) -> dict[str, Any]:
+        """Safety state, fault and active conditions (the reply to most commands)."""
+        fault = self.machine.fault
+        return {
+            "state": self.machine.state.value,
+            "fault": None
+            if fault is None
+            else {"trigger": fault.trigger.value, "message": fault.message},
+            "conditions": [f.message for f in self.faults],
+            "drives": [{"state": s.state.value, "fault": s.fault} for s in self.driver.status],
+        }
+
+    def state(self) -> dict[str, Any]:
+        """The published state: pose, twist, lengths, tensions, forces, safety, timing."""
+        out = self.last_output
+        feedback = self.driver.feedback
+        state: dict[str, Any] = {
+            "t": self.now(),
+            **self.status(),
+            "lengths": [fb.length for fb in feedback],
+            "rates": [fb.rate for fb in feedback],
+            "cycle": {**self.stats.summary(), "gc": self.collector.stats.summary()},
+            "frames": {
+                "accepted": self.driver.counters.accepted,
+                "rejected": dict(self.driver.counters.rejected),
+                "ignored": self.port.ignored,  # on ids no drive uses
+                "dropped": self.port.dropped,  # the loop fell behind the bus
+            },
+        }
+        if out is not None and self.machine.moving:
+            q = out.pose.quaternion.tolist()
+            state.update(
+                pose={
+                    "position": out.pose.position.tolist(),
+                    "quaternion": {"w": q[0], "x": q[1], "y": q[2], "z": q[3]},
+                },
+                twist=out.twist.tolist(),
+                tensions=out.tensions.tolist(),
+                forces=out.commands.tolist(),
+                tracking_error=out.theta_d.tolist(),
+                fk_residual=out.fk_residual,
+            )
+        return state
+
+
+_COMMANDS: dict[str, Callable[[Service, dict[str, Any]], Any]] = {
+    "enable": Service._enable,
+    "disable": Service._disable,
+    "hold": Service._hold,
+    "brake": Service._brake_command,
+    "reset": Service._reset,
+    "goto": Service._goto,
+    "status": Service._status,
+}
+
+
+def _same_state(a: Reference, b: Reference) -> bool:
+    """The same pose, twist and accel: a transition from one continues the other."""
+    same_rates = np.array_equal(a.twist, b.twist) and np.array_equal(a.accel, b.accel)
+    return a.pose == b.pose and same_rates
+
+
+def _rejected(what: str, exc: TrajectoryError) -> CommandError:
+    """A rejection that names the limit, the waypoint and the value (DESIGN §7)."""
+    details = {"limit": exc.limit, "waypoint": exc.waypoint, "value": exc.value}
+    return CommandError("rejected", f"{what} rejected: {exc}", **details)

@@ -1,0 +1,210 @@
+"""The parallel-actuator controller closed-loop on the simulated robot (lock-step).
+
+Each run is a few seconds of simulated time at 500 Hz; figures are of the TRUE platform
+(the plant) against the reference."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cdpr import Pose, Robot, liediff
+from cdpr.baseline import JointSpaceController
+from cdpr.control_spec import ControllerSpec, parse_controller
+from cdpr.controller import Hold, ParallelController
+from sim_bus.plant.config import parse_plant_config
+from tests.closed_loop import RATE, hold_run, pose_errors
+from tuning.scenarios import STANDARD_SET
+from tuning.tracking import run_tracking
+
+
+@pytest.mark.parametrize("model_at", ["reference", "measured"])
+def test_holds_home_still(reference8: Robot, model_at: str) -> None:
+    controller = ParallelController(reference8, parse_controller({"model_at": model_at}))
+    rec, outputs = hold_run(reference8, controller, reference8.home, 3.0)
+    pos, ang = pose_errors(rec, reference8.home)
+    assert all(o.feasible for o in outputs)
+    assert pos.max() < 1e-4 and np.degrees(ang.max()) < 0.01
+    assert rec.tensions.min() > reference8.t_min.min() * 0.5
+
+
+class LiteralStep5(ParallelController):
+    """The paper's step 5 read literally: theta_d = liediff(eta, eta_r) ~ eta_r - eta,
+    and its rate phi_r - phi."""
+
+    def tracking_error(self, pose, twist, reference):
+        return liediff(pose, reference.pose), reference.twist - twist
+
+
+@pytest.mark.parametrize("model_at", ["reference", "measured"])
+def test_sign_erratum_ours_converges_the_literal_reading_diverges(
+    reference8: Robot, model_at: str
+) -> None:
+    """DESIGN §3: from a 5 mm / 0.5 deg offset, theta_d = liediff(eta_r, eta) settles
+    (to 0.1 mm in 4.5 s: the integral action's tail);
+    the literal liediff(eta, eta_r) turns the PID into positive feedback and runs away."""
+    target = Pose.from_rotvec(
+        reference8.home.position + np.array((0.003, -0.002, 0.003)), np.radians((0.3, -0.2, 0.3))
+    )
+    spec = parse_controller({"model_at": model_at})
+    rec, outputs = hold_run(reference8, ParallelController(reference8, spec), target, 4.5)
+    pos, ang = pose_errors(rec, target)
+    assert all(o.feasible for o in outputs)
+    assert pos[-100:].max() < 1e-4 and ang[-100:].max() < np.radians(0.05)
+
+    rec, outputs = hold_run(reference8, LiteralStep5(reference8, spec), target, 2.0)
+    pos, _ = pose_errors(rec, target)
+    ran_away = pos.max() > 0.05 or not all(o.feasible for o in outputs)
+    assert ran_away and pos.max() > 10 * 0.0047
+
+
+@pytest.mark.parametrize("model_at", ["reference", "measured"])
+@pytest.mark.parametrize("scenario", sorted(STANDARD_SET))
+def test_standard_set_tracks_within_a_millimetre(scenario: str, model_at: str) -> None:
+    robot = Robot.from_yaml("config/robots/reference8.yaml")
+    trajectory = STANDARD_SET[scenario](robot)
+    controller = ParallelController(robot, parse_controller({"model_at": model_at}))
+    result = run_tracking(robot, trajectory, controller, rate_hz=RATE)
+    assert result.fault == ""
+    assert result.rms_mm <= 1.0, result.figures()
+    assert result.slack_events == 0 and result.min_tension > 10.0
+
+
+@pytest.mark.parametrize("scenario", sorted(STANDARD_SET))
+def test_model_mismatch_stays_stable_and_bounded(scenario: str) -> None:
+    """Plant mass +10 %, m0 -10 %, encoder quantisation and 5 um noise."""
+    robot = Robot.from_yaml("config/robots/reference8.yaml")
+    plant = parse_plant_config(
+        {
+            "mismatch": {"mass_scale": 1.1, "m0_scale": 0.9},
+            "encoder": {"counts_per_metre": 1e5, "noise_std": 5e-6},
+            "seed": 7,
+        }
+    )
+    trajectory = STANDARD_SET[scenario](robot)
+    result = run_tracking(robot, trajectory, ParallelController(robot), plant, RATE)
+    assert result.fault == ""
+    assert result.max_mm < 8.0 and result.max_deg < 1.0, result.figures()
+    assert result.slack_events == 0
+
+
+def test_baseline_tracks_the_standard_set(reference8: Robot) -> None:
+    """The joint-space baseline is a working controller (so the comparison is fair)."""
+    trajectory = STANDARD_SET["vertical_lift"](reference8)
+    result = run_tracking(reference8, trajectory, JointSpaceController(reference8))
+    assert result.fault == "" and result.rms_mm < 3.0
+
+
+def test_pose_outside_the_wrench_set_is_infeasible(reference8: Robot) -> None:
+    controller = ParallelController(reference8)
+    lengths = reference8.drum_lengths(
+        reference8.cable_lengths(reference8.home), controller._tensions
+    )
+    assert controller.step(0.0, lengths, np.zeros(8)).feasible
+    tilted = Pose.from_rotvec(reference8.home.position, (0.0, np.radians(60.0), 0.0))
+    controller.follow(Hold(tilted))
+    out = controller.step(0.002, lengths, np.zeros(8))
+    assert not out.feasible and out.reason.startswith("wrench not in W")
+    assert np.all(np.isnan(out.commands))
+
+
+def test_bad_measurements_are_reported_not_raised(reference8: Robot) -> None:
+    controller = ParallelController(reference8)
+    lengths = reference8.drum_lengths(
+        reference8.cable_lengths(reference8.home), controller._tensions
+    )
+    bad = lengths.copy()
+    bad[3] = np.nan
+    out = controller.step(0.0, bad, np.zeros(8))
+    assert not out.feasible and "forward kinematics" in out.reason and "cable 3" in out.reason
+    rates = np.zeros(8)
+    rates[1] = np.inf
+    out = controller.step(0.0, lengths, rates)
+    assert not out.feasible and "twist" in out.reason
+    inconsistent = lengths.copy()
+    inconsistent[5] += 0.03  # no pose has these lengths
+    out = controller.step(0.0, inconsistent, np.zeros(8))
+    assert not out.feasible and "residual" in out.reason
+
+
+def test_outputs_satisfy_the_papers_relations(reference8: Robot) -> None:
+    """Step 7-11 identities on one cycle: Lambda^T f_p = tau_c, t = f0 - f_p, f_c = f_p + f_b."""
+    spec = ControllerSpec(model_at="measured")
+    controller = ParallelController(reference8, spec)
+    trajectory = STANDARD_SET["figure_eight"](reference8)
+    ref = trajectory.sample(2.0)
+    controller.reset(ref.pose)
+    controller.follow(trajectory)
+    lengths = reference8.drum_lengths(reference8.cable_lengths(ref.pose), controller._tensions)
+    rates = reference8.jacobian(ref.pose) @ ref.twist
+    out = controller.step(2.0, lengths, rates)
+    assert out.feasible
+    Lam = reference8.jacobian(out.pose)
+    np.testing.assert_allclose(Lam.T @ out.f_p, out.tau_c, atol=1e-5)
+    np.testing.assert_allclose(out.tensions, out.f0 - out.f_p, atol=1e-9)
+    np.testing.assert_allclose(out.commands, out.f_p + out.f_b, atol=1e-12)
+    np.testing.assert_allclose(out.f_b, reference8.k0 * (reference8.jacobian(ref.pose) @ ref.twist))
+    assert np.all(out.tensions >= reference8.t_min - 1e-6)
+
+
+@pytest.mark.parametrize("model_at", ["reference", "measured"])
+def test_prepared_steps_equal_plain_steps(reference8: Robot, model_at: str) -> None:
+    """prepare(t) ahead of step(t, ...) changes nothing but when the work is done."""
+    spec = ControllerSpec(model_at=model_at)
+    trajectory = STANDARD_SET["figure_eight"](reference8)
+    run = run_tracking(reference8, trajectory, ParallelController(reference8, spec))
+    rec = run.recording
+    plain, ahead = ParallelController(reference8, spec), ParallelController(reference8, spec)
+    for controller in (plain, ahead):
+        controller.reset(rec.pose(0))
+        controller.follow(trajectory)
+    for k in range(min(len(rec), 600)):  # every cycle: the controllers carry state
+        t = float(rec.t[k])
+        ahead.prepare(t)
+        a = plain.step(t, rec.measured_lengths[k], rec.measured_rates[k])
+        b = ahead.step(t, rec.measured_lengths[k], rec.measured_rates[k])
+        assert a.feasible and b.feasible
+        np.testing.assert_array_equal(a.commands, b.commands)
+        np.testing.assert_array_equal(a.tensions, b.tensions)
+        assert a.pose == b.pose
+
+
+def test_a_preparation_is_dropped_by_follow_and_by_another_time(reference8: Robot) -> None:
+    controller = ParallelController(reference8)
+    lengths = reference8.drum_lengths(
+        reference8.cable_lengths(reference8.home), controller._tensions
+    )
+    trajectory = STANDARD_SET["vertical_lift"](reference8)
+    controller.follow(trajectory)
+    controller.prepare(0.5)
+    out = controller.step(1.0, lengths, np.zeros(8))  # not the prepared time
+    assert out.reference.pose == trajectory.sample(1.0).pose
+    controller.prepare(1.002)
+    moved = Pose.from_rotvec(reference8.home.position + np.array([0.0, 0.0, 0.01]), np.zeros(3))
+    controller.follow(Hold(moved))  # a new source after the preparation
+    out = controller.step(1.002, lengths, np.zeros(8))
+    assert out.reference.pose == moved
+
+
+def test_a_source_followed_from_a_time_takes_over_then(reference8: Robot) -> None:
+    """follow(source, at): the current reference until `at`, the new one from then; a
+    later follow drops the switches already past."""
+    controller = ParallelController(reference8)
+    lengths = reference8.drum_lengths(
+        reference8.cable_lengths(reference8.home), controller._tensions
+    )
+    first = controller.source
+    lift = STANDARD_SET["vertical_lift"](reference8)
+    controller.follow(lift, at=0.5)
+    assert controller.source.sample(0.499).pose == first.sample(0.499).pose
+    assert controller.source.sample(0.5).pose == lift.sample(0.5).pose
+    out = controller.step(0.4, lengths, np.zeros(8))
+    assert out.reference.pose == reference8.home  # still the hold before the switch
+    moved = Hold(
+        Pose(reference8.home.position + np.array([0.0, 0.0, 0.01]), np.array([1.0, 0, 0, 0]))
+    )
+    controller.follow(moved, at=0.6)  # the switch at 0.5 is still ahead: kept
+    assert controller.source.before.before is first
+    controller.step(0.55, lengths, np.zeros(8))
+    controller.follow(Hold(reference8.home), at=0.7)  # the switch at 0.5 is past: dropped
+    assert controller.source.before.before is lift

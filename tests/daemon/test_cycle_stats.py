@@ -1,0 +1,28 @@
+"""daemon.service.cycle_stats: the rings behind the published cycle timing."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from daemon.service.cycle_stats import Ring
+
+
+@pytest.mark.parametrize("count", [1, 2, 7, 100, 10_000, 12_345])
+def test_summary_is_numpys_percentile_of_the_last_window(count: int) -> None:
+    rng = np.random.default_rng(count)
+    ring = Ring(10_000)
+    samples = rng.exponential(1e-4, count)
+    for value in samples:
+        ring.add(float(value))
+    window = samples[-10_000:]  # the ring keeps the latest 10^4
+    np.testing.assert_array_equal(np.sort(ring.values()), np.sort(window))
+    p50, p99 = np.percentile(window, [50, 99]) * 1e6
+    summary = ring.summary_us()
+    assert summary["p50_us"] == pytest.approx(round(p50, 1), abs=0.051)
+    assert summary["p99_us"] == pytest.approx(round(p99, 1), abs=0.051)
+    assert summary["max_us"] == round(window.max() * 1e6, 1)
+
+
+def test_an_empty_ring_summarises_to_zeros() -> None:
+    assert Ring(4).summary_us() == {"p50_us": 0.0, "p99_us": 0.0, "max_us": 0.0}

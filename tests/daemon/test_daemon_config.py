@@ -1,0 +1,122 @@
+"""The daemon config: the examples load, every problem names its key, geometry sanity."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import yaml
+
+from cdpr import ConfigError
+from cdpr.description import load_yaml, validate_section
+from daemon.cli import main
+from daemon.config import FileConfig, load_config, parse_config
+from daemon.config.zenoh_config import ZenohSettings
+
+CONFIG = Path(__file__).resolve().parents[2] / "config"
+
+
+@pytest.mark.parametrize("name", ["reference8-cia402.yaml", "reference8-odrive.yaml"])
+def test_examples_load(name: str) -> None:
+    config = load_config(CONFIG / name)
+    assert config.robot.name == "reference8"
+    assert len(config.drives.nodes) == config.robot.n_cables == 8
+    assert config.zenoh.listen[0].startswith("tcp/127.0.0.1:")
+
+
+def test_hardware_template_is_a_valid_file() -> None:
+    raw = validate_section(FileConfig, load_yaml(CONFIG / "hardware-template.yaml"), "template")
+    assert raw.can.interface == "socketcan" and raw.can.channel == "can0"
+    assert raw.drives["brake"] == "holding_brake"
+    zenoh = validate_section(ZenohSettings, raw.zenoh, "zenoh")
+    assert zenoh.ingress_limits_hz == {"trajectory": 20.0, "cmd/*": 20.0}
+
+
+def _data() -> dict:
+    return yaml.safe_load((CONFIG / "reference8-cia402.yaml").read_text())
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        (lambda d: d["drives"].update(bogus=1), "bogus"),
+        (lambda d: d["drives"].update(nodes=[1, 2, 3]), "3 drives for 8 cables"),
+        (lambda d: d["drives"].update(brake="holding_brake"), "has_holding_brake"),
+        (lambda d: d["safety"].update(tracking_error_position=-1), "tracking_error_position"),
+        (lambda d: d["can"].update(bitrate="fast"), "bitrate"),
+        (lambda d: d.update(robot="no/such/robot.yaml"), "cannot read"),
+        (lambda d: d["zenoh"].update(listen=["tcp/0.0.0.0:7447"]), "expose"),
+        (
+            lambda d: d["safety"].update(workspace_min=[-1, -1, 1.5], workspace_max=[1, 1, 2]),
+            "outside the workspace box",
+        ),
+        (
+            lambda d: d["drives"].update(
+                protocol="odrive", nodes=list(range(8)), feedback_rate_hz=400
+            ),
+            r"drives.feedback_rate_hz \(400\) is below controller.rate_hz \(500\)",
+        ),
+        (
+            lambda d: d["safety"].update(max_cable_speed=1.5),
+            r"safety.max_cable_speed: 1.5 m/s must exceed the fastest cable rate the "
+            r"trajectory limits allow \(1.82 m/s",
+        ),
+    ],
+)
+def test_problems_name_the_key(change, message: str) -> None:
+    data = _data()
+    change(data)
+    with pytest.raises(ConfigError, match=message):
+        parse_config(data, CONFIG, "test.yaml")
+
+
+@pytest.mark.parametrize(
+    ("safety", "words"),
+    [
+        (
+            {"tilt_max": 0.04, "tracking_error_orientation": 0.05},
+            r"safety: tilt_max \(0.04 rad\) leaves no room .* tracking_error_orientation \(0.05",
+        ),
+        (
+            {"workspace_min": [-1.5, -1.5, 1.24], "tracking_error_position": 0.02},
+            r"home position .* outside the workspace box \(workspace_min/workspace_max.*shrunk "
+            r"by tracking_error_position \(0.02 m\).*position z = 1.2500 m outside \[1.2601",
+        ),
+        (
+            {"workspace_max": [0.03, 1.5, 2.5], "tracking_error_position": 0.05},
+            r"shrunk by tracking_error_position \(0.05 m\).*position x = 0.0000 m outside",
+        ),
+    ],
+)
+def test_margins_that_leave_trajectories_no_room_are_refused(safety: dict, words: str) -> None:
+    """Trajectories must stay inside the box and tilt less the tracking-error bounds: a
+    config where that excludes the home pose is refused, naming the keys."""
+    data = _data()
+    data["safety"].update(safety)
+    with pytest.raises(ConfigError, match=words):
+        parse_config(data, CONFIG, "test.yaml")
+
+
+def test_the_example_margins_leave_room() -> None:
+    config = parse_config(_data(), CONFIG, "test.yaml")
+    inner = config.reference_limits
+    assert inner.lower[2] == pytest.approx(0.02, abs=1e-4)  # the floor less 2 cm
+    assert inner.tilt_max == pytest.approx(0.55, abs=1e-3)  # 0.6 rad less 0.05 rad
+    assert config.pose_limits.tilt_max == 0.6
+
+
+def test_check_config_summarises_a_daemon_config(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["check-config", str(CONFIG / "reference8-cia402.yaml")]) == 0
+    out = capsys.readouterr().out
+    assert "drives: cia402 nodes [1, 2, 3, 4, 5, 6, 7, 8]" in out
+    assert "zenoh: prefix cdpr/reference8" in out
+
+
+def test_check_config_fails_with_the_problem(tmp_path: Path, capsys) -> None:
+    data = _data()
+    data["drives"]["protocol"] = "canopen-ish"
+    data["robot"] = str(CONFIG / "robots" / "reference8.yaml")
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(yaml.safe_dump(data))
+    assert main(["check-config", str(bad)]) == 1
+    assert "protocol" in capsys.readouterr().err

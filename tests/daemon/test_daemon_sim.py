@@ -1,0 +1,511 @@
+"""Daemon + simulator in one process over the loop bus, for both drivers (DESIGN §13,
+the in-process integration layer): start held, enable, hold, track, and for each
+injected fault: the brake fires within its bound and the platform stops without a
+slack cable or a fall; reset after the fault clears; SIGTERM brakes and exits 0.
+
+Real time, bounded: every wait has a timeout.  Bounds are in control cycles or in
+millimetres of the simulated truth, never on wall-clock speed."""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import os
+import signal
+import time
+
+import numpy as np
+import pytest
+
+from cdpr import Pose
+from daemon.cli.simulated import InProcessSimulator
+from daemon.process.app import serve
+from daemon.service.api import CommandError
+from daemon.service.safety import SafetyState, Trigger
+from tests.daemon_stack import Stack, config_for
+
+pytestmark = pytest.mark.timeout(60)
+PROTOCOLS = ["cia402", "odrive"]
+
+
+def run(coro):
+    return asyncio.run(asyncio.wait_for(coro, 45))
+
+
+def _target(config, dx=0.1, dy=0.05, dz=0.1) -> Pose:
+    home = config.robot.home
+    return Pose(home.position + np.array([dx, dy, dz]), home.quaternion)
+
+
+def _heartbeat_cycles(config) -> int:
+    return math.ceil(config.drives.heartbeat_period * config.controller.rate_hz)
+
+
+def _braked_by(stack: Stack) -> Trigger | None:
+    fault = stack.service.machine.fault
+    return None if fault is None else fault.trigger
+
+
+def _assert_no_fall(positions: np.ndarray, lowest: float, allowed_mm: float = 2.0) -> None:
+    drift = np.linalg.norm(positions - positions[0], axis=1).max() * 1e3
+    assert drift < allowed_mm, f"platform moved {drift:.2f} mm after braking"
+    assert lowest > 0.0, f"a cable went slack (lowest tension {lowest:.1f} N)"
+
+
+@pytest.mark.parametrize("protocol", PROTOCOLS)
+def test_starts_held_then_enables_holds_and_tracks(protocol: str) -> None:
+    async def scenario() -> None:
+        config = config_for(protocol)
+        async with Stack(config) as stack:
+            service = stack.service
+            assert service.machine.state is SafetyState.IDLE
+            positions, lowest = await stack.watch(0.3)  # held by the drives, not moving
+            _assert_no_fall(positions, lowest, allowed_mm=0.5)
+            with pytest.raises(CommandError, match="invalid_state"):
+                await service.command("goto", {"pose": _target(config)})
+            await stack.enable()
+            positions, lowest = await stack.watch(0.3)
+            _assert_no_fall(positions, lowest, allowed_mm=0.5)
+            target = _target(config)
+            reply = await service.command("goto", {"pose": target})
+            assert reply["accepted"] and service.machine.state is SafetyState.TRACKING
+            await stack.until(lambda: service.machine.state is SafetyState.HOLD, 5.0)
+            await asyncio.sleep(0.3)
+            error_mm = np.linalg.norm(stack.plant.pose.position - target.position) * 1e3
+            assert error_mm < 1.0, f"{error_mm:.3f} mm from the goto target"
+            assert service.machine.fault is None
+            assert [e["why"] for e in stack.events if e["event"] == "state"][:2] == [
+                "drives started",
+                "enabled",
+            ]
+
+    run(scenario())
+
+
+@pytest.mark.parametrize("protocol", PROTOCOLS)
+def test_drive_fault_brakes_holds_and_resets(protocol: str) -> None:
+    async def scenario() -> None:
+        async with Stack(config_for(protocol)) as stack:
+            service = stack.service
+            await stack.enable()
+            await asyncio.sleep(0.1)
+            cycles = service.stats.cycles
+            stack.sim.runner._send(stack.sim.robot.drive_fault(3))
+            await stack.until(lambda: service.machine.state is SafetyState.BRAKED, 1.0)
+            # 402 drives report at once (EMCY); ODrives in their next heartbeat
+            bound = 3 + (0 if protocol == "cia402" else _heartbeat_cycles(stack.config))
+            assert service.stats.cycles - cycles <= bound, f"braked later than {bound} cycles"
+            assert _braked_by(stack) is Trigger.DRIVE_FAULT
+            assert "drive 3" in service.machine.fault.message
+            positions, lowest = await stack.watch(0.4)
+            _assert_no_fall(positions, lowest)
+            with pytest.raises(CommandError, match="invalid_state"):
+                await service.command("enable", {})
+            await service.command("reset", {})
+            assert service.machine.state is SafetyState.IDLE
+            await stack.enable()
+            positions, lowest = await stack.watch(0.2)
+            _assert_no_fall(positions, lowest, allowed_mm=0.5)
+
+    run(scenario())
+
+
+@pytest.mark.parametrize("protocol", PROTOCOLS)
+def test_silent_node_brakes_on_stale_feedback(protocol: str) -> None:
+    async def scenario() -> None:
+        async with Stack(config_for(protocol)) as stack:
+            service = stack.service
+            await stack.enable()
+            cycles = service.stats.cycles
+            stack.sim.robot.silence(5)
+            await stack.until(lambda: service.machine.state is SafetyState.BRAKED, 1.0)
+            limit = stack.config.safety.stale_cycles
+            assert service.stats.cycles - cycles <= limit + 2
+            assert _braked_by(stack) in (Trigger.STALE_FEEDBACK, Trigger.HEARTBEAT_LOST)
+            assert "drive 5" in service.machine.fault.message
+            positions, lowest = await stack.watch(0.4)
+            _assert_no_fall(positions, lowest)
+            with pytest.raises(CommandError, match="faults persist"):
+                await service.command("reset", {})
+            stack.sim.robot.silence(5, False)
+            await asyncio.sleep(0.2)
+            await service.command("reset", {})
+            assert service.machine.state is SafetyState.IDLE
+
+    run(scenario())
+
+
+@pytest.mark.parametrize("protocol", PROTOCOLS)
+def test_stuck_encoder_during_a_move_brakes(protocol: str) -> None:
+    async def scenario() -> None:
+        config = config_for(protocol)
+        async with Stack(config) as stack:
+            service = stack.service
+            await stack.enable()
+            stack.sim.robot.stick_encoder(2)
+            await service.command("goto", {"pose": _target(config, dx=0.3, dy=0.0, dz=0.0)})
+            await stack.until(lambda: service.machine.state is SafetyState.BRAKED, 2.0)
+            assert _braked_by(stack) in (
+                Trigger.IMPLAUSIBLE_FEEDBACK,  # its length disagrees with the others'
+                Trigger.FK_RESIDUAL,
+                Trigger.TRACKING_ERROR,
+            )
+            # the stuck drive cannot hold its own cable exactly (its encoder lies), so the
+            # platform coasts a little before the other seven stop it
+            positions, lowest = await stack.watch(0.8)
+            excursion = np.linalg.norm(positions - positions[0], axis=1).max() * 1e3
+            assert excursion < 20.0, f"{excursion:.1f} mm after braking"
+            _assert_no_fall(positions[3 * len(positions) // 4 :], lowest, allowed_mm=0.5)
+
+    run(scenario())
+
+
+@pytest.mark.parametrize("protocol", PROTOCOLS)
+def test_snapped_cable_brakes_and_the_platform_stays_up(protocol: str) -> None:
+    async def scenario() -> None:
+        async with Stack(config_for(protocol)) as stack:
+            service = stack.service
+            await stack.enable()
+            z0 = stack.plant.pose.position[2]
+            stack.sim.robot.snap_cable(1)  # a lower cable
+            await stack.until(lambda: service.machine.state is SafetyState.BRAKED, 1.0)
+            assert _braked_by(stack) in (
+                Trigger.IMPLAUSIBLE_FEEDBACK,  # the lengths no longer fit one pose
+                Trigger.FK_RESIDUAL,
+                Trigger.TRACKING_ERROR,
+                Trigger.OUT_OF_WORKSPACE,
+            )
+            await asyncio.sleep(0.4)
+            drop_mm = (z0 - stack.plant.pose.position[2]) * 1e3
+            assert drop_mm < 20.0, f"platform dropped {drop_mm:.1f} mm"
+
+    run(scenario())
+
+
+@pytest.mark.parametrize("protocol", PROTOCOLS)
+def test_bus_error_frames_brake(protocol: str) -> None:
+    from sim_bus.bus.frame_faults import error_frame
+
+    async def scenario() -> None:
+        async with Stack(config_for(protocol)) as stack:
+            service = stack.service
+            await stack.enable()
+            limit = stack.config.safety.bus_errors_max
+            for _ in range(limit + 1):
+                stack.sim.runner._send([error_frame()])
+            await stack.until(lambda: service.machine.state is SafetyState.BRAKED, 1.0)
+            assert _braked_by(stack) is Trigger.BUS_ERROR
+            positions, lowest = await stack.watch(0.3)
+            _assert_no_fall(positions, lowest)
+
+    run(scenario())
+
+
+@pytest.mark.parametrize("protocol", PROTOCOLS)
+def test_error_frames_below_the_limit_neither_brake_nor_block_a_reset(protocol: str) -> None:
+    """The condition is the trigger: one error frame does not brake (it did), sporadic
+    ones do not refuse a reset (they did, for a second after each), a bus-off does."""
+    from drivers.bus import CAN_ERR_BUSOFF
+    from sim_bus.bus.frame_faults import error_frame
+
+    async def scenario() -> None:
+        async with Stack(config_for(protocol)) as stack:
+            service = stack.service
+            send = stack.sim.runner._send
+            await stack.enable()
+            send([error_frame()])
+            await stack.until(lambda: service.stats.bus_errors == 1, 1.0)
+            cycles = service.stats.cycles
+            await stack.until(lambda: service.stats.cycles >= cycles + 10, 2.0)
+            assert service.machine.state is SafetyState.HOLD, service.machine.fault
+            assert service.faults == []
+            limit = stack.config.safety.bus_errors_max
+            send([error_frame() for _ in range(limit)])  # limit + 1 within the second
+            await stack.until(lambda: service.machine.state is SafetyState.BRAKED, 1.0)
+            assert _braked_by(stack) is Trigger.BUS_ERROR
+            # a second and a bit later (counted in cycles: they cannot run ahead of time)
+            cycles = service.stats.cycles + math.ceil(1.1 * stack.config.controller.rate_hz)
+            await stack.until(lambda: service.stats.cycles >= cycles, 5.0)
+            assert not [f for f in service.faults if f.trigger is Trigger.BUS_ERROR]
+            send([error_frame()])  # errors keep coming, below the limit
+            await stack.until(lambda: service.stats.bus_errors == limit + 2, 1.0)
+            reply = await service.command("reset", {})
+            assert reply["state"] == "idle" and reply["fault"] is None, reply
+            send([error_frame(CAN_ERR_BUSOFF)])
+            await stack.until(lambda: service.machine.state is SafetyState.BRAKED, 1.0)
+            assert _braked_by(stack) is Trigger.BUS_ERROR
+            assert "bus-off" in service.machine.fault.message
+
+    run(scenario())
+
+
+@pytest.mark.parametrize("protocol", PROTOCOLS)
+def test_controller_exception_and_nan_brake(protocol: str) -> None:
+    async def scenario() -> None:
+        async with Stack(config_for(protocol)) as stack:
+            service = stack.service
+            await stack.enable()
+            real_step = service.controller.step
+
+            def broken(*args):
+                raise np.linalg.LinAlgError("singular matrix")
+
+            service.controller.step = broken
+            await stack.until(lambda: service.machine.state is SafetyState.BRAKED, 1.0)
+            assert _braked_by(stack) is Trigger.CONTROLLER_EXCEPTION
+            assert "LinAlgError: singular matrix" in service.machine.fault.message
+            positions, lowest = await stack.watch(0.3)
+            _assert_no_fall(positions, lowest)
+
+            service.controller.step = real_step
+            await service.command("reset", {})
+            await stack.enable()
+
+            def nan_commands(*args):
+                out = real_step(*args)
+                return out._replace(commands=out.commands * math.nan)
+
+            service.controller.step = nan_commands
+            await stack.until(lambda: service.machine.state is SafetyState.BRAKED, 1.0)
+            assert _braked_by(stack) is Trigger.NAN
+
+    run(scenario())
+
+
+@pytest.mark.parametrize("protocol", PROTOCOLS)
+def test_tracking_error_bound_brakes(protocol: str) -> None:
+    async def scenario() -> None:
+        config = config_for(protocol, safety={"tracking_error_position": 0.0005})
+        async with Stack(config) as stack:
+            service = stack.service
+            await stack.enable()
+            # a disturbance the controller needs time to reject: 40 N sideways
+            stack.plant._disturbance = lambda t: (40.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+            await stack.until(lambda: service.machine.state is SafetyState.BRAKED, 2.0)
+            assert _braked_by(stack) is Trigger.TRACKING_ERROR
+            assert "exceeds 0.50 mm" in service.machine.fault.message
+
+    run(scenario())
+
+
+@pytest.mark.parametrize("protocol", PROTOCOLS)
+def test_a_dead_daemon_leaves_the_platform_held_by_the_drive_watchdogs(protocol: str) -> None:
+    async def scenario() -> None:
+        async with Stack(config_for(protocol)) as stack:
+            await stack.enable()
+            await asyncio.sleep(0.1)
+            stack.service.close()  # the daemon vanishes mid-HOLD: no brake frames sent
+            positions, lowest = await stack.watch(0.6)
+            _assert_no_fall(positions, lowest, allowed_mm=3.0)
+            assert all(d.actuation.value != "torque" for d in stack.sim.robot.drives)
+
+    run(scenario())
+
+
+@pytest.mark.parametrize("protocol", PROTOCOLS)
+def test_sigterm_brakes_and_exits_zero(protocol: str) -> None:
+    async def scenario() -> int:
+        config = config_for(protocol)
+        sim = InProcessSimulator(config)
+        sim.start()
+        loop = asyncio.get_running_loop()
+        try:
+
+            async def enable_then_terminate(service) -> None:
+                await service.command("enable", {})
+                loop.call_later(0.2, os.kill, os.getpid(), signal.SIGTERM)
+                await asyncio.sleep(30)
+
+            code = await serve(
+                config, sim.daemon_bus, zenoh=False, after_start=enable_then_terminate
+            )
+            held = [d.actuation.value for d in sim.robot.drives]
+            assert "torque" not in held
+            return code
+        finally:
+            sim.close()
+
+    assert run(scenario()) == 0
+
+
+def test_the_cycle_prepares_the_controller_while_the_feedback_is_on_its_way() -> None:
+    """CiA 402: each moving cycle's measurement-free controller work runs at the SYNC,
+    and the step of that cycle uses it (same cycle instant); idle cycles prepare nothing."""
+
+    async def scenario() -> None:
+        config = config_for("cia402")
+        async with Stack(config) as stack:
+            service = stack.service
+            controller = service.controller
+            prepared, stepped = [], []
+            prepare, step = controller.prepare, controller.step
+
+            def spy_prepare(t: float) -> None:
+                prepared.append(t)
+                prepare(t)
+
+            def spy_step(t: float, lengths, rates):
+                ahead = controller._prepared
+                stepped.append((t, ahead is not None and ahead.t == t))
+                return step(t, lengths, rates)
+
+            controller.prepare, controller.step = spy_prepare, spy_step
+            await asyncio.sleep(0.1)
+            assert prepared == [] and stepped == []  # idle: no controller work
+            await stack.enable()
+            reply = await service.command("goto", {"pose": _target(config)})
+            assert reply["accepted"]
+            await asyncio.sleep(0.3)
+            assert service.machine.fault is None
+            assert len(stepped) > 50
+            used = [t for t, ready in stepped if ready]
+            assert len(used) > 0.9 * len(stepped)  # the rest: feedback in at the SYNC
+            assert set(used) <= set(prepared)
+            assert service.stats.prepare.values().size > 50
+
+    run(scenario())
+
+
+def test_feedback_queued_when_the_wait_ends_counts_as_in_time() -> None:
+    """After the loop was held up, the feedback may sit in the bus when the deadline
+    timer runs: the cycle uses it and no miss is counted.  Feedback really missing at
+    the deadline still is a miss."""
+
+    async def scenario() -> None:
+        config = config_for("cia402")
+        async with Stack(config) as stack:
+            service = stack.service
+            await stack.enable()
+            await stack.until(lambda: service._waiting, 1.0)
+            # no await from here: the loop cannot read the bus or run the deadline
+            cycles, misses = service.stats.cycles, service.stats.deadline_misses
+            stack.sim.runner._drain()  # the drives see the SYNC and answer into the bus
+            service._on_deadline()
+            assert service.stats.cycles == cycles + 1
+            assert service.stats.deadline_misses == misses
+            assert not service._waiting
+            await stack.until(lambda: service._waiting, 1.0)
+            cycles = service.stats.cycles
+            service._on_deadline()  # the drives have not seen this SYNC yet
+            assert service.stats.cycles == cycles + 1
+            assert service.stats.deadline_misses == misses + 1
+
+    run(scenario())
+
+
+def test_trajectories_accepted_while_moving_keep_the_reference_continuous() -> None:
+    """Each accepted trajectory (or hold) takes over when its blend begins, from the state
+    the reference has then: the reference never jumps, however often it is replaced."""
+    from cdpr.trajectory import Trajectory, Waypoint
+
+    async def scenario() -> None:
+        config = config_for("cia402")
+        async with Stack(config) as stack:
+            service = stack.service
+            refs: list[tuple[float, np.ndarray]] = []
+            service.cycle_listeners.append(
+                lambda t, out: refs.append((t, out.reference.pose.position.copy()))
+            )
+            await stack.enable()
+            reply = await service.command("goto", {"pose": _target(config, 0.2, 0.0, 0.0)})
+            assert reply["accepted"]
+            home = config.robot.home
+            for k in range(6):
+                await asyncio.sleep(0.08)  # moving fast when the next one arrives
+                end = Pose(home.position + np.array([0.0, 0.1 * (-1) ** k, 0.05]), home.quaternion)
+                trajectory = Trajectory([Waypoint(0.0, home), Waypoint(0.6, end)])
+                reply = await service.submit_trajectory(trajectory, None)
+                assert reply["accepted"]
+            await asyncio.sleep(0.05)
+            await service.command("hold", {})
+            await asyncio.sleep(0.3)
+            assert service.machine.fault is None
+        t = np.array([t for t, _ in refs])
+        positions = np.array([p for _, p in refs])
+        speeds = np.linalg.norm(np.diff(positions, axis=0), axis=1) / np.diff(t)
+        limit = config.trajectory.linear_speed
+        assert speeds.max() > 0.3 * limit  # it did move fast
+        assert speeds.max() <= 1.01 * limit, f"the reference jumped at {speeds.max():.2f} m/s"
+
+    run(scenario())
+
+
+def test_a_hold_drops_the_plans_under_way() -> None:
+    async def scenario() -> None:
+        config = config_for("cia402")
+        async with Stack(config) as stack:
+            service = stack.service
+            await stack.enable()
+            pending = asyncio.ensure_future(
+                service.command("goto", {"pose": _target(config, 0.2, 0.0, 0.0)})
+            )
+            await asyncio.sleep(0)  # the goto has started planning
+            await service.command("hold", {})
+            with pytest.raises(CommandError, match="dropped: a hold came meanwhile"):
+                await pending
+            await asyncio.sleep(0.2)
+            assert service.machine.state is SafetyState.HOLD and service.machine.fault is None
+            error_mm = np.linalg.norm(stack.plant.pose.position - config.robot.home.position)
+            assert error_mm * 1e3 < 1.0  # never went anywhere
+
+    run(scenario())
+
+
+def test_background_work_runs_only_in_the_cycles_slack() -> None:
+    """Validation and planning steps never run while a cycle waits for its feedback, nor
+    within SLACK_MARGIN of the next tick (give or take the one step that crosses it)."""
+    from daemon.service.service import SLACK_MARGIN
+
+    async def scenario() -> None:
+        config = config_for("cia402")
+        async with Stack(config) as stack:
+            service = stack.service
+            await stack.enable()
+            seen: list[tuple[bool, float]] = []
+
+            def steps():
+                for _ in range(3000):
+                    lead = service._timer.next_expiry() - time.monotonic()
+                    seen.append((service._waiting, lead))
+                    busy = time.perf_counter() + 5e-5
+                    while time.perf_counter() < busy:  # a 50 us step
+                        pass
+                    yield
+                return "done"
+
+            assert await service._in_slack(steps()) == "done"
+            cycles = service.stats.cycles
+            assert service.machine.fault is None
+        assert not any(waiting for waiting, _ in seen)
+        late = sum(lead < SLACK_MARGIN - 1e-4 for _, lead in seen)  # > one step past
+        assert late <= 0.01 * len(seen)
+        assert cycles > 0
+
+    run(scenario())
+
+
+def test_a_hold_is_never_refused_for_want_of_planning_time(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """With no lead at all, planning in the slack always comes too late: the hold is then
+    planned in one piece and still stops the robot."""
+    import daemon.service.service
+
+    async def scenario() -> None:
+        config = config_for("cia402")
+        async with Stack(config) as stack:
+            service = stack.service
+            await stack.enable()
+            assert (await service.command("goto", {"pose": _target(config, 0.2, 0.0, 0.0)}))[
+                "accepted"
+            ]
+            await asyncio.sleep(0.15)  # moving
+            monkeypatch.setattr(daemon.service.service, "HOLD_LEAD", 0.0)
+            reply = await service.command("hold", {})
+            assert reply["state"] == "hold"
+            await asyncio.sleep(0.5)
+            positions, lowest = await stack.watch(0.2)
+            _assert_no_fall(positions, lowest, allowed_mm=0.5)  # stopped
+            assert service.machine.fault is None
+
+    run(scenario())

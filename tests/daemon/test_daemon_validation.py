@@ -1,0 +1,309 @@
+"""Trajectories and gotos are validated against the runtime pose limits (issue 22 item 2,
+DESIGN §7): in-process daemon + simulator, and over zenoh.  A trajectory into the floor,
+a goto through a z <= 1.6 fence, a turn beyond tilt_max and a start days ahead are each
+rejected with the waypoint and the limit named; the robot stays where it was, in HOLD.
+A start ahead within the bound leaves the robot in HOLD until its approach begins.
+
+Bounded waits only; bounds in millimetres of the simulated truth, never wall-clock speed.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import time
+
+import numpy as np
+import pytest
+import zenoh
+
+from cdpr import Pose
+from cdpr.trajectory import Trajectory, Waypoint
+from daemon.cli.simulated import InProcessSimulator
+from daemon.config.zenoh_config import client_zenoh_config
+from daemon.process.app import serve
+from daemon.service.api import CommandError
+from daemon.service.safety import SafetyState
+from daemon.service.service import Service
+from tests.daemon_stack import Stack, config_for
+from tests.loopback import free_port
+
+pytestmark = pytest.mark.timeout(60)
+FENCE = {"workspace_min": [-1.5, -1.5, 0.0], "workspace_max": [1.5, 1.5, 1.6]}  # z <= 1.6
+
+
+def run(coro):
+    return asyncio.run(asyncio.wait_for(coro, 45))
+
+
+def _home(config, dx=0.0, dy=0.0, dz=0.0, rotvec=(0.0, 0.0, 0.0)) -> Pose:
+    return Pose.from_rotvec(config.robot.home.position + np.array([dx, dy, dz]), rotvec)
+
+
+def _into_the_floor(config) -> Trajectory:
+    """Down 0.75 m, then on to z = -0.5: slow enough for every rate limit."""
+    return Trajectory(
+        [
+            Waypoint(0.0, _home(config)),
+            Waypoint(3.0, _home(config, dz=-0.75)),
+            Waypoint(6.0, _home(config, dz=-1.75)),
+        ]
+    )
+
+
+async def _refused(stack: Stack, attempt) -> CommandError:
+    """Run `attempt` (a coroutine) held at HOLD: it must be rejected, and neither the
+    state nor the simulated platform may change (within 0.5 mm over 0.3 s)."""
+    service = stack.service
+    before = stack.plant.pose.position.copy()
+    with pytest.raises(CommandError) as info:
+        await attempt
+    positions, lowest = await stack.watch(0.3)
+    assert service.machine.state is SafetyState.HOLD and service.machine.fault is None
+    moved = np.linalg.norm(positions - before, axis=1).max() * 1e3
+    assert moved < 0.5, f"the platform moved {moved:.2f} mm"
+    assert lowest > 0.0
+    assert info.value.code == "rejected"
+    return info.value
+
+
+def test_a_trajectory_into_the_floor_is_rejected_naming_the_waypoint() -> None:
+    async def scenario() -> None:
+        async with Stack(config_for("cia402")) as stack:
+            await stack.enable()
+            trajectory = _into_the_floor(stack.config)
+            err = await _refused(stack, stack.service.submit_trajectory(trajectory, None))
+            assert err.details == {"limit": "workspace_min", "waypoint": 2, "value": -0.5}
+            assert err.reason.startswith(
+                "trajectory rejected: waypoint 2: workspace_min: position z = -0.5000 m outside"
+            )
+            assert "at t=6 s" in err.reason
+
+    run(scenario())
+
+
+def test_a_goto_through_the_fence_is_rejected() -> None:
+    async def scenario() -> None:
+        async with Stack(config_for("cia402", safety=FENCE)) as stack:
+            await stack.enable()
+            target = _home(stack.config, dz=0.5)  # z = 1.75
+            err = await _refused(stack, stack.service.command("goto", {"pose": target}))
+            assert err.details == {"limit": "workspace_max", "waypoint": 1, "value": 1.75}
+            assert "goto rejected: waypoint 1: workspace_max: position z = 1.7500 m" in err.reason
+            # below the fence less the tracking margin it goes
+            reply = await stack.service.command("goto", {"pose": _home(stack.config, dz=0.3)})
+            assert reply["accepted"]
+
+    run(scenario())
+
+
+def test_a_turn_beyond_tilt_max_is_rejected() -> None:
+    async def scenario() -> None:
+        async with Stack(config_for("cia402")) as stack:
+            await stack.enable()
+            home = _home(stack.config)
+            turned = _home(stack.config, rotvec=(0.8, 0.0, 0.0))
+            trajectory = Trajectory([Waypoint(0.0, home), Waypoint(3.0, turned)])
+            err = await _refused(stack, stack.service.submit_trajectory(trajectory, None))
+            assert err.details["limit"] == "tilt_max" and err.details["waypoint"] == 1
+            assert err.details["value"] == pytest.approx(0.8)
+            assert "rotation 45.84 deg from home exceeds" in err.reason
+            err = await _refused(stack, stack.service.command("goto", {"pose": turned}))
+            assert (err.details["limit"], err.details["waypoint"]) == ("tilt_max", 1)
+
+    run(scenario())
+
+
+def test_a_start_days_ahead_is_rejected() -> None:
+    async def scenario() -> None:
+        async with Stack(config_for("cia402")) as stack:
+            await stack.enable()
+            trajectory = Trajectory(
+                [Waypoint(0.0, _home(stack.config)), Waypoint(1.0, _home(stack.config, dx=0.1))]
+            )
+            days = time.time() + 11.6 * 86400
+            err = await _refused(stack, stack.service.submit_trajectory(trajectory, days))
+            assert (err.details["limit"], err.details["waypoint"]) == ("max_start_delay", 0)
+            assert err.details["value"] == pytest.approx(11.6 * 86400, abs=5.0)
+            assert "beyond the limit 60 s" in err.reason
+
+    run(scenario())
+
+
+def record_references(service: Service) -> list[tuple[float, np.ndarray, str]]:
+    """(t, reference position, safety state) of every control cycle from now on."""
+    refs: list[tuple[float, np.ndarray, str]] = []
+    service.cycle_listeners.append(
+        lambda t, out: refs.append(
+            (t, out.reference.pose.position.copy(), service.machine.state.value)
+        )
+    )
+    return refs
+
+
+def test_a_start_ahead_holds_until_its_approach_begins() -> None:
+    """HOLD while it waits (the robot does not move), TRACKING once it begins, HOLD when
+    it is done; the reference never jumps."""
+
+    async def scenario() -> None:
+        config = config_for("cia402")
+        async with Stack(config) as stack:
+            service = stack.service
+            refs = record_references(service)
+            await stack.enable()
+            trajectory = Trajectory(
+                [Waypoint(0.0, _home(config)), Waypoint(1.0, _home(config, dx=0.1))]
+            )
+            reply = await service.submit_trajectory(trajectory, time.time() + 1.0)
+            assert reply["accepted"] and service.machine.state is SafetyState.HOLD
+            positions, _ = await stack.watch(0.4)
+            assert np.linalg.norm(positions - positions[0], axis=1).max() < 5e-4
+            assert service.machine.state is SafetyState.HOLD
+            await stack.until(lambda: service.machine.state is SafetyState.TRACKING, 2.0)
+            await stack.until(lambda: service.machine.state is SafetyState.HOLD, 3.0)
+            await asyncio.sleep(0.05)  # a few cycles in HOLD
+            assert service.machine.fault is None
+            kinds = [e.get("why", e["event"]) for e in stack.events]
+            assert kinds[-2:] == ["trajectory started", "trajectory_done"]
+        states = [s for _, _, s in refs]
+        moving = [t for t, _, s in refs if s == "tracking"]
+        assert states[0] == "hold" and moving and states[-1] == "hold"
+        t = np.array([t for t, _, _ in refs])
+        p = np.array([p for _, p, _ in refs])
+        still = p[t < moving[0] - 0.1]  # the approach begins when TRACKING does
+        assert np.abs(still - still[0]).max() < 1e-9
+        speeds = np.linalg.norm(np.diff(p, axis=0), axis=1) / np.diff(t)
+        assert speeds.max() <= 1.01 * config.trajectory.linear_speed
+
+    run(scenario())
+
+
+def test_a_start_ahead_while_moving_waits_for_the_motion_and_never_jumps() -> None:
+    """Accepted while a goto runs: the goto finishes (TRACKING), the robot holds (HOLD),
+    the trajectory runs (TRACKING) and ends (HOLD), with a continuous reference.  A start
+    whose approach would begin while the goto still moves is refused."""
+
+    async def scenario() -> None:
+        config = config_for("cia402")
+        async with Stack(config) as stack:
+            service = stack.service
+            refs = record_references(service)
+            await stack.enable()
+            await service.command("goto", {"pose": _home(config, dx=0.3)})  # ~0.9 s
+            # its approach (~0.6 s from the goto's end) would begin 0.4 s from now
+            trajectory = Trajectory(
+                [Waypoint(0.0, _home(config, dy=0.1)), Waypoint(1.0, _home(config, dy=0.2))]
+            )
+            with pytest.raises(CommandError) as info:
+                await service.submit_trajectory(trajectory, time.time() + 1.0)
+            assert info.value.details["limit"] == "start"
+            assert "still under way" in info.value.reason
+            reply = await service.submit_trajectory(trajectory, time.time() + 2.0)
+            assert reply["accepted"] and service.machine.state is SafetyState.TRACKING
+            await stack.until(lambda: service.machine.state is SafetyState.HOLD, 2.0)
+            await stack.until(lambda: service.machine.state is SafetyState.TRACKING, 3.0)
+            await stack.until(lambda: service.machine.state is SafetyState.HOLD, 4.0)
+            await asyncio.sleep(0.05)  # a few cycles in HOLD
+            assert service.machine.fault is None
+        runs = [s for k, (_, _, s) in enumerate(refs) if k == 0 or s != refs[k - 1][2]]
+        assert runs == ["hold", "tracking", "hold", "tracking", "hold"]
+        t = np.array([t for t, _, _ in refs])
+        p = np.array([p for _, p, _ in refs])
+        speeds = np.linalg.norm(np.diff(p, axis=0), axis=1) / np.diff(t)
+        assert speeds.max() <= 1.01 * config.trajectory.linear_speed  # main: ~140 m/s
+
+    run(scenario())
+
+
+def test_enabled_outside_the_margin_it_may_move_back_in_but_not_further_out() -> None:
+    """Enabled 1 cm above a floor fence at z = 1.0 (inside the box, within its tracking
+    margin): a goto inwards is accepted, one further out and a trajectory that starts
+    out there are not."""
+
+    async def scenario() -> None:
+        config = config_for("cia402", safety={"workspace_min": [-1.5, -1.5, 1.0]})
+        stack = Stack(config)
+        stack.plant.reset(_home(config, dz=-0.24))  # z = 1.01
+        async with stack:
+            await stack.enable()
+            await asyncio.sleep(0.3)  # settled from the placed start
+            service = stack.service
+            lower = _home(config, dz=-0.245)  # z = 1.005
+            err = await _refused(stack, service.command("goto", {"pose": lower}))
+            assert (err.details["limit"], err.details["waypoint"]) == ("workspace_min", 1)
+            here = service.controller.source.sample(service.now()).pose
+            trajectory = Trajectory([Waypoint(0.0, here), Waypoint(1.0, _home(config))])
+            err = await _refused(stack, service.submit_trajectory(trajectory, None))
+            assert (err.details["limit"], err.details["waypoint"]) == ("workspace_min", 0)
+            reply = await service.command("goto", {"pose": _home(config)})
+            assert reply["accepted"]
+            await stack.until(lambda: service.machine.state is SafetyState.HOLD, 3.0)
+            assert service.machine.fault is None
+
+    run(scenario())
+
+
+def test_over_zenoh_put_query_and_goto_are_rejected_with_the_waypoint_and_limit() -> None:
+    from daemon.interface.client import CdprClient, RequestError
+
+    port = free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    config = config_for("cia402", safety=FENCE, zenoh={"listen": [endpoint]})
+    floor = _into_the_floor(config).as_dict()
+    prefix = config.zenoh.key_prefix(config.robot.name)
+
+    def client_side() -> dict:
+        out: dict = {"events": []}
+        with CdprClient(connect=endpoint, timeout=10.0) as client:
+            events = client.subscribe_events(out["events"].append)
+            client.enable()
+            try:
+                client.send_trajectory(floor, request_id="query")
+            except RequestError as exc:
+                out["query"] = exc.reply["error"]
+            try:
+                client.goto([0.0, 0.0, 1.75])
+            except RequestError as exc:
+                out["goto"] = exc.reply["error"]
+            with zenoh.open(client_zenoh_config([endpoint])) as session:
+                session.put(f"{prefix}/trajectory", json.dumps({**floor, "id": "put"}))
+                end = time.monotonic() + 10.0
+                while time.monotonic() < end and not any(
+                    e.get("id") == "put" for e in out["events"]
+                ):
+                    time.sleep(0.05)
+            time.sleep(0.3)
+            out["status"] = client.status()
+            events.undeclare()
+        return out
+
+    async def scenario() -> dict:
+        sim = InProcessSimulator(config)
+        sim.start()
+        result: dict = {}
+
+        async def fly(service) -> None:
+            start = sim.robot.plant.pose.position.copy()
+            result.update(await asyncio.to_thread(client_side))
+            result["moved"] = float(np.linalg.norm(sim.robot.plant.pose.position - start))
+
+        try:
+            await serve(config, sim.daemon_bus, after_start=fly)
+        finally:
+            sim.close()
+        return result
+
+    result = run(scenario())
+    for name, waypoint, limit, value in (
+        ("query", 2, "workspace_min", -0.5),
+        ("goto", 1, "workspace_max", 1.75),
+    ):
+        error = result[name]
+        assert error["code"] == "rejected", error
+        assert (error["waypoint"], error["limit"], error["value"]) == (waypoint, limit, value)
+        assert f"waypoint {waypoint}: {limit}" in error["reason"]
+    put = [e for e in result["events"] if e.get("id") == "put"]
+    assert [e["event"] for e in put] == ["trajectory_rejected"]
+    assert (put[0]["error"]["waypoint"], put[0]["error"]["limit"]) == (2, "workspace_min")
+    assert result["status"]["state"] == "hold" and result["status"]["fault"] is None
+    assert result["moved"] < 5e-4

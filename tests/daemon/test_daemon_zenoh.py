@@ -1,0 +1,114 @@
+"""`cdprd run --sim` as its own process, driven from this process with the plain zenoh
+API only (loopback, no scouting): enable, a hostile trajectory rejected with the robot
+unchanged, a valid one accepted and flown, state and events seen; SIGTERM exits 0."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+import zenoh
+
+from tests.loopback import free_port
+from tests.processes import finish
+
+ROOT = Path(__file__).resolve().parents[2]
+CONFIG = ROOT / "config" / "reference8-cia402.yaml"
+PREFIX = "cdpr/reference8"
+
+
+def _session(port: int) -> zenoh.Session:
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"peer"')
+    conf.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
+    conf.insert_json5("listen/endpoints", "[]")
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("scouting/gossip/enabled", "false")
+    return zenoh.open(conf)
+
+
+def _get(session: zenoh.Session, key: str, body: dict | None = None) -> dict:
+    payload = None if body is None else json.dumps(body)
+    for reply in session.get(key, payload=payload, timeout=10.0):
+        sample = reply.ok if reply.ok is not None else reply.err
+        return json.loads(sample.payload.to_bytes())
+    raise AssertionError(f"no reply on {key}")
+
+
+def _wait(condition, timeout: float) -> None:
+    end = time.monotonic() + timeout
+    while not condition():
+        assert time.monotonic() < end, "timed out"
+        time.sleep(0.05)
+
+
+@pytest.mark.timeout(90)
+def test_plain_zenoh_client_drives_a_simulated_daemon(tmp_path: Path) -> None:
+    port = free_port()
+    data = yaml.safe_load(CONFIG.read_text())
+    data["robot"] = str(ROOT / "config" / "robots" / "reference8.yaml")
+    data["zenoh"]["listen"] = [f"tcp/127.0.0.1:{port}"]
+    config = tmp_path / "cdprd.yaml"
+    config.write_text(yaml.safe_dump(data))
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "daemon.cli", "run", "--config", str(config), "--sim"],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    states: list[dict] = []
+    events: list[dict] = []
+    try:
+        time.sleep(1.0)
+        session = _session(port)
+        try:
+            session.declare_subscriber(
+                f"{PREFIX}/state", lambda s: states.append(json.loads(s.payload.to_bytes()))
+            )
+            session.declare_subscriber(
+                f"{PREFIX}/events", lambda s: events.append(json.loads(s.payload.to_bytes()))
+            )
+            _wait(lambda: states and states[-1]["state"] == "idle", 20.0)
+
+            reply = _get(session, f"{PREFIX}/cmd/enable")
+            assert reply["ok"] is True, reply
+            _wait(lambda: states[-1]["state"] == "hold", 5.0)
+
+            hostile = (
+                '{"version": 1, "waypoints": [{"t": 0, "position": [0, 0, NaN], '
+                '"quaternion": {"w": 1, "x": 0, "y": 0, "z": 0}}]}'
+            )
+            for reply in session.get(f"{PREFIX}/trajectory", payload=hostile, timeout=10.0):
+                body = json.loads((reply.ok or reply.err).payload.to_bytes())
+                assert body["ok"] is False and body["error"]["code"] == "bad_request"
+            time.sleep(0.2)
+            assert states[-1]["state"] == "hold" and states[-1]["fault"] is None
+
+            quat = {"w": 1, "x": 0, "y": 0, "z": 0}
+            trajectory = {
+                "version": 1,
+                "start": "now",
+                "waypoints": [
+                    {"t": 0.0, "position": [0, 0, 1.25], "quaternion": quat},
+                    {"t": 1.5, "position": [0.1, 0, 1.3], "quaternion": quat},
+                ],
+            }
+            reply = _get(session, f"{PREFIX}/trajectory", trajectory)
+            assert reply["ok"] is True, reply
+            _wait(lambda: states[-1]["state"] == "tracking", 5.0)
+            _wait(lambda: states[-1]["state"] == "hold", 10.0)
+            assert states[-1]["pose"]["position"][0] == pytest.approx(0.1, abs=2e-3)
+            kinds = [e.get("event") for e in events]
+            assert "trajectory_accepted" in kinds and "trajectory_done" in kinds
+        finally:
+            session.close()
+    finally:
+        out = finish(proc)
+    assert proc.returncode == 0, out
+    assert "BRAKE [sigterm]" in out

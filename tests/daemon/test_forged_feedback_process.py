@@ -1,0 +1,206 @@
+"""A forged length synchronised to the SYNC, with the daemon, the simulator and the
+attacker as separate processes (issue 22 item 1): the simulator serves its bus over
+socketcand on 127.0.0.1 and logs the platform's TRUE pose (--truth-log); the daemon
+(`cdprd run`, no --sim) drives it over socketcand and holds; this test, a third client on
+the same bus, answers every SYNC it sees with a TPDO1 + TPDO2 claiming 4.1 m for cable 0
+(really ~2.33 m) until the daemon braked and half a second longer.  Over the TCP relays
+the forgery lands after the drive's answer, and counts when that answer misses a cycle's
+deadline (often, at 500 Hz).  The daemon brakes naming the drive (zenoh event, status,
+log) and the platform stays within 2 mm of where it was (on main it moves ~210 mm)."""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import can
+import numpy as np
+import pytest
+import yaml
+
+from daemon.interface.client import CdprClient, UnreachableError
+from drivers.cia402 import codec
+from drivers.cia402.statemachine import MODE_CST
+from drivers.config import parse_drives
+from tests.loopback import free_port
+from tests.processes import finish
+
+ROOT = Path(__file__).resolve().parents[2]
+CONFIG = ROOT / "config" / "reference8-cia402.yaml"
+PREFIX = "cdpr/reference8"
+FORGED = 4.1  # m claimed for cable 0 (node 1)
+SYNCS = 5000  # the attacker answers at most this many SYNCs (10 s at 500 Hz)
+ALLOWED = 2e-3  # m the true platform position may move
+
+pytestmark = pytest.mark.timeout(120)
+
+
+def _configs(tmp_path: Path, zenoh_port: int) -> tuple[Path, dict]:
+    data = yaml.safe_load(CONFIG.read_text())
+    data["robot"] = str(ROOT / "config" / "robots" / "reference8.yaml")
+    data["zenoh"]["listen"] = [f"tcp/127.0.0.1:{zenoh_port}"]
+    # three processes and TCP relays on a busy 2-CPU host: patient drive watchdogs, so
+    # that only the attack decides how the run ends
+    data["drives"].update(watchdog_timeout=0.2, heartbeat_timeout=1.0)
+    sim = tmp_path / "sim.yaml"
+    sim.write_text(yaml.safe_dump(data))
+    return sim, data
+
+
+def _daemon_config(tmp_path: Path, data: dict, port: int, channel: str) -> Path:
+    data = dict(data)
+    data["can"] = {
+        "interface": "socketcand",
+        "channel": channel,
+        "options": {"host": "127.0.0.1", "port": port},
+    }
+    data["safety"] = {**data["safety"], "stale_cycles": 25}  # late feedback is not the point
+    path = tmp_path / "daemon.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+def _truth(path: Path) -> list[dict]:
+    lines = path.read_text().splitlines()
+    return [json.loads(line) for line in lines[:-1]]  # the last may be half written
+
+
+def _connect(port: int, proc: subprocess.Popen, timeout: float = 30.0) -> CdprClient:
+    """A client once the daemon listens on zenoh (it starts in a second or two)."""
+    end = time.monotonic() + timeout
+    while True:
+        assert proc.poll() is None, "the daemon exited early"
+        try:
+            return CdprClient(PREFIX, f"tcp/127.0.0.1:{port}", timeout=5.0)
+        except UnreachableError:
+            assert time.monotonic() < end, "the daemon never listened on zenoh"
+            time.sleep(0.2)
+
+
+def _wait_status(client: CdprClient, state: str, timeout: float) -> dict:
+    end = time.monotonic() + timeout
+    while (status := client.status())["state"] != state:
+        assert time.monotonic() < end, f"never {state}: {status}"
+        time.sleep(0.05)
+    return status
+
+
+class Attacker(threading.Thread):
+    """A socketcand client on the simulator's bus that answers every SYNC it sees with a
+    forged TPDO1 + TPDO2 of node 1 (the statusword copied from the drive's own TPDO1),
+    until `stop` is set or it answered SYNCS of them."""
+
+    def __init__(self, port: int, channel: str, position: int) -> None:
+        super().__init__(daemon=True)
+        self.bus = can.Bus(interface="socketcand", host="127.0.0.1", port=port, channel=channel)
+        self.position = position
+        self.answered = 0
+        self.stop = threading.Event()
+
+    def run(self) -> None:
+        try:
+            self._answer()
+        finally:
+            self.bus.shutdown()
+
+    def _answer(self) -> None:
+        bus, position = self.bus, self.position
+        statusword, mode = None, MODE_CST
+        end = time.monotonic() + 20.0
+        while not self.stop.is_set() and self.answered < SYNCS and time.monotonic() < end:
+            msg = bus.recv(0.1)
+            if msg is None:
+                continue
+            if msg.arbitration_id == codec.TPDO1_BASE + 1 and statusword is None:
+                statusword, _, mode = codec.decode_tpdo1(msg.arbitration_id, msg.data)
+            elif msg.arbitration_id == codec.SYNC_ID and statusword is not None:
+                bus.send(codec.encode_tpdo1(1, statusword, position, mode))
+                bus.send(codec.encode_tpdo2(1, 0))
+                self.answered += 1
+
+
+def test_a_forged_length_after_each_sync_brakes_naming_the_drive_and_nothing_moves(
+    tmp_path: Path,
+) -> None:
+    zenoh_port = free_port()
+    sim_config, data = _configs(tmp_path, zenoh_port)
+    truth_log = tmp_path / "truth.jsonl"
+    args = [sys.executable, "-m", "sim_bus", "--config", str(sim_config), "--duration", "100"]
+    args += ["--serve-socketcand", "127.0.0.1:0", "--truth-log", str(truth_log)]
+    sim = subprocess.Popen(
+        args,
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        text=True,
+    )
+    daemon = None
+    try:
+        for _ in range(20):  # log lines first
+            line = sim.stdout.readline()
+            match = re.search(r"serving socketcand on 127\.0\.0\.1:(\d+) channel (\S+)", line)
+            if match or not line:
+                break
+        assert match, line
+        port, channel = int(match.group(1)), match.group(2)
+        config = _daemon_config(tmp_path, data, port, channel)
+        with (tmp_path / "daemon.log").open("w") as daemon_log:  # the child keeps it open
+            daemon = subprocess.Popen(
+                [sys.executable, "-m", "daemon.cli", "run", "--config", str(config)],
+                cwd=ROOT,
+                stdout=daemon_log,
+                stderr=subprocess.STDOUT,
+                text=True,
+            )
+        events: list[dict] = []
+        with _connect(zenoh_port, daemon) as client:
+            _wait_status(client, "idle", 10.0)
+            subscriber = client.subscribe_events(events.append)
+            client.enable()
+            time.sleep(0.5)
+            start = _truth(truth_log)[-1]
+            drives = parse_drives(data["drives"])
+            robot_file = yaml.safe_load(Path(data["robot"]).read_text())
+            scaling = drives.scalings([robot_file["actuator"]["drum_radius"]] * 8)[0]
+            attacker = Attacker(port, channel, round(scaling.position(FORGED)))
+            attacker.start()
+            try:
+                status = _wait_status(client, "braked", 10.0)
+                answered = attacker.answered
+                time.sleep(0.5)  # braked, the attack goes on: the brake must not follow it
+            finally:
+                attacker.stop.set()
+                attacker.join(5.0)
+            assert attacker.answered > answered + 100
+            time.sleep(0.3)  # and after it
+            subscriber.undeclare()
+        daemon_out = finish(daemon)
+    finally:
+        if daemon is not None and daemon.poll() is None:
+            finish(daemon)
+        sim.terminate()
+        sim.communicate(timeout=10)
+    after = [t for t in _truth(truth_log) if t["t"] >= start["t"]]
+    assert len(after) > 30  # the whole attack and what followed
+    p0 = np.array(start["position"])
+    moved = max(np.linalg.norm(np.array(t["position"]) - p0) for t in after)
+    q0 = np.array(list(start["quaternion"].values()))
+    turned = max(
+        2 * math.acos(min(1.0, abs(float(np.array(list(t["quaternion"].values())) @ q0))))
+        for t in after
+    )
+    assert moved < ALLOWED, f"the platform moved {moved * 1e3:.2f} mm"
+    assert turned < 5e-3, f"the platform turned {math.degrees(turned):.3f} deg"
+    fault = status["fault"]
+    assert fault["trigger"] == "implausible_feedback", status
+    assert fault["message"].startswith("drive 0 (node 1): length 4.1000 m"), fault
+    brakes = [e for e in events if e.get("event") == "brake"]
+    assert brakes and brakes[0]["message"] == fault["message"], events
+    log = (tmp_path / "daemon.log").read_text()
+    assert "BRAKE [implausible_feedback] drive 0 (node 1)" in log, log + daemon_out
