@@ -1,12 +1,15 @@
-"""A forged length synchronised to the SYNC, with the daemon, the simulator and the
-attacker as separate processes (issue 22 item 1): the simulator serves its bus over
-socketcand on 127.0.0.1 and logs the platform's TRUE pose (--truth-log); the daemon
-(`cdprd run`, no --sim) drives it over socketcand and holds; this test, a third client on
-the same bus, answers every SYNC it sees with a TPDO1 + TPDO2 claiming 4.1 m for cable 0
-(really ~2.33 m) until the daemon braked and half a second longer.  Over the TCP relays
-the forgery lands after the drive's answer, and counts when that answer misses a cycle's
-deadline (often, at 500 Hz).  The daemon brakes naming the drive (zenoh event, status,
-log) and the platform stays within 2 mm of where it was (on main it moves ~210 mm)."""
+"""A forged length synchronised to the SYNC, and a glitching encoder, with the daemon,
+the simulator and the attacker as separate processes (issue 22 item 1).  The simulator
+serves its bus over socketcand on 127.0.0.1 and logs the platform's TRUE pose
+(--truth-log); the daemon (`cdprd run`, no --sim) drives it over socketcand and holds.
+Forged: this test, a third client on the same bus, answers every SYNC it sees with a
+TPDO1 + TPDO2 claiming 4.1 m for cable 0 (really ~2.33 m) until the daemon braked and
+half a second longer; over the TCP relays the forgery lands after the drive's answer,
+and counts when that answer misses a cycle's deadline (often, at 500 Hz).  Glitch: typed
+into the simulator (--fault-input), drive 0 reports its length 0.1 m off in its own
+answers to every SYNC.  The daemon brakes naming the drive (zenoh event, status, log)
+and the platform stays within 2 mm of where it was (on main the forgery moves it
+~210 mm)."""
 
 from __future__ import annotations
 
@@ -125,17 +128,39 @@ class Attacker(threading.Thread):
                 self.answered += 1
 
 
-def test_a_forged_length_after_each_sync_brakes_naming_the_drive_and_nothing_moves(
-    tmp_path: Path,
+def _forge_until_braked(client: CdprClient, data: dict, port: int, channel: str) -> dict:
+    """Answer every SYNC with a forged length until the daemon braked and 0.5 s longer;
+    the daemon's status once braked."""
+    drives = parse_drives(data["drives"])
+    robot_file = yaml.safe_load(Path(data["robot"]).read_text())
+    scaling = drives.scalings([robot_file["actuator"]["drum_radius"]] * 8)[0]
+    attacker = Attacker(port, channel, round(scaling.position(FORGED)))
+    attacker.start()
+    try:
+        status = _wait_status(client, "braked", 10.0)
+        answered = attacker.answered
+        time.sleep(0.5)  # braked, the attack goes on: the brake must not follow it
+    finally:
+        attacker.stop.set()
+        attacker.join(5.0)
+    assert attacker.answered > answered + 100
+    return status
+
+
+@pytest.mark.parametrize("attack", ["forged", "glitch"])
+def test_a_forged_or_glitching_length_brakes_naming_the_drive_and_nothing_moves(
+    tmp_path: Path, attack: str
 ) -> None:
     zenoh_port = free_port()
     sim_config, data = _configs(tmp_path, zenoh_port)
     truth_log = tmp_path / "truth.jsonl"
     args = [sys.executable, "-m", "sim_bus", "--config", str(sim_config), "--duration", "100"]
     args += ["--serve-socketcand", "127.0.0.1:0", "--truth-log", str(truth_log)]
+    args += ["--fault-input"] if attack == "glitch" else []
     sim = subprocess.Popen(
         args,
         cwd=ROOT,
+        stdin=subprocess.PIPE,
         stdout=subprocess.PIPE,
         stderr=subprocess.DEVNULL,
         text=True,
@@ -165,19 +190,13 @@ def test_a_forged_length_after_each_sync_brakes_naming_the_drive_and_nothing_mov
             client.enable()
             time.sleep(0.5)
             start = _truth(truth_log)[-1]
-            drives = parse_drives(data["drives"])
-            robot_file = yaml.safe_load(Path(data["robot"]).read_text())
-            scaling = drives.scalings([robot_file["actuator"]["drum_radius"]] * 8)[0]
-            attacker = Attacker(port, channel, round(scaling.position(FORGED)))
-            attacker.start()
-            try:
+            if attack == "forged":
+                status = _forge_until_braked(client, data, port, channel)
+            else:
+                sim.stdin.write("glitch:0\n")
+                sim.stdin.flush()
                 status = _wait_status(client, "braked", 10.0)
-                answered = attacker.answered
-                time.sleep(0.5)  # braked, the attack goes on: the brake must not follow it
-            finally:
-                attacker.stop.set()
-                attacker.join(5.0)
-            assert attacker.answered > answered + 100
+                time.sleep(0.5)  # braked, the glitch goes on: the brake must not follow it
             time.sleep(0.3)  # and after it
             subscriber.undeclare()
         daemon_out = finish(daemon)
@@ -185,7 +204,7 @@ def test_a_forged_length_after_each_sync_brakes_naming_the_drive_and_nothing_mov
         if daemon is not None and daemon.poll() is None:
             finish(daemon)
         sim.terminate()
-        sim.communicate(timeout=10)
+        sim.communicate(timeout=10)  # closes its stdin too
     after = [t for t in _truth(truth_log) if t["t"] >= start["t"]]
     assert len(after) > 30  # the whole attack and what followed
     p0 = np.array(start["position"])
@@ -199,7 +218,8 @@ def test_a_forged_length_after_each_sync_brakes_naming_the_drive_and_nothing_mov
     assert turned < 5e-3, f"the platform turned {math.degrees(turned):.3f} deg"
     fault = status["fault"]
     assert fault["trigger"] == "implausible_feedback", status
-    assert fault["message"].startswith("drive 0 (node 1): length 4.1000 m"), fault
+    claimed = "4.1000 m" if attack == "forged" else ""
+    assert fault["message"].startswith(f"drive 0 (node 1): length {claimed}"), fault
     brakes = [e for e in events if e.get("event") == "brake"]
     assert brakes and brakes[0]["message"] == fault["message"], events
     log = (tmp_path / "daemon.log").read_text()
