@@ -69,6 +69,15 @@ def client(server: SocketcandServer, **kwargs) -> can.BusABC:
     )
 
 
+def _open_rawmode(raw: socket.socket) -> None:
+    """The client's side of socketcand's greeting: open vcan0 and enter raw mode."""
+    assert raw.recv(64) == b"< hi >"
+    raw.sendall(b"< open vcan0 >")
+    assert raw.recv(64) == b"< ok >"
+    raw.sendall(b"< rawmode >")
+    assert raw.recv(64) == b"< ok >"
+
+
 def wait_for(condition: Callable[[], bool], what: str) -> None:
     deadline = time.monotonic() + TIMEOUT
     while not condition():
@@ -192,11 +201,7 @@ def test_frames_sent_right_after_rawmode_are_held_not_lost() -> None:
     ):
         raw = socket.create_connection(("127.0.0.1", server.port), timeout=TIMEOUT)
         try:
-            assert raw.recv(64) == b"< hi >"
-            raw.sendall(b"< open vcan0 >")
-            assert raw.recv(64) == b"< ok >"
-            raw.sendall(b"< rawmode >")
-            assert raw.recv(64) == b"< ok >"
+            _open_rawmode(raw)
             device.send(std(0x111, b"\x01"))
             device.send(std(0x112))
             assert not select.select([raw], [], [], 0.2)[0]  # held
@@ -274,11 +279,7 @@ def test_a_client_that_stops_reading_is_disconnected(caplog: pytest.LogCaptureFi
         raw.settimeout(TIMEOUT)
         raw.connect(("127.0.0.1", server.port))
         try:
-            assert raw.recv(64) == b"< hi >"
-            raw.sendall(b"< open vcan0 >")
-            assert raw.recv(64) == b"< ok >"
-            raw.sendall(b"< rawmode >")
-            assert raw.recv(64) == b"< ok >"
+            _open_rawmode(raw)
             batch = [std(0x100 + i % 256, bytes(8)) for i in range(1000)]
 
             def flood() -> bool:
