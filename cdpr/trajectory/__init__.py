@@ -8,10 +8,12 @@ trajectory against rate, pose, cable-length and wrench limits before it runs, an
 
 from cdpr.trajectory.core import SCHEMA_VERSION, Reference, Trajectory, TrajectoryError, Waypoint
 from cdpr.trajectory.limits import (
+    LengthLimits,
     TrajectoryLimits,
     WrenchCheck,
     check_start_delay,
     sampled_pose_limits,
+    tracked_length_limits,
     validate,
     validation_steps,
 )
@@ -20,6 +22,7 @@ from cdpr.trajectory.transitions import approach, approach_steps, goto, goto_ste
 
 __all__ = [
     "SCHEMA_VERSION",
+    "LengthLimits",
     "Reference",
     "Trajectory",
     "TrajectoryError",
@@ -34,6 +37,7 @@ __all__ = [
     "parse_trajectory",
     "run_steps",
     "sampled_pose_limits",
+    "tracked_length_limits",
     "validate",
     "validation_steps",
 ]

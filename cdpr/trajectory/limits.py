@@ -9,7 +9,8 @@ the runtime check (`sampled_pose_limits`).
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
 from typing import Annotated
 
 import numpy as np
@@ -106,6 +107,66 @@ def sampled_pose_limits(path: PoseLimits, limits: TrajectoryLimits) -> PoseLimit
     return path.shrunk(position, orientation)
 
 
+@dataclass(frozen=True)
+class LengthLimits:
+    """Bounds on each cable's geometric length along a reference (m): inside them, the
+    lengths the drives measure stay inside the robot's [length_min, length_max], which
+    the runtime checks, while tracking keeps within its bounds (`tracked_length_limits`).
+    `limits` names what they derive from, for the messages."""
+
+    lower: tuple[float, ...]
+    upper: tuple[float, ...]
+    limits: str = "length_min/length_max"
+
+    def violation(self, lengths: Sequence[float]) -> tuple[int, float, float, float] | None:
+        """(cable, length, lower, upper) of the first cable outside, else None."""
+        for k, (ell, lo, hi) in enumerate(zip(lengths, self.lower, self.upper, strict=True)):
+            if not lo <= ell <= hi:
+                return k, ell, lo, hi
+        return None
+
+    def widened_to(self, lengths: Sequence[float]) -> LengthLimits:
+        """The smallest bounds holding these and `lengths`: a transition may not go
+        further out than where it starts, nor be refused for starting there."""
+        return LengthLimits(
+            tuple(min(lo, x) for lo, x in zip(self.lower, lengths, strict=True)),
+            tuple(max(hi, x) for hi, x in zip(self.upper, lengths, strict=True)),
+            self.limits,
+        )
+
+
+def tracked_length_limits(
+    robot: Robot, position: float, orientation: float, limits: TrajectoryLimits
+) -> LengthLimits:
+    """The bounds a sampled reference's lengths must keep (DESIGN §7: an accepted
+    trajectory never trips a runtime brake) when the measured pose may be `position` (m)
+    and `orientation` (rad) from the reference:
+
+    - the pose: |d l_k| <= |d p| + |b_k| |d theta| (triangle inequality; |(R' - R) b| <=
+      |b| theta), i.e. position + |b_k| orientation;
+    - between two samples h = sample_period apart the length strays at most
+      |l''| h^2 / 8, |l''| <= linear_accel + |b_k| angular_accel + (linear_speed + |b_k|
+      angular_speed)^2 / length_min;
+    - stretch: a drive measures the length its drum paid out, l / (1 + t / EA), shorter
+      under tension t <= force_max: the lower bound is raised by that factor.
+    """
+    b = np.linalg.norm(robot.geometry.attachments, axis=1).tolist()
+    h2 = limits.sample_period**2
+    lower, upper = [], []
+    for k, r in enumerate(b):
+        lo, hi = float(robot.length_min[k]), float(robot.length_max[k])
+        accel = limits.linear_accel + r * limits.angular_accel
+        accel += (limits.linear_speed + r * limits.angular_speed) ** 2 / max(lo, 1e-3)
+        margin = position + r * orientation + accel * h2 / 8.0
+        stretch = 1.0 + float(robot.compliance[k]) * float(robot.force_max[k])
+        lower.append((lo + margin) * stretch)
+        upper.append(hi - margin)
+    return LengthLimits(
+        tuple(lower), tuple(upper), "length_min/length_max less the tracking, sampling and "
+        "stretch margins"
+    )
+
+
 def check_start_delay(delay: float, limits: TrajectoryLimits) -> None:
     """TrajectoryError if a requested start lies more than max_start_delay seconds ahead
     (the start is when waypoint 0 is due)."""
@@ -124,17 +185,20 @@ def validate(
     limits: TrajectoryLimits,
     wrench_check: WrenchCheck | None = None,
     pose_limits: PoseLimits | None = None,
+    length_limits: LengthLimits | None = None,
 ) -> None:
     """Raise TrajectoryError on the first problem along the path, else return.
 
     If given, every waypoint's pose is checked against `pose_limits` first (naming that
     waypoint).  Then samples every limits.sample_period from the start and at every
-    waypoint time: rate limits, `pose_limits`, cable lengths within [length_min,
-    length_max], and, if given, ``wrench_check(pose, twist, accel)`` (None when the
-    wrench is in W, else a reason).  The waypoint index reported for a sample is that of
-    the segment holding the failing instant.
+    waypoint time: rate limits, `pose_limits`, cable lengths within `length_limits`
+    (default the robot's [length_min, length_max]), and, if given,
+    ``wrench_check(pose, twist, accel)`` (None when the wrench is in W, else a reason).
+    The waypoint index reported for a sample is that of the segment holding the failing
+    instant.
     """
-    for _ in validation_steps(trajectory, robot, limits, wrench_check, pose_limits):
+    steps = validation_steps(trajectory, robot, limits, wrench_check, pose_limits, length_limits)
+    for _ in steps:
         pass
 
 
@@ -144,6 +208,7 @@ def validation_steps(
     limits: TrajectoryLimits,
     wrench_check: WrenchCheck | None = None,
     pose_limits: PoseLimits | None = None,
+    length_limits: LengthLimits | None = None,
 ) -> Iterator[float]:
     """`validate` one step at a time: yields each checked waypoint's and sample's time once
     it passed, so a caller sharing an event loop with a control cycle can pause between."""
@@ -160,6 +225,9 @@ def validation_steps(
             f"duration {trajectory.duration:.6g} s exceeds the limit {limits.max_duration:g} s",
             value=trajectory.duration,
         )
+    bounds = length_limits or LengthLimits(
+        tuple(robot.length_min.tolist()), tuple(robot.length_max.tolist())
+    )
     if pose_limits is not None:
         for index, w in enumerate(trajectory.waypoints):
             _check_pose(pose_limits, w.pose, index, f"at t={w.t:.6g} s")
@@ -182,17 +250,16 @@ def validation_steps(
             )
         if pose_limits is not None:
             _check_pose(pose_limits, ref.pose, index, at)
-        lengths = robot.cable_lengths(ref.pose)
-        for k, (ell, lo, hi) in enumerate(
-            zip(lengths.tolist(), robot.length_min, robot.length_max, strict=True)
-        ):
-            if not lo <= ell <= hi:
-                raise TrajectoryError(
-                    "cable_length",
-                    f"cable {k} length {ell:.6g} m outside [{lo:g}, {hi:g}] m {at}",
-                    waypoint=index,
-                    value=ell,
-                )
+        bad = bounds.violation(robot.cable_lengths(ref.pose).tolist())
+        if bad is not None:
+            k, ell, lo, hi = bad
+            raise TrajectoryError(
+                "cable_length",
+                f"cable {k} length {ell:.6g} m outside [{lo:.6g}, {hi:.6g}] m "
+                f"({bounds.limits}) {at}",
+                waypoint=index,
+                value=ell,
+            )
         if wrench_check is not None:
             reason = wrench_check(ref.pose, ref.twist, ref.accel)
             if reason is not None:

@@ -28,7 +28,7 @@ from cdpr.description import (
     validate_section,
 )
 from cdpr.pose_limits import PoseLimits
-from cdpr.trajectory import TrajectoryLimits, sampled_pose_limits
+from cdpr.trajectory import TrajectoryLimits, sampled_pose_limits, tracked_length_limits
 from daemon.config.zenoh_config import ZenohSettings
 from drivers.config import CanConfig, DrivesConfig, parse_drives
 
@@ -142,6 +142,13 @@ class DaemonConfig:
             raw.safety.tracking_error_position, raw.safety.tracking_error_orientation
         )
         self.reference_limits = sampled_pose_limits(tracked, raw.trajectory)
+        # and the cable lengths validation holds each sampled reference to
+        self.reference_lengths = tracked_length_limits(
+            robot,
+            raw.safety.tracking_error_position,
+            raw.safety.tracking_error_orientation,
+            raw.trajectory,
+        )
         fastest = fastest_cable_rate(robot, raw.trajectory)
         if raw.safety.max_cable_speed <= fastest:
             raise ConfigError(
@@ -210,6 +217,15 @@ def check_geometry(config: DaemonConfig) -> None:
     if not result.feasible:
         raise ConfigError(
             f"{config.source}: robot: the home pose is not in the wrench set W: {result.reason}"
+        )
+    short = config.reference_lengths.violation(robot.cable_lengths(home).tolist())
+    if short is not None:
+        k, ell, lo, hi = short
+        raise ConfigError(
+            f"{config.source}: robot: cable {k} at the home pose is {ell:.4g} m, outside "
+            f"[{lo:.4g}, {hi:.4g}] m: its length_min/length_max less the margins of "
+            "safety.tracking_error_position/_orientation and cable stretch, inside which "
+            "trajectories must stay"
         )
     bad = config.reference_limits.violation(home)
     if bad is None:

@@ -33,6 +33,7 @@ from cdpr.controller import (
 from cdpr.pose import retract
 from cdpr.pose_limits import PoseLimits
 from cdpr.trajectory import (
+    LengthLimits,
     Reference,
     Trajectory,
     TrajectoryError,
@@ -544,7 +545,10 @@ class Service:
                 check_start_delay(start - time.time(), limits)
             except TrajectoryError as exc:
                 raise _rejected("trajectory", exc) from None
-        await self._validate(trajectory, "trajectory", self.config.reference_limits)
+        config = self.config
+        await self._validate(
+            trajectory, "trajectory", config.reference_limits, config.reference_lengths
+        )
 
         def plan(current: Reference, begin: float) -> Generator[None, None, Trajectory]:
             not_before = begin if start is None else max(begin, self.now() + start - time.time())
@@ -604,11 +608,22 @@ class Service:
             if not waiter.done():
                 waiter.set_result(None)
 
-    async def _validate(self, trajectory: Trajectory, what: str, pose_limits: PoseLimits) -> None:
+    async def _validate(
+        self,
+        trajectory: Trajectory,
+        what: str,
+        pose_limits: PoseLimits,
+        length_limits: LengthLimits,
+    ) -> None:
         """DESIGN §7 validation, between control cycles; every sampled pose inside
-        `pose_limits`."""
+        `pose_limits`, its cable lengths inside `length_limits`."""
         steps = validation_steps(
-            trajectory, self.robot, self.config.trajectory, self._wrench_check, pose_limits
+            trajectory,
+            self.robot,
+            self.config.trajectory,
+            self._wrench_check,
+            pose_limits,
+            length_limits,
         )
         try:
             await self._in_slack(steps)
@@ -639,12 +654,16 @@ class Service:
                 planned = await self._in_slack(make(current, begin))
             except TrajectoryError as exc:
                 raise _rejected(what, exc) from None
-            inside = self.config.reference_limits.widened_to(planned.waypoints[0].pose)
+            begins = planned.waypoints[0].pose
+            inside = self.config.reference_limits.widened_to(begins)
+            reach = self.config.reference_lengths.widened_to(
+                self.robot.cable_lengths(begins).tolist()
+            )
             if validate == "blend":
                 blend = Trajectory([planned.knot(0), planned.knot(1)])
-                await self._validate(blend, f"{what}'s approach", inside)
+                await self._validate(blend, f"{what}'s approach", inside, reach)
             elif validate == "all":
-                await self._validate(planned, what, inside)
+                await self._validate(planned, what, inside, reach)
             self._require_moving(f"run a {what}")  # braked meanwhile: nothing changes
             if self._holds != holds and what != "hold":
                 raise CommandError("invalid_state", f"{what} dropped: a hold came meanwhile")

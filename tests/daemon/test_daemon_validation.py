@@ -15,6 +15,7 @@ import time
 
 import numpy as np
 import pytest
+import yaml
 import zenoh
 
 from cdpr import Pose
@@ -25,6 +26,7 @@ from daemon.process.app import serve
 from daemon.service.api import CommandError
 from daemon.service.safety import SafetyState
 from daemon.service.service import Service
+from tests.conftest import ROBOTS, load_robot
 from tests.daemon_stack import Stack, config_for
 from tests.loopback import free_port
 
@@ -93,6 +95,29 @@ def test_a_goto_through_the_fence_is_rejected() -> None:
             # below the fence less the tracking margin it goes
             reply = await stack.service.command("goto", {"pose": _home(stack.config, dz=0.3)})
             assert reply["accepted"]
+
+    run(scenario())
+
+
+def test_a_goto_near_a_cable_length_limit_is_rejected() -> None:
+    """A target whose cable lengths are inside length_max, but not by the tracking and
+    stretch margins, is refused naming cable_length; the robot does not move."""
+    home = load_robot("reference8").home
+    away = Pose.from_rotvec(home.position + np.array([0.12, 0.12, 0.0]))
+    longest = float(load_robot("reference8").cable_lengths(away).max())
+    robot = yaml.safe_load((ROBOTS / "reference8.yaml").read_text())
+    robot["actuator"]["length_max"] = longest + 0.01
+
+    async def scenario() -> None:
+        async with Stack(config_for("cia402", robot=robot)) as stack:
+            await stack.enable()
+            before, _ = await stack.watch(0.05)
+            err = await _refused(stack, stack.service.command("goto", {"pose": away}))
+            assert err.details["limit"] == "cable_length", err.details
+            assert "less the tracking, sampling and stretch margins" in err.reason
+            after, _ = await stack.watch(0.2)
+            assert np.abs(after - before[-1]).max() < 5e-4
+            assert stack.service.machine.state is SafetyState.HOLD
 
     run(scenario())
 
