@@ -32,6 +32,12 @@ def test_hardware_template_is_a_valid_file() -> None:
     assert zenoh.ingress_limits_hz == {"trajectory": 20.0, "cmd/*": 20.0}
 
 
+def _robot_with(**actuator: float) -> dict:
+    robot = yaml.safe_load((CONFIG / "robots" / "reference8.yaml").read_text())
+    robot["actuator"].update(actuator)
+    return robot
+
+
 def _data() -> dict:
     return yaml.safe_load((CONFIG / "reference8-cia402.yaml").read_text())
 
@@ -55,6 +61,11 @@ def _data() -> dict:
                 protocol="odrive", nodes=list(range(8)), feedback_rate_hz=400
             ),
             r"drives.feedback_rate_hz \(400\) is below controller.rate_hz \(500\)",
+        ),
+        (
+            lambda d: d.update(robot=_robot_with(length_max=2.36)),  # home: 2.34 m
+            r"robot: cable 0 at the home pose is 2.341 m, outside \[0.3429, 2.319\] m: its "
+            "length_min/length_max less the margins",
         ),
         (
             lambda d: d["safety"].update(max_cable_speed=1.5),
