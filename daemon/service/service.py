@@ -61,6 +61,7 @@ STARTUP_TIMEOUT = 5.0  # s for the drives to come up
 SLACK_MARGIN = 3e-4  # s before a tick at which background work stops (> its longest step)
 PLANNING_LEAD = 0.05  # s ahead of now a planned transition begins (planning takes time)
 HOLD_LEAD = 0.01  # the same for a hold: a stop plans in a few ms and should not wait
+RETRUST_CYCLES = 50  # cycles a reset waits for a complete set to judge afresh
 SETTLE_ATTEMPTS = 3  # plans of an approach that begins later, from the state it begins at
 EXIT_BUS_LOST = os.EX_UNAVAILABLE  # 69, sysexits' "service unavailable": the bus is gone
 EventSink = Callable[[dict[str, Any]], None]
@@ -490,7 +491,17 @@ class Service:
             # judged afresh like the first lengths at start-up: trusted again if they fit
             # one pose and stayed within the step bounds (a cable still off stays a fault)
             self.trust.retrust()
-            await asyncio.sleep(3 * self.period)
+            waited = 0
+            while self.trust.retrusting and waited < RETRUST_CYCLES:
+                await asyncio.sleep(self.period)
+                waited += 1
+            if self.trust.retrusting:  # no complete set came: nothing was judged
+                self.trust.cancel_retrust()
+                raise CommandError(
+                    "invalid_state",
+                    f"cannot reset: no complete feedback within {RETRUST_CYCLES} cycles to "
+                    "judge the lengths afresh",
+                )
         # drive faults latch in the drives until cleared; every other condition must be gone
         causes = [f for f in self.faults if f.trigger is not Trigger.DRIVE_FAULT]
         if causes:

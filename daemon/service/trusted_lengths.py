@@ -176,6 +176,17 @@ class TrustedLengths:
         self._first = True
         self._next_attempt = -math.inf
 
+    @property
+    def retrusting(self) -> bool:
+        """A `retrust` asked for has not judged a complete set yet."""
+        return self._first and all(map(math.isfinite, self.held))
+
+    def cancel_retrust(self) -> None:
+        """Drop a `retrust` that has not judged a set yet: the trusted set and its checks
+        stand (a reset that was refused must not leave a fresh start pending)."""
+        if self.retrusting:
+            self._first = False
+
     # -- the checks -------------------------------------------------------------------
 
     def _per_cable(

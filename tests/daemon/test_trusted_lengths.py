@@ -301,3 +301,23 @@ def test_retrust_judges_the_next_set_afresh_and_keeps_the_hold_until_then() -> N
     offset[0] += 2e-3
     assert [f.cable for f in trust.check(offset, STILL, FRESH, 10.0 + RETRY)] == [0]
     assert trust.held == settled
+
+
+def test_a_retrust_not_yet_judged_can_be_dropped(reference8: Robot) -> None:
+    """A reset that gave up waiting drops its retrust: the trusted set and its checks
+    stand, and a cable off by 1.5 mm is not trusted afresh later."""
+    trust = TrustedLengths(
+        reference8, list(range(1, 9)), max_speed=3.0, tolerance=1e-3, slack=0.014,
+        rest_tensions=[0.0] * 8,
+    )
+    lengths = reference8.cable_lengths(reference8.home).tolist()
+    assert trust.check(lengths, [0.0] * 8, [True] * 8, 0.0) == []
+    assert not trust.retrusting
+    trust.retrust()
+    assert trust.retrusting
+    trust.cancel_retrust()
+    assert not trust.retrusting
+    off = [lengths[0] + 1.5e-3, *lengths[1:]]
+    [problem] = trust.check(off, [0.0] * 8, [True] * 8, 0.002)
+    assert problem.cable == 0
+    assert trust.held == lengths
