@@ -123,6 +123,14 @@ class Reference(NamedTuple):
     twist: Array
     accel: Array
 
+    def same_as(self, other: Reference) -> bool:
+        """The same pose, twist and accel: a transition from one continues the other."""
+        return (
+            self.pose == other.pose
+            and np.array_equal(self.twist, other.twist)
+            and np.array_equal(self.accel, other.accel)
+        )
+
 
 class _Blend(NamedTuple):
     """A segment joined before a trajectory's own first waypoint (Trajectory.after_blend)."""

@@ -135,6 +135,13 @@ class LengthLimits:
         )
 
 
+def cable_speed_bounds(robot: Robot, limits: TrajectoryLimits) -> list[float]:
+    """Per cable, an upper bound of |l'| = |u . (v + w x r)| for any motion within
+    `limits` (m/s): linear_speed + angular_speed |b_k|."""
+    reach = np.linalg.norm(robot.geometry.attachments, axis=1)
+    return (limits.linear_speed + limits.angular_speed * reach).tolist()
+
+
 def tracked_length_limits(
     robot: Robot, position: float, orientation: float, limits: TrajectoryLimits
 ) -> LengthLimits:
@@ -151,12 +158,13 @@ def tracked_length_limits(
       under tension t <= force_max: the lower bound is raised by that factor.
     """
     b = np.linalg.norm(robot.geometry.attachments, axis=1).tolist()
+    speeds = cable_speed_bounds(robot, limits)
     h2 = limits.sample_period**2
     lower, upper = [], []
     for k, r in enumerate(b):
         lo, hi = float(robot.length_min[k]), float(robot.length_max[k])
         accel = limits.linear_accel + r * limits.angular_accel
-        accel += (limits.linear_speed + r * limits.angular_speed) ** 2 / max(lo, 1e-3)
+        accel += speeds[k] ** 2 / max(lo, 1e-3)
         margin = position + r * orientation + accel * h2 / 8.0
         stretch = 1.0 + float(robot.compliance[k]) * float(robot.force_max[k])
         lower.append((lo + margin) * stretch)

@@ -88,11 +88,7 @@ def approach_steps(
     """`approach`, yielding between candidate durations."""
     knot = trajectory.knot(0)
     end = Reference(knot.pose, knot.twist, knot.accel)
-    if (
-        current.pose == end.pose
-        and np.array_equal(current.twist, end.twist)
-        and np.array_equal(current.accel, end.accel)
-    ):
+    if current.same_as(end):
         return trajectory if start is None else trajectory.shifted(start - trajectory.start_time)
     T = yield from _blend_duration(current, end, limits)
     t0 = trajectory.start_time - T if start is None else start

@@ -28,7 +28,12 @@ from cdpr.description import (
     validate_section,
 )
 from cdpr.pose_limits import PoseLimits
-from cdpr.trajectory import TrajectoryLimits, sampled_pose_limits, tracked_length_limits
+from cdpr.trajectory import (
+    TrajectoryLimits,
+    cable_speed_bounds,
+    sampled_pose_limits,
+    tracked_length_limits,
+)
 from daemon.config.zenoh_config import ZenohSettings
 from drivers.config import CanConfig, DrivesConfig, parse_drives
 
@@ -132,7 +137,6 @@ class DaemonConfig:
             lo, hi = workspace_box(robot, raw.safety)
         except ConfigError as exc:
             raise exc.within(source) from None
-        self.workspace_min, self.workspace_max = lo, hi
         # the runtime check on the measured pose, and what validation holds each sampled
         # reference to: less the tracking-error bounds, then the sampling margin
         self.pose_limits = PoseLimits(
@@ -149,7 +153,7 @@ class DaemonConfig:
             raw.safety.tracking_error_orientation,
             raw.trajectory,
         )
-        fastest = fastest_cable_rate(robot, raw.trajectory)
+        fastest = max(cable_speed_bounds(robot, raw.trajectory))
         if raw.safety.max_cable_speed <= fastest:
             raise ConfigError(
                 f"{source}: safety.max_cable_speed: {raw.safety.max_cable_speed:g} m/s must "
@@ -173,12 +177,6 @@ def workspace_box(robot: Robot, safety: SafetyConfig) -> tuple[np.ndarray, np.nd
             f"safety.workspace_min: {lo.tolist()} must lie below workspace_max {hi.tolist()}"
         )
     return lo.astype(float), hi.astype(float)
-
-
-def fastest_cable_rate(robot: Robot, limits: TrajectoryLimits) -> float:
-    """An upper bound of |l'| = |u . (v + w x r)| for any motion within `limits` (m/s)."""
-    reach = float(np.linalg.norm(robot.geometry.attachments, axis=1).max())
-    return limits.linear_speed + limits.angular_speed * reach
 
 
 def load_config(

@@ -50,7 +50,7 @@ from cdpr.trajectory import (
     TrajectoryLimits,
     parse_trajectory,
 )
-from daemon.service.api import COMMANDS, CommandError
+from daemon.service.api import COMMANDS, CommandError, trajectory_error_details
 
 VERSION_KEY = "version"
 MAX_ID_CHARS = 128
@@ -274,22 +274,6 @@ def parse_waypoints(message: TrajectoryMessage, limits: TrajectoryLimits) -> Tra
         code = "bad_request" if exc.limit == "schema" else "rejected"
         raise CommandError(code, clip(str(exc)), **trajectory_error_details(exc)) from None
     return TrajectoryRequest(message.id, message.start, trajectory)
-
-
-def rejection(what: str, exc: TrajectoryError) -> CommandError:
-    """A TrajectoryError as the refusal "rejected", naming the limit, the waypoint, the
-    field and the value (DESIGN §7)."""
-    details = trajectory_error_details(exc)
-    return CommandError("rejected", clip(f"{what} rejected: {exc}"), **details)
-
-
-def trajectory_error_details(exc: TrajectoryError) -> dict[str, Any]:
-    """The machine-readable part of a TrajectoryError, as CommandError details
-    (the service can raise CommandError("rejected", str(exc), **these))."""
-    details = {"limit": exc.limit, "waypoint": exc.waypoint, "field": exc.field}
-    if exc.value is not None and math.isfinite(exc.value):
-        details["value"] = exc.value
-    return {k: v for k, v in details.items() if v is not None}
 
 
 def decode_command(

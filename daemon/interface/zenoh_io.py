@@ -67,12 +67,11 @@ from daemon.interface.messages import (
     error_body,
     jsonable,
     parse_waypoints,
-    rejection,
     reply_error,
     reply_ok,
     request_id,
 )
-from daemon.service.api import CommandError, DaemonHandler
+from daemon.service.api import CommandError, DaemonHandler, rejection
 
 log = logging.getLogger(__name__)
 

@@ -12,9 +12,12 @@ it never blocks (a full queue drops the event and counts it).
 
 from __future__ import annotations
 
+import math
 import re
 from collections.abc import Awaitable
 from typing import TYPE_CHECKING, Any, Protocol
+
+from cdpr.trajectory import TrajectoryError
 
 if TYPE_CHECKING:
     from cdpr.trajectory import Trajectory
@@ -48,6 +51,21 @@ class CommandError(Exception):
         self.code = code
         self.reason = reason
         self.details = details
+
+
+def trajectory_error_details(exc: TrajectoryError) -> dict[str, Any]:
+    """The machine-readable part of a TrajectoryError, as CommandError details: the
+    limit, the waypoint, the field and the value, those it has (a value only if finite)."""
+    details = {"limit": exc.limit, "waypoint": exc.waypoint, "field": exc.field}
+    if exc.value is not None and math.isfinite(exc.value):
+        details["value"] = exc.value
+    return {k: v for k, v in details.items() if v is not None}
+
+
+def rejection(what: str, exc: TrajectoryError) -> CommandError:
+    """A TrajectoryError as the refusal "rejected" of `what` (a trajectory, a goto, ...),
+    naming the limit, the waypoint, the field and the value (DESIGN §7)."""
+    return CommandError("rejected", f"{what} rejected: {exc}", **trajectory_error_details(exc))
 
 
 class DaemonHandler(Protocol):

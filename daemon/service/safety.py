@@ -105,13 +105,8 @@ class StateMachine:
         """Enter BRAKED for `fault`; False if already braked: the first fault stays,
         unless `supersede` (a fault the daemon exits for, such as a lost bus, replaces
         the one on record, which was most likely its first symptom)."""
-        if self.state is SafetyState.BRAKED:
-            if not supersede or self.fault == fault:
-                return False
-            self.fault = fault
-            self.history.append((self.state, self.state, fault.trigger.value))
-            del self.history[:-100]
-            return True
+        if self.state is SafetyState.BRAKED and (not supersede or self.fault == fault):
+            return False
         self.fault = fault
         self._move(SafetyState.BRAKED, fault.trigger.value)
         return True

@@ -44,7 +44,7 @@ from cdpr.trajectory import (
     validation_steps,
 )
 from daemon.config import DaemonConfig
-from daemon.service.api import CommandError
+from daemon.service.api import CommandError, rejection
 from daemon.service.bus_port import BusPort
 from daemon.service.cycle_stats import CycleStats
 from daemon.service.gc_policy import CollectorPolicy
@@ -405,7 +405,7 @@ class Service:
         for sink in self._events:
             sink(event)
 
-    # -- commands (daemon.service.api.DaemonHandler) -----------------------------------------------
+    # -- commands (daemon.service.api.DaemonHandler) -------------------------------------
 
     def command(self, name: str, args: dict[str, Any]) -> dict[str, Any] | Awaitable[dict]:
         """Run one command; the reply body, or an awaitable of it for commands that wait
@@ -551,7 +551,7 @@ class Service:
             try:
                 check_start_delay(start - time.time(), limits)
             except TrajectoryError as exc:
-                raise _rejected("trajectory", exc) from None
+                raise rejection("trajectory", exc) from None
         config = self.config
         await self._validate(
             trajectory, "trajectory", config.reference_limits, config.reference_lengths
@@ -567,7 +567,7 @@ class Service:
                     return (yield from approach_steps(current, shifted, limits, start=begin))
                 # it begins later: from the state the reference has then, or it would jump
                 then = source.sample(planned.start_time)
-                if _same_state(then, state):
+                if then.same_as(state):
                     return planned
                 state = then
             raise TrajectoryError(
@@ -635,7 +635,7 @@ class Service:
         try:
             await self._in_slack(steps)
         except TrajectoryError as exc:
-            raise _rejected(what, exc) from None
+            raise rejection(what, exc) from None
 
     async def _plan_ahead(
         self,
@@ -660,17 +660,18 @@ class Service:
             try:
                 planned = await self._in_slack(make(current, begin))
             except TrajectoryError as exc:
-                raise _rejected(what, exc) from None
-            begins = planned.waypoints[0].pose
-            inside = self.config.reference_limits.widened_to(begins)
-            reach = self.config.reference_lengths.widened_to(
-                self.robot.cable_lengths(begins).tolist()
-            )
-            if validate == "blend":
-                blend = Trajectory([planned.knot(0), planned.knot(1)])
-                await self._validate(blend, f"{what}'s approach", inside, reach)
-            elif validate == "all":
-                await self._validate(planned, what, inside, reach)
+                raise rejection(what, exc) from None
+            if validate != "none":
+                begins = planned.waypoints[0].pose
+                inside = self.config.reference_limits.widened_to(begins)
+                reach = self.config.reference_lengths.widened_to(
+                    self.robot.cable_lengths(begins).tolist()
+                )
+                if validate == "blend":
+                    blend = Trajectory([planned.knot(0), planned.knot(1)])
+                    await self._validate(blend, f"{what}'s approach", inside, reach)
+                else:
+                    await self._validate(planned, what, inside, reach)
             self._require_moving(f"run a {what}")  # braked meanwhile: nothing changes
             if self._holds != holds and what != "hold":
                 raise CommandError("invalid_state", f"{what} dropped: a hold came meanwhile")
@@ -791,13 +792,3 @@ _COMMANDS: dict[str, Callable[[Service, dict[str, Any]], Any]] = {
 }
 
 
-def _same_state(a: Reference, b: Reference) -> bool:
-    """The same pose, twist and accel: a transition from one continues the other."""
-    same_rates = np.array_equal(a.twist, b.twist) and np.array_equal(a.accel, b.accel)
-    return a.pose == b.pose and same_rates
-
-
-def _rejected(what: str, exc: TrajectoryError) -> CommandError:
-    """A rejection that names the limit, the waypoint and the value (DESIGN §7)."""
-    details = {"limit": exc.limit, "waypoint": exc.waypoint, "value": exc.value}
-    return CommandError("rejected", f"{what} rejected: {exc}", **details)
