@@ -33,7 +33,7 @@ from daemon.service.service import EXIT_BUS_LOST, STARTUP_TIMEOUT, Service
 from sim_bus.bus import loopbus
 from tests.daemon_stack import config_for
 from tests.loopback import free_port
-from tests.processes import finish
+from tests.processes import finish, serve_simulator
 from tests.systemd_notify import NotifySocket
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -190,19 +190,9 @@ def _daemon(config: Path, notify: NotifySocket | None = None) -> subprocess.Pope
 
 def _simulator() -> tuple[subprocess.Popen, dict]:
     """`python -m sim_bus` serving its bus over socketcand; (process, can section)."""
-    args = [sys.executable, "-m", "sim_bus", "--config", str(CONFIG)]
-    proc = subprocess.Popen(
-        [*args, "--serve-socketcand", "127.0.0.1:0"],
-        cwd=ROOT,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.DEVNULL,
-        text=True,
-    )
-    line = proc.stdout.readline()
-    match = re.search(r"serving socketcand on 127\.0\.0\.1:(\d+) channel (\S+)", line)
-    assert match, line
-    options = {"host": "127.0.0.1", "port": int(match.group(1))}
-    return proc, {"interface": "socketcand", "channel": match.group(2), "options": options}
+    proc, port, channel = serve_simulator(CONFIG)
+    options = {"host": "127.0.0.1", "port": port}
+    return proc, {"interface": "socketcand", "channel": channel, "options": options}
 
 
 @pytest.mark.timeout(90)

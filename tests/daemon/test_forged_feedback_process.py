@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import json
 import math
-import re
 import subprocess
 import sys
 import threading
@@ -32,7 +31,7 @@ from drivers.cia402 import codec
 from drivers.cia402.statemachine import MODE_CST
 from drivers.config import parse_drives
 from tests.loopback import free_port
-from tests.processes import finish
+from tests.processes import finish, serve_simulator
 
 ROOT = Path(__file__).resolve().parents[2]
 CONFIG = ROOT / "config" / "reference8-cia402.yaml"
@@ -154,26 +153,11 @@ def test_a_forged_or_glitching_length_brakes_naming_the_drive_and_nothing_moves(
     zenoh_port = free_port()
     sim_config, data = _configs(tmp_path, zenoh_port)
     truth_log = tmp_path / "truth.jsonl"
-    args = [sys.executable, "-m", "sim_bus", "--config", str(sim_config), "--duration", "100"]
-    args += ["--serve-socketcand", "127.0.0.1:0", "--truth-log", str(truth_log)]
-    args += ["--fault-input"] if attack == "glitch" else []
-    sim = subprocess.Popen(
-        args,
-        cwd=ROOT,
-        stdin=subprocess.PIPE,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.DEVNULL,
-        text=True,
-    )
+    options = ["--duration", "100", "--truth-log", str(truth_log)]
+    options += ["--fault-input"] if attack == "glitch" else []
+    sim, port, channel = serve_simulator(sim_config, *options)
     daemon = None
     try:
-        for _ in range(20):  # log lines first
-            line = sim.stdout.readline()
-            match = re.search(r"serving socketcand on 127\.0\.0\.1:(\d+) channel (\S+)", line)
-            if match or not line:
-                break
-        assert match, line
-        port, channel = int(match.group(1)), match.group(2)
         config = _daemon_config(tmp_path, data, port, channel)
         with (tmp_path / "daemon.log").open("w") as daemon_log:  # the child keeps it open
             daemon = subprocess.Popen(

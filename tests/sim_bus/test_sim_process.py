@@ -18,6 +18,7 @@ import yaml
 from cdpr import Robot
 from drivers.cia402 import codec
 from drivers.config import parse_drives
+from tests.processes import serve_simulator
 
 ROOT = Path(__file__).resolve().parents[2]
 CONFIG = ROOT / "config" / "reference8-cia402.yaml"
@@ -83,22 +84,11 @@ def test_simulator_process_serves_its_drives_over_socketcand() -> None:
 
 @pytest.mark.timeout(60)
 def test_faults_typed_on_standard_input_are_injected_at_once() -> None:
-    args = [sys.executable, "-m", "sim_bus", "--config", str(CONFIG), "--fault-input"]
-    args += ["--serve-socketcand", "127.0.0.1:0", "--duration", "20"]
-    proc = subprocess.Popen(
-        args,
-        cwd=ROOT,
-        stdin=subprocess.PIPE,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
+    proc, port, channel = serve_simulator(
+        CONFIG, "--fault-input", "--duration", "20", stderr=subprocess.PIPE
     )
     try:
-        match = re.search(r"127\.0\.0\.1:(\d+) channel (\S+)", proc.stdout.readline())
-        assert match
-        bus = can.Bus(
-            interface="socketcand", host="127.0.0.1", port=int(match.group(1)), channel=match[2]
-        )
+        bus = can.Bus(interface="socketcand", host="127.0.0.1", port=port, channel=channel)
         try:
             bus.send(can.Message(arbitration_id=0x000, data=[0x01, 0], is_extended_id=False))
             proc.stdin.write("drive:9\nnonsense\n")
