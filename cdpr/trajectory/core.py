@@ -140,6 +140,138 @@ class _Blend(NamedTuple):
     quat: tuple[float, ...]
 
 
+class Curve:
+    """What a trajectory samples: segment tables between knot times, each segment's
+    start rotation, a time shift, and optionally one blend segment in front.
+
+    Built by `Trajectory`; `packed` / `unpacked` carry it between processes as one
+    float64 array and a small header, so that a process that only samples (the
+    real-time core) gets it without rebuilding anything: the unpacked curve reads the
+    array in place, whatever the number of segments.
+    """
+
+    def __init__(
+        self,
+        times: Sequence[float],
+        tables: Sequence[Array],
+        quats: Sequence[tuple[float, ...]],
+        first: Pose,
+        last: Pose,
+        shift: float = 0.0,
+        blend: _Blend | None = None,
+    ) -> None:
+        self._times, self._tables, self._quats = times, tables, quats
+        self._first, self._last = first, last
+        self.shift = shift
+        self.blend = blend
+        self.body_start = times[0] + shift
+        self.start_time = self.body_start if blend is None else blend.first.t
+        self.end_time = times[-1] + shift
+        self._before = Reference(first if blend is None else blend.first.pose, _ZERO6, _ZERO6)
+        self._after = Reference(last, _ZERO6, _ZERO6)
+
+    def placed(self, shift: float, blend: _Blend | None) -> Curve:
+        """The same segments with another time shift and blend."""
+        return Curve(
+            self._times, self._tables, self._quats, self._first, self._last, shift, blend
+        )
+
+    def segment(self, t: float) -> int:
+        """The last knot of the segments at or before t (-1 before the first), as a
+        bisection of the shifted times would find it: shifting t back by the shift
+        rounds differently from shifting the times, by at most one knot here."""
+        times, shift = self._times, self.shift
+        k = bisect_right(times, t - shift) - 1
+        if k + 1 < len(times) and times[k + 1] + shift <= t:
+            return k + 1
+        if k >= 0 and times[k] + shift > t:
+            return k - 1
+        return k
+
+    def sample(self, t: float) -> Reference:
+        """(η_r, φ_r, α_r) at time t: evaluates only the segment holding t."""
+        if type(t) is not float:  # e.g. a numpy scalar: it would slow the scalar code below
+            t = float(t)
+        if t >= self.end_time:
+            return self._after
+        if t >= self.body_start:
+            k = self.segment(t)
+            return evaluate_segment(
+                self._tables[k], self._quats[k], t - (self._times[k] + self.shift)
+            )
+        if t >= self.start_time:  # in the blend
+            blend = self.blend
+            assert blend is not None
+            return evaluate_segment(blend.table, blend.quat, t - blend.first.t)
+        if t < self.start_time:
+            return self._before
+        raise ValueError(f"sample time must be a number, got {t!r}")
+
+    def packed(self) -> tuple[dict, Array]:
+        """(header, data): the knot times, the segment tables and the start rotations
+        in one float64 array; the rest (poses, shift, blend) in a small header."""
+        n = len(self._times)
+        data = np.empty(n + (n - 1) * (_TABLE_SIZE + 4))
+        data[:n] = [self._times[k] for k in range(n)]
+        tables_end = n + (n - 1) * _TABLE_SIZE
+        data[n:tables_end] = np.asarray([self._tables[k] for k in range(n - 1)]).ravel()
+        data[tables_end:] = np.asarray([self._quats[k] for k in range(n - 1)]).ravel()
+        header = {
+            "knots": n,
+            "shift": self.shift,
+            "first": self._first,
+            "last": self._last,
+            "blend": self.blend,
+        }
+        return header, data
+
+    @classmethod
+    def unpacked(cls, header: dict, data: Array) -> Curve:
+        """The curve of `packed`, reading `data` in place (it must outlive the curve)."""
+        n = int(header["knots"])
+        if n < 2 or data.shape != (n + (n - 1) * (_TABLE_SIZE + 4),):
+            raise ValueError(f"a packed curve of {n} knots cannot hold {data.shape} values")
+        tables_end = n + (n - 1) * _TABLE_SIZE
+        return cls(
+            _Floats(data[:n]),
+            data[n:tables_end].reshape(n - 1, 6, 18),
+            _Rows(data[tables_end:].reshape(n - 1, 4)),
+            header["first"],
+            header["last"],
+            float(header["shift"]),
+            header["blend"],
+        )
+
+
+_TABLE_SIZE = 6 * 18  # values in one segment table
+
+
+class _Floats(Sequence[float]):
+    """A float64 vector read as Python floats (numpy scalars slow the scalar code)."""
+
+    def __init__(self, values: Array) -> None:
+        self._values = values
+
+    def __len__(self) -> int:
+        return len(self._values)
+
+    def __getitem__(self, k):  # type: ignore[override]
+        return float(self._values[k])
+
+
+class _Rows(Sequence[tuple[float, ...]]):
+    """The rows of a 2-d float64 array, each read as a tuple of Python floats."""
+
+    def __init__(self, values: Array) -> None:
+        self._values = values
+
+    def __len__(self) -> int:
+        return len(self._values)
+
+    def __getitem__(self, k):  # type: ignore[override]
+        return tuple(self._values[k].tolist())
+
+
 class Trajectory:
     """A C² reference through >= 2 waypoints; `sample(t)` once per control cycle.
 
@@ -183,37 +315,35 @@ class Trajectory:
             raise TrajectoryError(
                 "finite", "the curve through these waypoints is not finite (values too large?)"
             )
-        # the curve as built: never changed, shared by shifted and blended copies
+        # the waypoints and the curve as built: never changed, shared by shifted and
+        # blended copies
         self._waypoints = wps
-        self._times: list[float] = times.tolist()
-        self._tables = list(tables)  # per segment; a list indexes faster than a 3-d array
-        self._quats = [p.quaternion_tuple for p in poses]
         self._rates = (twists, accels)
-        self._place(0.0, None)
-
-    def _place(self, shift: float, blend: _Blend | None) -> None:
-        """Set the time shift of the curve built and the blend before it."""
-        self._shift = shift
-        self._blend = blend
+        self._curve = Curve(
+            times.tolist(),
+            list(tables),  # per segment; a list indexes faster than a 3-d array
+            [p.quaternion_tuple for p in poses],
+            poses[0],
+            poses[-1],
+        )
         self._listed: tuple[Waypoint, ...] | None = None  # `waypoints`, made when asked
-        self._body_start = self._times[0] + shift
-        self._start = self._body_start if blend is None else blend.first.t
-        self._end = self._times[-1] + shift
-        first = self._waypoints[0] if blend is None else blend.first
-        self._before = Reference(first.pose, _ZERO6, _ZERO6)
-        self._after = Reference(self._waypoints[-1].pose, _ZERO6, _ZERO6)
 
     def _moved(self, shift: float, blend: _Blend | None) -> Trajectory:
-        """This curve with another time shift and blend (the segments are shared)."""
+        """This trajectory with another time shift and blend (the segments are shared)."""
         out = Trajectory.__new__(Trajectory)
-        out._waypoints, out._times = self._waypoints, self._times
-        out._tables, out._quats, out._rates = self._tables, self._quats, self._rates
-        out._place(shift, blend)
+        out._waypoints, out._rates = self._waypoints, self._rates
+        out._curve = self._curve.placed(shift, blend)
+        out._listed = None
         return out
+
+    @property
+    def curve(self) -> Curve:
+        """What `sample` evaluates: the segments, the time shift and the blend."""
+        return self._curve
 
     def __len__(self) -> int:
         """The number of waypoints (a blend's first one included)."""
-        return len(self._times) + (self._blend is not None)
+        return len(self._waypoints) + (self._curve.blend is not None)
 
     @property
     def waypoints(self) -> tuple[Waypoint, ...]:
@@ -221,7 +351,7 @@ class Trajectory:
         first use for a shifted or blended trajectory: a cost that grows with their
         number, unlike `knot`, `len` and `sample`."""
         if self._listed is None:
-            shift, blend = self._shift, self._blend
+            shift, blend = self._curve.shift, self._curve.blend
             listed = self._waypoints
             if shift != 0.0:
                 listed = tuple(Waypoint(w.t + shift, w.pose, w.twist, w.accel) for w in listed)
@@ -233,13 +363,14 @@ class Trajectory:
         has there."""
         if not 0 <= index < len(self):
             raise IndexError(f"knot {index} of a trajectory of {len(self)} waypoints")
-        if self._blend is not None:
+        blend = self._curve.blend
+        if blend is not None:
             if index == 0:
-                return self._blend.first
+                return blend.first
             index -= 1
         w = self._waypoints[index]
         twists, accels = self._rates
-        return Waypoint(w.t + self._shift, w.pose, twists[index], accels[index])
+        return Waypoint(w.t + self._curve.shift, w.pose, twists[index], accels[index])
 
     @property
     def knots(self) -> tuple[Waypoint, ...]:
@@ -249,66 +380,40 @@ class Trajectory:
     @property
     def start_time(self) -> float:
         """Time of the first waypoint (s)."""
-        return self._start
+        return self._curve.start_time
 
     @property
     def end_time(self) -> float:
         """Time of the last waypoint (s); the last pose is held from then on."""
-        return self._end
+        return self._curve.end_time
 
     @property
     def duration(self) -> float:
         """end_time - start_time (s)."""
-        return self._end - self._start
-
-    def _segment(self, t: float) -> int:
-        """The last waypoint of the curve built at or before t (-1 before the first), as
-        a bisection of the shifted times would find it: shifting t back by the shift
-        rounds differently from shifting the times, by at most one waypoint here."""
-        times, shift = self._times, self._shift
-        k = bisect_right(times, t - shift) - 1
-        if k + 1 < len(times) and times[k + 1] + shift <= t:
-            return k + 1
-        if k >= 0 and times[k] + shift > t:
-            return k - 1
-        return k
+        return self._curve.end_time - self._curve.start_time
 
     def waypoint_index(self, t: float) -> int:
         """Index of the waypoint that starts the segment holding t (clipped to the ends)."""
-        k = self._segment(t)
-        if self._blend is not None:
-            k = k + 1 if t >= self._body_start else 0
+        curve = self._curve
+        k = curve.segment(t)
+        if curve.blend is not None:
+            k = k + 1 if t >= curve.body_start else 0
         return min(max(k, 0), len(self) - 1)
 
     def sample(self, t: float) -> Reference:
         """(η_r, φ_r, α_r) at time t: evaluates only the segment holding t."""
-        if type(t) is not float:  # e.g. a numpy scalar: it would slow the scalar code below
-            t = float(t)
-        if t >= self._end:
-            return self._after
-        if t >= self._body_start:
-            k = self._segment(t)
-            return evaluate_segment(
-                self._tables[k], self._quats[k], t - (self._times[k] + self._shift)
-            )
-        if t >= self._start:  # in the blend
-            blend = self._blend
-            assert blend is not None
-            return evaluate_segment(blend.table, blend.quat, t - blend.first.t)
-        if t < self._start:
-            return self._before
-        raise ValueError(f"sample time must be a number, got {t!r}")
+        return self._curve.sample(t)
 
     def shifted(self, dt: float) -> Trajectory:
         """The same trajectory with every time moved by dt (e.g. to start "now")."""
         dt = float(dt)
         if not math.isfinite(dt):
             raise ValueError(f"time shift must be finite, got {dt!r}")
-        blend = self._blend
+        blend = self._curve.blend
         if blend is not None:
             w = blend.first
             blend = blend._replace(first=Waypoint(w.t + dt, w.pose, w.twist, w.accel))
-        return self._moved(self._shift + dt, blend)
+        return self._moved(self._curve.shift + dt, blend)
 
     def after_blend(self, first: Waypoint, shift: float) -> Trajectory:
         """This trajectory shifted by `shift`, preceded by one segment from `first` (its
@@ -316,10 +421,10 @@ class Trajectory:
         built are reused: the cost is one segment whatever the length."""
         if first.twist is None or first.accel is None:
             raise ValueError("the blend's first waypoint needs its twist and accel")
-        if self._blend is not None:
+        if self._curve.blend is not None:
             raise ValueError("this trajectory begins with a blend already")
         out = self.shifted(shift)
-        h = out._body_start - first.t
+        h = out._curve.body_start - first.t
         if not h >= MIN_SEGMENT:
             raise TrajectoryError(
                 "times_increasing", f"the blend would last {h:.6g} s (< {MIN_SEGMENT:g} s)"
@@ -329,8 +434,7 @@ class Trajectory:
         table = segment_table(first.pose, first.twist, first.accel, twists[0], accels[0], step, h)
         if not np.all(np.isfinite(table)):
             raise TrajectoryError("finite", "the blend into this trajectory is not finite")
-        out._place(out._shift, _Blend(first, table, first.pose.quaternion_tuple))
-        return out
+        return self._moved(out._curve.shift, _Blend(first, table, first.pose.quaternion_tuple))
 
     def as_dict(self) -> dict:
         """Interface form (JSON / YAML ready), the inverse of parse_trajectory."""

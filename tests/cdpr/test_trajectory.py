@@ -25,7 +25,7 @@ from cdpr.trajectory import (
     parse_trajectory,
     validate,
 )
-from cdpr.trajectory.core import MIN_SEGMENT
+from cdpr.trajectory.core import MIN_SEGMENT, Curve
 from cdpr.trajectory.limits import MAX_WAYPOINTS
 from cdpr.trajectory.rotation import angular_rates, left_jacobian
 from cdpr.trajectory.transitions import MIN_BLEND
@@ -879,3 +879,24 @@ def test_goto_half_a_turn(angle: float) -> None:
         assert np.linalg.norm(np.cross(ref.twist[3:], axis)) < 1e-9
         np.testing.assert_allclose(ref.twist, fd_twist(tr, t), atol=1e-6)
         np.testing.assert_allclose(ref.accel, fd_accel(tr, t), atol=1e-4)
+
+
+def test_a_packed_curve_samples_as_the_trajectory_it_came_from() -> None:
+    """The real-time core samples a curve unpacked from one array (no rebuilding): the
+    same reference as the trajectory, blend and time shift included, at every time."""
+    body = Trajectory(random_waypoints(7, n=9))
+    first = Waypoint(
+        body.start_time - 0.8,
+        Pose.from_rotvec([0.1, -0.2, 1.1], [0.0, 0.1, 0.0]),
+        np.array([0.05, 0.0, 0.0, 0.0, 0.0, 0.02]),
+        np.zeros(6),
+    )
+    blended = body.after_blend(first, 0.3).shifted(12.5)
+    header, data = blended.curve.packed()
+    copy = Curve.unpacked(header, data.copy())
+    times = np.linspace(blended.start_time - 1.0, blended.end_time + 1.0, 500)
+    for t in [*times, *(w.t for w in blended.waypoints)]:
+        assert copy.sample(float(t)).same_as(blended.sample(float(t))), t
+    assert (copy.start_time, copy.end_time) == (blended.start_time, blended.end_time)
+    with pytest.raises(ValueError, match="9 knots cannot hold"):
+        Curve.unpacked(header, data[:-1])
