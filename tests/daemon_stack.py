@@ -11,6 +11,7 @@ import numpy as np
 
 from daemon.cli.simulated import InProcessSimulator
 from daemon.config import DaemonConfig, load_config
+from daemon.service.planner import LocalLink, Planner
 from daemon.service.safety import SafetyState
 from daemon.service.service import Service
 
@@ -22,12 +23,13 @@ DRIVER_CONFIGS = {
 
 
 class Stack:
-    """Service + simulator in the running loop; `plant` is the simulated truth."""
+    """Service + planner + simulator in the running loop; `plant` is the simulated truth."""
 
     def __init__(self, config: DaemonConfig) -> None:
         self.config = config
         self.sim = InProcessSimulator(config)
         self.service = Service(config, self.sim.daemon_bus)
+        self.planner = Planner(config, LocalLink(self.service))  # hold, goto, trajectories
         self.events: list[dict] = []
         self.service.subscribe(self.events.append)
 

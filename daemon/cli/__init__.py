@@ -79,4 +79,3 @@ def main(argv: list[str] | None = None) -> int:
         return check_config(args.file)
     parser.error(f"unknown command {args.command}")
     return 2
-

@@ -12,9 +12,9 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import json
 import socket
 import sys
-import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -22,6 +22,7 @@ import numpy as np
 
 from cdpr import ConfigError, Pose
 from cdpr.controller import ControlOutput
+from cdpr.trajectory import Trajectory
 from daemon.cli.run_cmd import report
 from daemon.config import DaemonConfig, load_config
 from daemon.process.app import serve
@@ -87,7 +88,7 @@ async def _demo(config: DaemonConfig, plot: str | None) -> int:
     async def fly(service: Service) -> None:
         service.cycle_listeners.append(record)
         endpoint = config.zenoh.listen_endpoints[0]
-        result["client"] = await asyncio.to_thread(_client_flight, endpoint, trajectory)
+        result["client"] = await _client_flight(endpoint, trajectory)
         await asyncio.sleep(0.5)  # settle at the end pose
         result["stats"] = service.stats.summary()
         result["state"] = service.machine.state.value
@@ -113,21 +114,22 @@ async def _demo(config: DaemonConfig, plot: str | None) -> int:
     return code if ok else 1
 
 
-def _client_flight(endpoint: str, trajectory) -> dict[str, Any]:
-    """The planner's side, through the client module: enable, send, wait for the end."""
-    from daemon.interface.client import CdprClient
-
-    with CdprClient(connect=endpoint, timeout=5.0) as client:
-        client.enable()
-        sent = time.monotonic()
-        reply = client.send_trajectory(trajectory)
-        deadline = sent + trajectory.duration + 10.0
-        while time.monotonic() < deadline:
-            if client.status().get("state") != "tracking":
-                break
-            time.sleep(0.1)
-        result = reply.get("result", reply)
-        return {"start": float(result.get("start", 0.0)), "reply": reply}
+async def _client_flight(endpoint: str, trajectory: Trajectory) -> dict[str, Any]:
+    """The planner's side, in a process of its own (like any planner, and off the core's
+    CPU time): `python -m daemon.cli.demo_flight` with the endpoint and the trajectory on
+    stdin, its result as JSON on stdout."""
+    flight = await asyncio.create_subprocess_exec(
+        sys.executable,
+        "-m",
+        "daemon.cli.demo_flight",
+        stdin=asyncio.subprocess.PIPE,
+        stdout=asyncio.subprocess.PIPE,
+    )
+    request = json.dumps({"endpoint": endpoint, "trajectory": trajectory.as_dict()})
+    out, _ = await flight.communicate(request.encode())
+    if flight.returncode != 0:
+        raise RuntimeError(f"the demo's client failed (exit code {flight.returncode})")
+    return json.loads(out)
 
 
 def _summary(samples, t0: float, t1: float) -> TrackingFigures | None:

@@ -61,6 +61,10 @@ class SafetyConfig(StrictModel):
     feedback_tolerance: encoder noise, quantisation and cable stretch allowed between two
       samples (m): the allowance beyond max_cable_speed, and the most one cable may
       disagree with the pose the others give.
+    companion_hang: seconds the companion process (zenoh, planning, recording) may stay
+      silent before the core kills and restarts it.
+    companion_lost: seconds a moving robot goes on (its trajectory, then holding) without
+      a live companion before it brakes; an idle or braked robot is held anyway.
     """
 
     workspace_min: Vec3 | None = None
@@ -74,6 +78,8 @@ class SafetyConfig(StrictModel):
     max_cable_speed: PositiveFloat = 3.0
     feedback_tolerance: PositiveFloat = 1e-3
     bus_lost_exit: Annotated[float, Field(gt=0.0, le=60.0)] = 1.0
+    companion_hang: Annotated[float, Field(ge=0.2, le=60.0)] = 1.0
+    companion_lost: Annotated[float, Field(gt=0.0, le=3600.0)] = 10.0
 
 
 class LoggingConfig(StrictModel):

@@ -1,8 +1,9 @@
-"""Run the service: bus, drives, zenoh, systemd notification, signals, recordings.
+"""Run the service: the real-time core process (bus, drives, the cycle, signals) and
+its companion (daemon.process.companion_host).
 
-`serve()` is what `cdprd run` and `cdprd demo` call.  READY=1 goes to systemd only once
-the bus is open, the drives are up and zenoh is listening; the watchdog is fed from the
-event loop only while control cycles keep completing, so a stalled loop gets the
+`serve()` is what `cdprd run` and `cdprd demo` call.  READY=1 goes to systemd (from the
+companion) only once the bus is open, the drives are up and zenoh is listening; the
+watchdog is fed only while control cycles keep completing, so a stalled core gets the
 service killed and restarted — and a restarted daemon comes up IDLE, held, never moving.
 """
 
@@ -14,15 +15,12 @@ import signal
 import socket
 import sys
 from collections.abc import Awaitable, Callable
-from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any
 
 import can
 
-from cdpr.controller import ControlOutput
 from daemon.config import DaemonConfig
-from daemon.process.recording import CanRecorder, CycleRecord, TelemetryRecorder, session_path
-from daemon.process.systemd import Notifier, Progress, run_watchdog
+from daemon.process.companion_host import CompanionHost
 from daemon.service.safety import Trigger
 from daemon.service.service import EXIT_BUS_LOST, Service
 
@@ -30,7 +28,6 @@ log = logging.getLogger("cdprd")
 
 SOCKETCAND_CONNECT_TIMEOUT = 2.0  # s
 ServiceHook = Callable[[Service], Awaitable[None]]
-Recorder = TypeVar("Recorder", TelemetryRecorder, CanRecorder)
 
 
 def open_bus(config: DaemonConfig) -> can.BusABC:
@@ -67,38 +64,21 @@ async def serve(
     config: DaemonConfig,
     bus: can.BusABC,
     *,
-    zenoh: bool = True,
+    companion: bool = True,
     after_start: ServiceHook | None = None,
 ) -> int:
-    """Run until SIGTERM/SIGINT (or `after_start` returns, for the demo); exit code."""
+    """The real-time core: run until SIGTERM/SIGINT (or `after_start` returns, for the
+    demo); exit code.  With `companion`, the companion process (zenoh, planning,
+    recordings, systemd notification) is spawned once the drives are up, and kept alive."""
     loop = asyncio.get_running_loop()
-    notifier = Notifier()
     service = Service(config, bus)
-    interface = None
-    recorders = _recorders(config, service)
-    writers = [asyncio.create_task(r.run()) for r in recorders]
+    host = CompanionHost(service, config) if companion else None
     try:
-        notifier.status("starting drives")
         await service.start()
-        if zenoh:
-            from daemon.interface.zenoh_io import SessionError, ZenohInterface
-
-            prefix = config.zenoh.key_prefix(config.robot.name)
-            interface = ZenohInterface(config.zenoh, service, prefix, config.trajectory)
-            try:
-                await interface.start()
-            except SessionError as exc:  # e.g. the port is in use: one line, exit 1
-                raise SystemExit(f"error: {config.source}: {exc}") from None
-            service.subscribe(interface.publish_event)
+        if host is not None:
+            host.start()
         for sig in (signal.SIGTERM, signal.SIGINT):
             loop.add_signal_handler(sig, service.stop)
-        notifier.ready()
-        update_status = _status_updates(notifier, service, config)
-        service.subscribe(update_status)
-        update_status({})
-        watchdog = asyncio.create_task(
-            run_watchdog(notifier, Progress(lambda: service.stats.cycles))
-        )
         log.info(
             "cdprd %s: %d drives (%s) on %s, %g Hz, state %s",
             config.robot.name,
@@ -109,12 +89,12 @@ async def serve(
             service.machine.state.value,
         )
         if after_start is not None:
+            if host is not None:
+                await _until_ready(host, service)
             demo = asyncio.create_task(after_start(service))
             demo.add_done_callback(lambda _: service.stop(Trigger.COMMAND))
         code = await service.wait_stopped()
-        notifier.stopping()
         await asyncio.sleep(5 * service.period)  # brake frames out, drives confirm
-        watchdog.cancel()
         return code
     finally:
         # braked and shutting down: another SIGTERM/SIGINT (an impatient operator) must
@@ -122,88 +102,15 @@ async def serve(
         # and ignored for the rest of the loop's life (closing the loop restores defaults)
         for sig in (signal.SIGTERM, signal.SIGINT):
             loop.add_signal_handler(sig, log.warning, "already stopping: signal ignored")
-        if interface is not None:
-            await interface.close()
-        for writer in writers:
-            writer.cancel()
-        for recorder in recorders:
-            recorder.close()
+        if host is not None:
+            await host.close()
         service.close()
 
 
-def _status_text(service: Service, config: DaemonConfig) -> str:
-    """`systemctl status`'s one line: the safety state, the fault that braked, where."""
-    fault = service.machine.fault
-    state = service.machine.state.value
-    where = f"{config.robot.name} on {config.can.channel}"
-    return f"{state}; {where}" if fault is None else f"{state}: {fault.line()}; {where}"
-
-
-def _status_updates(
-    notifier: Notifier, service: Service, config: DaemonConfig
-) -> Callable[[dict], None]:
-    """An event sink that keeps STATUS= current: sent when the line changes."""
-    last = [""]
-
-    def on_event(event: dict) -> None:
-        text = _status_text(service, config)
-        if text != last[0]:
-            last[0] = text
-            notifier.status(text)
-
-    return on_event
-
-
-def _recorders(config: DaemonConfig, service: Service) -> list:
-    """Telemetry (MCAP) and raw CAN recorders the config asks for, attached to the
-    service's observers; each file is named after the session's start time.  A file
-    that cannot be created stops the start-up with one line naming the key and the file."""
-    recorders: list = []
-    rec = config.recording
-    if rec.telemetry:
-        path = config.path(rec.telemetry)
-        key = f"{config.source}: recording.telemetry"
-        telemetry = _open(key, TelemetryRecorder, path, recorders)
-
-        def record_cycle(t: float, out: ControlOutput) -> None:
-            ref = out.reference.pose
-            telemetry.record(
-                CycleRecord(
-                    t=t,
-                    position=out.pose.position,
-                    quaternion=out.pose.quaternion,
-                    twist=out.twist,
-                    lengths=[fb.length for fb in service.driver.feedback],
-                    tensions=out.tensions,
-                    forces=out.commands,
-                    safety=service.machine.state.value,
-                    reference=(ref.position, ref.quaternion),
-                )
-            )
-
-        service.cycle_listeners.append(record_cycle)
-        recorders.append(telemetry)
-    if rec.can_log:
-        path = config.path(rec.can_log)
-        channel = config.can.channel  # names the frames sent (they carry none on SocketCAN)
-        key = f"{config.source}: recording.can_log"
-        frames = _open(key, CanRecorder, path, recorders, channel=channel)
-        service.frame_listeners.append(lambda msg, rx: frames.record(msg, rx=rx))
-        recorders.append(frames)
-    return recorders
-
-
-def _open(
-    key: str, make: Callable[..., Recorder], path: Path, opened: list, **options: Any
-) -> Recorder:
-    """`make(file, **options)` for this session's file.  If the file cannot be created
-    (missing or read-only directory, bad suffix, ...): close the recorders already
-    `opened` and exit with an error naming `key` and the file, not a traceback."""
-    file = session_path(path)
-    try:
-        return make(file, **options)
-    except (OSError, ValueError) as exc:
-        for recorder in opened:
-            recorder.close()
-        reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
-        raise SystemExit(f"error: {key}: cannot record to {file}: {reason}") from None
+async def _until_ready(host: CompanionHost, service: Service) -> None:
+    """Wait until the companion is up (or the service stopped: the hook then finds it so)."""
+    ready = asyncio.ensure_future(host.ready.wait())
+    stopped = asyncio.ensure_future(service.wait_stopped())
+    await asyncio.wait([ready, stopped], return_when=asyncio.FIRST_COMPLETED)
+    for waiter in (ready, stopped):
+        waiter.cancel()

@@ -48,6 +48,7 @@ class Trigger(enum.Enum):
     SIGTERM = "sigterm"
     COMMAND = "command"  # a client asked to brake
     STARTUP = "startup"  # the drives did not come up
+    COMPANION_LOST = "companion_lost"  # no companion process for safety.companion_lost s
 
 
 @dataclass(frozen=True)
@@ -228,8 +229,7 @@ class SafetyMonitor:
         if len(stamps) > limit:
             return Fault(
                 Trigger.BUS_ERROR,
-                f"{self._last_error}; {len(stamps)} bus errors in the last second "
-                f"(limit {limit})",
+                f"{self._last_error}; {len(stamps)} bus errors in the last second (limit {limit})",
             )
         return None
 

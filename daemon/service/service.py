@@ -1,11 +1,12 @@
 """The cdprd service: the control cycle on the CAN bus, the safety state machine, and
-the commands planners send (DESIGN §8–§10).
+the commands that talk to the drives (DESIGN §8, §9, §16).
 
-One asyncio loop does everything time-critical: a timerfd opens each cycle (SYNC for
-SYNC-driven drives), received frames are drained into the driver as they arrive, and
-the cycle runs the moment every actuator's feedback is in (or at the deadline): the
-controller step, the safety checks, then all command frames.  Commands from zenoh
-arrive on the same loop, between cycles.
+What the real-time core runs.  One asyncio loop does everything time-critical: a
+timerfd opens each cycle (SYNC for SYNC-driven drives), received frames are drained
+into the driver as they arrive, and the cycle runs the moment every actuator's feedback
+is in (or at the deadline): the controller step, the safety checks, then all command
+frames.  Trajectories come planned and validated (daemon.service.planner): the service
+only checks that the reference they were planned from still stands, and follows them.
 """
 
 from __future__ import annotations
@@ -17,37 +18,21 @@ import math
 import os
 import time
 from collections.abc import Awaitable, Callable, Generator
-from typing import Any, Literal, TypeVar
+from typing import Any, TypeVar
 
 import can
 import numpy as np
 
 from cdpr import Pose
-from cdpr.controller import (
-    ControlOutput,
-    ParallelController,
-    static_tensions,
-    tension_solver,
-    wrench_check,
-)
-from cdpr.pose import retract
-from cdpr.pose_limits import PoseLimits
-from cdpr.trajectory import (
-    LengthLimits,
-    Reference,
-    Trajectory,
-    TrajectoryError,
-    approach_steps,
-    check_start_delay,
-    goto_steps,
-    run_steps,
-    validation_steps,
-)
+from cdpr.controller import ControlOutput, ParallelController, static_tensions
+from cdpr.trajectory import Reference
+from cdpr.trajectory.core import Curve
 from daemon.config import DaemonConfig
-from daemon.service.api import CommandError, rejection
+from daemon.service.api import CommandError
 from daemon.service.bus_port import BusPort
 from daemon.service.cycle_stats import CycleStats
 from daemon.service.gc_policy import CollectorPolicy
+from daemon.service.planner import PLANNING_LEAD
 from daemon.service.safety import Fault, SafetyMonitor, SafetyState, StateMachine, Trigger
 from daemon.service.trusted_lengths import TrustedLengths
 from drivers.base import ActuatorDriver, DriverError, FrameError, Timing
@@ -59,10 +44,7 @@ log = logging.getLogger("cdprd")
 
 STARTUP_TIMEOUT = 5.0  # s for the drives to come up
 SLACK_MARGIN = 3e-4  # s before a tick at which background work stops (> its longest step)
-PLANNING_LEAD = 0.05  # s ahead of now a planned transition begins (planning takes time)
-HOLD_LEAD = 0.01  # the same for a hold: a stop plans in a few ms and should not wait
 RETRUST_CYCLES = 50  # cycles a reset waits for a complete set to judge afresh
-SETTLE_ATTEMPTS = 3  # plans of an approach that begins later, from the state it begins at
 EXIT_BUS_LOST = os.EX_UNAVAILABLE  # 69, sysexits' "service unavailable": the bus is gone
 EventSink = Callable[[dict[str, Any]], None]
 Result = TypeVar("Result")
@@ -86,13 +68,12 @@ class Service:
         self.port.on_error = self._on_bus_error
         self.port.on_lost = self._on_bus_lost
         self.port.on_sent = self._on_sent
-        self._wrench_check = wrench_check(robot, tension_solver(robot, config.controller))
         self._events: list[EventSink] = []
         # observers off the safety path: (controller time, output) after every control
         # step, and (frame, received?) for every frame in or out
         self.cycle_listeners: list[Callable[[float, ControlOutput], None]] = []
         self.frame_listeners: list[Callable[[can.Message, bool], None]] = []
-        self._t0 = time.monotonic()
+        self.t0 = time.monotonic()
         self._timer: PeriodicTimer | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._stopped: asyncio.Event | None = None
@@ -105,7 +86,7 @@ class Service:
         self._counts = [0] * self.n
         self._deadline: asyncio.TimerHandle | None = None
         self._slack_waiters: list[asyncio.Future[None]] = []  # background work (_in_slack)
-        self._holds = 0  # hold commands so far
+        self._source_version = 0  # changes whenever the controller's reference source does
         self._last_rx = 0.0
         # the lengths a brake or keepalive holds: the last plausible measurements
         # (rate, step, consistency); a sample may be taken up to a period late and the
@@ -118,8 +99,8 @@ class Service:
             slack=2.0 * self.period + 0.01,
             rest_tensions=static_tensions(robot, self.controller.tension, robot.home),
         )
-        self._trajectory: Trajectory | None = None
-        self._scheduled: list[Trajectory] = []  # accepted, beginning later, by start time
+        self._trajectory: Curve | None = None
+        self._scheduled: list[Curve] = []  # accepted, beginning later, by start time
         self.last_output = None
         self.faults: list[Fault] = []  # conditions active at the last check
         self.collector = CollectorPolicy()
@@ -129,7 +110,7 @@ class Service:
 
     def now(self) -> float:
         """Controller time: seconds since the service started (monotonic)."""
-        return time.monotonic() - self._t0
+        return time.monotonic() - self.t0
 
     def subscribe(self, sink: EventSink) -> None:
         """Receive every event (state changes, faults, trajectory decisions)."""
@@ -148,7 +129,7 @@ class Service:
         try:
             await asyncio.wait_for(self.driver.start(self.port, time.monotonic), STARTUP_TIMEOUT)
         except (TimeoutError, DriverError) as exc:
-            self._brake(Fault(Trigger.STARTUP, f"drives did not start: {exc or 'timeout'}"))
+            self.brake(Fault(Trigger.STARTUP, f"drives did not start: {exc or 'timeout'}"))
             return
         self.machine.go("started")
         self._emit({"event": "state", "state": "idle", "why": "drives started"})
@@ -163,7 +144,7 @@ class Service:
         """Brake (if anything moves), then end `wait_stopped` with `exit_code` (a
         non-zero code given before stays: a later stop does not make a failure clean)."""
         if self.machine.moving or self.machine.state is SafetyState.INIT:
-            self._brake(Fault(trigger, "stop requested: braking before exit"))
+            self.brake(Fault(trigger, "stop requested: braking before exit"))
         else:
             self._send(self.driver.brake(self._hold_lengths(), self.config.drives.brake))
         self._exit_code = self._exit_code or exit_code
@@ -218,7 +199,7 @@ class Service:
         the commands."""
         started = time.monotonic()
         try:
-            self.controller.prepare(now - self._t0)
+            self.controller.prepare(now - self.t0)
         except Exception:  # the step repeats the work and brakes on the error
             return
         self.stats.prepare.add(time.monotonic() - started)
@@ -295,7 +276,7 @@ class Service:
         self.faults = faults
         state = self.machine.state
         if faults and state in (SafetyState.IDLE, SafetyState.HOLD, SafetyState.TRACKING):
-            self._brake(faults[0])
+            self.brake(faults[0])
         elif self.machine.moving and not self._busy:
             self._control(lengths, rates)
         elif state is not SafetyState.INIT:
@@ -313,24 +294,24 @@ class Service:
         """Controller step, checks and commands for the cycle opened at `self._opened`:
         the cycle's instant, when SYNC latched the drives' positions.  `lengths` and
         `rates` passed the plausibility checks (an implausible one brakes instead)."""
-        t = self._opened - self._t0
+        t = self._opened - self.t0
         try:
             output = self.controller.step(t, lengths, rates)
         except Exception as exc:
             log.exception("controller step raised")
-            self._brake(Fault(Trigger.CONTROLLER_EXCEPTION, f"{type(exc).__name__}: {exc}"))
+            self.brake(Fault(Trigger.CONTROLLER_EXCEPTION, f"{type(exc).__name__}: {exc}"))
             return
         self.last_output = output
         for listener in self.cycle_listeners:
             listener(t, output)
         fault = self.monitor.check_output(output)
         if fault is not None:
-            self._brake(fault)
+            self.brake(fault)
             return
         try:
             frames = self.driver.commands(output.commands)
         except FrameError as exc:
-            self._brake(Fault(Trigger.NAN, str(exc)))
+            self.brake(Fault(Trigger.NAN, str(exc)))
             return
         self._send(frames)
         self.trust.follow_pose(output.pose)
@@ -351,7 +332,7 @@ class Service:
 
     # -- faults --------------------------------------------------------------------------
 
-    def _brake(self, fault: Fault, supersede: bool = False) -> None:
+    def brake(self, fault: Fault, supersede: bool = False) -> None:
         """Enter BRAKED (`supersede`: see StateMachine.brake) and freeze every cable
         (driver brake frames), logging one line.  BRAKED first: a brake frame that fails
         to send reports a bus error, which must not brake all over again."""
@@ -373,7 +354,7 @@ class Service:
         self.stats.bus_errors += 1
         fault = self.monitor.bus_error(time.monotonic(), what, bus_off)
         if fault is not None and self.machine.state is not SafetyState.BRAKED:
-            self._brake(fault)
+            self.brake(fault)
 
     def _on_bus_lost(self, what: str) -> None:
         """The bus is gone: brake what can still be reached (those frames may fail too,
@@ -382,7 +363,7 @@ class Service:
         which comes up IDLE.  The drives' watchdogs hold once the commands stop."""
         self.stats.bus_errors += 1
         delay = self.config.safety.bus_lost_exit
-        self._brake(self.monitor.bus_lost(f"{what}; exiting in {delay:g} s"), supersede=True)
+        self.brake(self.monitor.bus_lost(f"{what}; exiting in {delay:g} s"), supersede=True)
         assert self._loop is not None  # the port reports only once opened on the loop
         self._exit_timer = self._loop.call_later(delay, self._exit_bus_lost)
 
@@ -429,13 +410,14 @@ class Service:
         try:
             await self.driver.enable(self.port, self._hold_lengths(), holding.tolist())
         except DriverError as exc:
-            self._brake(Fault(Trigger.DRIVE_FAULT, f"enable failed: {exc}"))
+            self.brake(Fault(Trigger.DRIVE_FAULT, f"enable failed: {exc}"))
             raise CommandError("drive_error", f"enable failed: {exc}") from None
         finally:
             self._busy = False
         if self.machine.state is not SafetyState.IDLE:  # braked meanwhile
             raise CommandError("invalid_state", f"enable aborted: {self.machine.fault.line()}")
         self.controller.reset(pose)
+        self._source_version += 1
         self.machine.go("enable")
         self._emit({"event": "state", "why": "enabled"})
         return self.status()
@@ -449,40 +431,8 @@ class Service:
         self._emit({"event": "state", "why": "disabled"})
         return self.status()
 
-    async def _hold(self, args: dict[str, Any]) -> dict[str, Any]:
-        self._require_moving("hold")
-        limits = self.config.trajectory
-
-        def stop(current: Reference, begin: float) -> Generator[None, None, Trajectory]:
-            """To rest about where the current motion would stop under full deceleration."""
-            speed = float(np.linalg.norm(current.twist[:3]))
-            spin = float(np.linalg.norm(current.twist[3:]))
-            coast = 0.5 * max(speed / limits.linear_accel, spin / limits.angular_accel)
-            target = retract(current.pose, current.twist * coast)
-            return goto_steps(current, target, limits, start=begin)
-
-        self._holds += 1  # plans under way when the hold came are dropped
-        try:
-            planned = await self._plan_ahead(
-                stop, "hold", lead=HOLD_LEAD, validate="none", attempts=2
-            )
-        except CommandError as exc:
-            if exc.code != "busy":
-                raise
-            # a hold is never refused for want of time: plan it in one piece (~5 ms on
-            # the loop, an occasional late cycle) rather than let the robot carry on
-            begin = self.now() + HOLD_LEAD
-            planned = run_steps(stop(self.controller.source.sample(begin), begin))
-        self._trajectory = None
-        self._scheduled.clear()
-        self.controller.follow(planned, at=planned.start_time)
-        if self.machine.state is SafetyState.TRACKING:
-            self.machine.go("hold")
-        self._emit({"event": "state", "why": "hold"})
-        return self.status()
-
     def _brake_command(self, args: dict[str, Any]) -> dict[str, Any]:
-        self._brake(Fault(Trigger.COMMAND, str(args.get("reason") or "brake requested")))
+        self.brake(Fault(Trigger.COMMAND, str(args.get("reason") or "brake requested")))
         return self.status()
 
     async def _reset(self, args: dict[str, Any]) -> dict[str, Any]:
@@ -520,70 +470,14 @@ class Service:
         self._emit({"event": "state", "why": "reset"})
         return self.status()
 
-    async def _goto(self, args: dict[str, Any]) -> dict[str, Any]:
-        self._require_moving("goto")
-        target = args.get("pose")
-        if not isinstance(target, Pose):
-            raise CommandError("bad_request", "goto needs a target pose")
-        limits = self.config.trajectory
-        planned = await self._plan_ahead(
-            lambda current, start: goto_steps(current, target, limits, start=start), "goto"
-        )
-        return self._run(planned, "goto")
-
     def _status(self, args: dict[str, Any]) -> dict[str, Any]:
         return self.status()
 
-    async def submit_trajectory(
-        self, trajectory: Trajectory, start: float | None
-    ) -> dict[str, Any]:
-        """Validate and run `trajectory`, its times relative to `start` (a unix time it
-        may not begin before, at most trajectory.max_start_delay ahead) or to now, after a
-        smooth approach from the current reference.  Rejected: nothing changes and
-        CommandError names the limit, the waypoint and the value.  Validation runs between
-        control cycles.  Until a later start's approach begins the robot carries on (HOLD,
-        or TRACKING what runs); it is TRACKING from then until the trajectory ends."""
-        self._require_moving("run a trajectory")
-        limits = self.config.trajectory
-        if start is not None:
-            if start < time.time() - 1e-3:
-                raise CommandError("rejected", f"trajectory start {start:.3f} lies in the past")
-            try:
-                check_start_delay(start - time.time(), limits)
-            except TrajectoryError as exc:
-                raise rejection("trajectory", exc) from None
-        config = self.config
-        await self._validate(
-            trajectory, "trajectory", config.reference_limits, config.reference_lengths
-        )
-
-        def plan(current: Reference, begin: float) -> Generator[None, None, Trajectory]:
-            not_before = begin if start is None else max(begin, self.now() + start - time.time())
-            shifted = trajectory.shifted(not_before - trajectory.start_time)
-            source, state = self.controller.source, current
-            for _ in range(SETTLE_ATTEMPTS):
-                planned = yield from approach_steps(state, shifted, limits)
-                if planned.start_time < begin:  # the blend would start in the past
-                    return (yield from approach_steps(current, shifted, limits, start=begin))
-                # it begins later: from the state the reference has then, or it would jump
-                then = source.sample(planned.start_time)
-                if then.same_as(state):
-                    return planned
-                state = then
-            raise TrajectoryError(
-                "start",
-                f"the current motion is still under way at t={planned.start_time:.6g} s, when "
-                "the approach to this start would begin: start later, or hold first",
-                waypoint=0,
-            )
-
-        planned = await self._plan_ahead(plan, "trajectory", validate="blend")
-        return self._run(planned, "trajectory")
-
-    async def _in_slack(self, steps: Generator[Any, None, Result]) -> Result:
-        """Run a step generator (validation, transition planning) to its result in the
-        cycle's slack: from the end of one cycle's work until SLACK_MARGIN before the
-        next tick, so that it never delays the handling of feedback or the commands."""
+    async def in_slack(self, steps: Generator[Any, None, Result]) -> Result:
+        """Run a step generator (validation, transition planning: a Planner on this loop)
+        to its result in the cycle's slack: from the end of one cycle's work until
+        SLACK_MARGIN before the next tick, so that it never delays the handling of
+        feedback or the commands."""
         while True:
             await self.slack()
             timer = self._timer
@@ -615,78 +509,41 @@ class Service:
             if not waiter.done():
                 waiter.set_result(None)
 
-    async def _validate(
-        self,
-        trajectory: Trajectory,
-        what: str,
-        pose_limits: PoseLimits,
-        length_limits: LengthLimits,
-    ) -> None:
-        """DESIGN §7 validation, between control cycles; every sampled pose inside
-        `pose_limits`, its cable lengths inside `length_limits`."""
-        steps = validation_steps(
-            trajectory,
-            self.robot,
-            self.config.trajectory,
-            self._wrench_check,
-            pose_limits,
-            length_limits,
-        )
-        try:
-            await self._in_slack(steps)
-        except TrajectoryError as exc:
-            raise rejection(what, exc) from None
+    def reference_at(self, t: float) -> tuple[Reference, int]:
+        """The reference the controller follows at time t, and the version of its
+        source (daemon.service.planner.CoreLink)."""
+        return self.controller.source.sample(t), self._source_version
 
-    async def _plan_ahead(
-        self,
-        make: Callable[[Reference, float], Generator[Any, None, Trajectory]],
-        what: str,
-        lead: float = PLANNING_LEAD,
-        validate: Literal["all", "blend", "none"] = "all",
-        attempts: int = 3,
-    ) -> Trajectory:
-        """A transition from the current reference, planned (between control cycles) to
-        begin `lead` seconds ahead and validated; replanned if another command changed the
-        reference meanwhile, or with a longer lead if the work outlasted it (`attempts` in
-        all, then CommandError "busy").  `validate`:
-        the whole result, only its first segment (the rest already was), or nothing (a
-        hold: stopping may not be refused); inside the validation pose limits, or no
-        further out than where the transition starts (it may start outside them)."""
-        holds = self._holds
-        for _ in range(attempts):
-            begin = self.now() + lead
-            source = self.controller.source
-            current = source.sample(begin)
-            try:
-                planned = await self._in_slack(make(current, begin))
-            except TrajectoryError as exc:
-                raise rejection(what, exc) from None
-            if validate != "none":
-                begins = planned.waypoints[0].pose
-                inside = self.config.reference_limits.widened_to(begins)
-                reach = self.config.reference_lengths.widened_to(
-                    self.robot.cable_lengths(begins).tolist()
-                )
-                if validate == "blend":
-                    blend = Trajectory([planned.knot(0), planned.knot(1)])
-                    await self._validate(blend, f"{what}'s approach", inside, reach)
-                else:
-                    await self._validate(planned, what, inside, reach)
-            self._require_moving(f"run a {what}")  # braked meanwhile: nothing changes
-            if self._holds != holds and what != "hold":
-                raise CommandError("invalid_state", f"{what} dropped: a hold came meanwhile")
-            if self.controller.source is not source:  # another command moved it meanwhile
-                continue
-            if self.now() <= planned.start_time:
-                return planned
-            lead *= 3
-        raise CommandError("busy", f"{what}: planning kept outlasting its lead")
+    def follow_planned(self, trajectory: Curve, version: int, what: str) -> dict[str, Any]:
+        """Follow a validated trajectory (its curve) planned from source `version`: a hold from its
+        start (TRACKING ends; whatever was scheduled is dropped), anything else as
+        `_run` says.  {"replan": "moved"} if the source changed since, {"replan": "late"}
+        if its start has passed; CommandError if the robot no longer moves."""
+        self._require_moving(f"run a {what}")
+        if version != self._source_version:
+            return {"replan": "moved"}
+        if self.now() > trajectory.start_time:
+            return {"replan": "late"}
+        if what != "hold":
+            return self._run(trajectory, what)
+        self._trajectory = None
+        self._scheduled.clear()
+        self._follow(trajectory)
+        if self.machine.state is SafetyState.TRACKING:
+            self.machine.go("hold")
+        self._emit({"event": "state", "why": "hold"})
+        return {"accepted": True, "what": what}
 
-    def _run(self, trajectory: Trajectory, what: str) -> dict[str, Any]:
+    def _follow(self, trajectory: Curve) -> None:
+        """The controller follows `trajectory` from its start: a new source version."""
+        self.controller.follow(trajectory, at=trajectory.start_time)
+        self._source_version += 1
+
+    def _run(self, trajectory: Curve, what: str) -> dict[str, Any]:
         """Follow a validated trajectory (planned from the current reference) from its
         start: TRACKING from now if it begins within the planning lead, else from its
         start (the control cycle switches then; until then the robot carries on)."""
-        self.controller.follow(trajectory, at=trajectory.start_time)
+        self._follow(trajectory)
         # what was scheduled to begin after it never will (the new source takes over)
         self._scheduled = [s for s in self._scheduled if s.start_time < trajectory.start_time]
         if trajectory.start_time > self.now() + PLANNING_LEAD:
@@ -701,7 +558,7 @@ class Service:
             "what": what,
             "start": trajectory.start_time,
             "end": trajectory.end_time,
-            "duration": trajectory.duration,
+            "duration": trajectory.end_time - trajectory.start_time,
         }
 
     def _require(self, state: SafetyState, action: str) -> None:
@@ -784,11 +641,7 @@ class Service:
 _COMMANDS: dict[str, Callable[[Service, dict[str, Any]], Any]] = {
     "enable": Service._enable,
     "disable": Service._disable,
-    "hold": Service._hold,
     "brake": Service._brake_command,
     "reset": Service._reset,
-    "goto": Service._goto,
     "status": Service._status,
 }
-
-

@@ -28,6 +28,7 @@ from daemon.config import DaemonConfig
 from daemon.interface.client import CdprClient
 from daemon.process.app import ServiceHook, serve
 from daemon.process.logsetup import configure_logging
+from daemon.service.planner import LocalLink, Planner
 from daemon.service.safety import SafetyState
 from daemon.service.service import EXIT_BUS_LOST, STARTUP_TIMEOUT, Service
 from sim_bus.bus import loopbus
@@ -75,10 +76,14 @@ def _statuses(notify: NotifySocket) -> list[str]:
 
 
 def _serve_with_simulator(
-    config: DaemonConfig, after_start: ServiceHook, link_down: bool = False
+    config: DaemonConfig,
+    after_start: ServiceHook,
+    link_down: bool = False,
+    companion: bool = False,
 ) -> int:
     """serve() against an in-process simulator (its bus down from the start if
-    `link_down`) until `after_start` returns or the daemon exits; the exit code."""
+    `link_down`; with the companion process if `companion`) until `after_start` returns
+    or the daemon exits; the exit code."""
 
     async def scenario() -> int:
         sim = InProcessSimulator(config)
@@ -87,7 +92,7 @@ def _serve_with_simulator(
             loopbus.set_link(sim.daemon_bus.channel, up=False)
         try:
             return await asyncio.wait_for(
-                serve(config, sim.daemon_bus, zenoh=False, after_start=after_start), 30
+                serve(config, sim.daemon_bus, companion=companion, after_start=after_start), 30
             )
         finally:
             sim.close()
@@ -104,7 +109,7 @@ def test_loop_bus_link_down_brakes_reports_and_exits(
     protocol: str,
 ) -> None:
     monkeypatch.setenv("NOTIFY_SOCKET", str(notify.path))
-    config = config_for(protocol)
+    config = config_for(protocol, zenoh={"listen": [f"tcp/127.0.0.1:{free_port()}"]})
     events: list[dict] = []
     seen: dict[str, object] = {}
 
@@ -113,13 +118,13 @@ def test_loop_bus_link_down_brakes_reports_and_exits(
         await service.command("enable", {})
         home = config.robot.home
         target = Pose(home.position + np.array([0.1, 0.05, 0.1]), home.quaternion)
-        await service.command("goto", {"pose": target})
+        await Planner(config, LocalLink(service)).command("goto", {"pose": target})
         seen["before"] = service.machine.state
         loopbus.set_link(service.port.bus.channel, up=False)
         await service.wait_stopped()
         seen["after"] = service.status()
 
-    code = _serve_with_simulator(config, fly_then_lose_the_bus)
+    code = _serve_with_simulator(config, fly_then_lose_the_bus, companion=True)
     lines = daemon_log.getvalue().splitlines()
     assert seen["before"] is SafetyState.TRACKING, seen
     assert code == EXIT_BUS_LOST, lines

@@ -62,12 +62,12 @@ def test_starts_held_then_enables_holds_and_tracks(protocol: str) -> None:
             positions, lowest = await stack.watch(0.3)  # held by the drives, not moving
             _assert_no_fall(positions, lowest, allowed_mm=0.5)
             with pytest.raises(CommandError, match="invalid_state"):
-                await service.command("goto", {"pose": _target(config)})
+                await stack.planner.command("goto", {"pose": _target(config)})
             await stack.enable()
             positions, lowest = await stack.watch(0.3)
             _assert_no_fall(positions, lowest, allowed_mm=0.5)
             target = _target(config)
-            reply = await service.command("goto", {"pose": target})
+            reply = await stack.planner.command("goto", {"pose": target})
             assert reply["accepted"] and service.machine.state is SafetyState.TRACKING
             await stack.until(lambda: service.machine.state is SafetyState.HOLD, 5.0)
             await asyncio.sleep(0.3)
@@ -143,7 +143,7 @@ def test_stuck_encoder_during_a_move_brakes(protocol: str) -> None:
             service = stack.service
             await stack.enable()
             stack.sim.robot.stick_encoder(2)
-            await service.command("goto", {"pose": _target(config, dx=0.3, dy=0.0, dz=0.0)})
+            await stack.planner.command("goto", {"pose": _target(config, dx=0.3, dy=0.0, dz=0.0)})
             await stack.until(lambda: service.machine.state is SafetyState.BRAKED, 2.0)
             assert _braked_by(stack) in (
                 Trigger.IMPLAUSIBLE_FEEDBACK,  # its length disagrees with the others'
@@ -317,7 +317,7 @@ def test_sigterm_brakes_and_exits_zero(protocol: str) -> None:
                 await asyncio.sleep(30)
 
             code = await serve(
-                config, sim.daemon_bus, zenoh=False, after_start=enable_then_terminate
+                config, sim.daemon_bus, companion=False, after_start=enable_then_terminate
             )
             held = [d.actuation.value for d in sim.robot.drives]
             assert "torque" not in held
@@ -353,7 +353,7 @@ def test_the_cycle_prepares_the_controller_while_the_feedback_is_on_its_way() ->
             await asyncio.sleep(0.1)
             assert prepared == [] and stepped == []  # idle: no controller work
             await stack.enable()
-            reply = await service.command("goto", {"pose": _target(config)})
+            reply = await stack.planner.command("goto", {"pose": _target(config)})
             assert reply["accepted"]
             await asyncio.sleep(0.3)
             assert service.machine.fault is None
@@ -408,17 +408,17 @@ def test_trajectories_accepted_while_moving_keep_the_reference_continuous() -> N
                 lambda t, out: refs.append((t, out.reference.pose.position.copy()))
             )
             await stack.enable()
-            reply = await service.command("goto", {"pose": _target(config, 0.2, 0.0, 0.0)})
+            reply = await stack.planner.command("goto", {"pose": _target(config, 0.2, 0.0, 0.0)})
             assert reply["accepted"]
             home = config.robot.home
             for k in range(6):
                 await asyncio.sleep(0.08)  # moving fast when the next one arrives
                 end = Pose(home.position + np.array([0.0, 0.1 * (-1) ** k, 0.05]), home.quaternion)
                 trajectory = Trajectory([Waypoint(0.0, home), Waypoint(0.6, end)])
-                reply = await service.submit_trajectory(trajectory, None)
+                reply = await stack.planner.submit_trajectory(trajectory, None)
                 assert reply["accepted"]
             await asyncio.sleep(0.05)
-            await service.command("hold", {})
+            await stack.planner.command("hold", {})
             await asyncio.sleep(0.3)
             assert service.machine.fault is None
         t = np.array([t for t, _ in refs])
@@ -438,10 +438,10 @@ def test_a_hold_drops_the_plans_under_way() -> None:
             service = stack.service
             await stack.enable()
             pending = asyncio.ensure_future(
-                service.command("goto", {"pose": _target(config, 0.2, 0.0, 0.0)})
+                stack.planner.command("goto", {"pose": _target(config, 0.2, 0.0, 0.0)})
             )
             await asyncio.sleep(0)  # the goto has started planning
-            await service.command("hold", {})
+            await stack.planner.command("hold", {})
             with pytest.raises(CommandError, match="dropped: a hold came meanwhile"):
                 await pending
             await asyncio.sleep(0.2)
@@ -474,7 +474,7 @@ def test_background_work_runs_only_in_the_cycles_slack() -> None:
                     yield
                 return "done"
 
-            assert await service._in_slack(steps()) == "done"
+            assert await service.in_slack(steps()) == "done"
             cycles = service.stats.cycles
             assert service.machine.fault is None
         assert not any(waiting for waiting, _ in seen)
@@ -488,21 +488,21 @@ def test_background_work_runs_only_in_the_cycles_slack() -> None:
 def test_a_hold_is_never_refused_for_want_of_planning_time(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    """With no lead at all, planning in the slack always comes too late: the hold is then
-    planned in one piece and still stops the robot."""
-    import daemon.service.service
+    """With no lead at all, planning always comes too late: the hold then tries again
+    with a longer lead and still stops the robot."""
+    import daemon.service.planner
 
     async def scenario() -> None:
         config = config_for("cia402")
         async with Stack(config) as stack:
             service = stack.service
             await stack.enable()
-            assert (await service.command("goto", {"pose": _target(config, 0.2, 0.0, 0.0)}))[
+            assert (await stack.planner.command("goto", {"pose": _target(config, 0.2, 0.0, 0.0)}))[
                 "accepted"
             ]
             await asyncio.sleep(0.15)  # moving
-            monkeypatch.setattr(daemon.service.service, "HOLD_LEAD", 0.0)
-            reply = await service.command("hold", {})
+            monkeypatch.setattr(daemon.service.planner, "HOLD_LEAD", 0.0)
+            reply = await stack.planner.command("hold", {})
             assert reply["state"] == "hold"
             await asyncio.sleep(0.5)
             positions, lowest = await stack.watch(0.2)

@@ -74,7 +74,7 @@ def test_a_trajectory_into_the_floor_is_rejected_naming_the_waypoint() -> None:
         async with Stack(config_for("cia402")) as stack:
             await stack.enable()
             trajectory = _into_the_floor(stack.config)
-            err = await _refused(stack, stack.service.submit_trajectory(trajectory, None))
+            err = await _refused(stack, stack.planner.submit_trajectory(trajectory, None))
             assert err.details == {"limit": "workspace_min", "waypoint": 2, "value": -0.5}
             assert err.reason.startswith(
                 "trajectory rejected: waypoint 2: workspace_min: position z = -0.5000 m outside"
@@ -89,11 +89,11 @@ def test_a_goto_through_the_fence_is_rejected() -> None:
         async with Stack(config_for("cia402", safety=FENCE)) as stack:
             await stack.enable()
             target = _home(stack.config, dz=0.5)  # z = 1.75
-            err = await _refused(stack, stack.service.command("goto", {"pose": target}))
+            err = await _refused(stack, stack.planner.command("goto", {"pose": target}))
             assert err.details == {"limit": "workspace_max", "waypoint": 1, "value": 1.75}
             assert "goto rejected: waypoint 1: workspace_max: position z = 1.7500 m" in err.reason
             # below the fence less the tracking margin it goes
-            reply = await stack.service.command("goto", {"pose": _home(stack.config, dz=0.3)})
+            reply = await stack.planner.command("goto", {"pose": _home(stack.config, dz=0.3)})
             assert reply["accepted"]
 
     run(scenario())
@@ -112,7 +112,7 @@ def test_a_goto_near_a_cable_length_limit_is_rejected() -> None:
         async with Stack(config_for("cia402", robot=robot)) as stack:
             await stack.enable()
             before, _ = await stack.watch(0.05)
-            err = await _refused(stack, stack.service.command("goto", {"pose": away}))
+            err = await _refused(stack, stack.planner.command("goto", {"pose": away}))
             assert err.details["limit"] == "cable_length", err.details
             assert "less the tracking, sampling and stretch margins" in err.reason
             after, _ = await stack.watch(0.2)
@@ -129,11 +129,11 @@ def test_a_turn_beyond_tilt_max_is_rejected() -> None:
             home = _home(stack.config)
             turned = _home(stack.config, rotvec=(0.8, 0.0, 0.0))
             trajectory = Trajectory([Waypoint(0.0, home), Waypoint(3.0, turned)])
-            err = await _refused(stack, stack.service.submit_trajectory(trajectory, None))
+            err = await _refused(stack, stack.planner.submit_trajectory(trajectory, None))
             assert err.details["limit"] == "tilt_max" and err.details["waypoint"] == 1
             assert err.details["value"] == pytest.approx(0.8)
             assert "rotation 45.84 deg from home exceeds" in err.reason
-            err = await _refused(stack, stack.service.command("goto", {"pose": turned}))
+            err = await _refused(stack, stack.planner.command("goto", {"pose": turned}))
             assert (err.details["limit"], err.details["waypoint"]) == ("tilt_max", 1)
 
     run(scenario())
@@ -147,7 +147,7 @@ def test_a_start_days_ahead_is_rejected() -> None:
                 [Waypoint(0.0, _home(stack.config)), Waypoint(1.0, _home(stack.config, dx=0.1))]
             )
             days = time.time() + 11.6 * 86400
-            err = await _refused(stack, stack.service.submit_trajectory(trajectory, days))
+            err = await _refused(stack, stack.planner.submit_trajectory(trajectory, days))
             assert (err.details["limit"], err.details["waypoint"]) == ("max_start_delay", 0)
             assert err.details["value"] == pytest.approx(11.6 * 86400, abs=5.0)
             assert "beyond the limit 60 s" in err.reason
@@ -179,7 +179,7 @@ def test_a_start_ahead_holds_until_its_approach_begins() -> None:
             trajectory = Trajectory(
                 [Waypoint(0.0, _home(config)), Waypoint(1.0, _home(config, dx=0.1))]
             )
-            reply = await service.submit_trajectory(trajectory, time.time() + 1.0)
+            reply = await stack.planner.submit_trajectory(trajectory, time.time() + 1.0)
             assert reply["accepted"] and service.machine.state is SafetyState.HOLD
             positions, _ = await stack.watch(0.4)
             assert np.linalg.norm(positions - positions[0], axis=1).max() < 5e-4
@@ -214,16 +214,16 @@ def test_a_start_ahead_while_moving_waits_for_the_motion_and_never_jumps() -> No
             service = stack.service
             refs = record_references(service)
             await stack.enable()
-            await service.command("goto", {"pose": _home(config, dx=0.3)})  # ~0.9 s
+            await stack.planner.command("goto", {"pose": _home(config, dx=0.3)})  # ~0.9 s
             # its approach (~0.6 s from the goto's end) would begin 0.4 s from now
             trajectory = Trajectory(
                 [Waypoint(0.0, _home(config, dy=0.1)), Waypoint(1.0, _home(config, dy=0.2))]
             )
             with pytest.raises(CommandError) as info:
-                await service.submit_trajectory(trajectory, time.time() + 1.0)
+                await stack.planner.submit_trajectory(trajectory, time.time() + 1.0)
             assert info.value.details["limit"] == "start"
             assert "still under way" in info.value.reason
-            reply = await service.submit_trajectory(trajectory, time.time() + 2.0)
+            reply = await stack.planner.submit_trajectory(trajectory, time.time() + 2.0)
             assert reply["accepted"] and service.machine.state is SafetyState.TRACKING
             await stack.until(lambda: service.machine.state is SafetyState.HOLD, 2.0)
             await stack.until(lambda: service.machine.state is SafetyState.TRACKING, 3.0)
@@ -254,13 +254,13 @@ def test_enabled_outside_the_margin_it_may_move_back_in_but_not_further_out() ->
             await asyncio.sleep(0.3)  # settled from the placed start
             service = stack.service
             lower = _home(config, dz=-0.245)  # z = 1.005
-            err = await _refused(stack, service.command("goto", {"pose": lower}))
+            err = await _refused(stack, stack.planner.command("goto", {"pose": lower}))
             assert (err.details["limit"], err.details["waypoint"]) == ("workspace_min", 1)
             here = service.controller.source.sample(service.now()).pose
             trajectory = Trajectory([Waypoint(0.0, here), Waypoint(1.0, _home(config))])
-            err = await _refused(stack, service.submit_trajectory(trajectory, None))
+            err = await _refused(stack, stack.planner.submit_trajectory(trajectory, None))
             assert (err.details["limit"], err.details["waypoint"]) == ("workspace_min", 0)
-            reply = await service.command("goto", {"pose": _home(config)})
+            reply = await stack.planner.command("goto", {"pose": _home(config)})
             assert reply["accepted"]
             await stack.until(lambda: service.machine.state is SafetyState.HOLD, 3.0)
             assert service.machine.fault is None

@@ -86,7 +86,7 @@ def test_a_10000_waypoint_trajectory_reaches_a_holding_robot_without_a_stall() -
             await asyncio.sleep(0.2)
             stall = LongestStall(stack)
             service = stack.service
-            reply = await service.submit_trajectory(trajectory, None)  # validate, plan, run
+            reply = await stack.planner.submit_trajectory(trajectory, None)  # validate, plan, run
             assert reply["accepted"] and reply["duration"] >= trajectory.duration
             await asyncio.sleep(0.3)
             assert service.machine.state is SafetyState.TRACKING, service.machine.fault

@@ -46,7 +46,7 @@ def test_a_daemon_tracks_against_a_simulator_waking_every_5_ms() -> None:
             await stack.enable()
             home = config.robot.home
             target = Pose(home.position + np.array([0.05, 0.0, 0.05]), home.quaternion)
-            await stack.service.command("goto", {"pose": target})
+            await stack.planner.command("goto", {"pose": target})
             await stack.until(lambda: stack.service.machine.state is SafetyState.HOLD, 5.0)
             await asyncio.sleep(0.3)
             assert stack.service.machine.fault is None

@@ -1,0 +1,38 @@
+"""The demo's planner: a process of its own that flies one trajectory over zenoh.
+
+    python -m daemon.cli.demo_flight  < {"endpoint": ..., "trajectory": {...}}
+
+`cdprd demo` starts it once the daemon is up; it enables the robot, sends the
+trajectory through the client module (as any planner would), waits for its end and
+prints {"start": ..., "reply": ...} as JSON.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from typing import Any
+
+from cdpr.trajectory import Trajectory, parse_trajectory
+from daemon.interface.client import CdprClient
+
+
+def fly(endpoint: str, trajectory: Trajectory) -> dict[str, Any]:
+    """Enable, send the trajectory, wait until it no longer tracks."""
+    with CdprClient(connect=endpoint, timeout=5.0) as client:
+        client.enable()
+        sent = time.monotonic()
+        reply = client.send_trajectory(trajectory)
+        deadline = sent + trajectory.duration + 10.0
+        while time.monotonic() < deadline:
+            if client.status().get("state") != "tracking":
+                break
+            time.sleep(0.1)
+        result = reply.get("result", reply)
+        return {"start": float(result.get("start", 0.0)), "reply": reply}
+
+
+if __name__ == "__main__":
+    request = json.loads(sys.stdin.read())
+    print(json.dumps(fly(request["endpoint"], parse_trajectory(request["trajectory"]))))

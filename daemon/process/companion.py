@@ -1,0 +1,187 @@
+"""The companion process: everything of the daemon that is not the control cycle
+(DESIGN §16).
+
+    python -m daemon.process.companion FD
+
+spawned by the core (daemon.process.companion_host) with its end of the link on FD.
+It runs zenoh (daemon.interface.zenoh_io) with the planner (daemon.service.planner)
+behind it, the recordings, and systemd notification: READY=1 once zenoh listens,
+STATUS= as the safety state changes, the watchdog fed only while the core's cycles keep
+completing.  It exits when the core closes the link; SIGTERM and SIGINT are the core's
+to act on (they brake the robot there) and are ignored here, so that the recordings
+get finished.  Exit code 1 with one line on stderr when it cannot start.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import pickle
+import signal
+import socket
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, TypeVar
+
+import can
+
+from daemon.config import DaemonConfig
+from daemon.process.companion_link import RemoteLink
+from daemon.process.logsetup import configure_logging
+from daemon.process.recording import CanRecorder, TelemetryRecorder, session_path
+from daemon.process.systemd import Notifier, Progress, run_watchdog
+from daemon.process.wire import MAX_MESSAGE
+from daemon.service.planner import Planner
+from daemon.service.safety import Fault, Trigger
+
+log = logging.getLogger("cdprd")
+
+HELLO_TIMEOUT = 10.0  # s for the core's first message
+Recorder = TypeVar("Recorder", TelemetryRecorder, CanRecorder)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = sys.argv[1:] if argv is None else argv
+    if len(args) != 1 or not args[0].isdigit():
+        print("usage: python -m daemon.process.companion FD (spawned by the core)", file=sys.stderr)
+        return 2
+    sock = socket.socket(fileno=int(args[0]))
+    sock.settimeout(HELLO_TIMEOUT)
+    try:
+        data = sock.recv(MAX_MESSAGE)
+    except OSError as exc:
+        print(f"error: companion: no hello from the core: {exc}", file=sys.stderr)
+        return 1
+    kind, config, t0, state, level = pickle.loads(data)
+    assert kind == "hello", kind
+    configure_logging(level)
+    return asyncio.run(run(config, RemoteLink(sock, t0, state)))
+
+
+async def run(config: DaemonConfig, link: RemoteLink) -> int:
+    """Serve until the core closes the link; the exit code."""
+    from daemon.interface.zenoh_io import SessionError, ZenohInterface
+
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        loop.add_signal_handler(sig, log.debug, "companion: signal left to the core")
+    link.start()
+    notifier = Notifier()
+    planner = Planner(config, link)
+    interface = None
+    recorders = _recorders(config, link)
+    writers = [asyncio.create_task(r.run()) for r in recorders]
+    try:
+        prefix = config.zenoh.key_prefix(config.robot.name)
+        interface = ZenohInterface(config.zenoh, planner, prefix, config.trajectory)
+        try:
+            await interface.start()
+        except SessionError as exc:  # e.g. the port is in use
+            print(f"error: {config.source}: {exc}", file=sys.stderr)
+            return 1
+        planner.subscribe(interface.publish_event)
+        notifier.ready()
+        link.ready()
+        update_status = _status_updates(notifier, link, config)
+        planner.subscribe(update_status)
+        update_status({})
+        watchdog = asyncio.create_task(run_watchdog(notifier, Progress(lambda: link.cycles)))
+        await link.closed.wait()
+        notifier.stopping()
+        watchdog.cancel()
+        return 0
+    finally:
+        if interface is not None:
+            await interface.close()
+        for writer in writers:
+            writer.cancel()
+        for recorder in recorders:
+            recorder.close()
+        link.close()
+
+
+def _status_text(state: dict[str, Any], config: DaemonConfig) -> str:
+    """`systemctl status`'s one line: the safety state, the fault that braked, where."""
+    fault = state.get("fault")
+    where = f"{config.robot.name} on {config.can.channel}"
+    name = state.get("state", "init")
+    if not fault:
+        return f"{name}; {where}"
+    return f"{name}: {Fault(Trigger(fault['trigger']), fault['message']).line()}; {where}"
+
+
+def _status_updates(
+    notifier: Notifier, link: RemoteLink, config: DaemonConfig
+) -> Callable[[dict], None]:
+    """An event sink that keeps STATUS= current: sent when the line changes."""
+    last = [""]
+
+    def on_event(event: dict) -> None:
+        text = _status_text(link.state(), config)
+        if text != last[0]:
+            last[0] = text
+            notifier.status(text)
+
+    return on_event
+
+
+def _recorders(config: DaemonConfig, link: RemoteLink) -> list:
+    """Telemetry (MCAP) and raw CAN recorders the config asks for, fed by the core's
+    batches; each file is named after the session's start time.  A file that cannot be
+    created stops the start-up with one line naming the key and the file."""
+    recorders: list = []
+    rec = config.recording
+    if rec.telemetry:
+        key = f"{config.source}: recording.telemetry"
+        telemetry = _open(key, TelemetryRecorder, config.path(rec.telemetry), recorders)
+
+        def record_cycles(batch: list) -> None:
+            for record in batch:
+                telemetry.record(record)
+
+        link.batch_sinks["cycles"] = record_cycles
+        recorders.append(telemetry)
+    if rec.can_log:
+        channel = config.can.channel  # names the frames sent (they carry none on SocketCAN)
+        key = f"{config.source}: recording.can_log"
+        frames = _open(key, CanRecorder, config.path(rec.can_log), recorders, channel=channel)
+
+        def record_frames(batch: list) -> None:
+            for stamp, ident, extended, error, remote, dlc, data, rx in batch:
+                message = can.Message(
+                    timestamp=stamp,
+                    arbitration_id=ident,
+                    is_extended_id=extended,
+                    is_error_frame=error,
+                    is_remote_frame=remote,
+                    dlc=dlc,
+                    data=data,
+                    is_rx=rx,
+                    check=False,
+                )
+                frames.record(message, rx=rx, timestamp=stamp)
+
+        link.batch_sinks["frames"] = record_frames
+        recorders.append(frames)
+    return recorders
+
+
+def _open(
+    key: str, make: Callable[..., Recorder], path: Path, opened: list, **options: Any
+) -> Recorder:
+    """`make(file, **options)` for this session's file.  If the file cannot be created
+    (missing or read-only directory, bad suffix, ...): close the recorders already
+    `opened` and exit with an error naming `key` and the file, not a traceback."""
+    file = session_path(path)
+    try:
+        return make(file, **options)
+    except (OSError, ValueError) as exc:
+        for recorder in opened:
+            recorder.close()
+        reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+        raise SystemExit(f"error: {key}: cannot record to {file}: {reason}") from None
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,339 @@
+"""The core's side of the companion process (DESIGN §16).
+
+The real-time core runs the cycle and nothing else; its companion (daemon.process.
+companion) runs zenoh, planning and validation, recordings and systemd notification.
+This module, in the core:
+
+- spawns the companion (`python -m daemon.process.companion FD`) with one end of a
+  SOCK_SEQPACKET pair (daemon.process.wire) and says hello (the config, the core's
+  clock origin);
+- serves its calls between cycles: core commands, the reference at a time, and
+  planned trajectories (a sealed memfd, mapped in place);
+- pushes events as they happen, the state at zenoh.state_rate_hz and, when recording,
+  cycle records and CAN frames in batches, each in the cycle's slack; a full socket
+  drops the message (counted), the core never waits;
+- supervises it: a companion silent for safety.companion_hang is killed, a dead one is
+  restarted (with a growing pause); a moving robot without a live companion for
+  safety.companion_lost brakes.  A companion that exits with an error before it was
+  ever ready (a zenoh port in use, a recording file it cannot create) stops the daemon
+  with its exit code instead: restarting would fail the same way.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import os
+import subprocess
+import sys
+import time
+from collections.abc import Awaitable
+from typing import Any
+
+import can
+
+from cdpr.controller import ControlOutput
+from daemon.config import DaemonConfig
+from daemon.process import wire
+from daemon.process.recording import CycleRecord
+from daemon.service.api import CommandError
+from daemon.service.safety import Fault, Trigger
+from daemon.service.service import Service
+
+log = logging.getLogger("cdprd")
+
+SUPERVISE_PERIOD = 0.1  # s between checks of the companion's health
+BATCH_PERIOD = 0.05  # s between batches of cycle records and CAN frames
+MESSAGES_PER_PASS = 32  # calls read per wake-up: a flood waits in the socket, not here
+RESTART_PAUSES = (0.2, 0.5, 1.0, 2.0, 5.0)  # s before restarting, after each death in a row
+MAX_BATCH = 200  # cycle records held between batches (16 x as many CAN frames)
+STOP_WAIT = 3.0  # s the companion gets to finish its recordings after the core stops
+
+
+class CompanionHost:
+    """Spawn, serve and supervise the companion of `service` (see the module doc)."""
+
+    def __init__(self, service: Service, config: DaemonConfig) -> None:
+        self.service = service
+        self.config = config
+        self.dropped = 0  # messages the companion did not take in time
+        self.restarts = 0
+        self.exit_code: int | None = None  # set when the companion cannot start at all
+        self._process: subprocess.Popen | None = None
+        self._sock = None
+        self._ever_ready = False
+        self._last_heard = time.monotonic()
+        self._lost_since: float | None = None  # no live companion since
+        self._deaths = 0  # in a row, for the restart pause
+        self._restart_at = 0.0
+        self._tasks: list[asyncio.Task] = []
+        self._cycles: list[tuple] = []  # recorded cycles not yet sent
+        self._frames: list[tuple] = []  # recorded CAN frames not yet sent
+        self.ready = asyncio.Event()  # a companion is up (zenoh listening)
+        recording = config.recording
+        if recording.telemetry:
+            service.cycle_listeners.append(self._record_cycle)
+        if recording.can_log:
+            service.frame_listeners.append(self._record_frame)
+        service.subscribe(self._send_event)
+
+    # -- lifecycle ------------------------------------------------------------------------
+
+    def start(self) -> None:
+        """Spawn the companion and start serving and supervising it (on the running loop)."""
+        self._spawn()
+        loop = asyncio.get_running_loop()
+        self._tasks = [
+            loop.create_task(self._supervise()),
+            loop.create_task(self._push_states()),
+        ]
+        if self.config.recording.telemetry or self.config.recording.can_log:
+            self._tasks.append(loop.create_task(self._push_batches()))
+
+    async def close(self) -> None:
+        """Hand over the last records, close the link and give the companion STOP_WAIT
+        seconds to finish (its recordings), then kill it."""
+        for task in self._tasks:
+            task.cancel()
+        self._flush_batches()
+        self._disconnect()
+        process = self._process
+        if process is not None:
+            deadline = time.monotonic() + STOP_WAIT
+            while process.poll() is None and time.monotonic() < deadline:
+                await asyncio.sleep(0.02)
+            if process.poll() is None:
+                log.warning("the companion did not exit within %g s: killed", STOP_WAIT)
+                process.kill()
+                process.wait()
+
+    @property
+    def pid(self) -> int | None:
+        """The running companion's process id."""
+        return None if self._process is None else self._process.pid
+
+    def _spawn(self) -> None:
+        core_end, companion_end = wire.socket_pair()
+        env = dict(os.environ)
+        if env.get("WATCHDOG_PID") == str(os.getpid()):
+            del env["WATCHDOG_PID"]  # the companion feeds the watchdog (NotifyAccess=all)
+        try:
+            self._process = subprocess.Popen(
+                [sys.executable, "-m", "daemon.process.companion", str(companion_end.fileno())],
+                pass_fds=(companion_end.fileno(),),
+                env=env,
+            )
+        finally:
+            companion_end.close()
+        self._sock = core_end
+        asyncio.get_running_loop().add_reader(core_end.fileno(), self._on_readable)
+        self._last_heard = time.monotonic()
+        level = logging.getLevelName(logging.getLogger().getEffectiveLevel()).lower()
+        hello = ("hello", self.config, self.service.t0, self.service.state(), level)
+        if not wire.send(core_end, hello):
+            log.error("the companion did not take its hello")
+        log.info("companion started (pid %d)", self._process.pid)
+
+    def _disconnect(self) -> None:
+        if self._sock is not None:
+            asyncio.get_running_loop().remove_reader(self._sock.fileno())
+            self._sock.close()
+            self._sock = None
+
+    # -- supervision ----------------------------------------------------------------------
+
+    async def _supervise(self) -> None:
+        safety = self.config.safety
+        while True:
+            await asyncio.sleep(SUPERVISE_PERIOD)
+            now = time.monotonic()
+            process = self._process
+            if process is not None and process.poll() is not None:
+                self._on_exit(process.returncode, now)
+            elif process is not None and now - self._last_heard > safety.companion_hang:
+                log.error(
+                    "the companion (pid %d) has been silent for %.1f s: killing it",
+                    process.pid,
+                    now - self._last_heard,
+                )
+                process.kill()
+            live = process is not None and now - self._last_heard <= safety.companion_hang
+            if live:
+                self._lost_since = None
+            elif self._lost_since is None:
+                self._lost_since = self._last_heard
+            elif now - self._lost_since > safety.companion_lost and self.service.machine.moving:
+                self.service.brake(
+                    Fault(
+                        Trigger.COMPANION_LOST,
+                        f"no companion process for {now - self._lost_since:.1f} s "
+                        f"(safety.companion_lost {safety.companion_lost:g} s)",
+                    )
+                )
+            if self._process is None and self.exit_code is None and now >= self._restart_at:
+                self.restarts += 1
+                self._spawn()
+
+    def _on_exit(self, code: int, now: float) -> None:
+        self._disconnect()
+        self._process = None
+        self.ready.clear()
+        if not self._ever_ready and code not in (0, -9):
+            # it never came up: the same error again on restart (a port in use, ...)
+            log.error("the companion could not start (exit code %d): stopping", code)
+            self.exit_code = code
+            self.service.stop(Trigger.SIGTERM, exit_code=code if code > 0 else 1)
+            return
+        pause = RESTART_PAUSES[min(self._deaths, len(RESTART_PAUSES) - 1)]
+        self._deaths += 1
+        self._restart_at = now + pause
+        log.error("the companion exited with code %d: restarting it in %g s", code, pause)
+
+    # -- calls ----------------------------------------------------------------------------
+
+    def _on_readable(self) -> None:
+        sock = self._sock
+        if sock is None:
+            return
+        messages, closed = wire.receive(sock, MESSAGES_PER_PASS)
+        if messages:
+            self._last_heard = time.monotonic()
+        for message, fds in messages:
+            self._dispatch(message, fds)
+        if closed:
+            self._disconnect()
+
+    def _dispatch(self, message: tuple, fds: list[int]) -> None:
+        kind = message[0]
+        if kind == "call":
+            _, ident, method, args = message
+            self._call(ident, method, args, fds)
+            return
+        for fd in fds:
+            os.close(fd)
+        if kind == "ready":
+            self.ready.set()
+            self._ever_ready = True
+            self._deaths = 0
+            log.info("companion ready")
+
+    def _call(self, ident: int, method: str, args: tuple, fds: list[int]) -> None:
+        service = self.service
+        try:
+            if method == "command":
+                result: Any = service.command(*args)
+            elif method == "reference_at":
+                result = service.reference_at(*args)
+            elif method == "follow":
+                header, version, what = args
+                curve = wire.mapped_curve(header, fds.pop())
+                result = service.follow_planned(curve, version, what)
+            else:
+                raise CommandError("internal", f"the core has no call {method!r}")
+        except CommandError as exc:
+            self._reply(ident, False, wire.error_payload(exc))
+            return
+        except Exception as exc:  # a bug: the companion reports it as "internal"
+            log.exception("core call %s failed", method)
+            self._reply(ident, False, ("internal", f"{type(exc).__name__}: {exc}", {}))
+            return
+        finally:
+            for fd in fds:
+                os.close(fd)
+        if isinstance(result, Awaitable):
+            task = asyncio.ensure_future(result)
+            task.add_done_callback(lambda done: self._reply_when_done(ident, done))
+        else:
+            self._reply(ident, True, result)
+
+    def _reply_when_done(self, ident: int, task: asyncio.Future) -> None:
+        if task.cancelled():
+            self._reply(ident, False, ("internal", "the core stopped", {}))
+        elif isinstance(task.exception(), CommandError):
+            self._reply(ident, False, wire.error_payload(task.exception()))
+        elif task.exception() is not None:
+            exc = task.exception()
+            self._reply(ident, False, ("internal", f"{type(exc).__name__}: {exc}", {}))
+        else:
+            self._reply(ident, True, task.result())
+
+    def _reply(self, ident: int, ok: bool, payload: Any) -> None:
+        self._send(("reply", ident, ok, payload))
+
+    def _send(self, message: tuple) -> None:
+        try:
+            sent = self._sock is not None and wire.send(self._sock, message)
+        except ValueError as exc:  # larger than a datagram may be: a bug, never a stall
+            log.error("not sent to the companion: %s", exc)
+            sent = False
+        if not sent:
+            self.dropped += 1
+
+    # -- what leaves the core -------------------------------------------------------------
+
+    def _send_event(self, event: dict[str, Any]) -> None:
+        self._send(("event", event))
+
+    async def _push_states(self) -> None:
+        """The state at zenoh.state_rate_hz, each in the cycle's slack (a snapshot costs
+        a few hundred microseconds); a late one is skipped, never a burst."""
+        period = 1.0 / self.config.zenoh.state_rate_hz
+        while True:
+            await asyncio.sleep(period)
+            await self.service.slack()
+            if self._sock is not None:
+                state = self.service.state()
+                state["companion"] = {"restarts": self.restarts, "dropped": self.dropped}
+                self._send(("state", state))
+
+    def _record_cycle(self, t: float, out: ControlOutput) -> None:
+        if len(self._cycles) >= MAX_BATCH:  # no slack for a while: drop, never grow
+            self.dropped += 1
+            return
+        service = self.service
+        ref = out.reference.pose
+        self._cycles.append(
+            CycleRecord(
+                t=t,
+                position=out.pose.position,
+                quaternion=out.pose.quaternion,
+                twist=out.twist,
+                lengths=[fb.length for fb in service.driver.feedback],
+                tensions=out.tensions,
+                forces=out.commands,
+                safety=service.machine.state.value,
+                reference=(ref.position, ref.quaternion),
+            )
+        )
+
+    def _record_frame(self, msg: can.Message, rx: bool) -> None:
+        if len(self._frames) >= 16 * MAX_BATCH:
+            self.dropped += 1
+            return
+        stamp = msg.timestamp if rx else time.time()
+        self._frames.append(
+            (
+                stamp,
+                msg.arbitration_id,
+                msg.is_extended_id,
+                msg.is_error_frame,
+                msg.is_remote_frame,
+                msg.dlc,
+                bytes(msg.data),
+                rx,
+            )
+        )
+
+    async def _push_batches(self) -> None:
+        while True:
+            await asyncio.sleep(BATCH_PERIOD)
+            await self.service.slack()
+            self._flush_batches()
+
+    def _flush_batches(self) -> None:
+        if self._cycles:
+            batch, self._cycles = self._cycles, []
+            self._send(("cycles", batch))
+        if self._frames:
+            batch, self._frames = self._frames, []
+            self._send(("frames", batch))

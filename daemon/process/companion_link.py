@@ -1,0 +1,175 @@
+"""The companion's side of its link to the real-time core: a daemon.service.planner.
+CoreLink over the socket of daemon.process.wire (DESIGN §16).
+
+Calls (core commands, the reference at a time, a planned trajectory as a sealed memfd)
+wait for the core's reply; events, state snapshots and recorded batches arrive
+unasked and go to whoever subscribed.  Planning and validation run here on the
+companion's own loop, a slice at a time so that zenoh stays served meanwhile.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+import logging
+import os
+import socket
+import time
+from collections.abc import Callable, Generator
+from typing import Any, TypeVar
+
+from cdpr.trajectory import Reference, Trajectory
+from daemon.process import wire
+from daemon.service.api import CommandError
+
+log = logging.getLogger("cdprd")
+
+ALIVE_PERIOD = 0.1  # s between "alive" messages (the core kills a silent companion)
+CALL_TIMEOUT = 30.0  # s for the core to answer a call (enable waits for the drives)
+STEP_SLICE = 0.005  # s of planning or validation between two turns of the loop
+MESSAGES_PER_PASS = 256
+Result = TypeVar("Result")
+EventSink = Callable[[dict[str, Any]], None]
+
+
+class RemoteLink:
+    """The core, as the planner and the interfaces of the companion see it."""
+
+    def __init__(self, sock: socket.socket, t0: float, state: dict[str, Any]) -> None:
+        self._sock = sock
+        self._t0 = t0
+        self._state = state
+        self._ids = itertools.count()
+        self._waiting: dict[int, asyncio.Future] = {}
+        self._sinks: list[EventSink] = []
+        self.batch_sinks: dict[str, Callable[[list], None]] = {}  # "cycles", "frames"
+        self.closed = asyncio.Event()
+        self._alive: asyncio.Task | None = None
+
+    def start(self) -> None:
+        """Serve the socket on the running loop, and tell the core this process lives."""
+        self._sock.setblocking(False)
+        loop = asyncio.get_running_loop()
+        loop.add_reader(self._sock.fileno(), self._on_readable)
+        self._alive = loop.create_task(self._keep_alive())
+
+    def ready(self) -> None:
+        """Tell the core that this companion is up (zenoh listening)."""
+        wire.send(self._sock, ("ready",))
+
+    def close(self) -> None:
+        if self._alive is not None:
+            self._alive.cancel()
+        if self._sock.fileno() >= 0:
+            asyncio.get_running_loop().remove_reader(self._sock.fileno())
+            self._sock.close()
+        self._fail_waiting("the core link is closed")
+
+    # -- CoreLink ---------------------------------------------------------------------------
+
+    def now(self) -> float:
+        return time.monotonic() - self._t0
+
+    @property
+    def safety_state(self) -> str:
+        return str(self._state.get("state", "init"))
+
+    @property
+    def cycles(self) -> int:
+        """Control cycles the core has completed, as last reported."""
+        return int(self._state.get("cycle", {}).get("cycles", 0))
+
+    async def command(self, name: str, args: dict[str, Any]) -> dict[str, Any]:
+        return await self._call("command", (name, args))
+
+    async def reference_at(self, t: float) -> tuple[Reference, int]:
+        reference, version = await self._call("reference_at", (t,))
+        return reference, version
+
+    async def follow(self, trajectory: Trajectory, version: int, what: str) -> dict[str, Any]:
+        header, fd = wire.curve_file(trajectory)
+        try:
+            return await self._call("follow", (header, version, what), fds=(fd,))
+        finally:
+            os.close(fd)
+
+    async def run_steps(self, steps: Generator[Any, None, Result]) -> Result:
+        while True:
+            until = time.monotonic() + STEP_SLICE
+            while time.monotonic() < until:
+                try:
+                    next(steps)
+                except StopIteration as done:
+                    return done.value
+            await asyncio.sleep(0)  # let zenoh's queries and the core's messages in
+
+    def state(self) -> dict[str, Any]:
+        return self._state
+
+    async def slack(self) -> None:
+        return  # the core's cycle is in another process: publishing here costs it nothing
+
+    def subscribe(self, sink: EventSink) -> None:
+        self._sinks.append(sink)
+
+    # -- the socket -------------------------------------------------------------------------
+
+    async def _call(self, method: str, args: tuple, fds: tuple[int, ...] = ()) -> Any:
+        ident = next(self._ids)
+        future = asyncio.get_running_loop().create_future()
+        self._waiting[ident] = future
+        try:
+            deadline = time.monotonic() + CALL_TIMEOUT
+            while not wire.send(self._sock, ("call", ident, method, args), fds):
+                if self.closed.is_set() or time.monotonic() > deadline:
+                    raise CommandError("busy", "the control core is not taking requests")
+                await asyncio.sleep(0.001)  # its buffer is full: it reads between cycles
+            ok, payload = await asyncio.wait_for(future, max(deadline - time.monotonic(), 0.0))
+        except TimeoutError:
+            raise CommandError("internal", f"the control core did not answer {method}") from None
+        finally:
+            self._waiting.pop(ident, None)
+        if not ok:
+            code, reason, details = payload
+            raise CommandError(code, reason, **details)
+        return payload
+
+    def _on_readable(self) -> None:
+        messages, closed = wire.receive(self._sock, MESSAGES_PER_PASS)
+        for message, fds in messages:
+            for fd in fds:
+                os.close(fd)
+            self._dispatch(message)
+        if closed and not self.closed.is_set():
+            log.info("the control core closed the link")
+            asyncio.get_running_loop().remove_reader(self._sock.fileno())
+            self.closed.set()
+            self._fail_waiting("the control core has stopped")
+
+    def _dispatch(self, message: tuple) -> None:
+        kind = message[0]
+        if kind == "reply":
+            _, ident, ok, payload = message
+            future = self._waiting.get(ident)
+            if future is not None and not future.done():
+                future.set_result((ok, payload))
+        elif kind == "event":
+            event = message[1]
+            if "state" in event:
+                self._state = {**self._state, "state": event["state"]}
+            for sink in self._sinks:
+                sink(event)
+        elif kind == "state":
+            self._state = message[1]
+        elif kind in self.batch_sinks:
+            self.batch_sinks[kind](message[1])
+
+    def _fail_waiting(self, why: str) -> None:
+        for future in self._waiting.values():
+            if not future.done():
+                future.set_result((False, ("internal", why, {})))
+
+    async def _keep_alive(self) -> None:
+        while True:
+            wire.send(self._sock, ("alive",))
+            await asyncio.sleep(ALIVE_PERIOD)

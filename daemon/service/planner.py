@@ -1,0 +1,317 @@
+"""The commands that plan: hold, goto and trajectories (DESIGN §7, §16).
+
+Validation and transition planning take milliseconds to seconds; the real-time core
+must never wait for them.  The planner does that work wherever it runs (the companion
+process; in-process tests and tools beside the core on one loop) and hands the core a
+validated, planned trajectory together with the version of the reference it was planned
+from: the core follows it only if that reference still stands and the start still lies
+ahead, else the planner plans again from what the core runs now.
+
+`Planner` implements daemon.service.api.DaemonHandler over a `CoreLink`: `LocalLink`
+calls a Service on the same loop, daemon.process.companion_link.RemoteLink reaches the
+core process.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Awaitable, Callable, Generator
+from typing import Any, Literal, Protocol, TypeVar
+
+import numpy as np
+
+from cdpr.controller import tension_solver, wrench_check
+from cdpr.pose import Pose, retract
+from cdpr.pose_limits import PoseLimits
+from cdpr.trajectory import (
+    LengthLimits,
+    Reference,
+    Trajectory,
+    TrajectoryError,
+    approach_steps,
+    check_start_delay,
+    goto_steps,
+    validation_steps,
+)
+from daemon.config import DaemonConfig
+from daemon.service.api import CommandError, rejection
+from daemon.service.safety import SafetyState
+
+PLANNING_LEAD = 0.05  # s ahead of now a planned transition begins (planning takes time)
+HOLD_LEAD = 0.01  # the same for a hold: a stop plans in a few ms and should not wait
+SETTLE_ATTEMPTS = 3  # plans of an approach that begins later, from the state it begins at
+HOLD_ATTEMPTS = 6  # a hold is never refused for want of time: it tries with longer leads
+MOVING = (SafetyState.HOLD.value, SafetyState.TRACKING.value)  # states that follow plans
+EventSink = Callable[[dict[str, Any]], None]
+Result = TypeVar("Result")
+
+
+class CoreLink(Protocol):
+    """What the planner needs of the real-time core."""
+
+    def now(self) -> float:
+        """The core's controller time (s; CLOCK_MONOTONIC since the core started)."""
+        ...
+
+    @property
+    def safety_state(self) -> str:
+        """The core's safety state (daemon.service.safety.SafetyState value), as last
+        known."""
+        ...
+
+    def command(self, name: str, args: dict[str, Any]) -> Awaitable[dict[str, Any]]:
+        """Run a core command (enable, disable, brake, reset, status): its reply body,
+        or CommandError."""
+        ...
+
+    async def reference_at(self, t: float) -> tuple[Reference, int]:
+        """The reference the core will follow at controller time t, and the version of
+        the source it comes from."""
+        ...
+
+    async def follow(self, trajectory: Trajectory, version: int, what: str) -> dict[str, Any]:
+        """Have the core follow `trajectory` (planned from source `version`): the reply
+        body, {"replan": "moved" | "late"} if the source changed or the start passed
+        meanwhile, or CommandError."""
+        ...
+
+    async def run_steps(self, steps: Generator[Any, None, Result]) -> Result:
+        """A step generator (validation, planning) run to its result, out of the
+        cycle's way."""
+        ...
+
+    def state(self) -> dict[str, Any]:
+        """The latest state snapshot to publish."""
+        ...
+
+    async def slack(self) -> None:
+        """Return when publishing the state costs the cycle nothing."""
+        ...
+
+    def subscribe(self, sink: EventSink) -> None:
+        """Receive every event of the core."""
+        ...
+
+
+class Planner:
+    """Hold, goto and trajectories planned and validated here, the other commands
+    forwarded to the core; implements daemon.service.api.DaemonHandler."""
+
+    def __init__(self, config: DaemonConfig, link: CoreLink) -> None:
+        self.config = config
+        self.robot = config.robot
+        self.link = link
+        self._wrench_check = wrench_check(
+            config.robot, tension_solver(config.robot, config.controller)
+        )
+        self._holds = 0  # hold commands so far: plans under way when one came are dropped
+
+    # -- DaemonHandler --------------------------------------------------------------------
+
+    def command(self, name: str, args: dict[str, Any]) -> Awaitable[dict[str, Any]]:
+        if name == "hold":
+            return self._hold()
+        if name == "goto":
+            return self._goto(args)
+        return self.link.command(name, args)
+
+    async def slack(self) -> None:
+        await self.link.slack()
+
+    def state(self) -> dict[str, Any]:
+        return self.link.state()
+
+    def subscribe(self, sink: EventSink) -> None:
+        self.link.subscribe(sink)
+
+    async def submit_trajectory(
+        self, trajectory: Trajectory, start: float | None
+    ) -> dict[str, Any]:
+        """Validate and run `trajectory`, its times relative to `start` (a unix time it
+        may not begin before, at most trajectory.max_start_delay ahead) or to now, after a
+        smooth approach from the current reference.  Rejected: nothing changes and
+        CommandError names the limit, the waypoint and the value.  Until a later start's
+        approach begins the robot carries on (HOLD, or TRACKING what runs); it is
+        TRACKING from then until the trajectory ends."""
+        self._require_moving("run a trajectory")
+        limits = self.config.trajectory
+        if start is not None:
+            if start < time.time() - 1e-3:
+                raise CommandError("rejected", f"trajectory start {start:.3f} lies in the past")
+            try:
+                check_start_delay(start - time.time(), limits)
+            except TrajectoryError as exc:
+                raise rejection("trajectory", exc) from None
+        config = self.config
+        await self._validate(
+            trajectory, "trajectory", config.reference_limits, config.reference_lengths
+        )
+        link = self.link
+
+        async def plan(current: Reference, begin: float) -> Trajectory:
+            not_before = begin if start is None else max(begin, link.now() + start - time.time())
+            shifted = trajectory.shifted(not_before - trajectory.start_time)
+            state = current
+            for _ in range(SETTLE_ATTEMPTS):
+                planned = await link.run_steps(approach_steps(state, shifted, limits))
+                if planned.start_time < begin:  # the blend would start in the past
+                    return await link.run_steps(
+                        approach_steps(current, shifted, limits, start=begin)
+                    )
+                # it begins later: from the state the reference has then, or it would jump
+                then, _ = await link.reference_at(planned.start_time)
+                if then.same_as(state):
+                    return planned
+                state = then
+            raise TrajectoryError(
+                "start",
+                f"the current motion is still under way at t={planned.start_time:.6g} s, when "
+                "the approach to this start would begin: start later, or hold first",
+                waypoint=0,
+            )
+
+        return await self._plan_and_follow(plan, "trajectory", validate="blend")
+
+    # -- planned commands -----------------------------------------------------------------
+
+    async def _hold(self) -> dict[str, Any]:
+        """To rest about where the current motion would stop under full deceleration;
+        never refused for want of time (it tries again with longer leads)."""
+        self._require_moving("hold")
+        limits = self.config.trajectory
+
+        async def stop(current: Reference, begin: float) -> Trajectory:
+            speed = float(np.linalg.norm(current.twist[:3]))
+            spin = float(np.linalg.norm(current.twist[3:]))
+            coast = 0.5 * max(speed / limits.linear_accel, spin / limits.angular_accel)
+            target = retract(current.pose, current.twist * coast)
+            return await link.run_steps(goto_steps(current, target, limits, start=begin))
+
+        link = self.link
+        self._holds += 1
+        await self._plan_and_follow(
+            stop, "hold", lead=HOLD_LEAD, validate="none", attempts=HOLD_ATTEMPTS
+        )
+        return await self.link.command("status", {})
+
+    async def _goto(self, args: dict[str, Any]) -> dict[str, Any]:
+        self._require_moving("goto")
+        target = args.get("pose")
+        if not isinstance(target, Pose):
+            raise CommandError("bad_request", "goto needs a target pose")
+        limits = self.config.trajectory
+        link = self.link
+
+        async def plan(current: Reference, begin: float) -> Trajectory:
+            return await link.run_steps(goto_steps(current, target, limits, start=begin))
+
+        return await self._plan_and_follow(plan, "goto")
+
+    async def _validate(
+        self,
+        trajectory: Trajectory,
+        what: str,
+        pose_limits: PoseLimits,
+        length_limits: LengthLimits,
+    ) -> None:
+        """DESIGN §7 validation; every sampled pose inside `pose_limits`, its cable
+        lengths inside `length_limits`."""
+        steps = validation_steps(
+            trajectory,
+            self.robot,
+            self.config.trajectory,
+            self._wrench_check,
+            pose_limits,
+            length_limits,
+        )
+        try:
+            await self.link.run_steps(steps)
+        except TrajectoryError as exc:
+            raise rejection(what, exc) from None
+
+    async def _plan_and_follow(
+        self,
+        make: Callable[[Reference, float], Awaitable[Trajectory]],
+        what: str,
+        lead: float = PLANNING_LEAD,
+        validate: Literal["all", "blend", "none"] = "all",
+        attempts: int = 3,
+    ) -> dict[str, Any]:
+        """A transition from the current reference, planned to begin `lead` seconds
+        ahead, validated and handed to the core; planned again if the core's reference
+        changed meanwhile, or with a longer lead if the work outlasted it (`attempts` in
+        all, then CommandError "busy").  `validate`: the whole result, only its first
+        segment (the rest already was), or nothing (a hold: stopping may not be refused);
+        inside the validation pose limits, or no further out than where the transition
+        starts (it may start outside them)."""
+        holds = self._holds
+        link = self.link
+        for _ in range(attempts):
+            begin = link.now() + lead
+            current, version = await link.reference_at(begin)
+            try:
+                planned = await make(current, begin)
+            except TrajectoryError as exc:
+                raise rejection(what, exc) from None
+            if validate != "none":
+                begins = planned.waypoints[0].pose
+                inside = self.config.reference_limits.widened_to(begins)
+                reach = self.config.reference_lengths.widened_to(
+                    self.robot.cable_lengths(begins).tolist()
+                )
+                if validate == "blend":
+                    blend = Trajectory([planned.knot(0), planned.knot(1)])
+                    await self._validate(blend, f"{what}'s approach", inside, reach)
+                else:
+                    await self._validate(planned, what, inside, reach)
+            if self._holds != holds and what != "hold":
+                raise CommandError("invalid_state", f"{what} dropped: a hold came meanwhile")
+            reply = await link.follow(planned, version, what)
+            replan = reply.get("replan")
+            if replan is None:
+                return reply
+            if replan == "late":
+                lead = max(3 * lead, PLANNING_LEAD)
+        raise CommandError("busy", f"{what}: planning kept outlasting its lead")
+
+    def _require_moving(self, action: str) -> None:
+        state = self.link.safety_state
+        if state not in MOVING:
+            raise CommandError("invalid_state", f"cannot {action} while {state} (enable first)")
+
+
+class LocalLink:
+    """A CoreLink to a Service on the same event loop: planning and validation run in
+    the cycle's slack (Service.in_slack), so that they never delay the cycle."""
+
+    def __init__(self, service: Any) -> None:
+        self.service = service
+
+    def now(self) -> float:
+        return self.service.now()
+
+    @property
+    def safety_state(self) -> str:
+        return self.service.machine.state.value
+
+    async def command(self, name: str, args: dict[str, Any]) -> dict[str, Any]:
+        result = self.service.command(name, args)
+        return (await result) if isinstance(result, Awaitable) else result
+
+    async def reference_at(self, t: float) -> tuple[Reference, int]:
+        return self.service.reference_at(t)
+
+    async def follow(self, trajectory: Trajectory, version: int, what: str) -> dict[str, Any]:
+        return self.service.follow_planned(trajectory.curve, version, what)
+
+    async def run_steps(self, steps: Generator[Any, None, Result]) -> Result:
+        return await self.service.in_slack(steps)
+
+    def state(self) -> dict[str, Any]:
+        return self.service.state()
+
+    async def slack(self) -> None:
+        await self.service.slack()
+
+    def subscribe(self, sink: EventSink) -> None:
+        self.service.subscribe(sink)
