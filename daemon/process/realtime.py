@@ -1,16 +1,17 @@
 """Real-time service for the core process: SCHED_FIFO, CPU affinity, locked memory.
 
 The process that runs the control cycle calls `enter_realtime(config.realtime)` once at
-start-up, from the thread that runs the cycle and before it starts other threads: the
-kernel applies scheduling policy and affinity per thread, and threads started later
-inherit them.  Each request that is not permitted leaves that part as it was and adds a
-warning that names what failed and what to allow; the core then runs on without it.
+start-up, from the thread that runs the cycle: the kernel applies scheduling policy and
+affinity per thread, and what that thread starts afterwards inherits them, threads (a
+python-can Notifier thread the cycle waits on, say) and child processes alike.  So start
+the companion process before, or have it return to normal scheduling first thing.  Each
+request that is not permitted leaves that part as it was and adds a warning that names
+what failed and what to allow; the core then runs on without it.
 
-- SCHED_FIFO at `priority`, with SCHED_RESET_ON_FORK: a process the core starts (the
-  companion, a helper) begins at normal priority, never at the core's.
+- SCHED_FIFO at `priority`.  Not SCHED_RESET_ON_FORK: the kernel would then start every
+  thread the core starts at normal priority, a thread the cycle waits on included.
 - Affinity to `cpus`; CPUs the kernel does not grant are named (absent, offline, or
-  outside the service's cpuset).  Affinity is inherited: start children before, or set
-  theirs back to `RealtimeState.previous_cpus`.
+  outside the service's cpuset).
 - mlockall(MCL_CURRENT | MCL_FUTURE): every page now and every later one resident, so no
   cycle waits for a page fault or a page-in.  With MCL_FUTURE an allocation past
   RLIMIT_MEMLOCK fails (MemoryError), so without CAP_IPC_LOCK memory is locked only when
@@ -22,7 +23,7 @@ warning that names what failed and what to allow; the core then runs on without 
 A cycle that never ends at SCHED_FIFO would keep everything else off its CPUs.  The
 kernel's real-time throttling bounds that: real-time threads get at most
 sched_rt_runtime_us of every sched_rt_period_us (default 950000 of 1000000) per CPU.
-`enter_realtime` reads the bound and warns when it is off (-1).
+`enter_realtime` reads the bound and warns when it is off.
 """
 
 from __future__ import annotations
@@ -185,10 +186,9 @@ def _lock_memory(warnings: list[str]) -> bool:
 
 
 def _set_fifo(priority: int, warnings: list[str]) -> int:
-    """SCHED_FIFO at `priority` for this thread (children reset to normal); the priority
-    obtained, 0 if refused."""
+    """SCHED_FIFO at `priority` for this thread; the priority obtained, 0 if refused."""
     try:
-        os.sched_setscheduler(0, os.SCHED_FIFO | os.SCHED_RESET_ON_FORK, os.sched_param(priority))
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
     except OSError as exc:
         soft, _ = resource.getrlimit(resource.RLIMIT_RTPRIO)
         cgroup = (

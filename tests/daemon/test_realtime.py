@@ -11,6 +11,7 @@ import resource
 import shutil
 import subprocess
 import sys
+import threading
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -26,7 +27,7 @@ CAP_SYS_RESOURCE = 24
 
 
 def _policy() -> int:
-    return os.sched_getscheduler(0) & ~os.SCHED_RESET_ON_FORK
+    return os.sched_getscheduler(0)
 
 
 def _locked_kb() -> int:
@@ -58,7 +59,6 @@ def test_takes_effect_and_is_restored() -> None:
     with realtime(RealtimeConfig(priority=10, cpus=(last,), lock_memory=True)) as state:
         assert state.warnings == []
         assert (_policy(), os.sched_getparam(0).sched_priority) == (FIFO, 10)
-        assert os.sched_getscheduler(0) & os.SCHED_RESET_ON_FORK  # children start normal
         assert os.sched_getaffinity(0) == {last} == state.cpus
         assert state.memory_locked and _locked_kb() > 0
     assert _policy() == os.SCHED_OTHER and os.sched_getparam(0).sched_priority == 0
@@ -67,14 +67,21 @@ def test_takes_effect_and_is_restored() -> None:
 
 
 @pytest.mark.skipif(not _privileged(), reason="needs root or RLIMIT_RTPRIO >= 10")
-def test_a_child_process_starts_at_normal_priority() -> None:
-    probe = "import os; print(os.sched_getscheduler(0))"
-    with realtime(RealtimeConfig(priority=10, lock_memory=False)) as state:
+def test_a_thread_started_afterwards_inherits_priority_and_cpus() -> None:
+    """A thread the cycle waits on (a python-can Notifier) must run at the core's
+    priority: SCHED_RESET_ON_FORK would start it at normal priority."""
+    seen: list[tuple[int, int, set[int]]] = []
+
+    def look() -> None:
+        seen.append((_policy(), os.sched_getparam(0).sched_priority, os.sched_getaffinity(0)))
+
+    last = max(os.sched_getaffinity(0))
+    with realtime(RealtimeConfig(priority=10, cpus=(last,), lock_memory=False)) as state:
         assert state.priority == 10
-        child = subprocess.run(
-            [sys.executable, "-c", probe], capture_output=True, text=True, timeout=60
-        )
-    assert child.stdout.strip() == str(os.SCHED_OTHER), child.stderr
+        thread = threading.Thread(target=look)
+        thread.start()
+        thread.join(timeout=30)
+    assert seen == [(FIFO, 10, {last})]
 
 
 def test_refused_priority_keeps_normal_scheduling_and_says_what_to_allow(
@@ -198,7 +205,7 @@ def test_the_units_limits_suffice_without_any_capability() -> None:
     got = _without_capabilities(rtprio=50, memlock=resource.RLIM_INFINITY)
     assert got["warnings"] == []
     assert (got["priority"], got["locked"]) == (50, True)
-    assert got["policy"] & ~os.SCHED_RESET_ON_FORK == FIFO
+    assert got["policy"] == FIFO
 
 
 def test_without_the_units_limits_the_core_runs_on_with_two_warnings() -> None:
