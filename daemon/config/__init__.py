@@ -1,20 +1,22 @@
 """The daemon's config file (DESIGN §11): one YAML per robot, validated at load.
 
 Sections: robot (a path relative to this file, or inline), controller, drives, can,
-safety, trajectory (limits), zenoh, logging, recording, sim (the simulator used by
-`run --sim`, `demo` and `sim`).  Every problem is a ConfigError naming the key; the
-geometry is checked for sense (Λ full rank at home, the home pose's static wrench in W).
+safety, trajectory (limits), zenoh, logging, recording, realtime (what the core process
+asks of the kernel), sim (the simulator used by `run --sim`, `demo` and `sim`).  Every
+problem is a ConfigError naming the key; the geometry is checked for sense (Λ full rank
+at home, the home pose's static wrench in W).
 """
 
 from __future__ import annotations
 
 import math
+from collections import Counter
 from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, field_validator
 
 from cdpr import ConfigError, Robot
 from cdpr.control_spec import ControllerSpec, parse_controller
@@ -95,6 +97,36 @@ class RecordingConfig(StrictModel):
     can_log: str | None = None
 
 
+MAX_CPUS = 8192  # the kernel's largest NR_CPUS
+CpuIndex = Annotated[int, Field(ge=0, lt=MAX_CPUS)]
+
+
+class RealtimeConfig(StrictModel):
+    """What the core process (the control cycle) asks of the kernel at start-up
+    (daemon.process.realtime; README "Real-time").  Where it is not permitted the core
+    runs on at normal service, with a warning that names what to allow.
+
+    priority: SCHED_FIFO priority, 1..99; 0 or null: normal scheduling, nothing asked.
+    cpus: the CPUs the core may run on (indices as in /proc/cpuinfo), or null: any.
+    lock_memory: mlockall(MCL_CURRENT | MCL_FUTURE), so that no page the cycle touches is
+      paged out or first faulted in while the drives' watchdogs wait.
+    """
+
+    priority: Annotated[int, Field(ge=0, le=99)] | None = 50
+    cpus: tuple[CpuIndex, ...] | None = None
+    lock_memory: bool = True
+
+    @field_validator("cpus")
+    @classmethod
+    def _each_cpu_once(cls, cpus: tuple[int, ...] | None) -> tuple[int, ...] | None:
+        if cpus == ():
+            raise ValueError("an empty list: give CPU indices, or null for any CPU")
+        twice = sorted(c for c, n in Counter(cpus or ()).items() if n > 1)
+        if twice:
+            raise ValueError(f"CPU {', '.join(map(str, twice))} listed more than once")
+        return cpus
+
+
 class FileConfig(StrictModel):
     """The raw file, before the robot is built."""
 
@@ -107,6 +139,7 @@ class FileConfig(StrictModel):
     zenoh: dict[str, Any] = Field(default_factory=dict)
     logging: LoggingConfig = LoggingConfig()
     recording: RecordingConfig = RecordingConfig()
+    realtime: RealtimeConfig = RealtimeConfig()
     sim: dict[str, Any] = Field(default_factory=dict)  # sim_bus.config validates it
 
 
@@ -138,6 +171,7 @@ class DaemonConfig:
         self.zenoh: ZenohSettings = validate_section(ZenohSettings, raw.zenoh, source, "zenoh")
         self.logging = raw.logging
         self.recording = raw.recording
+        self.realtime = raw.realtime
         self.sim = raw.sim
         try:
             lo, hi = workspace_box(robot, raw.safety)

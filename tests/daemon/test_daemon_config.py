@@ -10,7 +10,7 @@ import yaml
 from cdpr import ConfigError
 from cdpr.description import load_yaml, validate_section
 from daemon.cli import main
-from daemon.config import FileConfig, load_config, parse_config
+from daemon.config import FileConfig, RealtimeConfig, load_config, parse_config
 from daemon.config.zenoh_config import ZenohSettings
 
 CONFIG = Path(__file__).resolve().parents[2] / "config"
@@ -30,6 +30,18 @@ def test_hardware_template_is_a_valid_file() -> None:
     assert raw.drives["brake"] == "holding_brake"
     zenoh = validate_section(ZenohSettings, raw.zenoh, "zenoh")
     assert zenoh.ingress_limits_hz == {"trajectory": 20.0, "cmd/*": 20.0}
+    assert raw.realtime == RealtimeConfig(priority=50, cpus=None, lock_memory=True)
+
+
+def test_realtime_defaults_and_values() -> None:
+    """Without the section the core asks for SCHED_FIFO 50 and locked memory, any CPU."""
+    assert parse_config(_data(), CONFIG, "test.yaml").realtime == RealtimeConfig(
+        priority=50, cpus=None, lock_memory=True
+    )
+    data = _data()
+    data["realtime"] = {"priority": None, "cpus": [1, 0], "lock_memory": False}
+    held = parse_config(data, CONFIG, "test.yaml").realtime
+    assert (held.priority, held.cpus, held.lock_memory) == (None, (1, 0), False)
 
 
 def _robot_with(**actuator: float) -> dict:
@@ -67,6 +79,31 @@ def _data() -> dict:
             r"robot: cable 0 at the home pose is 2.341 m, outside \[0.3429, 2.319\] m: its "
             "length_min/length_max less the margins",
         ),
+        (
+            lambda d: d.update(realtime={"priority": 100}),
+            r"^test.yaml: realtime.priority: Input should be less than or equal to 99 \(got 100\)$",
+        ),
+        (
+            lambda d: d.update(realtime={"priority": True}),
+            r"^test.yaml: realtime.priority: Input should be a valid integer \(got true\)$",
+        ),
+        (
+            lambda d: d.update(realtime={"cpus": []}),
+            r"^test.yaml: realtime.cpus: an empty list: give CPU indices, or null for any CPU$",
+        ),
+        (
+            lambda d: d.update(realtime={"cpus": [3, 1, 3, 1, 2]}),
+            r"^test.yaml: realtime.cpus: CPU 1, 3 listed more than once$",
+        ),
+        (
+            lambda d: d.update(realtime={"cpus": [0, -1]}),
+            r"^test.yaml: realtime.cpus.1: Input should be greater than or equal to 0 \(got -1\)$",
+        ),
+        (
+            lambda d: d.update(realtime={"lock_memory": "yes"}),
+            r"^test.yaml: realtime.lock_memory: Input should be a valid boolean \(got 'yes'\)$",
+        ),
+        (lambda d: d.update(realtime={"rtprio": 50}), r"^test.yaml: realtime.rtprio: Extra"),
         (
             lambda d: d["safety"].update(max_cable_speed=1.5),
             r"safety.max_cable_speed: 1.5 m/s must exceed the fastest cable rate the "

@@ -1,0 +1,218 @@
+"""enter_realtime: SCHED_FIFO, affinity and locked memory where permitted, restored after;
+where not, normal service and a warning that names what failed and what to allow."""
+
+from __future__ import annotations
+
+import errno
+import json
+import logging
+import os
+import resource
+import shutil
+import subprocess
+import sys
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from daemon.config import MAX_CPUS, RealtimeConfig
+from daemon.process import realtime as rt
+from daemon.process.realtime import enter_realtime, leave_realtime, realtime
+from tests.processes import ROOT
+
+FIFO = os.SCHED_FIFO
+CAP_SYS_RESOURCE = 24
+
+
+def _policy() -> int:
+    return os.sched_getscheduler(0)
+
+
+def _locked_kb() -> int:
+    status = Path("/proc/self/status").read_text()
+    return int(status.split("VmLck:")[1].split()[0])
+
+
+def _privileged() -> bool:
+    return os.geteuid() == 0 or resource.getrlimit(resource.RLIMIT_RTPRIO)[0] >= 10
+
+
+@pytest.fixture(autouse=True)
+def normal_afterwards() -> Iterator[None]:
+    """Whatever a test does, this process leaves it at normal priority on every CPU,
+    with nothing locked."""
+    cpus = os.sched_getaffinity(0)
+    try:
+        yield
+    finally:
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+        os.sched_setaffinity(0, cpus)
+        rt._libc().munlockall()
+
+
+@pytest.mark.skipif(not _privileged(), reason="needs root or RLIMIT_RTPRIO >= 10")
+def test_takes_effect_and_is_restored() -> None:
+    last = max(os.sched_getaffinity(0))
+    before = os.sched_getaffinity(0)
+    with realtime(RealtimeConfig(priority=10, cpus=(last,), lock_memory=True)) as state:
+        assert state.warnings == []
+        assert (_policy(), os.sched_getparam(0).sched_priority) == (FIFO, 10)
+        assert os.sched_getaffinity(0) == {last} == state.cpus
+        assert state.memory_locked and _locked_kb() > 0
+    assert _policy() == os.SCHED_OTHER and os.sched_getparam(0).sched_priority == 0
+    assert os.sched_getaffinity(0) == before
+    assert _locked_kb() == 0
+
+
+@pytest.mark.skipif(not _privileged(), reason="needs root or RLIMIT_RTPRIO >= 10")
+def test_a_thread_started_afterwards_inherits_priority_and_cpus() -> None:
+    """A thread the cycle waits on (a python-can Notifier) must run at the core's
+    priority: SCHED_RESET_ON_FORK would start it at normal priority."""
+    seen: list[tuple[int, int, set[int]]] = []
+
+    def look() -> None:
+        seen.append((_policy(), os.sched_getparam(0).sched_priority, os.sched_getaffinity(0)))
+
+    last = max(os.sched_getaffinity(0))
+    with realtime(RealtimeConfig(priority=10, cpus=(last,), lock_memory=False)) as state:
+        assert state.priority == 10
+        thread = threading.Thread(target=look)
+        thread.start()
+        thread.join(timeout=30)
+    assert seen == [(FIFO, 10, {last})]
+
+
+def test_refused_priority_keeps_normal_scheduling_and_says_what_to_allow(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    def refuse(*_args: object) -> None:
+        raise PermissionError(errno.EPERM, os.strerror(errno.EPERM))
+
+    monkeypatch.setattr(os, "sched_setscheduler", refuse)
+    with caplog.at_level(logging.INFO, logger="cdprd"):
+        state = enter_realtime(RealtimeConfig(priority=50, lock_memory=False))
+    assert state.priority == 0 and _policy() == os.SCHED_OTHER
+    (warning,) = state.warnings
+    assert warning.startswith("SCHED_FIFO priority 50 refused (Operation not permitted)")
+    for remedy in ("LimitRTPRIO=50", "RestrictRealtime=no", "ulimit -r 50", "CAP_SYS_NICE"):
+        assert remedy in warning
+    assert "realtime.priority: 0" in warning
+    logged = [r for r in caplog.records if r.levelno == logging.WARNING]
+    assert [r.getMessage() for r in logged] == [f"real-time: {warning}"]
+    assert "normal priority" in caplog.records[-1].getMessage()
+
+
+def test_failed_mlockall_is_a_warning_naming_the_memlock_limit(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.setattr(rt, "_mlockall", lambda flags: errno.ENOMEM)
+    monkeypatch.setattr(rt, "_has_capability", lambda bit: True)
+    state = enter_realtime(RealtimeConfig(priority=0, lock_memory=True))
+    assert not state.memory_locked
+    (warning,) = state.warnings
+    assert warning.startswith("memory not locked: mlockall failed (Cannot allocate memory;")
+    assert "RLIMIT_MEMLOCK" in warning and "LimitMEMLOCK=infinity" in warning
+
+
+def test_nothing_is_asked_when_not_configured(monkeypatch: pytest.MonkeyPatch) -> None:
+    def forbidden(*_args: object) -> None:
+        raise AssertionError("asked the kernel for something not configured")
+
+    for name in ("sched_setscheduler", "sched_setaffinity"):
+        monkeypatch.setattr(os, name, forbidden)
+    monkeypatch.setattr(rt, "_mlockall", forbidden)
+    for priority in (0, None):
+        state = enter_realtime(RealtimeConfig(priority=priority, cpus=None, lock_memory=False))
+        assert (state.priority, state.memory_locked, state.warnings) == (0, False, [])
+        leave_realtime(state)
+
+
+def test_cpus_the_kernel_cannot_use_are_named() -> None:
+    absent = MAX_CPUS - 1  # no machine here has that many
+    before = frozenset(os.sched_getaffinity(0))
+    first = min(before)
+    state = enter_realtime(RealtimeConfig(priority=0, cpus=(first, absent), lock_memory=False))
+    try:
+        assert state.cpus == {first} and os.sched_getaffinity(0) == {first}
+        (warning,) = state.warnings
+        assert warning.startswith(f"realtime.cpus: CPU {absent} cannot be used")
+        assert f"the core runs on CPU {first}" in warning
+    finally:
+        leave_realtime(state)
+    assert os.sched_getaffinity(0) == before
+    state = enter_realtime(RealtimeConfig(priority=0, cpus=(absent,), lock_memory=False))
+    assert state.cpus == before == os.sched_getaffinity(0)
+    (warning,) = state.warnings
+    assert warning.startswith(f"realtime.cpus: none of CPU {absent} can be used")
+
+
+def test_the_throttling_bound_is_reported_and_its_absence_warned(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    monkeypatch.setattr(os, "sched_setscheduler", lambda *_args: None)  # granted, no effect
+    state = enter_realtime(RealtimeConfig(priority=50, lock_memory=False))
+    expected = int((rt.PROC_SYS_KERNEL / "sched_rt_runtime_us").read_text())
+    assert state.rt_runtime_us == expected
+    assert f"real-time throttling {expected}/" in rt.describe(state)
+    (tmp_path / "sched_rt_runtime_us").write_text("-1\n")
+    (tmp_path / "sched_rt_period_us").write_text("1000000\n")
+    monkeypatch.setattr(rt, "PROC_SYS_KERNEL", tmp_path)
+    state = enter_realtime(RealtimeConfig(priority=50, lock_memory=False))
+    (warning,) = state.warnings
+    assert warning.startswith("kernel real-time throttling is off (sched_rt_runtime_us = -1)")
+    assert "real-time throttling off" in rt.describe(state)
+
+
+# -- the same in a process with the permissions config/cdprd.service gives ---------------------
+
+CHILD = """
+import json, os
+from daemon.config import MAX_CPUS, RealtimeConfig
+from daemon.process.realtime import enter_realtime
+state = enter_realtime(RealtimeConfig(priority=50, lock_memory=True))
+print(json.dumps({"priority": state.priority, "locked": state.memory_locked,
+                  "warnings": state.warnings, "policy": os.sched_getscheduler(0)}))
+"""
+
+
+def _without_capabilities(rtprio: int, memlock: int) -> dict:
+    """enter_realtime in a child with no capability at all (CapabilityBoundingSet= empty)
+    and the given RLIMIT_RTPRIO and RLIMIT_MEMLOCK, as the unit's Limit*= set them."""
+    setpriv = shutil.which("setpriv")
+    if setpriv is None or os.geteuid() != 0:
+        pytest.skip("needs root and setpriv (util-linux) to drop every capability")
+    for limit, value in ((resource.RLIMIT_RTPRIO, rtprio), (resource.RLIMIT_MEMLOCK, memlock)):
+        hard = resource.getrlimit(limit)[1]
+        raises = hard != resource.RLIM_INFINITY and not 0 <= value <= hard
+        if raises and not rt._has_capability(CAP_SYS_RESOURCE):
+            pytest.skip(f"raising a hard limit to {value} needs CAP_SYS_RESOURCE, absent here")
+
+    def limits() -> None:
+        resource.setrlimit(resource.RLIMIT_RTPRIO, (rtprio, rtprio))
+        resource.setrlimit(resource.RLIMIT_MEMLOCK, (memlock, memlock))
+
+    command = [setpriv, "--bounding-set=-all", "--no-new-privs", sys.executable, "-c", CHILD]
+    child = subprocess.run(
+        command, cwd=ROOT, preexec_fn=limits, capture_output=True, text=True, timeout=60
+    )
+    assert child.returncode == 0, child.stderr[-2000:]
+    return json.loads(child.stdout)
+
+
+def test_the_units_limits_suffice_without_any_capability() -> None:
+    got = _without_capabilities(rtprio=50, memlock=resource.RLIM_INFINITY)
+    assert got["warnings"] == []
+    assert (got["priority"], got["locked"]) == (50, True)
+    assert got["policy"] == FIFO
+
+
+def test_without_the_units_limits_the_core_runs_on_with_two_warnings() -> None:
+    got = _without_capabilities(rtprio=0, memlock=8 << 20)
+    assert (got["priority"], got["locked"], got["policy"]) == (0, False, os.SCHED_OTHER)
+    memory, fifo = got["warnings"]
+    assert memory.startswith(f"memory not locked: RLIMIT_MEMLOCK is {8 << 20} bytes")
+    assert "LimitMEMLOCK=infinity" in memory
+    assert fifo.startswith("SCHED_FIFO priority 50 refused (Operation not permitted)")
+    assert "RLIMIT_RTPRIO, now 0" in fifo
