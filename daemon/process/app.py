@@ -13,7 +13,7 @@ import logging
 import signal
 import socket
 import sys
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Mapping
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -23,6 +23,7 @@ from cdpr.controller import ControlOutput
 from daemon.config import DaemonConfig
 from daemon.process.recording import CanRecorder, CycleRecord, TelemetryRecorder, session_path
 from daemon.process.systemd import Notifier, Progress, run_watchdog
+from daemon.service.bus_port import Buses
 from daemon.service.safety import Trigger
 from daemon.service.service import EXIT_BUS_LOST, Service
 
@@ -33,21 +34,33 @@ ServiceHook = Callable[[Service], Awaitable[None]]
 Recorder = TypeVar("Recorder", TelemetryRecorder, CanRecorder)
 
 
-def open_bus(config: DaemonConfig) -> can.BusABC:
-    """The python-can bus the config names (hardware, vcan, socketcand, ...); if it
-    cannot be opened, one line on stderr and exit code EXIT_BUS_LOST."""
-    c = config.can
-    try:
-        if c.interface == "socketcand":
-            _reach_socketcand(c.options)
-        return c.open()
-    except (can.CanError, OSError, ValueError, ImportError) as exc:
-        print(
-            f"error: {config.source}: can: cannot open the bus interface={c.interface} "
-            f"channel={c.channel}: {' '.join(str(exc).split())}",
-            file=sys.stderr,
-        )
-        raise SystemExit(EXIT_BUS_LOST) from None
+def open_bus(config: DaemonConfig) -> Buses:
+    """The python-can bus the config names (hardware, vcan, socketcand, ...), or its buses
+    by name when it has several; if one cannot be opened, one line on stderr naming it
+    and exit code EXIT_BUS_LOST."""
+    opened: dict[str, can.BusABC] = {}
+    for k, c in enumerate(config.buses):
+        try:
+            if c.interface == "socketcand":
+                _reach_socketcand(c.options)
+            opened[c.bus_name] = c.open()
+        except (can.CanError, OSError, ValueError, ImportError) as exc:
+            for bus in opened.values():
+                bus.shutdown()
+            key = "can" if len(config.buses) == 1 else f"can.{k}"
+            print(
+                f"error: {config.source}: {key}: cannot open the bus interface={c.interface} "
+                f"channel={c.channel}: {' '.join(str(exc).split())}",
+                file=sys.stderr,
+            )
+            raise SystemExit(EXIT_BUS_LOST) from None
+    return opened if len(opened) > 1 else opened.popitem()[1]
+
+
+def close_bus(buses: Buses) -> None:
+    """Shut down what open_bus opened."""
+    for bus in buses.values() if isinstance(buses, Mapping) else [buses]:
+        bus.shutdown()
 
 
 def _reach_socketcand(options: dict[str, Any]) -> None:
@@ -65,7 +78,7 @@ def _reach_socketcand(options: dict[str, Any]) -> None:
 
 async def serve(
     config: DaemonConfig,
-    bus: can.BusABC,
+    bus: Buses,
     *,
     zenoh: bool = True,
     after_start: ServiceHook | None = None,
@@ -104,7 +117,7 @@ async def serve(
             config.robot.name,
             service.n,
             config.drives.protocol,
-            config.can.channel,
+            config.channels,
             config.controller.rate_hz,
             service.machine.state.value,
         )
@@ -135,7 +148,7 @@ def _status_text(service: Service, config: DaemonConfig) -> str:
     """`systemctl status`'s one line: the safety state, the fault that braked, where."""
     fault = service.machine.fault
     state = service.machine.state.value
-    where = f"{config.robot.name} on {config.can.channel}"
+    where = f"{config.robot.name} on {config.channels}"
     return f"{state}; {where}" if fault is None else f"{state}: {fault.line()}; {where}"
 
 
@@ -185,7 +198,8 @@ def _recorders(config: DaemonConfig, service: Service) -> list:
         recorders.append(telemetry)
     if rec.can_log:
         path = config.path(rec.can_log)
-        channel = config.can.channel  # names the frames sent (they carry none on SocketCAN)
+        # names the frames sent (they carry none on SocketCAN; on several buses, the name)
+        channel = config.buses[0].channel
         key = f"{config.source}: recording.can_log"
         frames = _open(key, CanRecorder, path, recorders, channel=channel)
         service.frame_listeners.append(lambda msg, rx: frames.record(msg, rx=rx))
