@@ -14,11 +14,12 @@ import yaml
 
 from cdpr import ConfigError, Pose
 from daemon.config import DaemonConfig, load_config
-from daemon.service.safety import SafetyState
+from daemon.service.safety import SafetyState, Trigger
 from drivers.base import FrameError
 from drivers.cia402 import codec as cia402
 from drivers.factory import make_driver
 from drivers.multibus import MultiBusDriver
+from sim_bus.bus import loopbus
 from sim_bus.bus.loopbus import LoopBus
 from sim_bus.config import load_sim_setup
 from tests.daemon_stack import DRIVER_CONFIGS, Stack
@@ -254,5 +255,23 @@ def test_eight_drives_on_two_buses_enable_hold_and_move() -> None:
             finally:
                 for spy in spies.values():
                     spy.bus.shutdown()
+
+    asyncio.run(asyncio.wait_for(scenario(), 45))
+
+
+def test_losing_one_of_two_buses_brakes_naming_it() -> None:
+    async def scenario() -> None:
+        async with Stack(two_bus_config()) as stack:
+            service = stack.service
+            await stack.enable()
+            loopbus.set_link(stack.sim.daemon_bus["right"].channel, up=False)
+            await stack.until(lambda: service.machine.state is SafetyState.BRAKED, 2.0)
+            fault = service.machine.fault
+            assert fault.trigger is Trigger.BUS_LOST, fault
+            assert "bus right: " in fault.message and "network is down" in fault.message
+            assert service.port.lost.startswith("bus right: ")
+            positions, lowest = await stack.watch(0.3)  # left holds; right's watchdogs
+            drift_mm = np.linalg.norm(positions - positions[0], axis=1).max() * 1e3
+            assert drift_mm < 2.0 and lowest > 0.0
 
     asyncio.run(asyncio.wait_for(scenario(), 45))
