@@ -265,7 +265,7 @@ async def flood_run_socketcand(n: int, rate: float) -> dict[str, Any]:
             "options": {"host": "127.0.0.1", "port": port},
         }
         config = daemon_config(endpoint, can_section)
-        bus = config.can.open()
+        bus = config.buses[0].open()
         try:
             return await hold_and_measure(
                 config, bus, lambda: child("--send-flood", str(port), channel, str(n), str(rate))

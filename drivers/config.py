@@ -10,9 +10,9 @@ from collections.abc import Sequence
 from typing import Annotated, Any, Literal
 
 import can
-from pydantic import BeforeValidator, Field, model_validator
+from pydantic import BeforeValidator, Discriminator, Field, Tag, model_validator
 
-from cdpr import Robot
+from cdpr import ConfigError, Robot
 from cdpr.description import FiniteFloat, PositiveFloat, StrictModel, validate_section
 from drivers.base import BrakeMode, Scaling
 
@@ -24,6 +24,7 @@ def _an_int(value: Any) -> Any:
     return value
 
 
+BusName = Annotated[str, Field(min_length=1, max_length=64)]
 Direction = Annotated[Literal[1, -1], BeforeValidator(_an_int)]
 PositiveSeconds = Annotated[float, Field(gt=0.0, le=10.0, allow_inf_nan=False)]
 
@@ -45,6 +46,8 @@ class DrivesConfig(StrictModel):
     heartbeat_period / heartbeat_timeout: drive heartbeat production / host consumer.
     feedback_rate_hz: cyclic feedback rate for drives that stream it (ODrive encoder
       estimates); SYNC-driven drives answer every SYNC instead.
+    bus: the `can:` bus (by name) each drive is on; one name for every drive; needed
+      only when `can:` lists several buses.  Node ids are distinct on each bus.
     """
 
     protocol: Literal["cia402", "odrive"]
@@ -60,11 +63,23 @@ class DrivesConfig(StrictModel):
     heartbeat_period: PositiveSeconds = 0.1
     heartbeat_timeout: PositiveSeconds = 0.35
     feedback_rate_hz: Annotated[float, Field(gt=0.0, le=10000.0)] = 500.0
+    bus: BusName | list[BusName] | None = None
 
     @model_validator(mode="after")
     def _consistent(self) -> DrivesConfig:
-        if len(set(self.nodes)) != len(self.nodes):
+        for name in ("direction", "length_offset", "bus"):
+            value = getattr(self, name)
+            if isinstance(value, list) and len(value) != len(self.nodes):
+                raise ValueError(f"{name} has {len(value)} entries for {len(self.nodes)} nodes")
+        if self.bus is None and len(set(self.nodes)) != len(self.nodes):
             raise ValueError(f"node ids must be distinct, got {self.nodes}")
+        seen: set[tuple[str | None, int]] = set()
+        for node, bus in zip(self.nodes, self.bus_names(), strict=True):
+            if (bus, node) in seen:
+                raise ValueError(
+                    f"node id {node} is on bus {bus!r} twice: node ids must be distinct on each bus"
+                )
+            seen.add((bus, node))
         if self.protocol == "cia402":
             if any(not 1 <= node <= 127 for node in self.nodes):
                 raise ValueError("CANopen node ids run 1..127")
@@ -79,11 +94,23 @@ class DrivesConfig(StrictModel):
                 f"heartbeat_timeout ({self.heartbeat_timeout} s) must exceed "
                 f"heartbeat_period ({self.heartbeat_period} s)"
             )
-        for name in ("direction", "length_offset"):
-            value = getattr(self, name)
-            if isinstance(value, list) and len(value) != len(self.nodes):
-                raise ValueError(f"{name} has {len(value)} entries for {len(self.nodes)} nodes")
         return self
+
+    def bus_names(self) -> list[str | None]:
+        """The bus each drive is on, in cable order (None: `bus` not given, the only bus)."""
+        bus = self.bus
+        return list(bus) if isinstance(bus, list) else [bus] * len(self.nodes)
+
+    def on_bus(self, name: str) -> tuple[list[int], DrivesConfig]:
+        """The cables whose drives are on bus `name`, and this config for those drives only
+        (what one protocol driver of that bus, or its simulated drives, is built from)."""
+        cables = [i for i, bus in enumerate(self.bus_names()) if bus == name]
+
+        def part(value: Any) -> Any:
+            return [value[i] for i in cables] if isinstance(value, list) else value
+
+        update = {key: part(getattr(self, key)) for key in ("nodes", "direction", "length_offset")}
+        return cables, self.model_copy(update={**update, "bus": name})
 
     @property
     def streamed(self) -> bool:
@@ -117,12 +144,19 @@ class DrivesConfig(StrictModel):
 
 
 class CanConfig(StrictModel):
-    """python-can bus arguments (`can:` section).  `options` go to can.Bus unchanged."""
+    """python-can bus arguments (`can:` section, or one entry of its list of buses).
+    `options` go to can.Bus unchanged.  `name` is what `drives.bus` calls the bus
+    (default: its channel)."""
 
+    name: BusName | None = None
     interface: str = "socketcan"
     channel: str = "can0"
     bitrate: Annotated[int, Field(gt=0, le=8_000_000)] = 1_000_000
     options: dict[str, Any] = Field(default_factory=dict)
+
+    @property
+    def bus_name(self) -> str:
+        return self.channel if self.name is None else self.name
 
     def open(self) -> can.BusABC:
         """The python-can bus these arguments name."""
@@ -134,3 +168,65 @@ class CanConfig(StrictModel):
 def parse_drives(data: Any, source: str = "config", key: str = "drives") -> DrivesConfig:
     """Validate a `drives:` section; ConfigError names the key and the problem."""
     return validate_section(DrivesConfig, data, source, key)
+
+
+def _can_shape(value: Any) -> str:
+    return "list" if isinstance(value, list) else "dict"
+
+
+# `can:` is one bus (a mapping) or several (a list); validated as the one its shape says
+CanSection = Annotated[
+    Annotated[CanConfig, Tag("dict")]
+    | Annotated[list[CanConfig], Field(min_length=1), Tag("list")],
+    Discriminator(_can_shape),
+]
+
+
+class CanFile(StrictModel):
+    """A config file's `can:` section alone (for readers of a few sections: the simulator)."""
+
+    can: CanSection = CanConfig()
+
+
+def can_buses(can: CanSection, drives: DrivesConfig, source: str = "config") -> list[CanConfig]:
+    """The buses of a `can:` section (one mapping, or a list of them), checked against the
+    drives on them: names and channels distinct, every drive on a listed bus, every bus
+    with a drive.  ConfigError names the file and the key."""
+    buses = can if isinstance(can, list) else [can]
+    names = [bus.bus_name for bus in buses]
+    keys = [f"can.{k}" for k in range(len(buses))] if isinstance(can, list) else ["can"]
+    opened: dict[tuple[Any, ...], int] = {}
+    for k, bus in enumerate(buses):
+        same = (
+            bus.interface,
+            bus.channel,
+            repr(bus.options.get("host")),
+            repr(bus.options.get("port")),
+        )
+        if same in opened:
+            raise ConfigError(
+                f"{source}: {keys[k]}.channel: {bus.interface} channel {bus.channel!r} is also "
+                f"{keys[opened[same]]}'s: one bus listed twice"
+            )
+        opened[same] = k
+        if names.index(names[k]) != k:
+            raise ConfigError(
+                f"{source}: {keys[k]}.name: bus name {names[k]!r} is also "
+                f"{keys[names.index(names[k])]}'s (a name defaults to the channel)"
+            )
+    on = drives.bus_names()
+    if len(buses) > 1 and None in on:
+        raise ConfigError(
+            f"{source}: drives.bus: required with several buses in can: name each drive's "
+            f"bus (a list in cable order, of {', '.join(names)})"
+        )
+    for i, name in enumerate(on):
+        if name is not None and name not in names:
+            raise ConfigError(
+                f"{source}: drives.bus: cable {i}'s drive (node {drives.nodes[i]}) is on bus "
+                f"{name!r}, which can: does not list (buses: {', '.join(names)})"
+            )
+    for k, name in enumerate(names):
+        if None not in on and name not in on:
+            raise ConfigError(f"{source}: {keys[k]}: no drive is on bus {name!r} (drives.bus)")
+    return buses

@@ -147,19 +147,30 @@ def frame_fault_flags(args: argparse.Namespace) -> dict:
 
 
 async def simulate(setup: SimSetup, args: argparse.Namespace) -> int:
-    c = setup.can
-    bus: can.BusABC = c.open()
     flags = frame_fault_flags(args)
     faults = parse_frame_faults(flags, "command line") if flags else setup.sim.frame_faults
-    device_bus = FaultyBus(bus, faults) if faults.named_rules() else bus
+    address = args.serve_socketcand or _address(setup.sim.serve_socketcand)
+    if address is not None and len(setup.buses) > 1:
+        raise ConfigError(
+            "--serve-socketcand / sim.serve_socketcand serves one bus; can: lists "
+            f"{len(setup.buses)}"
+        )
+    device: dict[str, can.BusABC] = {}
+    try:
+        for c in setup.buses:
+            bus = c.open()
+            device[c.bus_name] = FaultyBus(bus, faults) if faults.named_rules() else bus
+    except BaseException:
+        for bus in device.values():
+            bus.shutdown()
+        raise
     robot = VirtualRobot(setup.robot, setup.drives, setup.sim.plant)
-    meter = BusLoadMeter(c.bitrate)
-    runner = SimulatorRunner(robot, device_bus, meter, setup.sim.wake(setup.drives))
+    meters = {c.bus_name: BusLoadMeter(c.bitrate) for c in setup.buses}
+    runner = SimulatorRunner(robot, device, meters, setup.sim.wake(setup.drives))
     for kind, cable, at in args.fault:
         runner.at(at, fault_action(robot, kind, cable))
     server = None
     served_bus = None
-    address = args.serve_socketcand or _address(setup.sim.serve_socketcand)
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGTERM, signal.SIGINT):
@@ -167,15 +178,16 @@ async def simulate(setup: SimSetup, args: argparse.Namespace) -> int:
     runner.start()
     try:
         if address is not None:
+            c = setup.buses[0]
             served_bus = c.open()  # the server's own reader of the same bus
             server = SocketcandServer(served_bus, address[0], address[1], channel=c.channel)
             await server.start()
             print(
                 f"serving socketcand on {address[0]}:{server.port} channel {c.channel}", flush=True
             )
+        on = ", ".join(f"{c.interface}:{c.channel}" for c in setup.buses)
         print(
-            f"simulating {setup.robot.name}: {robot.n} {setup.drives.protocol} drives on "
-            f"{c.interface}:{c.channel}",
+            f"simulating {setup.robot.name}: {robot.n} {setup.drives.protocol} drives on {on}",
             flush=True,
         )
         if args.fault_input:
@@ -189,12 +201,14 @@ async def simulate(setup: SimSetup, args: argparse.Namespace) -> int:
             try:
                 await asyncio.wait_for(stop.wait(), args.report_every)
             except TimeoutError:
-                report = meter.report()
-                print(
-                    f"t={runner.t:.1f} s bus load {report.load:.1%} "
-                    f"({report.window_frames} frames/s at {c.bitrate} bit/s)",
-                    flush=True,
-                )
+                for c in setup.buses:
+                    report = meters[c.bus_name].report()
+                    print(
+                        f"t={runner.t:.1f} s bus load {report.load:.1%} "
+                        f"({report.window_frames} frames/s at {c.bitrate} bit/s)"
+                        + (f" on bus {c.bus_name}" if len(setup.buses) > 1 else ""),
+                        flush=True,
+                    )
         if args.truth_log:
             await truth
         return 0
@@ -204,7 +218,8 @@ async def simulate(setup: SimSetup, args: argparse.Namespace) -> int:
             await server.stop()
         if served_bus is not None:
             served_bus.shutdown()
-        device_bus.shutdown()
+        for bus in device.values():
+            bus.shutdown()
 
 
 async def log_truth(robot: VirtualRobot, out: TextIO, stop: asyncio.Event) -> None:

@@ -14,7 +14,7 @@ from pydantic import model_validator
 
 from cdpr import ConfigError, Robot
 from cdpr.description import PositiveFloat, StrictModel, load_yaml, show_path, validate_section
-from drivers.config import CanConfig, DrivesConfig, parse_drives
+from drivers.config import CanConfig, CanFile, DrivesConfig, can_buses, parse_drives
 from sim_bus.bus.frame_faults import FrameFaultConfig
 from sim_bus.plant import PlantConfig
 
@@ -57,7 +57,7 @@ class SimConfig(StrictModel):
 class SimSetup(NamedTuple):
     robot: Robot
     drives: DrivesConfig
-    can: CanConfig
+    buses: list[CanConfig]  # the `can:` section's buses, one or several
     sim: SimConfig
 
 
@@ -78,6 +78,6 @@ def load_sim_setup(path: str | Path) -> SimSetup:
             raise ConfigError(f"{source}: missing section {key!r}")
     robot = Robot.from_reference(data["robot"], path.resolve().parent, source)
     drives = parse_drives(data["drives"], source)
-    can = validate_section(CanConfig, data.get("can", {}), source, "can")
+    can = validate_section(CanFile, {k: v for k, v in data.items() if k == "can"}, source).can
     sim = parse_sim(data.get("sim"), source)
-    return SimSetup(robot, drives, can, sim)
+    return SimSetup(robot, drives, can_buses(can, drives, source), sim)

@@ -5,6 +5,10 @@ The plant advances (in whole plant steps) on its own timerfd, every `wake_period
 state at the moment it was seen.  Buses with a file descriptor are drained by the loop
 itself; others through a Notifier thread.  Frames the drives send pass through optional
 frame faults and a bus-load meter.
+
+On several buses (given by name, one meter each): frames read from a bus are tagged with
+its name (`channel`) before the drives see them, and each frame sent goes on the bus its
+`channel` names (sim_bus.virtual_robot tags every drive's frames with its bus).
 """
 
 from __future__ import annotations
@@ -12,11 +16,12 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 
 import can
 
-from drivers.bus import BusWatch, frame_io, gone
+from drivers.bus import BusWatch, FrameIO, frame_io, gone
 from drivers.clock import PeriodicTimer
 from sim_bus.bus.busload import BusLoadMeter
 from sim_bus.virtual_robot import VirtualRobot
@@ -24,29 +29,44 @@ from sim_bus.virtual_robot import VirtualRobot
 log = logging.getLogger(__name__)
 
 
+@dataclass
+class Lane:
+    """One bus the simulator is on: its name (None: the only bus given as a bus), frame
+    I/O, reader and bus-load meter."""
+
+    name: str | None
+    bus: can.BusABC
+    io: FrameIO
+    meter: BusLoadMeter | None
+    watch: BusWatch | None = None
+
+
 class SimulatorRunner:
-    """`start()` on a running loop, `close()` to stop; `t` is simulated time (s)."""
+    """`start()` on a running loop, `close()` to stop; `t` is simulated time (s).  `bus`
+    is one python-can bus, or several by name (`meter` then one per bus, by name)."""
 
     def __init__(
         self,
         robot: VirtualRobot,
-        bus: can.BusABC,
-        meter: BusLoadMeter | None = None,
+        bus: can.BusABC | Mapping[str, can.BusABC],
+        meter: BusLoadMeter | Mapping[str, BusLoadMeter] | None = None,
         wake_period: float | None = None,
     ) -> None:
         self.robot = robot
         self.wake_period = wake_period or robot.plant.config.step
-        self.bus = bus
-        self._io = frame_io(bus)
-        self.meter = meter  # bus-load accounting of every frame seen and sent
+        buses = bus if isinstance(bus, Mapping) else {None: bus}
+        meters = meter if isinstance(meter, Mapping) else {None: meter}
+        self.lanes = {
+            name: Lane(name, b, frame_io(b), meters.get(name)) for name, b in buses.items()
+        }
+        self._only = next(iter(self.lanes.values())) if len(self.lanes) == 1 else None
         self._schedule: list[tuple[float, Callable[[], list[can.Message]]]] = []
         self._t0 = 0.0
         self._timer: PeriodicTimer | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
-        self._watch: BusWatch | None = None
         self.send_errors = 0
         self.receive_errors = 0
-        self._delays = hasattr(bus, "tick")
+        self._delays = any(hasattr(lane.bus, "tick") for lane in self.lanes.values())
 
     @property
     def t(self) -> float:
@@ -58,7 +78,13 @@ class SimulatorRunner:
         self._t0 = time.monotonic() - self.robot.t
         self._timer = PeriodicTimer(self.wake_period)
         loop.add_reader(self._timer.fileno(), self._on_tick)
-        self._watch = BusWatch(self._io, loop, self._drain, self._handle)
+        for lane in self.lanes.values():
+            lane.watch = BusWatch(
+                lane.io,
+                loop,
+                lambda lane=lane: self._drain_lane(lane),
+                lambda frames, lane=lane: self._handle(frames, lane),
+            )
 
     def close(self) -> None:
         loop = self._loop
@@ -66,9 +92,10 @@ class SimulatorRunner:
             loop.remove_reader(self._timer.fileno())
             self._timer.close()
             self._timer = None
-        if self._watch is not None:
-            self._watch.close()
-            self._watch = None
+        for lane in self.lanes.values():
+            if lane.watch is not None:
+                lane.watch.close()
+                lane.watch = None
 
     def _on_tick(self) -> None:
         if self._timer is None or not self._timer.expirations():
@@ -81,16 +108,21 @@ class SimulatorRunner:
             self._drain()
 
     def _drain(self) -> None:
+        """Take what every bus has queued to the drives."""
+        for lane in self.lanes.values():
+            self._drain_lane(lane)
+
+    def _drain_lane(self, lane: Lane) -> None:
         try:
-            frames = self._io.drain()
+            frames = lane.io.drain()
         except (can.CanError, OSError) as exc:
             self.receive_errors += 1
-            if gone(exc) and self._watch is not None:  # the plant runs on, deaf
+            if gone(exc) and lane.watch is not None:  # the plant runs on, deaf
                 log.warning("simulator: the bus is gone (%s); no longer reading it", exc)
-                self._watch.close()
-                self._watch = None
+                lane.watch.close()
+                lane.watch = None
             return
-        self._handle(frames)
+        self._handle(frames, lane)
 
     def at(self, t: float, action: Callable[[], list[can.Message] | None]) -> None:
         """Run `action` (e.g. a device fault) once simulated time reaches `t`; frames it
@@ -98,21 +130,26 @@ class SimulatorRunner:
         self._schedule.append((t, lambda: action() or []))
         self._schedule.sort(key=lambda item: item[0])
 
-    def _handle(self, frames: list[can.Message]) -> None:
-        """Frames from the bus: to the drives, and their answers onto the bus."""
-        if self.meter is not None:
-            self.meter.add_many(frames)
+    def _handle(self, frames: list[can.Message], lane: Lane) -> None:
+        """Frames from a bus: to the drives, and their answers onto the bus."""
+        if lane.meter is not None:
+            lane.meter.add_many(frames)
+        if self._only is None:  # several buses: the drives hear the frames of theirs
+            for msg in frames:
+                msg.channel = lane.name
         out, t = [], self.t
         for msg in frames:
             out.extend(self.robot.handle(msg, t))
         self._send(out)
 
     def _send(self, frames: list[can.Message]) -> None:
+        """Each frame onto its bus: the only one, or the one its `channel` names."""
         for frame in frames:
+            lane = self._only or self.lanes[frame.channel]  # type: ignore[index]
             try:
-                self._io.send(frame)
+                lane.io.send(frame)
             except (can.CanError, OSError):
                 self.send_errors += 1
             else:
-                if self.meter is not None:
-                    self.meter.add(frame)
+                if lane.meter is not None:
+                    lane.meter.add(frame)

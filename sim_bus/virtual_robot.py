@@ -6,6 +6,10 @@ after it (heartbeats, cyclic feedback, watchdogs).  `handle(frame, t)` first bri
 plant up to t, so a SYNC at t is answered with the state at t.  Nothing here touches a
 bus or a wall clock: the asyncio runner (sim_bus.runner) and the tests drive it.
 
+With drives on several buses (`drives.bus`), each drive hears only frames whose
+`channel` names its bus, and the frames it sends carry its bus's name there (the
+runner sends them on that bus).
+
 Device-level faults live here (a silent node, a stuck encoder, a glitching one, a drive
 fault, a snapped cable); frame-level faults (drops, delays, corruption, error frames) are
 sim_bus.bus.frame_faults.
@@ -72,6 +76,9 @@ class VirtualRobot:
         self.protocol = drives.protocol
         self.drives = make_virtual_drives(drives, robot)
         self.n = len(self.drives)
+        buses = drives.bus_names()
+        # each drive's bus where there are several (frames are routed by channel), else None
+        self.buses: list[str | None] | None = buses if len(set(buses)) > 1 else None
         self.servos = [PositionServo() for _ in self.drives]
         self.silent = [False] * self.n
         self.stuck: list[tuple[float, float] | None] = [None] * self.n
@@ -98,20 +105,29 @@ class VirtualRobot:
             for k, drive in enumerate(self.drives):
                 frames = drive.on_tick(now)
                 if frames and not self.silent[k]:
-                    out.extend(frames)
+                    out.extend(self._from(k, frames))
         return out
 
     def handle(self, message: can.Message, t: float) -> list[can.Message]:
-        """Deliver one bus frame at time `t` to every drive; the frames they answer."""
+        """Deliver one bus frame at time `t` to every drive on its bus; the frames they
+        answer."""
         out = self.advance_to(t)
         now = self.plant.time
+        buses = self.buses
         for k, drive in enumerate(self.drives):
-            if self.silent[k]:
+            if self.silent[k] or (buses is not None and buses[k] != message.channel):
                 continue
             frames = drive.on_frame(message, now)
             if frames:
-                out.extend(frames)
+                out.extend(self._from(k, frames))
         return out
+
+    def _from(self, k: int, frames: list[can.Message]) -> list[can.Message]:
+        """Frames drive k sends, tagged with its bus where there are several."""
+        if self.buses is not None:
+            for msg in frames:
+                msg.channel = self.buses[k]
+        return frames
 
     # -- device faults ----------------------------------------------------------------
 
@@ -140,7 +156,7 @@ class VirtualRobot:
             code = OVERCURRENT[self.protocol]
         frames = self.drives[k].inject_fault(code, text)
         self._apply()
-        return [] if self.silent[k] else frames
+        return [] if self.silent[k] else self._from(k, frames)
 
     def snap_cable(self, k: int) -> None:
         """Cable k breaks."""

@@ -41,12 +41,17 @@ def check_config(path: str) -> int:
     shown = ", ".join("inf" if np.isinf(m) else f"{m:.3g}" for m in masses)
     print(f"modal masses at home (Lemma 1, kg): {shown}")
     if config is not None:
-        d, c = config.drives, config.can
+        d = config.drives
         print(
             f"drives: {d.protocol} nodes {d.nodes}, brake {d.brake.value}, "
             f"watchdog {d.watchdog_timeout * 1e3:g} ms"
         )
-        print(f"bus: {c.interface} {c.channel} at {c.bitrate} bit/s")
+        for c in config.buses:
+            where = f"bus: {c.interface} {c.channel} at {c.bitrate} bit/s"
+            if len(config.buses) > 1:
+                nodes = [n for n, b in zip(d.nodes, d.bus_names(), strict=True) if b == c.bus_name]
+                where = f"bus {c.bus_name}: {where.removeprefix('bus: ')}, nodes {nodes}"
+            print(where)
         print(
             f"controller: {config.controller.rate_hz:g} Hz, model at {config.controller.model_at}; "
             f"home pose in W: yes"

@@ -9,7 +9,7 @@ import sys
 
 from cdpr import ConfigError
 from daemon.config import DaemonConfig, load_config
-from daemon.process.app import open_bus, serve
+from daemon.process.app import close_bus, open_bus, serve
 from daemon.process.logsetup import configure_logging
 
 
@@ -85,7 +85,7 @@ async def _run(config: DaemonConfig, sim: bool) -> int:
         try:
             return await serve(config, bus)
         finally:
-            bus.shutdown()
+            close_bus(bus)
     from daemon.cli.simulated import InProcessSimulator
 
     simulator = InProcessSimulator(config)

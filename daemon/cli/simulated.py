@@ -1,8 +1,9 @@
 """The in-process simulator behind `cdprd run --sim` and `cdprd demo`.
 
 With `analyze`, the only place the daemon imports sim_bus (DESIGN §2): the simulator
-runs as a task in the daemon's own event loop on a private in-process loop bus, so the
-service under test is byte for byte the one that drives hardware.
+runs as a task in the daemon's own event loop on a private in-process loop bus (one per
+bus of the config), so the service under test is byte for byte the one that drives
+hardware.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ import can
 
 from cdpr import ConfigError
 from daemon.config import DaemonConfig
+from daemon.service.bus_port import Buses
 from sim_bus.bus.frame_faults import FaultyBus
 from sim_bus.bus.loopbus import LoopBus
 from sim_bus.config import SimConfig, parse_sim
@@ -24,28 +26,34 @@ _channels = itertools.count()
 
 
 class InProcessSimulator:
-    """Simulator + the daemon's bus to it.  `start()` inside the running loop (before
-    the service starts), `close()` after the service stopped."""
+    """Simulator + the daemon's bus to it (`daemon_bus`: one bus, or one per bus name of
+    a config with several).  `start()` inside the running loop (before the service
+    starts), `close()` after the service stopped."""
 
     def __init__(self, config: DaemonConfig) -> None:
         sim = sim_section(config)
         self.robot = simulated_robot(config, sim)  # a ConfigError before any bus is open
-        channel = f"cdprd-sim-{os.getpid()}-{next(_channels)}"
-        bitrate = config.can.bitrate
-        device_bus: can.BusABC = LoopBus(channel=channel, bitrate=bitrate)
-        if sim.frame_faults.named_rules():
-            device_bus = FaultyBus(device_bus, sim.frame_faults)
-        self.daemon_bus = LoopBus(channel=channel, bitrate=bitrate)
-        self.runner = SimulatorRunner(self.robot, device_bus, wake_period=sim.wake(config.drives))
-        self._device_bus = device_bus
+        run = f"cdprd-sim-{os.getpid()}-{next(_channels)}"
+        device: dict[str, can.BusABC] = {}
+        daemon: dict[str, can.BusABC] = {}
+        for bus in config.buses:
+            channel = run if len(config.buses) == 1 else f"{run}-{bus.bus_name}"
+            device[bus.bus_name] = LoopBus(channel=channel, bitrate=bus.bitrate)
+            if sim.frame_faults.named_rules():
+                device[bus.bus_name] = FaultyBus(device[bus.bus_name], sim.frame_faults)
+            daemon[bus.bus_name] = LoopBus(channel=channel, bitrate=bus.bitrate)
+        self._buses = [*device.values(), *daemon.values()]
+        several = len(config.buses) > 1
+        self.daemon_bus: Buses = daemon if several else daemon.popitem()[1]
+        self.runner = SimulatorRunner(self.robot, device, wake_period=sim.wake(config.drives))
 
     def start(self) -> None:
         self.runner.start()
 
     def close(self) -> None:
         self.runner.close()
-        self._device_bus.shutdown()
-        self.daemon_bus.shutdown()
+        for bus in self._buses:
+            bus.shutdown()
 
 
 def sim_section(config: DaemonConfig) -> SimConfig:

@@ -37,7 +37,7 @@ from cdpr.trajectory import (
     tracked_length_limits,
 )
 from daemon.config.zenoh_config import ZenohSettings
-from drivers.config import CanConfig, DrivesConfig, parse_drives
+from drivers.config import CanConfig, CanSection, DrivesConfig, can_buses, parse_drives
 
 Fraction = Annotated[float, Field(gt=0.0, lt=1.0)]
 
@@ -133,7 +133,7 @@ class FileConfig(StrictModel):
     robot: str | dict[str, Any]
     controller: dict[str, Any] = Field(default_factory=dict)
     drives: dict[str, Any]
-    can: CanConfig = CanConfig()
+    can: CanSection = CanConfig()
     safety: SafetyConfig = SafetyConfig()
     trajectory: TrajectoryLimits = TrajectoryLimits()
     zenoh: dict[str, Any] = Field(default_factory=dict)
@@ -165,7 +165,8 @@ class DaemonConfig:
                 f"controller.rate_hz ({self.controller.rate_hz:g}): most cycles would find no "
                 "fresh feedback"
             )
-        self.can = raw.can
+        # the buses of `can:` (one, or a list), the first the only one in a single-bus config
+        self.buses: list[CanConfig] = can_buses(raw.can, self.drives, source)
         self.safety = raw.safety
         self.trajectory = raw.trajectory
         self.zenoh: ZenohSettings = validate_section(ZenohSettings, raw.zenoh, source, "zenoh")
@@ -200,6 +201,11 @@ class DaemonConfig:
                 f"exceed the fastest cable rate the trajectory limits allow ({fastest:.3g} m/s: "
                 "linear_speed + angular_speed x the farthest attachment)"
             )
+
+    @property
+    def channels(self) -> str:
+        """The buses' channels, for log lines: "can0", or "can0, can1"."""
+        return ", ".join(bus.channel for bus in self.buses)
 
     def path(self, relative: str) -> Path:
         """A path from the config, resolved against the config file's directory."""

@@ -14,13 +14,14 @@ import logging
 import signal
 import socket
 import sys
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Mapping
 from typing import Any
 
 import can
 
 from daemon.config import DaemonConfig
 from daemon.process.companion_host import CompanionHost
+from daemon.service.bus_port import Buses
 from daemon.service.safety import Trigger
 from daemon.service.service import EXIT_BUS_LOST, Service
 
@@ -30,21 +31,33 @@ SOCKETCAND_CONNECT_TIMEOUT = 2.0  # s
 ServiceHook = Callable[[Service], Awaitable[None]]
 
 
-def open_bus(config: DaemonConfig) -> can.BusABC:
-    """The python-can bus the config names (hardware, vcan, socketcand, ...); if it
-    cannot be opened, one line on stderr and exit code EXIT_BUS_LOST."""
-    c = config.can
-    try:
-        if c.interface == "socketcand":
-            _reach_socketcand(c.options)
-        return c.open()
-    except (can.CanError, OSError, ValueError, ImportError) as exc:
-        print(
-            f"error: {config.source}: can: cannot open the bus interface={c.interface} "
-            f"channel={c.channel}: {' '.join(str(exc).split())}",
-            file=sys.stderr,
-        )
-        raise SystemExit(EXIT_BUS_LOST) from None
+def open_bus(config: DaemonConfig) -> Buses:
+    """The python-can bus the config names (hardware, vcan, socketcand, ...), or its buses
+    by name when it has several; if one cannot be opened, one line on stderr naming it
+    and exit code EXIT_BUS_LOST."""
+    opened: dict[str, can.BusABC] = {}
+    for k, c in enumerate(config.buses):
+        try:
+            if c.interface == "socketcand":
+                _reach_socketcand(c.options)
+            opened[c.bus_name] = c.open()
+        except (can.CanError, OSError, ValueError, ImportError) as exc:
+            for bus in opened.values():
+                bus.shutdown()
+            key = "can" if len(config.buses) == 1 else f"can.{k}"
+            print(
+                f"error: {config.source}: {key}: cannot open the bus interface={c.interface} "
+                f"channel={c.channel}: {' '.join(str(exc).split())}",
+                file=sys.stderr,
+            )
+            raise SystemExit(EXIT_BUS_LOST) from None
+    return opened if len(opened) > 1 else opened.popitem()[1]
+
+
+def close_bus(buses: Buses) -> None:
+    """Shut down what open_bus opened."""
+    for bus in buses.values() if isinstance(buses, Mapping) else [buses]:
+        bus.shutdown()
 
 
 def _reach_socketcand(options: dict[str, Any]) -> None:
@@ -62,7 +75,7 @@ def _reach_socketcand(options: dict[str, Any]) -> None:
 
 async def serve(
     config: DaemonConfig,
-    bus: can.BusABC,
+    bus: Buses,
     *,
     companion: bool = True,
     after_start: ServiceHook | None = None,
@@ -84,7 +97,7 @@ async def serve(
             config.robot.name,
             service.n,
             config.drives.protocol,
-            config.can.channel,
+            config.channels,
             config.controller.rate_hz,
             service.machine.state.value,
         )

@@ -104,7 +104,7 @@ async def run(config: DaemonConfig, link: RemoteLink) -> int:
 def _status_text(state: dict[str, Any], config: DaemonConfig) -> str:
     """`systemctl status`'s one line: the safety state, the fault that braked, where."""
     fault = state.get("fault")
-    where = f"{config.robot.name} on {config.can.channel}"
+    where = f"{config.robot.name} on {config.channels}"
     name = state.get("state", "init")
     if not fault:
         return f"{name}; {where}"
@@ -143,13 +143,15 @@ def _recorders(config: DaemonConfig, link: RemoteLink) -> list:
         link.batch_sinks["cycles"] = record_cycles
         recorders.append(telemetry)
     if rec.can_log:
-        channel = config.can.channel  # names the frames sent (they carry none on SocketCAN)
+        # names the frames sent (they carry none on SocketCAN; on several buses, the name)
+        channel = config.buses[0].channel
         key = f"{config.source}: recording.can_log"
         frames = _open(key, CanRecorder, config.path(rec.can_log), recorders, channel=channel)
 
         def record_frames(batch: list) -> None:
-            for stamp, ident, extended, error, remote, dlc, data, rx in batch:
+            for stamp, channel, ident, extended, error, remote, dlc, data, rx in batch:
                 message = can.Message(
+                    channel=channel,
                     timestamp=stamp,
                     arbitration_id=ident,
                     is_extended_id=extended,

@@ -314,6 +314,7 @@ class CompanionHost:
         self._frames.append(
             (
                 stamp,
+                msg.channel,
                 msg.arbitration_id,
                 msg.is_extended_id,
                 msg.is_error_frame,

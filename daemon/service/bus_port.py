@@ -19,6 +19,11 @@ A failed send or receive is never raised: it is logged (one line per kind of fai
 and a count every few seconds: daemon.process.logsetup limits this logger) and reported to
 `on_error`, or to `on_lost` when it means the bus is gone (drivers.bus.gone).  A lost
 bus stays lost: the port stops reading it, and `expect` fails at once.
+
+Drives on several buses (drivers.multibus) get a `MultiBusPort`: one BusPort per bus,
+each frame sent on the bus its `channel` names, each frame received tagged with the name
+of the bus it came on before the driver sees it; a failure on any bus is reported (and a
+lost one ends the port) as on a single bus, naming the bus.
 """
 
 from __future__ import annotations
@@ -27,16 +32,33 @@ import asyncio
 import logging
 import time
 from collections import deque
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Mapping
 
 import can
 
-from drivers.base import DriverError
+from drivers.base import ActuatorDriver, DriverError
 from drivers.bus import FRAMES_PER_PASS, BusWatch, IdFilter, frame_io, gone
+from drivers.multibus import MultiBusDriver
 
 log = logging.getLogger(__name__)
 
 FrameSink = Callable[[list[can.Message], float], None]
+Buses = can.BusABC | Mapping[str, can.BusABC]  # one bus, or several by name
+Waiter = tuple[Callable[[can.Message], bool], asyncio.Future]
+
+
+def open_port(buses: Buses, sink: FrameSink, driver: ActuatorDriver) -> BusPort | MultiBusPort:
+    """The port for `driver`'s drives: a BusPort on one bus, a MultiBusPort on several
+    (a MultiBusDriver, whose bus names `buses` must map to python-can buses); only the
+    ids the driver reads are read."""
+    if not isinstance(driver, MultiBusDriver):
+        if isinstance(buses, Mapping):
+            raise ValueError(f"the drives are on one bus, got buses {', '.join(buses)}")
+        return BusPort(buses, sink, driver.receive_ids())
+    if not isinstance(buses, Mapping) or set(buses) != set(driver.bus_names):
+        got = ", ".join(buses) if isinstance(buses, Mapping) else "one bus"
+        raise ValueError(f"the drives are on buses {', '.join(driver.bus_names)}, got {got}")
+    return MultiBusPort(buses, sink, {name: driver.receive_ids_on(name) for name in buses})
 
 
 class BusPort:
@@ -51,7 +73,7 @@ class BusPort:
         self._pending: deque[can.Message] = deque()  # read and wanted, not yet delivered
         self._loop: asyncio.AbstractEventLoop | None = None
         self._watch: BusWatch | None = None
-        self._waiters: list[tuple[Callable[[can.Message], bool], asyncio.Future]] = []
+        self._waiters: list[Waiter] = []
         self.on_error: Callable[[str], None] | None = None  # a transient failure
         self.on_lost: Callable[[str], None] | None = None  # the bus is gone
         self.on_sent: Callable[[can.Message], None] | None = None
@@ -192,11 +214,108 @@ class BusPort:
     ) -> can.Message:
         """The next received frame matching `match`; DriverError naming `what` on timeout."""
         assert self._loop is not None, "open() the port first"
-        if self.lost is not None:
-            raise DriverError(f"CAN bus lost: {self.lost}; expected {what}")
-        future: asyncio.Future = self._loop.create_future()
-        self._waiters.append((match, future))
-        try:
-            return await asyncio.wait_for(future, timeout)
-        except TimeoutError:
-            raise DriverError(f"no answer within {timeout * 1e3:.0f} ms: {what}") from None
+        return await expect_on([self], self._loop, match, timeout, what)
+
+
+async def expect_on(
+    ports: Iterable[BusPort],
+    loop: asyncio.AbstractEventLoop,
+    match: Callable[[can.Message], bool],
+    timeout: float,
+    what: str,
+) -> can.Message:
+    """The next frame received on any of `ports` that matches `match`; DriverError naming
+    `what` on timeout, or at once (or as it happens) when one of them is lost."""
+    ports = list(ports)
+    for port in ports:
+        if port.lost is not None:
+            raise DriverError(f"CAN bus lost: {port.lost}; expected {what}")
+    future: asyncio.Future = loop.create_future()
+    for port in ports:
+        port._waiters.append((match, future))
+    try:
+        return await asyncio.wait_for(future, timeout)
+    except TimeoutError:
+        raise DriverError(f"no answer within {timeout * 1e3:.0f} ms: {what}") from None
+
+
+class MultiBusPort:
+    """BusPort's interface over several buses by name (module docstring).  `ports` are
+    the buses' own BusPorts; received frames reach `sink` tagged with their bus's name."""
+
+    def __init__(
+        self,
+        buses: Mapping[str, can.BusABC],
+        sink: FrameSink,
+        ids: Mapping[str, Iterable[int]],
+    ) -> None:
+        self.ports = {
+            name: BusPort(bus, self._tagging(name, sink), ids[name]) for name, bus in buses.items()
+        }
+        for name, port in self.ports.items():
+            port.on_error = lambda what, name=name: self._report(self.on_error, name, what)
+            port.on_lost = lambda what, name=name: self._report(self.on_lost, name, what)
+            port.on_sent = lambda msg: self.on_sent(msg) if self.on_sent is not None else None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self.on_error: Callable[[str], None] | None = None
+        self.on_lost: Callable[[str], None] | None = None
+        self.on_sent: Callable[[can.Message], None] | None = None
+
+    @staticmethod
+    def _tagging(name: str, sink: FrameSink) -> FrameSink:
+        def tagged(frames: list[can.Message], now: float) -> None:
+            for msg in frames:
+                msg.channel = name
+            sink(frames, now)
+
+        return tagged
+
+    @staticmethod
+    def _report(callback: Callable[[str], None] | None, name: str, what: str) -> None:
+        if callback is not None:
+            callback(f"bus {name}: {what}")
+
+    def open(self, loop: asyncio.AbstractEventLoop) -> None:
+        self._loop = loop
+        for port in self.ports.values():
+            port.open(loop)
+
+    def close(self) -> None:
+        for port in self.ports.values():
+            port.close()
+
+    def poll(self) -> None:
+        for port in self.ports.values():
+            port.poll()
+
+    def send(self, message: can.Message) -> None:
+        """Send one frame on the bus its `channel` names."""
+        self.ports[message.channel].send(message)  # type: ignore[index]
+
+    @property
+    def lost(self) -> str | None:
+        """What ended the first bus lost, naming it."""
+        for name, port in self.ports.items():
+            if port.lost is not None:
+                return f"bus {name}: {port.lost}"
+        return None
+
+    @property
+    def failures(self) -> int:
+        return sum(port.failures for port in self.ports.values())
+
+    @property
+    def ignored(self) -> int:
+        return sum(port.ignored for port in self.ports.values())
+
+    @property
+    def dropped(self) -> int:
+        return sum(port.dropped for port in self.ports.values())
+
+    async def expect(
+        self, match: Callable[[can.Message], bool], timeout: float, what: str
+    ) -> can.Message:
+        """The next frame received on any bus matching `match` (its `channel` names the
+        bus: drivers.multibus.BusLink expects on one)."""
+        assert self._loop is not None, "open() the port first"
+        return await expect_on(self.ports.values(), self._loop, match, timeout, what)

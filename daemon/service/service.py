@@ -29,7 +29,7 @@ from cdpr.trajectory import Reference
 from cdpr.trajectory.core import Curve
 from daemon.config import DaemonConfig
 from daemon.service.api import CommandError
-from daemon.service.bus_port import BusPort
+from daemon.service.bus_port import Buses, open_port
 from daemon.service.cycle_stats import CycleStats
 from daemon.service.gc_policy import CollectorPolicy
 from daemon.service.planner import PLANNING_LEAD
@@ -51,10 +51,10 @@ Result = TypeVar("Result")
 
 
 class Service:
-    """One robot on one bus.  `run()` until `stop()`; implements
+    """One robot on its bus (or buses, by name).  `run()` until `stop()`; implements
     daemon.service.api.DaemonHandler."""
 
-    def __init__(self, config: DaemonConfig, bus: can.BusABC) -> None:
+    def __init__(self, config: DaemonConfig, bus: Buses) -> None:
         self.config = config
         self.robot = robot = config.robot
         self.n = robot.n_cables
@@ -64,7 +64,7 @@ class Service:
         self.stats = CycleStats(config.controller.rate_hz)
         self.machine = StateMachine()
         self.monitor = SafetyMonitor(config)
-        self.port = BusPort(bus, self._on_frames, self.driver.receive_ids())
+        self.port = open_port(bus, self._on_frames, self.driver)
         self.port.on_error = self._on_bus_error
         self.port.on_lost = self._on_bus_lost
         self.port.on_sent = self._on_sent

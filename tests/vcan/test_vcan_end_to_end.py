@@ -51,6 +51,7 @@ pytestmark = [pytest.mark.vcan, pytest.mark.timeout(240)]
 
 ROOT = Path(__file__).resolve().parents[2]
 CHANNEL = "vcan0"
+CHANNELS = ("vcan0", "vcan1")  # the guest's interfaces (tests/vcan/uml.py)
 PREFIX = "cdpr/reference8"
 RATE_HZ = 100
 # candump -L: "(1700000000.123456) vcan0 123#DEADBEEF"; a remote frame "123#R" or "123#R8"
@@ -92,7 +93,9 @@ ODRIVE = Protocol(
 )
 
 
-def _write_config(protocol: Protocol, directory: Path, port: int) -> Path:
+def _write_config(
+    protocol: Protocol, directory: Path, port: int, edit: Callable[[dict], None] | None = None
+) -> Path:
     data = yaml.safe_load((ROOT / "config" / f"reference8-{protocol.name}.yaml").read_text())
     data["robot"] = str(ROOT / "config" / "robots" / "reference8.yaml")
     data["can"] = {"interface": "socketcan", "channel": CHANNEL, "bitrate": 1_000_000}
@@ -115,6 +118,8 @@ def _write_config(protocol: Protocol, directory: Path, port: int) -> Path:
     if protocol is ODRIVE:  # 8 x 500 streamed estimates a second saturate the guest
         data["drives"]["feedback_rate_hz"] = 2 * RATE_HZ
     data["sim"]["wake_period"] = 0.005 if protocol is ODRIVE else 0.002
+    if edit is not None:
+        edit(data)
     path = directory / f"{protocol.name}.yaml"
     path.write_text(yaml.safe_dump(data))
     return path
@@ -131,8 +136,8 @@ def _realtime(priority: int) -> Callable[[], None]:
     return apply
 
 
-def _cansend(frame: str) -> None:
-    subprocess.run(["cansend", CHANNEL, frame], check=True, timeout=10)
+def _cansend(frame: str, channel: str = CHANNEL) -> None:
+    subprocess.run(["cansend", channel, frame], check=True, timeout=10)
 
 
 @dataclass
@@ -269,9 +274,17 @@ def _stop(proc: subprocess.Popen, sig: int = signal.SIGTERM, timeout: float = 20
 
 
 @contextlib.contextmanager
-def running_stack(protocol: Protocol, directory: Path) -> Iterator[Stack]:
+def running_stack(
+    protocol: Protocol,
+    directory: Path,
+    edit: Callable[[dict], None] | None = None,
+    channels: tuple[str, ...] = (CHANNEL,),
+    sim_args: tuple[str, ...] = (),
+) -> Iterator[Stack]:
+    """The simulator and the daemon on `channels` (candump records them all), with the
+    config written by _write_config and changed by `edit`."""
     port = free_port()
-    config = _write_config(protocol, directory, port)
+    config = _write_config(protocol, directory, port, edit)
     capture = directory / "candump.log"
     logs = directory / "logs"
     logs.mkdir()
@@ -279,11 +292,11 @@ def running_stack(protocol: Protocol, directory: Path) -> Iterator[Stack]:
     python = sys.executable
     with contextlib.ExitStack() as stack:
         dump_out = stack.enter_context(capture.open("w"))
-        candump = subprocess.Popen(["candump", "-L", CHANNEL], stdout=dump_out)
+        candump = subprocess.Popen(["candump", "-L", *channels], stdout=dump_out)
         stack.callback(_stop, candump, signal.SIGINT)
         sim_log = stack.enter_context((logs / "sim.log").open("w"))
         simulator = subprocess.Popen(
-            [python, "-m", "sim_bus", "--config", str(config), "--fault-input"],
+            [python, "-m", "sim_bus", "--config", str(config), "--fault-input", *sim_args],
             cwd=ROOT,
             env=env,
             stdin=subprocess.PIPE,
@@ -423,14 +436,17 @@ def _emergency_brakes(stack: Stack) -> None:
     _lengths_stay_frozen(stack.watch, [0, 1, 3, 4, 5, 6, 7], tolerance=0.01)
 
 
-def _frames(capture: Path) -> list[tuple[float, int, bytes | None]]:
-    """(time, id, data) of every candump -L line; data None for a remote frame."""
+def _frames(capture: Path, channel: str = CHANNEL) -> list[tuple[float, int, bytes | None]]:
+    """(time, id, data) of every candump -L line on `channel`; data None for a remote
+    frame.  Every line must be on one of CHANNELS."""
     frames = []
     for line in capture.read_text().splitlines():
         match = CANDUMP_LINE.match(line)
         assert match, f"unexpected candump line {line!r}"
-        stamp, channel, can_id, data = match.groups()
-        assert channel == CHANNEL
+        stamp, on, can_id, data = match.groups()
+        assert on in CHANNELS
+        if on != channel:
+            continue
         remote = data.startswith("R")
         frames.append((float(stamp), int(can_id, 16), None if remote else bytes.fromhex(data)))
     return frames

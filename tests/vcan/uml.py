@@ -5,7 +5,7 @@ cannot be created there.  Debian's ``user-mode-linux`` package ships a Linux
 6.1 kernel that runs as an ordinary process (``linux.uml``) together with the
 CAN modules, so this module boots it with the host's root directory as a
 read-only hostfs, loads ``can``, ``can-dev``, ``can-raw`` and ``vcan``, brings
-up ``lo`` and ``vcan0`` (no other network), mounts the working directory and a
+up ``lo``, ``vcan0`` and ``vcan1`` (no other network), mounts the working directory and a
 run directory read-write at their host paths, runs one command there with the
 output streamed back, and powers the guest off.  The guest's exit code comes
 back through a file in the run directory.
@@ -39,6 +39,7 @@ from pathlib import Path
 from typing import TextIO
 
 CHANNEL = "vcan0"
+CHANNELS = ("vcan0", "vcan1")  # the guest's interfaces (drives on two buses need both)
 GUEST_ENV = "CDPR_IN_UML"
 """Set to ``1`` in the guest's environment."""
 DEFAULT_TIMEOUT = 600.0
@@ -187,8 +188,8 @@ def _init_script(
         lines.append(f"$bb insmod {q(str(modules / module))} || fail insmod {module}")
     lines += [
         "$bb ip link set dev lo up || fail lo up",
-        f"$bb ip link add dev {CHANNEL} type vcan || fail add {CHANNEL}",
-        f"$bb ip link set dev {CHANNEL} up || fail {CHANNEL} up",
+        *(f"$bb ip link add dev {c} type vcan || fail add {c}" for c in CHANNELS),
+        *(f"$bb ip link set dev {c} up || fail {c} up" for c in CHANNELS),
         f"cd {q(str(cwd))} || fail cd",
         f"echo {q(READY_LINE)}",
         " ".join(
@@ -231,7 +232,7 @@ def run_in_uml(
     timeout: float = DEFAULT_TIMEOUT,
     echo: TextIO | None = None,
 ) -> GuestRun:
-    """Boot UML, run ``command`` in ``cwd`` with ``vcan0`` up, and power off.
+    """Boot UML, run ``command`` in ``cwd`` with ``vcan0`` and ``vcan1`` up, and power off.
 
     ``cwd`` (default: the current directory) and ``writable`` are mounted
     read-write at their host paths; the rest of the host is read-only.  The
