@@ -88,16 +88,20 @@ async def _demo(config: DaemonConfig, plot: str | None) -> int:
     async def fly(service: Service) -> None:
         service.cycle_listeners.append(record)
         endpoint = config.zenoh.listen_endpoints[0]
-        result["client"] = await _client_flight(endpoint, trajectory)
+        result["client"] = await _client_flight(client, endpoint, trajectory)
         await asyncio.sleep(0.5)  # settle at the end pose
         result["stats"] = service.stats.summary()
         result["state"] = service.machine.state.value
 
+    client = await _start_client()
     simulator.start()
     try:
         code = await serve(config, simulator.daemon_bus, after_start=fly)
     finally:
         simulator.close()
+        if client.returncode is None:  # the daemon stopped before the flight
+            client.kill()
+            await client.wait()
     if "client" not in result:
         print("demo did not complete", file=sys.stderr)
         return 1
@@ -114,21 +118,27 @@ async def _demo(config: DaemonConfig, plot: str | None) -> int:
     return code if ok else 1
 
 
-async def _client_flight(endpoint: str, trajectory: Trajectory) -> dict[str, Any]:
-    """The planner's side, in a process of its own (like any planner, and off the core's
-    CPU time): `python -m daemon.cli.demo_flight` with the endpoint and the trajectory on
-    stdin, its result as JSON on stdout."""
-    flight = await asyncio.create_subprocess_exec(
+async def _start_client() -> asyncio.subprocess.Process:
+    """The planner's side, in a process of its own like any planner's: started before
+    the daemon raises its priority (so it never shares it), it waits for its request
+    (`_client_flight`)."""
+    return await asyncio.create_subprocess_exec(
         sys.executable,
         "-m",
         "daemon.cli.demo_flight",
         stdin=asyncio.subprocess.PIPE,
         stdout=asyncio.subprocess.PIPE,
     )
+
+
+async def _client_flight(
+    client: asyncio.subprocess.Process, endpoint: str, trajectory: Trajectory
+) -> dict[str, Any]:
+    """Have `client` fly `trajectory` through the daemon at `endpoint`: its result."""
     request = json.dumps({"endpoint": endpoint, "trajectory": trajectory.as_dict()})
-    out, _ = await flight.communicate(request.encode())
-    if flight.returncode != 0:
-        raise RuntimeError(f"the demo's client failed (exit code {flight.returncode})")
+    out, _ = await client.communicate(request.encode())
+    if client.returncode != 0:
+        raise RuntimeError(f"the demo's client failed (exit code {client.returncode})")
     return json.loads(out)
 
 

@@ -16,6 +16,7 @@ from typing import Any
 
 from cdpr.trajectory import Trajectory, parse_trajectory
 from daemon.interface.client import CdprClient
+from daemon.process.realtime import drop_inherited_realtime
 
 
 def fly(endpoint: str, trajectory: Trajectory) -> dict[str, Any]:
@@ -34,5 +35,6 @@ def fly(endpoint: str, trajectory: Trajectory) -> dict[str, Any]:
 
 
 if __name__ == "__main__":
+    drop_inherited_realtime()
     request = json.loads(sys.stdin.read())
     print(json.dumps(fly(request["endpoint"], parse_trajectory(request["trajectory"]))))

@@ -21,6 +21,7 @@ import can
 
 from daemon.config import DaemonConfig
 from daemon.process.companion_host import CompanionHost
+from daemon.process.realtime import enter_realtime, leave_realtime
 from daemon.service.bus_port import Buses
 from daemon.service.safety import Trigger
 from daemon.service.service import EXIT_BUS_LOST, Service
@@ -86,6 +87,8 @@ async def serve(
     loop = asyncio.get_running_loop()
     service = Service(config, bus)
     host = CompanionHost(service, config) if companion else None
+    # before the drives start: locking the memory takes ~0.1 s, longer than their watchdogs
+    realtime = enter_realtime(config.realtime)
     try:
         await service.start()
         if host is not None:
@@ -118,6 +121,7 @@ async def serve(
         if host is not None:
             await host.close()
         service.close()
+        leave_realtime(realtime)
 
 
 async def _until_ready(host: CompanionHost, service: Service) -> None:

@@ -29,6 +29,7 @@ import can
 from daemon.config import DaemonConfig
 from daemon.process.companion_link import RemoteLink
 from daemon.process.logsetup import configure_logging
+from daemon.process.realtime import drop_inherited_realtime
 from daemon.process.recording import CanRecorder, TelemetryRecorder, session_path
 from daemon.process.systemd import Notifier, Progress, run_watchdog
 from daemon.process.wire import MAX_MESSAGE
@@ -42,6 +43,7 @@ Recorder = TypeVar("Recorder", TelemetryRecorder, CanRecorder)
 
 
 def main(argv: list[str] | None = None) -> int:
+    drop_inherited_realtime()
     args = sys.argv[1:] if argv is None else argv
     if len(args) != 1 or not args[0].isdigit():
         print("usage: python -m daemon.process.companion FD (spawned by the core)", file=sys.stderr)
@@ -61,12 +63,12 @@ def main(argv: list[str] | None = None) -> int:
 
 async def run(config: DaemonConfig, link: RemoteLink) -> int:
     """Serve until the core closes the link; the exit code."""
+    link.start()  # "alive" from now on: the core's hang timer runs
     from daemon.interface.zenoh_io import SessionError, ZenohInterface
 
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGTERM, signal.SIGINT):
         loop.add_signal_handler(sig, log.debug, "companion: signal left to the core")
-    link.start()
     notifier = Notifier()
     planner = Planner(config, link)
     interface = None

@@ -24,7 +24,6 @@ from __future__ import annotations
 import asyncio
 import logging
 import os
-import subprocess
 import sys
 import time
 from collections.abc import Awaitable
@@ -35,6 +34,7 @@ import can
 from cdpr.controller import ControlOutput
 from daemon.config import DaemonConfig
 from daemon.process import wire
+from daemon.process.realtime import Child, spawn_ordinary
 from daemon.process.recording import CycleRecord
 from daemon.service.api import CommandError
 from daemon.service.safety import Fault, Trigger
@@ -45,6 +45,7 @@ log = logging.getLogger("cdprd")
 SUPERVISE_PERIOD = 0.1  # s between checks of the companion's health
 BATCH_PERIOD = 0.05  # s between batches of cycle records and CAN frames
 MESSAGES_PER_PASS = 32  # calls read per wake-up: a flood waits in the socket, not here
+START_TIMEOUT = 30.0  # s for a new companion's first message (its imports, on a busy host)
 RESTART_PAUSES = (0.2, 0.5, 1.0, 2.0, 5.0)  # s before restarting, after each death in a row
 MAX_BATCH = 200  # cycle records held between batches (16 x as many CAN frames)
 STOP_WAIT = 3.0  # s the companion gets to finish its recordings after the core stops
@@ -59,10 +60,11 @@ class CompanionHost:
         self.dropped = 0  # messages the companion did not take in time
         self.restarts = 0
         self.exit_code: int | None = None  # set when the companion cannot start at all
-        self._process: subprocess.Popen | None = None
+        self._process: Child | None = None
         self._sock = None
         self._ever_ready = False
         self._last_heard = time.monotonic()
+        self._allowed_silence = START_TIMEOUT
         self._lost_since: float | None = None  # no live companion since
         self._deaths = 0  # in a row, for the restart pause
         self._restart_at = 0.0
@@ -105,7 +107,8 @@ class CompanionHost:
             if process.poll() is None:
                 log.warning("the companion did not exit within %g s: killed", STOP_WAIT)
                 process.kill()
-                process.wait()
+                while process.poll() is None:
+                    await asyncio.sleep(0.01)
 
     @property
     def pid(self) -> int | None:
@@ -117,17 +120,16 @@ class CompanionHost:
         env = dict(os.environ)
         if env.get("WATCHDOG_PID") == str(os.getpid()):
             del env["WATCHDOG_PID"]  # the companion feeds the watchdog (NotifyAccess=all)
+        fd = companion_end.fileno()
         try:
-            self._process = subprocess.Popen(
-                [sys.executable, "-m", "daemon.process.companion", str(companion_end.fileno())],
-                pass_fds=(companion_end.fileno(),),
-                env=env,
-            )
+            argv = [sys.executable, "-m", "daemon.process.companion", str(fd)]
+            self._process = spawn_ordinary(argv, env, (fd,))
         finally:
             companion_end.close()
         self._sock = core_end
         asyncio.get_running_loop().add_reader(core_end.fileno(), self._on_readable)
         self._last_heard = time.monotonic()
+        self._allowed_silence = START_TIMEOUT  # until it first speaks: imports take seconds
         level = logging.getLevelName(logging.getLogger().getEffectiveLevel()).lower()
         hello = ("hello", self.config, self.service.t0, self.service.state(), level)
         if not wire.send(core_end, hello):
@@ -150,14 +152,14 @@ class CompanionHost:
             process = self._process
             if process is not None and process.poll() is not None:
                 self._on_exit(process.returncode, now)
-            elif process is not None and now - self._last_heard > safety.companion_hang:
+            elif process is not None and now - self._last_heard > self._allowed_silence:
                 log.error(
                     "the companion (pid %d) has been silent for %.1f s: killing it",
                     process.pid,
                     now - self._last_heard,
                 )
                 process.kill()
-            live = process is not None and now - self._last_heard <= safety.companion_hang
+            live = process is not None and now - self._last_heard <= self._allowed_silence
             if live:
                 self._lost_since = None
             elif self._lost_since is None:
@@ -198,6 +200,7 @@ class CompanionHost:
         messages, closed = wire.receive(sock, MESSAGES_PER_PASS)
         if messages:
             self._last_heard = time.monotonic()
+            self._allowed_silence = self.config.safety.companion_hang
         for message, fds in messages:
             self._dispatch(message, fds)
         if closed:

@@ -28,12 +28,14 @@ sched_rt_runtime_us of every sched_rt_period_us (default 950000 of 1000000) per 
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import errno
 import functools
 import logging
 import os
 import resource
+import signal
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -115,6 +117,53 @@ def leave_realtime(state: RealtimeState) -> None:
         os.sched_setaffinity(0, state.previous_cpus)
     if state.memory_locked:
         _libc().munlockall()
+
+
+def drop_inherited_realtime() -> None:
+    """Normal scheduling on every CPU for a process the core spawned (the companion, the
+    demo's client): they inherit SCHED_FIFO and the core's CPUs, and must never compete
+    with the cycle at its priority.  Lowering one's own priority needs no permission."""
+    if os.sched_getscheduler(0) != os.SCHED_OTHER:
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    with contextlib.suppress(OSError):  # CPUs it may not use (a cpuset): keep what it has
+        os.sched_setaffinity(0, range(os.cpu_count() or 1))
+
+
+class Child:
+    """A process started by `spawn_ordinary`, polled without blocking."""
+
+    def __init__(self, pid: int) -> None:
+        self.pid = pid
+        self.returncode: int | None = None
+
+    def poll(self) -> int | None:
+        """The exit code (-N: killed by signal N) once it has exited, else None."""
+        if self.returncode is None:
+            pid, status = os.waitpid(self.pid, os.WNOHANG)
+            if pid == self.pid:
+                self.returncode = os.waitstatus_to_exitcode(status)
+        return self.returncode
+
+    def kill(self) -> None:
+        if self.returncode is None:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(self.pid, signal.SIGKILL)
+
+
+def spawn_ordinary(argv: list[str], env: dict[str, str], pass_fds: tuple[int, ...]) -> Child:
+    """Start `argv` from a real-time process at normal priority from its first
+    instruction: posix_spawn (vfork: nothing of the caller's locked memory is copied)
+    with SCHED_OTHER set before the exec, so that its start-up (imports take seconds of
+    CPU) never competes with the cycle at the cycle's priority.  `pass_fds` stay open
+    in the child under the same numbers."""
+    for fd in pass_fds:
+        os.set_inheritable(fd, True)
+    try:
+        pid = os.posix_spawn(argv[0], argv, env, scheduler=(os.SCHED_OTHER, os.sched_param(0)))
+    finally:
+        for fd in pass_fds:
+            os.set_inheritable(fd, False)
+    return Child(pid)
 
 
 @contextmanager
