@@ -22,6 +22,7 @@ import can
 from daemon.config import DaemonConfig
 from daemon.process.companion_host import CompanionHost
 from daemon.process.realtime import enter_realtime, leave_realtime
+from daemon.process.systemd import Notifier
 from daemon.service.bus_port import Buses
 from daemon.service.safety import Trigger
 from daemon.service.service import EXIT_BUS_LOST, Service
@@ -89,7 +90,9 @@ async def serve(
     host = CompanionHost(service, config) if companion else None
     # before the drives start: locking the memory takes ~0.1 s, longer than their watchdogs
     realtime = enter_realtime(config.realtime)
+    notifier = Notifier()  # start-up and shutdown; the companion sends READY=1 and the rest
     try:
+        notifier.status("starting drives")
         await service.start()
         if host is not None:
             host.start()
@@ -110,6 +113,7 @@ async def serve(
             demo = asyncio.create_task(after_start(service))
             demo.add_done_callback(lambda _: service.stop(Trigger.COMMAND))
         code = await service.wait_stopped()
+        notifier.stopping()
         await asyncio.sleep(5 * service.period)  # brake frames out, drives confirm
         return code
     finally:
@@ -121,6 +125,7 @@ async def serve(
         if host is not None:
             await host.close()
         service.close()
+        notifier.close()
         leave_realtime(realtime)
 
 

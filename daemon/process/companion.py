@@ -89,8 +89,7 @@ async def run(config: DaemonConfig, link: RemoteLink) -> int:
         planner.subscribe(update_status)
         update_status({})
         watchdog = asyncio.create_task(run_watchdog(notifier, Progress(lambda: link.cycles)))
-        await link.closed.wait()
-        notifier.stopping()
+        await link.closed.wait()  # the core has stopped (and said STOPPING=1)
         watchdog.cancel()
         return 0
     finally:

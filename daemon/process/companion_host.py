@@ -182,7 +182,8 @@ class CompanionHost:
         self.ready.clear()
         if not self._ever_ready and code not in (0, -9):
             # it never came up: the same error again on restart (a port in use, ...)
-            log.error("the companion could not start (exit code %d): stopping", code)
+            # it said why on stderr (one line); the daemon stops with its exit code
+            log.debug("the companion could not start (exit code %d): stopping", code)
             self.exit_code = code
             self.service.stop(Trigger.SIGTERM, exit_code=code if code > 0 else 1)
             return

@@ -155,14 +155,24 @@ class RemoteLink:
                 future.set_result((ok, payload))
         elif kind == "event":
             event = message[1]
-            if "state" in event:
-                self._state = {**self._state, "state": event["state"]}
+            self._follow_state(event)
             for sink in self._sinks:
                 sink(event)
         elif kind == "state":
             self._state = message[1]
         elif kind in self.batch_sinks:
             self.batch_sinks[kind](message[1])
+
+    def _follow_state(self, event: dict[str, Any]) -> None:
+        """Keep the safety state and its fault current between two snapshots."""
+        if "state" not in event:
+            return
+        state = {**self._state, "state": event["state"]}
+        if event.get("event") == "brake":
+            state["fault"] = {"trigger": event["trigger"], "message": event["message"]}
+        elif event["state"] != "braked":
+            state["fault"] = None
+        self._state = state
 
     def _fail_waiting(self, why: str) -> None:
         for future in self._waiting.values():

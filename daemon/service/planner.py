@@ -39,6 +39,7 @@ from daemon.service.safety import SafetyState
 
 PLANNING_LEAD = 0.05  # s ahead of now a planned transition begins (planning takes time)
 HOLD_LEAD = 0.01  # the same for a hold: a stop plans in a few ms and should not wait
+MIN_LEAD = 0.005  # s: the least lead tried again after a plan came too late
 SETTLE_ATTEMPTS = 3  # plans of an approach that begins later, from the state it begins at
 HOLD_ATTEMPTS = 6  # a hold is never refused for want of time: it tries with longer leads
 MOVING = (SafetyState.HOLD.value, SafetyState.TRACKING.value)  # states that follow plans
@@ -271,7 +272,7 @@ class Planner:
             if replan is None:
                 return reply
             if replan == "late":
-                lead = max(3 * lead, PLANNING_LEAD)
+                lead = max(3 * lead, MIN_LEAD)
         raise CommandError("busy", f"{what}: planning kept outlasting its lead")
 
     def _require_moving(self, action: str) -> None:

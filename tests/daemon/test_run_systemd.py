@@ -63,9 +63,12 @@ def _start(config: Path, notify: NotifySocket) -> subprocess.Popen:
 
 
 def _listening(pid: int, port: int) -> bool:
+    """The daemon (its companion process, which owns zenoh) listens on `port`."""
+    daemon = psutil.Process(pid)
     return any(
         c.status == psutil.CONN_LISTEN and c.laddr.port == port
-        for c in psutil.Process(pid).net_connections(kind="tcp")
+        for process in (daemon, *daemon.children(recursive=True))
+        for c in process.net_connections(kind="tcp")
     )
 
 
