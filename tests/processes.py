@@ -1,8 +1,10 @@
-"""Starting the simulator processes tests need, and stopping the daemon processes they
-start the way systemd or an operator would."""
+"""Starting the simulator processes tests need (and daemons driving them over
+socketcand), and stopping the daemon processes they start the way systemd or an
+operator would."""
 
 from __future__ import annotations
 
+import json
 import re
 import signal
 import subprocess
@@ -10,7 +12,13 @@ import sys
 import time
 from pathlib import Path
 
+import yaml
+
+from daemon.interface.client import CdprClient, UnreachableError
+
 ROOT = Path(__file__).resolve().parent.parent
+CONFIG = ROOT / "config" / "reference8-cia402.yaml"
+PREFIX = "cdpr/reference8"
 ANNOUNCED = re.compile(r"serving socketcand on 127\.0\.0\.1:(\d+) channel (\S+)")
 
 
@@ -61,3 +69,70 @@ def finish(proc: subprocess.Popen, terminate: bool = True, timeout: float = 15.0
         proc.kill()
         out, _ = proc.communicate()
     return out
+
+
+def simulator_configs(tmp_path: Path, zenoh_port: int) -> tuple[Path, dict]:
+    """The reference8 CiA 402 config for `python -m sim_bus` (its file, and its data for
+    daemon_config), zenoh on `zenoh_port`."""
+    data = yaml.safe_load(CONFIG.read_text())
+    data["robot"] = str(ROOT / "config" / "robots" / "reference8.yaml")
+    data["zenoh"]["listen"] = [f"tcp/127.0.0.1:{zenoh_port}"]
+    # three processes and TCP relays on a busy 2-CPU host: patient drive watchdogs, so
+    # that only what the test does decides how the run ends
+    data["drives"].update(watchdog_timeout=0.2, heartbeat_timeout=1.0)
+    sim = tmp_path / "sim.yaml"
+    sim.write_text(yaml.safe_dump(data))
+    return sim, data
+
+
+def daemon_config(
+    tmp_path: Path, data: dict, port: int, channel: str, **safety: float
+) -> Path:
+    """The daemon's config file: `data` (simulator_configs) on the simulator's socketcand
+    bus at `port`, `channel`, with `safety` settings on top."""
+    data = dict(data)
+    data["can"] = {
+        "interface": "socketcand",
+        "channel": channel,
+        "options": {"host": "127.0.0.1", "port": port},
+    }
+    # late feedback is not the point
+    data["safety"] = {**data["safety"], "stale_cycles": 25, **safety}
+    path = tmp_path / "daemon.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+def truth(path: Path) -> list[dict]:
+    """The simulator's --truth-log records so far."""
+    lines = path.read_text().splitlines()
+    return [json.loads(line) for line in lines[:-1]]  # the last may be half written
+
+
+def connect(port: int, proc: subprocess.Popen, timeout: float = 30.0) -> CdprClient:
+    """A client once the daemon answers a status query on zenoh (it starts in a second
+    or two)."""
+    end = time.monotonic() + timeout
+    while True:
+        assert proc.poll() is None, f"the daemon exited early: {finish(proc, False)}"
+        try:
+            client = CdprClient(PREFIX, f"tcp/127.0.0.1:{port}", timeout=5.0)
+        except UnreachableError:
+            client = None
+        if client is not None:
+            try:
+                client.status()
+                return client
+            except UnreachableError:
+                client.close()
+        assert time.monotonic() < end, "the daemon never answered on zenoh"
+        time.sleep(0.2)
+
+
+def wait_status(client: CdprClient, state: str, timeout: float) -> dict:
+    """The status once the safety state is `state` (AssertionError after `timeout` s)."""
+    end = time.monotonic() + timeout
+    while (status := client.status())["state"] != state:
+        assert time.monotonic() < end, f"never {state}: {status}"
+        time.sleep(0.05)
+    return status

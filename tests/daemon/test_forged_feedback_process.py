@@ -13,7 +13,6 @@ and the platform stays within 2 mm of where it was (on main the forgery moves it
 
 from __future__ import annotations
 
-import json
 import math
 import subprocess
 import sys
@@ -26,12 +25,20 @@ import numpy as np
 import pytest
 import yaml
 
-from daemon.interface.client import CdprClient, UnreachableError
+from daemon.interface.client import CdprClient
 from drivers.cia402 import codec
 from drivers.cia402.statemachine import MODE_CST
 from drivers.config import parse_drives
 from tests.loopback import free_port
-from tests.processes import finish, serve_simulator
+from tests.processes import (
+    connect,
+    daemon_config,
+    finish,
+    serve_simulator,
+    simulator_configs,
+    truth,
+    wait_status,
+)
 
 ROOT = Path(__file__).resolve().parents[2]
 CONFIG = ROOT / "config" / "reference8-cia402.yaml"
@@ -41,56 +48,6 @@ SYNCS = 5000  # the attacker answers at most this many SYNCs (10 s at 500 Hz)
 ALLOWED = 2e-3  # m the true platform position may move
 
 pytestmark = pytest.mark.timeout(120)
-
-
-def _configs(tmp_path: Path, zenoh_port: int) -> tuple[Path, dict]:
-    data = yaml.safe_load(CONFIG.read_text())
-    data["robot"] = str(ROOT / "config" / "robots" / "reference8.yaml")
-    data["zenoh"]["listen"] = [f"tcp/127.0.0.1:{zenoh_port}"]
-    # three processes and TCP relays on a busy 2-CPU host: patient drive watchdogs, so
-    # that only the attack decides how the run ends
-    data["drives"].update(watchdog_timeout=0.2, heartbeat_timeout=1.0)
-    sim = tmp_path / "sim.yaml"
-    sim.write_text(yaml.safe_dump(data))
-    return sim, data
-
-
-def _daemon_config(tmp_path: Path, data: dict, port: int, channel: str) -> Path:
-    data = dict(data)
-    data["can"] = {
-        "interface": "socketcand",
-        "channel": channel,
-        "options": {"host": "127.0.0.1", "port": port},
-    }
-    data["safety"] = {**data["safety"], "stale_cycles": 25}  # late feedback is not the point
-    path = tmp_path / "daemon.yaml"
-    path.write_text(yaml.safe_dump(data))
-    return path
-
-
-def _truth(path: Path) -> list[dict]:
-    lines = path.read_text().splitlines()
-    return [json.loads(line) for line in lines[:-1]]  # the last may be half written
-
-
-def _connect(port: int, proc: subprocess.Popen, timeout: float = 30.0) -> CdprClient:
-    """A client once the daemon listens on zenoh (it starts in a second or two)."""
-    end = time.monotonic() + timeout
-    while True:
-        assert proc.poll() is None, "the daemon exited early"
-        try:
-            return CdprClient(PREFIX, f"tcp/127.0.0.1:{port}", timeout=5.0)
-        except UnreachableError:
-            assert time.monotonic() < end, "the daemon never listened on zenoh"
-            time.sleep(0.2)
-
-
-def _wait_status(client: CdprClient, state: str, timeout: float) -> dict:
-    end = time.monotonic() + timeout
-    while (status := client.status())["state"] != state:
-        assert time.monotonic() < end, f"never {state}: {status}"
-        time.sleep(0.05)
-    return status
 
 
 class Attacker(threading.Thread):
@@ -136,7 +93,7 @@ def _forge_until_braked(client: CdprClient, data: dict, port: int, channel: str)
     attacker = Attacker(port, channel, round(scaling.position(FORGED)))
     attacker.start()
     try:
-        status = _wait_status(client, "braked", 10.0)
+        status = wait_status(client, "braked", 10.0)
         answered = attacker.answered
         time.sleep(0.5)  # braked, the attack goes on: the brake must not follow it
     finally:
@@ -151,14 +108,14 @@ def test_a_forged_or_glitching_length_brakes_naming_the_drive_and_nothing_moves(
     tmp_path: Path, attack: str
 ) -> None:
     zenoh_port = free_port()
-    sim_config, data = _configs(tmp_path, zenoh_port)
+    sim_config, data = simulator_configs(tmp_path, zenoh_port)
     truth_log = tmp_path / "truth.jsonl"
     options = ["--duration", "100", "--truth-log", str(truth_log)]
     options += ["--fault-input"] if attack == "glitch" else []
     sim, port, channel = serve_simulator(sim_config, *options)
     daemon = None
     try:
-        config = _daemon_config(tmp_path, data, port, channel)
+        config = daemon_config(tmp_path, data, port, channel)
         with (tmp_path / "daemon.log").open("w") as daemon_log:  # the child keeps it open
             daemon = subprocess.Popen(
                 [sys.executable, "-m", "daemon.cli", "run", "--config", str(config)],
@@ -168,18 +125,18 @@ def test_a_forged_or_glitching_length_brakes_naming_the_drive_and_nothing_moves(
                 text=True,
             )
         events: list[dict] = []
-        with _connect(zenoh_port, daemon) as client:
-            _wait_status(client, "idle", 10.0)
+        with connect(zenoh_port, daemon) as client:
+            wait_status(client, "idle", 10.0)
             subscriber = client.subscribe_events(events.append)
             client.enable()
             time.sleep(0.5)
-            start = _truth(truth_log)[-1]
+            start = truth(truth_log)[-1]
             if attack == "forged":
                 status = _forge_until_braked(client, data, port, channel)
             else:
                 sim.stdin.write("glitch:0\n")
                 sim.stdin.flush()
-                status = _wait_status(client, "braked", 10.0)
+                status = wait_status(client, "braked", 10.0)
                 time.sleep(0.5)  # braked, the glitch goes on: the brake must not follow it
             time.sleep(0.3)  # and after it
             subscriber.undeclare()
@@ -189,7 +146,7 @@ def test_a_forged_or_glitching_length_brakes_naming_the_drive_and_nothing_moves(
             finish(daemon)
         sim.terminate()
         sim.communicate(timeout=10)  # closes its stdin too
-    after = [t for t in _truth(truth_log) if t["t"] >= start["t"]]
+    after = [t for t in truth(truth_log) if t["t"] >= start["t"]]
     assert len(after) > 30  # the whole attack and what followed
     p0 = np.array(start["position"])
     moved = max(np.linalg.norm(np.array(t["position"]) - p0) for t in after)

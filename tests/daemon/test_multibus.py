@@ -221,7 +221,7 @@ def test_eight_drives_on_two_buses_enable_hold_and_move() -> None:
                     config.robot.home.position + np.array([0.03, -0.02, 0.04]),
                     config.robot.home.quaternion,
                 )
-                await service.command("goto", {"pose": target})
+                await stack.planner.command("goto", {"pose": target})
                 for _ in range(200):
                     if service.machine.state is SafetyState.HOLD:
                         break

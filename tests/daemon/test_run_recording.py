@@ -19,10 +19,10 @@ import pytest
 import yaml
 from mcap.reader import make_reader
 
-from daemon.interface.client import CdprClient, UnreachableError
+from daemon.interface.client import CdprClient
 from daemon.process.recording import CYCLE_SCHEMA, CYCLE_SCHEMA_NAME, CYCLE_TOPIC, CanRecorder
 from tests.loopback import free_port
-from tests.processes import finish, stop_impatiently
+from tests.processes import connect, finish, stop_impatiently
 
 ROOT = Path(__file__).resolve().parents[2]
 CONFIG = ROOT / "config" / "reference8-cia402.yaml"
@@ -57,25 +57,6 @@ def _finish(proc: subprocess.Popen, impatient: bool = True) -> str:
     if impatient:
         stop_impatiently(proc)
     return finish(proc, terminate=False)
-
-
-def _connect(port: int, proc: subprocess.Popen, timeout: float = 20.0) -> CdprClient:
-    """A client once the daemon answers a status query (it starts in about a second)."""
-    end = time.monotonic() + timeout
-    while True:
-        assert proc.poll() is None, f"daemon exited early: {_finish(proc, False)}"
-        try:
-            client = CdprClient(PREFIX, f"tcp/127.0.0.1:{port}", timeout=5.0)
-        except UnreachableError:
-            client = None
-        if client is not None:
-            try:
-                client.status()
-                return client
-            except UnreachableError:
-                client.close()
-        assert time.monotonic() < end, "the daemon never answered on zenoh"
-        time.sleep(0.2)
 
 
 def _wait_state(client: CdprClient, state: str, timeout: float) -> None:
@@ -116,7 +97,7 @@ def test_a_flight_is_recorded_to_mcap_and_a_can_log(tmp_path: Path) -> None:
     nodes = data["drives"]["nodes"]
     proc = _start(config)
     try:
-        with _connect(port, proc) as client:
+        with connect(port, proc) as client:
             assert client.status()["state"] == "idle"
             asked = time.monotonic()
             client.enable()

@@ -1,0 +1,196 @@
+"""Failure semantics between the real-time core and its companion process (issue 18
+item 2), as separate processes: the simulator serving its bus over socketcand and
+logging the platform's TRUE pose (--truth-log), and `cdprd run` driving it.
+
+- the companion killed: the core restarts it, the robot stays held, zenoh answers again;
+- the companion hung (SIGSTOP): the core brakes a moving robot after
+  safety.companion_lost, kills the silent companion after safety.companion_hang and
+  starts a new one, which reports the brake;
+- the core killed: the drives' watchdogs hold the platform, the companion exits on its
+  own, and a new daemon (what systemd would restart) comes up held, naming the drives'
+  watchdog faults, and a reset makes it IDLE, all without moving the platform.
+"""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+import psutil
+import pytest
+
+from tests.loopback import free_port
+from tests.processes import (
+    ROOT,
+    connect,
+    daemon_config,
+    finish,
+    serve_simulator,
+    simulator_configs,
+    truth,
+    wait_status,
+)
+
+ALLOWED = 2e-3  # m the true platform may move
+
+pytestmark = pytest.mark.timeout(120)
+
+
+class Rig:
+    """The simulator process, its truth log and the daemon's zenoh port."""
+
+    def __init__(self, tmp_path: Path, sim: subprocess.Popen, config: Path, zenoh: int) -> None:
+        self.tmp_path, self.sim, self.config, self.zenoh = tmp_path, sim, config, zenoh
+        self.truth_log = tmp_path / "truth.jsonl"
+
+    def start_daemon(self, name: str) -> subprocess.Popen:
+        with (self.tmp_path / f"{name}.log").open("w") as log:  # the child keeps it open
+            return subprocess.Popen(
+                [sys.executable, "-m", "daemon.cli", "run", "--config", str(self.config)],
+                cwd=ROOT,
+                stdout=log,
+                stderr=subprocess.STDOUT,
+            )
+
+    def log(self, name: str) -> str:
+        return (self.tmp_path / f"{name}.log").read_text()
+
+    def position(self) -> np.ndarray:
+        return np.array(truth(self.truth_log)[-1]["position"])
+
+    def moved_since(self, t: float) -> float:
+        """The farthest the true platform got from where it was at simulator time t."""
+        records = [r for r in truth(self.truth_log) if r["t"] >= t]
+        assert len(records) > 10, "the truth log stopped"
+        p0 = np.array(records[0]["position"])
+        return max(float(np.linalg.norm(np.array(r["position"]) - p0)) for r in records)
+
+    def now(self) -> float:
+        return truth(self.truth_log)[-1]["t"]
+
+
+@contextmanager
+def rig(tmp_path: Path, **safety: float) -> Iterator[Rig]:
+    zenoh = free_port()
+    sim_config, data = simulator_configs(tmp_path, zenoh)
+    options = ["--duration", "100", "--truth-log", str(tmp_path / "truth.jsonl")]
+    sim, port, channel = serve_simulator(sim_config, *options)
+    try:
+        yield Rig(tmp_path, sim, daemon_config(tmp_path, data, port, channel, **safety), zenoh)
+    finally:
+        sim.terminate()
+        sim.communicate(timeout=10)
+
+
+def companion_of(daemon: subprocess.Popen, timeout: float = 30.0, not_pid: int = 0) -> int:
+    """The pid of the daemon's companion process (other than `not_pid`)."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        for child in psutil.Process(daemon.pid).children():
+            try:
+                command = " ".join(child.cmdline())
+            except psutil.Error:  # exited (a zombie until the core reaps it)
+                continue
+            if "daemon.process.companion" in command and child.pid != not_pid:
+                return child.pid
+        time.sleep(0.05)
+    raise AssertionError("no companion process")
+
+
+def test_a_killed_companion_is_restarted_and_the_robot_stays_held(tmp_path: Path) -> None:
+    with rig(tmp_path) as r:
+        daemon = r.start_daemon("daemon")
+        try:
+            with connect(r.zenoh, daemon) as client:
+                wait_status(client, "idle", 10.0)
+                client.enable()
+                wait_status(client, "hold", 5.0)
+            time.sleep(0.3)
+            since = r.now()
+            first = companion_of(daemon)
+            psutil.Process(first).kill()
+            second = companion_of(daemon, not_pid=first)
+            with connect(r.zenoh, daemon) as client:
+                status = client.status()  # a query answered by the new companion
+            time.sleep(0.5)
+            moved = r.moved_since(since)
+            assert daemon.poll() is None, "the core exited with its companion"
+        finally:
+            finish(daemon)
+    assert second != first
+    assert status["state"] == "hold" and status["fault"] is None, status
+    assert moved < ALLOWED, f"the platform moved {moved * 1e3:.2f} mm"
+    log = r.log("daemon")
+    assert "the companion exited with code -9: restarting it" in log, log
+
+
+def test_a_hung_companion_brakes_a_moving_robot_and_is_replaced(tmp_path: Path) -> None:
+    with rig(tmp_path, companion_lost=0.5, companion_hang=1.5) as r:
+        daemon = r.start_daemon("daemon")
+        try:
+            with connect(r.zenoh, daemon) as client:
+                wait_status(client, "idle", 10.0)
+                client.enable()
+                wait_status(client, "hold", 5.0)
+            time.sleep(0.3)
+            since = r.now()
+            first = companion_of(daemon)
+            psutil.Process(first).send_signal(signal.SIGSTOP)
+            companion_of(daemon, not_pid=first)  # killed after 1.5 s, then restarted
+            with connect(r.zenoh, daemon) as client:
+                status = wait_status(client, "braked", 10.0)
+            time.sleep(0.5)
+            moved = r.moved_since(since)
+        finally:
+            finish(daemon)
+    assert status["fault"]["trigger"] == "companion_lost", status
+    assert "safety.companion_lost 0.5 s" in status["fault"]["message"], status
+    assert moved < ALLOWED, f"the platform moved {moved * 1e3:.2f} mm"
+    log = r.log("daemon")
+    assert "has been silent for" in log and "killing it" in log, log
+
+
+def test_a_killed_core_leaves_the_drives_holding_and_a_restart_comes_up_held(
+    tmp_path: Path,
+) -> None:
+    with rig(tmp_path) as r:
+        daemon = r.start_daemon("daemon")
+        restarted = None
+        try:
+            with connect(r.zenoh, daemon) as client:
+                wait_status(client, "idle", 10.0)
+                client.enable()
+                wait_status(client, "hold", 5.0)
+            time.sleep(0.3)
+            since = r.now()
+            companion = psutil.Process(companion_of(daemon))
+            daemon.kill()  # SIGKILL: no brake frame, no goodbye
+            daemon.wait(10)
+            companion.wait(10)  # it notices the core is gone and exits (psutil.TimeoutExpired)
+            time.sleep(1.0)  # the drives' watchdogs fired and hold
+            moved_dead = r.moved_since(since)
+            since = r.now()
+            restarted = r.start_daemon("restarted")
+            with connect(r.zenoh, restarted) as client:
+                # the drives latched their watchdog's fault: held, and named
+                status = wait_status(client, "braked", 15.0)
+                client.reset()
+                reset = wait_status(client, "idle", 5.0)
+            time.sleep(0.5)
+            moved_restart = r.moved_since(since)
+        finally:
+            if restarted is not None:
+                finish(restarted)
+            if daemon.poll() is None:
+                finish(daemon)
+    assert moved_dead < ALLOWED, f"the platform moved {moved_dead * 1e3:.2f} mm (core dead)"
+    assert status["fault"]["trigger"] == "drive_fault", status
+    assert "RPDO timeout" in status["fault"]["message"], status
+    assert reset["fault"] is None, reset
+    assert moved_restart < ALLOWED, f"the platform moved {moved_restart * 1e3:.2f} mm"
