@@ -1,8 +1,9 @@
 """The control cycle of a running daemon, quiet and under a zenoh flood (issue 7).
 
-This process runs the daemon as `cdprd run --sim` composes it (Service + in-process
-simulator + ZenohInterface on one asyncio loop, zenoh on a free tcp/127.0.0.1 port),
-enables the robot and sends it one long slow trajectory, so that it is TRACKING. Then:
+This process runs the daemon as `cdprd run --sim` does: it is the real-time core (the
+cycle and the in-process simulator), and its companion process serves zenoh on a free
+tcp/127.0.0.1 port; it enables the robot and has it follow one long slow trajectory, so
+that it is TRACKING.  Then:
 
 - quiet: the cycle figures for --seconds, nothing else on zenoh;
 - flood: the same while a separate process (this script with --flooder) puts thousands
@@ -12,8 +13,8 @@ enables the robot and sends it one long slow trajectory, so that it is TRACKING.
 Per phase: period jitter, compute time of a cycle, last feedback -> last command
 latency (p50/p99/max, µs), deadline misses and overruns per 10^4 cycles, and the loop's
 lag (how late a 1 kHz timer callback runs: p50/p99/max, share > 0.5 ms); the RSS of
-this process before and after the flood and its peak; the interface's counters; and
-what the flooder sent and got back.  Mixes (what the puts are):
+the core and of the companion before and after the flood and their peaks; the frame
+counters; and what the flooder sent and got back.  Mixes (what the puts are):
 
     parse    100-waypoint trajectories that parse but start in the past: the whole
              decoding cost, then a cheap refusal by the service
@@ -32,8 +33,8 @@ drops what comes faster before the daemon sees it (docs/zenoh.md, "Flow control"
 
 The default mix, "refused", measures the interface's own costs.  With "valid", "large"
 or "all" the service also accepts trajectories while the robot moves: their validation
-and approach planning run in the control cycle's slack (Service._in_slack).  Should the
-robot brake, the output says so ("state_after", "fault").
+and approach planning run in the companion, the core only follows the planned curves.
+Should the robot brake, the output says so ("state_after", "fault").
 """
 
 from __future__ import annotations
@@ -43,7 +44,6 @@ import asyncio
 import json
 import math
 import random
-import sys
 import time
 from collections import Counter
 from pathlib import Path
@@ -51,13 +51,14 @@ from typing import Any
 
 import numpy as np
 import psutil
-from timing import free_endpoint
+from timing import free_endpoint, ordinary_child
 
 from cdpr.trajectory import parse_trajectory
 from daemon.cli.simulated import InProcessSimulator
 from daemon.config import load_config
-from daemon.interface.zenoh_io import ZenohInterface
+from daemon.process.app import serve
 from daemon.service.cycle_stats import CycleStats
+from daemon.service.planner import LocalLink, Planner
 from daemon.service.safety import SafetyState
 from daemon.service.service import Service
 from drivers.clock import PeriodicTimer
@@ -280,14 +281,10 @@ async def measure(seconds: float, rate: float, mix: str, limit: float | None) ->
             data["zenoh"]["ingress_limits_hz"] = {"trajectory": limit, "cmd/*": limit}
 
     config = load_config(CONFIG, edit)
-    process = psutil.Process()
-    sim = InProcessSimulator(config)
-    sim.start()
-    service = Service(config, sim.daemon_bus)
-    interface = ZenohInterface(config.zenoh, service, PREFIX, config.trajectory)
+    prefix = config.zenoh.key_prefix(config.robot.name)
     out: dict[str, Any] = {}
 
-    def braked(phase: str) -> bool:
+    def braked(service: Service, phase: str) -> bool:
         if service.machine.state in (SafetyState.HOLD, SafetyState.TRACKING):
             return False
         fault = service.machine.fault
@@ -295,56 +292,67 @@ async def measure(seconds: float, rate: float, mix: str, limit: float | None) ->
         out["fault"] = None if fault is None else fault.line()
         return True
 
-    try:
-        await service.start()
-        await interface.start()
-        service.subscribe(interface.publish_event)
+    async def phases(service: Service) -> None:
         await service.command("enable", {})
         tracking = parse_trajectory(tracking_trajectory(2 * seconds + 30.0))
-        await service.submit_trajectory(tracking, None)
+        await Planner(config, LocalLink(service)).submit_trajectory(tracking, None)  # set-up
         await asyncio.sleep(1.0)
-        if braked("setup"):
-            return out
+        if braked(service, "setup"):
+            return
         probe = LagProbe(asyncio.get_running_loop())
         service.stats = CycleStats(config.controller.rate_hz)
         await asyncio.sleep(seconds)
         out["quiet"] = cycle_figures(service.stats)
         out["quiet"]["loop_lag"] = probe.figures()
-        if braked("quiet"):
-            return out
-        rss_before = peak = process.memory_info().rss
+        if braked(service, "quiet"):
+            return
+        processes = {"core": psutil.Process(), "companion": _companion()}
+        before = {name: proc.memory_info().rss for name, proc in processes.items()}
+        peak = dict(before)
         service.stats = CycleStats(config.controller.rate_hz)
-        child = await asyncio.create_subprocess_exec(
-            sys.executable,
-            __file__,
-            *("--flooder", endpoint, "--seconds", str(seconds), "--rate", str(rate)),
-            *("--mix", mix),
-            stdout=asyncio.subprocess.PIPE,
+        flooder = asyncio.ensure_future(
+            ordinary_child(
+                __file__,
+                *("--flooder", endpoint, "--prefix", prefix, "--seconds", str(seconds)),
+                *("--rate", str(rate), "--mix", mix),
+            )
         )
-        done = asyncio.ensure_future(child.communicate())
-        while not done.done():
-            peak = max(peak, process.memory_info().rss)
-            await asyncio.wait([done], timeout=0.05)
-        stdout, _ = done.result()
+        while not flooder.done():
+            for name, proc in processes.items():
+                peak[name] = max(peak[name], proc.memory_info().rss)
+            await asyncio.wait([flooder], timeout=0.05)
         out["flood"] = cycle_figures(service.stats)
         out["flood"]["loop_lag"] = probe.figures()
         probe.close()
-        rss_after = process.memory_info().rss
         out["rss_mb"] = {
-            "before": round(rss_before / 2**20, 1),
-            "peak": round(peak / 2**20, 1),
-            "after": round(rss_after / 2**20, 1),
+            name: {
+                "before": round(before[name] / 2**20, 1),
+                "peak": round(peak[name] / 2**20, 1),
+                "after": round(proc.memory_info().rss / 2**20, 1),
+            }
+            for name, proc in processes.items()
         }
         out["state_after"] = service.machine.state.value
         fault = service.machine.fault
         out["fault"] = None if fault is None else fault.line()
-        out["flooder"] = json.loads(stdout)
-        out["interface"] = interface.stats()
-        return out
+        out["flooder"] = flooder.result()
+        out["frames"] = service.state()["frames"]
+
+    sim = InProcessSimulator(config)
+    sim.start()
+    try:
+        await serve(config, sim.daemon_bus, after_start=phases)
     finally:
-        await interface.close()
-        service.close()
         sim.close()
+    return out
+
+
+def _companion() -> psutil.Process:
+    """The companion process of the daemon this process runs."""
+    for child in psutil.Process().children():
+        if "daemon.process.companion" in " ".join(child.cmdline()):
+            return child
+    raise SystemExit("the daemon has no companion process")
 
 
 def main() -> None:

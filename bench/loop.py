@@ -1,94 +1,163 @@
-"""The daemon's control cycle against the in-process simulator: 8 drives on the loop
-bus, enabled and holding, for a fixed time at 500 Hz and at 1000 Hz.
+"""The daemon's control cycle as `cdprd run --sim` runs it: the real-time core (this
+process: SCHED_FIFO where permitted, memory locked, the in-process simulator's 8 drives
+on the loop bus) and its companion process (zenoh), enabled and holding for a fixed
+time at 500 Hz and at 1000 Hz; optionally with a busy host.
 
-    python bench/loop.py --json [--seconds 10] [--protocol cia402|odrive]
+    python bench/loop.py --json [--seconds 10] [--protocol cia402|odrive] [--load N] [--flood]
 
-Prints one JSON object keyed by rate: compute time of a cycle (controller + safety +
-encode + send), the controller's work done ahead while the feedback is on its way
-(prepare), latency from the last feedback frame of a cycle (or its tick, when streamed
-ODrive feedback was complete before it) to the last command frame sent, deadline misses
-+ overruns per 10^4 cycles, and the process's CPU share (daemon and simulator together:
-they share the loop).  Figures are for this machine (2 vCPU); nothing here is hard real
-time (PERF-FACTS).  `timer_floor_misses_per_1e4` is the host's share: overruns of a bare
-timerfd loop that does nothing else, at the same rate for the same time (a vCPU not run
-for a few ms misses periods whatever runs on it).
+Per rate: compute time of a cycle (controller + safety + encode + send), the
+controller's work done ahead while the feedback is on its way (prepare), latency from
+the last feedback frame of a cycle (or its tick, when streamed ODrive feedback was
+complete before it) to the last command frame sent, deadline misses + overruns per 10^4
+cycles, the core process's CPU share (daemon and simulator together: they share the
+loop), and `braked` (1 if the robot braked during the measurement).
+`timer_floor_misses_per_1e4` is the host's share, measured in the same conditions:
+overruns of a bare timerfd loop at the same priority and load that does nothing else
+(a vCPU not run for a few ms misses periods whatever runs on it).
+
+--load N runs N CPU-bound processes at normal priority, --flood the mixed zenoh flood of
+bench/flood.py (`--mix all`) against the companion, both for the whole measurement;
+the figures without them are then printed beside, under "unloaded".  Figures are for
+this machine (2 vCPU); nothing here is hard real time (PERF-FACTS).
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import json
+import os
+import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
+from timing import free_endpoint
+
 from daemon.cli.simulated import InProcessSimulator
-from daemon.config import load_config
+from daemon.config import DaemonConfig, load_config
+from daemon.process.app import serve
+from daemon.process.realtime import Child, realtime, spawn_ordinary
 from daemon.service.service import Service
 from drivers.clock import PeriodicTimer
 
-CONFIGS = Path(__file__).resolve().parent.parent / "config"
+ROOT = Path(__file__).resolve().parent.parent
+CONFIGS = ROOT / "config"
+SETTLE = 0.5  # s enabled before measuring
+FLOOD_RATE = 2000.0  # puts per second
 
 
-async def measure(protocol: str, rate_hz: float, seconds: float) -> dict[str, float]:
+def rate_config(protocol: str, rate_hz: float) -> DaemonConfig:
+    """The example config at `rate_hz`, zenoh on a free loopback port."""
+    endpoint = free_endpoint()
 
-    def at_rate(data: dict) -> None:
+    def edit(data: dict) -> None:
         data["controller"]["rate_hz"] = rate_hz
         data["drives"]["feedback_rate_hz"] = rate_hz
+        data["zenoh"]["listen"] = [endpoint]
+        data["logging"] = {"level": "warning"}
 
-    config = load_config(CONFIGS / f"reference8-{protocol}.yaml", at_rate)
-    sim = InProcessSimulator(config)
-    sim.start()
-    service = Service(config, sim.daemon_bus)
+    return load_config(CONFIGS / f"reference8-{protocol}.yaml", edit)
+
+
+@contextlib.contextmanager
+def busy_host(config: DaemonConfig, load: int, flood: bool, seconds: float) -> Iterator[None]:
+    """`load` CPU hogs and, with `flood`, bench/flood.py's mixed flood on the config's
+    zenoh endpoint, at normal priority (spawned so even from the real-time core), for at
+    most `seconds`; stopped on exit."""
+    env = dict(os.environ)
+    hog = f"import time\nend = time.monotonic() + {seconds}\nwhile time.monotonic() < end: pass"
+    children: list[Child] = [spawn_ordinary([sys.executable, "-c", hog], env) for _ in range(load)]
+    if flood:
+        endpoint = config.zenoh.listen_endpoints[0]
+        prefix = config.zenoh.key_prefix(config.robot.name)
+        argv = [sys.executable, str(ROOT / "bench" / "flood.py"), "--flooder", endpoint]
+        argv += ["--prefix", prefix, "--seconds", str(seconds), "--rate", str(FLOOD_RATE)]
+        argv += ["--mix", "all"]
+        with open(os.devnull, "w") as devnull:
+            children.append(spawn_ordinary(argv, env, stdout=devnull.fileno()))
     try:
-        await service.start()
+        yield
+    finally:
+        for child in children:
+            child.kill()
+        for child in children:
+            while child.poll() is None:
+                time.sleep(0.01)
+
+
+def measure(protocol: str, rate_hz: float, seconds: float, load: int, flood: bool) -> dict:
+    """One run of the daemon as `cdprd run --sim`: enable, settle, measure."""
+    config = rate_config(protocol, rate_hz)
+    out: dict[str, float] = {}
+
+    async def hold_and_measure(service: Service) -> None:
         await service.command("enable", {})
-        await asyncio.sleep(0.5)  # settle, then measure afresh
+        await asyncio.sleep(SETTLE)
         service.stats = type(service.stats)(rate_hz)
-        cpu0, wall0 = time.process_time(), time.monotonic()
-        await asyncio.sleep(seconds)
-        cpu = (time.process_time() - cpu0) / (time.monotonic() - wall0)
-        stats = service.stats
-        if service.machine.fault is not None:
-            raise SystemExit(f"braked during the benchmark: {service.machine.fault.line()}")
-        compute, latency = stats.compute.summary_us(), stats.latency.summary_us()
-        prepare = stats.prepare.summary_us()
-        misses = stats.deadline_misses + stats.overruns
-        return {
-            "rate_hz": rate_hz,
-            "cycles": stats.cycles,
-            "compute_p50_us": compute["p50_us"],
-            "compute_p99_us": compute["p99_us"],
-            "prepare_p50_us": prepare["p50_us"],
-            "latency_p50_us": latency["p50_us"],
-            "latency_p99_us": latency["p99_us"],
-            "latency_max_us": latency["max_us"],
-            "misses_per_1e4": round(1e4 * misses / max(stats.cycles, 1), 2),
-            "cpu_fraction": round(cpu, 3),
-        }
-    finally:
-        service.close()
-        sim.close()
+        with busy_host(config, load, flood, seconds + 5.0):
+            cpu0, wall0 = time.process_time(), time.monotonic()
+            await asyncio.sleep(seconds)
+            cpu = (time.process_time() - cpu0) / (time.monotonic() - wall0)
+        out.update(figures(service, rate_hz, cpu))
+
+    async def run() -> None:
+        sim = InProcessSimulator(config)
+        sim.start()
+        try:
+            await serve(config, sim.daemon_bus, after_start=hold_and_measure)
+        finally:
+            sim.close()
+
+    asyncio.run(run())
+    return out
 
 
-async def timer_floor(rate_hz: float, seconds: float) -> float:
-    """Overruns per 10^4 periods of a timerfd on an otherwise idle event loop."""
-    loop = asyncio.get_running_loop()
-    timer = PeriodicTimer(1.0 / rate_hz)
-    counts = [0, 0]  # periods, overruns
+def figures(service: Service, rate_hz: float, cpu: float) -> dict[str, float]:
+    stats = service.stats
+    compute, latency = stats.compute.summary_us(), stats.latency.summary_us()
+    prepare = stats.prepare.summary_us()
+    misses = stats.deadline_misses + stats.overruns
+    return {
+        "rate_hz": rate_hz,
+        "cycles": stats.cycles,
+        "compute_p50_us": compute["p50_us"],
+        "compute_p99_us": compute["p99_us"],
+        "prepare_p50_us": prepare["p50_us"],
+        "latency_p50_us": latency["p50_us"],
+        "latency_p99_us": latency["p99_us"],
+        "latency_max_us": latency["max_us"],
+        "misses_per_1e4": round(1e4 * misses / max(stats.cycles, 1), 2),
+        "cpu_fraction": round(cpu, 3),
+        "braked": int(service.machine.fault is not None),
+    }
 
-    def tick() -> None:
-        expired = timer.expirations()
-        counts[0] += expired
-        counts[1] += max(expired - 1, 0)
 
-    loop.add_reader(timer.fileno(), tick)
-    try:
-        await asyncio.sleep(seconds)
-    finally:
-        loop.remove_reader(timer.fileno())
-        timer.close()
-    return round(1e4 * counts[1] / max(counts[0], 1), 2)
+def timer_floor(config: DaemonConfig, seconds: float, load: int) -> float:
+    """Overruns per 10^4 periods of a timerfd on an otherwise idle event loop, at the
+    core's priority and under the same load."""
+
+    async def count() -> float:
+        loop = asyncio.get_running_loop()
+        timer = PeriodicTimer(1.0 / config.controller.rate_hz)
+        counts = [0, 0]  # periods, overruns
+
+        def tick() -> None:
+            expired = timer.expirations()
+            counts[0] += expired
+            counts[1] += max(expired - 1, 0)
+
+        loop.add_reader(timer.fileno(), tick)
+        try:
+            await asyncio.sleep(seconds)
+        finally:
+            loop.remove_reader(timer.fileno())
+            timer.close()
+        return round(1e4 * counts[1] / max(counts[0], 1), 2)
+
+    with realtime(config.realtime), busy_host(config, load, False, seconds + 5.0):
+        return asyncio.run(count())
 
 
 def main() -> None:
@@ -96,14 +165,23 @@ def main() -> None:
     parser.add_argument("--json", action="store_true", help="one JSON object only")
     parser.add_argument("--seconds", type=float, default=10.0)
     parser.add_argument("--protocol", choices=["cia402", "odrive"], default="cia402")
+    parser.add_argument("--load", type=int, default=0, help="CPU-bound processes beside")
+    parser.add_argument("--flood", action="store_true", help="bench/flood.py's mixed flood")
     args = parser.parse_args()
+    busy = args.load > 0 or args.flood
     out = {}
     for rate in (500, 1000):
-        figures = asyncio.run(measure(args.protocol, rate, args.seconds))
-        figures["timer_floor_misses_per_1e4"] = asyncio.run(timer_floor(rate, args.seconds))
-        out[str(rate)] = {k: float(v) for k, v in figures.items()}
+        figures = measure(args.protocol, rate, args.seconds, args.load, args.flood)
+        config = rate_config(args.protocol, rate)
+        figures["timer_floor_misses_per_1e4"] = timer_floor(config, args.seconds, args.load)
+        if busy:
+            figures["load"], figures["flood"] = args.load, int(args.flood)
+            quiet = measure(args.protocol, rate, args.seconds, 0, False)
+            quiet["timer_floor_misses_per_1e4"] = timer_floor(config, args.seconds, 0)
+            figures["unloaded"] = quiet
+        out[str(rate)] = figures
         if not args.json:
-            print(rate, out[str(rate)])
+            print(rate, json.dumps(figures))
     if args.json:
         print(json.dumps(out))
 

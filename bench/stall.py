@@ -1,13 +1,15 @@
 """What one big input costs the control loop of a holding robot (issue 22, item 4).
 
-The daemon runs in this process as `cdprd run` composes it (Service + ZenohInterface on
-one asyncio loop, zenoh on a free tcp/127.0.0.1 port), the robot enabled and holding.
-Then, in a separate process so that none of its work lands in this one:
+The daemon runs as `cdprd run` runs it: this process is its real-time core (the cycle,
+SCHED_FIFO where permitted), its companion process serves zenoh on a free
+tcp/127.0.0.1 port; the robot enabled and holding.  Then, from a separate process:
 
 - trajectory: a valid N-waypoint trajectory (a slow circle about home, 10 ms between
   waypoints, under the size limits) is sent as a query on <prefix>/trajectory, and the
   robot follows it for a second after the reply (N = 0: nothing is sent, the robot
   holds for 4 s: the host's own figures, for comparison);
+- junk: N bytes of JSON that decodes and then fails the schema (a list of numbers where
+  waypoints belong), as a query on <prefix>/trajectory;
 - can-flood: N frames on CAN ids no drive uses, --rate frames a second (default 10^6,
   a burst; a 1 Mbit/s bus carries at most ~8,000 such frames a second).  With `--bus
   loop` (the simulator in this process on the loop bus) they appear in the daemon's
@@ -25,6 +27,7 @@ overruns of the control cycle, and whether the robot braked (with the fault).  P
 per size: every run and the median of the runs.
 
     python bench/stall.py trajectory [--sizes 1000 5000 10000] [--runs 3] [--json]
+    python bench/stall.py junk [--sizes 2000000] [--runs 3] [--json]
     python bench/stall.py can-flood [--sizes 30000] [--bus loop|socketcand] [--rate HZ]
 
 `--slow MS` turns on asyncio's debug mode and logs every loop callback that ran longer
@@ -51,11 +54,11 @@ from typing import Any
 
 import can
 from flood import LagProbe, cycle_figures
-from timing import free_endpoint
+from timing import free_endpoint, ordinary_child
 
 from daemon.cli.simulated import InProcessSimulator
 from daemon.config import DaemonConfig, load_config
-from daemon.interface.zenoh_io import ZenohInterface
+from daemon.process.app import serve
 from daemon.service.cycle_stats import CycleStats
 from daemon.service.safety import SafetyState
 from daemon.service.service import Service
@@ -66,7 +69,7 @@ PREFIX = "cdpr/stall"
 HOME = (0.0, 0.0, 1.25)
 SPACING = 0.01  # s between waypoints
 FLOOD_IDS = range(0x6E0, 0x6F0)  # SDO requests to nodes 0x60-0x6F: no drive here uses them
-DEFAULT_SIZES = {"trajectory": [1000, 5000, 10000], "can-flood": [30000]}
+DEFAULT_SIZES = {"trajectory": [1000, 5000, 10000], "junk": [2_000_000], "can-flood": [30000]}
 AFTER = 1.0  # s measured after the input was answered (or sent)
 QUIET = 3.0  # s of the quiet reference (size 0), about a 10,000-waypoint message's
 
@@ -99,12 +102,24 @@ def circle_trajectory(n: int) -> dict[str, Any]:
 
 
 def send_trajectory(endpoint: str, n: int) -> dict[str, Any]:
-    """(Child) the trajectory as a query, once the daemon answers; its reply."""
+    """(Child) the n-waypoint circle as a query, once the daemon answers; its reply."""
+    return query_trajectory(endpoint, json.dumps(circle_trajectory(n)).encode())
+
+
+def junk(n: int) -> bytes:
+    """n bytes of JSON that decodes and then fails the schema: a list of numbers where
+    waypoints belong (the interface decodes it whole before it can refuse it)."""
+    head, tail = b'{"waypoints": [', b"0]}"
+    return head + b"0.123456789, " * ((n - len(head) - len(tail)) // 13) + tail
+
+
+def query_trajectory(endpoint: str, payload: bytes) -> dict[str, Any]:
+    """(Child) `payload` as a query on <prefix>/trajectory, once the daemon answers; its
+    size, the reply's verdict and how long it took."""
     import zenoh
 
     from daemon.config.zenoh_config import client_zenoh_config
 
-    payload = json.dumps(circle_trajectory(n)).encode()
     with zenoh.open(client_zenoh_config([endpoint])) as session:
         deadline = time.monotonic() + 10.0
         while not list(session.get(f"{PREFIX}/cmd/status", timeout=1.0)):
@@ -171,28 +186,28 @@ def daemon_config(endpoint: str, bus: dict[str, Any] | None = None) -> DaemonCon
 async def hold_and_measure(
     config: DaemonConfig, bus: can.BusABC, disturb: Callable[[], Any], sim: Any = None
 ) -> dict[str, Any]:
-    """Start the daemon on `bus`, enable and hold, then `await disturb()` (returns what
-    it learnt) and measure until AFTER seconds past its end."""
-    service = Service(config, bus)
-    interface = ZenohInterface(config.zenoh, service, PREFIX, config.trajectory)
+    """Run the daemon on `bus` as `cdprd run` does (this process the real-time core, its
+    companion process serving zenoh), enable and hold, then `await disturb()` (returns
+    what it learnt) and measure the core until AFTER seconds past its end."""
     out: dict[str, Any] = {}
-    probe = LagProbe(asyncio.get_running_loop())
-    try:
-        await service.start()
-        await interface.start()
-        service.subscribe(interface.publish_event)
-        await service.command("enable", {})
-        await asyncio.sleep(1.0)
-        out["setup_gap_ms"] = round(probe.figures()["max_us"] / 1e3, 2)
-        if service.machine.state is not SafetyState.HOLD:
-            out["braked_before"] = True
-            out["fault"] = _fault(service)
-            return out
-        service.stats = CycleStats(config.controller.rate_hz)
-        out["input"] = await disturb()
-        await asyncio.sleep(AFTER)
-        figures = cycle_figures(service.stats)
-        lag = probe.figures()
+
+    async def measure(service: Service) -> None:
+        probe = LagProbe(asyncio.get_running_loop())
+        try:
+            await service.command("enable", {})
+            await asyncio.sleep(1.0)
+            out["setup_gap_ms"] = round(probe.figures()["max_us"] / 1e3, 2)
+            if service.machine.state is not SafetyState.HOLD:
+                out["braked_before"] = True
+                out["fault"] = _fault(service)
+                return
+            service.stats = CycleStats(config.controller.rate_hz)
+            out["input"] = await disturb()
+            await asyncio.sleep(AFTER)
+            figures = cycle_figures(service.stats)
+            lag = probe.figures()
+        finally:
+            probe.close()
         out.update(
             loop_gap_ms=round(lag["max_us"] / 1e3, 2),
             deadline_misses=service.stats.deadline_misses,
@@ -205,13 +220,13 @@ async def hold_and_measure(
             fault=_fault(service),
             frames=service.state()["frames"],
         )
-        return out
+
+    try:
+        await serve(config, bus, after_start=measure)
     finally:
-        probe.close()
-        await interface.close()
-        service.close()
         if sim is not None:
             sim.close()
+    return out
 
 
 def _fault(service: Service) -> str | None:
@@ -220,15 +235,12 @@ def _fault(service: Service) -> str | None:
 
 
 async def child(*args: str) -> dict[str, Any]:
-    proc = await asyncio.create_subprocess_exec(
-        sys.executable, __file__, *args, stdout=asyncio.subprocess.PIPE
-    )
-    stdout, _ = await proc.communicate()
-    return json.loads(stdout)
+    return await ordinary_child(__file__, *args)
 
 
-async def trajectory_run(n: int) -> dict[str, Any]:
-    """n waypoints; 0: nothing sent for QUIET seconds (the host's own misses and gaps)."""
+async def trajectory_run(n: int, what: str = "trajectory") -> dict[str, Any]:
+    """n waypoints (or, `what` junk, n bytes of junk); 0: nothing sent for QUIET seconds
+    (the host's own misses and gaps)."""
     endpoint = free_endpoint()
     config = daemon_config(endpoint)
     sim = InProcessSimulator(config)
@@ -238,7 +250,7 @@ async def trajectory_run(n: int) -> dict[str, Any]:
         if n == 0:
             await asyncio.sleep(QUIET)
             return {"sent": None}
-        return await child("--send-trajectory", endpoint, str(n))
+        return await child(f"--send-{what}", endpoint, str(n))
 
     return await hold_and_measure(config, sim.daemon_bus, disturb, sim)
 
@@ -318,7 +330,7 @@ def summarise(runs: list[dict[str, Any]]) -> dict[str, Any]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("case", nargs="?", choices=["trajectory", "can-flood"])
+    parser.add_argument("case", nargs="?", choices=["trajectory", "junk", "can-flood"])
     parser.add_argument("--sizes", type=int, nargs="+", help="waypoints or frames")
     parser.add_argument("--runs", type=int, default=3)
     parser.add_argument("--bus", choices=["loop", "socketcand"], default="loop")
@@ -326,6 +338,7 @@ def main() -> None:
     parser.add_argument("--slow", type=float, metavar="MS", help="log callbacks over MS ms")
     parser.add_argument("--one", type=int, help=argparse.SUPPRESS)
     parser.add_argument("--send-trajectory", nargs=2, help=argparse.SUPPRESS)
+    parser.add_argument("--send-junk", nargs=2, help=argparse.SUPPRESS)
     parser.add_argument("--rate", type=float, default=1e6, help="flood: frames a second")
     parser.add_argument("--send-flood", nargs=4, help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -333,12 +346,16 @@ def main() -> None:
         endpoint, n = args.send_trajectory
         print(json.dumps(send_trajectory(endpoint, int(n))))
         return
+    if args.send_junk:
+        endpoint, n = args.send_junk
+        print(json.dumps(query_trajectory(endpoint, junk(int(n)))))
+        return
     if args.send_flood:
         port, channel, n, rate = args.send_flood
         print(json.dumps(send_flood(int(port), channel, int(n), float(rate))))
         return
     if args.case is None:
-        parser.error("name a case: trajectory or can-flood")
+        parser.error("name a case: trajectory, junk or can-flood")
     if args.one is not None:  # one run, in this process
         print(json.dumps(asyncio.run(one_run(args, args.one))))
         return
@@ -368,8 +385,8 @@ async def one_run(args: argparse.Namespace, n: int) -> dict[str, Any]:
         loop = asyncio.get_running_loop()
         loop.set_debug(True)
         loop.slow_callback_duration = args.slow / 1e3
-    if args.case == "trajectory":
-        return await trajectory_run(n)
+    if args.case in ("trajectory", "junk"):
+        return await trajectory_run(n, args.case)
     if args.bus == "socketcand":
         return await flood_run_socketcand(n, args.rate)
     return await flood_run_loop(n, args.rate)

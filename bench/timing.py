@@ -1,13 +1,19 @@
-"""Shared bits of the benchmarks: the reference robot, per-call timing summaries, and a
-free zenoh endpoint on loopback."""
+"""Shared bits of the benchmarks: the reference robot, per-call timing summaries, a
+free zenoh endpoint on loopback, and helper processes beside a real-time daemon."""
 
 from __future__ import annotations
 
+import asyncio
 import gc
+import json
+import os
 import socket
+import sys
+import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -51,3 +57,19 @@ def free_endpoint() -> str:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return f"tcp/127.0.0.1:{s.getsockname()[1]}"
+
+
+async def ordinary_child(*args: str) -> dict[str, Any]:
+    """`python ARGS` at normal priority (spawned from the daemon's real-time core, a
+    child would inherit SCHED_FIFO), its stdout read as one JSON object once it exits."""
+    from daemon.process.realtime import spawn_ordinary
+
+    with tempfile.TemporaryFile() as out:
+        child = spawn_ordinary([sys.executable, *args], dict(os.environ), stdout=out.fileno())
+        while child.poll() is None:
+            await asyncio.sleep(0.02)
+        out.seek(0)
+        text = out.read().decode()
+    if child.returncode != 0:
+        raise SystemExit(f"{' '.join(args[:2])} failed ({child.returncode}): {text[-500:]}")
+    return json.loads(text)

@@ -150,16 +150,28 @@ class Child:
                 os.kill(self.pid, signal.SIGKILL)
 
 
-def spawn_ordinary(argv: list[str], env: dict[str, str], pass_fds: tuple[int, ...]) -> Child:
+def spawn_ordinary(
+    argv: list[str],
+    env: dict[str, str],
+    pass_fds: tuple[int, ...] = (),
+    stdout: int | None = None,
+) -> Child:
     """Start `argv` from a real-time process at normal priority from its first
     instruction: posix_spawn (vfork: nothing of the caller's locked memory is copied)
     with SCHED_OTHER set before the exec, so that its start-up (imports take seconds of
     CPU) never competes with the cycle at the cycle's priority.  `pass_fds` stay open
-    in the child under the same numbers."""
+    in the child under the same numbers; `stdout`, if given, becomes its stdout."""
     for fd in pass_fds:
         os.set_inheritable(fd, True)
     try:
-        pid = os.posix_spawn(argv[0], argv, env, scheduler=(os.SCHED_OTHER, os.sched_param(0)))
+        actions = [] if stdout is None else [(os.POSIX_SPAWN_DUP2, stdout, 1)]
+        pid = os.posix_spawn(
+            argv[0],
+            argv,
+            env,
+            file_actions=actions,
+            scheduler=(os.SCHED_OTHER, os.sched_param(0)),
+        )
     finally:
         for fd in pass_fds:
             os.set_inheritable(fd, False)
