@@ -94,13 +94,16 @@ def measure(protocol: str, rate_hz: float, seconds: float, load: int, flood: boo
 
     async def hold_and_measure(service: Service) -> None:
         await service.command("enable", {})
-        await asyncio.sleep(SETTLE)
-        service.stats = type(service.stats)(rate_hz)
-        with busy_host(config, load, flood, seconds + 5.0):
+        with busy_host(config, load, flood, seconds + SETTLE + 5.0):
+            # made before the measurement: allocating its sample buffers (resident at
+            # once in locked memory) holds the loop up for a few periods
+            fresh = type(service.stats)(rate_hz)
+            await asyncio.sleep(SETTLE)  # the robot settles, the load gets going
+            service.stats = fresh
             cpu0, wall0 = time.process_time(), time.monotonic()
             await asyncio.sleep(seconds)
             cpu = (time.process_time() - cpu0) / (time.monotonic() - wall0)
-        out.update(figures(service, rate_hz, cpu))
+            out.update(figures(service, rate_hz, cpu))  # before the load is stopped
 
     async def run() -> None:
         sim = InProcessSimulator(config)

@@ -24,6 +24,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import os
+import socket
 import sys
 import time
 from collections.abc import Awaitable
@@ -44,7 +45,8 @@ log = logging.getLogger("cdprd")
 
 SUPERVISE_PERIOD = 0.1  # s between checks of the companion's health
 BATCH_PERIOD = 0.05  # s between batches of cycle records and CAN frames
-MESSAGES_PER_PASS = 32  # calls read per wake-up: a flood waits in the socket, not here
+CALL_SLACK = 4e-4  # s a call may still start before the next tick (one takes <~0.2 ms)
+STATE_SLACK = 5e-4  # s the state snapshot needs before the next tick (~0.15-0.3 ms)
 START_TIMEOUT = 30.0  # s for a new companion's first message (its imports, on a busy host)
 RESTART_PAUSES = (0.2, 0.5, 1.0, 2.0, 5.0)  # s before restarting, after each death in a row
 MAX_BATCH = 200  # cycle records held between batches (16 x as many CAN frames)
@@ -69,6 +71,7 @@ class CompanionHost:
         self._deaths = 0  # in a row, for the restart pause
         self._restart_at = 0.0
         self._tasks: list[asyncio.Task] = []
+        self._serving: asyncio.Task | None = None  # the calls of the current companion
         self._cycles: list[tuple] = []  # recorded cycles not yet sent
         self._frames: list[tuple] = []  # recorded CAN frames not yet sent
         self.ready = asyncio.Event()  # a companion is up (zenoh listening)
@@ -127,7 +130,7 @@ class CompanionHost:
         finally:
             companion_end.close()
         self._sock = core_end
-        asyncio.get_running_loop().add_reader(core_end.fileno(), self._on_readable)
+        self._serving = asyncio.get_running_loop().create_task(self._serve(core_end))
         self._last_heard = time.monotonic()
         self._allowed_silence = START_TIMEOUT  # until it first speaks: imports take seconds
         level = logging.getLevelName(logging.getLogger().getEffectiveLevel()).lower()
@@ -137,8 +140,10 @@ class CompanionHost:
         log.info("companion started (pid %d)", self._process.pid)
 
     def _disconnect(self) -> None:
+        if self._serving is not None:
+            self._serving.cancel()
+            self._serving = None
         if self._sock is not None:
-            asyncio.get_running_loop().remove_reader(self._sock.fileno())
             self._sock.close()
             self._sock = None
 
@@ -194,18 +199,33 @@ class CompanionHost:
 
     # -- calls ----------------------------------------------------------------------------
 
-    def _on_readable(self) -> None:
-        sock = self._sock
-        if sock is None:
-            return
-        messages, closed = wire.receive(sock, MESSAGES_PER_PASS)
-        if messages:
-            self._last_heard = time.monotonic()
-            self._allowed_silence = self.config.safety.companion_hang
-        for message, fds in messages:
-            self._dispatch(message, fds)
-        if closed:
-            self._disconnect()
+    async def _serve(self, sock: socket.socket) -> None:
+        """Read the companion's messages, each in the cycle's slack: a call starts only
+        while the next tick is more than CALL_SLACK away, so that no burst of them (a
+        zenoh flood reaches the core as calls) delays a cycle."""
+        loop = asyncio.get_running_loop()
+        service = self.service
+        fd = sock.fileno()  # kept: _disconnect closes the socket before this task ends
+        while True:
+            readable = loop.create_future()
+            loop.add_reader(fd, _set_once, readable)
+            try:
+                await readable
+            finally:
+                loop.remove_reader(fd)
+            while True:
+                await service.slack(CALL_SLACK)
+                messages, closed = wire.receive(sock, 1)
+                if messages:
+                    self._last_heard = time.monotonic()
+                    self._allowed_silence = self.config.safety.companion_hang
+                    ((message, fds),) = messages
+                    self._dispatch(message, fds)
+                if closed:
+                    self._disconnect()
+                    return
+                if not messages:
+                    break
 
     def _dispatch(self, message: tuple, fds: list[int]) -> None:
         kind = message[0]
@@ -284,7 +304,7 @@ class CompanionHost:
         period = 1.0 / self.config.zenoh.state_rate_hz
         while True:
             await asyncio.sleep(period)
-            await self.service.slack()
+            await self.service.slack(STATE_SLACK)
             if self._sock is not None:
                 state = self.service.state()
                 state["companion"] = {"restarts": self.restarts, "dropped": self.dropped}
@@ -342,3 +362,8 @@ class CompanionHost:
         if self._frames:
             batch, self._frames = self._frames, []
             self._send(("frames", batch))
+
+
+def _set_once(future: asyncio.Future) -> None:
+    if not future.done():
+        future.set_result(None)

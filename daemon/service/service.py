@@ -490,18 +490,23 @@ class Service:
                 if time.monotonic() >= until:
                     break
 
-    async def slack(self) -> None:
-        """Return when no cycle is open and the next tick is more than SLACK_MARGIN away
-        (at once if so; daemon.service.api.DaemonHandler)."""
-        while True:
-            timer, loop = self._timer, self._loop
-            if timer is None or loop is None:
-                return
-            if not self._waiting and timer.next_expiry() - time.monotonic() > SLACK_MARGIN:
+    async def slack(self, margin: float = SLACK_MARGIN) -> None:
+        """Return when no cycle is open and the next tick is more than `margin` seconds
+        away (at once if so; daemon.service.api.DaemonHandler)."""
+        while self.slack_left() <= margin:
+            loop = self._loop
+            if loop is None:
                 return
             done = loop.create_future()
             self._slack_waiters.append(done)
             await done  # the coming cycle has run
+
+    def slack_left(self) -> float:
+        """Seconds until the next tick, 0 while a cycle is open (inf when stopped)."""
+        timer = self._timer
+        if timer is None or self._loop is None:
+            return math.inf
+        return 0.0 if self._waiting else timer.next_expiry() - time.monotonic()
 
     def _wake_slack_waiters(self) -> None:
         waiters, self._slack_waiters = self._slack_waiters, []
