@@ -175,7 +175,7 @@ def daemon_config(endpoint: str, bus: dict[str, Any] | None = None) -> DaemonCon
 
     def edit(data: dict) -> None:
         data["robot"] = str(ROOT / "config" / "robots" / "reference8.yaml")
-        data["zenoh"]["listen"] = [endpoint]
+        data["zenoh"].update(listen=[endpoint], prefix=PREFIX)
         if bus is not None:
             data["can"] = bus
             data["safety"]["stale_cycles"] = 25

@@ -1,9 +1,10 @@
 """The companion process: everything of the daemon that is not the control cycle
 (DESIGN §16).
 
-    python -m daemon.process.companion FD
+    python -m daemon.process.companion FD RING
 
-spawned by the core (daemon.process.companion_host) with its end of the link on FD.
+spawned by the core (daemon.process.companion_host) with its end of the link on FD and
+the shared curve ring (daemon.process.curve_ring) on RING.
 It runs zenoh (daemon.interface.zenoh_io) with the planner (daemon.service.planner)
 behind it, the recordings, and systemd notification: READY=1 once zenoh listens,
 STATUS= as the safety state changes, the watchdog fed only while the core's cycles keep
@@ -28,6 +29,7 @@ import can
 
 from daemon.config import DaemonConfig
 from daemon.process.companion_link import RemoteLink
+from daemon.process.curve_ring import CurveRing
 from daemon.process.logsetup import configure_logging
 from daemon.process.realtime import drop_inherited_realtime
 from daemon.process.recording import CanRecorder, TelemetryRecorder, session_path
@@ -45,8 +47,11 @@ Recorder = TypeVar("Recorder", TelemetryRecorder, CanRecorder)
 def main(argv: list[str] | None = None) -> int:
     drop_inherited_realtime()
     args = sys.argv[1:] if argv is None else argv
-    if len(args) != 1 or not args[0].isdigit():
-        print("usage: python -m daemon.process.companion FD (spawned by the core)", file=sys.stderr)
+    if len(args) != 2 or not all(arg.isdigit() for arg in args):
+        print(
+            "usage: python -m daemon.process.companion FD RING (spawned by the core)",
+            file=sys.stderr,
+        )
         return 2
     sock = socket.socket(fileno=int(args[0]))
     sock.settimeout(HELLO_TIMEOUT)
@@ -55,10 +60,12 @@ def main(argv: list[str] | None = None) -> int:
     except OSError as exc:
         print(f"error: companion: no hello from the core: {exc}", file=sys.stderr)
         return 1
-    kind, config, t0, state, level = pickle.loads(data)
+    kind, config, t0, state, level, in_use = pickle.loads(data)
     assert kind == "hello", kind
     configure_logging(level)
-    return asyncio.run(run(config, RemoteLink(sock, t0, state)))
+    ring = CurveRing.attach(int(args[1]))
+    ring.reserve(in_use)  # curves the core still follows
+    return asyncio.run(run(config, RemoteLink(sock, ring, t0, state)))
 
 
 async def run(config: DaemonConfig, link: RemoteLink) -> int:

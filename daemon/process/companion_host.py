@@ -4,11 +4,13 @@ The real-time core runs the cycle and nothing else; its companion (daemon.proces
 companion) runs zenoh, planning and validation, recordings and systemd notification.
 This module, in the core:
 
-- spawns the companion (`python -m daemon.process.companion FD`) with one end of a
-  SOCK_SEQPACKET pair (daemon.process.wire) and says hello (the config, the core's
-  clock origin);
-- serves its calls between cycles: core commands, the reference at a time, and
-  planned trajectories (a sealed memfd, mapped in place);
+- spawns the companion (`python -m daemon.process.companion FD RING`) with one end of a
+  SOCK_SEQPACKET pair (daemon.process.wire) and the shared curve ring
+  (daemon.process.curve_ring), and says hello (the config, the core's clock origin,
+  the ring's ranges still in use);
+- serves its calls in the cycle's slack: core commands, the reference at a time, and
+  planned trajectories (a curve in the ring, sampled in place; its range is handed
+  back when the core drops the curve);
 - pushes events as they happen, the state at zenoh.state_rate_hz and, when recording,
   cycle records and CAN frames in batches, each in the cycle's slack; a full socket
   drops the message (counted), the core never waits;
@@ -27,14 +29,17 @@ import os
 import socket
 import sys
 import time
+import weakref
 from collections.abc import Awaitable
 from typing import Any
 
 import can
 
 from cdpr.controller import ControlOutput
+from cdpr.trajectory.core import Curve
 from daemon.config import DaemonConfig
 from daemon.process import wire
+from daemon.process.curve_ring import CurveRing
 from daemon.process.realtime import Child, spawn_ordinary
 from daemon.process.recording import CycleRecord
 from daemon.service.api import CommandError
@@ -75,6 +80,10 @@ class CompanionHost:
         self._cycles: list[tuple] = []  # recorded cycles not yet sent
         self._frames: list[tuple] = []  # recorded CAN frames not yet sent
         self.ready = asyncio.Event()  # a companion is up (zenoh listening)
+        # made now, before the memory is locked and the drives start: mapping it later
+        # would hold the cycle up
+        self.ring = CurveRing.create()
+        self._in_ring: dict[int, int] = {}  # offset -> bytes of the curves the core holds
         recording = config.recording
         if recording.telemetry:
             service.cycle_listeners.append(self._record_cycle)
@@ -102,6 +111,8 @@ class CompanionHost:
             task.cancel()
         self._flush_batches()
         self._disconnect()
+        # the ring stays mapped while the service may still sample a curve in it; the
+        # process's exit unmaps it
         process = self._process
         if process is not None:
             deadline = time.monotonic() + STOP_WAIT
@@ -123,10 +134,10 @@ class CompanionHost:
         env = dict(os.environ)
         if env.get("WATCHDOG_PID") == str(os.getpid()):
             del env["WATCHDOG_PID"]  # the companion feeds the watchdog (NotifyAccess=all)
-        fd = companion_end.fileno()
+        fd, ring = companion_end.fileno(), self.ring.fd
         try:
-            argv = [sys.executable, "-m", "daemon.process.companion", str(fd)]
-            self._process = spawn_ordinary(argv, env, (fd,))
+            argv = [sys.executable, "-m", "daemon.process.companion", str(fd), str(ring)]
+            self._process = spawn_ordinary(argv, env, (fd, ring))
         finally:
             companion_end.close()
         self._sock = core_end
@@ -134,7 +145,8 @@ class CompanionHost:
         self._last_heard = time.monotonic()
         self._allowed_silence = START_TIMEOUT  # until it first speaks: imports take seconds
         level = logging.getLevelName(logging.getLogger().getEffectiveLevel()).lower()
-        hello = ("hello", self.config, self.service.t0, self.service.state(), level)
+        in_use = list(self._in_ring.items())
+        hello = ("hello", self.config, self.service.t0, self.service.state(), level, in_use)
         if not wire.send(core_end, hello):
             log.error("the companion did not take its hello")
         log.info("companion started (pid %d)", self._process.pid)
@@ -219,29 +231,25 @@ class CompanionHost:
                 if messages:
                     self._last_heard = time.monotonic()
                     self._allowed_silence = self.config.safety.companion_hang
-                    ((message, fds),) = messages
-                    self._dispatch(message, fds)
+                    self._dispatch(messages[0])
                 if closed:
                     self._disconnect()
                     return
                 if not messages:
                     break
 
-    def _dispatch(self, message: tuple, fds: list[int]) -> None:
+    def _dispatch(self, message: tuple) -> None:
         kind = message[0]
         if kind == "call":
             _, ident, method, args = message
-            self._call(ident, method, args, fds)
-            return
-        for fd in fds:
-            os.close(fd)
-        if kind == "ready":
+            self._call(ident, method, args)
+        elif kind == "ready":
             self.ready.set()
             self._ever_ready = True
             self._deaths = 0
             log.info("companion ready")
 
-    def _call(self, ident: int, method: str, args: tuple, fds: list[int]) -> None:
+    def _call(self, ident: int, method: str, args: tuple) -> None:
         service = self.service
         try:
             if method == "command":
@@ -249,9 +257,10 @@ class CompanionHost:
             elif method == "reference_at":
                 result = service.reference_at(*args)
             elif method == "follow":
-                header, version, what = args
-                curve = wire.mapped_curve(header, fds.pop())
-                result = service.follow_planned(curve, version, what)
+                header, offset, count, version, what = args
+                result = service.follow_planned(
+                    self._ring_curve(header, offset, count), version, what
+                )
             else:
                 raise CommandError("internal", f"the core has no call {method!r}")
         except CommandError as exc:
@@ -261,14 +270,23 @@ class CompanionHost:
             log.exception("core call %s failed", method)
             self._reply(ident, False, ("internal", f"{type(exc).__name__}: {exc}", {}))
             return
-        finally:
-            for fd in fds:
-                os.close(fd)
         if isinstance(result, Awaitable):
             task = asyncio.ensure_future(result)
             task.add_done_callback(lambda done: self._reply_when_done(ident, done))
         else:
             self._reply(ident, True, result)
+
+    def _ring_curve(self, header: dict, offset: int, count: int) -> Curve:
+        """The curve the companion wrote into the ring; its range goes back to the
+        companion when the core drops it (at once if it is not followed)."""
+        curve = self.ring.curve(header, offset, count)
+        self._in_ring[offset] = 8 * count
+        weakref.finalize(curve, self._dropped, offset)
+        return curve
+
+    def _dropped(self, offset: int) -> None:
+        nbytes = self._in_ring.pop(offset)
+        self._send(("free", offset, nbytes))
 
     def _reply_when_done(self, ident: int, task: asyncio.Future) -> None:
         if task.cancelled():

@@ -1,8 +1,8 @@
 """The companion's side of its link to the real-time core: a daemon.service.planner.
 CoreLink over the socket of daemon.process.wire (DESIGN §16).
 
-Calls (core commands, the reference at a time, a planned trajectory as a sealed memfd)
-wait for the core's reply; events, state snapshots and recorded batches arrive
+Calls (core commands, the reference at a time, a planned trajectory written into the
+shared curve ring) wait for the core's reply; events, state snapshots and recorded batches arrive
 unasked and go to whoever subscribed.  Planning and validation run here on the
 companion's own loop, a slice at a time so that zenoh stays served meanwhile.
 """
@@ -12,7 +12,6 @@ from __future__ import annotations
 import asyncio
 import itertools
 import logging
-import os
 import socket
 import time
 from collections.abc import Callable, Generator
@@ -20,6 +19,7 @@ from typing import Any, TypeVar
 
 from cdpr.trajectory import Reference, Trajectory
 from daemon.process import wire
+from daemon.process.curve_ring import CurveRing, RingFullError
 from daemon.service.api import CommandError
 
 log = logging.getLogger("cdprd")
@@ -35,8 +35,11 @@ EventSink = Callable[[dict[str, Any]], None]
 class RemoteLink:
     """The core, as the planner and the interfaces of the companion see it."""
 
-    def __init__(self, sock: socket.socket, t0: float, state: dict[str, Any]) -> None:
+    def __init__(
+        self, sock: socket.socket, ring: CurveRing, t0: float, state: dict[str, Any]
+    ) -> None:
         self._sock = sock
+        self._ring = ring
         self._t0 = t0
         self._state = state
         self._ids = itertools.count()
@@ -87,11 +90,17 @@ class RemoteLink:
         return reference, version
 
     async def follow(self, trajectory: Trajectory, version: int, what: str) -> dict[str, Any]:
-        header, fd = wire.curve_file(trajectory)
         try:
-            return await self._call("follow", (header, version, what), fds=(fd,))
-        finally:
-            os.close(fd)
+            header, offset, count = self._ring.write(trajectory)
+        except RingFullError as exc:
+            raise CommandError("busy", str(exc)) from None
+        # from here the core hands the range back (a "free" message) once it drops the
+        # curve, whatever it replies, unless the call never reached it
+        return await self._call(
+            "follow",
+            (header, offset, count, version, what),
+            unsent=lambda: self._ring.release(offset, 8 * count),
+        )
 
     async def run_steps(self, steps: Generator[Any, None, Result]) -> Result:
         while True:
@@ -114,14 +123,20 @@ class RemoteLink:
 
     # -- the socket -------------------------------------------------------------------------
 
-    async def _call(self, method: str, args: tuple, fds: tuple[int, ...] = ()) -> Any:
+    async def _call(
+        self, method: str, args: tuple, unsent: Callable[[], None] | None = None
+    ) -> Any:
+        """The core's reply to a call (CommandError if it refused); `unsent` runs if the
+        call could not be sent at all."""
         ident = next(self._ids)
         future = asyncio.get_running_loop().create_future()
         self._waiting[ident] = future
         try:
             deadline = time.monotonic() + CALL_TIMEOUT
-            while not wire.send(self._sock, ("call", ident, method, args), fds):
+            while not wire.send(self._sock, ("call", ident, method, args)):
                 if self.closed.is_set() or time.monotonic() > deadline:
+                    if unsent is not None:
+                        unsent()
                     raise CommandError("busy", "the control core is not taking requests")
                 await asyncio.sleep(0.001)  # its buffer is full: it reads between cycles
             ok, payload = await asyncio.wait_for(future, max(deadline - time.monotonic(), 0.0))
@@ -136,9 +151,7 @@ class RemoteLink:
 
     def _on_readable(self) -> None:
         messages, closed = wire.receive(self._sock, MESSAGES_PER_PASS)
-        for message, fds in messages:
-            for fd in fds:
-                os.close(fd)
+        for message in messages:
             self._dispatch(message)
         if closed and not self.closed.is_set():
             log.info("the control core closed the link")
@@ -160,6 +173,9 @@ class RemoteLink:
                 sink(event)
         elif kind == "state":
             self._state = message[1]
+        elif kind == "free":
+            _, offset, nbytes = message
+            self._ring.release(offset, nbytes)
         elif kind in self.batch_sinks:
             self.batch_sinks[kind](message[1])
 
