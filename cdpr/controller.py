@@ -188,6 +188,9 @@ class ParallelController:
         assert prepared is not None
         self._prepared = None
         self._last_t = t
+        if type(self.source) is Switch and self.source.at <= t:
+            # what came before the switch is over: let it go (its memory with it)
+            self.source = _pending(self.source, t)
         ref, guess = prepared.reference, prepared.guess
         # the encoders measure the drums; the last planned tensions stretch the cables
         lengths = np.asarray(lengths, dtype=float)

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import pickle
 import signal
 import socket
 import sys
@@ -28,13 +27,11 @@ from typing import Any, TypeVar
 import can
 
 from daemon.config import DaemonConfig
-from daemon.process.companion_link import RemoteLink
-from daemon.process.curve_ring import CurveRing
+from daemon.process.companion_link import RemoteLink, greeted
 from daemon.process.logsetup import configure_logging
 from daemon.process.realtime import drop_inherited_realtime
 from daemon.process.recording import CanRecorder, TelemetryRecorder, session_path
 from daemon.process.systemd import Notifier, Progress, run_watchdog
-from daemon.process.wire import MAX_MESSAGE
 from daemon.service.planner import Planner
 from daemon.service.safety import Fault, Trigger
 
@@ -54,18 +51,13 @@ def main(argv: list[str] | None = None) -> int:
         )
         return 2
     sock = socket.socket(fileno=int(args[0]))
-    sock.settimeout(HELLO_TIMEOUT)
     try:
-        data = sock.recv(MAX_MESSAGE)
+        config, level, link = greeted(sock, int(args[1]), HELLO_TIMEOUT)
     except OSError as exc:
         print(f"error: companion: no hello from the core: {exc}", file=sys.stderr)
         return 1
-    kind, config, t0, state, level, in_use = pickle.loads(data)
-    assert kind == "hello", kind
     configure_logging(level)
-    ring = CurveRing.attach(int(args[1]))
-    ring.reserve(in_use)  # curves the core still follows
-    return asyncio.run(run(config, RemoteLink(sock, ring, t0, state)))
+    return asyncio.run(run(config, link))
 
 
 async def run(config: DaemonConfig, link: RemoteLink) -> int:

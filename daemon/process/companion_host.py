@@ -140,16 +140,21 @@ class CompanionHost:
             self._process = spawn_ordinary(argv, env, (fd, ring))
         finally:
             companion_end.close()
-        self._sock = core_end
-        self._serving = asyncio.get_running_loop().create_task(self._serve(core_end))
+        self.connect(core_end)
+        log.info("companion started (pid %d)", self._process.pid)
+
+    def connect(self, sock: socket.socket) -> None:
+        """Serve a companion on `sock` (the core's end of wire.socket_pair), from its
+        hello on: the config, the core's clock origin, the ring's ranges in use."""
+        self._sock = sock
+        self._serving = asyncio.get_running_loop().create_task(self._serve(sock))
         self._last_heard = time.monotonic()
         self._allowed_silence = START_TIMEOUT  # until it first speaks: imports take seconds
         level = logging.getLevelName(logging.getLogger().getEffectiveLevel()).lower()
         in_use = list(self._in_ring.items())
         hello = ("hello", self.config, self.service.t0, self.service.state(), level, in_use)
-        if not wire.send(core_end, hello):
+        if not wire.send(sock, hello):
             log.error("the companion did not take its hello")
-        log.info("companion started (pid %d)", self._process.pid)
 
     def _disconnect(self) -> None:
         if self._serving is not None:

@@ -12,12 +12,14 @@ from __future__ import annotations
 import asyncio
 import itertools
 import logging
+import pickle
 import socket
 import time
 from collections.abc import Callable, Generator
 from typing import Any, TypeVar
 
 from cdpr.trajectory import Reference, Trajectory
+from daemon.config import DaemonConfig
 from daemon.process import wire
 from daemon.process.curve_ring import CurveRing, RingFullError
 from daemon.service.api import CommandError
@@ -30,6 +32,21 @@ STEP_SLICE = 0.005  # s of planning or validation between two turns of the loop
 MESSAGES_PER_PASS = 256
 Result = TypeVar("Result")
 EventSink = Callable[[dict[str, Any]], None]
+
+
+def greeted(
+    sock: socket.socket, ring_fd: int, timeout: float
+) -> tuple[DaemonConfig, str, RemoteLink]:
+    """Wait (blocking, at most `timeout` s) for the core's hello on `sock`: the config,
+    the log level and the link (the shared ring on `ring_fd`, the ranges the core still
+    uses reserved).  OSError if none comes."""
+    sock.settimeout(timeout)
+    kind, config, t0, state, level, in_use = pickle.loads(sock.recv(wire.MAX_MESSAGE))
+    if kind != "hello":
+        raise OSError(f"the core's first message is {kind!r}, not its hello")
+    ring = CurveRing.attach(ring_fd)
+    ring.reserve(in_use)
+    return config, level, RemoteLink(sock, ring, t0, state)
 
 
 class RemoteLink:

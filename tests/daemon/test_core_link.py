@@ -1,0 +1,107 @@
+"""The planner driving the service through the real link, in one process: the core's
+end (CompanionHost) and the companion's (RemoteLink) on a socket pair, the curve ring
+mapped twice; what the companion process does, minus zenoh."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+
+import numpy as np
+import pytest
+
+from cdpr import Pose
+from daemon.process import wire
+from daemon.process.companion_host import CompanionHost
+from daemon.process.companion_link import RemoteLink, greeted
+from daemon.process.curve_ring import CurveRing
+from daemon.service.api import CommandError
+from daemon.service.planner import Planner
+from tests.daemon_stack import Stack, config_for
+
+pytestmark = pytest.mark.timeout(60)
+
+
+@asynccontextmanager
+async def linked(
+    ring_bytes: int | None = None,
+) -> AsyncIterator[tuple[Stack, CompanionHost, Planner, RemoteLink]]:
+    async with Stack(config_for("cia402")) as stack:
+        host = CompanionHost(stack.service, stack.config)
+        if ring_bytes is not None:
+            host.ring = CurveRing.create(ring_bytes)
+        core_end, companion_end = wire.socket_pair()
+        host.connect(core_end)
+        config, _level, link = await asyncio.to_thread(greeted, companion_end, host.ring.fd, 5.0)
+        link.start()
+        try:
+            yield stack, host, Planner(config, link), link
+        finally:
+            link.close()
+            await host.close()
+
+
+def _target(stack: Stack, dx: float) -> Pose:
+    home = stack.config.robot.home
+    return Pose(home.position + np.array([dx, 0.0, 0.0]), home.quaternion)
+
+
+async def _until(condition, timeout: float) -> None:
+    end = time.monotonic() + timeout
+    while not condition():
+        assert time.monotonic() < end, "condition not met"
+        await asyncio.sleep(0.01)
+
+
+def test_gotos_through_the_link_fly_and_hand_their_ring_ranges_back() -> None:
+    async def scenario() -> None:
+        async with linked() as (stack, host, planner, link):
+            status = await planner.command("enable", {})
+            assert status["state"] == "hold"
+            for dx in (0.05, -0.05):
+                reply = await planner.command("goto", {"pose": _target(stack, dx)})
+                assert reply["accepted"] and reply["what"] == "goto", reply
+                await _until(lambda: link.safety_state == "hold", 10.0)
+            await asyncio.sleep(0.3)
+            position = stack.plant.pose.position
+            assert np.linalg.norm(position - _target(stack, -0.05).position) < 2e-3
+            # the first goto's curve was dropped when the second took over: only the
+            # second's range is still in use, on both sides
+            await _until(lambda: len(host._in_ring) == 1, 2.0)
+            (in_use,) = host._in_ring.values()
+            await _until(lambda: link._ring.free_bytes >= link._ring.size - in_use - 64, 2.0)
+            assert link._ring.free_bytes <= link._ring.size - in_use
+            assert stack.service.machine.fault is None
+
+    asyncio.run(scenario())
+
+
+def test_a_trajectory_larger_than_the_free_ring_is_refused_busy_and_nothing_moves() -> None:
+    async def scenario() -> None:
+        # a goto's curve takes 912 bytes
+        async with linked(ring_bytes=512) as (stack, _host, planner, link):
+            await planner.command("enable", {})
+            before = stack.plant.pose.position.copy()
+            with pytest.raises(CommandError) as refused:
+                await planner.command("goto", {"pose": _target(stack, 0.05)})
+            assert refused.value.code == "busy" and "trajectory ring" in refused.value.reason
+            assert link.safety_state == "hold"
+            await asyncio.sleep(0.2)
+            assert np.linalg.norm(stack.plant.pose.position - before) < 1e-3
+
+    asyncio.run(scenario())
+
+
+def test_core_refusals_reach_the_planner_with_their_code() -> None:
+    async def scenario() -> None:
+        async with linked() as (stack, _host, planner, _link):
+            with pytest.raises(CommandError) as refused:
+                await planner.command("reset", {})
+            assert refused.value.code == "invalid_state" and "while idle" in refused.value.reason
+            with pytest.raises(CommandError) as refused:
+                await planner.command("goto", {"pose": _target(stack, 0.05)})
+            assert refused.value.code == "invalid_state"
+
+    asyncio.run(scenario())
