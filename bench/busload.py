@@ -13,7 +13,11 @@ Prints `{N}_buses_{rate}hz_max_load` (the most loaded bus, a fraction of the bit
 for 1, 2 and 4 buses at 500 and 1000 Hz, the bits one cycle puts on the most loaded bus
 (`..._bits_per_cycle`), the fastest rate each layout allows at the issue's load goals
 (`..._max_rate_hz_at_{goal}`), and the same loads with expected and no stuffing for
-reference.  No timing is involved: the figures are the model's.
+reference.  `..._compact_pdo` is the load of the smallest mapping a CiA 402 host could
+configure for a cycle (issue 15): per drive a 2-byte RPDO (target torque; controlword
+sent only when it changes) and one 8-byte TPDO (position and velocity actual;
+statusword on change), worst-case stuffing.  No timing is involved: the figures are the
+model's.
 """
 
 from __future__ import annotations
@@ -93,6 +97,20 @@ def loads(buses: int, bitrate: int) -> dict[str, float]:
     return result
 
 
+def compact_loads(buses: int, bitrate: int) -> dict[str, float]:
+    """The most loaded bus with the compact mapping (the module's doc), worst stuffing."""
+    per = 8 // buses
+    frames = [codec.encode_sync()]
+    for node in range(1, per + 1):
+        frames.append(can.Message(arbitration_id=0x200 + node, data=bytes(2), is_extended_id=False))
+        frames.append(can.Message(arbitration_id=0x180 + node, data=bytes(8), is_extended_id=False))
+    bits = cycle_load(frames, 1.0, bitrate, "worst").bits_per_cycle
+    return {
+        f"{buses}_buses_{rate}hz_max_load_compact_pdo": round(bits * rate / bitrate, 4)
+        for rate in RATES
+    }
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--json", action="store_true", help="print one JSON object")
@@ -101,6 +119,7 @@ def main(argv: list[str] | None = None) -> int:
     results: dict[str, float | bool] = {"bitrate": args.bitrate, "drives": 8}
     for buses in LAYOUTS:
         results.update(loads(buses, args.bitrate))
+        results.update(compact_loads(buses, args.bitrate))
     for buses, goal in GOALS.items():
         results[f"{buses}_buses_1000hz_goal_met"] = (
             results[f"{buses}_buses_1000hz_max_load"] <= goal

@@ -85,9 +85,7 @@ def simulator_configs(tmp_path: Path, zenoh_port: int) -> tuple[Path, dict]:
     return sim, data
 
 
-def daemon_config(
-    tmp_path: Path, data: dict, port: int, channel: str, **safety: float
-) -> Path:
+def daemon_config(tmp_path: Path, data: dict, port: int, channel: str, **safety: float) -> Path:
     """The daemon's config file: `data` (simulator_configs) on the simulator's socketcand
     bus at `port`, `channel`, with `safety` settings on top."""
     data = dict(data)

@@ -172,9 +172,7 @@ class Curve:
 
     def placed(self, shift: float, blend: _Blend | None) -> Curve:
         """The same segments with another time shift and blend."""
-        return Curve(
-            self._times, self._tables, self._quats, self._first, self._last, shift, blend
-        )
+        return Curve(self._times, self._tables, self._quats, self._first, self._last, shift, blend)
 
     def segment(self, t: float) -> int:
         """The last knot of the segments at or before t (-1 before the first), as a
@@ -450,8 +448,7 @@ class Trajectory:
 
     def __repr__(self) -> str:
         return (
-            f"Trajectory({len(self)} waypoints, t = {self.start_time:.6g} .. "
-            f"{self.end_time:.6g} s)"
+            f"Trajectory({len(self)} waypoints, t = {self.start_time:.6g} .. {self.end_time:.6g} s)"
         )
 
 

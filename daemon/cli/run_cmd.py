@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import signal
 import sys
 
 from cdpr import ConfigError
@@ -72,11 +71,6 @@ def run_command(args: argparse.Namespace) -> int:
     except ConfigError as exc:  # the simulator of `run --sim` cannot be built
         report(exc)
         return 1
-    finally:
-        # stopped, braked and closed: a repeated SIGTERM/SIGINT while the interpreter exits
-        # (zenoh's teardown takes ~0.3 s) must not turn a clean exit into death by signal
-        for sig in (signal.SIGTERM, signal.SIGINT):
-            signal.signal(sig, signal.SIG_IGN)
 
 
 async def _run(config: DaemonConfig, sim: bool) -> int:

@@ -127,6 +127,21 @@ async def serve(
         service.close()
         notifier.close()
         leave_realtime(realtime)
+        ignore_stop_signals(loop)
+
+
+def ignore_stop_signals(loop: asyncio.AbstractEventLoop) -> None:
+    """SIGTERM and SIGINT ignored from now on, the loop's handlers removed with no
+    window for a signal to slip through: asyncio's loop.close() closes its wakeup fd
+    before it removes its handlers, and a signal in between prints a traceback."""
+    signals = {signal.SIGTERM, signal.SIGINT}
+    signal.pthread_sigmask(signal.SIG_BLOCK, signals)
+    try:
+        for sig in signals:
+            loop.remove_signal_handler(sig)
+            signal.signal(sig, signal.SIG_IGN)
+    finally:
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, signals)
 
 
 async def _until_ready(host: CompanionHost, service: Service) -> None:

@@ -27,6 +27,7 @@ from typing import Any, TypeVar
 import can
 
 from daemon.config import DaemonConfig
+from daemon.process.app import ignore_stop_signals
 from daemon.process.companion_link import RemoteLink, greeted
 from daemon.process.logsetup import configure_logging
 from daemon.process.realtime import drop_inherited_realtime
@@ -99,6 +100,7 @@ async def run(config: DaemonConfig, link: RemoteLink) -> int:
         for recorder in recorders:
             recorder.close()
         link.close()
+        ignore_stop_signals(loop)  # systemd signals the whole service: us too
 
 
 def _status_text(state: dict[str, Any], config: DaemonConfig) -> str:

@@ -53,7 +53,7 @@ CAN_MODULES = (
     "kernel/net/can/can-raw.ko",
     "kernel/drivers/net/can/vcan.ko",
 )
-GUEST_MEMORY = "1G"
+GUEST_MEMORY = "2G"  # each daemon core locks ~0.5 GB (its heap, libraries, the curve ring)
 SHIM_SOURCE = Path(__file__).with_name("xstate_shim.c")
 READY_LINE = "cdpr-uml: guest ready"
 EXIT_FILE = "exit-code"
