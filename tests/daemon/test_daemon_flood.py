@@ -382,7 +382,10 @@ def test_trajectories_one_at_a_time_parsed_off_the_loop_and_long_commands_singly
                     body = json.dumps({"position": [0, 0, 1]}) if name == "goto" else None
                     session.get(f"cdpr/t/cmd/{name}", on_reply, payload=body, timeout=10.0)
                 await until(lambda: len(replies) == 3)
-                await asyncio.sleep(0.3)  # the trajectories wait for the first verdict
+                # the first is submitted once parsed (in a thread at the lowest priority:
+                # seconds on a busy host); the others wait for its verdict
+                await until(lambda: "trajectory 100" in handler.calls, 30.0)
+                await asyncio.sleep(0.3)
                 assert [c for c in handler.calls if c.startswith("trajectory")] == [
                     "trajectory 100"
                 ]
