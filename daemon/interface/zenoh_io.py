@@ -572,16 +572,17 @@ class ZenohInterface:
         self, name: str, pending: Awaitable[dict[str, Any]], query: zenoh.Query
     ) -> None:
         try:
-            result = await pending
+            body, ok = reply_ok(name, await pending), True
         except CommandError as exc:
-            self._reply(query, reply_error(name, exc), ok=False)
+            body, ok = reply_error(name, exc), False
         except asyncio.CancelledError:
             self._reply(query, reply_error(name, _busy(name)), ok=False)
             raise
         except Exception as exc:
-            self._reply(query, reply_error(name, _failure(name, exc)), ok=False)
-        else:
-            self._reply(query, reply_ok(name, result), ok=True)
+            body, ok = reply_error(name, _failure(name, exc)), False
+        if self._command_task is asyncio.current_task():
+            self._command_task = None  # free before replying: the sender may go on at once
+        self._reply(query, body, ok)
 
     def _run_trajectory(self, item: _TrajectoryItem) -> asyncio.Future[Any] | None:
         """Submit one trajectory, or start the job that parses and submits it.
