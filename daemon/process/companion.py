@@ -70,6 +70,9 @@ async def run(config: DaemonConfig, link: RemoteLink) -> int:
     for sig in (signal.SIGTERM, signal.SIGINT):
         loop.add_signal_handler(sig, log.debug, "companion: signal left to the core")
     notifier = Notifier()
+    # fed from now on while the core's cycles complete: a restarted companion takes over
+    # before zenoh is up, within the unit's WatchdogSec
+    watchdog = asyncio.create_task(run_watchdog(notifier, Progress(lambda: link.cycles)))
     planner = Planner(config, link)
     interface = None
     recorders = _recorders(config, link)
@@ -88,11 +91,10 @@ async def run(config: DaemonConfig, link: RemoteLink) -> int:
         update_status = _status_updates(notifier, link, config)
         planner.subscribe(update_status)
         update_status({})
-        watchdog = asyncio.create_task(run_watchdog(notifier, Progress(lambda: link.cycles)))
         await link.closed.wait()  # the core has stopped (and said STOPPING=1)
-        watchdog.cancel()
         return 0
     finally:
+        watchdog.cancel()
         if interface is not None:
             await interface.close()
         for writer in writers:

@@ -38,6 +38,9 @@ from tests.processes import (
 )
 
 ALLOWED = 2e-3  # m the true platform may move
+# with the core dead the drives apply its last torque until their watchdog fires (0.2 s
+# in simulator_configs, patient for the TCP relays), then hold: a little more drift
+ALLOWED_DEAD = 5e-3
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -189,7 +192,7 @@ def test_a_killed_core_leaves_the_drives_holding_and_a_restart_comes_up_held(
                 finish(restarted)
             if daemon.poll() is None:
                 finish(daemon)
-    assert moved_dead < ALLOWED, f"the platform moved {moved_dead * 1e3:.2f} mm (core dead)"
+    assert moved_dead < ALLOWED_DEAD, f"the platform moved {moved_dead * 1e3:.2f} mm (core dead)"
     assert status["fault"]["trigger"] == "drive_fault", status
     assert "RPDO timeout" in status["fault"]["message"], status
     assert reset["fault"] is None, reset

@@ -44,7 +44,7 @@ def test_unit_settings():
     service = unit_settings(UNIT.read_text())["Service"]
     assert service["Type"] == ["notify"]
     assert service["NotifyAccess"] == ["all"]  # the companion process notifies
-    assert service["WatchdogSec"] == ["2"]
+    assert service["WatchdogSec"] == ["5"]
     assert service["Restart"] == ["on-failure"]
     assert service["KillSignal"] == ["SIGTERM"]
     assert service["ExecStart"] == [f"{INSTALLED_EXEC} run --config /etc/cdprd/cdprd.yaml"]

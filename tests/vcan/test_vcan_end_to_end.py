@@ -118,6 +118,9 @@ def _write_config(
     if protocol is ODRIVE:  # 8 x 500 streamed estimates a second saturate the guest
         data["drives"]["feedback_rate_hz"] = 2 * RATE_HZ
     data["sim"]["wake_period"] = 0.005 if protocol is ODRIVE else 0.002
+    # the daemon's core below the simulator (_realtime): the drives answer SYNC at once,
+    # as real ones do on their own processors, whatever the core does meanwhile
+    data["realtime"] = {"priority": 30}
     if edit is not None:
         edit(data)
     path = directory / f"{protocol.name}.yaml"
@@ -126,8 +129,8 @@ def _write_config(
 
 
 def _realtime(priority: int) -> Callable[[], None]:
-    """preexec_fn: SCHED_FIFO at `priority` where permitted (root, or CAP_SYS_NICE).
-    The simulator gets the higher one: the drives answer SYNC at once, as real ones do."""
+    """preexec_fn: SCHED_FIFO at `priority` where permitted (root, or CAP_SYS_NICE), for
+    the simulator: above the daemon's core (realtime.priority in _write_config)."""
 
     def apply() -> None:
         with contextlib.suppress(PermissionError, OSError):
@@ -313,7 +316,6 @@ def running_stack(
             env=env,
             stdout=daemon_log,
             stderr=subprocess.STDOUT,
-            preexec_fn=_realtime(30),
         )
         stack.callback(_stop, daemon)
         client = _connect(port, daemon, timeout=90)
