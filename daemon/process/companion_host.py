@@ -124,11 +124,6 @@ class CompanionHost:
                 while process.poll() is None:
                     await asyncio.sleep(0.01)
 
-    @property
-    def pid(self) -> int | None:
-        """The running companion's process id."""
-        return None if self._process is None else self._process.pid
-
     def _spawn(self) -> None:
         core_end, companion_end = wire.socket_pair()
         env = dict(os.environ)

@@ -114,8 +114,3 @@ class CurveRing:
             raise ValueError(f"a curve at {offset} of {count} values lies outside the ring")
         start = offset // 8
         return Curve.unpacked(header, self._values[start : start + count])
-
-    def close(self) -> None:
-        self._values = np.empty(0)
-        self._map.close()
-        os.close(self.fd)

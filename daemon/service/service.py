@@ -493,7 +493,7 @@ class Service:
     async def slack(self, margin: float = SLACK_MARGIN) -> None:
         """Return when no cycle is open and the next tick is more than `margin` seconds
         away (at once if so; daemon.service.api.DaemonHandler)."""
-        while self.slack_left() <= margin:
+        while self._slack_left() <= margin:
             loop = self._loop
             if loop is None:
                 return
@@ -501,7 +501,7 @@ class Service:
             self._slack_waiters.append(done)
             await done  # the coming cycle has run
 
-    def slack_left(self) -> float:
+    def _slack_left(self) -> float:
         """Seconds until the next tick, 0 while a cycle is open (inf when stopped)."""
         timer = self._timer
         if timer is None or self._loop is None:
