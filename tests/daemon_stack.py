@@ -11,6 +11,7 @@ import numpy as np
 
 from daemon.cli.simulated import InProcessSimulator
 from daemon.config import DaemonConfig, load_config
+from daemon.process.realtime import realtime
 from daemon.service.planner import LocalLink, Planner
 from daemon.service.safety import SafetyState
 from daemon.service.service import Service
@@ -23,10 +24,16 @@ DRIVER_CONFIGS = {
 
 
 class Stack:
-    """Service + planner + simulator in the running loop; `plant` is the simulated truth."""
+    """Service + planner + simulator in the running loop; `plant` is the simulated truth.
+
+    While it runs, this process has the real-time priority of the config's `realtime:`
+    section where permitted (memory not locked: that costs each test a tenth of a
+    second), as the daemon's core would: the timing-sensitive tests then pass on a busy
+    host too (issue 18)."""
 
     def __init__(self, config: DaemonConfig) -> None:
         self.config = config
+        self._realtime = realtime(config.realtime.model_copy(update={"lock_memory": False}))
         self.sim = InProcessSimulator(config)
         self.service = Service(config, self.sim.daemon_bus)
         self.planner = Planner(config, LocalLink(self.service))  # hold, goto, trajectories
@@ -38,6 +45,7 @@ class Stack:
         return self.sim.robot.plant
 
     async def __aenter__(self) -> Stack:
+        self._realtime.__enter__()
         self.sim.start()
         await self.service.start()
         return self
@@ -45,6 +53,7 @@ class Stack:
     async def __aexit__(self, *exc: object) -> None:
         self.service.close()
         self.sim.close()
+        self._realtime.__exit__(None, None, None)
 
     async def enable(self) -> None:
         await self.service.command("enable", {})

@@ -15,6 +15,7 @@ import pytest
 import scipy.sparse as sp
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from scipy.optimize import linprog
 
 from cdpr import Pose, Robot
 from cdpr.tension import (
@@ -524,3 +525,62 @@ def test_limits_from_robot_default_and_scalar_reference(reference8):
 def test_limits_validation_messages(t_min, force_max, t_ref, message):
     with pytest.raises(ValueError, match=message):
         TensionLimits(t_min, force_max, t_ref)
+
+
+# -- membership of W against an independent LP ------------------------------------------
+
+
+def lp_margin(L, tau, f_b, f0, limits: TensionLimits) -> float:
+    """The largest s such that some forces f with Λᵀ f = τ keep every tension t = f0 − f
+    at least s inside [t_min, force_max] (|f + f_b| ≤ force_max), by scipy's HiGHS LP in
+    the force formulation: written apart from both solvers.  > 0 inside W, < 0 outside."""
+    n = len(f0)
+    # variables: f (n), s; maximise s
+    cost = np.zeros(n + 1)
+    cost[-1] = -1.0
+    eye, ones = np.eye(n), np.ones((n, 1))
+    a_ub = np.vstack(
+        [
+            np.hstack([eye, ones]),  # f0 - f >= t_min + s
+            np.hstack([eye, ones]),  # f + f_b <= force_max - s
+            np.hstack([-eye, ones]),  # f + f_b >= -force_max + s
+        ]
+    )
+    b_ub = np.concatenate([f0 - limits.t_min, limits.force_max - f_b, limits.force_max + f_b])
+    a_eq = np.hstack([L.T, np.zeros((6, 1))])
+    res = linprog(cost, A_ub=a_ub, b_ub=b_ub, A_eq=a_eq, b_eq=tau, bounds=[(None, None)] * (n + 1))
+    assert res.status == 0, res.message
+    return float(res.x[-1])
+
+
+@pytest.mark.parametrize("t_ref", [25.0, 100.0])
+def test_both_methods_call_a_wrench_feasible_exactly_when_an_lp_does(reference8, t_ref):
+    """Random poses, twists and demanding accelerations, many with bounds active: OSQP
+    and the closed form say feasible exactly when the LP finds a margin (cases within
+    1 mN of the boundary are left out: either answer is right there).  The closed form
+    alone misses some feasible wrenches: those are the ones its exact fallback decides."""
+    limits = TensionLimits.from_robot(reference8, t_ref=t_ref)
+    osqp_solver, closed = OsqpTensionSolver(limits), ClosedFormTensionSolver(limits)
+    rng = np.random.default_rng(19)
+    verdicts = {"inside": 0, "outside": 0, "fallback": 0}
+    for _ in range(300):
+        pose = Pose.from_rotvec(
+            reference8.home.position + rng.uniform(-0.3, 0.3, 3), rng.uniform(-0.3, 0.3, 3)
+        )
+        twist = rng.uniform(-1.0, 1.0, 6)
+        alpha = rng.uniform(-15.0, 15.0, 6)
+        args = model_inputs(reference8, pose, twist, alpha)
+        margin = lp_margin(*args, limits)
+        if abs(margin) < 1e-3:
+            continue
+        inside = margin > 0
+        verdicts["inside" if inside else "outside"] += 1
+        qp, cf = osqp_solver.solve(*args), closed.solve(*args)
+        assert qp.feasible is inside, (margin, qp.reason)
+        assert cf.feasible is inside, (margin, cf.reason)
+        if cf.feasible:
+            assert_satisfies(cf, *args, limits)
+            verdicts["fallback"] += cf.iterations > 0  # OSQP iterated: Pott's missed it
+    assert verdicts["inside"] >= 50 and verdicts["outside"] >= 50, verdicts
+    if t_ref == 25.0:
+        assert verdicts["fallback"] >= 1, verdicts
