@@ -29,6 +29,7 @@ import can
 from daemon.config import DaemonConfig
 from daemon.process.app import ignore_stop_signals
 from daemon.process.companion_link import RemoteLink, greeted
+from daemon.process.cycle_rows import records
 from daemon.process.logsetup import configure_logging
 from daemon.process.realtime import drop_inherited_realtime
 from daemon.process.recording import CanRecorder, TelemetryRecorder, session_path
@@ -140,8 +141,10 @@ def _recorders(config: DaemonConfig, link: RemoteLink) -> list:
         key = f"{config.source}: recording.telemetry"
         telemetry = _open(key, TelemetryRecorder, config.path(rec.telemetry), recorders)
 
-        def record_cycles(batch: list) -> None:
-            for record in batch:
+        n = config.robot.n_cables
+
+        def record_cycles(rows: bytes) -> None:
+            for record in records(rows, n):
                 telemetry.record(record)
 
         link.batch_sinks["cycles"] = record_cycles

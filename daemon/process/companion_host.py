@@ -12,7 +12,8 @@ This module, in the core:
   planned trajectories (a curve in the ring, sampled in place; its range is handed
   back when the core drops the curve);
 - pushes events as they happen, the state at zenoh.state_rate_hz and, when recording,
-  cycle records and CAN frames in batches, each in the cycle's slack; a full socket
+  cycle records (fixed-size rows, daemon.process.cycle_rows) and CAN frames in batches,
+  each in the cycle's slack; a full socket
   drops the message (counted), the core never waits;
 - supervises it: a companion silent for safety.companion_hang is killed, a dead one is
   restarted (with a growing pause); a moving robot without a live companion for
@@ -40,8 +41,8 @@ from cdpr.trajectory.core import Curve
 from daemon.config import DaemonConfig
 from daemon.process import wire
 from daemon.process.curve_ring import CurveRing
+from daemon.process.cycle_rows import CycleRows
 from daemon.process.realtime import Child, spawn_ordinary
-from daemon.process.recording import CycleRecord
 from daemon.service.api import CommandError
 from daemon.service.safety import Fault, Trigger
 from daemon.service.service import Service
@@ -77,7 +78,7 @@ class CompanionHost:
         self._restart_at = 0.0
         self._tasks: list[asyncio.Task] = []
         self._serving: asyncio.Task | None = None  # the calls of the current companion
-        self._cycles: list[tuple] = []  # recorded cycles not yet sent
+        self._cycles = CycleRows(service.n, MAX_BATCH)  # recorded, not yet sent
         self._frames: list[tuple] = []  # recorded CAN frames not yet sent
         self.ready = asyncio.Event()  # a companion is up (zenoh listening)
         # made now, before the memory is locked and the drives start: mapping it later
@@ -329,24 +330,12 @@ class CompanionHost:
                 self._send(("state", state))
 
     def _record_cycle(self, t: float, out: ControlOutput) -> None:
-        if len(self._cycles) >= MAX_BATCH:  # no slack for a while: drop, never grow
+        rows = self._cycles
+        if rows.full:  # no slack for a while: drop, never grow
             self.dropped += 1
             return
         service = self.service
-        ref = out.reference.pose
-        self._cycles.append(
-            CycleRecord(
-                t=t,
-                position=out.pose.position,
-                quaternion=out.pose.quaternion,
-                twist=out.twist,
-                lengths=[fb.length for fb in service.driver.feedback],
-                tensions=out.tensions,
-                forces=out.commands,
-                safety=service.machine.state.value,
-                reference=(ref.position, ref.quaternion),
-            )
-        )
+        rows.add(t, out, [fb.length for fb in service.driver.feedback], service.machine.state)
 
     def _record_frame(self, msg: can.Message, rx: bool) -> None:
         if len(self._frames) >= 16 * MAX_BATCH:
@@ -374,9 +363,8 @@ class CompanionHost:
             self._flush_batches()
 
     def _flush_batches(self) -> None:
-        if self._cycles:
-            batch, self._cycles = self._cycles, []
-            self._send(("cycles", batch))
+        if self._cycles.filled:
+            self._send(("cycles", self._cycles.take()))
         if self._frames:
             batch, self._frames = self._frames, []
             self._send(("frames", batch))
