@@ -7,7 +7,9 @@ the closed-loop figures of the standard trajectory set (`tracking`): per traject
 / max position and orientation error of the paper's controller, tension range, slack
 events, the ratio of its RMS position error to the joint-space baseline's
 (`baseline_ratio`), and the same run under model mismatch (plant mass +10 %, m0 -10 %, 5
-um encoder noise).
+um encoder noise); and the holding robot's response to a 50 N horizontal push
+(`disturbance`: peak error, 2 % settling time, the error left after 20 s, and whether the
+peak exceeds the daemon's default tracking-error bound, which would brake it).
 
     python bench/controller.py [--json] [--calls N] [--skip-tracking]
 """
@@ -24,7 +26,9 @@ from timing import REFERENCE8, per_call_us, print_timings
 from cdpr import Robot
 from cdpr.control_spec import ControllerSpec
 from cdpr.controller import ParallelController
+from daemon.config import SafetyConfig
 from tuning.comparison import standard_set_figures as tracking
+from tuning.disturbance import step_response
 from tuning.scenarios import STANDARD_SET
 from tuning.tracking import run_tracking
 
@@ -53,6 +57,20 @@ def step_us(robot: Robot, spec: ControllerSpec, calls: int) -> dict[str, float]:
     return per_call_us(replay, calls, warm_up=0)
 
 
+def disturbance(robot: Robot, spec: ControllerSpec) -> dict[str, float | bool | str]:
+    """A 50 N horizontal push on the holding robot, for 20 s (tuning.disturbance)."""
+    f = step_response(robot, spec, wrench=(50.0, 0.0, 0.0, 0.0, 0.0, 0.0), duration=20.0)
+    bound_mm = SafetyConfig().tracking_error_position * 1e3
+    return {
+        "push_n": 50.0,
+        "peak_mm": round(f.peak_mm, 3),
+        "settle_s": round(f.settle_s, 3),
+        "final_mm": round(f.final_mm, 3),
+        "fault": f.fault,
+        "exceeds_tracking_bound": f.peak_mm > bound_mm,  # the daemon would brake
+    }
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--json", action="store_true", help="print one JSON object")
@@ -66,6 +84,7 @@ def main(argv: list[str] | None = None) -> int:
     results.update(tension.measure(robot, calls=max(args.calls, 2000)))
     if not args.skip_tracking:
         results["tracking"] = tracking(robot, spec)
+        results["disturbance"] = disturbance(robot, spec)
     if args.json:
         print(json.dumps(results))
         return 0
