@@ -38,13 +38,14 @@ import numpy as np
 
 from cdpr import ConfigError, Robot
 from cdpr.control_spec import DEFAULT_PID, ControllerSpec, parse_controller
+from cdpr.controller import static_tensions, tension_solver
 from cdpr.description import load_yaml
 from daemon.cli.run_cmd import report
 
 if TYPE_CHECKING:
     from tuning.workspace_analysis import Analysis, PoseAnalysis, PredictedMode, Progress
 
-PLOTS = ("modal_masses.png", "modes_vs_mass.png")
+PLOTS = ("modal_masses.png", "modes_vs_mass.png", "robot-3d.png")
 
 
 def add_parser(subparsers: Any) -> None:
@@ -74,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
     show = args.progress or sys.stderr.isatty()
     analysis = analyse(robot, spec, args.grid, args.shrink, progress=_bar() if show else None)
     try:
-        plots = write_plots(analysis, Path(args.plot)) if args.plot else []
+        plots = write_plots(analysis, Path(args.plot), robot, spec) if args.plot else []
     except OSError as exc:
         print(f"error: cannot write plots to {args.plot}: {exc.strerror or exc}", file=sys.stderr)
         return 1
@@ -337,10 +338,13 @@ def _clean(value: Any) -> Any:
 # -- plots --------------------------------------------------------------------------
 
 
-def write_plots(a: Analysis, directory: Path) -> list[str]:
+def write_plots(a: Analysis, directory: Path, robot: Robot, spec: ControllerSpec) -> list[str]:
     """PNG files in `directory` (created): modal masses over the grid; poles and
-    settling time against the effective mass with the grid's modal-mass range marked."""
+    settling time against the effective mass with the grid's modal-mass range marked;
+    the robot in 3-D at home with its static tensions."""
     import matplotlib
+
+    from tuning.robot_plot import write_robot_3d
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -407,6 +411,10 @@ def write_plots(a: Analysis, directory: Path) -> list[str]:
     fig.tight_layout()
     fig.savefig(names[1], dpi=100)
     plt.close(fig)
+
+    home = static_tensions(robot, tension_solver(robot, spec), robot.home)
+    title = f"{a.robot} at home: static tensions"
+    write_robot_3d(names[2], robot, robot.home, home, title=title)
     return names
 
 

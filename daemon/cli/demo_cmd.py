@@ -114,6 +114,8 @@ async def _demo(config: DaemonConfig, plot: str | None) -> int:
     if plot:
         _plot(samples, Path(plot))
         print(f"plot written to {plot}")
+        drawing = _plot_3d(config, samples, Path(plot))
+        print(f"3-D view at the largest tension written to {drawing}")
     ok = result["state"] == "hold" and figures.rms_mm < 5.0
     return code if ok else 1
 
@@ -204,3 +206,22 @@ def _plot(samples, path: Path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
+
+
+def _plot_3d(config: DaemonConfig, samples, path: Path) -> Path:
+    """`<stem>-3d.png` beside `path`: the robot at the instant of the run's largest
+    cable tension, with the reference path and the simulated platform's path."""
+    from tuning.robot_plot import write_robot_3d
+
+    worst = max(samples, key=lambda s: max(s[3]))
+    drawing = path.with_name(f"{path.stem}-3d.png")
+    write_robot_3d(
+        drawing,
+        config.robot,
+        worst[2],
+        worst[3],
+        path=[s[2].position for s in samples],
+        reference=[s[1].position for s in samples],
+        title=f"{config.robot.name} at t = {worst[0]:.2f} s, largest tension {max(worst[3]):.0f} N",
+    )
+    return drawing

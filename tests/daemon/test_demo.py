@@ -31,3 +31,7 @@ def test_demo_flies_the_figure_eight_and_ends_holding(tmp_path: Path) -> None:
     assert rms < 1.0, out
     assert "slack events 0" in out and "final state: hold" in out
     assert plot.stat().st_size > 10_000
+    drawing = tmp_path / "demo-3d.png"
+    assert f"3-D view at the largest tension written to {drawing}" in out
+    data = drawing.read_bytes()
+    assert data.startswith(b"\x89PNG") and len(data) > 10_000
