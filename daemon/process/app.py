@@ -84,7 +84,8 @@ async def serve(
 ) -> int:
     """The real-time core: run until SIGTERM/SIGINT (or `after_start` returns, for the
     demo); exit code.  With `companion`, the companion process (zenoh, planning,
-    recordings, systemd notification) is spawned once the drives are up, and kept alive."""
+    recordings, systemd notification) is started first and kept alive: its start-up
+    (seconds of imports) is over before the drives start and their feedback counts."""
     loop = asyncio.get_running_loop()
     service = Service(config, bus)
     host = CompanionHost(service, config) if companion else None
@@ -92,10 +93,14 @@ async def serve(
     realtime = enter_realtime(config.realtime)
     notifier = Notifier()  # start-up and shutdown; the companion sends READY=1 and the rest
     try:
+        if host is not None:
+            notifier.status("starting the companion process")
+            host.start()
+            failed = await host.wait_ready()
+            if failed is not None:
+                return failed
         notifier.status("starting drives")
         await service.start()
-        if host is not None:
-            host.start()
         for sig in (signal.SIGTERM, signal.SIGINT):
             loop.add_signal_handler(sig, service.stop)
         log.info(
@@ -108,8 +113,6 @@ async def serve(
             service.machine.state.value,
         )
         if after_start is not None:
-            if host is not None:
-                await _until_ready(host, service)
             demo = asyncio.create_task(after_start(service))
             demo.add_done_callback(lambda _: service.stop(Trigger.COMMAND))
         code = await service.wait_stopped()
@@ -144,10 +147,3 @@ def ignore_stop_signals(loop: asyncio.AbstractEventLoop) -> None:
         signal.pthread_sigmask(signal.SIG_UNBLOCK, signals)
 
 
-async def _until_ready(host: CompanionHost, service: Service) -> None:
-    """Wait until the companion is up (or the service stopped: the hook then finds it so)."""
-    ready = asyncio.ensure_future(host.ready.wait())
-    stopped = asyncio.ensure_future(service.wait_stopped())
-    await asyncio.wait([ready, stopped], return_when=asyncio.FIRST_COMPLETED)
-    for waiter in (ready, stopped):
-        waiter.cancel()

@@ -6,7 +6,8 @@
 spawned by the core (daemon.process.companion_host) with its end of the link on FD and
 the shared curve ring (daemon.process.curve_ring) on RING.
 It runs zenoh (daemon.interface.zenoh_io) with the planner (daemon.service.planner)
-behind it, the recordings, and systemd notification: READY=1 once zenoh listens,
+behind it, the recordings, and systemd notification: READY=1 once zenoh listens and
+the core's drives are up (the core starts them when this process says it is ready),
 STATUS= as the safety state changes, the watchdog fed only while the core's cycles keep
 completing.  It exits when the core closes the link; SIGTERM and SIGINT are the core's
 to act on (they brake the robot there) and are ignored here, so that the recordings
@@ -87,8 +88,9 @@ async def run(config: DaemonConfig, link: RemoteLink) -> int:
             print(f"error: {config.source}: {exc}", file=sys.stderr)
             return 1
         planner.subscribe(interface.publish_event)
-        notifier.ready()
-        link.ready()
+        link.ready()  # the core starts its drives now
+        await link.core_started()
+        notifier.ready()  # bus, drives and zenoh all up
         update_status = _status_updates(notifier, link, config)
         planner.subscribe(update_status)
         update_status({})

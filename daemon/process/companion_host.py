@@ -105,6 +105,20 @@ class CompanionHost:
         if self.config.recording.telemetry or self.config.recording.can_log:
             self._tasks.append(loop.create_task(self._push_batches()))
 
+    async def wait_ready(self) -> int | None:
+        """Wait for the companion's first "ready" (zenoh listening): None then; else the
+        exit code to stop with, if it could not start (it said why on stderr) or did not
+        come up within START_TIMEOUT."""
+        deadline = time.monotonic() + START_TIMEOUT
+        while not self.ready.is_set():
+            if self.exit_code is not None:
+                return self.exit_code
+            if time.monotonic() > deadline:
+                log.error("the companion process did not come up within %g s", START_TIMEOUT)
+                return 1
+            await asyncio.sleep(0.02)
+        return None
+
     async def close(self) -> None:
         """Hand over the last records, close the link and give the companion STOP_WAIT
         seconds to finish (its recordings), then kill it."""
@@ -199,11 +213,12 @@ class CompanionHost:
         self._process = None
         self.ready.clear()
         if not self._ever_ready and code not in (0, -9):
-            # it never came up: the same error again on restart (a port in use, ...)
-            # it said why on stderr (one line); the daemon stops with its exit code
+            # it never came up: the same error again on restart (a port in use, ...);
+            # it said why on stderr (one line), and the daemon stops with its exit code
             log.debug("the companion could not start (exit code %d): stopping", code)
-            self.exit_code = code
-            self.service.stop(Trigger.SIGTERM, exit_code=code if code > 0 else 1)
+            self.exit_code = code if code > 0 else 1
+            if self.service.running:
+                self.service.stop(Trigger.SIGTERM, exit_code=self.exit_code)
             return
         pause = RESTART_PAUSES[min(self._deaths, len(RESTART_PAUSES) - 1)]
         self._deaths += 1

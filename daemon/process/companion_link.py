@@ -77,6 +77,11 @@ class RemoteLink:
         """Tell the core that this companion is up (zenoh listening)."""
         wire.send(self._sock, ("ready",))
 
+    async def core_started(self) -> None:
+        """Return once the core's drives are up (its state has left INIT) or it closed."""
+        while self.safety_state == "init" and not self.closed.is_set():
+            await asyncio.sleep(0.02)
+
     def close(self) -> None:
         if self._alive is not None:
             self._alive.cancel()

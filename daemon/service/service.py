@@ -108,6 +108,11 @@ class Service:
 
     # -- lifecycle --------------------------------------------------------------------
 
+    @property
+    def running(self) -> bool:
+        """start() has opened the bus and the cycle runs (until close())."""
+        return self._timer is not None
+
     def now(self) -> float:
         """Controller time: seconds since the service started (monotonic)."""
         return time.monotonic() - self.t0

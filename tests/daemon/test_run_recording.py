@@ -22,7 +22,7 @@ from mcap.reader import make_reader
 from daemon.interface.client import CdprClient
 from daemon.process.recording import CYCLE_SCHEMA, CYCLE_SCHEMA_NAME, CYCLE_TOPIC, CanRecorder
 from tests.loopback import free_port
-from tests.processes import connect, finish, stop_impatiently
+from tests.processes import connect, finish, stop_impatiently, wait_status
 
 ROOT = Path(__file__).resolve().parents[2]
 CONFIG = ROOT / "config" / "reference8-cia402.yaml"
@@ -98,7 +98,7 @@ def test_a_flight_is_recorded_to_mcap_and_a_can_log(tmp_path: Path) -> None:
     proc = _start(config)
     try:
         with connect(port, proc) as client:
-            assert client.status()["state"] == "idle"
+            wait_status(client, "idle", 10.0)  # zenoh answers while the drives start
             asked = time.monotonic()
             client.enable()
             enabled = time.monotonic()

@@ -337,7 +337,10 @@ def _rejected(state: dict[str, Any]) -> int:
 def _fly_trajectory(stack: Stack) -> list[dict[str, Any]]:
     """Enable, fly home -> GOAL over zenoh; the states seen while tracking."""
     client, watch = stack.client, stack.watch
-    assert client.status()["state"] == "idle"  # a fresh daemon never moves by itself
+    # zenoh answers while the drives start (INIT); then a fresh daemon is IDLE: it never
+    # moves by itself
+    watch.wait_state(lambda s: s["state"] != "init", 30, "the drives started")
+    assert client.status()["state"] == "idle"
     assert client.enable()["state"] == "hold"
     watch.wait_state(lambda s: s["state"] == "hold" and "pose" in s, 10, "holding after enable")
     mid = (HOME + GOAL) / 2 + np.array([0.0, 0.0, 0.02])
