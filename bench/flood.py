@@ -56,7 +56,6 @@ from timing import free_endpoint, ordinary_child
 from cdpr.trajectory import parse_trajectory
 from daemon.cli.simulated import InProcessSimulator
 from daemon.config import load_config
-from daemon.process.app import serve
 from daemon.service.cycle_stats import CycleStats
 from daemon.service.planner import LocalLink, Planner
 from daemon.service.safety import SafetyState
@@ -338,12 +337,7 @@ async def measure(seconds: float, rate: float, mix: str, limit: float | None) ->
         out["flooder"] = flooder.result()
         out["frames"] = service.state()["frames"]
 
-    sim = InProcessSimulator(config)
-    sim.start()
-    try:
-        await serve(config, sim.daemon_bus, after_start=phases)
-    finally:
-        sim.close()
+    await InProcessSimulator(config).serve(after_start=phases)
     return out
 
 

@@ -37,7 +37,6 @@ from timing import free_endpoint
 
 from daemon.cli.simulated import InProcessSimulator
 from daemon.config import DaemonConfig, load_config
-from daemon.process.app import serve
 from daemon.process.realtime import Child, realtime, spawn_ordinary
 from daemon.service.service import Service
 from drivers.clock import PeriodicTimer
@@ -105,15 +104,7 @@ def measure(protocol: str, rate_hz: float, seconds: float, load: int, flood: boo
             cpu = (time.process_time() - cpu0) / (time.monotonic() - wall0)
             out.update(figures(service, rate_hz, cpu))  # before the load is stopped
 
-    async def run() -> None:
-        sim = InProcessSimulator(config)
-        sim.start()
-        try:
-            await serve(config, sim.daemon_bus, after_start=hold_and_measure)
-        finally:
-            sim.close()
-
-    asyncio.run(run())
+    asyncio.run(InProcessSimulator(config).serve(after_start=hold_and_measure))
     return out
 
 

@@ -25,7 +25,6 @@ from cdpr.controller import ControlOutput
 from cdpr.trajectory import Trajectory
 from daemon.cli.run_cmd import report
 from daemon.config import DaemonConfig, load_config
-from daemon.process.app import serve
 from daemon.process.logsetup import configure_logging
 from daemon.service.service import Service
 
@@ -94,11 +93,9 @@ async def _demo(config: DaemonConfig, plot: str | None) -> int:
         result["state"] = service.machine.state.value
 
     client = await _start_client()
-    simulator.start()
     try:
-        code = await serve(config, simulator.daemon_bus, after_start=fly)
+        code = await simulator.serve(after_start=fly)
     finally:
-        simulator.close()
         if client.returncode is None:  # the daemon stopped before the flight
             client.kill()
             await client.wait()

@@ -82,12 +82,7 @@ async def _run(config: DaemonConfig, sim: bool) -> int:
             close_bus(bus)
     from daemon.cli.simulated import InProcessSimulator
 
-    simulator = InProcessSimulator(config)
-    simulator.start()
-    try:
-        return await serve(config, simulator.daemon_bus)
-    finally:
-        simulator.close()
+    return await InProcessSimulator(config).serve()
 
 
 def sim_command(args: argparse.Namespace) -> int:

@@ -15,6 +15,7 @@ import can
 
 from cdpr import ConfigError
 from daemon.config import DaemonConfig
+from daemon.process.app import ServiceHook, serve
 from daemon.service.bus_port import Buses
 from sim_bus.bus.frame_faults import FaultyBus
 from sim_bus.bus.loopbus import LoopBus
@@ -31,6 +32,7 @@ class InProcessSimulator:
     starts), `close()` after the service stopped."""
 
     def __init__(self, config: DaemonConfig) -> None:
+        self.config = config
         sim = sim_section(config)
         self.robot = simulated_robot(config, sim)  # a ConfigError before any bus is open
         run = f"cdprd-sim-{os.getpid()}-{next(_channels)}"
@@ -54,6 +56,17 @@ class InProcessSimulator:
         self.runner.close()
         for bus in self._buses:
             bus.shutdown()
+
+    async def serve(self, *, companion: bool = True, after_start: ServiceHook | None = None) -> int:
+        """daemon.process.app.serve() on this simulator's bus, the simulator running
+        meanwhile (`cdprd run --sim`, the demo, benchmarks and tests); the exit code."""
+        self.start()
+        try:
+            return await serve(
+                self.config, self.daemon_bus, companion=companion, after_start=after_start
+            )
+        finally:
+            self.close()
 
 
 def sim_section(config: DaemonConfig) -> SimConfig:

@@ -26,7 +26,7 @@ from cdpr import Pose
 from daemon.cli.simulated import InProcessSimulator
 from daemon.config import DaemonConfig
 from daemon.interface.client import CdprClient
-from daemon.process.app import ServiceHook, serve
+from daemon.process.app import ServiceHook
 from daemon.process.logsetup import configure_logging
 from daemon.service.planner import LocalLink, Planner
 from daemon.service.safety import SafetyState
@@ -81,21 +81,15 @@ def _serve_with_simulator(
     link_down: bool = False,
     companion: bool = False,
 ) -> int:
-    """serve() against an in-process simulator (its bus down from the start if
+    """The daemon against an in-process simulator (its bus down from the start if
     `link_down`; with the companion process if `companion`) until `after_start` returns
     or the daemon exits; the exit code."""
 
     async def scenario() -> int:
         sim = InProcessSimulator(config)
-        sim.start()
         if link_down:
             loopbus.set_link(sim.daemon_bus.channel, up=False)
-        try:
-            return await asyncio.wait_for(
-                serve(config, sim.daemon_bus, companion=companion, after_start=after_start), 30
-            )
-        finally:
-            sim.close()
+        return await asyncio.wait_for(sim.serve(companion=companion, after_start=after_start), 30)
 
     return asyncio.run(scenario())
 

@@ -19,7 +19,6 @@ import pytest
 
 from cdpr import Pose
 from daemon.cli.simulated import InProcessSimulator
-from daemon.process.app import serve
 from daemon.service.api import CommandError
 from daemon.service.safety import SafetyState, Trigger
 from tests.daemon_stack import Stack, config_for
@@ -305,25 +304,18 @@ def test_a_dead_daemon_leaves_the_platform_held_by_the_drive_watchdogs(protocol:
 @pytest.mark.parametrize("protocol", PROTOCOLS)
 def test_sigterm_brakes_and_exits_zero(protocol: str) -> None:
     async def scenario() -> int:
-        config = config_for(protocol)
-        sim = InProcessSimulator(config)
-        sim.start()
+        sim = InProcessSimulator(config_for(protocol))
         loop = asyncio.get_running_loop()
-        try:
 
-            async def enable_then_terminate(service) -> None:
-                await service.command("enable", {})
-                loop.call_later(0.2, os.kill, os.getpid(), signal.SIGTERM)
-                await asyncio.sleep(30)
+        async def enable_then_terminate(service) -> None:
+            await service.command("enable", {})
+            loop.call_later(0.2, os.kill, os.getpid(), signal.SIGTERM)
+            await asyncio.sleep(30)
 
-            code = await serve(
-                config, sim.daemon_bus, companion=False, after_start=enable_then_terminate
-            )
-            held = [d.actuation.value for d in sim.robot.drives]
-            assert "torque" not in held
-            return code
-        finally:
-            sim.close()
+        code = await sim.serve(companion=False, after_start=enable_then_terminate)
+        held = [d.actuation.value for d in sim.robot.drives]  # as the daemon left them
+        assert "torque" not in held
+        return code
 
     assert run(scenario()) == 0
 

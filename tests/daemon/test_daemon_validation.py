@@ -22,7 +22,6 @@ from cdpr import Pose
 from cdpr.trajectory import Trajectory, Waypoint
 from daemon.cli.simulated import InProcessSimulator
 from daemon.config.zenoh_config import client_zenoh_config
-from daemon.process.app import serve
 from daemon.service.api import CommandError
 from daemon.service.safety import SafetyState
 from daemon.service.service import Service
@@ -304,7 +303,6 @@ def test_over_zenoh_put_query_and_goto_are_rejected_with_the_waypoint_and_limit(
 
     async def scenario() -> dict:
         sim = InProcessSimulator(config)
-        sim.start()
         result: dict = {}
 
         async def fly(service) -> None:
@@ -312,10 +310,7 @@ def test_over_zenoh_put_query_and_goto_are_rejected_with_the_waypoint_and_limit(
             result.update(await asyncio.to_thread(client_side))
             result["moved"] = float(np.linalg.norm(sim.robot.plant.pose.position - start))
 
-        try:
-            await serve(config, sim.daemon_bus, after_start=fly)
-        finally:
-            sim.close()
+        await sim.serve(after_start=fly)
         return result
 
     result = run(scenario())
