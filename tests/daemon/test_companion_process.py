@@ -64,9 +64,6 @@ class Rig:
     def log(self, name: str) -> str:
         return (self.tmp_path / f"{name}.log").read_text()
 
-    def position(self) -> np.ndarray:
-        return np.array(truth(self.truth_log)[-1]["position"])
-
     def moved_since(self, t: float) -> float:
         """The farthest the true platform got from where it was at simulator time t."""
         records = [r for r in truth(self.truth_log) if r["t"] >= t]
@@ -76,6 +73,15 @@ class Rig:
 
     def now(self) -> float:
         return truth(self.truth_log)[-1]["t"]
+
+    def holding(self, daemon: subprocess.Popen) -> float:
+        """Enable the daemon once idle and let it hold; the simulator time then."""
+        with connect(self.zenoh, daemon) as client:
+            wait_status(client, "idle", 10.0)
+            client.enable()
+            wait_status(client, "hold", 5.0)
+        time.sleep(0.3)
+        return self.now()
 
 
 @contextmanager
@@ -110,12 +116,7 @@ def test_a_killed_companion_is_restarted_and_the_robot_stays_held(tmp_path: Path
     with rig(tmp_path) as r:
         daemon = r.start_daemon("daemon")
         try:
-            with connect(r.zenoh, daemon) as client:
-                wait_status(client, "idle", 10.0)
-                client.enable()
-                wait_status(client, "hold", 5.0)
-            time.sleep(0.3)
-            since = r.now()
+            since = r.holding(daemon)
             first = companion_of(daemon)
             psutil.Process(first).kill()
             second = companion_of(daemon, not_pid=first)
@@ -137,12 +138,7 @@ def test_a_hung_companion_brakes_a_moving_robot_and_is_replaced(tmp_path: Path) 
     with rig(tmp_path, companion_lost=0.5, companion_hang=1.5) as r:
         daemon = r.start_daemon("daemon")
         try:
-            with connect(r.zenoh, daemon) as client:
-                wait_status(client, "idle", 10.0)
-                client.enable()
-                wait_status(client, "hold", 5.0)
-            time.sleep(0.3)
-            since = r.now()
+            since = r.holding(daemon)
             first = companion_of(daemon)
             psutil.Process(first).send_signal(signal.SIGSTOP)
             companion_of(daemon, not_pid=first)  # killed after 1.5 s, then restarted
@@ -166,12 +162,7 @@ def test_a_killed_core_leaves_the_drives_holding_and_a_restart_comes_up_held(
         daemon = r.start_daemon("daemon")
         restarted = None
         try:
-            with connect(r.zenoh, daemon) as client:
-                wait_status(client, "idle", 10.0)
-                client.enable()
-                wait_status(client, "hold", 5.0)
-            time.sleep(0.3)
-            since = r.now()
+            since = r.holding(daemon)
             companion = psutil.Process(companion_of(daemon))
             daemon.kill()  # SIGKILL: no brake frame, no goodbye
             daemon.wait(10)
