@@ -145,5 +145,3 @@ def ignore_stop_signals(loop: asyncio.AbstractEventLoop) -> None:
             signal.signal(sig, signal.SIG_IGN)
     finally:
         signal.pthread_sigmask(signal.SIG_UNBLOCK, signals)
-
-

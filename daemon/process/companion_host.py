@@ -279,12 +279,10 @@ class CompanionHost:
                 )
             else:
                 raise CommandError("internal", f"the core has no call {method!r}")
-        except CommandError as exc:
+        except Exception as exc:
+            if not isinstance(exc, CommandError):  # a bug: reported as "internal"
+                log.exception("core call %s failed", method)
             self._reply(ident, False, wire.error_payload(exc))
-            return
-        except Exception as exc:  # a bug: the companion reports it as "internal"
-            log.exception("core call %s failed", method)
-            self._reply(ident, False, ("internal", f"{type(exc).__name__}: {exc}", {}))
             return
         if isinstance(result, Awaitable):
             task = asyncio.ensure_future(result)
@@ -307,11 +305,8 @@ class CompanionHost:
     def _reply_when_done(self, ident: int, task: asyncio.Future) -> None:
         if task.cancelled():
             self._reply(ident, False, ("internal", "the core stopped", {}))
-        elif isinstance(task.exception(), CommandError):
-            self._reply(ident, False, wire.error_payload(task.exception()))
         elif task.exception() is not None:
-            exc = task.exception()
-            self._reply(ident, False, ("internal", f"{type(exc).__name__}: {exc}", {}))
+            self._reply(ident, False, wire.error_payload(task.exception()))
         else:
             self._reply(ident, True, task.result())
 

@@ -11,7 +11,8 @@ from __future__ import annotations
 
 import pickle
 import socket
-from typing import Any
+
+from daemon.service.api import CommandError
 
 BUFFER_BYTES = 1 << 20  # each direction's socket buffer
 MAX_MESSAGE = 256 * 1024  # a datagram larger than this is a bug (trajectories go by the ring)
@@ -58,6 +59,9 @@ def receive(sock: socket.socket, limit: int) -> tuple[list[tuple], bool]:
     return out, False
 
 
-def error_payload(exc: Any) -> tuple[str, str, dict]:
-    """A CommandError as (code, reason, details), to raise again on the other side."""
-    return exc.code, exc.reason, exc.details
+def error_payload(exc: BaseException) -> tuple[str, str, dict]:
+    """(code, reason, details) for the other side to raise again as a CommandError: a
+    refusal's own, or "internal" naming anything else (a bug)."""
+    if isinstance(exc, CommandError):
+        return exc.code, exc.reason, exc.details
+    return "internal", f"{type(exc).__name__}: {exc}", {}
