@@ -25,8 +25,6 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TypeVar
 
-import can
-
 from daemon.config import DaemonConfig
 from daemon.process.app import ignore_stop_signals
 from daemon.process.companion_link import RemoteLink, greeted
@@ -158,20 +156,8 @@ def _recorders(config: DaemonConfig, link: RemoteLink) -> list:
         frames = _open(key, CanRecorder, config.path(rec.can_log), recorders, channel=channel)
 
         def record_frames(batch: list) -> None:
-            for stamp, channel, ident, extended, error, remote, dlc, data, rx in batch:
-                message = can.Message(
-                    channel=channel,
-                    timestamp=stamp,
-                    arbitration_id=ident,
-                    is_extended_id=extended,
-                    is_error_frame=error,
-                    is_remote_frame=remote,
-                    dlc=dlc,
-                    data=data,
-                    is_rx=rx,
-                    check=False,
-                )
-                frames.record(message, rx=rx, timestamp=stamp)
+            for fields in batch:
+                frames.record_fields(fields)
 
         link.batch_sinks["frames"] = record_frames
         recorders.append(frames)

@@ -43,6 +43,7 @@ from daemon.process import wire
 from daemon.process.curve_ring import CurveRing
 from daemon.process.cycle_rows import CycleRows
 from daemon.process.realtime import Child, spawn_ordinary
+from daemon.process.recording import frame_fields
 from daemon.service.api import CommandError
 from daemon.service.safety import Fault, Trigger
 from daemon.service.service import Service
@@ -351,20 +352,7 @@ class CompanionHost:
         if len(self._frames) >= 16 * MAX_BATCH:
             self.dropped += 1
             return
-        stamp = msg.timestamp if rx else time.time()
-        self._frames.append(
-            (
-                stamp,
-                msg.channel,
-                msg.arbitration_id,
-                msg.is_extended_id,
-                msg.is_error_frame,
-                msg.is_remote_frame,
-                msg.dlc,
-                bytes(msg.data),
-                rx,
-            )
-        )
+        self._frames.append(frame_fields(msg, rx))
 
     async def _push_batches(self) -> None:
         while True:

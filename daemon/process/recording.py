@@ -405,6 +405,27 @@ class TelemetryRecorder(_Spool[tuple[CycleRecord, int, int]]):
 CAN_LOG_SUFFIXES = (".asc", ".blf", ".csv", ".log", ".trc")
 
 
+def frame_stamp(message: can.Message, rx: bool) -> float:
+    """When a frame happened: a received frame's own time if it has one, else now."""
+    return message.timestamp if rx and message.timestamp else time.time()
+
+
+def frame_fields(message: can.Message, rx: bool) -> tuple:
+    """A frame as plain values, stamped now (frame_stamp), for a recorder in another
+    process (CanRecorder.record_fields)."""
+    return (
+        frame_stamp(message, rx),
+        message.channel,
+        message.arbitration_id,
+        message.is_extended_id,
+        message.is_error_frame,
+        message.is_remote_frame,
+        message.dlc,
+        bytes(message.data),
+        rx,
+    )
+
+
 class CanRecorder(_Spool[tuple[can.Message, bool, float]]):
     """Received and sent CAN frames to a python-can log file; the format follows the
     suffix (CAN_LOG_SUFFIXES: Vector ASC/BLF, CSV, can-utils .log, PCAN TRC), readable
@@ -446,11 +467,27 @@ class CanRecorder(_Spool[tuple[can.Message, bool, float]]):
 
     def record(self, message: can.Message, *, rx: bool, timestamp: float | None = None) -> None:
         """Queue one frame (hot path; never raises).  `rx`: received (True) or sent.
-        `timestamp` (s, wall clock like python-can's) defaults to the frame's own for a
-        received frame that has one, else to now."""
+        `timestamp` (s, wall clock like python-can's) defaults to frame_stamp's."""
         if timestamp is None:
-            timestamp = message.timestamp if rx and message.timestamp else time.time()
+            timestamp = frame_stamp(message, rx)
         self._push((message, rx, timestamp))
+
+    def record_fields(self, fields: tuple) -> None:
+        """Queue one frame given as frame_fields made it (in another process)."""
+        stamp, channel, ident, extended, error, remote, dlc, data, rx = fields
+        message = can.Message(
+            channel=channel,
+            timestamp=stamp,
+            arbitration_id=ident,
+            is_extended_id=extended,
+            is_error_frame=error,
+            is_remote_frame=remote,
+            dlc=dlc,
+            data=data,
+            is_rx=rx,
+            check=False,
+        )
+        self.record(message, rx=rx, timestamp=stamp)
 
     def _write(self, item: tuple[can.Message, bool, float]) -> None:
         message, rx, timestamp = item
