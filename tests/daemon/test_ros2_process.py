@@ -225,7 +225,7 @@ def _exercise(s: zenoh.Session) -> None:
     assert list(joint_msg.name) == [f"cable{k}" for k in range(8)]
     assert np.allclose(joint_msg.position, states[-1]["lengths"], atol=1e-3)
     sequence, stamp, gid = ze.z_deserialize(tuple[ze.Int64, ze.Int64, bytes], zenoh.ZBytes(extra))
-    assert sequence >= 3 and abs(stamp - time.time_ns()) < 5e9
+    assert sequence >= 3 and abs(stamp - time.time_ns()) < 60e9  # UNIX epoch ns
     joints_token = "/".join(entities[("MP", "%lab%joint_states")])
     assert gid == xxhash.xxh3_128_intdigest(joints_token.encode()).to_bytes(16, "little")
 

@@ -1,8 +1,9 @@
 """rmw_zenoh's wire format (daemon.interface.ros2_wire) against references the project did
 not write: the literal examples of rmw_zenoh's design document (tests/data/
 rmw_zenoh_reference.md), rosbags' RIHS01 hashes and CDR, zenoh-ext's serializer (which
-rmw_zenoh's attachment uses); and hostile trajectories refused with a named reason
-(daemon.interface.ros2_bridge.read_trajectory)."""
+rmw_zenoh's attachment uses); hostile trajectories refused with a named reason
+(daemon.interface.ros2_bridge.read_trajectory); the `ros2:` section; the state as ROS 2
+messages (daemon.interface.ros2_convert), decoded by rosbags."""
 
 from __future__ import annotations
 
@@ -18,11 +19,13 @@ import zenoh.ext as ze
 from rosbags.typesys import Stores, get_typestore
 
 from cdpr import ConfigError
+from cdpr.pose import Pose, liediff
 from cdpr.trajectory import TrajectoryLimits
 from daemon.config.ros2_config import Ros2Settings
 from daemon.interface import ros2_wire as wire
 from daemon.interface.messages import TrajectoryRequest
 from daemon.interface.ros2_bridge import read_trajectory
+from daemon.interface.ros2_convert import state_messages
 from daemon.service.api import CommandError
 from tests.daemon_stack import config_for
 
@@ -266,3 +269,71 @@ def test_topics_resolve_against_the_namespace() -> None:
     assert settings.topic("pose") == "/lab/pose"
     assert settings.topic("/tf") == "/tf"
     assert Ros2Settings().topic("pose") == "/pose"
+
+
+# -- state out ---------------------------------------------------------------------------
+
+HELD = {
+    "state": "hold",
+    "fault": None,
+    "lengths": [1.5] * 8,
+    "rates": [0.01] * 8,
+    "forces": [-40.0] * 8,
+    "pose": {
+        "position": [0.1, 0.0, 1.25],
+        "quaternion": {"w": 1.0, "x": 0.0, "y": 0.0, "z": 0.0},
+    },
+    "tracking_error": [0.002, -0.001, 0.0, 0.0, 0.0, 0.01],
+    "cycle": {"cycles": 1234, "misses": 0},
+}
+
+
+def _out(state: dict) -> dict:
+    """state_messages through CDR and back, decoded by rosbags."""
+    messages = state_messages(state, SETTINGS, 1_700_000_000_250_000_000)
+    return {
+        name: STORE.deserialize_cdr(wire.serialize(m), m.__msgtype__)
+        for name, m in messages.items()
+    }
+
+
+def _as_pose(ros) -> Pose:
+    p, q = ros.position, ros.orientation
+    return Pose((p.x, p.y, p.z), (q.w, q.x, q.y, q.z))
+
+
+def test_the_reference_pose_is_the_measured_pose_less_the_tracking_error() -> None:
+    out = _out(HELD)
+    measured = _as_pose(out["pose_topic"].pose)
+    reference = _as_pose(out["reference_pose_topic"].pose)
+    assert measured.position.tolist() == pytest.approx(HELD["pose"]["position"])
+    assert liediff(reference, measured) == pytest.approx(HELD["tracking_error"], abs=1e-12)
+    stamp = out["pose_topic"].header.stamp
+    assert (stamp.sec, stamp.nanosec) == (1_700_000_000, 250_000_000)
+    tf = out["tf_topic"].transforms
+    assert [(t.header.frame_id, t.child_frame_id) for t in tf] == [
+        ("world", "platform"),
+        ("world", "platform_reference"),
+    ]
+    assert tf[1].transform.translation.x == pytest.approx(reference.position[0])
+    joints = out["joint_states_topic"]
+    assert joints.position.tolist() == HELD["lengths"]
+    assert joints.effort.tolist() == HELD["forces"]
+    (status,) = out["diagnostics_topic"].status
+    assert status.level == 0 and status.message == "hold"
+
+
+def test_a_braked_robot_is_an_error_with_its_fault_and_sends_no_pose() -> None:
+    braked = {
+        "state": "braked",
+        "fault": {"trigger": "stale_feedback", "message": "drive 3 silent"},
+        "lengths": [1.5] * 8,
+        "rates": [0.0] * 8,
+    }
+    out = _out(braked)
+    assert set(out) == {"joint_states_topic", "diagnostics_topic"}
+    assert out["joint_states_topic"].effort.tolist() == []
+    (status,) = out["diagnostics_topic"].status
+    assert status.level == 2
+    assert status.message == "braked: stale_feedback: drive 3 silent"
+    assert {v.key: v.value for v in status.values}["fault_trigger"] == "stale_feedback"
