@@ -36,6 +36,7 @@ from cdpr.trajectory import (
     sampled_pose_limits,
     tracked_length_limits,
 )
+from daemon.config.ros2_config import Ros2Settings
 from daemon.config.zenoh_config import ZenohSettings
 from drivers.config import CanConfig, CanSection, DrivesConfig, can_buses, parse_drives
 
@@ -141,6 +142,7 @@ class FileConfig(StrictModel):
     recording: RecordingConfig = RecordingConfig()
     realtime: RealtimeConfig = RealtimeConfig()
     sim: dict[str, Any] = Field(default_factory=dict)  # sim_bus.config validates it
+    ros2: dict[str, Any] = Field(default_factory=dict)  # Ros2Settings validates it
 
 
 class DaemonConfig:
@@ -174,6 +176,7 @@ class DaemonConfig:
         self.recording = raw.recording
         self.realtime = raw.realtime
         self.sim = raw.sim
+        self.ros2: Ros2Settings = validate_section(Ros2Settings, raw.ros2, source, "ros2")
         try:
             lo, hi = workspace_box(robot, raw.safety)
         except ConfigError as exc:

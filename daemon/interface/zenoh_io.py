@@ -255,6 +255,12 @@ class ZenohInterface:
         self._events: _Inbox[bytes] | None = None
         self._state_task: asyncio.Task[None] | None = None
 
+    @property
+    def session(self) -> zenoh.Session:
+        """The open session (after start()), which the ROS 2 bridge shares."""
+        assert self._session is not None, "start() first"
+        return self._session
+
     # -- keys ------------------------------------------------------------------------------
 
     def key(self, name: str) -> str:

@@ -75,6 +75,7 @@ async def run(config: DaemonConfig, link: RemoteLink) -> int:
     watchdog = asyncio.create_task(run_watchdog(notifier, Progress(lambda: link.cycles)))
     planner = Planner(config, link)
     interface = None
+    ros2 = None
     recorders = _recorders(config, link)
     writers = [asyncio.create_task(r.run()) for r in recorders]
     try:
@@ -86,6 +87,11 @@ async def run(config: DaemonConfig, link: RemoteLink) -> int:
             print(f"error: {config.source}: {exc}", file=sys.stderr)
             return 1
         planner.subscribe(interface.publish_event)
+        if config.ros2.enabled:  # ROS 2 over rmw_zenoh on the same session
+            from daemon.interface.ros2_bridge import Ros2Bridge
+
+            ros2 = Ros2Bridge(config.ros2, planner, interface.session, interface.limits)
+            await ros2.start()
         link.ready()  # the core starts its drives now
         await link.core_started()
         notifier.ready()  # bus, drives and zenoh all up
@@ -96,6 +102,8 @@ async def run(config: DaemonConfig, link: RemoteLink) -> int:
         return 0
     finally:
         watchdog.cancel()
+        if ros2 is not None:
+            await ros2.close()
         if interface is not None:
             await interface.close()
         for writer in writers:

@@ -1,0 +1,54 @@
+"""The `ros2:` config section: ROS 2 over rmw_zenoh's wire format (opt-in; README "ROS 2").
+
+The bridge uses the daemon's own zenoh session (the `zenoh:` section decides where it
+listens or connects), so a ROS 2 graph reaches it through a zenoh router such as
+`ros2 run rmw_zenoh_cpp rmw_zenohd` (zenoh.connect: [tcp/127.0.0.1:7447]) or by
+connecting to the daemon's listen endpoint.  Topic names follow ROS 2: a name that starts
+with "/" is absolute, any other is under `namespace`.
+"""
+
+from __future__ import annotations
+
+from pydantic import Field
+
+from cdpr.description import PositiveFloat, StrictModel
+
+_NAME = r"[A-Za-z][A-Za-z0-9_]*"  # a ROS 2 name token (no "~", no substitutions)
+_TOPIC = rf"^/?{_NAME}(/{_NAME})*$"
+_NAMESPACE = rf"^/({_NAME}(/{_NAME})*)?$"
+
+
+class Ros2Settings(StrictModel):
+    """Every key optional; nothing is published or accepted unless `enabled`."""
+
+    enabled: bool = False
+    domain_id: int = Field(0, ge=0, le=232)  # ROS_DOMAIN_ID's range
+    node_name: str = Field("cdprd", pattern=rf"^{_NAME}$", max_length=100)
+    namespace: str = Field("/", pattern=_NAMESPACE, max_length=200)
+    rate_hz: PositiveFloat = Field(30.0, le=1000.0)
+    """Publication rate of the pose, joint, tf and diagnostic topics."""
+    world_frame: str = Field("world", pattern=rf"^{_NAME}$")
+    """The frame of every pose sent and the frame_id an incoming trajectory must name
+    (or leave empty)."""
+    platform_frame: str = Field("platform", pattern=rf"^{_NAME}$")
+    reference_frame: str = Field("platform_reference", pattern=rf"^{_NAME}$")
+    pose_topic: str = Field("pose", pattern=_TOPIC)
+    reference_pose_topic: str = Field("reference_pose", pattern=_TOPIC)
+    joint_states_topic: str = Field("joint_states", pattern=_TOPIC)
+    tf_topic: str = Field("/tf", pattern=_TOPIC)
+    diagnostics_topic: str = Field("/diagnostics", pattern=_TOPIC)
+    path_topic: str = Field("path", pattern=_TOPIC)
+    multi_dof_trajectory_topic: str = Field("multi_dof_trajectory", pattern=_TOPIC)
+    status_topic: str = Field("trajectory_status", pattern=_TOPIC)
+    """std_msgs/msg/String: the verdict on each trajectory received (JSON text)."""
+    max_message_bytes: int = Field(4 * 1024 * 1024, ge=1024, le=256 * 1024 * 1024)
+    """An incoming trajectory above this size is refused unread."""
+    queue_depth: int = Field(4, ge=1, le=64)
+    """Trajectories waiting to be decoded and validated; more are refused "busy"."""
+
+    def topic(self, name: str) -> str:
+        """The fully qualified name of topic `name` (absolute, or under the namespace)."""
+        if name.startswith("/"):
+            return name
+        return f"{self.namespace.rstrip('/')}/{name}"
+

@@ -1,0 +1,285 @@
+"""ROS 2 over rmw_zenoh on the daemon's zenoh session: cdprd appears as a ROS 2 node
+(README "ROS 2"; the wire format in daemon.interface.ros2_wire, the messages in
+daemon.interface.ros2_convert).
+
+At `rate_hz` the state goes out as PoseStamped (measured, reference), JointState, /tf and
+diagnostics.  A Path or MultiDOFJointTrajectory received is checked on zenoh's thread for
+size only, then decoded, converted and parsed in one worker thread (a long one takes a
+second; the loop never waits for it), and submitted to the handler like a trajectory
+from the zenoh interface; its verdict, accepted or rejected with the reason, goes out on
+the status topic as JSON text.  Trajectories are handled one at a time; at most
+`queue_depth` wait, more are refused "busy".
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import inspect
+import logging
+import time
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from typing import Any
+
+import zenoh
+
+from cdpr.trajectory import SCHEMA_VERSION, TrajectoryLimits
+from daemon.config.ros2_config import Ros2Settings
+from daemon.interface import ros2_wire as wire
+from daemon.interface.messages import (
+    EVENT_KEY,
+    VERSION_KEY,
+    TrajectoryMessage,
+    TrajectoryRequest,
+    encode,
+    error_body,
+    parse_waypoints,
+)
+from daemon.interface.ros2_convert import (
+    DIAGNOSTICS,
+    JOINTS,
+    MULTI_DOF,
+    PATH,
+    POSE,
+    STATUS,
+    TF,
+    state_messages,
+    status_message,
+    trajectory_body,
+)
+from daemon.service.api import CommandError, DaemonHandler
+
+log = logging.getLogger(__name__)
+
+PUBLISHED = {  # setting naming the topic -> its type
+    "pose_topic": POSE,
+    "reference_pose_topic": POSE,
+    "joint_states_topic": JOINTS,
+    "tf_topic": TF,
+    "diagnostics_topic": DIAGNOSTICS,
+    "status_topic": STATUS,
+}
+ACCEPTED = {"path_topic": PATH, "multi_dof_trajectory_topic": MULTI_DOF}
+Received = tuple[str, str, bytes, bytes | None]  # topic, type, payload, attachment
+
+
+class _Publisher:
+    """One ROS 2 publisher: its zenoh publisher, GID and sequence numbers."""
+
+    def __init__(self, session: zenoh.Session, key: str, token: str) -> None:
+        self.token = token
+        self.gid = wire.gid(token)
+        self.sequence = 0
+        self.publisher = session.declare_publisher(
+            key,
+            congestion_control=zenoh.CongestionControl.DROP,
+            reliability=zenoh.Reliability.RELIABLE,
+        )
+
+    def put(self, msg: Any) -> None:
+        self.sequence += 1
+        extra = wire.attachment(self.sequence, time.time_ns(), self.gid)
+        self.publisher.put(wire.serialize(msg), attachment=extra)
+
+
+class Ros2Bridge:
+    """`await start()`, then `await close()`; the handler is called on start()'s loop."""
+
+    def __init__(
+        self,
+        settings: Ros2Settings,
+        handler: DaemonHandler,
+        session: zenoh.Session,
+        limits: TrajectoryLimits,
+    ) -> None:
+        self.settings = settings
+        self.limits = limits
+        self._handler = handler
+        self._session = session
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._publishers: dict[str, _Publisher] = {}
+        self._entities: list[Any] = []
+        self._tasks: list[asyncio.Task[None]] = []
+        self._queue: asyncio.Queue[Received] | None = None
+        self._parser: ThreadPoolExecutor | None = None
+        self.node = wire.Node(
+            settings.domain_id,
+            str(session.info.zid()),
+            0,
+            settings.namespace,
+            settings.node_name,
+        )
+
+    async def start(self) -> None:
+        """Declare the node, its publishers and subscriptions (each with its liveliness
+        token), start publishing and taking trajectories."""
+        self._loop = asyncio.get_running_loop()
+        self._queue = asyncio.Queue(self.settings.queue_depth)
+        self._parser = ThreadPoolExecutor(1, thread_name_prefix="cdprd-ros2-decode")
+        liveliness = self._session.liveliness()
+        self._entities.append(liveliness.declare_token(self.node.token()))
+        entity_id = 0
+        for name, msgtype in PUBLISHED.items():
+            entity_id += 1
+            topic = self.settings.topic(getattr(self.settings, name))
+            token = self.node.entity_token(entity_id, wire.PUBLISHER, topic, msgtype)
+            key = wire.topic_key(self.settings.domain_id, topic, msgtype)
+            self._publishers[name] = _Publisher(self._session, key, token)
+            self._entities.append(liveliness.declare_token(token))
+        for name, msgtype in ACCEPTED.items():
+            entity_id += 1
+            topic = self.settings.topic(getattr(self.settings, name))
+            key = wire.topic_key(self.settings.domain_id, topic, msgtype)
+            receive = self._receiver(topic, msgtype)
+            self._entities.append(self._session.declare_subscriber(key, receive))
+            token = self.node.entity_token(entity_id, wire.SUBSCRIPTION, topic, msgtype)
+            self._entities.append(liveliness.declare_token(token))
+        self._tasks = [
+            self._loop.create_task(self._publish_states()),
+            self._loop.create_task(self._take_trajectories()),
+        ]
+        log.info(
+            "ROS 2 (rmw_zenoh) node %s in namespace %s, domain %d",
+            self.settings.node_name,
+            self.settings.namespace,
+            self.settings.domain_id,
+        )
+
+    async def close(self) -> None:
+        for task in self._tasks:
+            task.cancel()
+        for task in self._tasks:
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+        for entity in [*self._entities, *(p.publisher for p in self._publishers.values())]:
+            with contextlib.suppress(zenoh.ZError):
+                entity.undeclare()
+        if self._parser is not None:
+            self._parser.shutdown(wait=False, cancel_futures=True)
+
+    # -- out --------------------------------------------------------------------------
+
+    async def _publish_states(self) -> None:
+        """The state at rate_hz, in the cycle's slack; a period missed is skipped."""
+        assert self._loop is not None
+        period = 1.0 / self.settings.rate_hz
+        due = self._loop.time()
+        failures = 0
+        while True:
+            await asyncio.sleep(due - self._loop.time())
+            await self._handler.slack()
+            try:
+                messages = state_messages(self._handler.state(), self.settings, time.time_ns())
+                for name, msg in messages.items():
+                    self._publishers[name].put(msg)
+            except Exception:
+                failures += 1
+                if failures == 1 or failures % 1000 == 0:
+                    log.exception("publishing the ROS 2 state failed (%d times)", failures)
+            due = max(due + period, self._loop.time())
+
+    def _status(
+        self, ident: str | None, topic: str, error: CommandError | None, **more: Any
+    ) -> None:
+        body: dict[str, Any] = {
+            VERSION_KEY: SCHEMA_VERSION,
+            EVENT_KEY: "trajectory_accepted" if error is None else "trajectory_rejected",
+            "id": ident,
+            "topic": topic,
+            **more,
+        }
+        if error is not None:
+            body["error"] = error_body(error)
+        try:
+            self._publishers["status_topic"].put(status_message(encode(body).decode()))
+        except zenoh.ZError:
+            log.warning("could not publish a trajectory verdict on %s", topic)
+
+    # -- in ---------------------------------------------------------------------------
+
+    def _receiver(self, topic: str, msgtype: str) -> Callable[[zenoh.Sample], None]:
+        """The subscriber callback (zenoh's thread): size check and a copy, no more."""
+
+        def receive(sample: zenoh.Sample) -> None:
+            size = len(sample.payload)
+            if size > self.settings.max_message_bytes:
+                error = CommandError(
+                    "bad_request",
+                    f"{size} bytes exceed ros2.max_message_bytes "
+                    f"({self.settings.max_message_bytes})",
+                    limit="max_message_bytes",
+                    value=size,
+                )
+                self._on_loop(self._status, None, topic, error)
+                return
+            extra = sample.attachment
+            item = (
+                topic,
+                msgtype,
+                sample.payload.to_bytes(),
+                None if extra is None else extra.to_bytes(),
+            )
+            self._on_loop(self._offer, item)
+
+        return receive
+
+    def _on_loop(self, call: Callable[..., None], *args: Any) -> None:
+        assert self._loop is not None
+        with contextlib.suppress(RuntimeError):  # the loop is closed: shutting down
+            self._loop.call_soon_threadsafe(call, *args)
+
+    def _offer(self, item: Received) -> None:
+        assert self._queue is not None
+        try:
+            self._queue.put_nowait(item)
+        except asyncio.QueueFull:
+            busy = CommandError("busy", "too many trajectories waiting: this one was dropped")
+            self._status(None, item[0], busy)
+
+    async def _take_trajectories(self) -> None:
+        assert self._queue is not None and self._loop is not None
+        while True:
+            item = await self._queue.get()
+            topic = item[0]
+            ident, parsed = await self._loop.run_in_executor(
+                self._parser, read_trajectory, item, self.settings, self.limits
+            )
+            if isinstance(parsed, CommandError):
+                self._status(ident, topic, parsed)
+                continue
+            try:
+                result = self._handler.submit_trajectory(parsed.trajectory, parsed.start)
+                if inspect.isawaitable(result):
+                    result = await result
+            except CommandError as exc:
+                self._status(ident, topic, exc)
+            except Exception as exc:
+                log.exception("the handler failed on a ROS 2 trajectory")
+                error = CommandError("internal", f"the daemon failed: {type(exc).__name__}")
+                self._status(ident, topic, error)
+            else:
+                self._status(ident, topic, None, result=result)
+
+
+def read_trajectory(
+    item: Received, settings: Ros2Settings, limits: TrajectoryLimits
+) -> tuple[str | None, TrajectoryRequest | CommandError]:
+    """A received sample's request id (<topic>#<sequence number>, once the attachment
+    reads) and its trajectory parsed, or why not: every bad input gets a CommandError
+    that names the problem, never another exception."""
+    topic, msgtype, payload, extra = item
+    ident = None
+    try:
+        ident = f"{topic}#{wire.read_attachment(extra).sequence_number}"
+        msg = wire.deserialize(payload, msgtype)
+        body = trajectory_body(msg, settings, limits.max_waypoints)
+        head = TrajectoryMessage(ident, None, body, len(body["waypoints"]))
+        return ident, parse_waypoints(head, limits)
+    except wire.WireError as exc:
+        return ident, CommandError("bad_request", f"{msgtype}: {exc}")
+    except CommandError as exc:
+        return ident, exc
+    except Exception as exc:  # a bug must not reach the sender as silence
+        log.exception("decoding a ROS 2 trajectory failed")
+        return ident, CommandError("internal", f"decoding failed: {type(exc).__name__}")

@@ -1,0 +1,244 @@
+"""The daemon's state as ROS 2 messages, and ROS 2 trajectories as the daemon's
+(README "ROS 2").
+
+Out: geometry_msgs/msg/PoseStamped (measured pose; reference pose = the measured pose
+less the tracking error, cdpr.pose.liediff's inverse), sensor_msgs/msg/JointState (one
+joint per cable: length m, rate m/s, commanded actuator force N), tf2_msgs/msg/TFMessage
+(world -> platform, world -> reference) and diagnostic_msgs/msg/DiagnosticArray (the
+safety state and fault).  Poses exist only while the robot is held or tracking.
+
+In: nav_msgs/msg/Path (each pose's header stamp is its time, relative to the first) and
+trajectory_msgs/msg/MultiDOFJointTrajectory (one joint: the platform; time_from_start,
+optional world-frame velocities and accelerations), in the world frame (frame_id empty or
+the configured world frame).  They become the daemon's trajectory form
+(cdpr/trajectory/parse.py), which validates them like any other trajectory.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from cdpr.pose import Pose, retract
+from daemon.config.ros2_config import Ros2Settings
+from daemon.interface.ros2_wire import message
+from daemon.service.api import CommandError
+
+POSE = "geometry_msgs/msg/PoseStamped"
+JOINTS = "sensor_msgs/msg/JointState"
+TF = "tf2_msgs/msg/TFMessage"
+DIAGNOSTICS = "diagnostic_msgs/msg/DiagnosticArray"
+STATUS = "std_msgs/msg/String"
+PATH = "nav_msgs/msg/Path"
+MULTI_DOF = "trajectory_msgs/msg/MultiDOFJointTrajectory"
+OK, WARN, ERROR = 0, 1, 2  # diagnostic_msgs/msg/DiagnosticStatus levels
+_LEVELS = {"braked": ERROR, "init": WARN}
+
+
+def stamp(ns: int) -> Any:
+    return message("builtin_interfaces/msg/Time", sec=ns // 10**9, nanosec=ns % 10**9)
+
+
+def header(ns: int, frame: str) -> Any:
+    return message("std_msgs/msg/Header", stamp=stamp(ns), frame_id=frame)
+
+
+def state_messages(state: dict[str, Any], settings: Ros2Settings, ns: int) -> dict[str, Any]:
+    """The messages for one state snapshot, by setting name (pose_topic, ...), stamped
+    `ns` (unix time in ns)."""
+    out: dict[str, Any] = {
+        "joint_states_topic": _joints(state, ns),
+        "diagnostics_topic": _diagnostics(state, settings, ns),
+    }
+    if "pose" in state:
+        measured = _pose(state["pose"])
+        reference = retract(measured, -np.asarray(state["tracking_error"], dtype=float))
+        world = settings.world_frame
+        out["pose_topic"] = message(POSE, header=header(ns, world), pose=_ros_pose(measured))
+        out["reference_pose_topic"] = message(
+            POSE, header=header(ns, world), pose=_ros_pose(reference)
+        )
+        out["tf_topic"] = message(
+            TF,
+            transforms=[
+                _transform(measured, ns, world, settings.platform_frame),
+                _transform(reference, ns, world, settings.reference_frame),
+            ],
+        )
+    return out
+
+
+def status_message(text: str) -> Any:
+    return message(STATUS, data=text)
+
+
+def _pose(body: dict[str, Any]) -> Pose:
+    q = body["quaternion"]
+    return Pose(body["position"], (q["w"], q["x"], q["y"], q["z"]))
+
+
+def _ros_pose(pose: Pose) -> Any:
+    x, y, z = pose.position_tuple
+    w, qx, qy, qz = pose.quaternion_tuple
+    return message(
+        "geometry_msgs/msg/Pose",
+        position=message("geometry_msgs/msg/Point", x=x, y=y, z=z),
+        orientation=message("geometry_msgs/msg/Quaternion", x=qx, y=qy, z=qz, w=w),
+    )
+
+
+def _transform(pose: Pose, ns: int, parent: str, child: str) -> Any:
+    ros = _ros_pose(pose)
+    p = ros.position
+    return message(
+        "geometry_msgs/msg/TransformStamped",
+        header=header(ns, parent),
+        child_frame_id=child,
+        transform=message(
+            "geometry_msgs/msg/Transform",
+            translation=message("geometry_msgs/msg/Vector3", x=p.x, y=p.y, z=p.z),
+            rotation=ros.orientation,
+        ),
+    )
+
+
+def _joints(state: dict[str, Any], ns: int) -> Any:
+    lengths = state.get("lengths", [])
+    return message(
+        JOINTS,
+        header=header(ns, ""),
+        name=[f"cable{k}" for k in range(len(lengths))],
+        position=_floats(lengths),
+        velocity=_floats(state.get("rates", [])),
+        effort=_floats(state.get("forces", [])),
+    )
+
+
+def _floats(values: list[Any]) -> np.ndarray:
+    return np.array([math.nan if v is None else v for v in values], dtype=np.float64)
+
+
+def _diagnostics(state: dict[str, Any], settings: Ros2Settings, ns: int) -> Any:
+    name = state.get("state", "init")
+    fault = state.get("fault")
+    level = ERROR if fault else _LEVELS.get(name, OK)
+    text = name if not fault else f"{name}: {fault['trigger']}: {fault['message']}"
+    values = {"state": name}
+    if fault:
+        values.update(fault_trigger=fault["trigger"], fault_message=fault["message"])
+    values.update(
+        (f"cycle.{key}", str(value))
+        for key, value in state.get("cycle", {}).items()
+        if isinstance(value, int | float | str)
+    )
+    return message(
+        DIAGNOSTICS,
+        header=header(ns, ""),
+        status=[
+            message(
+                "diagnostic_msgs/msg/DiagnosticStatus",
+                level=level,
+                name=f"{settings.node_name}: safety",
+                message=text,
+                hardware_id=settings.node_name,
+                values=[
+                    message("diagnostic_msgs/msg/KeyValue", key=k, value=v)
+                    for k, v in values.items()
+                ],
+            )
+        ],
+    )
+
+
+# -- in ---------------------------------------------------------------------------------
+
+
+def trajectory_body(msg: Any, settings: Ros2Settings, max_waypoints: int) -> dict[str, Any]:
+    """A received Path or MultiDOFJointTrajectory in the daemon's trajectory form;
+    CommandError names what does not fit (the trajectory's own rules are checked when the
+    form is parsed)."""
+    if msg.__msgtype__ == PATH:
+        items, what = msg.poses, "poses"
+    else:
+        items, what = msg.points, "points"
+    _check_frame(msg.header.frame_id, "header.frame_id", settings)
+    if len(items) > max_waypoints:
+        raise CommandError(
+            "rejected",
+            f"{len(items)} {what} exceed the limit of {max_waypoints} waypoints",
+            limit="max_waypoints",
+            value=len(items),
+            field=what,
+        )
+    if msg.__msgtype__ == PATH:
+        return {"waypoints": _path_waypoints(msg, settings)}
+    return {"waypoints": _multi_dof_waypoints(msg, settings)}
+
+
+def _check_frame(frame: str, where: str, settings: Ros2Settings) -> None:
+    if frame not in ("", settings.world_frame):
+        raise CommandError(
+            "rejected",
+            f"{where}: frame {frame[:100]!r} is not the robot's world frame "
+            f"{settings.world_frame!r} (cdprd transforms no frames)",
+            field=where,
+        )
+
+
+def _path_waypoints(msg: Any, settings: Ros2Settings) -> list[dict[str, Any]]:
+    if not msg.poses:
+        raise CommandError("bad_request", "a Path without poses", field="poses")
+    first = msg.poses[0].header.stamp
+    waypoints = []
+    for i, stamped in enumerate(msg.poses):
+        _check_frame(stamped.header.frame_id, f"poses[{i}].header.frame_id", settings)
+        s = stamped.header.stamp
+        t = (s.sec - first.sec) + (s.nanosec - first.nanosec) * 1e-9
+        waypoints.append({"t": t, **_pose_fields(stamped.pose.position, stamped.pose.orientation)})
+    return waypoints
+
+
+def _multi_dof_waypoints(msg: Any, settings: Ros2Settings) -> list[dict[str, Any]]:
+    if len(msg.joint_names) != 1:
+        raise CommandError(
+            "bad_request",
+            f"joint_names: cdprd moves one platform, got {len(msg.joint_names)} joints",
+            field="joint_names",
+        )
+    if not msg.points:
+        raise CommandError("bad_request", "a trajectory without points", field="points")
+    waypoints = []
+    for i, point in enumerate(msg.points):
+        where = f"points[{i}]"
+        for name in ("transforms", "velocities", "accelerations"):
+            count = len(getattr(point, name))
+            if count > 1 or (name == "transforms" and count != 1):
+                raise CommandError(
+                    "bad_request",
+                    f"{where}.{name}: {count} entries for the one joint",
+                    field=f"{where}.{name}",
+                )
+        transform = point.transforms[0]
+        d = point.time_from_start
+        waypoint = {"t": d.sec + d.nanosec * 1e-9}
+        waypoint.update(_pose_fields(transform.translation, transform.rotation))
+        if point.velocities:
+            waypoint["twist"] = _six(point.velocities[0])
+        if point.accelerations:
+            waypoint["accel"] = _six(point.accelerations[0])
+        waypoints.append(waypoint)
+    return waypoints
+
+
+def _pose_fields(position: Any, q: Any) -> dict[str, Any]:
+    return {
+        "position": [position.x, position.y, position.z],
+        "quaternion": {"w": q.w, "x": q.x, "y": q.y, "z": q.z},
+    }
+
+
+def _six(twist: Any) -> dict[str, list[float]]:
+    lin, ang = twist.linear, twist.angular
+    return {"linear": [lin.x, lin.y, lin.z], "angular": [ang.x, ang.y, ang.z]}

@@ -1,0 +1,158 @@
+"""rmw_zenoh's wire format, so that ROS 2 nodes on rmw_zenoh_cpp see cdprd as a node
+(DESIGN §17; README "ROS 2").  No ROS install: CDR and RIHS01 type hashes come from
+`rosbags` (message definitions shipped in the package, ROS 2 Jazzy store).
+
+Followed exactly: rmw_zenoh_cpp as released for Jazzy from 0.2.4 on (and Rolling from
+0.6.0, Humble from 0.1.2), i.e. after ros2/rmw_zenoh#601 made the attachment positional.
+The sources read (tests/data/rmw_zenoh_reference.md keeps the excerpts):
+docs/design.md @ 99a6a2bd10b949052f4f12c5854825dc005e95a5,
+rmw_zenoh_cpp/src/detail/liveliness_utils.cpp @ 3411fdec149fe0c932f24d4d79ef908eb81d7482,
+rmw_zenoh_cpp/src/detail/attachment_helpers.cpp @ 534747dca92adf15e1b1b975123037ca278db5ba,
+rmw_zenoh_cpp/src/detail/rmw_publisher_data.cpp @ 3e19ec730c529035a648aec80c0ae0a056943b8c,
+rmw_zenoh_cpp/src/detail/qos.cpp @ 5e10d47b06c3fe327105d06a8350be455411ea5b.
+
+- Data key: <domain_id>/<fully qualified topic without its leading "/">/<DDS type
+  name>/<RIHS01 type hash>, e.g. 0/chatter/std_msgs::msg::dds_::String_/RIHS01_df66...
+- Payload: the message in CDR with its 4-byte encapsulation header (little endian).
+- Attachment: sequence number (int64 LE, from 1 per publisher), source timestamp (int64
+  LE, ns since the UNIX epoch), the publisher's GID as zenoh-ext serializes a 16-byte
+  array (one LEB128 length byte, 16, then the bytes): 33 bytes.  A sample without one
+  is dropped by rmw_zenoh ("Unable to obtain attachment"), so it is refused here too.
+- Liveliness tokens: @ros2_lv/<domain>/<zid>/<node id>/<entity id>/<kind>/<enclave>/
+  <namespace>/<node name>[/<topic>/<type>/<hash>/<qos>], each name with "/" mangled to
+  "%"; kind NN (node, whose entity id is its node id), MP, MS; qos in rmw_zenoh's
+  compact form, empty fields for its defaults.
+- GID: XXH3-128 of the entity's liveliness key, low 64 bits then high 64 bits, each in
+  the host's (little-endian) byte order.
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass
+from typing import Any, NamedTuple
+
+import xxhash
+from rosbags.typesys import Stores, get_typestore
+
+TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
+ADMIN_SPACE = "@ros2_lv"
+NODE, PUBLISHER, SUBSCRIPTION = "NN", "MP", "MS"
+# reliable, volatile, keep last 10 (rclcpp's default profile; depth 10 is not rmw_zenoh's
+# default of 42, so it is written out): reliability:durability:history,depth:deadline:
+# lifespan:liveliness,lease s,lease ns
+DEFAULT_QOS = "::,10:,:,:,,"
+GID_SIZE = 16
+_ATTACHMENT = struct.Struct("<qqB16s")
+
+
+class WireError(ValueError):
+    """A sample that is not in rmw_zenoh's format: the message names what is wrong."""
+
+
+class Attachment(NamedTuple):
+    sequence_number: int
+    source_timestamp: int  # ns since the UNIX epoch
+    source_gid: bytes
+
+
+def dds_type_name(msgtype: str) -> str:
+    """geometry_msgs/msg/PoseStamped -> geometry_msgs::msg::dds_::PoseStamped_"""
+    package, kind, name = msgtype.split("/")
+    return f"{package}::{kind}::dds_::{name}_"
+
+
+def type_hash(msgtype: str) -> str:
+    """The RIHS01 type hash of `msgtype` (REP-2016), as rosbags computes it."""
+    return TYPESTORE.hash_rihs01(msgtype)
+
+
+def topic_key(domain_id: int, topic: str, msgtype: str) -> str:
+    """The zenoh key of fully qualified `topic` carrying `msgtype`."""
+    return f"{domain_id}/{topic.strip('/')}/{dds_type_name(msgtype)}/{type_hash(msgtype)}"
+
+
+def mangle(name: str) -> str:
+    return name.replace("/", "%")
+
+
+@dataclass(frozen=True)
+class Node:
+    """A ROS 2 node as rmw_zenoh announces it: its session's zid and its id there."""
+
+    domain_id: int
+    zid: str
+    node_id: int
+    namespace: str
+    name: str
+    enclave: str = "/"
+
+    def _head(self, entity_id: int, kind: str) -> str:
+        return "/".join(
+            (
+                ADMIN_SPACE,
+                str(self.domain_id),
+                self.zid,
+                str(self.node_id),
+                str(entity_id),
+                kind,
+                mangle(self.enclave),
+                mangle(self.namespace),
+                mangle(self.name),
+            )
+        )
+
+    def token(self) -> str:
+        """The node's liveliness key."""
+        return self._head(self.node_id, NODE)
+
+    def entity_token(
+        self, entity_id: int, kind: str, topic: str, msgtype: str, qos: str = DEFAULT_QOS
+    ) -> str:
+        """The liveliness key of a publisher (MP) or subscription (MS) of this node."""
+        tail = (mangle(topic), mangle(dds_type_name(msgtype)), type_hash(msgtype), qos)
+        return "/".join((self._head(entity_id, kind), *tail))
+
+
+def gid(token: str) -> bytes:
+    """The 16-byte GID rmw_zenoh derives from an entity's liveliness key."""
+    return xxhash.xxh3_128_intdigest(token.encode()).to_bytes(GID_SIZE, "little")
+
+
+def attachment(sequence_number: int, source_timestamp: int, source_gid: bytes) -> bytes:
+    return _ATTACHMENT.pack(sequence_number, source_timestamp, GID_SIZE, source_gid)
+
+
+def read_attachment(raw: bytes | None) -> Attachment:
+    """The attachment of a sample; WireError if it is missing or not rmw_zenoh's."""
+    if raw is None:
+        raise WireError("no attachment (rmw_zenoh sends sequence number, timestamp, gid)")
+    if len(raw) != _ATTACHMENT.size:
+        raise WireError(
+            f"attachment of {len(raw)} bytes; rmw_zenoh's has {_ATTACHMENT.size} "
+            "(int64 sequence number, int64 timestamp, 16-byte gid)"
+        )
+    sequence, stamp, size, source = _ATTACHMENT.unpack(raw)
+    if size != GID_SIZE:
+        raise WireError(f"attachment gid length {size}, expected {GID_SIZE}")
+    return Attachment(sequence, stamp, source)
+
+
+def message(msgtype: str, **fields: Any) -> Any:
+    """A rosbags message object of `msgtype`."""
+    return TYPESTORE.types[msgtype](**fields)
+
+
+def serialize(msg: Any) -> bytes:
+    """`msg` in little-endian CDR with its encapsulation header."""
+    return bytes(TYPESTORE.serialize_cdr(msg, msg.__msgtype__))
+
+
+def deserialize(raw: bytes, msgtype: str) -> Any:
+    """A CDR payload of `msgtype`; WireError naming the problem for anything else
+    (no CDR header, truncated, a sequence longer than the payload, bad strings,
+    trailing bytes)."""
+    try:
+        return TYPESTORE.deserialize_cdr(raw, msgtype)
+    except Exception as exc:  # rosbags' own errors, and any a hostile payload provokes
+        raise WireError(f"malformed CDR for {msgtype}: {type(exc).__name__}: {exc}") from None
