@@ -27,6 +27,7 @@ from cdpr.control_spec import ControllerSpec
 from cdpr.forward_kinematics import FKResult
 from cdpr.pose import Pose, liediff, liediff6, retract
 from cdpr.robot import Robot
+from cdpr.stretch import ComplianceScale
 from cdpr.tension import TensionLimits, TensionSolver, make_tension_solver
 from cdpr.trajectory import Reference, WrenchCheck
 
@@ -133,6 +134,7 @@ class ParallelController:
         self._differentiate = spec.velocity == "differentiate"
         self._smoothing = self.period / (spec.velocity_filter + self.period)
         self._stretch_corrected = bool(np.any(robot.compliance > 0.0))
+        self.stretch = ComplianceScale(robot)  # the cables' EA as identified (cdpr.stretch)
         self._error = np.zeros((self.loop.Dd.shape[1], 6))
         self.reset(robot.home)
 
@@ -159,7 +161,8 @@ class ParallelController:
     def prepare(self, t: float) -> None:
         """Compute the measurement-free part of the step at time t ahead of it: the
         reference sample, the forward-kinematics guess, f_b and, with model_at =
-        "reference", the model terms.  step(t, ...) uses it; a step at another time,
+        "reference", the model terms; and the last cycle's step of the cables' stiffness
+        estimate (cdpr.stretch).  step(t, ...) uses it; a step at another time,
         reset() and follow() discard it."""
         robot = self.robot
         ref = self.source.sample(t)
@@ -168,6 +171,7 @@ class ParallelController:
         Lam_r = model[0] if model is not None else robot.jacobian(ref.pose)
         f_b = robot.k0 * Lam_r.dot(ref.twist)  # ndarray.dot: see the cdpr.kinematics docstring
         self._prepared = _Prepared(t, ref, guess, f_b, model)
+        self.stretch.update(self.period)
 
     @property
     def pose(self) -> Pose:
@@ -194,9 +198,10 @@ class ParallelController:
         ref, guess = prepared.reference, prepared.guess
         # the encoders measure the drums; the last planned tensions stretch the cables
         lengths = np.asarray(lengths, dtype=float)
-        fk = robot.forward_kinematics(robot.stretched_lengths(lengths, self._tensions), guess)
+        fk = robot.forward_kinematics(self.stretch.stretched(lengths, self._tensions), guess)
         if not fk.converged:
             return self._fault(ref, fk.pose, fk.residual, f"forward kinematics: {fk.reason}")
+        self.stretch.observe(lengths, self._tensions, fk)
         pose = fk.pose
         twist = self._measure_twist(pose, fk, length_rates)
         if not math.isfinite(sum(twist.tolist())):  # NaN or inf in it

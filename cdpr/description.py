@@ -242,7 +242,9 @@ def format_validation_error(exc: ValidationError, source: str = "", key: str = "
 
 
 def _union_member(part: int | str) -> bool:
-    return isinstance(part, str) and ("[" in part or part in _UNION_MEMBERS)
+    return isinstance(part, str) and (
+        "[" in part or part in _UNION_MEMBERS or part.startswith("constrained-")
+    )
 
 
 def _show_value(value: Any) -> str:

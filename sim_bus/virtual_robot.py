@@ -17,7 +17,9 @@ sim_bus.bus.frame_faults.
 
 from __future__ import annotations
 
+import dataclasses
 import math
+from collections.abc import Sequence
 
 import can
 
@@ -49,9 +51,18 @@ class PositionServo:
         return self.integral + self.kp * error - self.kd * rate
 
 
-def make_virtual_drives(config: DrivesConfig, robot: Robot) -> list[VirtualDrive]:
-    """One device per cable, of the configured protocol, scaled like the host side."""
+def make_virtual_drives(
+    config: DrivesConfig, robot: Robot, encoder_offsets: Sequence[float] | None = None
+) -> list[VirtualDrive]:
+    """One device per cable, of the configured protocol, scaled like the host side but
+    with `robot`'s drum radii (the true robot's) and each motor position zero
+    `encoder_offsets` (m) further in than the host believes (MismatchConfig)."""
     scalings = config.scalings_for(robot)
+    if encoder_offsets is not None:
+        scalings = [
+            dataclasses.replace(s, length_offset=s.length_offset - offset)
+            for s, offset in zip(scalings, encoder_offsets, strict=True)
+        ]
     if config.protocol == "cia402":
         from sim_bus.devices.cia402 import Cia402Drive
 
@@ -74,7 +85,8 @@ class VirtualRobot:
     ) -> None:
         self.plant = Plant(robot, plant)
         self.protocol = drives.protocol
-        self.drives = make_virtual_drives(drives, robot)
+        offsets = self.plant.config.mismatch.encoder_offsets_for(self.plant.n)
+        self.drives = make_virtual_drives(drives, self.plant.robot, offsets)
         self.n = len(self.drives)
         buses = drives.bus_names()
         # each drive's bus where there are several (frames are routed by channel), else None

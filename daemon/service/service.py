@@ -98,6 +98,7 @@ class Service:
             tolerance=config.safety.feedback_tolerance,
             slack=2.0 * self.period + 0.01,
             rest_tensions=static_tensions(robot, self.controller.tension, robot.home),
+            stretch=self.controller.stretch,
         )
         self._trajectory: Curve | None = None
         self._scheduled: list[Curve] = []  # accepted, beginning later, by start time
@@ -587,19 +588,18 @@ class Service:
     def _measured_pose(self) -> Pose:
         """The platform pose from the current lengths, stretch-corrected with the static
         tensions of the pose (the platform is at rest when enabling): forward
-        kinematics alternated with the statics, starting from the home pose."""
+        kinematics alternated with the statics and the cables' stiffness estimate
+        (cdpr.stretch), starting from the home pose."""
         lengths = np.array(self.trust.held)
         if not np.all(np.isfinite(lengths)):
             raise CommandError("invalid_state", "no feedback from every drive yet")
         robot, solver = self.robot, self.controller.tension
-        pose = robot.home
-        for _ in range(3):
-            tensions = static_tensions(robot, solver, pose)
-            fk = robot.forward_kinematics(robot.stretched_lengths(lengths, tensions), pose)
-            pose = fk.pose
+        fk = self.controller.stretch.fit(
+            lengths, lambda pose: static_tensions(robot, solver, pose), robot.home
+        )
         if not fk.converged:
             raise CommandError("invalid_state", f"forward kinematics failed: {fk.reason}")
-        return pose
+        return fk.pose
 
     # -- state ---------------------------------------------------------------------------
 
@@ -645,6 +645,8 @@ class Service:
                 tracking_error=out.theta_d.tolist(),
                 fk_residual=out.fk_residual,
             )
+        # the cables' EA as identified, a multiple of the robot file's (cdpr.stretch)
+        state["stiffness_scale"] = self.controller.stretch.stiffness_scale
         return state
 
 

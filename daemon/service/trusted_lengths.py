@@ -32,7 +32,9 @@ missing a cable's sample.
 
 There is no history for the first set (nor after `retrust`): it is trusted when forward
 kinematics fits one pose to it within the robot's max_residual (the bound the controller
-applies every cycle), the cables stretched by `rest_tensions` (at rest), and every cable
+applies every cycle), the cables stretched by `rest_tensions` (at rest) with the stiffness
+identified from the same lengths (`stretch`, cdpr.stretch: an EA far off the robot file's
+would fail every first set), and every cable
 within its rate and step bounds of any earlier trusted sample.  A first set that fails
 names the cable with the largest normalised residual and is retried at most every RETRY
 seconds (a failing fit can take a millisecond); after `retrust` a failure keeps the
@@ -51,6 +53,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from cdpr import Pose, Robot
+from cdpr.stretch import ComplianceScale
 
 RETRY = 0.1  # s between attempts to trust a first set after one failed
 REFRESH_DISTANCE = 0.05  # m (or rad) the pose may move before N is linearised again
@@ -84,6 +87,7 @@ class TrustedLengths:
         tolerance: float,
         slack: float,
         rest_tensions: Sequence[float],
+        stretch: ComplianceScale | None = None,
     ) -> None:
         self.robot = robot
         self.n = n = robot.n_cables
@@ -94,6 +98,7 @@ class TrustedLengths:
         self.tolerance = tolerance
         self.slack = slack
         self.rest_tensions = np.asarray(rest_tensions, dtype=float)
+        self.stretch = ComplianceScale(robot) if stretch is None else stretch
         self.held = [math.nan] * n
         self._rates = [0.0] * n  # the rate of each trusted sample
         self._times = [-math.inf] * n  # the cycle instant of each trusted sample
@@ -285,9 +290,10 @@ class TrustedLengths:
             if problem is not None:
                 flagged.append(problem)
         if not flagged:
-            robot = self.robot
-            stretched = robot.stretched_lengths(lengths, self.rest_tensions)
-            fk = robot.forward_kinematics(stretched, self._pose)
+            robot, stretch = self.robot, self.stretch
+            guess = robot.home if self._pose is None else self._pose
+            fk = stretch.fit(lengths, lambda pose: self.rest_tensions, guess)
+            stretched = stretch.stretched(lengths, self.rest_tensions)
             self._linearise(fk.pose)
             if fk.converged:
                 self.held[:] = [float(x) for x in lengths]

@@ -13,6 +13,7 @@ from sim_bus.plant.config import (
     EncoderConfig,
     FrictionConfig,
     MismatchConfig,
+    PayloadConfig,
     PlantConfig,
     parse_plant_config,
 )
@@ -27,6 +28,7 @@ __all__ = [
     "EncoderConfig",
     "FrictionConfig",
     "MismatchConfig",
+    "PayloadConfig",
     "Plant",
     "PlantConfig",
     "equilibrium_tensions",

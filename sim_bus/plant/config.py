@@ -119,8 +119,32 @@ class EncoderConfig(StrictModel):
     velocity_window_steps: Annotated[int, Field(ge=1, le=10_000)] = 2
 
 
+class PayloadConfig(StrictModel):
+    """A point mass carried by the platform (kg, at `position`: m, platform frame from p)."""
+
+    mass: PositiveFloat
+    position: Vec3 = (0.0, 0.0, 0.0)
+
+
 class MismatchConfig(StrictModel):
-    """How the simulated ("true") robot differs from the controller's model."""
+    """How the simulated ("true") robot differs from the controller's model, the robot file.
+
+    The truth is the file's robot with these errors applied (`apply`), not a second robot
+    description: the errors are what calibration must find, every default is "as the
+    file says" (so an unset mismatch simulates the file exactly), and the true robot is
+    built and validated by cdpr like the file's.  Per cable lists run in cable order.
+
+    anchor_offsets / attachment_offsets: m, added to each anchor (world frame) and each
+    platform attachment (platform frame).  drum_radius_scale: true drum radius / the
+    file's, one for all or one per cable (the drives turn torque into force and counts
+    into length with the true radius).  encoder_offsets: m per drive, how far the length
+    the daemon reads is off the true drum length (an incremental encoder, e.g. an ODrive,
+    counts from wherever it powered up): the simulated drive's motor position zero lies
+    that much further in; with a drum radius error the reading also scales about that
+    zero.  payload: a point mass added to the platform.  The cable stiffness EA of the
+    plant is `cable.stiffness` (the file's `cable_stiffness` is only the controller's
+    belief).
+    """
 
     mass_scale: PositiveFloat = 1.0
     inertia_scale: PositiveFloat = 1.0
@@ -129,6 +153,10 @@ class MismatchConfig(StrictModel):
     k0_scale: NonNegativeFloat = 1.0
     anchor_offsets: list[Vec3] | None = None  # m, one per cable, world frame
     anchor_error_std: NonNegativeFloat = 0.0  # m, random per anchor coordinate (seeded)
+    attachment_offsets: list[Vec3] | None = None  # m, one per cable, platform frame
+    drum_radius_scale: PositiveFloat | list[PositiveFloat] = 1.0
+    encoder_offsets: list[FiniteFloat] | None = None  # m, one per drive
+    payload: PayloadConfig | None = None
 
     def apply(self, robot: Robot, rng: np.random.Generator) -> Robot:
         """The true robot: `robot`'s description with these errors, built by cdpr."""
@@ -139,24 +167,51 @@ class MismatchConfig(StrictModel):
         platform["center_of_mass"] = (
             np.array(platform["center_of_mass"]) + self.center_of_mass_offset
         ).tolist()
+        if self.payload is not None:
+            _add_point_mass(platform, self.payload.mass, np.array(self.payload.position))
         for actuator in [spec["actuator"]] + [c["actuator"] for c in spec["cables"]]:
             if "m0" in actuator:
                 actuator["m0"] *= self.m0_scale
             if "k0" in actuator:
                 actuator["k0"] *= self.k0_scale
         n = robot.n_cables
-        offsets = np.zeros((n, 3))
-        if self.anchor_offsets is not None:
-            if len(self.anchor_offsets) != n:
-                raise ConfigError(
-                    f"mismatch.anchor_offsets: {len(self.anchor_offsets)} offsets for {n} cables"
-                )
-            offsets += np.array(self.anchor_offsets)
+        offsets = np.zeros((n, 3)) + self._per_cable("anchor_offsets", n, (0.0, 0.0, 0.0))
         if self.anchor_error_std > 0.0:
             offsets += rng.normal(0.0, self.anchor_error_std, (n, 3))
-        for cable, offset in zip(spec["cables"], offsets, strict=True):
+        moved = self._per_cable("attachment_offsets", n, (0.0, 0.0, 0.0))
+        radius_scales = self._per_cable("drum_radius_scale", n, self.drum_radius_scale)
+        for k, (cable, offset) in enumerate(zip(spec["cables"], offsets, strict=True)):
             cable["anchor"] = (np.array(cable["anchor"]) + offset).tolist()
+            cable["attachment"] = (np.array(cable["attachment"]) + moved[k]).tolist()
+            if radius_scales[k] != 1.0:
+                cable["actuator"]["drum_radius"] = robot.actuators[k].drum_radius * radius_scales[k]
         return Robot.from_dict(spec, source=f"{robot.name} with plant mismatch")
+
+    def encoder_offsets_for(self, n: int) -> list[float]:
+        """encoder_offsets for n drives (zeros when unset); ConfigError on a wrong count."""
+        return [float(x) for x in self._per_cable("encoder_offsets", n, 0.0)]
+
+    def _per_cable(self, key: str, n: int, default: Any) -> list[Any]:
+        """The list `key` (one entry per cable), or `default` for every cable when unset
+        or a single value; ConfigError naming the key on a wrong count."""
+        value = getattr(self, key)
+        if not isinstance(value, list):
+            return [default if value is None else value] * n
+        if len(value) != n:
+            raise ConfigError(f"mismatch.{key}: {len(value)} entries for {n} cables")
+        return list(value)
+
+
+def _add_point_mass(platform: dict[str, Any], mass: float, position: np.ndarray) -> None:
+    """Add a point mass at `position` (platform frame) to the platform description (a
+    dict as RobotSpec dumps it): mass, centre of mass and the inertia about it."""
+    m, c = platform["mass"], np.array(platform["center_of_mass"])
+    total = m + mass
+    centre = (m * c + mass * position) / total
+    inertia = np.array(platform["inertia"])
+    for part, at in ((m, c - centre), (mass, position - centre)):
+        inertia += part * (at.dot(at) * np.eye(3) - np.outer(at, at))
+    platform.update(mass=total, center_of_mass=centre.tolist(), inertia=inertia.tolist())
 
 
 class DisturbanceConfig(StrictModel):

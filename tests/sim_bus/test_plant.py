@@ -88,7 +88,7 @@ def test_config_errors_name_the_key(data: dict, expected: str) -> None:
 
 
 def test_anchor_offsets_must_match_the_cables(reference8: Robot) -> None:
-    with pytest.raises(ConfigError, match=r"mismatch\.anchor_offsets: 2 offsets for 8 cables"):
+    with pytest.raises(ConfigError, match=r"mismatch\.anchor_offsets: 2 entries for 8 cables"):
         Plant(reference8, config(mismatch={"anchor_offsets": [[0, 0, 0]] * 2}))
 
 
