@@ -4,12 +4,15 @@ operator would."""
 
 from __future__ import annotations
 
+import contextlib
 import json
+import os
 import re
 import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import yaml
@@ -22,12 +25,31 @@ PREFIX = "cdpr/reference8"
 ANNOUNCED = re.compile(r"serving socketcand on 127\.0\.0\.1:(\d+) channel (\S+)")
 
 
+SIMULATOR_PRIORITY = 40  # below the daemon core's default realtime.priority (50)
+
+
+def realtime_child(priority: int) -> Callable[[], None]:
+    """preexec_fn: SCHED_FIFO at `priority` where permitted (root, or CAP_SYS_NICE), so
+    that a simulated drive, like a real one on its own processor, answers whatever else
+    loads the host; ordinary scheduling where refused."""
+
+    def apply() -> None:
+        with contextlib.suppress(PermissionError, OSError):
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+
+    return apply
+
+
 def serve_simulator(
-    config: Path, *options: str, stderr: int = subprocess.DEVNULL
+    config: Path,
+    *options: str,
+    stderr: int = subprocess.DEVNULL,
+    priority: int = SIMULATOR_PRIORITY,
 ) -> tuple[subprocess.Popen, int, str]:
     """`python -m sim_bus --config CONFIG OPTIONS` serving its bus over socketcand on a
-    free loopback port, text pipes on stdin and stdout: (process, port, channel) once it
-    announced them (log lines may come first)."""
+    free loopback port, text pipes on stdin and stdout, at SCHED_FIFO `priority` where
+    permitted: (process, port, channel) once it announced them (log lines may come
+    first)."""
     args = [sys.executable, "-m", "sim_bus", "--config", str(config), *options]
     proc = subprocess.Popen(
         [*args, "--serve-socketcand", "127.0.0.1:0"],
@@ -36,6 +58,7 @@ def serve_simulator(
         stdout=subprocess.PIPE,
         stderr=stderr,
         text=True,
+        preexec_fn=realtime_child(priority),
     )
     line = ""
     for _ in range(20):

@@ -46,6 +46,7 @@ import yaml
 from daemon.interface.client import CdprClient, ClientError
 from drivers.cia402 import codec as cia402
 from tests.loopback import free_port
+from tests.processes import realtime_child
 
 pytestmark = [pytest.mark.vcan, pytest.mark.timeout(240)]
 
@@ -126,17 +127,6 @@ def _write_config(
     path = directory / f"{protocol.name}.yaml"
     path.write_text(yaml.safe_dump(data))
     return path
-
-
-def _realtime(priority: int) -> Callable[[], None]:
-    """preexec_fn: SCHED_FIFO at `priority` where permitted (root, or CAP_SYS_NICE), for
-    the simulator: above the daemon's core (realtime.priority in _write_config)."""
-
-    def apply() -> None:
-        with contextlib.suppress(PermissionError, OSError):
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
-
-    return apply
 
 
 def _cansend(frame: str, channel: str = CHANNEL) -> None:
@@ -314,7 +304,7 @@ def running_stack(
             stdout=sim_log,
             stderr=subprocess.STDOUT,
             text=True,
-            preexec_fn=_realtime(40),
+            preexec_fn=realtime_child(40),
         )
         stack.callback(_stop, simulator)
         daemon_log = stack.enter_context((logs / "daemon.log").open("w"))
