@@ -2,9 +2,10 @@
 
 Sections: robot (a path relative to this file, or inline), controller, drives, can,
 safety, trajectory (limits), zenoh, logging, recording, realtime (what the core process
-asks of the kernel), sim (the simulator used by `run --sim`, `demo` and `sim`).  Every
-problem is a ConfigError naming the key; the geometry is checked for sense (Λ full rank
-at home, the home pose's static wrench in W).
+asks of the kernel), view (the live 3-D view, daemon.config.view_config), sim (the
+simulator used by `run --sim`, `demo` and `sim`).  Every problem is a ConfigError
+naming the key; the geometry is checked for sense (Λ full rank at home, the home pose's
+static wrench in W).
 """
 
 from __future__ import annotations
@@ -36,6 +37,7 @@ from cdpr.trajectory import (
     sampled_pose_limits,
     tracked_length_limits,
 )
+from daemon.config.view_config import ViewConfig
 from daemon.config.zenoh_config import ZenohSettings
 from drivers.config import CanConfig, CanSection, DrivesConfig, can_buses, parse_drives
 
@@ -140,6 +142,7 @@ class FileConfig(StrictModel):
     logging: LoggingConfig = LoggingConfig()
     recording: RecordingConfig = RecordingConfig()
     realtime: RealtimeConfig = RealtimeConfig()
+    view: ViewConfig = ViewConfig()
     sim: dict[str, Any] = Field(default_factory=dict)  # sim_bus.config validates it
 
 
@@ -173,6 +176,7 @@ class DaemonConfig:
         self.logging = raw.logging
         self.recording = raw.recording
         self.realtime = raw.realtime
+        self.view: ViewConfig = raw.view
         self.sim = raw.sim
         try:
             lo, hi = workspace_box(robot, raw.safety)
