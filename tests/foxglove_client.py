@@ -62,8 +62,10 @@ def collect(
     with ws:
         end = time.monotonic() + timeout
         while not topics <= first.keys():
-            assert time.monotonic() < end, f"only {sorted(first)} of {sorted(topics)} arrived"
-            frame = ws.recv(timeout=max(end - time.monotonic(), 0.01))
+            try:
+                frame = ws.recv(timeout=max(end - time.monotonic(), 0.01))
+            except TimeoutError:
+                raise AssertionError(f"only {sorted(first)} of {sorted(topics)} arrived") from None
             if isinstance(frame, str):
                 body = json.loads(frame)
                 if body["op"] == "advertise":

@@ -67,7 +67,7 @@ SERIES_SCHEMA_NAME = "cdprd.Series"
 SLACK_COLOR = (0.6, 0.6, 0.6, 0.8)
 FAULT_COLOR = (1.0, 0.0, 1.0, 1.0)
 #: tension / force_max -> colour: blue (none), yellow (half), red (the drive's limit)
-TENSION_STOPS = ((0.0, (0.15, 0.35, 1.0)), (0.5, (1.0, 0.85, 0.1)), (1.0, (1.0, 0.1, 0.1)))
+TENSION_STOPS = ((0.0, (0.15, 0.35, 1.0)), (0.5, (1.0, 0.85, 0.1)), (1.0, (1.0, 0.1, 0.0)))
 CABLE_WIDTH = 0.008  # m
 SLACK_WIDTH = 0.003
 MIN_BOX = 0.02  # m: the platform box's smallest side (a flat or point platform)
