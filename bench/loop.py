@@ -4,6 +4,7 @@ on the loop bus) and its companion process (zenoh), enabled and holding for a fi
 time at 500 Hz and at 1000 Hz; optionally with a busy host.
 
     python bench/loop.py --json [--seconds 10] [--protocol cia402|odrive] [--load N] [--flood]
+                         [--view]
 
 Per rate: compute time of a cycle (controller + safety + encode + send), the
 controller's work done ahead while the feedback is on its way (prepare), latency from
@@ -17,7 +18,10 @@ overruns of a bare timerfd loop at the same priority and load that does nothing 
 
 --load N runs N CPU-bound processes at normal priority, --flood the mixed zenoh flood of
 bench/flood.py (`--mix all`) against the companion, both for the whole measurement;
-the figures without them are then printed beside, under "unloaded".  Figures are for
+the figures without them are then printed beside, under "unloaded".  --view serves the
+live view (view: section, 30 Hz, on loopback) with a Foxglove client subscribed to every
+channel in a process of its own (tests/foxglove_client.py; `view_messages` counts what
+it decoded); the figures without the view, under the same load, under "no_view".  Figures are for
 this machine (2 vCPU); nothing here is hard real time (PERF-FACTS).
 """
 
@@ -47,24 +51,31 @@ SETTLE = 0.5  # s enabled before measuring
 FLOOD_RATE = 2000.0  # puts per second
 
 
-def rate_config(protocol: str, rate_hz: float) -> DaemonConfig:
-    """The example config at `rate_hz`, zenoh on a free loopback port."""
+def rate_config(protocol: str, rate_hz: float, view: bool = False) -> DaemonConfig:
+    """The example config at `rate_hz`, zenoh on a free loopback port (and the live view
+    on another, if `view`)."""
     endpoint = free_endpoint()
+    view_port = int(free_endpoint().rpartition(":")[2])
 
     def edit(data: dict) -> None:
         data["controller"]["rate_hz"] = rate_hz
         data["drives"]["feedback_rate_hz"] = rate_hz
         data["zenoh"]["listen"] = [endpoint]
         data["logging"] = {"level": "warning"}
+        if view:
+            data["view"] = {"enabled": True, "port": view_port}
 
     return load_config(CONFIGS / f"reference8-{protocol}.yaml", edit)
 
 
 @contextlib.contextmanager
-def busy_host(config: DaemonConfig, load: int, flood: bool, seconds: float) -> Iterator[None]:
+def busy_host(
+    config: DaemonConfig, load: int, flood: bool, seconds: float, viewed: list | None = None
+) -> Iterator[None]:
     """`load` CPU hogs and, with `flood`, bench/flood.py's mixed flood on the config's
     zenoh endpoint, at normal priority (spawned so even from the real-time core), for at
-    most `seconds`; stopped on exit."""
+    most `seconds`; stopped on exit.  With the config's view on, a Foxglove client too;
+    the number of messages it decoded is appended to `viewed`."""
     env = dict(os.environ)
     hog = f"import time\nend = time.monotonic() + {seconds}\nwhile time.monotonic() < end: pass"
     children: list[Child] = [spawn_ordinary([sys.executable, "-c", hog], env) for _ in range(load)]
@@ -76,9 +87,22 @@ def busy_host(config: DaemonConfig, load: int, flood: bool, seconds: float) -> I
         argv += ["--mix", "all"]
         with open(os.devnull, "w") as devnull:
             children.append(spawn_ordinary(argv, env, stdout=devnull.fileno()))
+    viewer = None
+    if config.view.enabled:
+        url = f"ws://{config.view.host}:{config.view.port}"
+        argv = [sys.executable, "-m", "tests.foxglove_client", url, str(seconds)]
+        read, write = os.pipe()
+        viewer = spawn_ordinary(argv, {**env, "PYTHONPATH": str(ROOT)}, stdout=write)
+        os.close(write)
     try:
         yield
     finally:
+        if viewer is not None:
+            viewer.kill()
+            with os.fdopen(read) as counted:
+                lines = counted.read().split()
+            if viewed is not None:
+                viewed.append(int(lines[-1]) if lines else 0)
         for child in children:
             child.kill()
         for child in children:
@@ -86,14 +110,17 @@ def busy_host(config: DaemonConfig, load: int, flood: bool, seconds: float) -> I
                 time.sleep(0.01)
 
 
-def measure(protocol: str, rate_hz: float, seconds: float, load: int, flood: bool) -> dict:
+def measure(
+    protocol: str, rate_hz: float, seconds: float, load: int, flood: bool, view: bool = False
+) -> dict:
     """One run of the daemon as `cdprd run --sim`: enable, settle, measure."""
-    config = rate_config(protocol, rate_hz)
+    config = rate_config(protocol, rate_hz, view)
     out: dict[str, float] = {}
+    viewed: list[int] = []
 
     async def hold_and_measure(service: Service) -> None:
         await service.command("enable", {})
-        with busy_host(config, load, flood, seconds + SETTLE + 5.0):
+        with busy_host(config, load, flood, seconds + SETTLE + 5.0, viewed):
             # made before the measurement: allocating its sample buffers (resident at
             # once in locked memory) holds the loop up for a few periods
             fresh = type(service.stats)(rate_hz)
@@ -105,6 +132,8 @@ def measure(protocol: str, rate_hz: float, seconds: float, load: int, flood: boo
             out.update(figures(service, rate_hz, cpu))  # before the load is stopped
 
     asyncio.run(InProcessSimulator(config).serve(after_start=hold_and_measure))
+    if view:
+        out["view_messages"] = viewed[0] if viewed else 0
     return out
 
 
@@ -161,11 +190,14 @@ def main() -> None:
     parser.add_argument("--protocol", choices=["cia402", "odrive"], default="cia402")
     parser.add_argument("--load", type=int, default=0, help="CPU-bound processes beside")
     parser.add_argument("--flood", action="store_true", help="bench/flood.py's mixed flood")
+    parser.add_argument("--view", action="store_true", help="the live view, a client on it")
     args = parser.parse_args()
     busy = args.load > 0 or args.flood
     out = {}
     for rate in (500, 1000):
-        figures = measure(args.protocol, rate, args.seconds, args.load, args.flood)
+        figures = measure(args.protocol, rate, args.seconds, args.load, args.flood, args.view)
+        if args.view:
+            figures["no_view"] = measure(args.protocol, rate, args.seconds, args.load, args.flood)
         config = rate_config(args.protocol, rate)
         figures["timer_floor_misses_per_1e4"] = timer_floor(config, args.seconds, args.load)
         if busy:

@@ -103,6 +103,11 @@ class Robot:
     def n_cables(self) -> int:
         return self.geometry.n
 
+    def slack(self, tensions: ArrayLike) -> Array:
+        """Which cables are slack: tension <= 0, or below the cable's t_min (booleans)."""
+        t = np.asarray(tensions, dtype=float)
+        return (t <= 0.0) | (t < self.t_min)
+
     # -- kinematics -----------------------------------------------------------------
 
     def cable_lengths(self, pose: Pose) -> Array:

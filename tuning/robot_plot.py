@@ -52,7 +52,7 @@ def draw_robot_3d(
         raise ValueError(f"expected {robot.n_cables} tensions, got shape {t.shape}")
     anchors = robot.geometry.anchors
     points = pose.position + robot.geometry.attachments @ pose.rotation.T
-    slack = (t <= 0.0) | (t < robot.t_min)
+    slack = robot.slack(t)
 
     fig = Figure(figsize=(8, 7))
     ax = fig.add_subplot(projection="3d")

@@ -15,6 +15,7 @@ import asyncio
 import json
 import socket
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -23,7 +24,7 @@ import numpy as np
 from cdpr import ConfigError, Pose
 from cdpr.controller import ControlOutput
 from cdpr.trajectory import Trajectory
-from daemon.cli.run_cmd import report
+from daemon.cli.run_cmd import add_view_option, report, view_edit
 from daemon.config import DaemonConfig, load_config
 from daemon.process.logsetup import configure_logging
 from daemon.service.service import Service
@@ -43,21 +44,25 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     demo.add_argument("--config", default=str(DEFAULT_CONFIG), help="daemon config YAML")
     demo.add_argument("--plot", metavar="PNG", help="write a plot of the run")
     demo.add_argument("--log-level", default="error")
+    add_view_option(demo)
     demo.set_defaults(handler=run)
 
 
 def run(args: argparse.Namespace) -> int:
     try:
         configure_logging(args.log_level)
-        config = _loopback_config(Path(args.config))
+        config = _loopback_config(Path(args.config), view_edit(args.view))
     except ConfigError as exc:
         report(exc)
         return 1
     return asyncio.run(_demo(config, args.plot))
 
 
-def _loopback_config(path: Path) -> DaemonConfig:
-    """The config with zenoh on a free loopback port, so a running daemon is not hit."""
+def _loopback_config(
+    path: Path, view: Callable[[dict[str, Any]], None] | None = None
+) -> DaemonConfig:
+    """The config with zenoh on a free loopback port, so a running daemon is not hit
+    (and the `view` edit, when --view is given)."""
     with socket.socket() as probe:
         probe.bind(("127.0.0.1", 0))
         port = probe.getsockname()[1]
@@ -66,6 +71,8 @@ def _loopback_config(path: Path) -> DaemonConfig:
         zenoh = dict(data.get("zenoh") or {})
         zenoh.update(listen=[f"tcp/127.0.0.1:{port}"], connect=[], mode="peer", expose=False)
         data["zenoh"] = zenoh
+        if view is not None:
+            view(data)
 
     return load_config(path, loopback)
 
@@ -92,6 +99,13 @@ async def _demo(config: DaemonConfig, plot: str | None) -> int:
         result["stats"] = service.stats.summary()
         result["state"] = service.machine.state.value
 
+    if config.view.enabled:
+        view = config.view
+        print(
+            f"live view: ws://{view.host}:{view.port} (Foxglove: open a connection, then "
+            "the layout config/foxglove-layout.json)",
+            flush=True,
+        )
     client = await _start_client()
     try:
         code = await simulator.serve(after_start=fly)

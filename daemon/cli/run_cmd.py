@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 import asyncio
 import sys
+from collections.abc import Callable
+from typing import Any
 
 from cdpr import ConfigError
 from daemon.config import DaemonConfig, load_config
@@ -24,6 +26,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         "--sim", action="store_true", help="drive an in-process simulator instead of hardware"
     )
     run.add_argument("--log-level", help="override logging.level (debug, info, warning, error)")
+    add_view_option(run)
     run.set_defaults(handler=run_command)
     sim = sub.add_parser(
         "sim",
@@ -35,32 +38,70 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     sim.set_defaults(handler=sim_command)
 
 
+def add_view_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--view",
+        nargs="?",
+        const="",
+        metavar="HOST:PORT",
+        type=_view_address,
+        help="serve the live 3-D view (Foxglove WebSocket) as the view: section says, "
+        "on HOST:PORT or PORT if given (default 127.0.0.1:8765)",
+    )
+
+
+def _view_address(text: str) -> str:
+    host, sep, port = text.rpartition(":")
+    if text and not (port.isdigit() and (host or not sep)):
+        raise argparse.ArgumentTypeError(f"{text!r} is not HOST:PORT or PORT")
+    return text
+
+
+def view_edit(address: str | None) -> Callable[[dict[str, Any]], None] | None:
+    """A config edit that turns the view on (at `address`, HOST:PORT or PORT, if not
+    empty); None when the option was not given."""
+    if address is None:
+        return None
+
+    def edit(data: dict[str, Any]) -> None:
+        view = dict(data.get("view") or {}, enabled=True)
+        if address:
+            host, _, port = address.rpartition(":")
+            view["port"] = int(port)
+            if host:
+                view["host"] = host.removeprefix("[").removesuffix("]")
+        data["view"] = view
+
+    return edit
+
+
 def report(exc: ConfigError) -> None:
     """Print a config problem on stderr, each line as `error: FILE: KEY: problem`."""
     for line in str(exc).splitlines():
         print(f"error: {line}", file=sys.stderr)
 
 
-def load_checked(path: str) -> DaemonConfig:
-    """The daemon config at `path` with every section checked, `sim:` included: the
-    service never reads it, but `check-config` and `run` refuse the same files."""
+def load_checked(path: str, edit: Callable[[dict], None] | None = None) -> DaemonConfig:
+    """The daemon config at `path` (changed by `edit` first) with every section checked,
+    `sim:` included: the service never reads it, but `check-config` and `run` refuse the
+    same files."""
     from daemon.cli.simulated import sim_section  # sim_bus, for this check only (DESIGN §2)
 
-    config = load_config(path)
+    config = load_config(path, edit)
     sim_section(config)
     return config
 
 
-def load_or_exit(path: str) -> DaemonConfig:
+def load_or_exit(path: str, edit: Callable[[dict], None] | None = None) -> DaemonConfig:
     try:
-        return load_checked(path)
+        return load_checked(path, edit)
     except ConfigError as exc:
         report(exc)
         raise SystemExit(1) from None
 
 
 def run_command(args: argparse.Namespace) -> int:
-    config = load_or_exit(args.config)
+    config = load_or_exit(args.config, view_edit(args.view))
     try:
         configure_logging(args.log_level or config.logging.level)
     except ConfigError as exc:

@@ -2,9 +2,10 @@
 
 Sections: robot (a path relative to this file, or inline), controller, drives, can,
 safety, trajectory (limits), zenoh, logging, recording, realtime (what the core process
-asks of the kernel), sim (the simulator used by `run --sim`, `demo` and `sim`).  Every
-problem is a ConfigError naming the key; the geometry is checked for sense (Λ full rank
-at home, the home pose's static wrench in W).
+asks of the kernel), view (the live 3-D view, daemon.config.view_config), sim (the
+simulator used by `run --sim`, `demo` and `sim`).  Every problem is a ConfigError
+naming the key; the geometry is checked for sense (Λ full rank at home, the home pose's
+static wrench in W).
 """
 
 from __future__ import annotations
@@ -37,6 +38,7 @@ from cdpr.trajectory import (
     tracked_length_limits,
 )
 from daemon.config.ros2_config import Ros2Settings
+from daemon.config.view_config import ViewConfig
 from daemon.config.zenoh_config import ZenohSettings
 from drivers.config import CanConfig, CanSection, DrivesConfig, can_buses, parse_drives
 
@@ -141,6 +143,7 @@ class FileConfig(StrictModel):
     logging: LoggingConfig = LoggingConfig()
     recording: RecordingConfig = RecordingConfig()
     realtime: RealtimeConfig = RealtimeConfig()
+    view: ViewConfig = ViewConfig()
     sim: dict[str, Any] = Field(default_factory=dict)  # sim_bus.config validates it
     ros2: dict[str, Any] = Field(default_factory=dict)  # Ros2Settings validates it
 
@@ -175,6 +178,7 @@ class DaemonConfig:
         self.logging = raw.logging
         self.recording = raw.recording
         self.realtime = raw.realtime
+        self.view: ViewConfig = raw.view
         self.sim = raw.sim
         self.ros2: Ros2Settings = validate_section(Ros2Settings, raw.ros2, source, "ros2")
         try:

@@ -203,11 +203,16 @@ def endpoint_host(endpoint: str) -> str | None:
 def is_local(endpoint: str) -> bool:
     """True when the endpoint cannot be reached from another machine (loopback or a socket)."""
     host = endpoint_host(endpoint)
-    if host is None or host == "localhost":
+    return host is None or loopback_host(host)
+
+
+def loopback_host(host: str) -> bool:
+    """True for "localhost" and loopback addresses; a host name may resolve to anything."""
+    if host == "localhost":
         return True
     try:
         return ipaddress.ip_address(host).is_loopback
-    except ValueError:  # a host name: it may resolve to anything
+    except ValueError:
         return False
 
 

@@ -6,7 +6,8 @@
 spawned by the core (daemon.process.companion_host) with its end of the link on FD and
 the shared curve ring (daemon.process.curve_ring) on RING.
 It runs zenoh (daemon.interface.zenoh_io) with the planner (daemon.service.planner)
-behind it, the recordings, and systemd notification: READY=1 once zenoh listens and
+behind it, the recordings, the live view (daemon.process.live_view: the scene of
+daemon.process.scene, also recorded), and systemd notification: READY=1 once zenoh listens and
 the core's drives are up (the core starts them when this process says it is ready),
 STATUS= as the safety state changes, the watchdog fed only while the core's cycles keep
 completing.  It exits when the core closes the link; SIGTERM and SIGINT are the core's
@@ -21,20 +22,24 @@ import logging
 import signal
 import socket
 import sys
+import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from daemon.config import DaemonConfig
 from daemon.process.app import ignore_stop_signals
 from daemon.process.companion_link import RemoteLink, greeted
-from daemon.process.cycle_rows import records
+from daemon.process.cycle_rows import Throttle, records
 from daemon.process.logsetup import configure_logging
 from daemon.process.realtime import drop_inherited_realtime
 from daemon.process.recording import CanRecorder, TelemetryRecorder, session_path
 from daemon.process.systemd import Notifier, Progress, run_watchdog
 from daemon.service.planner import Planner
 from daemon.service.safety import Fault, Trigger
+
+if TYPE_CHECKING:
+    from daemon.process.live_view import LiveView
 
 log = logging.getLogger("cdprd")
 
@@ -74,11 +79,20 @@ async def run(config: DaemonConfig, link: RemoteLink) -> int:
     # before zenoh is up, within the unit's WatchdogSec
     watchdog = asyncio.create_task(run_watchdog(notifier, Progress(lambda: link.cycles)))
     planner = Planner(config, link)
-    interface = None
-    ros2 = None
+    interface = view = ros2 = None
     recorders = _recorders(config, link)
     writers = [asyncio.create_task(r.run()) for r in recorders]
     try:
+        if config.view.enabled:
+            from daemon.process.live_view import LiveView, ViewError
+
+            try:
+                view = LiveView(config.view, config.robot.name)
+            except ViewError as exc:  # e.g. the port is in use
+                print(f"error: {config.source}: {exc}", file=sys.stderr)
+                return 1
+        telemetry = next((r for r in recorders if isinstance(r, TelemetryRecorder)), None)
+        _feed(config, link, telemetry, view)
         prefix = config.zenoh.key_prefix(config.robot.name)
         interface = ZenohInterface(config.zenoh, planner, prefix, config.trajectory)
         try:
@@ -106,6 +120,8 @@ async def run(config: DaemonConfig, link: RemoteLink) -> int:
             await ros2.close()
         if interface is not None:
             await interface.close()
+        if view is not None:
+            view.close()
         for writer in writers:
             writer.cancel()
         for recorder in recorders:
@@ -139,24 +155,62 @@ def _status_updates(
     return on_event
 
 
+def _feed(
+    config: DaemonConfig,
+    link: RemoteLink,
+    telemetry: TelemetryRecorder | None,
+    view: LiveView | None,
+) -> None:
+    """Hand the core's cycle rows to the telemetry recording (every one) and the scene
+    (daemon.process.scene, at view.rate_hz of cycle time) to the recording and the live
+    view; the core's events to both as log messages.  Stamps are wall-clock times."""
+    if telemetry is None and view is None:
+        return
+    from daemon.process.scene import SceneBuilder, cable_faults, timing_figures
+
+    n = config.robot.n_cables
+    limits = config.pose_limits
+    scene = SceneBuilder(config.robot, (limits.lower, limits.upper))
+    throttle = Throttle(config.view.rate_hz)
+    sinks = [sink for sink in (telemetry, view) if sink is not None]
+
+    def on_rows(rows: bytes) -> None:
+        origin = time.time_ns() - round(link.now() * 1e9)  # the core's clock -> wall clock
+        state = link.state()
+        for record in records(rows, n):
+            stamp = origin + round(record.t * 1e9)
+            if telemetry is not None:
+                telemetry.record(record, stamp)
+            if throttle.due(record.t):
+                faults = cable_faults(state, n)
+                messages = scene.encode(record, stamp, faults, timing_figures(state.get("cycle")))
+                for sink in sinks:
+                    sink.log_messages(messages, stamp)
+
+    def on_event(event: dict) -> None:
+        stamp = time.time_ns()
+        messages = scene.encode_event(event, stamp)
+        for sink in sinks:
+            sink.log_messages(messages, stamp)
+
+    link.batch_sinks["cycles"] = on_rows
+    link.subscribe(on_event)
+
+
 def _recorders(config: DaemonConfig, link: RemoteLink) -> list:
-    """Telemetry (MCAP) and raw CAN recorders the config asks for, fed by the core's
-    batches; each file is named after the session's start time.  A file that cannot be
-    created stops the start-up with one line naming the key and the file."""
+    """Telemetry (MCAP, with the scene's standard channels) and raw CAN recorders the
+    config asks for, fed by the core's batches; each file is named after the session's
+    start time.  A file that cannot be created stops the start-up with one line naming
+    the key and the file."""
     recorders: list = []
     rec = config.recording
     if rec.telemetry:
+        from daemon.process.scene import standard_channels
+
         key = f"{config.source}: recording.telemetry"
-        telemetry = _open(key, TelemetryRecorder, config.path(rec.telemetry), recorders)
-
-        n = config.robot.n_cables
-
-        def record_cycles(rows: bytes) -> None:
-            for record in records(rows, n):
-                telemetry.record(record)
-
-        link.batch_sinks["cycles"] = record_cycles
-        recorders.append(telemetry)
+        path = config.path(rec.telemetry)
+        channels = standard_channels()
+        recorders.append(_open(key, TelemetryRecorder, path, recorders, channels=channels))
     if rec.can_log:
         # names the frames sent (they carry none on SocketCAN; on several buses, the name)
         channel = config.buses[0].channel

@@ -13,7 +13,8 @@ This module, in the core:
   back when the core drops the curve);
 - pushes events as they happen, the state at zenoh.state_rate_hz and, when recording,
   cycle records (fixed-size rows, daemon.process.cycle_rows) and CAN frames in batches,
-  each in the cycle's slack; a full socket
+  each in the cycle's slack (for the live view alone, one row per 1/view.rate_hz of
+  cycle time: the companion draws it); a full socket
   drops the message (counted), the core never waits;
 - supervises it: a companion silent for safety.companion_hang is killed, a dead one is
   restarted (with a growing pause); a moving robot without a live companion for
@@ -41,7 +42,7 @@ from cdpr.trajectory.core import Curve
 from daemon.config import DaemonConfig
 from daemon.process import wire
 from daemon.process.curve_ring import CurveRing
-from daemon.process.cycle_rows import CycleRows
+from daemon.process.cycle_rows import CycleRows, Throttle
 from daemon.process.realtime import Child, spawn_ordinary
 from daemon.process.recording import frame_fields
 from daemon.service.api import CommandError
@@ -89,6 +90,9 @@ class CompanionHost:
         recording = config.recording
         if recording.telemetry:
             service.cycle_listeners.append(self._record_cycle)
+        elif config.view.enabled:
+            self._view_rows = Throttle(config.view.rate_hz)
+            service.cycle_listeners.append(self._sample_cycle)
         if recording.can_log:
             service.frame_listeners.append(self._record_frame)
         service.subscribe(self._send_event)
@@ -103,7 +107,8 @@ class CompanionHost:
             loop.create_task(self._supervise()),
             loop.create_task(self._push_states()),
         ]
-        if self.config.recording.telemetry or self.config.recording.can_log:
+        recording = self.config.recording
+        if recording.telemetry or recording.can_log or self.config.view.enabled:
             self._tasks.append(loop.create_task(self._push_batches()))
 
     async def wait_ready(self) -> int | None:
@@ -347,6 +352,10 @@ class CompanionHost:
             return
         service = self.service
         rows.add(t, out, [fb.length for fb in service.driver.feedback], service.machine.state)
+
+    def _sample_cycle(self, t: float, out: ControlOutput) -> None:
+        if self._view_rows.due(t):
+            self._record_cycle(t, out)
 
     def _record_frame(self, msg: can.Message, rx: bool) -> None:
         if len(self._frames) >= 16 * MAX_BATCH:

@@ -13,6 +13,7 @@ daemon.process.recording.CycleRecord for the MCAP recorder.  One row, for n cabl
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import numpy as np
@@ -94,3 +95,22 @@ def records(data: bytes, n: int) -> list[CycleRecord]:
             )
         )
     return out
+
+
+class Throttle:
+    """Lets through at most `rate_hz` cycle times a second, on a fixed grid: one cycle
+    time per period, the first at or after each grid point (a gap restarts the grid)."""
+
+    def __init__(self, rate_hz: float) -> None:
+        if not rate_hz > 0:
+            raise ValueError(f"a throttle's rate must be positive, not {rate_hz}")
+        self.period = 1.0 / rate_hz
+        self._next = -math.inf
+
+    def due(self, t: float) -> bool:
+        """Whether cycle time `t` (s, increasing) is let through."""
+        if t < self._next:
+            return False
+        late = t - self._next > self.period
+        self._next = t + self.period if late else self._next + self.period
+        return True

@@ -300,22 +300,39 @@ def _scalar(value: Any) -> Any:
 
 def encode_cycle(record: CycleRecord) -> bytes:
     """The JSON bytes of one record; non-finite numbers become null."""
-    obj = record.to_json()
+    return json_bytes(record.to_json())
+
+
+def json_bytes(obj: Any) -> bytes:
+    """`obj` as compact strict JSON; non-finite numbers become null."""
     try:
         text = json.dumps(obj, separators=(",", ":"), allow_nan=False, default=_scalar)
-    except ValueError:  # a NaN or infinity somewhere: the cycle is braking; keep the record
+    except ValueError:  # a NaN or infinity somewhere (a braking cycle): keep the record
         text = json.dumps(_finite(obj), separators=(",", ":"), allow_nan=False, default=_scalar)
     return text.encode()
+
+
+@dataclass(frozen=True, slots=True)
+class ChannelSpec:
+    """A channel beside the cycle records: its topic, message encoding and schema (e.g.
+    Foxglove's standard ones, daemon.process.scene)."""
+
+    topic: str
+    message_encoding: str
+    schema_name: str
+    schema_encoding: str
+    schema_data: bytes
 
 
 _COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": None}
 
 
-class TelemetryRecorder(_Spool[tuple[CycleRecord, int, int]]):
-    """Cycle telemetry to an MCAP file: one JSON channel, CYCLE_TOPIC, with CYCLE_SCHEMA.
+class TelemetryRecorder(_Spool[tuple[int, CycleRecord | bytes, int, int]]):
+    """Cycle telemetry to an MCAP file: one JSON channel, CYCLE_TOPIC, with CYCLE_SCHEMA,
+    and the `channels` given (messages already encoded, `log_messages`).
 
-    Each message's log time is the wall-clock time of `record()` (ns); its sequence
-    number counts every `record()` call, so gaps in the sequence show dropped records.
+    Each message's log time is the wall-clock time of `record()` (ns) unless given; its
+    sequence number counts every call on its channel, so gaps show dropped records.
     Messages reach the file a chunk at a time (`chunk_size` bytes before compression):
     a crash loses at most the open chunk.  `metadata` (e.g. robot name, config file) is
     stored as the MCAP metadata record "cdprd.session"; `close()` adds "cdprd.recording"
@@ -331,6 +348,7 @@ class TelemetryRecorder(_Spool[tuple[CycleRecord, int, int]]):
         compression: str = "zstd",
         chunk_size: int = 64 * 1024,
         metadata: Mapping[str, str] | None = None,
+        channels: Sequence[ChannelSpec] = (),
     ) -> None:
         if compression not in _COMPRESSION:
             raise ValueError(
@@ -343,10 +361,11 @@ class TelemetryRecorder(_Spool[tuple[CycleRecord, int, int]]):
         self._stream: BinaryIO = open(self.path, "xb")  # noqa: SIM115 - closed in _finish
         try:
             self._writer, self._channel = self._start(compression, chunk_size, metadata)
+            self._channels = {spec.topic: self._register(spec) for spec in channels}
         except BaseException:
             self._stream.close()
             raise
-        self._sequence = 0
+        self._sequences = dict.fromkeys([self._channel, *self._channels.values()], 0)
 
     def _start(
         self, compression: str, chunk_size: int, metadata: Mapping[str, str] | None
@@ -371,18 +390,34 @@ class TelemetryRecorder(_Spool[tuple[CycleRecord, int, int]]):
             writer.add_metadata("cdprd.session", {str(k): str(v) for k, v in metadata.items()})
         return writer, channel
 
+    def _register(self, spec: ChannelSpec) -> int:
+        schema_id = self._writer.register_schema(
+            name=spec.schema_name, encoding=spec.schema_encoding, data=spec.schema_data
+        )
+        return self._writer.register_channel(
+            topic=spec.topic, message_encoding=spec.message_encoding, schema_id=schema_id
+        )
+
     def record(self, record: CycleRecord, log_time_ns: int | None = None) -> None:
         """Queue one cycle's record (hot path: no I/O, no encoding; never raises)."""
-        stamp = time.time_ns() if log_time_ns is None else log_time_ns
-        self._push((record, stamp, self._sequence))
-        self._sequence = (self._sequence + 1) & 0xFFFFFFFF
+        self._queue_on(self._channel, record, log_time_ns)
 
-    def _write(self, item: tuple[CycleRecord, int, int]) -> None:
-        record, stamp, sequence = item
+    def log_messages(self, messages: Sequence[tuple[str, bytes]], log_time_ns: int) -> None:
+        """Queue encoded messages, each (topic, data) on one of the `channels` given."""
+        for topic, data in messages:
+            self._queue_on(self._channels[topic], data, log_time_ns)
+
+    def _queue_on(self, channel: int, payload: CycleRecord | bytes, stamp: int | None) -> None:
+        sequence = self._sequences[channel]
+        self._push((channel, payload, time.time_ns() if stamp is None else stamp, sequence))
+        self._sequences[channel] = (sequence + 1) & 0xFFFFFFFF
+
+    def _write(self, item: tuple[int, CycleRecord | bytes, int, int]) -> None:
+        channel, payload, stamp, sequence = item
         self._writer.add_message(
-            channel_id=self._channel,
+            channel_id=channel,
             log_time=stamp,
-            data=encode_cycle(record),
+            data=payload if isinstance(payload, bytes) else encode_cycle(payload),
             publish_time=stamp,
             sequence=sequence,
         )

@@ -8,7 +8,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from cdpr import Pose
-from daemon.process.cycle_rows import CycleRows, records, row_width
+from daemon.process.cycle_rows import CycleRows, Throttle, records, row_width
 from daemon.service.safety import SafetyState
 
 
@@ -46,3 +46,16 @@ def test_rows_read_back_as_the_cycles_written() -> None:
         assert record.forces == out.commands.tolist()
         ref = out.reference.pose
         assert record.reference == (list(ref.position_tuple), list(ref.quaternion_tuple))
+
+
+def test_the_throttle_lets_one_cycle_through_per_period() -> None:
+    throttle = Throttle(30.0)
+    times = [k / 500.0 for k in range(5000)]  # 10 s of a 500 Hz cycle
+    passed = [t for t in times if throttle.due(t)]
+    assert len(passed) == 300  # on a fixed grid: no drift from the 2 ms steps
+    gaps = np.diff(passed)
+    assert np.all(np.abs(gaps - 1 / 30) <= 2e-3 + 1e-9)  # within one cycle of the period
+    # a pause restarts the grid instead of letting a burst through
+    assert throttle.due(100.0) and not throttle.due(100.002)
+    resampled = Throttle(30.0)  # the companion throttles the core's throttled rows again
+    assert [t for t in passed if resampled.due(t)] == passed

@@ -168,3 +168,38 @@ def test_check_config_fails_with_the_problem(tmp_path: Path, capsys) -> None:
     bad.write_text(yaml.safe_dump(data))
     assert main(["check-config", str(bad)]) == 1
     assert "protocol" in capsys.readouterr().err
+
+
+# -- the view: section (the live 3-D view) ------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("view", "message"),
+    [
+        (
+            {"enabled": True, "host": "0.0.0.0"},
+            r"^test.yaml: view: the host '0.0.0.0' is not on loopback; serving the live view "
+            r"on a network is an explicit choice: set view.expose: true, or use 127.0.0.1$",
+        ),
+        ({"port": 70000}, r"^test.yaml: view.port: Input should be less than or equal to 65535"),
+        ({"rate_hz": 0}, r"^test.yaml: view.rate_hz: Input should be greater than 0 \(got 0\)$"),
+        ({"rate_hz": 1000}, r"^test.yaml: view.rate_hz: Input should be less than or equal to 200"),
+        ({"host": "ws://x:1"}, r"^test.yaml: view.host: 'ws://x:1' is not a host name or address"),
+        ({"enabled": "yes"}, r"^test.yaml: view.enabled: Input should be a valid boolean"),
+        ({"colour": "red"}, r"^test.yaml: view.colour: Extra inputs are not permitted"),
+    ],
+)
+def test_view_problems_name_the_key(view: dict, message: str) -> None:
+    data = _data()
+    data["view"] = view
+    with pytest.raises(ConfigError, match=message):
+        parse_config(data, CONFIG, "test.yaml")
+
+
+def test_the_view_is_off_and_on_loopback_unless_asked() -> None:
+    view = parse_config(_data(), CONFIG, "test.yaml").view
+    assert (view.enabled, view.host, view.port, view.rate_hz) == (False, "127.0.0.1", 8765, 30.0)
+    data = _data()
+    data["view"] = {"enabled": True, "host": "0.0.0.0", "expose": True, "port": 0}
+    view = parse_config(data, CONFIG, "test.yaml").view
+    assert (view.enabled, view.host, view.port) == (True, "0.0.0.0", 0)

@@ -276,3 +276,46 @@ def test_can_overflow_and_default_timestamps(tmp_path):
     read = list(can.LogReader(path))
     assert [m.arbitration_id for m in read] == [0x200, 0x201, 0x202, 0x203]
     assert all(not m.is_rx and m.channel == "can0" and m.timestamp > 1e9 for m in read)
+
+
+def test_mcap_records_foxglove_standard_channels_beside_the_cycles(tmp_path):
+    from mcap_protobuf.decoder import DecoderFactory
+
+    from cdpr import Robot
+    from daemon.process.scene import SCENE_TOPIC, TF_TOPIC, SceneBuilder, standard_channels
+    from tests.conftest import ROBOTS
+
+    robot = Robot.from_yaml(ROBOTS / "reference8.yaml")
+    builder = SceneBuilder(robot, ((-1, -1, 0), (1, 1, 2)))
+    path = tmp_path / "cycle.mcap"
+    with TelemetryRecorder(path, channels=standard_channels()) as recorder:
+        for k in range(3):
+            record = cycle(k, reference=((0.0, 0.0, 1.5), (1.0, 0.0, 0.0, 0.0)))
+            recorder.record(record, log_time_ns=1_000 + k)
+            recorder.log_messages(builder.encode(record, 1_000 + k), 1_000 + k)
+        brake = builder.encode_event({"event": "brake", "trigger": "x"}, 2_000)
+        recorder.log_messages(brake, 2_000)
+    with open(path, "rb") as stream:
+        reader = make_reader(stream, decoder_factories=[DecoderFactory()])
+        schemas = {c.topic: (s.name, s.encoding, c.message_encoding)
+                   for s, c, _m in reader.iter_messages()}
+        decoded = {}
+        sequences = {}
+        for _s, channel, message, proto in reader.iter_decoded_messages(
+            topics=[TF_TOPIC, SCENE_TOPIC]
+        ):
+            decoded.setdefault(channel.topic, []).append(proto)
+            sequences.setdefault(channel.topic, []).append(message.sequence)
+    assert schemas == {
+        CYCLE_TOPIC: (CYCLE_SCHEMA_NAME, "jsonschema", "json"),
+        "/tf": ("foxglove.FrameTransforms", "protobuf", "protobuf"),
+        "/cdpr/scene": ("foxglove.SceneUpdate", "protobuf", "protobuf"),
+        "/cdpr/pose": ("foxglove.PoseInFrame", "protobuf", "protobuf"),
+        "/cdpr/reference_pose": ("foxglove.PoseInFrame", "protobuf", "protobuf"),
+        "/cdpr/series": ("cdprd.Series", "jsonschema", "json"),
+        "/cdpr/log": ("foxglove.Log", "protobuf", "protobuf"),
+    }
+    platforms = [m.transforms[0].translation.x for m in decoded[TF_TOPIC]]
+    assert platforms == pytest.approx([0.0, 0.1, 0.2])
+    assert [len(m.entities) for m in decoded[SCENE_TOPIC]] == [5, 5, 5]
+    assert sequences[TF_TOPIC] == [0, 1, 2]  # counted per channel

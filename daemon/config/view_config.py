@@ -1,0 +1,56 @@
+"""The `view:` config section: the live 3-D view over the Foxglove WebSocket protocol
+(DESIGN §17), served by the companion process, never by the control cycle.
+
+Off unless `enabled: true`.  It listens on 127.0.0.1 only; a host off loopback is
+refused unless `expose: true` is set, the same explicit choice as zenoh's (anyone who
+reaches the port sees the robot).  `rate_hz` is how often the scene is drawn: live, and
+in the telemetry recording's standard Foxglove channels (recording.telemetry), whether
+or not the live view is on.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+from typing import Annotated
+
+from pydantic import Field, field_validator, model_validator
+
+from cdpr.description import PositiveFloat, StrictModel
+from daemon.config.zenoh_config import loopback_host
+
+DEFAULT_VIEW_PORT = 8765  # Foxglove's usual port for a live connection
+
+
+class ViewConfig(StrictModel):
+    """The `view:` section of a daemon config (every key optional)."""
+
+    enabled: bool = False
+    host: str = Field("127.0.0.1", min_length=1, max_length=253)
+    port: Annotated[int, Field(ge=0, le=65535)] = DEFAULT_VIEW_PORT
+    """0: any free port (the companion logs the one it got)."""
+    expose: bool = False
+    """Allow a host off loopback: an explicit network choice."""
+    rate_hz: PositiveFloat = Field(30.0, le=200.0)
+
+    @field_validator("host")
+    @classmethod
+    def _plain_host(cls, host: str) -> str:
+        if any(c.isspace() or c in "/:[]" for c in host) and not _ipv6(host):
+            raise ValueError(f"{host!r} is not a host name or address (no scheme, no port)")
+        return host
+
+    @model_validator(mode="after")
+    def _placement(self) -> ViewConfig:
+        if not self.expose and not loopback_host(self.host):
+            raise ValueError(
+                f"the host {self.host!r} is not on loopback; serving the live view on a "
+                "network is an explicit choice: set view.expose: true, or use 127.0.0.1"
+            )
+        return self
+
+
+def _ipv6(host: str) -> bool:
+    try:
+        return ipaddress.ip_address(host).version == 6
+    except ValueError:
+        return False

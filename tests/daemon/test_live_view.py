@@ -1,0 +1,164 @@
+"""`cdprd run --sim --view` as its own process: a Foxglove WebSocket client written from
+the published protocol (tests/foxglove_client.py) connects on loopback, sees the
+channels advertised with Foxglove's standard schema names, and decodes the scene, the
+transforms and the pose, whose values are the state published over zenoh; the run's
+telemetry MCAP reads back with the mcap library with the same standard channels beside
+the cycle records.  A view port in use stops the start-up with one line."""
+
+from __future__ import annotations
+
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from mcap.reader import make_reader
+from mcap_protobuf.decoder import DecoderFactory
+
+from daemon.process.recording import CYCLE_SCHEMA_NAME, CYCLE_TOPIC
+from tests.foxglove_client import collect
+from tests.loopback import free_port
+from tests.processes import ROOT, connect, finish, stop_impatiently, wait_status
+
+CONFIG = ROOT / "config" / "reference8-cia402.yaml"
+TARGET = (0.05, -0.03, 1.28)  # m, away from home (0, 0, 1.25)
+STANDARD = {
+    "/tf": "foxglove.FrameTransforms",
+    "/cdpr/scene": "foxglove.SceneUpdate",
+    "/cdpr/pose": "foxglove.PoseInFrame",
+    "/cdpr/reference_pose": "foxglove.PoseInFrame",
+    "/cdpr/log": "foxglove.Log",
+    "/cdpr/series": "cdprd.Series",
+}
+
+
+def _config(tmp_path: Path, zenoh: int, recording: dict | None = None) -> Path:
+    data = yaml.safe_load(CONFIG.read_text())
+    data["robot"] = str(ROOT / "config" / "robots" / "reference8.yaml")
+    data["zenoh"]["listen"] = [f"tcp/127.0.0.1:{zenoh}"]
+    data["recording"] = recording or {}
+    path = tmp_path / "cdprd.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+def _run(config: Path, view: str) -> subprocess.Popen:
+    command = [sys.executable, "-m", "daemon.cli", "run", "--sim", "--config", str(config)]
+    return subprocess.Popen(
+        [*command, "--view", view],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+
+
+def _xyz(v) -> list[float]:
+    return [v.x, v.y, v.z]
+
+
+@pytest.mark.timeout(120)
+def test_a_foxglove_client_sees_the_robot_as_zenoh_does_and_the_mcap_matches(
+    tmp_path: Path,
+) -> None:
+    zenoh, view = free_port(), free_port()
+    (tmp_path / "rec").mkdir()
+    config = _config(tmp_path, zenoh, {"telemetry": "rec/cycle.mcap"})
+    proc = _run(config, f"127.0.0.1:{view}")
+    try:
+        with connect(zenoh, proc) as client:
+            wait_status(client, "idle", 10.0)
+            client.enable()
+            wait_status(client, "hold", 5.0)
+            client.goto(TARGET)
+            end = time.monotonic() + 10.0
+            while True:  # at the target, holding
+                state = client.status()
+                assert time.monotonic() < end, f"never held at {TARGET}: {state}"
+                if state["state"] == "hold" and _zenoh_state(client)["pose"]["position"][0] > 0.04:
+                    break
+                time.sleep(0.1)
+            time.sleep(1.0)  # settled: the view's pose and zenoh's come from different cycles
+            cyclic = set(STANDARD) - {"/cdpr/log"}  # a log message only when something happens
+            subprotocol, channels, first = collect(f"ws://127.0.0.1:{view}", cyclic)
+            published = _zenoh_state(client)
+    finally:
+        stop_impatiently(proc)
+        out = finish(proc, terminate=False)
+    assert proc.returncode == 0, out
+
+    assert subprotocol in ("foxglove.sdk.v1", "foxglove.websocket.v1")
+    assert {topic: c["schemaName"] for topic, c in channels.items()} == STANDARD
+    assert {c["encoding"] for t, c in channels.items() if t != "/cdpr/series"} == {"protobuf"}
+
+    zenoh_position = np.array(published["pose"]["position"])
+    q = published["pose"]["quaternion"]
+    assert np.allclose(zenoh_position, TARGET, atol=5e-3)
+    pose = first["/cdpr/pose"].message.pose
+    assert np.allclose(_xyz(pose.position), zenoh_position, atol=1e-4)
+    o = pose.orientation
+    assert np.allclose([o.w, o.x, o.y, o.z], [q["w"], q["x"], q["y"], q["z"]], atol=1e-4)
+    platform = {t.child_frame_id: t for t in first["/tf"].message.transforms}["platform"]
+    assert np.allclose(_xyz(platform.translation), zenoh_position, atol=1e-4)
+    scene = {e.id: e for e in first["/cdpr/scene"].message.entities}
+    (box,) = scene["platform"].cubes
+    assert np.allclose(_xyz(box.pose.position), zenoh_position, atol=0.05)  # box centre
+    assert len(scene["cables"].lines) == 8
+    assert first["/cdpr/series"].message["tensions"][0] > 0
+
+    recording = next((tmp_path / "rec").glob("cycle-*.mcap"))
+    with recording.open("rb") as stream:
+        reader = make_reader(stream, decoder_factories=[DecoderFactory()])
+        summary = reader.get_summary()
+        names = {c.topic: summary.schemas[c.schema_id].name for c in summary.channels.values()}
+        counts = summary.statistics.channel_message_counts
+        by_topic = {c.topic: counts.get(c.id, 0) for c in summary.channels.values()}
+        poses = [
+            _xyz(m.transforms[0].translation)
+            for _s, _c, _m, m in reader.iter_decoded_messages(topics=["/tf"])
+        ]
+    assert names == {**STANDARD, CYCLE_TOPIC: CYCLE_SCHEMA_NAME}
+    # every cycle recorded, the scene at view.rate_hz (30 Hz) of a 500 Hz cycle
+    assert by_topic["/tf"] == by_topic["/cdpr/scene"] > 10
+    assert by_topic[CYCLE_TOPIC] > 10 * by_topic["/tf"]
+    assert by_topic["/cdpr/log"] >= 3  # idle, enabled, goto, ...
+    assert min(np.linalg.norm(np.subtract(p, TARGET)) for p in poses) < 5e-3
+
+
+def _zenoh_state(client) -> dict:
+    """The next state the daemon publishes over zenoh."""
+    got: list[dict] = []
+    arrived = threading.Event()
+
+    def on_state(state: dict) -> None:
+        if "pose" in state and not got:
+            got.append(state)
+            arrived.set()
+
+    subscriber = client.subscribe_state(on_state)
+    try:
+        assert arrived.wait(5.0), "no state over zenoh"
+    finally:
+        subscriber.undeclare()
+    return got[0]
+
+
+@pytest.mark.timeout(120)
+def test_run_with_its_view_port_taken_exits_with_one_line(tmp_path: Path) -> None:
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", free_port()))
+        taken.listen()
+        port = taken.getsockname()[1]
+        config = _config(tmp_path, free_port())
+        proc = _run(config, str(port))
+        out, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 1, out
+    lines = [line for line in out.splitlines() if " INFO " not in line]
+    assert len(lines) == 1, out
+    assert lines[0].startswith(f"error: {config}: view: cannot serve on 127.0.0.1:{port}: ")
+    assert "Address already in use" in lines[0]
