@@ -112,6 +112,21 @@ class DrivesConfig(StrictModel):
         update = {key: part(getattr(self, key)) for key in ("nodes", "direction", "length_offset")}
         return cables, self.model_copy(update={**update, "bus": name})
 
+    def single(self, cable: int) -> DrivesConfig:
+        """This config for cable `cable`'s drive alone (one winch on the bench: `cdprd
+        tune` and the simulator's rig); ConfigError names a cable the config lacks."""
+        if not 0 <= cable < len(self.nodes):
+            raise ConfigError(
+                f"drives: no drive for cable {cable} (the config lists cables "
+                f"0..{len(self.nodes) - 1})"
+            )
+
+        def part(value: Any) -> Any:
+            return [value[cable]] if isinstance(value, list) else value
+
+        keys = ("nodes", "direction", "length_offset", "bus")
+        return self.model_copy(update={key: part(getattr(self, key)) for key in keys})
+
     @property
     def streamed(self) -> bool:
         """True when the drives stream feedback at feedback_rate_hz (ODrive) instead of

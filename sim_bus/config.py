@@ -8,27 +8,56 @@ are ignored here and validated by the daemon.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Annotated, Any, NamedTuple
 
-from pydantic import model_validator
+from pydantic import Field, model_validator
 
 from cdpr import ConfigError, Robot
-from cdpr.description import PositiveFloat, StrictModel, load_yaml, show_path, validate_section
+from cdpr.description import (
+    NonNegativeFloat,
+    PositiveFloat,
+    StrictModel,
+    load_yaml,
+    show_path,
+    validate_section,
+)
 from drivers.config import CanConfig, CanFile, DrivesConfig, can_buses, parse_drives
 from sim_bus.bus.frame_faults import FrameFaultConfig
 from sim_bus.plant import PlantConfig
+
+
+class RigConfig(StrictModel):
+    """`sim.rig`: simulate ONE winch on the bench instead of the robot (`cdprd tune`):
+    cable `drive`'s true actuator (sim.plant's mismatch applied) and drive, with a cable
+    `cable_length` m long to a hanging mass `load_mass` kg (0: no load, the free drum),
+    or clamped at its end (`clamped`, pretensioned to `preload` N).  The rig is
+    sim_bus.plant.rig.SingleActuatorRig behind the same virtual drive as on the robot."""
+
+    drive: Annotated[int, Field(ge=0)] = 0
+    load_mass: NonNegativeFloat = 0.0
+    clamped: bool = False
+    cable_length: PositiveFloat = 2.0
+    preload: PositiveFloat = 100.0
+
+    @model_validator(mode="after")
+    def _one_load(self) -> RigConfig:
+        if self.clamped and self.load_mass:
+            raise ValueError("give either load_mass or clamped: true, not both")
+        return self
 
 
 class SimConfig(StrictModel):
     """`sim:` section.  plant: sim_bus.plant.PlantConfig keys; frame_faults:
     sim_bus.bus.frame_faults keys; serve_socketcand: "127.0.0.1:PORT" to serve the bus to
     other processes in the socketcand protocol; wake_period: seconds between the
-    simulator's own wake-ups (default: the plant step), see `wake`."""
+    simulator's own wake-ups (default: the plant step), see `wake`; rig: one winch on
+    the bench instead of the robot (RigConfig)."""
 
     plant: PlantConfig = PlantConfig()
     frame_faults: FrameFaultConfig = FrameFaultConfig()
     serve_socketcand: str | None = None
     wake_period: PositiveFloat | None = None
+    rig: RigConfig | None = None
 
     @model_validator(mode="after")
     def _wake_not_below_step(self) -> SimConfig:

@@ -22,11 +22,14 @@ import math
 from collections.abc import Sequence
 
 import can
+import numpy as np
 
-from cdpr import Robot
-from drivers.base import Actuation, VirtualDrive
+from cdpr import ConfigError, Robot
+from drivers.base import Actuation, Scaling, VirtualDrive
 from drivers.config import DrivesConfig
+from sim_bus.config import RigConfig
 from sim_bus.plant import Plant, PlantConfig
+from sim_bus.plant.rig import SingleActuatorRig
 
 # an overcurrent as each protocol reports it: CiA 402 EMCY error code, ODrive 0.6 axis
 # error bit CURRENT_LIMIT_VIOLATION
@@ -51,18 +54,23 @@ class PositionServo:
         return self.integral + self.kp * error - self.kd * rate
 
 
-def make_virtual_drives(
+def true_scalings(
     config: DrivesConfig, robot: Robot, encoder_offsets: Sequence[float] | None = None
-) -> list[VirtualDrive]:
-    """One device per cable, of the configured protocol, scaled like the host side but
-    with `robot`'s drum radii (the true robot's) and each motor position zero
-    `encoder_offsets` (m) further in than the host believes (MismatchConfig)."""
+) -> list[Scaling]:
+    """The devices' scalings: like the host side's but with `robot`'s drum radii (the
+    true robot's) and each motor position zero `encoder_offsets` (m) further in than
+    the host believes (MismatchConfig)."""
     scalings = config.scalings_for(robot)
-    if encoder_offsets is not None:
-        scalings = [
-            dataclasses.replace(s, length_offset=s.length_offset - offset)
-            for s, offset in zip(scalings, encoder_offsets, strict=True)
-        ]
+    if encoder_offsets is None:
+        return scalings
+    return [
+        dataclasses.replace(s, length_offset=s.length_offset - offset)
+        for s, offset in zip(scalings, encoder_offsets, strict=True)
+    ]
+
+
+def make_virtual_drives(config: DrivesConfig, scalings: list[Scaling]) -> list[VirtualDrive]:
+    """One device per drive of `config`, of its protocol, with the devices' `scalings`."""
     if config.protocol == "cia402":
         from sim_bus.devices.cia402 import Cia402Drive
 
@@ -74,19 +82,43 @@ def make_virtual_drives(
     return [OdriveAxis(node, s, config) for node, s in zip(config.nodes, scalings, strict=True)]
 
 
+def bench_rig(robot: Robot, config: PlantConfig, rig: RigConfig) -> SingleActuatorRig:
+    """The single-actuator rig `rig` describes: the TRUE actuator of its cable (the
+    config's mismatch applied to `robot`), its load hanging under gravity |g|."""
+    if rig.drive >= robot.n_cables:
+        raise ConfigError(
+            f"sim.rig.drive: cable {rig.drive} does not exist (cables 0..{robot.n_cables - 1})"
+        )
+    rng = np.random.default_rng(np.random.SeedSequence(config.seed).spawn(1)[0])
+    actuator = config.mismatch.apply(robot, rng).actuators[rig.drive]
+    if rig.clamped:
+        load, preload = math.inf, rig.preload
+    else:
+        load, preload = rig.load_mass, rig.load_mass * float(np.linalg.norm(robot.platform.gravity))
+    return SingleActuatorRig(actuator, load, config, rig.cable_length, preload)
+
+
 class VirtualRobot:
-    """Plant + virtual drives.  `t` is simulated time in seconds from the start."""
+    """Plant + virtual drives.  `t` is simulated time in seconds from the start.  With
+    `rig`, the plant is one winch on the bench (sim_bus.config.RigConfig) behind the
+    drive of cable `rig.drive` alone (its index here is 0)."""
 
     def __init__(
         self,
         robot: Robot,
         drives: DrivesConfig,
         plant: PlantConfig | None = None,
+        rig: RigConfig | None = None,
     ) -> None:
-        self.plant = Plant(robot, plant)
+        if rig is None:
+            self.plant: Plant | SingleActuatorRig = Plant(robot, plant)
+            offsets = self.plant.config.mismatch.encoder_offsets_for(self.plant.n)
+            scalings = true_scalings(drives, self.plant.robot, offsets)
+        else:
+            self.plant = bench_rig(robot, plant or PlantConfig(), rig)
+            drives, scalings = drives.single(rig.drive), [drives.scalings_for(robot)[rig.drive]]
         self.protocol = drives.protocol
-        offsets = self.plant.config.mismatch.encoder_offsets_for(self.plant.n)
-        self.drives = make_virtual_drives(drives, self.plant.robot, offsets)
+        self.drives = make_virtual_drives(drives, scalings)
         self.n = len(self.drives)
         buses = drives.bus_names()
         # each drive's bus where there are several (frames are routed by channel), else None

@@ -22,7 +22,7 @@ from scipy import linalg
 from cdpr.description import ActuatorSpec
 from cdpr.single_actuator import Discretisation, LinearController
 from sim_bus.plant.config import PlantConfig
-from tuning.rig import OUTPUTS, SingleActuatorRig
+from sim_bus.plant.rig import OUTPUTS, SingleActuatorRig
 
 Array = NDArray[np.float64]
 

@@ -29,7 +29,7 @@ Controller = Callable[[float, Array, Array], ArrayLike]
 
 
 class Simulated(Protocol):
-    """What the runner needs of a plant (sim_bus.plant.Plant, tuning.rig.SingleActuatorRig)."""
+    """What the runner needs of a plant (sim_bus.plant: Plant, rig.SingleActuatorRig)."""
 
     config: PlantConfig
     time: float

@@ -8,7 +8,7 @@ import numpy as np
 
 from cdpr import ConfigError, Robot
 from cdpr.description import load_yaml
-from daemon.cli import analyze_cmd, client_cmd, demo_cmd, run_cmd
+from daemon.cli import analyze_cmd, client_cmd, demo_cmd, run_cmd, tune_cmd
 
 
 def check_config(path: str) -> int:
@@ -73,6 +73,7 @@ def main(argv: list[str] | None = None) -> int:
     client_cmd.add_parsers(sub)
     run_cmd.add_parsers(sub)
     demo_cmd.add_parser(sub)
+    tune_cmd.add_parser(sub)
     args = parser.parse_args(argv)
     if hasattr(args, "handler"):
         return args.handler(args)

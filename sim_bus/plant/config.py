@@ -236,6 +236,9 @@ class PlantConfig(StrictModel):
     encoder: EncoderConfig = EncoderConfig()
     mismatch: MismatchConfig = MismatchConfig()
     disturbance: DisturbanceConfig = DisturbanceConfig()
+    # relative standard deviation of the force a drive produces against its command,
+    # drawn anew for every held command (drive current noise; `cdprd tune`'s noisy case)
+    force_noise: Annotated[float, Field(ge=0.0, le=0.5)] = 0.0
 
     @property
     def substep(self) -> float:

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 import operator
+import random
 from collections.abc import Sequence
 
 from sim_bus.plant.config import PlantConfig
@@ -42,6 +43,8 @@ class Winches:
         self.mass = [float(m) + a.q1 for m, a in zip(m0, self.models, strict=True)]
         self.force_max = [float(f) for f in force_max]
         self._viscous = config.friction.viscous
+        self._force_noise = config.force_noise
+        self._rng = random.Random(config.seed)
         self._coulomb = config.friction.coulomb
         # per winch (Ad, Bd f_c column, Bd l' column, C, D f_c): scalars for the default
         # first-order model, else nested lists
@@ -97,6 +100,8 @@ class Winches:
             f = float(f)
             if not math.isfinite(f):
                 raise ValueError(f"command {k} is not finite: {f}")
+            if self._force_noise:
+                f *= 1.0 + self._rng.gauss(0.0, self._force_noise)
             out.append(lim if f > lim else -lim if f < -lim else f)
         self.commands = out
 

@@ -9,9 +9,9 @@ import pytest
 
 from cdpr import Robot
 from sim_bus.plant import Plant, PlantConfig, equilibrium_tensions
+from sim_bus.plant.rig import SingleActuatorRig
 from tests.conftest import load_robot
 from tuning.lockstep import Recording, run_lockstep
-from tuning.rig import SingleActuatorRig
 
 
 @pytest.fixture(scope="module")

@@ -10,8 +10,8 @@ from scipy import signal
 
 from cdpr import Robot
 from sim_bus.plant import PlantConfig
+from sim_bus.plant.rig import OUTPUTS, SingleActuatorRig
 from tests.conftest import load_robot
-from tuning.rig import OUTPUTS, SingleActuatorRig
 
 ACTUATOR_MODELS = {
     "default lag": {},
@@ -100,7 +100,7 @@ def test_friction_breaks_linearity(robot: Robot) -> None:
 
 def test_brake_locks_the_drum(robot: Robot) -> None:
     rig = rig_for(robot, 5.0)
-    rig.set_brake(True)
+    rig.set_brake(0, True)
     out = respond(rig, np.full(300, 200.0))
     assert np.abs(out[:, 0]).max() == 0.0
     assert np.abs(out[:, 1]).max() == 0.0

@@ -9,10 +9,10 @@ import pytest
 from cdpr import ConfigError
 from cdpr.control_spec import ControllerSpec, parse_controller
 from cdpr.single_actuator import LinearController, SingleActuatorTracker, pid
+from sim_bus.plant.rig import SingleActuatorRig
 from tests.conftest import load_robot
 from tuning.analysis import Rig
 from tuning.lockstep import run_lockstep
-from tuning.rig import SingleActuatorRig
 from tuning.workspace_analysis import latency_tolerance
 
 PERIOD = 1 / 500

@@ -4,7 +4,10 @@ The paper (§4) tunes the single-actuator controller on one actuator carrying a 
 load, and says the rig must include a cable with the robot's stretch (in prototypes,
 PID gains tuned without it went unstable on the robot).  The rig uses the robot
 plant's own winch code (sim_bus.plant.winch), so it has exactly the same actuator
-model, drum, friction, brake, saturation, encoders and cable law.
+model, drum, friction, brake, saturation, encoders and cable law.  It answers
+VirtualRobot's plant calls (set_brake, set_drive_enabled, break_cable with cable index
+0), so the simulator can put it behind the same CAN device code as the robot (sim.rig:
+`cdprd tune` identifies it over the bus).
 
 The load moves along the cable; y is its distance from the drum exit, i.e. the
 geometric cable length L.  With tension t (cable law) and a constant `preload` pulling
@@ -91,9 +94,17 @@ class SingleActuatorRig:
         """The force command (N), one value, held and saturated like the robot's."""
         self.winches.set_commands(np.asarray(commands, dtype=float).reshape(-1).tolist())
 
-    def set_brake(self, engaged: bool) -> None:
-        """Engage or release the holding brake."""
-        self.winches.set_brake(0, engaged)
+    def set_brake(self, k: int | None, engaged: bool) -> None:
+        """Engage or release the holding brake (k: 0 or None, as sim_bus.plant.Plant)."""
+        self.winches.set_brake(_only(k), engaged)
+
+    def set_drive_enabled(self, k: int | None, enabled: bool) -> None:
+        """Enable or disable the drive (k: 0 or None); disabled: no torque, no back-EMF."""
+        self.winches.set_enabled(_only(k), enabled)
+
+    def break_cable(self, k: int) -> None:
+        """The cable snaps (k: 0): from now on it carries nothing."""
+        self.winches.broken[_only(k)] = True
 
     def step(self) -> None:
         """Advance one plant step (config.step) in config.substeps substeps."""
@@ -191,3 +202,10 @@ class SingleActuatorRig:
         C[4, iv] -= model.q0
         Dm[4, 0] = Df - model.q1 * B[iv, 0]
         return signal.StateSpace(A, B, C, Dm)
+
+
+def _only(k: int | None) -> int:
+    """The rig's one winch: index 0 (None: all, the same one)."""
+    if k not in (0, None):
+        raise IndexError(f"the single-actuator rig has one winch (0), not {k}")
+    return 0

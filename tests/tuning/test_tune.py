@@ -1,0 +1,89 @@
+"""`cdprd tune`'s experiment and fit (paper §4, Assumption 1) against the simulator's
+one-winch rig, the drive's CAN frames exchanged in simulated time: accuracy, the
+amplitude bound, and every abort path (each brakes the drive and names the reason)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from daemon.config import load_config
+from sim_bus.plant.config import parse_plant_config
+from tuning.experiment import Load, WinchExperiment
+from tuning.winch_tune import Request, identify_simulated, plan_for
+
+TRUE = {"m0": 1.9 * 1.3, "k0": 20.0 * 0.7, "lag": 2.6e-3}  # the robot file's, 30 % off
+
+
+def plant(**extra: object) -> object:
+    return parse_plant_config(
+        {"actuator": {"c": [TRUE["lag"]]}, "mismatch": {"m0_scale": 1.3, "k0_scale": 0.7}, **extra}
+    )
+
+
+@pytest.fixture(scope="module", params=["odrive", "cia402"])
+def config(request: pytest.FixtureRequest) -> object:
+    return load_config(f"config/reference8-{request.param}.yaml")
+
+
+def test_identifies_a_winch_30_percent_off_the_robot_file_within_5_percent(config) -> None:
+    run = identify_simulated(
+        config.robot, config.drives, plant(), Request(drive=3, duration=8.0), 500.0
+    )
+    assert run.abort is None and run.model is not None
+    assert run.frames > 8000  # it really talked CAN
+    for name, true in TRUE.items():
+        assert getattr(run.model, name) == pytest.approx(true, rel=0.05), name
+    commands = np.array(run.record.command)
+    assert np.abs(commands - run.record.hold).max() <= 20.0 + 1e-9
+
+
+def test_identifies_through_encoder_and_force_noise_within_10_percent() -> None:
+    config = load_config("config/reference8-odrive.yaml")
+    noisy = plant(encoder={"counts_per_metre": 1e5, "noise_std": 1e-5}, force_noise=0.05)
+    run = identify_simulated(config.robot, config.drives, noisy, Request(), 500.0)
+    assert run.model is not None
+    for name, true in TRUE.items():
+        assert getattr(run.model, name) == pytest.approx(true, rel=0.10), name
+
+
+def test_a_hanging_load_is_identified_too() -> None:
+    config = load_config("config/reference8-odrive.yaml")
+    run = identify_simulated(
+        config.robot, config.drives, plant(), Request(load_mass=5.0, duration=8.0), 500.0
+    )
+    assert run.model is not None
+    assert run.model.m0 == pytest.approx(TRUE["m0"], rel=0.05)
+    assert run.model.k0 == pytest.approx(TRUE["k0"], rel=0.05)
+
+
+@pytest.mark.parametrize(
+    ("request_", "faults", "true_load", "kind"),
+    [
+        (Request(load_mass=5.0, duration=4.0), [(1.5, "drive")], None, "drive_fault"),
+        (Request(load_mass=5.0, duration=4.0), [(1.5, "snap")], None, "slack_cable"),
+        (Request(load_mass=5.0, duration=4.0), [(1.5, "silent")], None, "no_feedback"),
+        (Request(duration=4.0, travel=0.002), [], None, "length_limit"),
+        (Request(load_mass=3.0, amplitude=10.0, travel=0.5, duration=4.0), [], 5.0, "force_limit"),
+    ],
+)
+def test_every_abort_brakes_and_says_why(request_, faults, true_load, kind) -> None:
+    config = load_config("config/reference8-odrive.yaml")
+    run = identify_simulated(
+        config.robot, config.drives, plant(), request_, 500.0, faults, true_load
+    )
+    assert run.abort is not None and run.abort.kind == kind, run.abort
+    assert run.model is None
+    commands = np.array(run.record.command)
+    assert np.abs(commands - run.record.hold).max() <= request_.amplitude + 1e-9
+
+
+def test_a_plan_that_could_slacken_or_saturate_is_refused() -> None:
+    robot = load_config("config/reference8-odrive.yaml").robot
+    plan = plan_for(robot, Request(amplitude=40.0), 500.0)
+    with pytest.raises(ValueError, match="could go slack"):
+        WinchExperiment(plan, Load.hanging(5.0, 9.81))
+    with pytest.raises(ValueError, match="force_max"):
+        WinchExperiment(plan, Load.hanging(60.0, 9.81))
+    with pytest.raises(ValueError, match=r"cables 0\.\.7"):
+        plan_for(robot, Request(drive=8), 500.0)

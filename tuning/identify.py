@@ -1,0 +1,173 @@
+"""Fit the paper's Assumption 1 single-actuator model to a torque experiment.
+
+The model is the rig the simulator and `cdprd analyze` use (sim_bus.plant.rig): a drum
+of effective mass m0, back-EMF k0 and a first-order force lag tau,
+
+    tau f' + f = f_c - k0 l',    m0 l'' = f + t,
+
+pulling through an elastic cable (EA from the robot file, damping D fitted) a passive
+load of known mass (none, hanging, or clamped).  Linearised at rest, it predicts the
+length l(t) from the command f_c(t) as sent: the commands are held from the moment they
+left the host, and the prediction is read at each feedback sample's stamp, so the
+loop's own delays are part of the data rather than of the model.  scipy's least squares
+fits m0, k0, tau (and D, a constant force bias and the starting length) to the measured
+lengths; each parameter's confidence is 1.96 standard errors from the Jacobian at the
+optimum (white-residual assumption: indicative, not a guarantee).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import optimize, signal
+
+from cdpr.description import ActuatorSpec
+from sim_bus.plant.config import ActuatorModelConfig, CableConfig, PlantConfig
+from sim_bus.plant.rig import SingleActuatorRig
+from tuning.experiment import Load
+
+Array = NDArray[np.float64]
+GRID = 5e-4  # s: the simulation grid of the prediction
+NAMES = ("m0", "k0", "lag", "cable_damping", "bias")
+
+
+class Identified(NamedTuple):
+    """The fitted model: m0 (kg), k0 (N s/m), lag (s: Assumption 1's c_2), the cable's
+    damping (N s per unit strain; None without a cable load), and per parameter the
+    relative 95 % half-width; the RMS residual (m) against the RMS response (m)."""
+
+    m0: float
+    k0: float
+    lag: float
+    cable_damping: float | None
+    confidence: dict[str, float]
+    residual_rms: float
+    response_rms: float
+    samples: int
+
+    def actuator_model(self) -> ActuatorModelConfig:
+        """The force lag as sim_bus.plant's actuator section (c = [lag])."""
+        return ActuatorModelConfig(c=[self.lag])
+
+
+class Setup(NamedTuple):
+    """What the fit knows: the robot file's actuator (starting guess, force limit),
+    the load, the cable length (m) and stiffness EA (N)."""
+
+    actuator: ActuatorSpec
+    load: Load
+    cable_length: float
+    stiffness: float
+    lag_guess: float = 2e-3
+    damping_guess: float = 100.0
+    segment: float = 0.25  # s: see segment_residuals
+
+
+def segment_residuals(setup: Setup, params: Array, data: dict[str, Array]) -> Array:
+    """Measured minus predicted lengths (m) for parameters `params` (NAMES[:5]).
+
+    The record is cut into segments of `segment` seconds; in each, the model starts from
+    the initial state that fits best (a linear least-squares problem, solved exactly),
+    so a drifting integrator (a free drum, a hanging load) cannot make long horizons
+    ill-conditioned, and only m0, k0, the lag, D and the bias remain for scipy."""
+    m0, k0, lag, damping, bias = params
+    system = _system(setup, m0, k0, lag, damping)
+    Ad, Bd, Cd, _, _ = signal.cont2discrete(
+        (system.A, system.B, system.C[:1], system.D[:1]), GRID, "zoh"
+    )
+    t0 = data["command_t"][0]
+    per = max(2, round(setup.segment / GRID))
+    count = int((data["sample_t"][-1] - t0) / GRID) // per
+    grid = t0 + GRID * np.arange(count * per)
+    # each command acts from the grid point nearest to when it was sent
+    starts = np.round((data["command_t"] - t0) / GRID)
+    index = np.searchsorted(starts, np.arange(count * per), side="right") - 1
+    u = (data["command"][index] - setup.load.hold + bias).reshape(count, per)
+    # every segment's response from rest at once (a transfer function's polynomial
+    # loses the precision of poles this close to z = 1)
+    forced = np.empty((count, per))
+    x = np.zeros((count, Ad.shape[0]))
+    c, b, At = Cd[0], Bd[:, 0], Ad.T
+    for i in range(per):
+        forced[:, i] = x @ c
+        x = x @ At + np.outer(u[:, i], b)
+    basis = np.empty((per, Ad.shape[0]))
+    row = Cd[0].copy()
+    for i in range(per):
+        basis[i] = row
+        row = row @ Ad
+    stamps, measured = data["sample_t"], data["length"]
+    out = []
+    local = np.arange(per) * GRID
+    for j in range(count):
+        lo, hi = np.searchsorted(stamps, grid[j * per + np.array([0, per - 1])])
+        tau = stamps[lo:hi] - grid[j * per]
+        y = measured[lo:hi] - np.interp(tau, local, forced[j])
+        free = np.column_stack([np.interp(tau, local, col) for col in basis.T])
+        x0, *_ = np.linalg.lstsq(free, y, rcond=None)
+        out.append(y - free @ x0)
+    return np.concatenate(out)
+
+
+def _system(setup: Setup, m0: float, k0: float, lag: float, damping: float) -> signal.StateSpace:
+    spec = setup.actuator.model_copy(update={"m0": m0, "k0": k0})
+    config = PlantConfig(
+        actuator=ActuatorModelConfig(c=[lag]),
+        cable=CableConfig(stiffness=setup.stiffness, damping=damping),
+    )
+    load = setup.load
+    rig = SingleActuatorRig(spec, load.mass, config, setup.cable_length, abs(load.hold))
+    return rig.linear_system()
+
+
+def fit(setup: Setup, data: dict[str, Array]) -> Identified:
+    """Least-squares fit of the model to a record (tuning.experiment.Record.arrays())."""
+    if len(data["sample_t"]) < 20 or len(data["command_t"]) < 20:
+        raise ValueError("too few samples to fit (the experiment ended early)")
+    act = setup.actuator
+    cabled = setup.load.mass > 0.0
+    guess = np.array([act.m0, max(act.k0, 0.1), setup.lag_guess, setup.damping_guess, 0.0])
+    logs = [0, 1, 2, 3]  # fitted as logarithms: positive, and relative steps
+    free = [0, 1, 2, 4] + ([3] if cabled else [])
+
+    def params_of(x: Array) -> Array:
+        params = guess.copy()
+        params[free] = x
+        params[logs] = np.exp(params[logs])
+        return params
+
+    start = guess.copy()
+    start[logs] = np.log(start[logs])
+    result = optimize.least_squares(
+        lambda x: segment_residuals(setup, params_of(x), data),
+        start[free],
+        method="lm",
+        x_scale=np.ones(len(free)),
+        diff_step=1e-6,
+        xtol=1e-10,
+        ftol=1e-12,
+    )
+    params = params_of(result.x)
+    measured = data["length"]
+    n, p = len(measured), len(free)
+    variance = 2.0 * result.cost / max(1, n - p)
+    J = result.jac
+    try:
+        cov = np.linalg.inv(J.T @ J) * variance
+        std = np.sqrt(np.abs(np.diag(cov)))
+    except np.linalg.LinAlgError:
+        std = np.full(p, np.inf)
+    confidence = {NAMES[i]: float(1.96 * std[j]) for j, i in enumerate(free) if NAMES[i] != "bias"}
+    response = measured - measured.mean()
+    return Identified(
+        m0=float(params[0]),
+        k0=float(params[1]),
+        lag=float(params[2]),
+        cable_damping=float(params[3]) if cabled else None,
+        confidence=confidence,
+        residual_rms=float(np.sqrt(np.mean(result.fun**2))),
+        response_rms=float(np.sqrt(np.mean(response**2))),
+        samples=n,
+    )
