@@ -79,7 +79,7 @@ NAMED = {  # case: (file content, the problem each error line names after 'error
     ),
     "a plant mismatch of the wrong size": (
         example(("step: 0.001\n", "step: 0.001\n    mismatch: {anchor_offsets: [[0, 0, 0]]}\n")),
-        "sim.plant: mismatch.anchor_offsets: 1 offsets for 8 cables",
+        "sim.plant: mismatch.anchor_offsets: 1 entries for 8 cables",
     ),
     "watchdog_timeout: true": (
         example(("watchdog_timeout: 0.05", "watchdog_timeout: true")),
