@@ -10,6 +10,7 @@ from cdpr import ConfigError
 from daemon.config import DaemonConfig, load_config
 from daemon.process.app import close_bus, open_bus, serve
 from daemon.process.logsetup import configure_logging
+from drivers.config import check_fall_on_axis_error
 
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:
@@ -47,6 +48,7 @@ def load_checked(path: str) -> DaemonConfig:
     from daemon.cli.simulated import sim_section  # sim_bus, for this check only (DESIGN §2)
 
     config = load_config(path)
+    check_fall_on_axis_error(config.drives, config.source)
     sim_section(config)
     return config
 
