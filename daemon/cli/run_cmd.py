@@ -13,6 +13,7 @@ from cdpr import ConfigError
 from daemon.config import DaemonConfig, load_config
 from daemon.process.app import close_bus, open_bus, serve
 from daemon.process.logsetup import configure_logging
+from drivers.config import check_fall_on_axis_error
 
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:
@@ -100,6 +101,7 @@ def load_checked(path: str, edit: Callable[[dict], None] | None = None) -> Daemo
     from daemon.cli.simulated import sim_section  # sim_bus, for this check only (DESIGN §2)
 
     config = load_config(path, edit)
+    check_fall_on_axis_error(config.drives, config.source)
     sim_section(config)
     return config
 
