@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cdpr import Pose, Robot, liediff
+from cdpr import Pose, Robot, liediff, retract
 from cdpr.baseline import JointSpaceController
 from cdpr.control_spec import ControllerSpec, parse_controller
 from cdpr.controller import Hold, ParallelController
@@ -128,7 +128,9 @@ def test_bad_measurements_are_reported_not_raised(reference8: Robot) -> None:
 
 
 def test_outputs_satisfy_the_papers_relations(reference8: Robot) -> None:
-    """Step 7-11 identities on one cycle: Lambda^T f_p = tau_c, t = f0 - f_p, f_c = f_p + f_b."""
+    """Step 7-11 identities on one cycle: Lambda^T f_p = tau_c, t = f0 - f_p, f_c = f_p + f_b,
+    with the model and f_b for the command's instant, t + lead (the measured pose carried
+    there by its twist, the reference sampled there)."""
     spec = ControllerSpec(model_at="measured")
     controller = ParallelController(reference8, spec)
     trajectory = STANDARD_SET["figure_eight"](reference8)
@@ -138,12 +140,15 @@ def test_outputs_satisfy_the_papers_relations(reference8: Robot) -> None:
     lengths = reference8.drum_lengths(reference8.cable_lengths(ref.pose), controller._tensions)
     rates = reference8.jacobian(ref.pose) @ ref.twist
     out = controller.step(2.0, lengths, rates)
-    assert out.feasible
-    Lam = reference8.jacobian(out.pose)
+    assert out.feasible and controller.lead > 0.0
+    Lam = reference8.jacobian(retract(out.pose, out.twist * controller.lead))
     np.testing.assert_allclose(Lam.T @ out.f_p, out.tau_c, atol=1e-5)
     np.testing.assert_allclose(out.tensions, out.f0 - out.f_p, atol=1e-9)
     np.testing.assert_allclose(out.commands, out.f_p + out.f_b, atol=1e-12)
-    np.testing.assert_allclose(out.f_b, reference8.k0 * (reference8.jacobian(ref.pose) @ ref.twist))
+    ahead = trajectory.sample(2.0 + controller.lead)
+    np.testing.assert_allclose(
+        out.f_b, reference8.k0 * (reference8.jacobian(ahead.pose) @ ahead.twist)
+    )
     assert np.all(out.tensions >= reference8.t_min - 1e-6)
 
 
