@@ -10,7 +10,7 @@ from __future__ import annotations
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import Field, model_validator
+from pydantic import Field, field_validator, model_validator
 
 from cdpr.description import (
     FiniteFloat,
@@ -100,9 +100,15 @@ class ControllerSpec(StrictModel):
     velocity: Literal["drive", "differentiate"] = "drive"
     velocity_filter: PositiveFloat = 0.05
     tension: TensionSpec = TensionSpec()
-    command_lead: (
-        Annotated[float, Field(ge=0.0, le=MAX_COMMAND_LEAD, allow_inf_nan=False)] | Literal["auto"]
-    ) = "auto"
+    command_lead: float | Literal["auto"] = "auto"
+
+    @field_validator("command_lead", mode="before")
+    @classmethod
+    def _lead(cls, value: Any) -> Any:
+        """One message for both forms (the union would report each separately)."""
+        if value == "auto" or (type(value) in (int, float) and 0.0 <= value <= MAX_COMMAND_LEAD):
+            return value
+        raise ValueError(f'must be "auto" or a time in seconds from 0 to {MAX_COMMAND_LEAD:g}')
 
     @model_validator(mode="after")
     def _one_law(self) -> ControllerSpec:

@@ -13,6 +13,7 @@ import can
 from pydantic import BeforeValidator, Discriminator, Field, Tag, model_validator
 
 from cdpr import ConfigError, Robot
+from cdpr.control_spec import DEFAULT_FORCE_LAG
 from cdpr.description import FiniteFloat, PositiveFloat, StrictModel, validate_section
 from drivers.base import BrakeMode, Scaling
 
@@ -48,6 +49,9 @@ class DrivesConfig(StrictModel):
       estimates); SYNC-driven drives answer every SYNC instead.
     bus: the `can:` bus (by name) each drive is on; one name for every drive; needed
       only when `can:` lists several buses.  Node ids are distinct on each bus.
+    force_lag: time constant (s) with which a drive's force follows its command (first
+      order: torque loop, current rise), measured at bring-up; controller.command_lead
+      "auto" allows for it.  Default: the simulator's actuator (2 ms).
     """
 
     protocol: Literal["cia402", "odrive"]
@@ -64,6 +68,7 @@ class DrivesConfig(StrictModel):
     heartbeat_timeout: PositiveSeconds = 0.35
     feedback_rate_hz: Annotated[float, Field(gt=0.0, le=10000.0)] = 500.0
     bus: BusName | list[BusName] | None = None
+    force_lag: Annotated[float, Field(ge=0.0, le=0.05, allow_inf_nan=False)] = DEFAULT_FORCE_LAG
 
     @model_validator(mode="after")
     def _consistent(self) -> DrivesConfig:
