@@ -13,6 +13,7 @@ import can
 from pydantic import BeforeValidator, Discriminator, Field, Tag, model_validator
 
 from cdpr import ConfigError, Robot
+from cdpr.control_spec import DEFAULT_FORCE_LAG
 from cdpr.description import FiniteFloat, PositiveFloat, StrictModel, validate_section
 from drivers.base import BrakeMode, Scaling
 
@@ -51,6 +52,9 @@ class DrivesConfig(StrictModel):
     accept_fall_on_axis_error (odrive only): the user accepts that, without holding
       brakes, an axis error (a dead daemon's watchdog expiry included) drops the platform:
       ODrive firmware 0.6 disarms the axis on every error.  `check_fall_on_axis_error`.
+    force_lag: time constant (s) with which a drive's force follows its command (first
+      order: torque loop, current rise), measured at bring-up; controller.command_lead
+      "auto" allows for it.  Default: the simulator's actuator (2 ms).
     """
 
     protocol: Literal["cia402", "odrive"]
@@ -68,6 +72,7 @@ class DrivesConfig(StrictModel):
     feedback_rate_hz: Annotated[float, Field(gt=0.0, le=10000.0)] = 500.0
     bus: BusName | list[BusName] | None = None
     accept_fall_on_axis_error: bool = False
+    force_lag: Annotated[float, Field(ge=0.0, le=0.05, allow_inf_nan=False)] = DEFAULT_FORCE_LAG
 
     @model_validator(mode="after")
     def _consistent(self) -> DrivesConfig:
