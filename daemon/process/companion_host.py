@@ -71,6 +71,7 @@ class CompanionHost:
         self.restarts = 0
         self.exit_code: int | None = None  # set when the companion cannot start at all
         self._process: Child | None = None
+        self._killed: Child | None = None  # the silent companion killed (logged once)
         self._sock = None
         self._ever_ready = False
         self._last_heard = time.monotonic()
@@ -191,11 +192,13 @@ class CompanionHost:
             if process is not None and process.poll() is not None:
                 self._on_exit(process.returncode, now)
             elif process is not None and now - self._last_heard > self._allowed_silence:
-                log.error(
-                    "the companion (pid %d) has been silent for %.1f s: killing it",
-                    process.pid,
-                    now - self._last_heard,
-                )
+                if process is not self._killed:  # it may take a while to die: say it once
+                    log.error(
+                        "the companion (pid %d) has been silent for %.1f s: killing it",
+                        process.pid,
+                        now - self._last_heard,
+                    )
+                    self._killed = process
                 process.kill()
             live = process is not None and now - self._last_heard <= self._allowed_silence
             if live:
