@@ -157,6 +157,21 @@ class PdoLayout:
         """True for an RPDO (the drive receives it)."""
         return self.comm_index < 0x1800
 
+    def mapping_procedure(self, node: int) -> tuple[tuple[int, int, int], ...]:
+        """The (index, sub, value) writes that set this PDO in drive `node` by the CiA 301
+        procedure: COB-ID bit 31 set, transmission type, sub0 = 0, entries, sub0, COB-ID
+        valid again."""
+        comm, mapping, cob = self.comm_index, self.map_index, self.cob_id(node)
+        entries = tuple((mapping, k + 1, e.mapping) for k, e in enumerate(self.entries))
+        return (
+            (comm, 1, cob | PDO_INVALID),
+            (comm, 2, self.transmission_type),
+            (mapping, 0, 0),
+            *entries,
+            (mapping, 0, len(self.entries)),
+            (comm, 1, cob),
+        )
+
 
 _PDO_BASES = {0x1400: RPDO1_BASE, 0x1800: TPDO1_BASE}
 

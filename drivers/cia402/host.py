@@ -485,14 +485,8 @@ class Cia402Driver(ActuatorDriver):
         values = [await self._read(link, i, index, sub) for index, sub, _, _ in checks]
         if any(v != expected for v, (_, _, expected, _) in zip(values, checks, strict=True)):
             for layout in self.plan.layouts:
-                comm, mapping, cob = layout.comm_index, layout.map_index, layout.cob_id(node)
-                await self._write(link, i, comm, 1, cob | PDO_INVALID)
-                await self._write(link, i, comm, 2, layout.transmission_type)
-                await self._write(link, i, mapping, 0, 0)
-                for k, entry in enumerate(layout.entries):
-                    await self._write(link, i, mapping, k + 1, entry.mapping)
-                await self._write(link, i, mapping, 0, len(layout.entries))
-                await self._write(link, i, comm, 1, cob)
+                for index, sub, value in layout.mapping_procedure(node):
+                    await self._write(link, i, index, sub, value)
             for index, sub, expected, what in checks:
                 value = await self._read(link, i, index, sub)
                 if value != expected:

@@ -36,13 +36,8 @@ def configure(device: Cia402Drive) -> None:
     """What a master writes (CiA 301 procedure): the default profile's PDO mapping, RPDO
     deadline 100 ms, quick stop option 6 (hold)."""
     for layout in codec.PDO_LAYOUTS:
-        comm, mapping, cob = layout.comm_index, layout.map_index, layout.cob_id(NODE)
-        writes = [(comm, 1, cob | codec.PDO_INVALID), (comm, 2, layout.transmission_type)]
-        writes += [(mapping, 0, 0)]
-        writes += [(mapping, k + 1, e.mapping) for k, e in enumerate(layout.entries)]
-        writes += [(mapping, 0, len(layout.entries)), (comm, 1, cob)]
-        for index, sub, value in writes:
-            size = 1 if (index, sub) in ((comm, 2), (mapping, 0)) else 4
+        for index, sub, value in layout.mapping_procedure(NODE):
+            size = 1 if (index, sub) in ((layout.comm_index, 2), (layout.map_index, 0)) else 4
             assert sdo_write(device, index, sub, value.to_bytes(size, "little")).kind is (
                 SdoKind.DOWNLOAD
             )
