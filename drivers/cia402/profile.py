@@ -55,6 +55,7 @@ from drivers.config import DrivesConfig, PdoSpec
 # objects the host reads or writes outside the PDOs
 _NEEDED = (DEVICE_TYPE, PRODUCER_HEARTBEAT, STATUSWORD, CONTROLWORD, MAX_TORQUE, RATED_TORQUE)
 _EVENT_DRIVEN = (254, 255)
+_CYCLIC = (CONTROLWORD, MODE_OF_OPERATION, TARGET_TORQUE, TARGET_POSITION)  # the host's
 _EVERY_SYNC = 1
 
 
@@ -95,19 +96,25 @@ class DrivePlan:
         return self.rpdos + self.tpdos
 
 
-def eds_path(config: DrivesConfig, base: Path | None = None) -> Path:
-    """The profile's EDS file, relative paths resolved against `base` (the config's
-    directory)."""
+def eds_path(config: DrivesConfig) -> Path:
+    """The profile's EDS file (default: the simulated drive's)."""
     eds = config.profile.eds
-    if eds is None:
-        return EDS_PATH
-    path = Path(eds)
-    return path if path.is_absolute() or base is None else base / path
+    return EDS_PATH if eds is None else Path(eds)
 
 
-def plan(config: DrivesConfig, base: Path | None = None) -> DrivePlan:
+def with_eds_from(config: DrivesConfig, base: Path) -> DrivesConfig:
+    """`config` with a relative profile.eds taken from `base` (the config file's
+    directory), as every other path of a config is."""
+    eds = config.profile.eds
+    if eds is None or Path(eds).is_absolute():
+        return config
+    profile = config.profile.model_copy(update={"eds": str(base / eds)})
+    return config.model_copy(update={"profile": profile})
+
+
+def plan(config: DrivesConfig) -> DrivePlan:
     """The checked plan for `config`'s drives; ProfileError naming the key otherwise."""
-    path = eds_path(config, base)
+    path = eds_path(config)
     try:
         od = load_eds(path, config.nodes[0] if config.nodes else 1)
     except (OSError, ValueError, KeyError) as exc:
@@ -125,9 +132,18 @@ def plan(config: DrivesConfig, base: Path | None = None) -> DrivePlan:
             name = od_variable(od, index).name if index in od else "it"
             raise ProfileError("profile.tpdo", f"no TPDO maps 0x{index:04X} ({name})")
     writes, watchdog = _host_writes(od, config, rpdos)
+    own = {(step.index, step.subindex): step.what for step in writes}
     for k, extra in enumerate(profile.sdo_writes):
-        index, sub = extra.object
-        writes.append(_checked(od, f"profile.sdo_writes.{k}", index, sub, extra.value))
+        key, (index, sub) = f"profile.sdo_writes.{k}", extra.object
+        step = _checked(od, key, index, sub, extra.value)
+        if (index, sub) in own or 0x1400 <= index < 0x1C00 or index in _CYCLIC:
+            raise ProfileError(
+                key,
+                f"{step.what}: the host sets this object itself (PDO configuration, "
+                "controlword, mode, heartbeats, watchdog and its reaction); another value "
+                "could leave the drive free-wheeling when the daemon dies",
+            )
+        writes.append(step)
     used = {layout.comm_index for layout in rpdos + tpdos}
     unused = tuple(
         comm

@@ -236,6 +236,18 @@ def test_a_profile_the_eds_refuses_is_named(tmp_path: Path) -> None:
             {"sdo_writes": [{"object": "0x2000", "value": 1}]},
             r"sdo_writes.0: object 0x2000:00 is not in the EDS",
         ),
+        (  # the host's own safety objects: a dead daemon would leave the drive running
+            {"sdo_writes": [{"object": "0x6072", "value": 1000}, {"object": "0x6007", "value": 0}]},
+            r"sdo_writes.1: 0x6007:00 .* = 0: the host sets this object itself",
+        ),
+        (
+            {"sdo_writes": [{"object": "0x1016:01", "value": 0}]},
+            r"sdo_writes.0: 0x1016:01 .* the host sets this object itself",
+        ),
+        (
+            {"sdo_writes": [{"object": "0x1A00:01", "value": 0x60410010}]},
+            r"sdo_writes.0: 0x1A00:01 .* the host sets this object itself",
+        ),
         (
             {
                 "tpdo": [
