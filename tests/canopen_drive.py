@@ -15,6 +15,9 @@ from pathlib import Path
 
 import canopen
 
+from cdpr.controller import static_tensions, tension_solver
+from daemon.config import DaemonConfig
+
 VENDOR_EDS = Path(__file__).resolve().parent / "data" / "generic_servo_cia402.eds"
 
 # statusword of each 402 state the slave reaches (CiA 402 table, bit 5 quick stop)
@@ -117,3 +120,17 @@ class CanopenDrive:
                 for var in pdo.map:
                     var.set_data(self.node.get_data(var.index, var.subindex))
                 pdo.transmit()
+
+
+def drives_for(config: DaemonConfig, network: canopen.Network) -> list[CanopenDrive]:
+    """One drive per cable of `config` on `network`, at the position of the cable its
+    drum paid out with the platform resting at home (elastic cables stretch under the
+    holding tensions)."""
+    robot = config.robot
+    tensions = static_tensions(robot, tension_solver(robot, config.controller), robot.home)
+    lengths = robot.drum_lengths(robot.cable_lengths(robot.home), tensions)
+    scalings = config.drives.scalings_for(robot)
+    return [
+        CanopenDrive(network, node, round(s.position(length)))
+        for node, s, length in zip(config.drives.nodes, scalings, lengths, strict=True)
+    ]
