@@ -132,7 +132,7 @@ def plan(config: DrivesConfig) -> DrivePlan:
             name = od_variable(od, index).name if index in od else "it"
             raise ProfileError("profile.tpdo", f"no TPDO maps 0x{index:04X} ({name})")
     writes, watchdog = _host_writes(od, config, rpdos)
-    own = {(step.index, step.subindex): step.what for step in writes}
+    own = {(step.index, step.subindex) for step in writes}
     for k, extra in enumerate(profile.sdo_writes):
         key, (index, sub) = f"profile.sdo_writes.{k}", extra.object
         step = _checked(od, key, index, sub, extra.value)
