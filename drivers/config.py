@@ -30,6 +30,85 @@ Direction = Annotated[Literal[1, -1], BeforeValidator(_an_int)]
 PositiveSeconds = Annotated[float, Field(gt=0.0, le=10.0, allow_inf_nan=False)]
 
 
+# -- the CiA 402 drive profile (drives.profile) ------------------------------------------
+
+
+def _object_ref(value: Any) -> Any:
+    """An object as the profile names it: an index (sub 0) or "0xIIII:SS"."""
+    if type(value) is int:
+        return (value, 0)
+    if isinstance(value, tuple):  # already parsed (the defaults)
+        return value
+    if isinstance(value, str):
+        index, _, sub = value.partition(":")
+        try:
+            return (int(index, 16), int(sub or "0", 16))
+        except ValueError:
+            pass
+    raise ValueError(f"an object is an index (0x6040) or a string '0x60C2:01', not {value!r}")
+
+
+ObjectRef = Annotated[
+    tuple[Annotated[int, Field(ge=0, le=0xFFFF)], Annotated[int, Field(ge=0, le=0xFF)]],
+    BeforeValidator(_object_ref),
+]
+
+
+class PdoSpec(StrictModel):
+    """One PDO the host maps: its number (1..4, predefined COB-IDs), the objects in frame
+    order, and its transmission type (RPDO: 254/255 event-driven; TPDO: 1 = every SYNC)."""
+
+    number: Annotated[int, Field(ge=1, le=4)]
+    objects: Annotated[list[ObjectRef], Field(min_length=1, max_length=8)]
+    transmission_type: Annotated[int, Field(ge=0, le=255)]
+
+
+class SdoWrite(StrictModel):
+    """An extra SDO write at start-up (vendor specifics, 0x60C2, current limits)."""
+
+    object: ObjectRef
+    value: int | str
+
+
+def _default_rpdos() -> list[PdoSpec]:
+    return [
+        PdoSpec(number=1, objects=[(0x6040, 0), (0x6071, 0), (0x6060, 0)], transmission_type=255),
+        PdoSpec(number=2, objects=[(0x6040, 0), (0x607A, 0), (0x6060, 0)], transmission_type=255),
+    ]
+
+
+def _default_tpdos() -> list[PdoSpec]:
+    return [
+        PdoSpec(number=1, objects=[(0x6041, 0), (0x6064, 0), (0x6061, 0)], transmission_type=1),
+        PdoSpec(number=2, objects=[(0x606C, 0)], transmission_type=1),
+    ]
+
+
+class Cia402Profile(StrictModel):
+    """What the host makes of each CiA 402 drive (drivers/cia402/profile.py checks it
+    against the EDS when the config loads).
+
+    eds: the drive's EDS (the vendor's file; relative to the config file); default the
+      simulated drive's config/can/cia402_cst.eds.
+    host_node: the node id of the host's own heartbeat (0x700 + it), which the drives
+      consume (0x1016).
+    rpdo / tpdo: the PDO mapping the host writes at start-up (defaults: RPDO1 controlword
+      + target torque + mode, RPDO2 controlword + target position + mode, event-driven;
+      TPDO1 statusword + position actual + mode display, TPDO2 velocity actual, every SYNC).
+    sdo_writes: extra writes after the mapping, each checked against the EDS.
+    """
+
+    eds: str | None = None
+    host_node: Annotated[int, Field(ge=1, le=127)] = 127
+    rpdo: Annotated[list[PdoSpec], Field(min_length=1, max_length=4)] = Field(
+        default_factory=_default_rpdos
+    )
+    tpdo: Annotated[list[PdoSpec], Field(min_length=1, max_length=4)] = Field(
+        default_factory=_default_tpdos
+    )
+    sdo_writes: list[SdoWrite] = Field(default_factory=list)
+
+
 class DrivesConfig(StrictModel):
     """One protocol per bus; lists run in cable order (one entry per cable), scalars
     apply to every drive.
@@ -55,6 +134,8 @@ class DrivesConfig(StrictModel):
     force_lag: time constant (s) with which a drive's force follows its command (first
       order: torque loop, current rise), measured at bring-up; controller.command_lead
       "auto" allows for it.  Default: the simulator's actuator (2 ms).
+    profile: CiA 402 only: the drive's EDS, the PDO mapping and extra SDO writes the host
+      configures at start-up (Cia402Profile).
     """
 
     protocol: Literal["cia402", "odrive"]
@@ -73,6 +154,7 @@ class DrivesConfig(StrictModel):
     bus: BusName | list[BusName] | None = None
     accept_fall_on_axis_error: bool = False
     force_lag: Annotated[float, Field(ge=0.0, le=0.05, allow_inf_nan=False)] = DEFAULT_FORCE_LAG
+    profile: Cia402Profile = Field(default_factory=Cia402Profile)
 
     @model_validator(mode="after")
     def _consistent(self) -> DrivesConfig:
@@ -94,6 +176,10 @@ class DrivesConfig(StrictModel):
                 raise ValueError("CANopen node ids run 1..127")
             if self.rated_torque is None:
                 raise ValueError("rated_torque (N·m) is required for cia402 drives")
+            if self.profile.host_node in self.nodes:
+                raise ValueError(
+                    f"profile.host_node {self.profile.host_node} is also a drive's node id"
+                )
         if self.protocol == "odrive" and any(node > 63 for node in self.nodes):
             raise ValueError("ODrive CANSimple node ids run 0..63")
         if self.brake is BrakeMode.HOLDING_BRAKE and not self.has_holding_brake:

@@ -9,6 +9,7 @@ import numpy as np
 from cdpr import ConfigError, Robot
 from cdpr.description import load_yaml
 from daemon.cli import analyze_cmd, client_cmd, demo_cmd, run_cmd, tune_cmd
+from drivers.cia402.profile import plan as drive_plan
 
 
 def check_config(path: str) -> int:
@@ -46,6 +47,10 @@ def check_config(path: str) -> int:
             f"drives: {d.protocol} nodes {d.nodes}, brake {d.brake.value}, "
             f"watchdog {d.watchdog_timeout * 1e3:g} ms"
         )
+        if d.protocol == "cia402":  # what a dead daemon leaves behind (checked at load)
+            plan = drive_plan(d)
+            print(f"drive profile: EDS {plan.eds}")
+            print(f"drive watchdog (when the daemon dies): {plan.watchdog}")
         for c in config.buses:
             where = f"bus: {c.interface} {c.channel} at {c.bitrate} bit/s"
             if len(config.buses) > 1:

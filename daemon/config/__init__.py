@@ -40,6 +40,7 @@ from cdpr.trajectory import (
 from daemon.config.ros2_config import Ros2Settings
 from daemon.config.view_config import ViewConfig
 from daemon.config.zenoh_config import ZenohSettings
+from drivers.cia402.profile import ProfileError, plan, with_eds_from
 from drivers.config import CanConfig, CanSection, DrivesConfig, can_buses, parse_drives
 
 Fraction = Annotated[float, Field(gt=0.0, lt=1.0)]
@@ -170,6 +171,14 @@ class DaemonConfig:
                 f"controller.rate_hz ({self.controller.rate_hz:g}): most cycles would find no "
                 "fresh feedback"
             )
+        # CiA 402: the drive profile checked against the drive's EDS now, not at start-up
+        # (the plan itself is not kept: the config crosses to the companion by pickle)
+        if self.drives.protocol == "cia402":
+            self.drives = with_eds_from(self.drives, base)
+            try:
+                plan(self.drives)
+            except ProfileError as exc:
+                raise ConfigError(f"{source}: drives.{exc}") from None
         # the buses of `can:` (one, or a list), the first the only one in a single-bus config
         self.buses: list[CanConfig] = can_buses(raw.can, self.drives, source)
         self.safety = raw.safety

@@ -13,8 +13,12 @@ Frames (11-bit ids, node id n = 1..127; layout fixed by config/can/cia402_cst.ed
                         rated torque 0x6076), mode of operation 0x6060 i8   5 bytes
   RPDO2      0x300+n    controlword 0x6040 u16, target position 0x607A i32 (increments),
                         mode of operation 0x6060 i8                     7 bytes
-  SDO        0x600+n request, 0x580+n response; expedited transfers only (<= 4 bytes)
-  heartbeat  0x700+n    NMT state u8 (0x00 = boot-up)
+  SDO        0x600+n request, 0x580+n response; expedited (<= 4 bytes) and segmented
+  heartbeat  0x700+n    NMT state u8 (0x00 = boot-up); the host produces its own too
+
+These four PDOs are the default drive profile (drivers.config.Cia402Profile), which the
+host writes into each drive at start-up; a profile may map them differently, and
+`pdo_layout` builds the struct of any mapping from the EDS's data types.
 
 RPDO1 carries the torque commands (mode 10, CST), RPDO2 the position hold (mode 8, CSP):
 an i16 torque and an i32 position do not fit one 8-byte PDO with the controlword and the
@@ -24,8 +28,9 @@ Both TPDOs are synchronous (type 1): the drive sends them, TPDO1 first, on every
 
 Decoders take the frame id (for the error text) and the data, and raise
 `Cia402FrameError` (a FrameError with a short `reason` for the rejection counters) on a
-wrong length or a value outside what the protocol defines.  Anything else about a frame
-is the caller's business.
+wrong length or a value outside what the protocol defines.  A mode of operation 0 means
+"no change" (402); which modes a drive may display is the caller's business (an
+unexpected one is a fault the host reports, not a malformed frame).
 """
 
 from __future__ import annotations
@@ -33,6 +38,7 @@ from __future__ import annotations
 import enum
 import functools
 import struct
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -41,7 +47,7 @@ from canopen.objectdictionary import ObjectDictionary, ODArray, ODRecord, ODVari
 from canopen.sdo.exceptions import SdoAbortedError
 
 from drivers.base import FrameError
-from drivers.cia402.statemachine import MODES, decode_statusword
+from drivers.cia402.statemachine import COMMANDED_MODES, decode_statusword
 
 EDS_PATH = Path(__file__).resolve().parents[2] / "config" / "can" / "cia402_cst.eds"
 
@@ -60,14 +66,15 @@ HEARTBEAT_BASE = 0x700
 DEVICE_TYPE = 0x1000
 ERROR_REGISTER = 0x1001
 COB_ID_SYNC = 0x1005
+CONSUMER_HEARTBEAT = 0x1016  # sub k: node << 16 | time (ms)
 PRODUCER_HEARTBEAT = 0x1017
 RPDO_DEADLINE_SUB = 5  # 0x1400:05 event timer = RPDO deadline monitoring (ms)
-BRAKE_REACTION = 0x2000  # manufacturer: 0 = position hold, 1 = holding brake
-HOLDING_BRAKE_FITTED = 0x2001  # manufacturer: 1 when the drive has a holding brake
+PDO_INVALID = 0x8000_0000  # COB-ID bit 31: the PDO does not exist (CiA 301)
 ERROR_CODE = 0x603F
+ABORT_CONNECTION_OPTION = 0x6007  # 402: reaction to a lost heartbeat / RPDO deadline
+QUICK_STOP_OPTION_CODE = 0x605A
 CONTROLWORD = 0x6040
 STATUSWORD = 0x6041
-QUICK_STOP_OPTION = 0x605A
 MODE_OF_OPERATION = 0x6060
 MODE_DISPLAY = 0x6061
 POSITION_ACTUAL = 0x6064
@@ -75,8 +82,15 @@ VELOCITY_ACTUAL = 0x606C
 TARGET_TORQUE = 0x6071
 MAX_TORQUE = 0x6072
 RATED_TORQUE = 0x6076  # mN·m
+TORQUE_ACTUAL = 0x6077  # per mille of rated torque
 TARGET_POSITION = 0x607A
 SUPPORTED_MODES = 0x6502
+MANUFACTURER_OBJECTS = range(0x2000, 0x6000)  # CiA 301: manufacturer-specific area
+
+# 0x6007 abort connection option codes, 0x605A quick stop option codes (CiA 402)
+ABORT_QUICK_STOP = 3  # abort connection -> "quick stop" command
+QUICK_STOP_HOLD = range(5, 9)  # 5..8: stop, then stay in QUICK STOP ACTIVE (holding)
+QUICK_STOP_HOLD_CODE = 6  # stop on the quick stop ramp, stay in QUICK STOP ACTIVE
 
 DEVICE_PROFILE_402 = 402
 I16_MIN, I16_MAX = -0x8000, 0x7FFF
@@ -138,6 +152,63 @@ class PdoLayout:
     def cob_id(self, node: int) -> int:
         return self.cob_base + node
 
+    @property
+    def receive(self) -> bool:
+        """True for an RPDO (the drive receives it)."""
+        return self.comm_index < 0x1800
+
+    def mapping_procedure(self, node: int) -> tuple[tuple[int, int, int], ...]:
+        """The (index, sub, value) writes that set this PDO in drive `node` by the CiA 301
+        procedure: COB-ID bit 31 set, transmission type, sub0 = 0, entries, sub0, COB-ID
+        valid again."""
+        comm, mapping, cob = self.comm_index, self.map_index, self.cob_id(node)
+        entries = tuple((mapping, k + 1, e.mapping) for k, e in enumerate(self.entries))
+        return (
+            (comm, 1, cob | PDO_INVALID),
+            (comm, 2, self.transmission_type),
+            (mapping, 0, 0),
+            *entries,
+            (mapping, 0, len(self.entries)),
+            (comm, 1, cob),
+        )
+
+
+_PDO_BASES = {0x1400: RPDO1_BASE, 0x1800: TPDO1_BASE}
+
+
+def pdo_layout(
+    od: ObjectDictionary,
+    receive: bool,
+    number: int,
+    objects: Sequence[tuple[int, int]],
+    transmission_type: int,
+) -> PdoLayout:
+    """RPDO or TPDO `number` (1..4, the predefined connection set's COB-IDs) mapping
+    `objects` (index, sub) with the EDS's data types; KeyError or ValueError naming the
+    object the EDS lacks or whose type no PDO field can carry."""
+    if not 1 <= number <= 4:
+        raise ValueError(f"PDO number {number}: only 1..4 have predefined COB-IDs")
+    comm = (0x1400 if receive else 0x1800) + number - 1
+    entries, fields = [], ""
+    for index, sub in objects:
+        var = od_variable(od, index, sub)
+        form = ODVariable.STRUCT_TYPES.get(var.data_type)
+        if form is None:
+            raise ValueError(f"object 0x{index:04X}:{sub:02X} ({var.name}) has no PDO field type")
+        entries.append(PdoEntry(index, sub, len(var)))
+        fields += form.format.lstrip("<").translate(_SAME_SIZE)
+    cob_base = _PDO_BASES[comm & 0xFC00] + 0x100 * (number - 1)
+    name = f"{'R' if receive else 'T'}PDO{number}"
+    return PdoLayout(
+        name,
+        cob_base,
+        comm,
+        comm + 0x200,
+        transmission_type,
+        tuple(entries),
+        struct.Struct("<" + fields),
+    )
+
 
 RPDO1 = PdoLayout(
     "RPDO1",
@@ -179,6 +250,7 @@ TPDO2 = PdoLayout(
 )
 PDO_LAYOUTS = (RPDO1, RPDO2, TPDO1, TPDO2)
 
+_SAME_SIZE = str.maketrans("lL", "iI")  # canopen codes 32-bit integers as l/L
 _RPDO1, _RPDO2, _TPDO1, _TPDO2 = RPDO1.struct, RPDO2.struct, TPDO1.struct, TPDO2.struct
 _RPDO1_SIZE, _RPDO2_SIZE, _TPDO1_SIZE, _TPDO2_SIZE = (p.struct.size for p in PDO_LAYOUTS)
 _EMCY = struct.Struct("<HB5s")
@@ -256,8 +328,8 @@ def decode_rpdo1(can_id: int, data: bytes | bytearray) -> tuple[int, int, int]:
     if len(data) != _RPDO1_SIZE:
         _length(can_id, data, _RPDO1_SIZE, "RPDO1")
     controlword, torque, mode = _RPDO1.unpack(data)
-    if mode not in MODES:
-        raise Cia402FrameError(can_id, "mode of operation", f"{mode} is neither 8 nor 10")
+    if mode not in COMMANDED_MODES:
+        raise Cia402FrameError(can_id, "mode of operation", f"{mode} is not 0, 8 or 10")
     return controlword, torque, mode
 
 
@@ -274,8 +346,8 @@ def decode_rpdo2(can_id: int, data: bytes | bytearray) -> tuple[int, int, int]:
     if len(data) != _RPDO2_SIZE:
         _length(can_id, data, _RPDO2_SIZE, "RPDO2")
     controlword, position, mode = _RPDO2.unpack(data)
-    if mode not in MODES:
-        raise Cia402FrameError(can_id, "mode of operation", f"{mode} is neither 8 nor 10")
+    if mode not in COMMANDED_MODES:
+        raise Cia402FrameError(can_id, "mode of operation", f"{mode} is not 0, 8 or 10")
     return controlword, position, mode
 
 
@@ -294,8 +366,6 @@ def decode_tpdo1(can_id: int, data: bytes | bytearray) -> tuple[int, int, int]:
     statusword, position, mode = _TPDO1.unpack(data)
     if decode_statusword(statusword) is None:
         raise Cia402FrameError(can_id, "statusword pattern", f"0x{statusword:04X} is no 402 state")
-    if mode not in MODES:
-        raise Cia402FrameError(can_id, "mode display", f"{mode} is neither 8 nor 10")
     return statusword, position, mode
 
 
@@ -394,42 +464,60 @@ def decode_emcy(can_id: int, data: bytes | bytearray) -> tuple[int, int, bytes]:
     return _EMCY.unpack(data)
 
 
-# -- SDO, expedited only -----------------------------------------------------------------
+# -- SDO: expedited and segmented transfers ------------------------------------------------
 # canopen's SdoClient/SdoServer block on threads and a Network, not a sans-IO Link, so
-# the few expedited transfers are coded here (command specifiers as in CiA 301).
+# the transfers are coded here (command specifiers as in CiA 301; no block transfer).
 
 
 class SdoKind(enum.Enum):
-    UPLOAD = "upload"  # request: read; response: expedited data
-    DOWNLOAD = "download"  # request: expedited write; response: confirmation
+    UPLOAD = "upload"  # initiate: request = read; response = expedited data or a size
+    DOWNLOAD = "download"  # initiate: request = expedited data or a size; response = ok
+    SEGMENT = "segment"  # download segment request / upload segment response: data
+    SEGMENT_ASK = "segment ask"  # upload segment request / download segment response
     ABORT = "abort"
-    UNSUPPORTED = "unsupported"  # segmented or block transfers
+    UNSUPPORTED = "unsupported"  # block transfers
 
 
 @dataclass(frozen=True)
 class Sdo:
-    """One decoded SDO frame (request or response)."""
+    """One decoded SDO frame (request or response).  An initiate frame of a segmented
+    transfer has `size` (bytes to come, None if not indicated) and no data; a segment has
+    `toggle` and `last`.  Segments name no object: index and subindex are 0.  `size` is
+    -1 for a segmented transfer that does not indicate its size."""
 
     kind: SdoKind
     index: int
     subindex: int
-    data: bytes = b""  # expedited payload
+    data: bytes = b""  # expedited payload or segment data
     abort_code: int = 0
+    size: int | None = None
+    toggle: int = 0
+    last: bool = False
+
+    @property
+    def segmented(self) -> bool:
+        """An initiate frame that opens a segmented transfer."""
+        return self.kind in (SdoKind.UPLOAD, SdoKind.DOWNLOAD) and self.size is not None
 
 
+ABORT_TOGGLE = 0x0503_0000
 ABORT_UNSUPPORTED_COMMAND = 0x0504_0001
 ABORT_WRITE_READ_ONLY = 0x0601_0002
 ABORT_READ_WRITE_ONLY = 0x0601_0001
 ABORT_NOT_IN_OD = 0x0602_0000
+ABORT_NOT_MAPPABLE = 0x0604_0041
+ABORT_PDO_TOO_LONG = 0x0604_0042
 ABORT_LENGTH = 0x0607_0010
 ABORT_NO_SUBINDEX = 0x0609_0011
 ABORT_VALUE_RANGE = 0x0609_0030
 ABORT_VALUE_HIGH = 0x0609_0031
 ABORT_VALUE_LOW = 0x0609_0032
+ABORT_DEVICE_STATE = 0x0800_0022
 ABORT_NO_DATA = 0x0800_0024
 
 
 def abort_text(code: int) -> str:
+    """An abort code with its CiA 301 meaning."""
     return f"0x{code:08X} {SdoAbortedError.CODES.get(code, 'unknown abort code')}"
 
 
@@ -445,13 +533,42 @@ def encode_sdo_download_request(node: int, index: int, subindex: int, data: byte
     return message(SDO_REQUEST_BASE + node, _SDO.pack(command, index, subindex, data))
 
 
+def encode_sdo_download_initiate(node: int, index: int, subindex: int, size: int) -> can.Message:
+    """Opens a segmented write of `size` bytes (size indicated)."""
+    return message(SDO_REQUEST_BASE + node, _SDO.pack(0x21, index, subindex, _U32.pack(size)))
+
+
 def encode_sdo_upload_response(node: int, index: int, subindex: int, data: bytes) -> can.Message:
+    """Expedited answer (1..4 bytes), or the initiate answer of a segmented upload (with
+    the size) when `data` is longer."""
+    if len(data) > 4:
+        return message(
+            SDO_RESPONSE_BASE + node, _SDO.pack(0x41, index, subindex, _U32.pack(len(data)))
+        )
     command = 0x43 | (4 - len(data)) << 2
     return message(SDO_RESPONSE_BASE + node, _SDO.pack(command, index, subindex, data))
 
 
 def encode_sdo_download_response(node: int, index: int, subindex: int) -> can.Message:
     return message(SDO_RESPONSE_BASE + node, _SDO.pack(0x60, index, subindex, b""))
+
+
+def encode_sdo_segment(
+    node: int, toggle: int, data: bytes, last: bool, *, server: bool
+) -> can.Message:
+    """A segment of 0..7 bytes: download segment (client) or upload segment (server)."""
+    if len(data) > 7:
+        raise ValueError(f"an SDO segment carries 0..7 bytes, not {len(data)}")
+    command = toggle << 4 | (7 - len(data)) << 1 | int(last)
+    base = SDO_RESPONSE_BASE if server else SDO_REQUEST_BASE
+    return message(base + node, bytes((command,)) + data.ljust(7, b"\0"))
+
+
+def encode_sdo_segment_ask(node: int, toggle: int, *, server: bool) -> can.Message:
+    """Upload segment request (client) or download segment confirmation (server)."""
+    if server:
+        return message(SDO_RESPONSE_BASE + node, bytes((0x20 | toggle << 4,)) + bytes(7))
+    return message(SDO_REQUEST_BASE + node, bytes((0x60 | toggle << 4,)) + bytes(7))
 
 
 def encode_sdo_abort(
@@ -461,36 +578,68 @@ def encode_sdo_abort(
     return message(base + node, _SDO.pack(0x80, index, subindex, _U32.pack(code)))
 
 
-def _expedited(command: int, data: bytes | bytearray) -> bytes:
-    size = 4 - (command >> 2 & 3) if command & 0x01 else 4
-    return bytes(data[4 : 4 + size])
+def _initiate(kind: SdoKind, data: bytes | bytearray) -> Sdo:
+    """An initiate frame (upload response or download request): expedited or sized."""
+    command, index, subindex = _SDO_HEAD.unpack_from(data)
+    if command & 0x02:  # expedited
+        size = 4 - (command >> 2 & 3) if command & 0x01 else 4
+        return Sdo(kind, index, subindex, bytes(data[4 : 4 + size]))
+    size = _U32.unpack_from(data, 4)[0] if command & 0x01 else None
+    return Sdo(kind, index, subindex, size=size if size is not None else -1)
+
+
+def _segment(data: bytes | bytearray) -> Sdo:
+    command = data[0]
+    return Sdo(
+        SdoKind.SEGMENT,
+        0,
+        0,
+        bytes(data[1 : 8 - (command >> 1 & 7)]),
+        toggle=command >> 4 & 1,
+        last=bool(command & 1),
+    )
+
+
+def _abort(data: bytes | bytearray) -> Sdo:
+    _, index, subindex = _SDO_HEAD.unpack_from(data)
+    return Sdo(SdoKind.ABORT, index, subindex, abort_code=_U32.unpack_from(data, 4)[0])
 
 
 def decode_sdo_request(can_id: int, data: bytes | bytearray) -> Sdo:
     """A client request as the server sees it."""
     _length(can_id, data, 8, "SDO")
-    command, index, subindex = _SDO_HEAD.unpack_from(data)
-    ccs = command >> 5
+    ccs = data[0] >> 5
+    if ccs == 0:
+        return _segment(data)
+    if ccs == 1:
+        return _initiate(SdoKind.DOWNLOAD, data)
     if ccs == 2:
+        _, index, subindex = _SDO_HEAD.unpack_from(data)
         return Sdo(SdoKind.UPLOAD, index, subindex)
-    if ccs == 1 and command & 0x02:
-        return Sdo(SdoKind.DOWNLOAD, index, subindex, _expedited(command, data))
+    if ccs == 3:
+        return Sdo(SdoKind.SEGMENT_ASK, 0, 0, toggle=data[0] >> 4 & 1)
     if ccs == 4:
-        return Sdo(SdoKind.ABORT, index, subindex, abort_code=_U32.unpack_from(data, 4)[0])
+        return _abort(data)
+    _, index, subindex = _SDO_HEAD.unpack_from(data)
     return Sdo(SdoKind.UNSUPPORTED, index, subindex)
 
 
 def decode_sdo_response(can_id: int, data: bytes | bytearray) -> Sdo:
     """A server response as the client sees it."""
     _length(can_id, data, 8, "SDO")
-    command, index, subindex = _SDO_HEAD.unpack_from(data)
-    scs = command >> 5
-    if scs == 2 and command & 0x02:
-        return Sdo(SdoKind.UPLOAD, index, subindex, _expedited(command, data))
+    scs = data[0] >> 5
+    if scs == 0:
+        return _segment(data)
+    if scs == 1:
+        return Sdo(SdoKind.SEGMENT_ASK, 0, 0, toggle=data[0] >> 4 & 1)
+    if scs == 2:
+        return _initiate(SdoKind.UPLOAD, data)
     if scs == 3:
+        _, index, subindex = _SDO_HEAD.unpack_from(data)
         return Sdo(SdoKind.DOWNLOAD, index, subindex)
     if scs == 4:
-        return Sdo(SdoKind.ABORT, index, subindex, abort_code=_U32.unpack_from(data, 4)[0])
+        return _abort(data)
+    _, index, subindex = _SDO_HEAD.unpack_from(data)
     return Sdo(SdoKind.UNSUPPORTED, index, subindex)
 
 
@@ -520,62 +669,3 @@ def od_variable(od: ObjectDictionary, index: int, subindex: int = 0) -> ODVariab
 def od_value(var: ODVariable) -> int | float | str | bytes | None:
     """The EDS value of a variable: ParameterValue if given, else DefaultValue."""
     return var.value if var.value is not None else var.default
-
-
-_SAME_SIZE = str.maketrans("lL", "iI")  # canopen codes 32-bit integers as l/L
-
-
-def check_eds(od: ObjectDictionary, node_id: int) -> list[str]:
-    """Differences between the EDS's PDO configuration and the codec's layouts (empty
-    when they agree): COB-ids, transmission types, mapping entries, and each mapped
-    object's data type against the struct's field format."""
-    problems: list[str] = []
-    for layout in PDO_LAYOUTS:
-        try:
-            cob = od_value(od_variable(od, layout.comm_index, 1))
-            kind = od_value(od_variable(od, layout.comm_index, 2))
-            count = od_value(od_variable(od, layout.map_index, 0))
-            mapped = [
-                od_value(od_variable(od, layout.map_index, k + 1))
-                for k in range(len(layout.entries))
-            ]
-            objects = [od_variable(od, e.index, e.subindex) for e in layout.entries]
-        except KeyError as exc:
-            problems.append(f"{layout.name}: {exc.args[0]}")
-            continue
-        if cob != layout.cob_id(node_id):
-            problems.append(
-                f"{layout.name}: COB-ID {cob!r}, codec uses 0x{layout.cob_id(node_id):X}"
-            )
-        if kind != layout.transmission_type:
-            problems.append(
-                f"{layout.name}: transmission type {kind!r}, codec uses {layout.transmission_type}"
-            )
-        if count != len(layout.entries):
-            problems.append(
-                f"{layout.name}: {count!r} mapped objects, codec has {len(layout.entries)}"
-            )
-        for k, (value, entry) in enumerate(zip(mapped, layout.entries, strict=True)):
-            if value != entry.mapping:
-                problems.append(
-                    f"{layout.name} entry {k + 1}: {value!r}, codec maps 0x{entry.mapping:08X}"
-                )
-        fields = "".join(
-            ODVariable.STRUCT_TYPES[var.data_type].format.lstrip("<").translate(_SAME_SIZE)
-            if var.data_type in ODVariable.STRUCT_TYPES
-            else "?"
-            for var in objects
-        )
-        if "<" + fields != layout.struct.format:
-            problems.append(
-                f"{layout.name}: EDS data types give struct '<{fields}', codec uses "
-                f"'{layout.struct.format}'"
-            )
-        problems.extend(
-            f"{layout.name}: 0x{var.index:04X} ({var.name}) is not PDO-mappable in the EDS"
-            for var in objects
-            if not var.pdo_mappable
-        )
-        if layout.struct.size > 8:
-            problems.append(f"{layout.name}: {layout.struct.size} bytes exceed a CAN frame")
-    return problems

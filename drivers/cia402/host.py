@@ -1,11 +1,16 @@
 """Host side of CiA 402 drives in cyclic synchronous torque (CST) mode on one CANopen bus.
 
-Cycle (Timing.SYNC): `cycle_start` sends SYNC; every drive answers with TPDO1 (statusword,
-position, mode display) then TPDO2 (velocity).  `receive` returns a cable's index when a
-TPDO2 completes a TPDO1 received since the latest SYNC: feedback is complete for the cycle.
-A TPDO2 without such a TPDO1 (stale, or its TPDO1 lost) is counted as rejected and
-dropped.  `commands` sends one RPDO1 per drive (controlword "enable operation", target
-torque in per mille of the rated torque, mode 10).
+The drive profile (drives.profile, checked against the EDS by drivers.cia402.profile)
+says which PDOs carry what; the defaults are codec.RPDO1/RPDO2/TPDO1/TPDO2.
+
+Cycle (Timing.SYNC): `cycle_start` sends SYNC (and the host's heartbeat every
+heartbeat_period); every drive answers with its TPDOs.  `receive` returns a cable's index
+when the last of a drive's TPDOs since the latest SYNC arrives: feedback is complete for
+the cycle.  A TPDO after its drive's sample was complete is counted as rejected and
+dropped.  A mode of operation display other than 8 or 10 while operation is enabled is a
+drive FAULT (reported, the frame still counts).  `commands` sends one torque RPDO per
+drive (controlword "enable operation", target torque in per mille of the rated torque,
+mode 10).
 
 Torque: force f (N along +l) -> motor torque Scaling.motor_torque(f) -> per mille of
 `rated_torque`, rounded to the nearest per mille and clamped to +- the drive's max
@@ -14,33 +19,43 @@ torque 0x6072 (read at start-up, EDS default before); clamps are counted in
 
 Brake (DESIGN §9; never a quick stop, which only ramps torque to zero and lets a
 suspended platform fall):
-- POSITION_HOLD: RPDO2 with "enable operation", mode 8 (cyclic synchronous position) and
-  the current length as target position; one frame per drive, acted on at reception.
+- POSITION_HOLD: the hold RPDO (default RPDO2) with "enable operation", mode 8 (cyclic
+  synchronous position) and the current length as target position; one frame per drive,
+  acted on at reception.
   The lengths are the host's trusted ones (never a raw frame's value, which may be
   forged): a non-finite or out-of-range one means none is trusted for that drive, which
   was then never enabled by this host, and it gets the power-stage-off frame below.
-- HOLDING_BRAKE: RPDO1 with "disable operation" (OPERATION ENABLED -> SWITCHED ON), zero
+- HOLDING_BRAKE: the torque RPDO with "disable operation" (OPERATION ENABLED -> SWITCHED ON), zero
   torque: the drive engages its holding brake as its power stage goes off.  Asked of a
   bus whose drives have no holding brake, brake() holds position instead.
 `brake` never raises and needs no answer; `keepalive` repeats the latest brake, disable or
 enable frames each cycle so the drives' RPDO deadline stays fed.
 
-Start-up (SDO expedited transfers, own small codec since canopen's SDO client blocks on
-a thread): NMT pre-operational, device type and PDO configuration checked against the
-codec, holding brake and rated torque checked against the config, then 0x1005 SYNC
-COB-ID, 0x1017 heartbeat, 0x1400:05 RPDO deadline, 0x6060 = 10 and 0x2000 brake reaction
-written, NMT start, operational heartbeats awaited, and the 402 machine driven to
+Start-up (SDO, expedited and segmented, own small client since canopen's blocks on a
+thread), per drive: statusword read first; device type checked; NMT pre-operational only
+for a drive that holds no load (not OPERATION ENABLED, QUICK STOP ACTIVE or latched);
+the PDO mapping read back and, where it differs from the profile's, written by the CiA
+301 procedure (COB-ID bit 31 set, sub0 = 0, entries, sub0, COB-ID valid) and read back
+again; the EDS's other PDOs switched off; rated torque checked against the config; then
+the plan's writes (SYNC COB-ID, heartbeat 0x1017, the drive's consumer of the host
+heartbeat 0x1016, abort connection option 0x6007 = quick stop, quick stop option 0x605A
+= hold, RPDO deadlines 0x14xx:05, each only where the EDS has it, then the profile's
+sdo_writes).  NMT start, operational heartbeats awaited, and the 402 machine driven to
 SWITCHED ON.  A drive found in FAULT or QUICK STOP ACTIVE is left as it is (it holds by
-its own reaction); one found OPERATION ENABLED is refused: it may be holding a load for
-another master.  The cyclic path never uses SDO.
+its own reaction).  A drive found OPERATION ENABLED is taken over without a torque step:
+its mode, position and target torque are read, and the host keeps sending what it does
+(the same torque in mode 10, else a hold at its actual position in mode 8) until
+enable() or brake() says otherwise.  The cyclic path never uses SDO.
 """
 
 from __future__ import annotations
 
 import contextlib
 import math
+import struct
+import time
 from collections.abc import Callable, Iterable, Sequence
-from pathlib import Path
+from operator import itemgetter
 
 import can
 
@@ -55,58 +70,53 @@ from drivers.base import (
     Timing,
 )
 from drivers.cia402.codec import (
-    BRAKE_REACTION,
-    COB_ID_SYNC,
     CONTROLWORD,
     DEVICE_PROFILE_402,
     DEVICE_TYPE,
-    EDS_PATH,
     EMCY_BASE,
     ERROR_CODE,
     HEARTBEAT_BASE,
-    HOLDING_BRAKE_FITTED,
     I32_MAX,
     I32_MIN,
     MAX_TORQUE,
+    MODE_DISPLAY,
     MODE_OF_OPERATION,
-    PDO_LAYOUTS,
-    PRODUCER_HEARTBEAT,
+    PDO_INVALID,
+    POSITION_ACTUAL,
     RATED_TORQUE,
-    RPDO1,
-    RPDO1_BASE,
-    RPDO2,
-    RPDO2_BASE,
-    RPDO_DEADLINE_SUB,
     SDO_RESPONSE_BASE,
     STATUSWORD,
-    SYNC_ID,
-    TPDO1_BASE,
-    TPDO2_BASE,
+    TARGET_POSITION,
+    TARGET_TORQUE,
+    VELOCITY_ACTUAL,
     Cia402FrameError,
     NmtCommand,
     NmtState,
+    PdoLayout,
     SdoKind,
     abort_text,
-    check_eds,
     decode_emcy,
     decode_heartbeat,
     decode_sdo_response,
-    decode_tpdo1,
-    decode_tpdo2,
     emcy_text,
+    encode_heartbeat,
     encode_nmt,
+    encode_sdo_download_initiate,
     encode_sdo_download_request,
+    encode_sdo_segment,
+    encode_sdo_segment_ask,
     encode_sdo_upload_request,
     encode_sync,
-    load_eds,
     od_value,
     od_variable,
 )
+from drivers.cia402.profile import DrivePlan, SdoStep, plan
 from drivers.cia402.statemachine import (
     CONTROL_RELEASE_HOLD,
     DISABLE_OPERATION,
     MODE_CSP,
     MODE_CST,
+    MODES,
     STATUS_HOLD,
     Command,
     State,
@@ -117,10 +127,19 @@ from drivers.config import DrivesConfig
 
 _FAULTED = (State.FAULT, State.FAULT_REACTION_ACTIVE)
 _ENABLE = Command.ENABLE_OPERATION.value
-_RPDO1_PACK = RPDO1.struct.pack
-_RPDO2_PACK = RPDO2.struct.pack
+_HOLDING = (State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE)
+_FEEDBACK = (STATUSWORD, POSITION_ACTUAL, VELOCITY_ACTUAL, MODE_DISPLAY)
 _Message = can.Message
 _isfinite = math.isfinite
+
+
+def _packer(layout: PdoLayout, target: int) -> Callable[[int, int, int], bytes]:
+    """pack(controlword, target value, mode) for an RPDO mapping controlword, `target`
+    and the mode in any order (other mapped objects are sent as 0)."""
+    order = (CONTROLWORD, target, MODE_OF_OPERATION)
+    slots = [order.index(e.index) if e.index in order else 3 for e in layout.entries]
+    pack, pick = layout.struct.pack, itemgetter(*slots)
+    return lambda controlword, value, mode: pack(*pick((controlword, value, mode, 0)))
 
 
 class Cia402Driver(ActuatorDriver):
@@ -132,7 +151,7 @@ class Cia402Driver(ActuatorDriver):
     enable_timeout = 1.0  # s for every drive to report OPERATION ENABLED after enable()
 
     def __init__(
-        self, config: DrivesConfig, scalings: Sequence[Scaling], eds: str | Path = EDS_PATH
+        self, config: DrivesConfig, scalings: Sequence[Scaling], setup: DrivePlan | None = None
     ) -> None:
         if config.protocol != "cia402":
             raise ValueError(f"Cia402Driver needs protocol cia402, config says {config.protocol}")
@@ -141,14 +160,12 @@ class Cia402Driver(ActuatorDriver):
             raise ValueError(f"{self.n} scalings for {len(config.nodes)} drives")
         self.config = config
         self.nodes = list(config.nodes)
-        self.eds = Path(eds)
-        for node in self.nodes:
-            problems = check_eds(load_eds(self.eds, node), node)
-            if problems:
-                raise ValueError(
-                    f"{self.eds} does not match the CiA 402 codec: {'; '.join(problems)}"
-                )
-        self.od = load_eds(self.eds, self.nodes[0])
+        self.plan = setup if setup is not None else plan(config)
+        self.eds = self.plan.eds
+        self.od = self.plan.od
+        self.clock: Callable[[], float] = time.monotonic  # paces the host heartbeat
+        self._heartbeat = encode_heartbeat(config.profile.host_node, NmtState.OPERATIONAL)
+        self._next_heartbeat = -math.inf
         rated = config.rated_torque
         assert rated is not None  # DrivesConfig requires it for cia402
         # per mille of rated torque per newton along +l, per cable
@@ -160,31 +177,52 @@ class Cia402Driver(ActuatorDriver):
         # a started drive left OPERATIONAL (boot-up or NMT change): it lost its
         # configuration and, after a reboot, its position; a FAULT until start() again
         self._lost = [False] * self.n
-        self._rpdo1 = [RPDO1_BASE + node for node in self.nodes]
-        self._rpdo2 = [RPDO2_BASE + node for node in self.nodes]
+        torque, hold = self.plan.torque, self.plan.hold
+        self._torque_pack = _packer(torque, TARGET_TORQUE)
+        self._hold_pack = _packer(hold, TARGET_POSITION)
+        self._rpdo1 = [torque.cob_id(node) for node in self.nodes]  # torque RPDO ids
+        self._rpdo2 = [hold.cob_id(node) for node in self.nodes]  # hold RPDO ids
         self._routes: dict[int, tuple[Callable[[int, int, bytearray, float], int | None], int]] = {}
+        # TPDO id -> (bit in the sample, name, struct, slot of each _FEEDBACK object or -1)
+        self._tpdo: dict[int, tuple[int, str, struct.Struct, tuple[int, ...]]] = {}
         for i, node in enumerate(self.nodes):
-            self._routes[TPDO1_BASE + node] = (self._on_tpdo1, i)
-            self._routes[TPDO2_BASE + node] = (self._on_tpdo2, i)
+            for k, layout in enumerate(self.plan.tpdos):
+                mapped = [e.index for e in layout.entries]
+                slots = tuple(mapped.index(x) if x in mapped else -1 for x in _FEEDBACK)
+                self._tpdo[layout.cob_id(node)] = (1 << k, layout.name, layout.struct, slots)
+                self._routes[layout.cob_id(node)] = (self._on_tpdo, i)
             self._routes[EMCY_BASE + node] = (self._on_emcy, i)
             self._routes[HEARTBEAT_BASE + node] = (self._on_heartbeat, i)
-        # feedback pairing: SYNCs sent, and the SYNC count at each pending TPDO1 (-1: none)
+        # feedback: SYNCs sent; per drive the TPDO bits seen since the latest SYNC (-1:
+        # sample complete) and the SYNC count they belong to
         self._epoch = 0
-        self._position_epoch = [-1] * self.n
+        self._full = (1 << len(self.plan.tpdos)) - 1
+        self._got = [0] * self.n
+        self._got_epoch = [-1] * self.n
         self.position: list[int | None] = [None] * self.n  # last position actual (increments)
+        self._velocity = [0] * self.n
+        self._statusword = [0] * self.n
+        self.mode_display = [0] * self.n
         self._standing: list[tuple[int, bytes]] = []  # frames keepalive() repeats
+        self._feeding = False  # start() repeats them with each SDO request
 
     # -- cycle ----------------------------------------------------------------------------
 
     def cycle_start(self) -> list[can.Message]:
+        """SYNC, and the host heartbeat when one is due (the drives consume it: 0x1016)."""
         self._epoch += 1
-        return [encode_sync()]
+        now = self.clock()
+        if now < self._next_heartbeat:
+            return [encode_sync()]
+        self._next_heartbeat = now + self.config.heartbeat_period
+        return [encode_sync(), self._heartbeat]
 
     def commands(self, forces: Sequence[float]) -> list[can.Message]:
         if len(forces) != self.n:
             raise FrameError(f"{len(forces)} forces for {self.n} CiA 402 drives")
         frames = []
         permille, limits, ids = self._permille, self.max_torque, self._rpdo1
+        pack = self._torque_pack
         for i in range(self.n):
             force = forces[i]
             if not _isfinite(force):
@@ -202,7 +240,7 @@ class Cia402Driver(ActuatorDriver):
             frames.append(
                 _Message(
                     arbitration_id=ids[i],
-                    data=_RPDO1_PACK(_ENABLE, torque, MODE_CST),
+                    data=pack(_ENABLE, torque, MODE_CST),
                     is_extended_id=False,
                 )
             )
@@ -219,9 +257,10 @@ class Cia402Driver(ActuatorDriver):
         for i in range(self.n):
             target = self._hold_target(i, lengths[i] if i < len(lengths) else math.nan)
             if mode is BrakeMode.POSITION_HOLD and target is not None:
-                standing.append((self._rpdo2[i], _RPDO2_PACK(_ENABLE, target, MODE_CSP)))
+                standing.append((self._rpdo2[i], self._hold_pack(_ENABLE, target, MODE_CSP)))
             else:
-                standing.append((self._rpdo1[i], _RPDO1_PACK(DISABLE_OPERATION.value, 0, MODE_CST)))
+                off = self._torque_pack(DISABLE_OPERATION.value, 0, MODE_CST)
+                standing.append((self._rpdo1[i], off))
         self._standing = standing
         return self.keepalive()
 
@@ -229,7 +268,7 @@ class Cia402Driver(ActuatorDriver):
         """Disable voltage with the release-hold bit: every power stage off, also a
         drive holding by its own fault reaction; holding brakes engage where fitted."""
         word = Command.DISABLE_VOLTAGE.value | CONTROL_RELEASE_HOLD
-        self._standing = [(can_id, _RPDO1_PACK(word, 0, MODE_CST)) for can_id in self._rpdo1]
+        self._standing = [(can_id, self._torque_pack(word, 0, MODE_CST)) for can_id in self._rpdo1]
         return self.keepalive()
 
     def keepalive(self) -> list[can.Message]:
@@ -269,32 +308,61 @@ class Cia402Driver(ActuatorDriver):
             self.counters.reject(exc.reason)
             return None
 
-    def _on_tpdo1(self, i: int, can_id: int, data: bytearray, now: float) -> None:
-        statusword, position, mode = decode_tpdo1(can_id, data)
-        self.counters.accepted += 1
-        self._update_state(i, statusword, mode)
-        self.position[i] = position
-        self._position_epoch[i] = self._epoch
-
-    def _on_tpdo2(self, i: int, can_id: int, data: bytearray, now: float) -> int | None:
-        """TPDO2 completes the sample whose TPDO1 came since the latest SYNC (a drive
-        sends TPDO1 first, and its id wins arbitration); any other TPDO2 is stale."""
-        velocity = decode_tpdo2(can_id, data)
-        if self._position_epoch[i] != self._epoch:
-            self.counters.reject("TPDO2 without TPDO1 since SYNC")
+    def _on_tpdo(self, i: int, can_id: int, data: bytearray, now: float) -> int | None:
+        """One TPDO of drive i; the last of its TPDOs since the latest SYNC completes the
+        sample (positions latched at that SYNC); any TPDO after that is stale."""
+        bit, name, layout, slots = self._tpdo[can_id]
+        if len(data) != layout.size:
+            raise Cia402FrameError(
+                can_id, f"{name} length", f"{len(data)} bytes, {name} has {layout.size}"
+            )
+        values = layout.unpack(data)
+        status_at, position_at, velocity_at, mode_at = slots
+        if status_at >= 0 and decode_statusword(values[status_at]) is None:
+            word = values[status_at]
+            raise Cia402FrameError(can_id, "statusword pattern", f"0x{word:04X} is no 402 state")
+        if self._got_epoch[i] != self._epoch:
+            self._got_epoch[i], self._got[i] = self._epoch, 0
+        if self._got[i] < 0:
+            self.counters.reject("TPDO after the sample was complete")
             return None
         self.counters.accepted += 1
-        self._position_epoch[i] = -1
+        if mode_at >= 0:
+            self.mode_display[i] = values[mode_at]
+        if status_at >= 0:
+            self._statusword[i] = values[status_at]
+            self._update_state(i, values[status_at], self.mode_display[i])
+        if position_at >= 0:
+            self.position[i] = values[position_at]
+        if velocity_at >= 0:
+            self._velocity[i] = values[velocity_at]
+        got = self._got[i] | bit
+        if got != self._full:
+            self._got[i] = got
+            return None
+        self._got[i] = -1
+        if self.position[i] is None:
+            return None
         scaling, feedback = self.scalings[i], self.feedback[i]
         feedback.length = scaling.length(self.position[i])
-        feedback.rate = scaling.rate(velocity)
+        feedback.rate = scaling.rate(self._velocity[i])
         feedback.stamp = now
         feedback.count += 1
         return i
 
     def _update_state(self, i: int, statusword: int, mode: int) -> None:
         status = self.status[i]
-        state = drive_state(decode_statusword(statusword), mode, bool(statusword & STATUS_HOLD))
+        state402 = decode_statusword(statusword)
+        state = drive_state(state402, mode, bool(statusword & STATUS_HOLD))
+        if state402 is State.OPERATION_ENABLED and mode not in MODES:
+            # the drive runs a mode the host never commands: it does not do what it is told
+            status.state = DriveState.FAULT
+            if status.fault is None:
+                status.fault = (
+                    f"node {self.nodes[i]}: mode of operation display {mode} while operation "
+                    "is enabled (the host commands 8 or 10)"
+                )
+            return
         if status.fault_code or self._lost[i]:
             # An EMCY is a fault (DESIGN §9) even while the statusword looks healthy: it
             # stays until an error-reset EMCY (code 0) or reset_faults.  So does a restart
@@ -336,49 +404,43 @@ class Cia402Driver(ActuatorDriver):
     # -- sequences ------------------------------------------------------------------------
 
     async def start(self, link: Link, now: Callable[[], float]) -> None:
+        found: list[State] = []
+        self._standing, self._feeding = [], True
+        try:
+            await self._start(link, now, found)
+        finally:
+            self._feeding = False
+
+    async def _start(self, link: Link, now: Callable[[], float], found: list[State]) -> None:
         config = self.config
-        writes = (
-            (COB_ID_SYNC, 0, SYNC_ID),
-            (PRODUCER_HEARTBEAT, 0, max(1, round(config.heartbeat_period * 1000))),
-            (RPDO1.comm_index, RPDO_DEADLINE_SUB, max(1, round(config.watchdog_timeout * 1000))),
-            (MODE_OF_OPERATION, 0, MODE_CST),
-            (BRAKE_REACTION, 0, int(config.brake is BrakeMode.HOLDING_BRAKE)),
-        )
-        for i, node in enumerate(self.nodes):
+        words = []
+        for i in range(self.n):  # first what every drive does: take over the enabled ones
             self._started[i] = self._lost[i] = False
-            link.send(encode_nmt(NmtCommand.ENTER_PRE_OPERATIONAL, node))
+            words.append(await self._read(link, i, STATUSWORD))
+            found.append(self._state_of(i, words[i]))
+            if found[i] is State.OPERATION_ENABLED:
+                await self._take_over(link, i)
+        for i, node in enumerate(self.nodes):
+            statusword, state = words[i], found[i]
             device_type = await self._read(link, i, DEVICE_TYPE)
             if device_type & 0xFFFF != DEVICE_PROFILE_402:
                 raise DriverError(
                     f"node {node}: device type 0x{device_type:08X} is no CiA 402 drive"
                 )
-            if await self._read_state(link, i) is State.OPERATION_ENABLED:
-                raise DriverError(
-                    f"node {node}: operation is enabled (another master?); not taking over a "
-                    "drive that may hold a load: let its RPDO deadline brake it first"
-                )
-            for index, sub, expected, what in self._pdo_checks(node):
-                value = await self._read(link, i, index, sub)
-                if value != expected:
-                    raise DriverError(
-                        f"node {node}: {what} is 0x{value:X}, the CiA 402 codec needs "
-                        f"0x{expected:X} ({self.eds.name})"
-                    )
-            fitted = bool(await self._read(link, i, HOLDING_BRAKE_FITTED))
-            if fitted != config.has_holding_brake:
-                raise DriverError(
-                    f"node {node}: the drive says holding brake fitted={fitted}, "
-                    f"config has_holding_brake={config.has_holding_brake}"
-                )
+            if state not in _HOLDING and not statusword & STATUS_HOLD:
+                # PDOs are configured in pre-operational; never on a drive holding a load
+                link.send(encode_nmt(NmtCommand.ENTER_PRE_OPERATIONAL, node))
+            await self._configure_pdos(link, i)
             rated = await self._read(link, i, RATED_TORQUE) / 1000.0
+            assert config.rated_torque is not None
             if abs(rated - config.rated_torque) > 0.005 * config.rated_torque:
                 raise DriverError(
                     f"node {node}: motor rated torque 0x6076 is {rated} N·m, "
                     f"config rated_torque is {config.rated_torque} N·m"
                 )
             self.max_torque[i] = await self._read(link, i, MAX_TORQUE)
-            for index, sub, value in writes:
-                await self._write(link, i, index, sub, value)
+            for step in self.plan.writes:
+                await self._write(link, i, step.index, step.subindex, step.value, step)
         for node in self.nodes:
             link.send(encode_nmt(NmtCommand.START, node))
         await self._await_heartbeats(link, now)
@@ -392,7 +454,50 @@ class Cia402Driver(ActuatorDriver):
                 await self._command(link, i, Command.SWITCH_ON, State.SWITCHED_ON)
             await self._refresh_status(link, i)
             self._started[i] = True
-        self._standing = []
+        taken = {
+            can_id
+            for i, s in enumerate(found)
+            if s is State.OPERATION_ENABLED
+            for can_id in (self._rpdo1[i], self._rpdo2[i])
+        }
+        self._standing = [(can_id, data) for can_id, data in self._standing if can_id in taken]
+
+    async def _take_over(self, link: Link, i: int) -> None:
+        """Drive i is OPERATION ENABLED (another master, or this host before a restart):
+        keep it doing what it does (module docstring), starting now."""
+        mode = await self._read(link, i, MODE_DISPLAY)
+        position = await self._read(link, i, POSITION_ACTUAL)
+        self.position[i] = position
+        self._release_standing(i)
+        if mode == MODE_CST:
+            torque = await self._read(link, i, TARGET_TORQUE)
+            frame = (self._rpdo1[i], self._torque_pack(_ENABLE, torque, MODE_CST))
+        else:
+            frame = (self._rpdo2[i], self._hold_pack(_ENABLE, position, MODE_CSP))
+        self._standing.append(frame)
+        link.send(_Message(arbitration_id=frame[0], data=frame[1], is_extended_id=False))
+
+    async def _configure_pdos(self, link: Link, i: int) -> None:
+        """The profile's PDO mapping in drive i (CiA 301 procedure) where it differs, read
+        back; every other PDO of the EDS switched off."""
+        node = self.nodes[i]
+        checks = self._pdo_checks(node)
+        values = [await self._read(link, i, index, sub) for index, sub, _, _ in checks]
+        if any(v != expected for v, (_, _, expected, _) in zip(values, checks, strict=True)):
+            for layout in self.plan.layouts:
+                for index, sub, value in layout.mapping_procedure(node):
+                    await self._write(link, i, index, sub, value)
+            for index, sub, expected, what in checks:
+                value = await self._read(link, i, index, sub)
+                if value != expected:
+                    raise DriverError(
+                        f"node {node}: {what} reads 0x{value:X} after configuration, the "
+                        f"profile maps 0x{expected:X} ({self.eds.name})"
+                    )
+        for comm in self.plan.unused:
+            cob = await self._read(link, i, comm, 1)
+            if not cob & PDO_INVALID:
+                await self._write(link, i, comm, 1, cob | PDO_INVALID)
 
     async def enable(self, link: Link, lengths: Sequence[float], forces: Sequence[float]) -> None:
         """Every drive to OPERATION ENABLED in position hold (mode 8) at `lengths`, so the
@@ -419,7 +524,7 @@ class Cia402Driver(ActuatorDriver):
             if state is State.SWITCH_ON_DISABLED:
                 await self._command(link, i, Command.SHUTDOWN, State.READY_TO_SWITCH_ON)
         self._standing = [
-            (self._rpdo2[i], _RPDO2_PACK(_ENABLE, target, MODE_CSP))
+            (self._rpdo2[i], self._hold_pack(_ENABLE, target, MODE_CSP))
             for i, target in enumerate(targets)
         ]
         round_timeout = min(0.02, self.config.watchdog_timeout / 2)
@@ -493,9 +598,9 @@ class Cia402Driver(ActuatorDriver):
             )
 
     def _pdo_checks(self, node: int) -> list[tuple[int, int, int, str]]:
-        """(index, sub, value the codec needs, what) for the drive's PDO configuration."""
+        """(index, sub, value the profile needs, what) for the drive's PDO configuration."""
         checks = []
-        for layout in PDO_LAYOUTS:
+        for layout in self.plan.layouts:
             comm, mapping = layout.comm_index, layout.map_index
             checks.append((comm, 1, layout.cob_id(node), f"{layout.name} COB-ID 0x{comm:04X}:01"))
             checks.append((comm, 2, layout.transmission_type, f"{layout.name} transmission type"))
@@ -511,53 +616,122 @@ class Cia402Driver(ActuatorDriver):
             )
         return checks
 
-    def _sdo_reply(self, node: int, index: int, sub: int) -> Callable[[can.Message], bool]:
-        can_id, head = SDO_RESPONSE_BASE + node, bytes((index & 0xFF, index >> 8, sub))
+    def _sdo_reply(
+        self, node: int, index: int | None, sub: int = 0
+    ) -> Callable[[can.Message], bool]:
+        """Match the server's answer: to an initiate (`index` given, scs 2, 3 or 4 with
+        that object) or to a segment (`index` None: scs 0, 1 or 4)."""
+        can_id = SDO_RESPONSE_BASE + node
+        head = None if index is None else bytes((index & 0xFF, index >> 8, sub))
 
         def match(message: can.Message) -> bool:
             data = message.data
-            return (
-                message.arbitration_id == can_id
-                and not message.is_extended_id
-                and len(data) == 8
-                and data[1:4] == head
-                and data[0] >> 5 in (2, 3, 4)
-            )
+            if message.arbitration_id != can_id or message.is_extended_id or len(data) != 8:
+                return False
+            scs = data[0] >> 5
+            if head is None:
+                return scs in (0, 1, 4)
+            return scs in (2, 3, 4) and data[1:4] == head
 
         return match
 
-    async def _transfer(self, link: Link, i: int, request: can.Message, what: str) -> bytes:
-        node = self.nodes[i]
-        index, sub = request.data[1] | request.data[2] << 8, request.data[3]
+    async def _answer(
+        self, link: Link, i: int, request: can.Message, index: int | None, sub: int, what: str
+    ):
+        if self._feeding:  # drives taken over: their deadlines stay fed through start()
+            for frame in self.keepalive():
+                link.send(frame)
         link.send(request)
-        reply = await link.expect(self._sdo_reply(node, index, sub), self.sdo_timeout, what)
+        reply = await link.expect(
+            self._sdo_reply(self.nodes[i], index, sub), self.sdo_timeout, what
+        )
         sdo = decode_sdo_response(reply.arbitration_id, reply.data)
         if sdo.kind is SdoKind.ABORT:
             raise DriverError(f"{what} aborted: {abort_text(sdo.abort_code)}")
-        return sdo.data if sdo.kind is SdoKind.UPLOAD else b""
+        return sdo
+
+    async def _upload(self, link: Link, i: int, index: int, sub: int, what: str) -> bytes:
+        """Read an object, expedited or segmented."""
+        node = self.nodes[i]
+        sdo = await self._answer(
+            link, i, encode_sdo_upload_request(node, index, sub), index, sub, what
+        )
+        if sdo.kind is not SdoKind.UPLOAD:
+            raise DriverError(f"{what}: the drive answered {sdo.kind.value}, not an upload")
+        if not sdo.segmented:
+            return sdo.data
+        data, toggle = b"", 0
+        for _ in range(0x10000):
+            ask = encode_sdo_segment_ask(node, toggle, server=False)
+            segment = await self._answer(link, i, ask, None, 0, what)
+            if segment.kind is not SdoKind.SEGMENT or segment.toggle != toggle:
+                raise DriverError(f"{what}: segment out of sequence (toggle {toggle} expected)")
+            data += segment.data
+            if segment.last:
+                break
+            toggle ^= 1
+        if sdo.size is not None and sdo.size >= 0 and len(data) != sdo.size:
+            raise DriverError(f"{what}: {len(data)} bytes, the drive announced {sdo.size}")
+        return data
+
+    async def _download(
+        self, link: Link, i: int, index: int, sub: int, data: bytes, what: str
+    ) -> None:
+        """Write an object: expedited up to 4 bytes, segmented above."""
+        node = self.nodes[i]
+        if len(data) <= 4:
+            request = encode_sdo_download_request(node, index, sub, data)
+            await self._answer(link, i, request, index, sub, what)
+            return
+        await self._answer(
+            link, i, encode_sdo_download_initiate(node, index, sub, len(data)), index, sub, what
+        )
+        toggle = 0
+        for start in range(0, len(data), 7):
+            chunk = data[start : start + 7]
+            last = start + 7 >= len(data)
+            reply = await self._answer(
+                link, i, encode_sdo_segment(node, toggle, chunk, last, server=False), None, 0, what
+            )
+            if reply.kind is not SdoKind.SEGMENT_ASK or reply.toggle != toggle:
+                raise DriverError(f"{what}: segment confirmation out of sequence")
+            toggle ^= 1
 
     async def _read(self, link: Link, i: int, index: int, sub: int = 0) -> int:
         node, var = self.nodes[i], od_variable(self.od, index, sub)
         what = f"node {node}: SDO read 0x{index:04X}:{sub:02X} ({var.name})"
-        data = await self._transfer(link, i, encode_sdo_upload_request(node, index, sub), what)
+        data = await self._upload(link, i, index, sub, what)
         if len(data) != len(var) // 8:
             raise DriverError(f"{what}: {len(data)} bytes, the object has {len(var) // 8}")
         return int(var.decode_raw(data))
 
-    async def _write(self, link: Link, i: int, index: int, sub: int, value: int) -> None:
+    async def _write(
+        self,
+        link: Link,
+        i: int,
+        index: int,
+        sub: int,
+        value: int | bytes,
+        step: SdoStep | None = None,
+    ) -> None:
         node, var = self.nodes[i], od_variable(self.od, index, sub)
-        what = f"node {node}: SDO write 0x{index:04X}:{sub:02X} ({var.name}) = {value}"
-        request = encode_sdo_download_request(node, index, sub, var.encode_raw(value))
-        await self._transfer(link, i, request, what)
+        detail = (
+            step.what if step is not None else f"0x{index:04X}:{sub:02X} ({var.name}) = {value}"
+        )
+        what = f"node {node}: SDO write {detail}"
+        data = value if isinstance(value, bytes) else var.encode_raw(value)
+        await self._download(link, i, index, sub, data, what)
 
-    async def _read_state(self, link: Link, i: int) -> State:
-        statusword = await self._read(link, i, STATUSWORD)
+    def _state_of(self, i: int, statusword: int) -> State:
         state = decode_statusword(statusword)
         if state is None:
             raise DriverError(
                 f"node {self.nodes[i]}: statusword 0x{statusword:04X} is no CiA 402 state"
             )
         return state
+
+    async def _read_state(self, link: Link, i: int) -> State:
+        return self._state_of(i, await self._read(link, i, STATUSWORD))
 
     async def _await_state(self, link: Link, i: int, wanted: State, what: str) -> State:
         for _ in range(self.state_polls):
@@ -576,7 +750,9 @@ class Cia402Driver(ActuatorDriver):
         """Status from a fresh statusword (and fault text from 0x603F in FAULT), via SDO."""
         status = self.status[i]
         status.fault, status.fault_code = None, 0
-        self._update_state(i, await self._read(link, i, STATUSWORD), MODE_CST)
+        statusword = await self._read(link, i, STATUSWORD)
+        mode = self.mode_display[i] = await self._read(link, i, MODE_DISPLAY)
+        self._update_state(i, statusword, mode)
         if status.state is DriveState.FAULT:
             code = await self._read(link, i, ERROR_CODE)
             status.fault, status.fault_code = emcy_text(code), code
@@ -593,28 +769,29 @@ class Cia402Driver(ActuatorDriver):
             return not pending
 
         timeout = self.config.heartbeat_timeout
-        try:
-            await link.expect(match, timeout, "operational heartbeats from the CiA 402 nodes")
-        except DriverError as exc:
-            raise DriverError(
-                f"no operational heartbeat from node(s) {self._names(pending)} within {timeout} s"
-            ) from exc
+        step = min(timeout, self.config.watchdog_timeout / 2)  # keepalive between steps
+        for _ in range(math.ceil(timeout / step)):
+            if self._feeding:
+                for frame in self.keepalive():
+                    link.send(frame)
+            with contextlib.suppress(DriverError):
+                await link.expect(match, step, "operational heartbeats from the CiA 402 nodes")
+                return
+        raise DriverError(
+            f"no operational heartbeat from node(s) {self._names(pending)} within {timeout} s"
+        )
 
     def _enabled_collector(
         self, pending: set[int], seen: dict[int, tuple[State | None, int]]
     ) -> Callable[[can.Message], bool]:
-        """Match that records TPDO1 states and is true once every pending drive reports
-        OPERATION ENABLED in mode 8."""
-        index = {TPDO1_BASE + node: i for i, node in enumerate(self.nodes)}
+        """Match that records the states the TPDOs report (receive() decoded them) and is
+        true once every pending drive reports OPERATION ENABLED in mode 8."""
 
         def match(message: can.Message) -> bool:
-            i = index.get(message.arbitration_id)
-            if i is not None and not message.is_extended_id:
-                try:
-                    statusword, _, mode = decode_tpdo1(message.arbitration_id, message.data)
-                except FrameError:
-                    return False
-                seen[i] = (decode_statusword(statusword), mode)
+            route = self._routes.get(message.arbitration_id)
+            if route is not None and route[0] == self._on_tpdo and not message.is_extended_id:
+                i = route[1]
+                seen[i] = (decode_statusword(self._statusword[i]), self.mode_display[i])
                 if seen[i] == (State.OPERATION_ENABLED, MODE_CSP):
                     pending.discard(i)
             return not pending

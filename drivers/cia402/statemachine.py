@@ -20,6 +20,8 @@ from drivers.base import DriveState
 MODE_CSP = 8  # cyclic synchronous position (0x6060): the position hold
 MODE_CST = 10  # cyclic synchronous torque (0x6060): force control
 MODES = (MODE_CSP, MODE_CST)
+MODE_NO_CHANGE = 0  # 0x6060 = 0 in an RPDO: keep the present mode (402)
+COMMANDED_MODES = (MODE_NO_CHANGE, MODE_CSP, MODE_CST)
 
 STATUS_WARNING = 1 << 7
 STATUS_REMOTE = 1 << 9

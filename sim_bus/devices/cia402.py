@@ -1,12 +1,21 @@
 """Device side of one CiA 402 drive in cyclic synchronous torque mode, for the simulator.
 
-The object dictionary comes from config/can/cia402_cst.eds (parsed by canopen): every
-object starts at its EDS value and the SDO server (expedited upload/download) reads and
-writes it with the EDS's types, access rights and limits, answering unknown objects,
-read-only writes, wrong sizes and out-of-range values with the CiA 301 abort codes.
-Rated torque 0x6076, holding brake 0x2001 and brake reaction 0x2000 are preset from the
-`drives:` config (the drive's stored parameters); heartbeat time 0x1017 and RPDO deadline
-0x1400:05 keep their EDS defaults (0 = off, 100 ms) until the host writes them.
+A strict drive, as bought: the object dictionary comes from config/can/cia402_cst.eds
+(parsed by canopen; only standard objects), every object starts at its EDS value, and
+the SDO server (expedited and segmented upload/download) reads and writes it with the
+EDS's types, access rights and limits, answering unknown objects, read-only writes,
+wrong sizes and out-of-range values with the CiA 301 abort codes.  Rated torque 0x6076
+is preset from the `drives:` config (the drive's stored parameter); everything else
+keeps its EDS default until the host writes it: the CiA 402 default mapping (RPDO1 =
+controlword, TPDO1 = statusword, the other PDOs invalid), heartbeat 0x1017 and consumer
+heartbeat 0x1016 off, no RPDO deadline, abort connection option 0x6007 = 1 (fault),
+quick stop option 0x605A = 2 (ramp, then power stage off).
+
+PDOs follow the mapping in the object dictionary: the master changes it by the CiA 301
+procedure (COB-ID bit 31 set, sub0 = 0, entries, sub0, valid again); a mapping written
+otherwise, or naming an object that cannot be mapped, is refused with the abort code.
+RPDO fields are written into the dictionary (a mode of operation 0 means "no change");
+TPDOs of transmission type 1..240 go out on every n-th SYNC.
 
 NMT: boot-up message at the first tick (then PRE-OPERATIONAL), start / stop / enter
 pre-operational / reset node / reset communication; SDO in pre-operational and
@@ -17,15 +26,21 @@ RPDO2 or SDO; operation enabled gives Actuation.TORQUE (mode 10, target torque p
 of rated torque, clamped to +-0x6072) or Actuation.POSITION (mode 8, target position;
 switching to mode 8 without a target, by RPDO1 or SDO, holds the actual position).
 
-Brake reaction (0x2000, DESIGN §9): on a fault, an RPDO timeout or a quick stop, a drive
-whose power stage is on either holds the cable length it has at that moment (position
-hold) or engages its holding brake and switches off; the reaction stays latched
+Reactions (DESIGN §9): a quick stop (controlword, or 0x6007 = 3 on a lost connection)
+follows 0x605A: 5..8 hold the cable length and stay in QUICK STOP ACTIVE; 0..4 end in
+SWITCH ON DISABLED with the power stage off (the holding brake engages where fitted,
+else the cable is free).  0x6007 = 2 switches the power stage off the same way, 1 is a
+fault.  The fault reaction (the drive's stored setting, `drives.brake`): a drive whose
+power stage is on either holds the cable length it has at that moment (position hold)
+or engages its holding brake and switches off; the reaction stays latched
 (statusword bit 14) through FAULT, fault reset and SWITCH ON DISABLED — the drive never
 moves by itself — until operation is enabled again or "disable voltage" comes with
 controlword bit 15.  A drive whose power stage was off stays off (brake on where fitted).
 
 RPDO deadline: armed by each RPDO that leaves the drive OPERATION ENABLED, it expires
-0x1400:05 ms after the last one: brake reaction, FAULT, EMCY 0x8250.  `inject_fault`
+0x1400:05 ms after the last one: brake reaction, FAULT, EMCY 0x8250.  Consumer heartbeat
+(0x1016 sub k = node << 16 | ms): armed by the first heartbeat of that node, it expires
+that long after the latest: EMCY 0x8130 and the 0x6007 reaction.  `inject_fault`
 does the same with any code; a fault reset (controlword bit 7 rising edge) clears the
 fault unless its cause persists (`inject_fault(..., persistent=True)` until
 `clear_fault_cause()`), and then sends the EMCY error reset (code 0).
@@ -41,7 +56,9 @@ mode, RTR) are counted in `counters.rejected` and ignored.
 
 from __future__ import annotations
 
+import contextlib
 import math
+import struct
 from collections.abc import Callable
 from pathlib import Path
 
@@ -50,66 +67,73 @@ from canopen.objectdictionary import ODArray, ODRecord, ODVariable
 
 from drivers.base import Actuation, BrakeMode, FrameCounters, Scaling, VirtualDrive
 from drivers.cia402.codec import (
+    ABORT_CONNECTION_OPTION,
+    ABORT_DEVICE_STATE,
     ABORT_LENGTH,
     ABORT_NO_DATA,
     ABORT_NO_SUBINDEX,
     ABORT_NOT_IN_OD,
+    ABORT_NOT_MAPPABLE,
+    ABORT_PDO_TOO_LONG,
     ABORT_READ_WRITE_ONLY,
+    ABORT_TOGGLE,
     ABORT_UNSUPPORTED_COMMAND,
     ABORT_VALUE_HIGH,
     ABORT_VALUE_LOW,
     ABORT_VALUE_RANGE,
     ABORT_WRITE_READ_ONLY,
-    BRAKE_REACTION,
     COB_ID_SYNC,
+    CONSUMER_HEARTBEAT,
     CONTROLWORD,
     EDS_PATH,
     ERROR_CODE,
     ERROR_REGISTER,
-    HOLDING_BRAKE_FITTED,
+    HEARTBEAT_BASE,
     I32_MAX,
     I32_MIN,
     MAX_TORQUE,
     MODE_DISPLAY,
     MODE_OF_OPERATION,
     NMT_ID,
+    PDO_INVALID,
     POSITION_ACTUAL,
     PRODUCER_HEARTBEAT,
+    QUICK_STOP_HOLD,
+    QUICK_STOP_OPTION_CODE,
     RATED_TORQUE,
-    RPDO1,
-    RPDO1_BASE,
-    RPDO2_BASE,
     RPDO_DEADLINE_SUB,
     SDO_REQUEST_BASE,
     STATUSWORD,
     TARGET_POSITION,
     TARGET_TORQUE,
+    TORQUE_ACTUAL,
     VELOCITY_ACTUAL,
     Cia402FrameError,
     NmtCommand,
     NmtState,
     SdoKind,
+    decode_heartbeat,
     decode_nmt,
-    decode_rpdo1,
-    decode_rpdo2,
     decode_sdo_request,
     decode_sync,
     encode_emcy,
     encode_heartbeat,
     encode_sdo_abort,
     encode_sdo_download_response,
+    encode_sdo_segment,
+    encode_sdo_segment_ask,
     encode_sdo_upload_response,
-    encode_tpdo1,
-    encode_tpdo2,
     error_register,
     load_eds,
     od_value,
+    pdo_layout,
 )
 from drivers.cia402.statemachine import (
     CONTROL_FAULT_RESET,
     CONTROL_RELEASE_HOLD,
     MODE_CSP,
     MODE_CST,
+    MODE_NO_CHANGE,
     MODES,
     Command,
     State,
@@ -120,6 +144,8 @@ from drivers.cia402.statemachine import (
 from drivers.config import DrivesConfig
 
 RPDO_TIMEOUT = 0x8250
+HEARTBEAT_LOST = 0x8130
+ABORT_FAULT, ABORT_DISABLE_VOLTAGE, ABORT_QUICK_STOP = 1, 2, 3  # 0x6007 option codes
 _FAULTED = (State.FAULT, State.FAULT_REACTION_ACTIVE)
 _SDO_STATES = (NmtState.PRE_OPERATIONAL, NmtState.OPERATIONAL)
 
@@ -162,11 +188,14 @@ class Cia402Drive(VirtualDrive):
         self.power_on_hold = (
             not config.has_holding_brake if power_on_hold is None else power_on_hold
         )
-        self._stored = {
-            (RATED_TORQUE, 0): round(config.rated_torque * 1000),
-            (HOLDING_BRAKE_FITTED, 0): int(config.has_holding_brake),
-            (BRAKE_REACTION, 0): int(config.brake is BrakeMode.HOLDING_BRAKE),
-        }
+        self.strings: dict[tuple[int, int], bytes] = {}  # string objects (0x1008)
+        self._stored = {(RATED_TORQUE, 0): round(config.rated_torque * 1000)}
+        # the fault reaction, a stored vendor setting of this drive (no standard object)
+        self.brake_reaction = (
+            BrakeMode.HOLDING_BRAKE
+            if config.brake is BrakeMode.HOLDING_BRAKE and config.has_holding_brake
+            else BrakeMode.POSITION_HOLD
+        )
         self.counters = FrameCounters()
         self.nmt_state: NmtState | None = None
         self.state = State.NOT_READY_TO_SWITCH_ON
@@ -179,6 +208,9 @@ class Cia402Drive(VirtualDrive):
         self._powered = False
         self._deadline = math.inf  # RPDO deadline expiry (inf: disarmed)
         self._next_heartbeat = math.inf
+        self._consumed: dict[int, float] = {}  # node -> its heartbeat's expiry
+        self._transfer: tuple[str, tuple[int, int], bytes, int] | None = None  # segmented
+        self._syncs = 0
         self._reset_values(communication_only=False)
         self._live: dict[tuple[int, int], Callable[[], int]] = {
             (STATUSWORD, 0): lambda: encode_statusword(self.state, self.hold is not None),
@@ -186,14 +218,11 @@ class Cia402Drive(VirtualDrive):
             (MODE_DISPLAY, 0): lambda: self.mode,
             (POSITION_ACTUAL, 0): self._reported_position,
             (VELOCITY_ACTUAL, 0): self._velocity,
+            (TORQUE_ACTUAL, 0): lambda: (
+                self.target_torque if self.actuation is Actuation.TORQUE else 0
+            ),
             (ERROR_CODE, 0): lambda: self.fault_code,
             (ERROR_REGISTER, 0): lambda: error_register(self.fault_code),
-        }
-        self._routes: dict[int, Callable[[can.Message, float], list[can.Message]]] = {
-            NMT_ID: self._on_nmt,
-            RPDO1_BASE + node_id: self._on_rpdo1,
-            RPDO2_BASE + node_id: self._on_rpdo2,
-            SDO_REQUEST_BASE + node_id: self._on_sdo,
         }
         self._apply()
 
@@ -215,6 +244,8 @@ class Cia402Drive(VirtualDrive):
                 value = od_value(var)
                 if isinstance(value, int):
                     values[(var.index, var.subindex)] = value
+                elif isinstance(value, str):
+                    self.strings[(var.index, var.subindex)] = var.encode_raw(value)
         if not communication_only:
             values.update(self._stored)
         self.values: dict[tuple[int, int], int] = values
@@ -229,10 +260,41 @@ class Cia402Drive(VirtualDrive):
         self.max_torque = values[(MAX_TORQUE, 0)]
         self.sync_id = values[(COB_ID_SYNC, 0)] & 0x7FF
         self.heartbeat_period = values[(PRODUCER_HEARTBEAT, 0)] / 1000.0
-        self.rpdo_timeout = values[(RPDO1.comm_index, RPDO_DEADLINE_SUB)] / 1000.0
-        self.brake_reaction = (
-            BrakeMode.HOLDING_BRAKE if values[(BRAKE_REACTION, 0)] else BrakeMode.POSITION_HOLD
-        )
+        self.rpdo_timeout = values.get((0x1400, RPDO_DEADLINE_SUB), 0) / 1000.0
+        consumers = {}
+        for sub in range(1, values.get((CONSUMER_HEARTBEAT, 0), 0) + 1):
+            entry = values.get((CONSUMER_HEARTBEAT, sub), 0)
+            if entry >> 16 & 0x7F and entry & 0xFFFF:
+                consumers[entry >> 16 & 0x7F] = (entry & 0xFFFF) / 1000.0
+        self.consumers = consumers
+        self._consumed = {n: t for n, t in self._consumed.items() if n in consumers}
+        self._pdos()
+
+    def _pdos(self) -> None:
+        """Frame routes and TPDOs from the PDO configuration in the dictionary."""
+        routes: dict[int, Callable[[can.Message, float], list[can.Message]]] = {
+            NMT_ID: self._on_nmt,
+            SDO_REQUEST_BASE + self.node_id: self._on_sdo,
+        }
+        self._rpdos: dict[int, tuple[str, struct.Struct, list[tuple[int, int]]]] = {}
+        self.tpdos: list[tuple[int, struct.Struct, list[tuple[int, int]], int]] = []
+        for comm in (*range(0x1400, 0x1600), *range(0x1800, 0x1A00)):
+            cob = self.values.get((comm, 1))
+            if cob is None or cob & PDO_INVALID:
+                continue
+            count = self.values.get((comm + 0x200, 0), 0)
+            keys = [
+                (entry >> 16, entry >> 8 & 0xFF)
+                for entry in (self.values.get((comm + 0x200, k), 0) for k in range(1, count + 1))
+            ]
+            layout = pdo_layout(self.od, comm < 0x1800, (comm & 0x1FF) + 1, keys, 0)
+            if comm < 0x1800:
+                self._rpdos[cob & 0x7FF] = (layout.name, layout.struct, keys)
+                routes[cob & 0x7FF] = self._on_rpdo
+            else:
+                kind = self.values.get((comm, 2), 0)
+                self.tpdos.append((cob & 0x7FF, layout.struct, keys, kind))
+        self._routes = routes
 
     def _variable(self, index: int, subindex: int) -> ODVariable | int:
         """The OD variable, or the SDO abort code for a missing one."""
@@ -268,6 +330,13 @@ class Cia402Drive(VirtualDrive):
             return []  # not booted yet, or not CANopen
         out = self._watchdog(now)
         can_id = message.arbitration_id
+        if can_id - HEARTBEAT_BASE in self.consumers and not message.is_remote_frame:
+            with contextlib.suppress(Cia402FrameError):
+                decode_heartbeat(can_id, message.data)
+                self._consumed[can_id - HEARTBEAT_BASE] = (
+                    now + self.consumers[can_id - HEARTBEAT_BASE]
+                )
+            return out
         handler = self._on_sync if can_id == self.sync_id else self._routes.get(can_id)
         if handler is None:
             return out
@@ -343,32 +412,47 @@ class Cia402Drive(VirtualDrive):
         self.counters.accepted += 1
         if self.nmt_state is not NmtState.OPERATIONAL:
             return []
-        statusword = encode_statusword(self.state, self.hold is not None)
-        return [
-            encode_tpdo1(self.node_id, statusword, self._reported_position(), self.mode),
-            encode_tpdo2(self.node_id, self._velocity()),
-        ]
+        self._syncs += 1
+        out = []
+        for cob, layout, keys, kind in self.tpdos:
+            if 1 <= kind <= 240 and self._syncs % kind == 0:
+                data = layout.pack(*(self._value(key) for key in keys))
+                out.append(can.Message(arbitration_id=cob, data=data, is_extended_id=False))
+        return out
+
+    def _value(self, key: tuple[int, int]) -> int:
+        live = self._live.get(key)
+        return live() if live is not None else self.values.get(key, 0)
 
     # -- RPDOs ------------------------------------------------------------------------------
 
-    def _on_rpdo1(self, message: can.Message, now: float) -> list[can.Message]:
-        controlword, torque, mode = decode_rpdo1(message.arbitration_id, message.data)
+    def _on_rpdo(self, message: can.Message, now: float) -> list[can.Message]:
+        """An RPDO: its fields into the dictionary, then the controlword (if mapped)."""
+        can_id = message.arbitration_id
+        name, layout, keys = self._rpdos[can_id]
+        if len(message.data) != layout.size:
+            raise Cia402FrameError(
+                can_id,
+                f"{name} length",
+                f"{len(message.data)} bytes, the mapping has {layout.size}",
+            )
+        fields = dict(zip(keys, layout.unpack(message.data), strict=True))
+        mode = fields.pop((MODE_OF_OPERATION, 0), MODE_NO_CHANGE)
+        if mode != MODE_NO_CHANGE and mode not in MODES:
+            raise Cia402FrameError(can_id, "mode of operation", f"{mode} is not 0, 8 or 10")
         if self.nmt_state is not NmtState.OPERATIONAL:
             self.counters.reject("RPDO outside OPERATIONAL")
             return []
         self.counters.accepted += 1
-        self.values[(TARGET_TORQUE, 0)] = self.target_torque = torque
-        self._set_mode(mode)
-        return self._control(controlword, now, from_rpdo=True)
-
-    def _on_rpdo2(self, message: can.Message, now: float) -> list[can.Message]:
-        controlword, position, mode = decode_rpdo2(message.arbitration_id, message.data)
-        if self.nmt_state is not NmtState.OPERATIONAL:
-            self.counters.reject("RPDO outside OPERATIONAL")
+        controlword = fields.pop((CONTROLWORD, 0), None)
+        if mode != MODE_NO_CHANGE:
+            self._set_mode(mode)
+        self.values.update(fields)
+        self.target_torque = self.values[(TARGET_TORQUE, 0)]
+        self.target_position = self.values[(TARGET_POSITION, 0)]
+        if controlword is None:
+            self._apply()
             return []
-        self.counters.accepted += 1
-        self._set_mode(mode)
-        self.values[(TARGET_POSITION, 0)] = self.target_position = position
         return self._control(controlword, now, from_rpdo=True)
 
     def _set_mode(self, mode: int) -> None:
@@ -390,11 +474,15 @@ class Cia402Drive(VirtualDrive):
                 out = self._fault_reset()
         else:
             command = decode_command(controlword)
-            if command is Command.QUICK_STOP and self.state is State.OPERATION_ENABLED:
+            stopping = command is Command.QUICK_STOP and self.state is State.OPERATION_ENABLED
+            if stopping and self.values.get((QUICK_STOP_OPTION_CODE, 0)) in QUICK_STOP_HOLD:
                 self._brake_reaction()
+            elif stopping:  # ramp, then power stage off: only a holding brake holds
+                command = Command.DISABLE_VOLTAGE
+                self.hold = BrakeMode.HOLDING_BRAKE if self.has_holding_brake else None
             self.state = next_state(self.state, command)
             released = command is Command.DISABLE_VOLTAGE and controlword & CONTROL_RELEASE_HOLD
-            if self.state is State.OPERATION_ENABLED or released:
+            if self.state is State.OPERATION_ENABLED or (released and not stopping):
                 self.hold = None
         if self.state is not State.OPERATION_ENABLED:
             self._deadline = math.inf
@@ -431,9 +519,28 @@ class Cia402Drive(VirtualDrive):
         return [encode_emcy(self.node_id, 0, 0)]
 
     def _watchdog(self, now: float) -> list[can.Message]:
-        if now < self._deadline:
-            return []
-        return self._fault(RPDO_TIMEOUT, "no RPDO within the 0x1400:05 deadline", False)
+        out = []
+        if now >= self._deadline:
+            out = self._fault(RPDO_TIMEOUT, "no RPDO within the 0x1400:05 deadline", False)
+        lost = [node for node, expiry in self._consumed.items() if now >= expiry]
+        if lost:
+            for node in lost:
+                del self._consumed[node]
+            out += self._connection_lost(now, f"no heartbeat from node {lost[0]} (0x1016)")
+        return out
+
+    def _connection_lost(self, now: float, text: str) -> list[can.Message]:
+        """Abort connection: EMCY 0x8130, then the 0x6007 reaction."""
+        option = self.values.get((ABORT_CONNECTION_OPTION, 0), ABORT_FAULT)
+        if option == ABORT_FAULT:
+            return self._fault(HEARTBEAT_LOST, text, False)
+        out = [encode_emcy(self.node_id, HEARTBEAT_LOST, error_register(HEARTBEAT_LOST))]
+        if option == ABORT_QUICK_STOP:
+            out += self._control(Command.QUICK_STOP.value, now, from_rpdo=False)
+        elif option == ABORT_DISABLE_VOLTAGE:
+            self.hold = BrakeMode.HOLDING_BRAKE if self.has_holding_brake else None
+            out += self._control(Command.DISABLE_VOLTAGE.value, now, from_rpdo=False)
+        return out
 
     def _apply(self) -> None:
         """The power stage and brake for the state, mode and latched reaction."""
@@ -470,7 +577,11 @@ class Cia402Drive(VirtualDrive):
         self.counters.accepted += 1
         index, sub = request.index, request.subindex
         if request.kind is SdoKind.ABORT:
+            self._transfer = None
             return []
+        if request.kind in (SdoKind.SEGMENT, SdoKind.SEGMENT_ASK):
+            return self._on_segment(request.kind, request.toggle, request.data, request.last, now)
+        self._transfer = None
         if request.kind is SdoKind.UNSUPPORTED:
             return [self._abort(index, sub, ABORT_UNSUPPORTED_COMMAND)]
         var = self._variable(index, sub)
@@ -479,12 +590,53 @@ class Cia402Drive(VirtualDrive):
         if request.kind is SdoKind.UPLOAD:
             if not var.readable:
                 return [self._abort(index, sub, ABORT_READ_WRITE_ONLY)]
-            live = self._live.get((index, sub))
-            value = live() if live is not None else self.values.get((index, sub))
-            if value is None:  # an EDS object without an integer value
+            key = (index, sub)
+            live = self._live.get(key)
+            value = live() if live is not None else self.values.get(key, self.strings.get(key))
+            if value is None:  # an EDS object without a value
                 return [self._abort(index, sub, ABORT_NO_DATA)]
-            return [encode_sdo_upload_response(self.node_id, index, sub, var.encode_raw(value))]
-        code = self._write(var, request.data, now)
+            data = value if isinstance(value, bytes) else var.encode_raw(value)
+            if len(data) > 4:
+                self._transfer = ("upload", key, data, 0)
+            return [encode_sdo_upload_response(self.node_id, index, sub, data)]
+        if request.segmented:
+            if not var.writable:
+                return [self._abort(index, sub, ABORT_WRITE_READ_ONLY)]
+            self._transfer = ("download", (index, sub), b"", 0)
+            return [encode_sdo_download_response(self.node_id, index, sub)]
+        return self._store(var, request.data, now)
+
+    def _on_segment(
+        self, kind: SdoKind, toggle: int, data: bytes, last: bool, now: float
+    ) -> list[can.Message]:
+        """The next segment of the open segmented transfer (CiA 301 toggle bit)."""
+        transfer, self._transfer = self._transfer, None
+        wanted = "upload" if kind is SdoKind.SEGMENT_ASK else "download"
+        if transfer is None or transfer[0] != wanted:
+            return [self._abort(0, 0, ABORT_UNSUPPORTED_COMMAND)]
+        _, key, buffer, expected = transfer
+        if toggle != expected:
+            return [self._abort(*key, ABORT_TOGGLE)]
+        if wanted == "upload":
+            chunk, rest = buffer[:7], buffer[7:]
+            if rest:
+                self._transfer = ("upload", key, rest, toggle ^ 1)
+            return [encode_sdo_segment(self.node_id, toggle, chunk, not rest, server=True)]
+        buffer += data
+        if not last:
+            self._transfer = ("download", key, buffer, toggle ^ 1)
+            return [encode_sdo_segment_ask(self.node_id, toggle, server=True)]
+        var = self._variable(*key)
+        assert not isinstance(var, int)
+        out = self._store(var, buffer, now)
+        if out and out[0].data[0] == 0x60:  # confirmed: the last segment's confirmation
+            out[0] = encode_sdo_segment_ask(self.node_id, toggle, server=True)
+        return out
+
+    def _store(self, var: ODVariable, data: bytes, now: float) -> list[can.Message]:
+        """A complete download: stored, or the abort."""
+        index, sub = var.index, var.subindex
+        code = self._write(var, data, now)
         if code:
             return [self._abort(index, sub, code)]
         out = [encode_sdo_download_response(self.node_id, index, sub)]
@@ -499,6 +651,10 @@ class Cia402Drive(VirtualDrive):
         """Store an SDO download; the abort code (0: written)."""
         if not var.writable:
             return ABORT_WRITE_READ_ONLY
+        key = (var.index, var.subindex)
+        if key in self.strings:
+            self.strings[key] = bytes(data)
+            return 0
         if len(data) != len(var) // 8:
             return ABORT_LENGTH
         value = var.decode_raw(data)
@@ -506,12 +662,14 @@ class Cia402Drive(VirtualDrive):
             return ABORT_VALUE_LOW
         if var.max is not None and value > var.max:
             return ABORT_VALUE_HIGH
-        key = (var.index, var.subindex)
-        if key == (MODE_OF_OPERATION, 0) and value not in MODES:
+        if key == (MODE_OF_OPERATION, 0) and value not in (MODE_NO_CHANGE, *MODES):
             return ABORT_VALUE_RANGE
-        if key == (BRAKE_REACTION, 0) and value and not self.has_holding_brake:
-            return ABORT_VALUE_RANGE
+        code = self._pdo_write(key, value)
+        if code:
+            return code
         if key == (MODE_OF_OPERATION, 0):
+            if value == MODE_NO_CHANGE:
+                return 0
             self._set_mode(value)
         self.values[key] = value
         self._settings()
@@ -519,4 +677,43 @@ class Cia402Drive(VirtualDrive):
             self._next_heartbeat = now + self.heartbeat_period if value else math.inf
         if key != (CONTROLWORD, 0):
             self._apply()
+        return 0
+
+    def _pdo_write(self, key: tuple[int, int], value: int) -> int:
+        """CiA 301 rules for the PDO parameters; the abort code (0: allowed).  A mapping
+        changes only while its PDO is invalid (COB-ID bit 31) and sub0 is 0; sub0 checks
+        the entries; a valid COB-ID changes only through invalid."""
+        index, sub = key
+        if 0x1600 <= index < 0x1800 or 0x1A00 <= index < 0x1C00:
+            comm = index - 0x200
+            if not self.values.get((comm, 1), PDO_INVALID) & PDO_INVALID:
+                return ABORT_DEVICE_STATE
+            if sub and self.values.get((index, 0), 0):
+                return ABORT_DEVICE_STATE
+            if sub == 0 and value:
+                keys = []
+                for k in range(1, value + 1):
+                    entry = self.values.get((index, k), 0)
+                    target = self.od.get(entry >> 16)
+                    if target is None:
+                        return ABORT_NOT_MAPPABLE
+                    keys.append((entry >> 16, entry >> 8 & 0xFF))
+                try:
+                    layout = pdo_layout(self.od, index < 0x1800, (index & 0x1FF) + 1, keys, 0)
+                except (KeyError, ValueError):
+                    return ABORT_NOT_MAPPABLE
+                if layout.struct.size > 8:
+                    return ABORT_PDO_TOO_LONG
+                for k, e in enumerate(layout.entries):
+                    var = self.od[e.index] if not e.subindex else self.od[e.index][e.subindex]
+                    usable = var.writable if index < 0x1800 else var.readable
+                    if (
+                        not (var.pdo_mappable and usable)
+                        or self.values[(index, k + 1)] & 0xFF != e.bits
+                    ):
+                        return ABORT_NOT_MAPPABLE
+        elif (0x1400 <= index < 0x1600 or 0x1800 <= index < 0x1A00) and sub == 1:
+            old = self.values.get(key, PDO_INVALID)
+            if not old & PDO_INVALID and not value & PDO_INVALID and value != old:
+                return ABORT_VALUE_RANGE
         return 0

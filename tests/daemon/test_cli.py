@@ -224,3 +224,105 @@ def test_run_with_its_zenoh_port_taken_exits_with_one_line(tmp_path: Path) -> No
     line = lines[0]
     assert line.startswith(f"error: {path}: zenoh.listen: {endpoint}: cannot open the zenoh")
     assert "Address already in use" in line
+
+
+# -- the CiA 402 drive profile at config load (issue 15) ----------------------------------
+
+DEFAULT_EDS = CONFIG / "can" / "cia402_cst.eds"
+
+
+def eds_without(*objects: str) -> str:
+    """The simulated drive's EDS without the sections of `objects` ("1016", "1400sub5")."""
+    kept, skip = [], False
+    for line in DEFAULT_EDS.read_text().splitlines(keepends=True):
+        if line.startswith("["):
+            name = line.strip()[1:-1].upper()
+            skip = any(name == o.upper() or name.startswith(o.upper() + "SUB") for o in objects)
+        if not skip:
+            kept.append(line)
+    return "".join(kept)
+
+
+DEADLINES = tuple(f"140{k}sub5" for k in range(4))
+PROFILE = "  heartbeat_timeout: 0.35\n  profile: {eds: vendor/drive.eds}\n"
+
+
+def test_check_config_prints_what_each_drive_does_when_the_daemon_dies(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    assert main(["check-config", str(CONFIG / "reference8-cia402.yaml")]) == 0
+    out = capsys.readouterr().out
+    assert f"drive profile: EDS {DEFAULT_EDS}" in out
+    assert (
+        "drive watchdog (when the daemon dies): consumer heartbeat 0x1016 on node 127, 350 ms; "
+        "RPDO1 deadline 0x1400:05, 50 ms; RPDO2 deadline 0x1401:05, 50 ms -> quick stop "
+        "(0x6007 = 3), then holds in QUICK STOP ACTIVE (0x605A = 6)"
+    ) in out
+
+
+UNSAFE = {  # objects missing from the drive's EDS: the problem check-config names
+    "no watchdog": (("1016", *DEADLINES), "neither a consumer heartbeat 0x1016 nor an RPDO"),
+    "no 0x6007": (("6007",), "has no abort connection option 0x6007"),
+    "no 0x605A": (("605A",), "no quick stop option code 0x605A and the drives have no holding"),
+}
+
+
+@pytest.mark.parametrize("case", UNSAFE)
+def test_check_config_refuses_a_drive_a_dead_daemon_leaves_free_wheeling(
+    case: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The EDS is named relative to the config file (taken from its folder, not the
+    working directory)."""
+    missing, problem = UNSAFE[case]
+    (tmp_path / "vendor").mkdir()
+    (tmp_path / "vendor" / "drive.eds").write_text(eds_without(*missing))
+    path = tmp_path / "cdprd.yaml"
+    path.write_text(example(("  heartbeat_timeout: 0.35\n", PROFILE)))
+    assert main(["check-config", str(path)]) == 1
+    (line,) = capsys.readouterr().err.splitlines()
+    assert line.startswith(f"error: {path}: drives.profile.eds: drive.eds ") and problem in line
+
+
+def test_a_drive_without_quick_stop_hold_needs_its_holding_brake(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    (tmp_path / "vendor").mkdir()
+    (tmp_path / "vendor" / "drive.eds").write_text(eds_without("605A"))
+    path = tmp_path / "cdprd.yaml"
+    braked = "  brake: holding_brake\n  has_holding_brake: true\n"
+    path.write_text(
+        example(("  heartbeat_timeout: 0.35\n", PROFILE), ("  brake: position_hold", braked))
+    )
+    assert main(["check-config", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert f"drive profile: EDS {tmp_path / 'vendor' / 'drive.eds'}" in out
+    assert "-> quick stop (0x6007 = 3), power stage off, holding brake engaged" in out
+
+
+@pytest.mark.parametrize(
+    ("profile", "problem"),
+    [
+        ("{eds: nowhere.eds}", "drives.profile.eds: cannot read EDS "),
+        (
+            "{sdo_writes: [{object: '0x605A', value: 2}]}",
+            "drives.profile.sdo_writes.0: 0x605A:00 (Quick stop option code) = 2: the host "
+            "sets this object itself",
+        ),
+        (
+            "{rpdo: [{number: 1, objects: [0x6040, 0x6071], transmission_type: 255}]}",
+            "drives.profile.rpdo: no RPDO maps 0x6040 + 0x6071 + 0x6060 together",
+        ),
+    ],
+)
+def test_the_profile_is_checked_when_the_config_loads(
+    profile: str, problem: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = tmp_path / "cdprd.yaml"
+    path.write_text(
+        example(
+            ("  heartbeat_timeout: 0.35\n", f"  heartbeat_timeout: 0.35\n  profile: {profile}\n")
+        )
+    )
+    assert main(["check-config", str(path)]) == 1
+    (line,) = capsys.readouterr().err.splitlines()
+    assert line.startswith(f"error: {path}: {problem}"), line

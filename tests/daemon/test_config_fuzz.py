@@ -95,6 +95,7 @@ def _bases() -> dict[str, Any]:
     odrive["robot"] = str(ROBOT_FILE)
     template = yaml.safe_load((CONFIG / "hardware-template.yaml").read_text())
     template["robot"] = str(ROBOT_FILE)
+    template["drives"]["profile"]["eds"] = str(CONFIG / "can" / "cia402_cst.eds")  # not /etc
     suspended = yaml.safe_load((CONFIG / "robots" / "suspended6.yaml").read_text())
     return {"cia402": cia402, "odrive": odrive, "template": template, "robot": suspended}
 

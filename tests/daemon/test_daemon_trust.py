@@ -1,8 +1,8 @@
 """The brake holds trusted lengths, never a forged or glitching one (issue 22 item 1).
 
 Daemon + simulator in one process, both drivers: a forged feedback frame for cable 0
-(4.1 m; really ~2.33 m), delivered right after the drive's real answer to each SYNC (an
-ODrive: after each real estimate), and a glitching encoder, each while HOLDing and while
+(4.1 m; really ~2.33 m), delivered right after the drive's real position frame (402: its
+TPDO1, an ODrive: each real estimate), and a glitching encoder, each while HOLDing and while
 IDLE.  The daemon brakes naming the drive, and the simulated platform's TRUE pose (the
 plant, not what the daemon measures) stays within 2 mm of where it was.  A forged
 boot-up heartbeat is a drive fault.  Bounds are on the simulated truth and in cycles,
@@ -46,9 +46,10 @@ def config_for(protocol: str) -> DaemonConfig:
 
 
 class Forger:
-    """Appends a forged copy of cable 0's feedback frame right after every real one the
-    simulated drive sends (402: TPDO1 + TPDO2 with the position of `length`; ODrive: an
-    encoder estimate), so the daemon reads the forgery last in the same batch."""
+    """Inserts a forged copy of cable 0's position frame right after every real one the
+    simulated drive sends (402: a TPDO1 with the position of `length`, before the drive's
+    TPDO2 completes the sample, since the host drops TPDOs after a complete sample;
+    ODrive: an encoder estimate), so the daemon reads the forgery last."""
 
     def __init__(self, stack: Stack, length: float) -> None:
         config = stack.config
@@ -62,19 +63,20 @@ class Forger:
         robot.advance_to = lambda t: self._forge(advance(t))
 
     def _forge(self, frames: list[can.Message]) -> list[can.Message]:
-        forged = []
+        out = []
         for frame in frames:
+            out.append(frame)
             if self.protocol == "cia402" and frame.arbitration_id == cia402.TPDO1_BASE + self.node:
                 statusword, _, mode = cia402.decode_tpdo1(frame.arbitration_id, frame.data)
                 position = round(self.position)
-                forged.append(cia402.encode_tpdo1(self.node, statusword, position, mode))
-                forged.append(cia402.encode_tpdo2(self.node, 0))
+                out.append(cia402.encode_tpdo1(self.node, statusword, position, mode))
+                self.sent += 1
             elif self.protocol == "odrive" and frame.arbitration_id == (
                 self.node << 5 | Cmd.GET_ENCODER_ESTIMATES
             ):
-                forged.append(odrive.encode_encoder_estimates(self.node, self.position, 0.0))
-        self.sent += len(forged)
-        return frames + forged
+                out.append(odrive.encode_encoder_estimates(self.node, self.position, 0.0))
+                self.sent += 1
+        return out
 
 
 def true_pose(stack: Stack) -> tuple[np.ndarray, np.ndarray]:

@@ -151,7 +151,14 @@ def test_a_frame_is_its_drives_only_on_the_bus_it_came_on() -> None:
     config = two_bus_config()
     driver = make_driver(config.drives, config.robot)
     syncs = driver.cycle_start()
-    assert [(m.arbitration_id, m.channel) for m in syncs] == [(0x080, "left"), (0x080, "right")]
+    # one SYNC per bus, and the host's heartbeat (each drive consumes it, 0x1016) on each
+    host = cia402.HEARTBEAT_BASE + config.drives.profile.host_node
+    assert [(m.arbitration_id, m.channel) for m in syncs] == [
+        (0x080, "left"),
+        (host, "left"),
+        (0x080, "right"),
+        (host, "right"),
+    ]
 
     def sample(node: int, bus: str | None, position: int) -> int | None:
         tpdo1 = cia402.encode_tpdo1(node, 0x0237, position, 10)
@@ -234,8 +241,9 @@ def test_eight_drives_on_two_buses_enable_hold_and_move() -> None:
                 for name, spy in spies.items():
                     syncs = sum(m.arbitration_id == cia402.SYNC_ID for m in spy.frames)
                     assert syncs >= cycles // 2, f"{syncs} SYNCs on {name} in {cycles} cycles"
-                assert _nodes_heard(spies["left"].frames) == {1, 2, 3, 4}
-                assert _nodes_heard(spies["right"].frames) == {3, 5, 6, 7}
+                # the drives of each bus, and the host's own heartbeat (node 127) on both
+                assert _nodes_heard(spies["left"].frames) == {1, 2, 3, 4, 127}
+                assert _nodes_heard(spies["right"].frames) == {3, 5, 6, 7, 127}
 
                 # node 1 (cable 0, on left) forged on right, far from its true length
                 right = service.port.ports["right"]

@@ -176,8 +176,11 @@ def test_a_flight_is_recorded_to_mcap_and_a_can_log(tmp_path: Path) -> None:
         assert all(f.is_rx for f in feedback) and not any(f.is_rx for f in commands)
         assert len(feedback) >= 0.8 * len(syncs)  # each drive answers (nearly) every SYNC
         assert abs(len(commands) - n) <= 3  # one command per recorded control cycle
-    # NMT, SYNC, and the configured drives' PDOs, SDOs and heartbeats: nothing else
-    node_of = {ident: ident & 0x7F for ident in by_id if ident not in (0x000, SYNC_ID)}
+    # NMT, SYNC, the host's heartbeat (node 127, the drives consume it), and the
+    # configured drives' PDOs, SDOs and heartbeats: nothing else
+    host = 0x700 + 127
+    assert by_id[host] and all(not f.is_rx for f in by_id[host])
+    node_of = {ident: ident & 0x7F for ident in by_id if ident not in (0x000, SYNC_ID, host)}
     assert set(node_of.values()) == set(nodes)
     assert {ident & ~0x7F for ident in node_of} <= {0x180, 0x200, 0x280, 0x300, 0x580, 0x600, 0x700}
 

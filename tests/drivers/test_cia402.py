@@ -153,26 +153,40 @@ def permille(driver: Cia402Driver, i: int, force: float) -> float:
 # -- the EDS against the codec -------------------------------------------------------------
 
 
-@pytest.mark.parametrize("node", [1, 42, 127])
-def test_eds_pdo_configuration_matches_the_codec(node: int) -> None:
-    assert codec.check_eds(codec.load_eds(EDS_PATH, node), node) == []
-
-
-def test_pdo_offsets_and_sizes_from_canopen_match_the_structs() -> None:
-    node = canopen.RemoteNode(3, codec.load_eds(EDS_PATH, 3))
-    canopen.Network().add_node(node)
-    node.tpdo.read(from_od=True)
-    node.rpdo.read(from_od=True)
-    maps = {
-        "RPDO1": node.rpdo[1],
-        "RPDO2": node.rpdo[2],
-        "TPDO1": node.tpdo[1],
-        "TPDO2": node.tpdo[2],
-    }
+def canopen_node(node: int) -> canopen.RemoteNode:
+    """canopen's view of a drive mapped as the default profile maps it (its own PDO API)."""
+    remote = canopen.RemoteNode(node, codec.load_eds(EDS_PATH, node))
+    canopen.Network().add_node(remote)
     for layout in PDO_LAYOUTS:
-        pdo = maps[layout.name]
-        assert pdo.cob_id == layout.cob_id(3)
-        assert pdo.trans_type == layout.transmission_type
+        maps = remote.rpdo if layout.receive else remote.tpdo
+        pdo = maps[int(layout.name[-1])]
+        pdo.clear()
+        for entry in layout.entries:
+            pdo.add_variable(entry.index, entry.subindex, entry.bits)
+        pdo.cob_id, pdo.trans_type, pdo.enabled = (
+            layout.cob_id(node),
+            layout.transmission_type,
+            True,
+        )
+    return remote
+
+
+def test_pdo_layouts_from_the_eds_match_the_codec_and_canopen() -> None:
+    od = codec.load_eds(EDS_PATH, 3)
+    for layout in PDO_LAYOUTS:
+        objects = [(e.index, e.subindex) for e in layout.entries]
+        number = int(layout.name[-1])
+        built = codec.pdo_layout(od, layout.receive, number, objects, layout.transmission_type)
+        assert (built.name, built.cob_base, built.comm_index, built.map_index) == (
+            layout.name,
+            layout.cob_base,
+            layout.comm_index,
+            layout.map_index,
+        )
+        assert (built.entries, built.struct.format) == (layout.entries, layout.struct.format)
+    node = canopen_node(3)
+    for layout in PDO_LAYOUTS:
+        pdo = (node.rpdo if layout.receive else node.tpdo)[int(layout.name[-1])]
         fields = layout.struct.format.lstrip("<")
         offsets = [struct.calcsize("<" + fields[:k]) * 8 for k in range(len(fields))]
         assert [(v.index, v.subindex, v.offset, v.length) for v in pdo.map] == [
@@ -183,11 +197,10 @@ def test_pdo_offsets_and_sizes_from_canopen_match_the_structs() -> None:
 
 
 def test_canopen_decodes_our_frames_and_encodes_like_us() -> None:
-    network = canopen.Network()
-    node = canopen.RemoteNode(7, codec.load_eds(EDS_PATH, 7))
-    network.add_node(node)
-    node.tpdo.read(from_od=True)
-    node.rpdo.read(from_od=True)
+    node = canopen_node(7)
+    network = node.network
+    network.subscribe(0x187, node.tpdo[1].on_message)
+    network.subscribe(0x287, node.tpdo[2].on_message)
     tpdo1 = codec.encode_tpdo1(7, 0x4237, -123456, MODE_CSP)
     tpdo2 = codec.encode_tpdo2(7, 98765)
     for frame in (tpdo1, tpdo2):
@@ -203,24 +216,73 @@ def test_canopen_decodes_our_frames_and_encodes_like_us() -> None:
     assert bytes(rpdo2.data) == bytes(codec.encode_rpdo2(7, 0x0F, -7_000_000, MODE_CSP).data)
 
 
-def test_an_eds_that_disagrees_is_refused_naming_the_difference(tmp_path: Path) -> None:
+def test_a_profile_the_eds_refuses_is_named(tmp_path: Path) -> None:
     text = EDS_PATH.read_text()
-    wrong = tmp_path / "wrong.eds"
-    wrong.write_text(text.replace("DefaultValue=0x60710010", "DefaultValue=0x60710020"))
-    problems = codec.check_eds(codec.load_eds(wrong, 1), 1)
-    assert problems == ["RPDO1 entry 2: 1618018336, codec maps 0x60710010"]
-    config = drives_config()
-    with pytest.raises(ValueError, match="RPDO1 entry 2"):
-        Cia402Driver(config, config.scalings([RADIUS] * 3), eds=wrong)
     retyped = tmp_path / "retyped.eds"
-    section = text.index("[6064]")
-    retyped.write_text(
-        text[:section] + text[section:].replace("DataType=0x0004", "DataType=0x0003", 1)
-    )
-    assert (
-        "TPDO1: EDS data types give struct '<Hhb'"
-        in codec.check_eds(codec.load_eds(retyped, 1), 1)[0]
-    )
+    section = text.index("[6071]")
+    retyped.write_text(text[:section] + text[section:].replace("PDOMapping=1", "PDOMapping=0", 1))
+    config = drives_config(profile={"eds": str(retyped)})
+    with pytest.raises(
+        ValueError, match=r"profile.rpdo.0.objects.1: 0x6071:00 .* not PDO-mappable"
+    ):
+        Cia402Driver(config, config.scalings([RADIUS] * 3))
+    cases = [
+        (
+            {"sdo_writes": [{"object": "0x6072", "value": 40000}]},
+            r"sdo_writes.0: 0x6072:00 .* outside 0..32767",
+        ),
+        ({"sdo_writes": [{"object": "0x6041", "value": 1}]}, r"sdo_writes.0: 0x6041:00 .* is ro"),
+        (
+            {"sdo_writes": [{"object": "0x2000", "value": 1}]},
+            r"sdo_writes.0: object 0x2000:00 is not in the EDS",
+        ),
+        (  # the host's own safety objects: a dead daemon would leave the drive running
+            {"sdo_writes": [{"object": "0x6072", "value": 1000}, {"object": "0x6007", "value": 0}]},
+            r"sdo_writes.1: 0x6007:00 .* = 0: the host sets this object itself",
+        ),
+        (
+            {"sdo_writes": [{"object": "0x1016:01", "value": 0}]},
+            r"sdo_writes.0: 0x1016:01 .* the host sets this object itself",
+        ),
+        (
+            {"sdo_writes": [{"object": "0x1A00:01", "value": 0x60410010}]},
+            r"sdo_writes.0: 0x1A00:01 .* the host sets this object itself",
+        ),
+        (
+            {
+                "tpdo": [
+                    {"number": 1, "objects": [0x6041, 0x6064], "transmission_type": 1},
+                    {"number": 2, "objects": [0x606C], "transmission_type": 1},
+                ]
+            },
+            r"profile.tpdo: no TPDO maps 0x6061",
+        ),
+        (
+            {
+                "rpdo": [
+                    {
+                        "number": 1,
+                        "objects": [0x6040, 0x607A, 0x6071, 0x6060],
+                        "transmission_type": 255,
+                    }
+                ]
+            },
+            r"profile.rpdo.0.objects: 9 bytes",
+        ),
+        (
+            {
+                "tpdo": [
+                    {"number": 1, "objects": [0x6041, 0x6064, 0x6061], "transmission_type": 255},
+                    {"number": 2, "objects": [0x606C], "transmission_type": 1},
+                ]
+            },
+            r"profile.tpdo.0.transmission_type",
+        ),
+    ]
+    for profile, message in cases:
+        config = drives_config(profile=profile)
+        with pytest.raises(ValueError, match=message):
+            Cia402Driver(config, config.scalings([RADIUS] * 3))
 
 
 # -- codec round trips and hostile bytes ---------------------------------------------------
@@ -458,7 +520,8 @@ def host(**overrides) -> Cia402Driver:
 def test_driver_basics_and_config_errors() -> None:
     driver = host()
     assert driver.timing is Timing.SYNC and driver.n == 3
-    assert [m.arbitration_id for m in driver.cycle_start()] == [0x80]
+    assert [m.arbitration_id for m in driver.cycle_start()] == [0x80, 0x77F]  # + heartbeat
+    assert [m.arbitration_id for m in driver.cycle_start()] == [0x80]  # not due yet
     odrive = parse_drives({"protocol": "odrive", "nodes": [1]})
     with pytest.raises(ValueError, match="protocol cia402"):
         Cia402Driver(odrive, odrive.scalings([RADIUS]))
@@ -528,13 +591,12 @@ def test_feedback_is_complete_only_with_both_tpdos_of_one_sync() -> None:
     first, second = tpdos(1, enabled, 100, 5)
     assert driver.receive(first, 0.0) is None
     driver.cycle_start()  # the next SYNC went out before the TPDO2 of the last one came
-    assert driver.receive(second, 0.001) is None
-    assert driver.counters.rejected["TPDO2 without TPDO1 since SYNC"] == 1
+    assert driver.receive(second, 0.001) is None  # its TPDO1 was of the previous SYNC
     assert driver.feedback[0].count == 0
     first, second = tpdos(1, enabled, 200, 6)
-    assert driver.receive(first, 0.002) is None
-    assert driver.receive(second, 0.003) == 0
+    assert driver.receive(first, 0.002) == 0  # both TPDOs of this SYNC
     assert driver.receive(second, 0.004) is None  # a duplicate pairs with nothing
+    assert driver.counters.rejected["TPDO after the sample was complete"] == 1
     assert driver.feedback[0].count == 1
     assert driver.position[0] == 200
 
@@ -575,7 +637,6 @@ HOSTILE = [
     (0x181, b"\x00" * 6, "TPDO1 length"),
     (0x181, b"\x00" * 8, "TPDO1 length"),
     (0x181, struct.pack("<Hib", 0x0001, 0, MODE_CST), "statusword pattern"),
-    (0x181, struct.pack("<Hib", 0x0237, 0, 3), "mode display"),
     (0x281, b"\x00" * 3, "TPDO2 length"),
     (0x81, b"\x00" * 7, "EMCY length"),
     (0x701, b"", "heartbeat length"),
@@ -706,7 +767,9 @@ def test_start_configures_every_drive_through_sdo() -> None:
         assert device.state is State.SWITCHED_ON
         assert device.heartbeat_period == config.heartbeat_period
         assert device.rpdo_timeout == config.watchdog_timeout
-        assert device.mode == MODE_CST and device.brake_reaction is BrakeMode.POSITION_HOLD
+        assert device.brake_reaction is BrakeMode.POSITION_HOLD
+        assert device.consumers == {127: config.heartbeat_timeout}  # the host's heartbeat
+        assert device.values[(0x6007, 0)] == 3 and device.values[(0x605A, 0)] == 6
         assert device.actuation is Actuation.POSITION  # power-on hold: no brake fitted
     assert [s.state for s in driver.status] == [DriveState.HOLDING] * 3
     assert all(s.heartbeat_stamp > 0 for s in driver.status)
@@ -732,10 +795,11 @@ def test_start_with_holding_brakes_ends_ready_with_brakes_on() -> None:
     ("change", "message"),
     [
         (lambda d: d.values.__setitem__((0x6076, 0), 2500), "rated torque 0x6076 is 2.5"),
-        (lambda d: d.values.__setitem__((0x2001, 0), 1), "holding brake fitted=True"),
         (lambda d: d.values.__setitem__((0x1000, 0), 0x191), "is no CiA 402 drive"),
-        (lambda d: d.values.__setitem__((0x1A00, 2), 0x60630020), "TPDO1 mapping 0x1A00:02"),
-        (lambda d: d.values.__setitem__((0x1800, 2), 254), "TPDO1 transmission type"),
+        (
+            lambda d: setattr(d, "_pdo_write", lambda *a: 0x06040041),
+            "0x1400:01.*aborted: 0x06040041 Object cannot be mapped to the PDO",
+        ),
     ],
 )
 def test_start_refuses_a_drive_that_differs(change, message: str) -> None:
@@ -745,15 +809,48 @@ def test_start_refuses_a_drive_that_differs(change, message: str) -> None:
         link.run(driver.start(link, lambda: link.t))
 
 
-def test_start_names_a_silent_node_and_refuses_an_enabled_one() -> None:
+def test_start_names_a_silent_node() -> None:
     driver, _, link = make_bus(started=False)
     link.mute.add(3)
-    with pytest.raises(DriverError, match="node 3: SDO read 0x1000:00"):
+    with pytest.raises(DriverError, match="node 3: SDO read 0x6041:00"):
         link.run(driver.start(link, lambda: link.t))
-    driver, _, link = make_bus()
-    link.run(driver.enable(link, [1.5] * 3, [0.0] * 3))
-    with pytest.raises(DriverError, match="node 1: operation is enabled"):
-        link.run(driver.start(link, lambda: link.t))
+
+
+def test_start_takes_over_enabled_drives_without_a_torque_step() -> None:
+    """A restarted host finds its drives enabled (one in torque, one holding): it reads
+    state, mode and position first, never sends NMT pre-operational to them, and keeps
+    sending what they do; the forces never change."""
+    lengths = [1.5, 2.5, 0.75]
+    driver, devices, link = make_bus(lengths)
+    link.run(driver.enable(link, lengths, [0.0] * 3))
+    link.cycle([-100.0, -60.0, -20.0])
+    link.cycle([-100.0, -60.0, -20.0])
+    devices[2].on_frame(codec.encode_rpdo2(3, 0x0F, devices[2]._position(), MODE_CSP), link.t)
+    before = [(d.actuation, d.force, d.target_length) for d in devices]
+    config = driver.config
+    again = Cia402Driver(config, config.scalings([RADIUS] * 3))
+    link.driver, link.sent = again, []
+    forces = []
+    link.every_tick = lambda: forces.append([d.force for d in devices])
+    link.run(again.start(link, lambda: link.t))
+    assert all(m.arbitration_id != 0 or m.data[0] != 0x80 for m in link.sent)  # no pre-op
+    assert [(d.actuation, d.force) for d in devices] == [(a, f) for a, f, _ in before]
+    assert all(f == forces[0] for f in forces)
+    assert devices[2].target_length == pytest.approx(before[2][2], abs=1e-5)
+    assert all(d.state is State.OPERATION_ENABLED for d in devices)
+    assert [s.state for s in again.status] == [DriveState.ENABLED] * 2 + [DriveState.HOLDING]
+    assert len(again.keepalive()) == 3  # it goes on feeding their deadlines
+
+
+def test_an_unexpected_mode_display_is_a_reported_fault_not_a_dropped_frame() -> None:
+    driver = host()
+    driver.cycle_start()
+    first, second = tpdos(1, encode_statusword(State.OPERATION_ENABLED), 100, 5, mode=3)
+    driver.receive(first, 0.0)
+    assert driver.receive(second, 0.0) == 0  # the feedback counts
+    assert driver.status[0].state is DriveState.FAULT
+    assert "mode of operation display 3" in driver.status[0].fault
+    assert codec.decode_rpdo1(0x201, struct.pack("<Hhb", 0x0F, 5, 0)) == (0x0F, 5, 0)
 
 
 def test_start_waits_for_operational_heartbeats() -> None:

@@ -32,9 +32,24 @@ NODE = 5
 RADIUS = 0.04
 
 
+def configure(device: Cia402Drive) -> None:
+    """What a master writes (CiA 301 procedure): the default profile's PDO mapping, RPDO
+    deadline 100 ms, quick stop option 6 (hold)."""
+    for layout in codec.PDO_LAYOUTS:
+        for index, sub, value in layout.mapping_procedure(NODE):
+            size = 1 if (index, sub) in ((layout.comm_index, 2), (layout.map_index, 0)) else 4
+            assert sdo_write(device, index, sub, value.to_bytes(size, "little")).kind is (
+                SdoKind.DOWNLOAD
+            )
+    assert sdo_write(device, 0x1400, 5, (100).to_bytes(2, "little")).kind is SdoKind.DOWNLOAD
+    assert sdo_write(device, 0x1401, 5, (100).to_bytes(2, "little")).kind is SdoKind.DOWNLOAD
+    assert sdo_write(device, 0x605A, 0, (6).to_bytes(2, "little")).kind is SdoKind.DOWNLOAD
+
+
 def drive(**overrides) -> Cia402Drive:
-    """A drive at 2.0 m, booted and operational, heartbeat off, deadline 100 ms."""
+    """A drive at 2.0 m, booted, configured (`configure`) and operational, heartbeat off."""
     power_on_hold = overrides.pop("power_on_hold", False)
+    mapped = overrides.pop("mapped", True)
     data = {
         "protocol": "cia402",
         "nodes": [NODE],
@@ -49,6 +64,8 @@ def drive(**overrides) -> Cia402Drive:
     device = Cia402Drive(NODE, config.scalings([RADIUS])[0], config, power_on_hold=power_on_hold)
     device.measure(2.0, 0.0)
     device.on_tick(0.0)
+    if mapped:
+        configure(device)
     device.on_frame(codec.encode_nmt(NmtCommand.START, NODE), 0.0)
     return device
 
@@ -153,7 +170,7 @@ def test_sdo_uploads_give_eds_values_and_live_objects() -> None:
     assert sdo_read(device, 0x1018, 2).data == struct.pack("<L", 0x402)
     assert sdo_read(device, 0x1400, 1).data == struct.pack("<L", 0x200 + NODE)
     assert sdo_read(device, 0x1A00, 2).data == struct.pack("<L", 0x60640020)
-    assert sdo_read(device, 0x605A).data == struct.pack("<h", -1)
+    assert sdo_read(device, 0x605A).data == struct.pack("<h", 6)  # configure() wrote it
     assert sdo_read(device, 0x6502).data == struct.pack("<L", 0x280)
     assert decode_statusword(struct.unpack("<H", sdo_read(device, 0x6041).data)[0]) is (
         State.SWITCH_ON_DISABLED
@@ -178,11 +195,11 @@ def test_sdo_uploads_give_eds_values_and_live_objects() -> None:
         (codec.encode_sdo_download_request(NODE, 0x6076, 0, b"\x01\x00\x00\x00"), 0x06010002),
         (codec.encode_sdo_download_request(NODE, 0x6060, 0, b"\x0a\x00"), 0x06070010),
         (codec.encode_sdo_download_request(NODE, 0x6060, 0, b"\x09"), 0x06090030),
-        (codec.encode_sdo_download_request(NODE, 0x6060, 0, b"\x0b"), 0x06090031),
+        (codec.encode_sdo_download_request(NODE, 0x6060, 0, b"\x0b"), 0x06090030),
         (codec.encode_sdo_download_request(NODE, 0x6072, 0, b"\xff\xff"), 0x06090031),
-        (codec.encode_sdo_download_request(NODE, 0x1005, 0, b"\0\0\0\0"), 0x06090032),
-        (codec.encode_sdo_download_request(NODE, 0x2000, 0, b"\x01"), 0x06090030),
-        (codec.message(0x600 + NODE, b"\x21\x00\x10\x00\x08\x00\x00\x00"), 0x05040001),
+        (codec.encode_sdo_download_request(NODE, 0x6007, 0, b"\x04\x00"), 0x06090031),
+        (codec.encode_sdo_download_request(NODE, 0x2000, 0, b"\x01"), 0x06020000),
+        (codec.message(0x600 + NODE, b"\x21\x00\x10\x00\x08\x00\x00\x00"), 0x06010002),
         (codec.message(0x600 + NODE, b"\xa0\x00\x10\x00\x00\x00\x00\x00"), 0x05040001),
     ],
 )
@@ -200,8 +217,6 @@ def test_sdo_downloads_configure_the_drive() -> None:
     device = drive(has_holding_brake=True)
     assert sdo_write(device, 0x1400, 5, struct.pack("<H", 20)).kind is SdoKind.DOWNLOAD
     assert device.rpdo_timeout == 0.02
-    sdo_write(device, 0x2000, 0, b"\x01")
-    assert device.brake_reaction is BrakeMode.HOLDING_BRAKE
     sdo_write(device, 0x1005, 0, struct.pack("<L", 0x81))
     assert send(device, codec.encode_sync()) == [] and len(send(device, codec.message(0x81))) == 2
     assert send(device, codec.message(0x600 + NODE, b"\x80\x00\x10\x00\x00\x00\x00\x00")) == []
@@ -276,7 +291,7 @@ def test_switching_to_position_mode_without_a_target_holds_the_actual_position()
 def test_objects_without_a_value_answer_no_data(tmp_path: Path) -> None:
     text = EDS_PATH.read_text().replace(
         "[1005]",
-        "[1008]\nParameterName=Manufacturer device name\nObjectType=0x7\nDataType=0x0009\n"
+        "[1009]\nParameterName=Manufacturer hardware version\nObjectType=0x7\nDataType=0x0009\n"
         "AccessType=const\nPDOMapping=0\n\n[1005]",
     )
     eds = tmp_path / "named.eds"
@@ -284,7 +299,107 @@ def test_objects_without_a_value_answer_no_data(tmp_path: Path) -> None:
     config = parse_drives({"protocol": "cia402", "nodes": [NODE], "rated_torque": 1.0})
     device = Cia402Drive(NODE, config.scalings([RADIUS])[0], config, eds=eds)
     device.on_tick(0.0)
-    assert sdo_read(device, 0x1008).abort_code == 0x08000024
+    assert sdo_read(device, 0x1009).abort_code == 0x08000024
+
+
+def test_a_fresh_drive_has_the_vendor_default_mapping_and_no_manufacturer_objects() -> None:
+    device = drive(mapped=False)
+    assert sdo_read(device, 0x1600, 0).data == b"\x01"
+    assert sdo_read(device, 0x1600, 1).data == struct.pack("<L", 0x60400010)
+    assert sdo_read(device, 0x1A00, 1).data == struct.pack("<L", 0x60410010)
+    assert sdo_read(device, 0x1801, 1).data == struct.pack("<L", 0x80000280 + NODE)
+    assert [sdo_read(device, index).abort_code for index in (0x2000, 0x2001)] == [0x06020000] * 2
+    # SYNC: TPDO1 (statusword only, type 255 = not on SYNC) -> nothing yet
+    assert send(device, codec.encode_sync()) == []
+    # the old 5-byte RPDO1 is not what RPDO1 maps now: a length error, no state change
+    rpdo1(device, 0x06)
+    assert device.counters.rejected == {"RPDO1 length": 1}
+    send(device, codec.message(0x200 + NODE, b"\x06\x00"))  # controlword alone
+    assert device.state is State.READY_TO_SWITCH_ON
+
+
+def test_the_mapping_changes_only_by_the_cia301_procedure() -> None:
+    device = drive(mapped=False)
+    # RPDO1 valid: its mapping is locked
+    assert sdo_write(device, 0x1600, 0, b"\x00").abort_code == 0x08000022
+    assert sdo_write(device, 0x1400, 1, struct.pack("<L", 0x300 + NODE)).abort_code == 0x06090030
+    assert sdo_write(device, 0x1400, 1, struct.pack("<L", 0x80000200 + NODE)).abort_code == 0
+    # invalid, but sub0 still 1: entries are locked
+    assert sdo_write(device, 0x1600, 2, struct.pack("<L", 0x60710010)).abort_code == 0x08000022
+    assert sdo_write(device, 0x1600, 0, b"\x00").abort_code == 0
+    assert sdo_write(device, 0x1600, 2, struct.pack("<L", 0x60710010)).abort_code == 0
+    assert sdo_write(device, 0x1600, 3, struct.pack("<L", 0x10080000 | 8)).abort_code == 0
+    assert sdo_write(device, 0x1600, 0, b"\x03").abort_code == 0x06040041  # a string
+    assert sdo_write(device, 0x1600, 3, struct.pack("<L", 0x60410010)).abort_code == 0
+    assert sdo_write(device, 0x1600, 0, b"\x03").abort_code == 0x06040041  # read-only
+    for k in range(3, 6):
+        assert sdo_write(device, 0x1600, k, struct.pack("<L", 0x607A0020)).abort_code == 0
+    assert sdo_write(device, 0x1600, 0, b"\x05").abort_code == 0x06040042  # 16 bytes
+    assert sdo_write(device, 0x1600, 0, b"\x03").abort_code == 0
+    assert sdo_write(device, 0x1400, 1, struct.pack("<L", 0x200 + NODE)).abort_code == 0
+    send(device, codec.message(0x200 + NODE, struct.pack("<Hhi", 0x06, 7, 1234)))
+    assert device.state is State.READY_TO_SWITCH_ON and device.target_torque == 7
+    assert device.values[(0x607A, 0)] == 1234
+
+
+def test_segmented_upload_and_download() -> None:
+    device = drive()
+    first = sdo_read(device, 0x1008)
+    assert first.kind is SdoKind.UPLOAD and first.size == len("cdprd CiA 402 CST winch drive")
+    name, toggle = b"", 0
+    for _ in range(10):
+        (answer,) = send(device, codec.encode_sdo_segment_ask(NODE, toggle, server=False))
+        segment = codec.decode_sdo_response(answer.arbitration_id, answer.data)
+        assert segment.kind is SdoKind.SEGMENT and segment.toggle == toggle
+        name += segment.data
+        toggle ^= 1
+        if segment.last:
+            break
+    assert name == b"cdprd CiA 402 CST winch drive"
+    # a wrong toggle bit aborts
+    sdo_read(device, 0x1008)
+    (answer,) = send(device, codec.encode_sdo_segment_ask(NODE, 1, server=False))
+    assert codec.decode_sdo_response(answer.arbitration_id, answer.data).abort_code == 0x05030000
+    # segmented download of a 4-byte object: stored once the last segment came
+    (answer,) = send(device, codec.encode_sdo_download_initiate(NODE, 0x607A, 0, 4))
+    assert codec.decode_sdo_response(answer.arbitration_id, answer.data).kind is SdoKind.DOWNLOAD
+    (answer,) = send(
+        device, codec.encode_sdo_segment(NODE, 0, b"\x10\x27\x00\x00", True, server=False)
+    )
+    assert codec.decode_sdo_response(answer.arbitration_id, answer.data).kind is SdoKind.SEGMENT_ASK
+    assert device.values[(0x607A, 0)] == 10000
+
+
+@pytest.mark.parametrize(
+    ("option", "quick_stop", "brake", "state", "actuation"),
+    [
+        (3, 6, False, State.QUICK_STOP_ACTIVE, Actuation.POSITION),  # holds
+        (3, 2, False, State.SWITCH_ON_DISABLED, Actuation.OFF),  # falls: no brake
+        (3, 2, True, State.SWITCH_ON_DISABLED, Actuation.OFF),  # brake engaged
+        (2, 6, False, State.SWITCH_ON_DISABLED, Actuation.OFF),
+        (1, 6, False, State.FAULT, Actuation.POSITION),  # the fault reaction holds
+    ],
+)
+def test_a_lost_host_heartbeat_reacts_by_0x6007_and_0x605a(
+    option: int, quick_stop: int, brake: bool, state: State, actuation: Actuation
+) -> None:
+    device = drive(has_holding_brake=brake)
+    sdo_write(device, 0x1400, 5, b"\x00\x00")  # no RPDO deadline: only the heartbeat
+    sdo_write(device, 0x1016, 1, struct.pack("<L", 127 << 16 | 200))
+    sdo_write(device, 0x6007, 0, struct.pack("<h", option))
+    sdo_write(device, 0x605A, 0, struct.pack("<h", quick_stop))
+    enable(device)
+    rpdo1(device, 0x0F, 100, 0.0, mode=MODE_CST)
+    assert device.on_tick(1.0) == []  # not armed before the first heartbeat
+    host_beat = codec.encode_heartbeat(127, NmtState.OPERATIONAL)
+    send(device, host_beat, 1.0)
+    assert device.on_tick(1.19) == [] and device.state is State.OPERATION_ENABLED
+    out = device.on_tick(1.21)
+    assert 0x8130 in emcy_codes(out)
+    assert device.state is state and device.actuation is actuation
+    assert device.brake_engaged is brake
+    if actuation is Actuation.POSITION:
+        assert device.target_length == pytest.approx(2.0, abs=1e-6)
 
 
 def test_fault_reset_needs_a_rising_edge_and_the_cause_gone() -> None:

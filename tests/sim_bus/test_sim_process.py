@@ -1,7 +1,7 @@
 """`python -m sim_bus` as its own process, serving its bus in the socketcand protocol: a
-python-can client in this process hears the virtual CiA 402 drives boot, starts them,
-sends SYNC and decodes their feedback with the project's codec; a device fault given on
-the command line arrives as an EMCY."""
+python-can client in this process hears the virtual CiA 402 drives boot, maps their
+feedback PDO, starts them, sends SYNC and decodes their feedback with the project's
+codec; a device fault given on the command line arrives as an EMCY."""
 
 from __future__ import annotations
 
@@ -33,6 +33,19 @@ def _frames(bus: can.BusABC, seconds: float) -> list[can.Message]:
     return out
 
 
+def _configure(bus: can.BusABC, node: int, layout: codec.PdoLayout) -> None:
+    """Map `layout` in drive `node` by SDO (expedited writes, each answered)."""
+    od = codec.load_eds(codec.EDS_PATH, node)
+    for index, sub, value in layout.mapping_procedure(node):
+        data = codec.od_variable(od, index, sub).encode_raw(value)
+        bus.send(codec.encode_sdo_download_request(node, index, sub, data))
+        answers = (bus.recv(5.0) for _ in range(100))  # other nodes may talk meanwhile
+        answer = next((m for m in answers if m is None or m.arbitration_id == 0x580 + node), None)
+        assert answer is not None, f"node {node}: no answer to 0x{index:04X}:{sub:02X}"
+        sdo = codec.decode_sdo_response(answer.arbitration_id, answer.data)
+        assert sdo.kind is codec.SdoKind.DOWNLOAD, f"node {node}: 0x{index:04X}:{sub:02X}"
+
+
 @pytest.mark.timeout(60)
 def test_simulator_process_serves_its_drives_over_socketcand() -> None:
     args = [sys.executable, "-m", "sim_bus", "--config", str(CONFIG)]
@@ -52,6 +65,9 @@ def test_simulator_process_serves_its_drives_over_socketcand() -> None:
             heard = {m.arbitration_id for m in _frames(bus, 0.5)}
             assert {0x700 + n for n in range(1, 9)} <= heard
 
+            # a strict drive ships with TPDO1 = statusword, event-driven: map the feedback
+            for node in range(1, 9):
+                _configure(bus, node, codec.TPDO1)
             bus.send(can.Message(arbitration_id=0x000, data=[0x01, 0], is_extended_id=False))
             time.sleep(0.1)
             bus.send(can.Message(arbitration_id=0x080, data=[], is_extended_id=False))
@@ -90,6 +106,9 @@ def test_faults_typed_on_standard_input_are_injected_at_once() -> None:
     try:
         bus = can.Bus(interface="socketcand", host="127.0.0.1", port=port, channel=channel)
         try:
+            # a strict drive ships with TPDO1 = statusword, event-driven: map the feedback
+            for node in range(1, 9):
+                _configure(bus, node, codec.TPDO1)
             bus.send(can.Message(arbitration_id=0x000, data=[0x01, 0], is_extended_id=False))
             proc.stdin.write("drive:9\nnonsense\n")
             proc.stdin.flush()
