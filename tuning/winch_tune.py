@@ -25,6 +25,8 @@ from tuning.can_lockstep import LockstepLink, run_experiment
 from tuning.experiment import Abort, Load, Plan, Record, WinchExperiment
 from tuning.identify import Identified, Setup, fit
 
+LATENCY_PERCENTILE = 95.0
+
 
 class Request(NamedTuple):
     """What the user asks for: the cable (`drive`), the load (a hanging mass in kg, or
@@ -81,13 +83,16 @@ def setup_for(robot: Robot, request: Request, record: Record) -> Setup:
 
 class Run(NamedTuple):
     """One experiment: its record, its abort (None: it ran to the end), the fitted model
-    (None after an abort), frames exchanged and the excitation time (s)."""
+    (None after an abort), frames exchanged, the excitation time (s) and the loop's
+    latency (s: from a sample to its answer taking effect: the LATENCY_PERCENTILE of the
+    host's, receipt to command, plus the bus's delay both ways)."""
 
     record: Record
     abort: Abort | None
     model: Identified | None
     frames: int
     experiment_seconds: float
+    latency: float
 
 
 def identify_simulated(
@@ -131,7 +136,10 @@ def finish(
     model = None
     if abort is None:
         model = fit(setup_for(robot, request, record), record.arrays())
-    return Run(record, abort, model, frames, seconds)
+    latencies = record.latencies()
+    host = float(np.percentile(latencies, LATENCY_PERCENTILE)) if len(latencies) else 0.0
+    latency = host + 2.0 * record.transit  # the sample's way in, the command's way out
+    return Run(record, abort, model, frames, seconds, latency)
 
 
 def _fault(sim: VirtualRobot, kind: str) -> Callable[[], list[can.Message]]:

@@ -1,24 +1,32 @@
 """`cdprd tune`: identify ONE winch's single-actuator model and propose gains (paper §4).
 
-    cdprd tune --config FILE --sim [--drive K] [--load-mass KG | --clamped [--preload N]]
+    cdprd tune --config FILE [--sim [--lockstep]] [--drive K]
+               [--load-mass KG | --clamped [--preload N]]
                [--amplitude N] [--duration S] [--travel M] [--json]
 
 Drives cable K's drive through the config's driver in torque mode, the winch carrying
 the passive load named (a hanging mass, none, or the drum clamped), with a bounded PRBS
 experiment (tuning.experiment: never more than --amplitude from the holding force;
-abort and brake on a drive fault, slack cable, length or force limit, naming it); fits
-Assumption 1's m0, k0 and force lag (tuning.identify); designs PID gains checked over
-m in [m0, 1.5 x the robot's largest modal mass] at the measured latency
-(tuning.gain_design); prints the actuator block for the robot file and the controller
-section.  --sim runs it against the simulator's one-winch rig (sim.rig with the config's
-sim.plant: its mismatch and actuator model are the TRUE winch), the drive's CAN frames
-exchanged in simulated time.
+abort and brake on a drive fault, slack cable, length or force limit, lost feedback or
+bus, naming it); fits Assumption 1's m0, k0 and force lag (tuning.identify); designs
+PID gains checked over m in [m0, 1.5 x the robot's largest modal mass] at the measured
+loop latency (tuning.gain_design); prints the actuator block for the robot file and the
+controller section.
 
---json prints one object: drive, load {mass, clamped, hold}, experiment {seconds,
-frames, samples, abort}, model {m0, k0, lag, cable_damping, confidence, residual_rms,
-response_rms}, actuator (the robot file's block), actuator_model (sim.plant.actuator),
-gains {kp, ki, kd, derivative_filter, bandwidth, ok, modal_mass_range, modal_loops
-[{mass, settling_time, overshoot, poles}]}, controller (the config section).
+Without --sim it runs in real time on the bus the config's `can:` section names
+(hardware, or `python -m sim_bus` with a `sim.rig` section as a separate process over
+socketcand) through the daemon's bus port, timer and driver (daemon.cli.tune_bus), at
+the daemon core's scheduling (`realtime:`).  --sim runs the same in real time against
+the in-process simulator's one-winch rig (sim.rig from the request, the config's
+sim.plant: its mismatch and actuator model are the TRUE winch); --sim --lockstep
+exchanges the drive's CAN frames in simulated time instead (fast, deterministic).
+
+--json prints one object: drive, load {mass, clamped}, experiment {seconds, frames,
+samples, latency, transit, abort}, model {m0, k0, lag, cable_damping, confidence,
+residual_rms, response_rms}, actuator (the robot file's block), actuator_model
+(sim.plant.actuator), gains {kp, ki, kd, derivative_filter, bandwidth, ok,
+modal_mass_range, modal_loops [{mass, settling_time, overshoot, poles}]}, controller
+(the config section).  After an abort: {drive, abort, reason}.
 Exit 0 on success, 3 when the experiment aborted (the drive was braked), 1 on a bad
 config or request.
 """
@@ -26,9 +34,11 @@ config or request.
 from __future__ import annotations
 
 import argparse
+import asyncio
+import dataclasses
 import json
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import TYPE_CHECKING, Any
 
 import yaml
@@ -36,6 +46,9 @@ import yaml
 from cdpr import ConfigError
 from daemon.cli.analyze_cmd import _clean
 from daemon.cli.run_cmd import load_checked, report
+from daemon.config import DaemonConfig
+from daemon.process.app import close_bus, open_bus
+from daemon.process.realtime import realtime
 
 if TYPE_CHECKING:
     from tuning.gain_design import Design
@@ -50,6 +63,11 @@ def add_parser(subparsers: Any) -> None:
     )
     p.add_argument("--config", required=True, help="daemon config YAML")
     p.add_argument("--sim", action="store_true", help="the simulator's one-winch rig")
+    p.add_argument(
+        "--lockstep",
+        action="store_true",
+        help="with --sim: exchange the frames in simulated time (fast, deterministic)",
+    )
     p.add_argument("--drive", type=int, default=0, help="cable index of the winch (default 0)")
     load = p.add_mutually_exclusive_group()
     load.add_argument("--load-mass", type=float, default=0.0, help="hanging mass, kg (0: none)")
@@ -65,19 +83,12 @@ def add_parser(subparsers: Any) -> None:
 def run(args: argparse.Namespace) -> int:
     from tuning.experiment import Plan
     from tuning.gain_design import design
-    from tuning.winch_tune import Request, identify_simulated, load_of, plan_for
+    from tuning.winch_tune import Request, load_of, plan_for
     from tuning.workspace_analysis import analyse
 
-    try:
-        config = load_checked(args.config)
-    except ConfigError as exc:
-        report(exc)
+    if args.lockstep and not args.sim:
+        print("error: --lockstep runs the simulator in simulated time: add --sim", file=sys.stderr)
         return 1
-    if not args.sim:
-        print("error: only --sim is implemented so far (no real-time bus path)", file=sys.stderr)
-        return 1
-    from daemon.cli.simulated import sim_section
-
     request = Request(
         drive=args.drive,
         load_mass=args.load_mass,
@@ -87,20 +98,27 @@ def run(args: argparse.Namespace) -> int:
         duration=args.duration,
         travel=args.travel,
     )
+    try:
+        config = load_checked(args.config, _rig_edit(request) if args.sim else None)
+    except ConfigError as exc:
+        report(exc)
+        return 1
     robot, rate = config.robot, config.controller.rate_hz
     try:
         plan: Plan = plan_for(robot, request, rate)
         plan.check(load_of(robot, request))
-    except ValueError as exc:
+        config.drives.single(args.drive)
+    except (ValueError, ConfigError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
     say = _progress(args.json)
+    where = "simulated time" if args.lockstep else ("in-process simulator" if args.sim else "bus")
     say(
         f"tune: cable {args.drive} ({config.drives.protocol} node "
-        f"{config.drives.nodes[args.drive]}), load {_load(request)}, amplitude "
+        f"{config.drives.nodes[args.drive]}, {where}), load {_load(request)}, amplitude "
         f"+-{plan.amplitude:g} N, {plan.duration:g} s PRBS of +-{plan.excitation:g} N"
     )
-    result = identify_simulated(robot, config.drives, sim_section(config).plant, request, rate)
+    result = _experiment(args, config, request, say)
     say(f"experiment: {result.experiment_seconds:.1f} s, {result.frames} CAN frames")
     if result.abort is not None:
         say(f"ABORTED and braked: {result.abort}")
@@ -114,15 +132,80 @@ def run(args: argparse.Namespace) -> int:
     say("analysing the robot's modal masses (Lemma 1)")
     analysis = analyse(robot, config.controller, points_per_axis=3)
     modal = analysis.grid.mass_range
-    latency = 0.0  # in simulated time the commands act at the sample's instant
-    say("designing gains over the mass range")
-    gains = design(robot, model, modal, latency, rate)
+    say(f"designing gains over the mass range, loop latency {result.latency * 1e3:.3g} ms")
+    gains = design(robot, model, modal, result.latency, rate)
     out = _report(args.drive, request, result, gains, modal, rate)
     if args.json:
         print(json.dumps(_clean(out)))
     else:
         _print(out)
     return 0
+
+
+def _rig_edit(request: Request) -> Callable[[dict[str, Any]], None]:
+    """--sim: the config's sim.rig becomes the winch and load the request names."""
+
+    def edit(data: dict[str, Any]) -> None:
+        sim = dict(data.get("sim") or {})
+        rig = dict(sim.get("rig") or {}, drive=request.drive, clamped=request.clamped)
+        if request.clamped:
+            rig.update(load_mass=0.0, preload=request.preload)
+        else:
+            rig["load_mass"] = request.load_mass
+        data["sim"] = {**sim, "rig": rig}
+
+    return edit
+
+
+def _experiment(
+    args: argparse.Namespace, config: DaemonConfig, request: Request, say: Callable[[str], None]
+) -> Run:
+    """The experiment: in simulated time (--sim --lockstep), or in real time on the
+    in-process simulator's bus (--sim) or the bus the config names."""
+    from daemon.cli.simulated import sim_section
+    from tuning.winch_tune import identify_simulated
+
+    rate = config.controller.rate_hz
+    if args.lockstep:
+        return identify_simulated(
+            config.robot, config.drives, sim_section(config).plant, request, rate
+        )
+    return asyncio.run(_on_bus(config, request, args.sim, say))
+
+
+async def _on_bus(
+    config: DaemonConfig, request: Request, sim: bool, say: Callable[[str], None]
+) -> Run:
+    from daemon.cli.tune_bus import BusExperiment
+    from drivers.factory import protocol_driver
+    from tuning.experiment import WinchExperiment
+    from tuning.winch_tune import finish, load_of, plan_for
+
+    robot, drives = config.robot, config.drives
+    one = drives.single(request.drive)
+    driver = protocol_driver(one, [drives.scalings_for(robot)[request.drive]])
+    plan = plan_for(robot, request, config.controller.rate_hz)
+    plan = dataclasses.replace(plan, stale_cycles=config.safety.stale_cycles)
+    experiment = WinchExperiment(plan, load_of(robot, request))
+    if sim:
+        from daemon.cli.simulated import InProcessSimulator
+
+        simulator = InProcessSimulator(config)
+        buses, close = simulator.daemon_bus, simulator.close
+        simulator.start()
+    else:
+        buses = open_bus(config)
+        close = lambda: close_bus(buses)  # noqa: E731
+    try:
+        bus = buses[one.bus_names()[0]] if isinstance(buses, Mapping) else buses
+        runner = BusExperiment(
+            bus, driver, experiment, one.brake, config.safety.feedback_deadline, say
+        )
+        with realtime(config.realtime):  # the daemon core's scheduling, for the same cycle
+            abort = await runner.run()
+    finally:
+        close()
+    return finish(robot, request, experiment, abort, runner.frames)
 
 
 def _report(
@@ -137,6 +220,8 @@ def _report(
             "seconds": result.experiment_seconds,
             "frames": result.frames,
             "samples": len(result.record.sample_t),
+            "latency": result.latency,
+            "transit": result.record.transit,
             "abort": None,
         },
         "model": {
