@@ -56,6 +56,19 @@ def identified_robot(robot: Robot, model: Identified) -> Robot:
     return Robot.from_dict(spec, source=f"{robot.name} with the identified actuator")
 
 
+def identified_plant(robot: Robot, model: Identified) -> PlantConfig:
+    """The analysis's plant model of the identified winch: its force lag, the robot
+    file's cable stiffness (else the simulator's) and the fitted cable damping (else
+    the simulator's)."""
+    return PlantConfig(
+        actuator=ActuatorModelConfig(c=[model.lag]),
+        cable=CableConfig(
+            stiffness=robot.actuators[0].cable_stiffness or PlantConfig().cable.stiffness,
+            damping=model.cable_damping or PlantConfig().cable.damping,
+        ),
+    )
+
+
 def family(w: float) -> PidSpec:
     return PidSpec(kp=w * w, ki=0.5 * w * w, kd=2.0 * w)
 
@@ -70,15 +83,8 @@ def design(
 ) -> Design:
     """The fastest gains of the family that pass every check (module docstring); the
     slowest candidate, ok False, if none does."""
-    config = PlantConfig(
-        actuator=ActuatorModelConfig(c=[model.lag]),
-        cable=CableConfig(
-            stiffness=robot.actuators[0].cable_stiffness or PlantConfig().cable.stiffness,
-            damping=model.cable_damping or PlantConfig().cable.damping,
-        ),
-    )
     spec = ControllerSpec(rate_hz=rate_hz, pid=family(10.0))
-    base = rig_for(identified_robot(robot, model), spec, config)
+    base = rig_for(identified_robot(robot, model), spec, identified_plant(robot, model))
     lo, hi = max(model.m0, modal_range[0]), max(model.m0, modal_range[1])
     masses = np.geomspace(model.m0, MASS_MARGIN * hi, SWEEP_MASSES)
     result = None
