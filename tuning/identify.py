@@ -46,6 +46,7 @@ class Identified(NamedTuple):
     residual_rms: float
     response_rms: float
     samples: int
+    bias: float = 0.0  # N: the constant force offset the fit found
 
     def actuator_model(self) -> ActuatorModelConfig:
         """The force lag as sim_bus.plant's actuator section (c = [lag])."""
@@ -65,8 +66,11 @@ class Setup(NamedTuple):
     segment: float = 0.25  # s: see segment_residuals
 
 
-def segment_residuals(setup: Setup, params: Array, data: dict[str, Array]) -> Array:
-    """Measured minus predicted lengths (m) for parameters `params` (NAMES[:5]).
+def segment_residuals(
+    setup: Setup, params: Array, data: dict[str, Array], fitted: Array | None = None
+) -> Array:
+    """Measured minus predicted lengths (m) for parameters `params` (NAMES[:5]); the
+    predicted lengths also go into `fitted` (one per sample) when given.
 
     The record is cut into segments of `segment` seconds; in each, the model starts from
     the initial state that fits best (a linear least-squares problem, solved exactly),
@@ -108,7 +112,20 @@ def segment_residuals(setup: Setup, params: Array, data: dict[str, Array]) -> Ar
         free = np.column_stack([np.interp(tau, local, col) for col in basis.T])
         x0, *_ = np.linalg.lstsq(free, y, rcond=None)
         out.append(y - free @ x0)
+        if fitted is not None:
+            fitted[lo:hi] = measured[lo:hi] - out[-1]
     return np.concatenate(out)
+
+
+def fitted_lengths(setup: Setup, model: Identified, data: dict[str, Array]) -> Array:
+    """The model's lengths (m) at the record's samples, each segment from its best
+    initial state as in the fit (NaN for samples after the last whole segment)."""
+    params = np.array([model.m0, model.k0, model.lag, model.cable_damping or 0.0, model.bias])
+    if model.cable_damping is None:
+        params[3] = setup.damping_guess
+    fitted = np.full(len(data["sample_t"]), np.nan)
+    segment_residuals(setup, params, data, fitted)
+    return fitted
 
 
 def _system(setup: Setup, m0: float, k0: float, lag: float, damping: float) -> signal.StateSpace:
@@ -170,4 +187,5 @@ def fit(setup: Setup, data: dict[str, Array]) -> Identified:
         residual_rms=float(np.sqrt(np.mean(result.fun**2))),
         response_rms=float(np.sqrt(np.mean(response**2))),
         samples=n,
+        bias=float(params[4]),
     )

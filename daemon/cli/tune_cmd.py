@@ -2,7 +2,7 @@
 
     cdprd tune --config FILE [--sim [--lockstep]] [--drive K]
                [--load-mass KG | --clamped [--preload N]]
-               [--amplitude N] [--duration S] [--travel M] [--json]
+               [--amplitude N] [--duration S] [--travel M] [--json] [--plot PNG]
 
 Drives cable K's drive through the config's driver in torque mode, the winch carrying
 the passive load named (a hanging mass, none, or the drum clamped), with a bounded PRBS
@@ -26,7 +26,9 @@ samples, latency, transit, abort}, model {m0, k0, lag, cable_damping, confidence
 residual_rms, response_rms}, actuator (the robot file's block), actuator_model
 (sim.plant.actuator), gains {kp, ki, kd, derivative_filter, bandwidth, ok,
 modal_mass_range, modal_loops [{mass, settling_time, overshoot, poles}]}, controller
-(the config section).  After an abort: {drive, abort, reason}.
+(the config section), plot (the --plot file).  After an abort: {drive, abort, reason}.
+--plot PNG draws the data, the fit and the closed-loop poles across the mass range
+(tuning.tune_plot).
 Exit 0 on success, 3 when the experiment aborted (the drive was braked), 1 on a bad
 config or request.
 """
@@ -39,6 +41,7 @@ import dataclasses
 import json
 import sys
 from collections.abc import Callable, Mapping
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import yaml
@@ -77,6 +80,7 @@ def add_parser(subparsers: Any) -> None:
     p.add_argument("--duration", type=float, default=20.0, help="excitation time, s")
     p.add_argument("--travel", type=float, default=0.1, help="largest length excursion, m")
     p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("--plot", metavar="PNG", help="write the data, fit and gain check to PNG")
     p.set_defaults(handler=run)
 
 
@@ -88,6 +92,9 @@ def run(args: argparse.Namespace) -> int:
 
     if args.lockstep and not args.sim:
         print("error: --lockstep runs the simulator in simulated time: add --sim", file=sys.stderr)
+        return 1
+    if args.plot and not Path(args.plot).resolve().parent.is_dir():
+        print(f"error: --plot {args.plot}: no such directory", file=sys.stderr)
         return 1
     request = Request(
         drive=args.drive,
@@ -135,6 +142,17 @@ def run(args: argparse.Namespace) -> int:
     say(f"designing gains over the mass range, loop latency {result.latency * 1e3:.3g} ms")
     gains = design(robot, model, modal, result.latency, rate)
     out = _report(args.drive, request, result, gains, modal, rate)
+    if args.plot:
+        from tuning.tune_plot import write_tune_plot
+        from tuning.winch_tune import setup_for
+
+        setup = setup_for(robot, request, result.record)
+        try:
+            write_tune_plot(Path(args.plot), result.record, setup, model, gains)
+        except OSError as exc:
+            print(f"error: cannot write {args.plot}: {exc.strerror or exc}", file=sys.stderr)
+            return 1
+        out["plot"] = args.plot
     if args.json:
         print(json.dumps(_clean(out)))
     else:

@@ -4,9 +4,14 @@ amplitude bound, and every abort path (each brakes the drive and names the reaso
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import numpy as np
 import pytest
+import yaml
 
+from daemon.cli import main
 from daemon.config import load_config
 from sim_bus.plant.config import parse_plant_config
 from tuning.experiment import Load, WinchExperiment
@@ -87,3 +92,21 @@ def test_a_plan_that_could_slacken_or_saturate_is_refused() -> None:
         WinchExperiment(plan, Load.hanging(60.0, 9.81))
     with pytest.raises(ValueError, match=r"cables 0\.\.7"):
         plan_for(robot, Request(drive=8), 500.0)
+
+
+def test_tune_plots_the_data_the_fit_and_the_poles(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    config = tmp_path / "tune.yaml"
+    data = yaml.safe_load(Path("config/reference8-odrive.yaml").read_text())
+    data["robot"] = str(Path("config/robots/reference8.yaml").resolve())
+    data["sim"]["plant"].update(actuator={"c": [TRUE["lag"]]})
+    config.write_text(yaml.safe_dump(data))
+    png = tmp_path / "tune.png"
+    args = ["tune", "--config", str(config), "--sim", "--lockstep", "--duration", "3"]
+    assert main([*args, "--json", "--plot", str(png)]) == 0
+    assert json.loads(capsys.readouterr().out)["plot"] == str(png)
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 20_000
+    assert main([*args, "--plot", str(tmp_path / "missing" / "tune.png")]) == 1
+    err = capsys.readouterr().err
+    assert "--plot" in err and "no such directory" in err
