@@ -110,3 +110,16 @@ def test_tune_plots_the_data_the_fit_and_the_poles(
     assert main([*args, "--plot", str(tmp_path / "missing" / "tune.png")]) == 1
     err = capsys.readouterr().err
     assert "--plot" in err and "no such directory" in err
+
+
+def test_a_clamped_drum_is_identified_too() -> None:
+    """m = inf: the drum moves by the cable's stretch alone (tuning.identify: m0 from the
+    cable's spring, the cable's damping held at the simulator's default)."""
+    config = load_config("config/reference8-odrive.yaml")
+    run = identify_simulated(
+        config.robot, config.drives, plant(), Request(clamped=True, duration=8.0), 500.0
+    )
+    assert run.model is not None
+    for name, true in TRUE.items():
+        assert getattr(run.model, name) == pytest.approx(true, rel=0.05), name
+    assert run.model.cable_damping is None  # not fitted: it cannot be told from k0
