@@ -215,18 +215,12 @@ class WinchExperiment:
                 f"(actuator range {plan.length_min}..{plan.length_max} m)",
             )
         elapsed = t - self._t0
-        u = 0.0
-        if elapsed >= plan.settle:
-            if math.isnan(self.record.excitation_start):
-                self.record.excitation_start = t
-            k = int((elapsed - plan.settle) / plan.period + 0.5) // plan.prbs_hold
-            if k >= len(self._prbs) - 1:
-                self.done = True
-            u = float(self._prbs[min(k, len(self._prbs) - 1)])
-        stabiliser = -self.kp * offset - self.kd * rate
-        delta = u + stabiliser
+        if elapsed >= plan.settle and math.isnan(self.record.excitation_start):
+            self.record.excitation_start = t
+        u, loop = self.drive(elapsed, offset, rate)
+        delta = u + loop
         a = plan.amplitude
-        self._pinned = self._pinned + 1 if abs(stabiliser) > a else 0
+        self._pinned = self._pinned + 1 if abs(loop) > a else 0
         if self._pinned * plan.period > SATURATED_FOR:
             raise Abort(
                 "force_limit",
@@ -234,6 +228,19 @@ class WinchExperiment:
                 f"{SATURATED_FOR} s (is the load {self.load.mass:g} kg as given?)",
             )
         return self.load.hold + min(a, max(-a, delta))
+
+    def drive(self, elapsed: float, offset: float, rate: float) -> tuple[float, float]:
+        """The command's change from the hold `elapsed` s into the run, the winch
+        `offset` m from where it started at `rate` m/s: (the excitation: the PRBS once
+        settled; the loop's share: the stabiliser).  Sets `done` at the PRBS's end."""
+        plan = self.plan
+        u = 0.0
+        if elapsed >= plan.settle:
+            k = int((elapsed - plan.settle) / plan.period + 0.5) // plan.prbs_hold
+            if k >= len(self._prbs) - 1:
+                self.done = True
+            u = float(self._prbs[min(k, len(self._prbs) - 1)])
+        return u, -self.kp * offset - self.kd * rate
 
     def sent(self, t: float, command: float, opened: float | None = None) -> None:
         """`command` went out at t (s), in the cycle opened at `opened` (default t)."""

@@ -41,6 +41,7 @@ class Design(NamedTuple):
     latency: float
     settling_target: float
     ok: bool
+    rig: Rig  # the identified winch's rig with these gains (Rig.loop predicts a load)
 
     def controller_section(self, rate_hz: float) -> dict[str, object]:
         """The `controller:` section for the config (gains per unit mass)."""
@@ -117,4 +118,4 @@ def _check(
         and all(loop.stable for loop in sweep)
         and all(loop.settling_time <= target for loop in modal_loops)
     )
-    return Design(gains, w, sweep, modal_loops, latency, target, ok and math.isfinite(w))
+    return Design(gains, w, sweep, modal_loops, latency, target, ok and math.isfinite(w), rig)

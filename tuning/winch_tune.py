@@ -104,10 +104,25 @@ def identify_simulated(
     faults: list[tuple[float, str]] | None = None,
     true_load: float | None = None,
 ) -> Run:
-    """The experiment against the simulator's rig (sim.rig for `request`), the drive's
+    """The identification experiment against the simulator's rig (run_simulated)."""
+    experiment = WinchExperiment(plan_for(robot, request, rate_hz), load_of(robot, request))
+    abort, frames = run_simulated(robot, drives, plant, request, experiment, faults, true_load)
+    return finish(robot, request, experiment, abort, frames)
+
+
+def run_simulated(
+    robot: Robot,
+    drives: DrivesConfig,
+    plant: PlantConfig,
+    request: Request,
+    experiment: WinchExperiment,
+    faults: list[tuple[float, str]] | None = None,
+    true_load: float | None = None,
+) -> tuple[Abort | None, int]:
+    """`experiment` against the simulator's rig (sim.rig for `request`), the drive's
     frames exchanged in simulated time; `faults` (simulated time, kind: drive, snap or
     silent) are injected on the way; `true_load` (kg) hangs instead of the mass the
-    request names (a user who got the load wrong)."""
+    request names (a user who got the load wrong).  Its abort, and the frames."""
     mass = request.load_mass if true_load is None else true_load
     rig = RigConfig(
         drive=request.drive,
@@ -119,11 +134,10 @@ def identify_simulated(
     one = drives.single(request.drive)
     driver = protocol_driver(one, [drives.scalings_for(robot)[request.drive]])
     link = LockstepLink(sim, driver)
-    experiment = WinchExperiment(plan_for(robot, request, rate_hz), load_of(robot, request))
     for at, kind in faults or []:
         link.schedule(at, _fault(sim, kind))
     abort = run_experiment(link, experiment, one.brake)
-    return finish(robot, request, experiment, abort, link.frames_sent + link.frames_received)
+    return abort, link.frames_sent + link.frames_received
 
 
 def finish(

@@ -3,6 +3,7 @@
     cdprd tune --config FILE [--sim [--lockstep]] [--drive K]
                [--load-mass KG | --clamped [--preload N]]
                [--amplitude N] [--duration S] [--travel M] [--json] [--plot PNG]
+               [--check-loads KG,KG,...]
 
 Drives cable K's drive through the config's driver in torque mode, the winch carrying
 the passive load named (a hanging mass, none, or the drum clamped), with a bounded PRBS
@@ -26,9 +27,14 @@ samples, latency, transit, abort}, model {m0, k0, lag, cable_damping, confidence
 residual_rms, response_rms}, actuator (the robot file's block), actuator_model
 (sim.plant.actuator), gains {kp, ki, kd, derivative_filter, bandwidth, ok,
 modal_mass_range, modal_loops [{mass, settling_time, overshoot, poles}]}, controller
-(the config section), plot (the --plot file).  After an abort: {drive, abort, reason}.
+(the config section), plot (the --plot file), checks (--check-loads: per load {load,
+mass, settling_time, overshoot, predicted_settling_time, predicted_overshoot, abort}).
+After an abort of the identification: {drive, abort, reason}.
 --plot PNG draws the data, the fit and the closed-loop poles across the mass range
-(tuning.tune_plot).
+(tuning.tune_plot).  --check-loads 0,5,10 flies the proposed gains on the winch through
+a step of the length reference with each load hung (tuning.load_check; on the bus the
+user hangs each and presses Enter) and sets the measured settling time and overshoot
+against the identified model's; exit 3 if one aborted.
 Exit 0 on success, 3 when the experiment aborted (the drive was braked), 1 on a bad
 config or request.
 """
@@ -54,7 +60,10 @@ from daemon.process.app import close_bus, open_bus
 from daemon.process.realtime import realtime
 
 if TYPE_CHECKING:
+    from tuning.experiment import Abort, WinchExperiment
     from tuning.gain_design import Design
+    from tuning.identify import Identified
+    from tuning.load_check import CheckResult
     from tuning.winch_tune import Request, Run
 
 ABORTED = 3
@@ -81,6 +90,12 @@ def add_parser(subparsers: Any) -> None:
     p.add_argument("--travel", type=float, default=0.1, help="largest length excursion, m")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--plot", metavar="PNG", help="write the data, fit and gain check to PNG")
+    p.add_argument(
+        "--check-loads",
+        type=_loads,
+        metavar="KG,KG,...",
+        help="fly the proposed gains through a step with each load hung (kg)",
+    )
     p.set_defaults(handler=run)
 
 
@@ -142,6 +157,17 @@ def run(args: argparse.Namespace) -> int:
     say(f"designing gains over the mass range, loop latency {result.latency * 1e3:.3g} ms")
     gains = design(robot, model, modal, result.latency, rate)
     out = _report(args.drive, request, result, gains, modal, rate)
+    aborted = False
+    if args.check_loads:
+        checks = _check_loads(args, config, request, model, gains, say)
+        if checks is None:
+            print("error: standard input ended before the next load was hung", file=sys.stderr)
+            return 1
+        out["checks"] = [
+            {**c._replace(abort=None)._asdict(), "abort": None if c.abort is None else str(c.abort)}
+            for c in checks
+        ]
+        aborted = any(c.abort is not None for c in checks)
     if args.plot:
         from tuning.tune_plot import write_tune_plot
         from tuning.winch_tune import setup_for
@@ -157,7 +183,18 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(_clean(out)))
     else:
         _print(out)
-    return 0
+    return ABORTED if aborted else 0
+
+
+def _loads(text: str) -> list[float]:
+    try:
+        loads = [float(part) for part in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected masses in kg, e.g. 0,5,10") from None
+    bad = [m for m in loads if not 0.0 <= m < float("inf")]
+    if bad:
+        raise argparse.ArgumentTypeError(f"load {bad[0]:g} kg: a mass must be finite and >= 0")
+    return loads
 
 
 def _rig_edit(request: Request) -> Callable[[dict[str, Any]], None]:
@@ -178,33 +215,83 @@ def _rig_edit(request: Request) -> Callable[[dict[str, Any]], None]:
 def _experiment(
     args: argparse.Namespace, config: DaemonConfig, request: Request, say: Callable[[str], None]
 ) -> Run:
-    """The experiment: in simulated time (--sim --lockstep), or in real time on the
-    in-process simulator's bus (--sim) or the bus the config names."""
+    """The identification experiment: in simulated time (--sim --lockstep), or in real
+    time on the in-process simulator's bus (--sim) or the bus the config names."""
     from daemon.cli.simulated import sim_section
-    from tuning.winch_tune import identify_simulated
+    from tuning.experiment import WinchExperiment
+    from tuning.winch_tune import finish, identify_simulated, load_of, plan_for
 
-    rate = config.controller.rate_hz
+    robot, rate = config.robot, config.controller.rate_hz
     if args.lockstep:
-        return identify_simulated(
-            config.robot, config.drives, sim_section(config).plant, request, rate
-        )
-    return asyncio.run(_on_bus(config, request, args.sim, say))
+        return identify_simulated(robot, config.drives, sim_section(config).plant, request, rate)
+    experiment = WinchExperiment(plan_for(robot, request, rate), load_of(robot, request))
+    abort, frames = asyncio.run(_on_bus(config, request, args.sim, say, experiment))
+    return finish(robot, request, experiment, abort, frames)
+
+
+def _check_loads(
+    args: argparse.Namespace,
+    config: DaemonConfig,
+    request: Request,
+    model: Identified,
+    gains: Design,
+    say: Callable[[str], None],
+) -> list[CheckResult] | None:
+    """--check-loads: the proposed gains flown through a step with each load hung (in
+    the simulator: its rig with that load; on the bus: the user hangs it and presses
+    Enter); None if standard input ends before a load is hung."""
+    from daemon.cli.simulated import sim_section
+    from tuning.load_check import check_result, step_check
+    from tuning.winch_tune import run_simulated
+
+    robot, rate = config.robot, config.controller.rate_hz
+    results = []
+    for mass in args.check_loads:
+        hung, check = step_check(robot, request, rate, model, gains, mass)
+        if args.lockstep:
+            plant = sim_section(config).plant
+            check.abort, _ = run_simulated(robot, config.drives, plant, hung, check)
+        else:
+            if not args.sim:
+                say(f"hang {mass:g} kg on cable {request.drive} (0: none), then press Enter")
+                if not sys.stdin.readline():
+                    return None
+            hung_config = load_checked(args.config, _rig_edit(hung)) if args.sim else config
+            check.abort, _ = asyncio.run(_on_bus(hung_config, hung, args.sim, say, check))
+        result = check_result(check, gains)
+        results.append(result)
+        say(_check_line(result))
+    return results
+
+
+def _check_line(c: CheckResult) -> str:
+    if c.abort is not None:
+        return f"check {c.load:g} kg: ABORTED and braked: {c.abort}"
+    return (
+        f"check {c.load:g} kg (m {c.mass:.3g} kg): settling {c.settling_time:.3g} s "
+        f"(model {c.predicted_settling_time:.3g} s), overshoot {100 * c.overshoot:.1f} % "
+        f"(model {100 * c.predicted_overshoot:.1f} %)"
+    )
 
 
 async def _on_bus(
-    config: DaemonConfig, request: Request, sim: bool, say: Callable[[str], None]
-) -> Run:
+    config: DaemonConfig,
+    request: Request,
+    sim: bool,
+    say: Callable[[str], None],
+    experiment: WinchExperiment,
+) -> tuple[Abort | None, int]:
+    """`experiment` in real time on the in-process simulator's bus (`sim`) or the bus
+    the config names: its abort, and the frames."""
     from daemon.cli.tune_bus import BusExperiment
     from drivers.factory import protocol_driver
-    from tuning.experiment import WinchExperiment
-    from tuning.winch_tune import finish, load_of, plan_for
 
     robot, drives = config.robot, config.drives
     one = drives.single(request.drive)
     driver = protocol_driver(one, [drives.scalings_for(robot)[request.drive]])
-    plan = plan_for(robot, request, config.controller.rate_hz)
-    plan = dataclasses.replace(plan, stale_cycles=config.safety.stale_cycles)
-    experiment = WinchExperiment(plan, load_of(robot, request))
+    experiment.plan = dataclasses.replace(
+        experiment.plan, stale_cycles=config.safety.stale_cycles
+    )
     if sim:
         from daemon.cli.simulated import InProcessSimulator
 
@@ -223,7 +310,7 @@ async def _on_bus(
             abort = await runner.run()
     finally:
         close()
-    return finish(robot, request, experiment, abort, runner.frames)
+    return abort, runner.frames
 
 
 def _report(
