@@ -161,11 +161,11 @@ def socketcand_other_process(n: int) -> dict[str, float]:
 
 def cycle_loads() -> dict[str, dict[str, float]]:
     """8 CiA 402 drives: SYNC + per drive RPDO (controlword, torque: 4 B) and TPDOs
-    (statusword + position 6 B, velocity 4 B); 8 ODrive axes: Set_Input_Torque (4 B)
-    + Get_Encoder_Estimates (8 B) per axis."""
+    (statusword + position 6 B, velocity 4 B); 8 ODrive axes: Set_Input_Torque (8 B, as
+    ODrive's DBC) + Get_Encoder_Estimates (8 B) per axis."""
     cycles = {
         "cia402_8_drives": [FrameShape(0)] + [FrameShape(4), FrameShape(6), FrameShape(4)] * 8,
-        "odrive_8_axes": [FrameShape(4), FrameShape(8)] * 8,
+        "odrive_8_axes": [FrameShape(8), FrameShape(8)] * 8,
     }
     out = {}
     for name, frames in cycles.items():

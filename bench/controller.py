@@ -7,9 +7,11 @@ the closed-loop figures of the standard trajectory set (`tracking`): per traject
 / max position and orientation error of the paper's controller, tension range, slack
 events, the ratio of its RMS position error to the joint-space baseline's
 (`baseline_ratio`), and the same run under model mismatch (plant mass +10 %, m0 -10 %, 5
-um encoder noise); and the holding robot's response to a 50 N horizontal push
-(`disturbance`: peak error, 2 % settling time, the error left after 20 s, and whether the
-peak exceeds the daemon's default tracking-error bound, which would brake it).
+um encoder noise), and without the command lead (`no_lead`, and `lead_ratio`: RMS with
+the lead / without; `command_lead_s` the lead used); and the holding robot's response to
+a 50 N horizontal push (`disturbance`: peak error, 2 % settling time, the error left
+after 20 s, and whether the peak exceeds the daemon's default tracking-error bound,
+which would brake it).
 
     python bench/controller.py [--json] [--calls N] [--skip-tracking]
 """
@@ -84,6 +86,7 @@ def main(argv: list[str] | None = None) -> int:
     results.update(tension.measure(robot, calls=max(args.calls, 2000)))
     if not args.skip_tracking:
         results["tracking"] = tracking(robot, spec)
+        results["command_lead_s"] = ParallelController(robot, spec).lead
         results["disturbance"] = disturbance(robot, spec)
     if args.json:
         print(json.dumps(results))
@@ -96,7 +99,8 @@ def main(argv: list[str] | None = None) -> int:
             f"rms {f['rms_deg']:.3f} deg  max {f['max_deg']:.3f} deg  "
             f"tension {f['min_tension']:.0f}-{f['max_tension']:.0f} N  slack {f['slack_events']}  "
             f"baseline rms {f['baseline']['rms_mm']:.3f} mm (ratio {f['baseline_ratio']:.2f})  "
-            f"mismatch rms {f['mismatch']['rms_mm']:.3f} mm max {f['mismatch']['max_mm']:.3f} mm"
+            f"mismatch rms {f['mismatch']['rms_mm']:.3f} mm max {f['mismatch']['max_mm']:.3f} mm  "
+            f"no lead rms {f['no_lead']['rms_mm']:.3f} mm (ratio {f['lead_ratio']:.2f})"
         )
     return 0
 

@@ -18,11 +18,14 @@ overruns of a bare timerfd loop at the same priority and load that does nothing 
 
 --load N runs N CPU-bound processes at normal priority, --flood the mixed zenoh flood of
 bench/flood.py (`--mix all`) against the companion, both for the whole measurement;
-the figures without them are then printed beside, under "unloaded".  --view serves the
-live view (view: section, 30 Hz, on loopback) with a Foxglove client subscribed to every
-channel in a process of its own (tests/foxglove_client.py; `view_messages` counts what
-it decoded); the figures without the view, under the same load, under "no_view".  Figures are for
-this machine (2 vCPU); nothing here is hard real time (PERF-FACTS).
+the figures without them are then printed beside, under "unloaded".  --view turns on the
+interfaces that see the robot, at full rate on loopback: the live view (view: section at
+its maximum 200 Hz) with a Foxglove client subscribed to every channel in a process of
+its own (tests/foxglove_client.py; `view_messages` counts what it decoded), and ROS 2 over
+rmw_zenoh (ros2: section at the loop rate; published with nobody subscribed); the
+figures without them, under the same load, under "no_view", and their ratios
+(`view_latency_p99_ratio`, `view_misses_delta_per_1e4`).  Figures are for this machine
+(2 vCPU); nothing here is hard real time (PERF-FACTS).
 """
 
 from __future__ import annotations
@@ -49,11 +52,12 @@ ROOT = Path(__file__).resolve().parent.parent
 CONFIGS = ROOT / "config"
 SETTLE = 0.5  # s enabled before measuring
 FLOOD_RATE = 2000.0  # puts per second
+VIEW_RATE_HZ = 200.0  # the view: section's largest rate_hz
 
 
 def rate_config(protocol: str, rate_hz: float, view: bool = False) -> DaemonConfig:
-    """The example config at `rate_hz`, zenoh on a free loopback port (and the live view
-    on another, if `view`)."""
+    """The example config at `rate_hz`, zenoh on a free loopback port (and, if `view`,
+    the live view on another at its top rate and ROS 2 at the loop rate)."""
     endpoint = free_endpoint()
     view_port = int(free_endpoint().rpartition(":")[2])
 
@@ -63,7 +67,8 @@ def rate_config(protocol: str, rate_hz: float, view: bool = False) -> DaemonConf
         data["zenoh"]["listen"] = [endpoint]
         data["logging"] = {"level": "warning"}
         if view:
-            data["view"] = {"enabled": True, "port": view_port}
+            data["view"] = {"enabled": True, "port": view_port, "rate_hz": VIEW_RATE_HZ}
+            data["ros2"] = {"enabled": True, "rate_hz": rate_hz}
 
     return load_config(CONFIGS / f"reference8-{protocol}.yaml", edit)
 
@@ -197,7 +202,14 @@ def main() -> None:
     for rate in (500, 1000):
         figures = measure(args.protocol, rate, args.seconds, args.load, args.flood, args.view)
         if args.view:
-            figures["no_view"] = measure(args.protocol, rate, args.seconds, args.load, args.flood)
+            plain = measure(args.protocol, rate, args.seconds, args.load, args.flood)
+            figures["no_view"] = plain
+            figures["view_latency_p99_ratio"] = round(
+                figures["latency_p99_us"] / max(plain["latency_p99_us"], 1.0), 3
+            )
+            figures["view_misses_delta_per_1e4"] = round(
+                figures["misses_per_1e4"] - plain["misses_per_1e4"], 2
+            )
         config = rate_config(args.protocol, rate)
         figures["timer_floor_misses_per_1e4"] = timer_floor(config, args.seconds, args.load)
         if busy:

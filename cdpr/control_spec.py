@@ -10,7 +10,7 @@ from __future__ import annotations
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import Field, model_validator
+from pydantic import Field, field_validator, model_validator
 
 from cdpr.description import (
     FiniteFloat,
@@ -20,6 +20,11 @@ from cdpr.description import (
     validate_section,
 )
 from cdpr.single_actuator import LinearController, pid
+
+MAX_COMMAND_LEAD = 0.1  # s: a command acting later than this cannot be steered by a lead
+# s: the first-order lag of a drive's force behind its command, unless told (the
+# simulator's default actuator; drives.force_lag for a daemon's drives)
+DEFAULT_FORCE_LAG = 2e-3
 
 
 class PidSpec(StrictModel):
@@ -79,6 +84,12 @@ class ControllerSpec(StrictModel):
     cable stretch by a complementary filter of time constant velocity_filter (s)
     ("drive"), or by differentiating successive forward-kinematics poses, low-passed
     with velocity_filter ("differentiate"), for drives that report no rate.
+    command_lead: how far ahead of its measurement instant a cycle's command is
+    evaluated (s): the reference, the feed-forward and the model are taken for the
+    middle of the interval over which the command acts (the pose error stays at the
+    measurement's instant).  "auto": the measured sample-to-command latency, plus the
+    drive's force lag, plus half a period (the command is held for one); 0: the
+    command is evaluated for the measurement's instant (the paper's literal timing).
     """
 
     rate_hz: Annotated[float, Field(gt=0.0, le=10000.0)] = 500.0
@@ -89,6 +100,15 @@ class ControllerSpec(StrictModel):
     velocity: Literal["drive", "differentiate"] = "drive"
     velocity_filter: PositiveFloat = 0.05
     tension: TensionSpec = TensionSpec()
+    command_lead: float | Literal["auto"] = "auto"
+
+    @field_validator("command_lead", mode="before")
+    @classmethod
+    def _lead(cls, value: Any) -> Any:
+        """One message for both forms (the union would report each separately)."""
+        if value == "auto" or (type(value) in (int, float) and 0.0 <= value <= MAX_COMMAND_LEAD):
+            return value
+        raise ValueError(f'must be "auto" or a time in seconds from 0 to {MAX_COMMAND_LEAD:g}')
 
     @model_validator(mode="after")
     def _one_law(self) -> ControllerSpec:
@@ -99,6 +119,16 @@ class ControllerSpec(StrictModel):
     @property
     def period(self) -> float:
         return 1.0 / self.rate_hz
+
+    def lead(self, drive_lag: float, latency: float = 0.0) -> float:
+        """The command lead (s) for a drive whose force follows its command with a
+        first-order lag `drive_lag` (s), the command leaving `latency` s after the
+        measurement: command_lead, or with "auto" the middle of the interval over which
+        a command held for one period acts once it has arrived and the drive has
+        followed it."""
+        if self.command_lead == "auto":
+            return latency + drive_lag + 0.5 * self.period
+        return self.command_lead
 
     def linear_controller(self) -> LinearController:
         """The single-actuator controller (default PID if neither law is given)."""

@@ -12,6 +12,12 @@ Part of a cycle needs no measurement: the reference sample, the forward-kinemati
 guess, f_b and, with model_at = "reference", Lambda, c, M and mu.  `prepare(t)` does that
 part ahead (a daemon calls it while the drives' feedback is on its way), so that
 `step(t, ...)` is left with what the measurement decides.
+
+A command computed from the measurement at t acts later: it reaches the drive after the
+loop's latency, the drive's force follows it with a lag, and it is held for a period.
+The reference, the feed-forward and the model are evaluated for the middle of that
+interval, t + lead (ControllerSpec.command_lead); the pose error compares the
+measurement with the reference at t, its own instant.
 """
 
 from __future__ import annotations
@@ -23,7 +29,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.linalg.lapack import dpotrs
 
-from cdpr.control_spec import ControllerSpec
+from cdpr.control_spec import DEFAULT_FORCE_LAG, ControllerSpec
 from cdpr.forward_kinematics import FKResult
 from cdpr.pose import Pose, liediff, liediff6, retract
 from cdpr.robot import Robot
@@ -115,19 +121,29 @@ class _Prepared(NamedTuple):
     """A cycle's measurement-free part (see prepare)."""
 
     t: float
-    reference: Reference
+    reference: Reference  # at t: what the measurement is compared with
+    ahead: Reference  # at t + lead: what the command is for
     guess: Pose
     f_b: Array
-    model: tuple[Array, Array, Array, Array] | None  # (Lambda, c, M, mu) at the reference
+    model: tuple[Array, Array, Array, Array] | None  # (Lambda, c, M, mu) at `ahead`
 
 
 class ParallelController:
-    """The paper's controller for `robot` with the settings of `spec` (DESIGN §4-§6)."""
+    """The paper's controller for `robot` with the settings of `spec` (DESIGN §4-§6),
+    for drives whose force follows their commands with a first-order lag `drive_lag`
+    (s; what command_lead "auto" allows for)."""
 
-    def __init__(self, robot: Robot, spec: ControllerSpec | None = None) -> None:
+    def __init__(
+        self,
+        robot: Robot,
+        spec: ControllerSpec | None = None,
+        drive_lag: float = DEFAULT_FORCE_LAG,
+    ) -> None:
         self.robot = robot
         self.spec = spec = spec or ControllerSpec()
         self.period = spec.period
+        self.drive_lag = drive_lag
+        self.lead = spec.lead(drive_lag)  # s: see set_latency
         self.loop = spec.linear_controller().discretise(self.period, 6, spec.discretisation)
         self.tension = tension_solver(robot, spec)
         self._at_reference = spec.model_at == "reference"
@@ -147,6 +163,7 @@ class ParallelController:
         self._twist = _ZERO6.copy()
         self._tensions = static_tensions(self.robot, self.tension, pose)
         self._rate_bias = [0.0] * 6  # floats: see _measure_twist
+        self._drive_twist = [0.0] * 6  # the last twist from the drives' rates (at rest)
         self._prepared: _Prepared | None = None
         self._last_t = -math.inf  # the time of the last step
 
@@ -158,19 +175,29 @@ class ParallelController:
         self.source = source
         self._prepared = None  # sampled from the old source
 
+    def set_latency(self, latency: float) -> None:
+        """The measured time (s) from a measurement's instant to its command leaving for
+        the drives: with command_lead "auto", the lead allows for it from the next cycle
+        (a daemon feeds it, filtered; lock-step runs apply commands at once)."""
+        if not 0.0 <= latency < math.inf:
+            raise ValueError(f"latency must be finite and >= 0 s, got {latency!r}")
+        self.lead = self.spec.lead(self.drive_lag, latency)
+        self._prepared = None  # evaluated for the old lead
+
     def prepare(self, t: float) -> None:
         """Compute the measurement-free part of the step at time t ahead of it: the
-        reference sample, the forward-kinematics guess, f_b and, with model_at =
-        "reference", the model terms; and the last cycle's step of the cables' stiffness
-        estimate (cdpr.stretch).  step(t, ...) uses it; a step at another time,
-        reset() and follow() discard it."""
+        reference samples (at t, and at t + lead for the command), the forward-kinematics
+        guess, f_b and, with model_at = "reference", the model terms; and the last
+        cycle's step of the cables' stiffness estimate (cdpr.stretch).  step(t, ...) uses
+        it; a step at another time, reset(), follow() and set_latency() discard it."""
         robot = self.robot
         ref = self.source.sample(t)
+        ahead = self.source.sample(t + self.lead) if self.lead else ref
         guess = retract(self._pose, self._twist * self.period)
-        model = robot.model_terms(ref.pose, ref.twist) if self._at_reference else None
-        Lam_r = model[0] if model is not None else robot.jacobian(ref.pose)
-        f_b = robot.k0 * Lam_r.dot(ref.twist)  # ndarray.dot: see the cdpr.kinematics docstring
-        self._prepared = _Prepared(t, ref, guess, f_b, model)
+        model = robot.model_terms(ahead.pose, ahead.twist) if self._at_reference else None
+        Lam_r = model[0] if model is not None else robot.jacobian(ahead.pose)
+        f_b = robot.k0 * Lam_r.dot(ahead.twist)  # ndarray.dot: see the cdpr.kinematics docstring
+        self._prepared = _Prepared(t, ref, ahead, guess, f_b, model)
         self.stretch.update(self.period)
 
     @property
@@ -212,12 +239,12 @@ class ParallelController:
         self._error[0] = theta_d
         if self._error.shape[0] > 1:
             self._error[1] = theta_d_rate
-        alpha_c = ref.accel + self.loop.step(self._error)
+        alpha_c = prepared.ahead.accel + self.loop.step(self._error)
 
         if prepared.model is not None:
             Lam, c, M, mu = prepared.model
-        else:
-            Lam, c, M, mu = robot.model_terms(pose, twist)
+        else:  # at the measured state, carried to t + lead
+            Lam, c, M, mu = robot.model_terms(retract(pose, twist * self.lead), twist)
         f_b = prepared.f_b
         tau_c = M.dot(alpha_c) + mu
         f0 = robot.m0 * (Lam.dot(alpha_c) + c)
@@ -254,7 +281,10 @@ class ParallelController:
         internal forces swing.  The low-frequency part of that difference is taken from
         the poses (which are stretch-corrected) through a low-pass of time constant
         velocity_filter: a complementary filter, quiet like the drives' rates at high
-        frequency and consistent with the poses at low frequency."""
+        frequency and consistent with the poses at low frequency.  The poses' difference
+        over a period is the mean twist over it, so it is compared with the mean of this
+        and the last cycle's drive twists (against this one alone the estimate would lag
+        half a period: a bias of -alpha T/2)."""
         if self._differentiate:
             raw = liediff(self._pose, pose) / self.period
             return self._twist + self._smoothing * (raw - self._twist)
@@ -266,12 +296,14 @@ class ParallelController:
             return drive
         # the filter on 6 floats: per-call numpy overhead dominates at this size
         s, period = self._smoothing, self.period
+        now, last = drive.tolist(), self._drive_twist
         self._rate_bias = bias = [
-            b + s * (r / period - d - b)
-            for b, r, d in zip(
-                self._rate_bias, liediff6(self._pose, pose), drive.tolist(), strict=True
+            b + s * (r / period - 0.5 * (d + d_last) - b)
+            for b, r, d, d_last in zip(
+                self._rate_bias, liediff6(self._pose, pose), now, last, strict=True
             )
         ]
+        self._drive_twist = now
         return drive + bias
 
     def _fault(self, ref: Reference, pose: Pose, residual: float, reason: str) -> ControlOutput:

@@ -262,7 +262,7 @@ class Actuation(enum.Enum):
 
     OFF = "off"  # no torque; the drum free-wheels unless the brake is engaged
     TORQUE = "torque"  # produce `VirtualDrive.force` along +l
-    POSITION = "position"  # servo the cable to `VirtualDrive.target_length`
+    POSITION = "position"  # servo to `VirtualDrive.target_length`, plus `force` feed-forward
 
 
 class VirtualDrive(ABC):
@@ -281,7 +281,7 @@ class VirtualDrive(ABC):
         self.node_id = node_id
         self.scaling = scaling
         self.actuation = Actuation.OFF
-        self.force = 0.0  # N along +l, with Actuation.TORQUE
+        self.force = 0.0  # N along +l: with TORQUE the force, with POSITION a feed-forward
         self.target_length = math.nan  # m, with Actuation.POSITION
         self.brake_engaged = True  # holding brakes are fail-safe: on while unpowered
         self.length = 0.0  # m, the encoder's view, set by measure()

@@ -13,6 +13,7 @@ import can
 from pydantic import BeforeValidator, Discriminator, Field, Tag, model_validator
 
 from cdpr import ConfigError, Robot
+from cdpr.control_spec import DEFAULT_FORCE_LAG
 from cdpr.description import FiniteFloat, PositiveFloat, StrictModel, validate_section
 from drivers.base import BrakeMode, Scaling
 
@@ -48,6 +49,12 @@ class DrivesConfig(StrictModel):
       estimates); SYNC-driven drives answer every SYNC instead.
     bus: the `can:` bus (by name) each drive is on; one name for every drive; needed
       only when `can:` lists several buses.  Node ids are distinct on each bus.
+    accept_fall_on_axis_error (odrive only): the user accepts that, without holding
+      brakes, an axis error (a dead daemon's watchdog expiry included) drops the platform:
+      ODrive firmware 0.6 disarms the axis on every error.  `check_fall_on_axis_error`.
+    force_lag: time constant (s) with which a drive's force follows its command (first
+      order: torque loop, current rise), measured at bring-up; controller.command_lead
+      "auto" allows for it.  Default: the simulator's actuator (2 ms).
     """
 
     protocol: Literal["cia402", "odrive"]
@@ -64,6 +71,8 @@ class DrivesConfig(StrictModel):
     heartbeat_timeout: PositiveSeconds = 0.35
     feedback_rate_hz: Annotated[float, Field(gt=0.0, le=10000.0)] = 500.0
     bus: BusName | list[BusName] | None = None
+    accept_fall_on_axis_error: bool = False
+    force_lag: Annotated[float, Field(ge=0.0, le=0.05, allow_inf_nan=False)] = DEFAULT_FORCE_LAG
 
     @model_validator(mode="after")
     def _consistent(self) -> DrivesConfig:
@@ -89,6 +98,8 @@ class DrivesConfig(StrictModel):
             raise ValueError("ODrive CANSimple node ids run 0..63")
         if self.brake is BrakeMode.HOLDING_BRAKE and not self.has_holding_brake:
             raise ValueError("brake: holding_brake needs has_holding_brake: true")
+        if self.accept_fall_on_axis_error and self.protocol != "odrive":
+            raise ValueError("accept_fall_on_axis_error applies to protocol odrive only")
         if self.heartbeat_timeout <= self.heartbeat_period:
             raise ValueError(
                 f"heartbeat_timeout ({self.heartbeat_timeout} s) must exceed "
@@ -178,6 +189,22 @@ class CanConfig(StrictModel):
         return can.Bus(
             interface=self.interface, channel=self.channel, bitrate=self.bitrate, **self.options
         )
+
+
+def check_fall_on_axis_error(drives: DrivesConfig, source: str = "config") -> None:
+    """ConfigError for an ODrive robot without holding brakes whose config does not say
+    that it accepts the fall: ODrive firmware 0.6 disarms an axis (IDLE, motor off) on
+    every axis error, its watchdog's included, so a dead daemon or any drive error lets a
+    suspended platform fall unless the winches have mechanical brakes."""
+    if drives.protocol != "odrive" or drives.has_holding_brake or drives.accept_fall_on_axis_error:
+        return
+    raise ConfigError(
+        f"{source}: drives.has_holding_brake: an ODrive robot needs holding brakes: ODrive "
+        "firmware 0.6 disarms an axis (IDLE, motor unpowered) on every axis error, a dead "
+        "daemon's watchdog expiry included, and without brakes the platform then falls. Fit "
+        "brakes and set has_holding_brake: true, or set drives.accept_fall_on_axis_error: "
+        "true to accept that risk (a platform resting on a support)"
+    )
 
 
 def parse_drives(data: Any, source: str = "config", key: str = "drives") -> DrivesConfig:

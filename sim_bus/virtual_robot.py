@@ -38,8 +38,9 @@ OVERCURRENT = {"cia402": 0x2310, "odrive": 0x1000}
 
 class PositionServo:
     """The drive's internal position loop (PID on the cable length) used while it holds
-    a length.  Starts bumpless: the integrator takes the force the drive was producing,
-    so a platform that was held by torque is not dropped when the hold begins."""
+    a length.  Starts bumpless: the integrator takes the force the drive was producing
+    (less the drive's feed-forward), so a platform that was held by torque is not dropped
+    when the hold begins."""
 
     def __init__(self, kp: float = 5.0e4, ki: float = 2.0e5, kd: float = 800.0) -> None:
         self.kp, self.ki, self.kd = kp, ki, kd
@@ -233,13 +234,14 @@ class VirtualRobot:
                 powered = actuation is not Actuation.OFF
                 if previous is None or powered != (previous is not Actuation.OFF):
                     plant.set_drive_enabled(k, powered)  # restarts the electrical state
-                if actuation is Actuation.POSITION:
-                    self.servos[k].start(commands[k])
+                if actuation is Actuation.POSITION:  # from OFF the drive produced nothing
+                    off = previous is Actuation.OFF
+                    self.servos[k].start(0.0 if off else commands[k] - drive.force)
                 self._applied[k] = actuation
             if actuation is Actuation.TORQUE:
                 forces[k] = drive.force
             elif actuation is Actuation.POSITION:
-                forces[k] = self.servos[k].force(
+                forces[k] = drive.force + self.servos[k].force(
                     drive.target_length, drive.length, drive.rate, self._step
                 )
             else:

@@ -43,7 +43,8 @@ class LoopModes(NamedTuple):
 
 class Rig(NamedTuple):
     """One actuator's rig as the analysis sees it: actuator, controller, loop period and
-    discretisation, plant model, cable length (m) and preload (N); the load varies."""
+    discretisation, plant model, cable length (m) and preload (N), and whether the
+    controller reads the true rate (closed_loop_matrices); the load varies."""
 
     actuator: ActuatorSpec
     controller: LinearController
@@ -52,6 +53,7 @@ class Rig(NamedTuple):
     config: PlantConfig | None = None
     cable_length: float = 2.0
     preload: float = 100.0
+    true_rate: bool = False
 
     def matrices(self, mass: float, latency: float = 0.0) -> tuple[Array, Array, Array]:
         """closed_loop_matrices with effective mass `mass` (>= m0, finite)."""
@@ -61,7 +63,9 @@ class Rig(NamedTuple):
         rig = SingleActuatorRig(
             self.actuator, mass - m0, self.config, self.cable_length, self.preload
         )
-        return closed_loop_matrices(rig, self.controller, self.period, mass, self.method, latency)
+        return closed_loop_matrices(
+            rig, self.controller, self.period, mass, self.method, latency, self.true_rate
+        )
 
     def stable(self, mass: float, latency: float = 0.0) -> bool:
         """Is the loop with effective mass `mass` stable, its commands `latency` s late?"""
@@ -102,13 +106,16 @@ def closed_loop_matrices(
     mass: float,
     method: Discretisation = "zoh",
     latency: float = 0.0,
+    true_rate: bool = False,
 ) -> tuple[Array, Array, Array]:
     """The sampled loop [plant; controller] with f_c = mass * a: state matrix, the
     input column of a unit step in the length reference, and the length output row.
 
     The controller reads the length and the rate as the drive reports it: a difference
     of lengths over the encoder's velocity window when that window is a whole number of
-    loop periods (one delayed length sample per period of window), else the true rate.
+    loop periods (one delayed length sample per period of window), else, or with
+    `true_rate` (a twist estimate whose low frequencies come from the poses, as
+    ParallelController's with a cable stiffness), the true rate.
 
     The command computed from the sample at t_k takes effect at t_k + `latency` and is
     held until the next one does (tuning.lockstep's `latency`); the commands still on
@@ -131,7 +138,7 @@ def closed_loop_matrices(
     window = rig.config.encoder.velocity_window_steps * rig.config.step
     lags = round(window / period)
     n = Phi.shape[0]
-    if lags >= 1 and abs(lags * period - window) < 1e-12:
+    if not true_rate and lags >= 1 and abs(lags * period - window) < 1e-12:
         # augment with the last `lags` length samples: z_j[k+1] = z_{j-1}[k], z_0 = l
         size = n + lags
         P = np.zeros((size, size))

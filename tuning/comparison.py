@@ -1,7 +1,8 @@
 """Closed-loop figures of the standard trajectory set: the paper's controller, the
-joint-space baseline with the same gains, and the paper's controller under model
-mismatch.  bench/controller.py prints them (its `tracking` figures) and the paper-claim
-tests check them (claim 3: baseline_ratio < 1), from this one function.
+joint-space baseline with the same gains, the paper's controller under model mismatch
+and without its command lead.  bench/controller.py prints them (its `tracking` figures)
+and the paper-claim tests check them (claim 3: baseline_ratio < 1), from this one
+function.
 """
 
 from __future__ import annotations
@@ -26,9 +27,12 @@ MISMATCH = {
 def standard_set_figures(robot: Robot, spec: ControllerSpec) -> dict[str, dict[str, Any]]:
     """Per trajectory of STANDARD_SET: the paper's controller's TrackingResult figures
     (rounded), "baseline" (the joint-space controller's), "baseline_ratio" (RMS position
-    error, paper / baseline) and "mismatch" (plant mass +10 %, m0 -10 %, 5 um noise)."""
+    error, paper / baseline), "mismatch" (plant mass +10 %, m0 -10 %, 5 um noise),
+    "no_lead" (commands evaluated for their measurement's instant: command_lead 0) and
+    "lead_ratio" (RMS position error, spec's lead / none)."""
     out: dict[str, dict[str, Any]] = {}
     mismatch = parse_plant_config(MISMATCH)
+    unled = spec.model_copy(update={"command_lead": 0.0})
     for name, make in STANDARD_SET.items():
         trajectory = make(robot)
         paper = run_tracking(robot, trajectory, ParallelController(robot, spec), PlantConfig())
@@ -38,6 +42,9 @@ def standard_set_figures(robot: Robot, spec: ControllerSpec) -> dict[str, dict[s
         figures["baseline"] = _rounded(base.figures())
         figures["baseline_ratio"] = round(paper.rms_mm / base.rms_mm, 3)
         figures["mismatch"] = _rounded(off.figures())
+        late = run_tracking(robot, trajectory, ParallelController(robot, unled), PlantConfig())
+        figures["no_lead"] = _rounded(late.figures())
+        figures["lead_ratio"] = round(paper.rms_mm / late.rms_mm, 3)
         out[name] = figures
     return out
 

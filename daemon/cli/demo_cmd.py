@@ -24,7 +24,7 @@ import numpy as np
 from cdpr import ConfigError, Pose
 from cdpr.controller import ControlOutput
 from cdpr.trajectory import Trajectory
-from daemon.cli.run_cmd import add_view_option, report, view_edit
+from daemon.cli.run_cmd import add_interface_options, interface_edit, report
 from daemon.config import DaemonConfig, load_config
 from daemon.process.logsetup import configure_logging
 from daemon.service.service import Service
@@ -44,14 +44,14 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     demo.add_argument("--config", default=str(DEFAULT_CONFIG), help="daemon config YAML")
     demo.add_argument("--plot", metavar="PNG", help="write a plot of the run")
     demo.add_argument("--log-level", default="error")
-    add_view_option(demo)
+    add_interface_options(demo)
     demo.set_defaults(handler=run)
 
 
 def run(args: argparse.Namespace) -> int:
     try:
         configure_logging(args.log_level)
-        config = _loopback_config(Path(args.config), view_edit(args.view))
+        config = _loopback_config(Path(args.config), interface_edit(args))
     except ConfigError as exc:
         report(exc)
         return 1
@@ -59,10 +59,10 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _loopback_config(
-    path: Path, view: Callable[[dict[str, Any]], None] | None = None
+    path: Path, edit: Callable[[dict[str, Any]], None] | None = None
 ) -> DaemonConfig:
     """The config with zenoh on a free loopback port, so a running daemon is not hit
-    (and the `view` edit, when --view is given)."""
+    (and then `edit`: the command line's --view and --record)."""
     with socket.socket() as probe:
         probe.bind(("127.0.0.1", 0))
         port = probe.getsockname()[1]
@@ -71,8 +71,8 @@ def _loopback_config(
         zenoh = dict(data.get("zenoh") or {})
         zenoh.update(listen=[f"tcp/127.0.0.1:{port}"], connect=[], mode="peer", expose=False)
         data["zenoh"] = zenoh
-        if view is not None:
-            view(data)
+        if edit is not None:
+            edit(data)
 
     return load_config(path, loopback)
 
@@ -122,6 +122,8 @@ async def _demo(config: DaemonConfig, plot: str | None) -> int:
         print("demo: no control cycle while the trajectory ran", file=sys.stderr)
         return 1
     _print(config, result, figures, trajectory.duration)
+    if config.recording.telemetry:
+        print(f"telemetry recorded to {_latest_recording(Path(config.recording.telemetry))}")
     if plot:
         _plot(samples, Path(plot))
         print(f"plot written to {plot}")
@@ -129,6 +131,12 @@ async def _demo(config: DaemonConfig, plot: str | None) -> int:
         print(f"3-D view at the largest tension written to {drawing}")
     ok = result["state"] == "hold" and figures.rms_mm < 5.0
     return code if ok else 1
+
+
+def _latest_recording(path: Path) -> Path:
+    """The newest file recorded for `path` (session_path inserts the start time)."""
+    runs = path.parent.glob(f"{path.stem}-*{path.suffix}")
+    return max(runs, key=lambda p: p.stat().st_mtime, default=path)
 
 
 async def _start_client() -> asyncio.subprocess.Process:

@@ -6,12 +6,14 @@ import argparse
 import asyncio
 import sys
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 from cdpr import ConfigError
 from daemon.config import DaemonConfig, load_config
 from daemon.process.app import close_bus, open_bus, serve
 from daemon.process.logsetup import configure_logging
+from drivers.config import check_fall_on_axis_error
 
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:
@@ -26,7 +28,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         "--sim", action="store_true", help="drive an in-process simulator instead of hardware"
     )
     run.add_argument("--log-level", help="override logging.level (debug, info, warning, error)")
-    add_view_option(run)
+    add_interface_options(run)
     run.set_defaults(handler=run_command)
     sim = sub.add_parser(
         "sim",
@@ -38,7 +40,8 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     sim.set_defaults(handler=sim_command)
 
 
-def add_view_option(parser: argparse.ArgumentParser) -> None:
+def add_interface_options(parser: argparse.ArgumentParser) -> None:
+    """--view [HOST:PORT] and --record FILE.mcap, shared by `run` and `demo`."""
     parser.add_argument(
         "--view",
         nargs="?",
@@ -47,6 +50,12 @@ def add_view_option(parser: argparse.ArgumentParser) -> None:
         type=_view_address,
         help="serve the live 3-D view (Foxglove WebSocket) as the view: section says, "
         "on HOST:PORT or PORT if given (default 127.0.0.1:8765)",
+    )
+    parser.add_argument(
+        "--record",
+        metavar="FILE.mcap",
+        help="record the run's telemetry to FILE.mcap with the run's start time inserted "
+        "(recording.telemetry; Foxglove opens it)",
     )
 
 
@@ -57,20 +66,24 @@ def _view_address(text: str) -> str:
     return text
 
 
-def view_edit(address: str | None) -> Callable[[dict[str, Any]], None] | None:
-    """A config edit that turns the view on (at `address`, HOST:PORT or PORT, if not
-    empty); None when the option was not given."""
-    if address is None:
-        return None
+def interface_edit(args: argparse.Namespace) -> Callable[[dict[str, Any]], None]:
+    """The config edit of --view (the view on, at HOST:PORT or PORT if given) and
+    --record (recording.telemetry, relative to the working directory)."""
+    address, record = args.view, args.record
 
     def edit(data: dict[str, Any]) -> None:
-        view = dict(data.get("view") or {}, enabled=True)
-        if address:
-            host, _, port = address.rpartition(":")
-            view["port"] = int(port)
-            if host:
-                view["host"] = host.removeprefix("[").removesuffix("]")
-        data["view"] = view
+        if address is not None:
+            view = dict(data.get("view") or {}, enabled=True)
+            if address:
+                host, _, port = address.rpartition(":")
+                view["port"] = int(port)
+                if host:
+                    view["host"] = host.removeprefix("[").removesuffix("]")
+            data["view"] = view
+        if record:
+            recording = dict(data.get("recording") or {})
+            recording["telemetry"] = str(Path(record).absolute())
+            data["recording"] = recording
 
     return edit
 
@@ -88,6 +101,7 @@ def load_checked(path: str, edit: Callable[[dict], None] | None = None) -> Daemo
     from daemon.cli.simulated import sim_section  # sim_bus, for this check only (DESIGN §2)
 
     config = load_config(path, edit)
+    check_fall_on_axis_error(config.drives, config.source)
     sim_section(config)
     return config
 
@@ -101,7 +115,7 @@ def load_or_exit(path: str, edit: Callable[[dict], None] | None = None) -> Daemo
 
 
 def run_command(args: argparse.Namespace) -> int:
-    config = load_or_exit(args.config, view_edit(args.view))
+    config = load_or_exit(args.config, interface_edit(args))
     try:
         configure_logging(args.log_level or config.logging.level)
     except ConfigError as exc:

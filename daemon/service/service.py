@@ -30,6 +30,7 @@ from cdpr.trajectory.core import Curve
 from daemon.config import DaemonConfig
 from daemon.service.api import CommandError
 from daemon.service.bus_port import Buses, open_port
+from daemon.service.command_lead import LatencyMedian
 from daemon.service.cycle_stats import CycleStats
 from daemon.service.gc_policy import CollectorPolicy
 from daemon.service.planner import PLANNING_LEAD
@@ -59,8 +60,12 @@ class Service:
         self.robot = robot = config.robot
         self.n = robot.n_cables
         self.driver: ActuatorDriver = make_driver(config.drives, robot)
-        self.controller = ParallelController(robot, config.controller)
+        self.controller = ParallelController(robot, config.controller, config.drives.force_lag)
         self.period = self.controller.period
+        # the measured sample-to-command latency the controller's lead allows for ("auto")
+        self._latency = (
+            LatencyMedian(self.period) if config.controller.command_lead == "auto" else None
+        )
         self.stats = CycleStats(config.controller.rate_hz)
         self.machine = StateMachine()
         self.monitor = SafetyMonitor(config)
@@ -320,6 +325,10 @@ class Service:
             self.brake(Fault(Trigger.NAN, str(exc)))
             return
         self._send(frames)
+        if self._latency is not None:
+            latency = self._latency.add(time.monotonic() - self._opened)
+            if latency is not None:
+                self.controller.set_latency(latency)
         self.trust.follow_pose(output.pose)
         while self._scheduled and t >= self._scheduled[0].start_time:
             self._trajectory = self._scheduled.pop(0)
@@ -624,7 +633,11 @@ class Service:
             **self.status(),
             "lengths": [fb.length for fb in feedback],
             "rates": [fb.rate for fb in feedback],
-            "cycle": {**self.stats.summary(), "gc": self.collector.stats.summary()},
+            "cycle": {
+                **self.stats.summary(),
+                "gc": self.collector.stats.summary(),
+                "command_lead_us": round(self.controller.lead * 1e6, 1),
+            },
             "frames": {
                 "accepted": self.driver.counters.accepted,
                 "rejected": dict(self.driver.counters.rejected),

@@ -5,12 +5,14 @@ are motor turns, velocities turns/s, torques N·m at the motor shaft, as float32
 layouts follow ODrive's CAN protocol page and are described, signal by signal, in
 config/can/odrive_cansimple.dbc (tests check every frame against it).
 
-Frames are sent with the shortest DLC that holds their payload (Set_Input_Torque: 4
-bytes, as in ODrive's own python-can examples; fewer bits on a bus that carries 8 drives)
-and the device replies with 8 bytes as the firmware does.  Decoders accept any DLC from
-the payload size up to 8 (trailing bytes ignored, like the firmware) and raise
-`OdriveFrameError` for a shorter frame, a non-finite float or an out-of-range enum value.
-`OdriveFrameError.reason` ("<Message>.<problem>") is the key drivers count rejects by.
+Every frame carries the data length ODrive's DBC gives its message (`LENGTHS`: 8 bytes for
+all but Estop, 0, and Clear_Errors, 1), unused bytes zero, as the firmware and ODrive's own
+CAN libraries send them.  Decoders refuse a frame shorter than that length (longer ones,
+up to 8, are read like the firmware: trailing bytes ignored) with `OdriveFrameError`, and
+so a non-finite float or an out-of-range enum value.  A heartbeat's axis state outside
+firmware 0.6's list is decoded all the same (an int, not an `AxisState`): the host reports
+it as a fault instead of losing the axis' heartbeats.  `OdriveFrameError.reason`
+("<Message>.<problem>") is the key drivers count rejects by.
 
 Every encoder and decoder uses a precompiled `struct.Struct`: the hot path (torque
 command, encoder estimate) costs one pack or unpack and one `can.Message`.
@@ -64,13 +66,15 @@ MESSAGE_NAMES = {
 
 
 class AxisState(enum.IntEnum):
-    """ODrive 0.6 AxisState (5, sensorless control, no longer exists)."""
+    """ODrive 0.6.x AxisState, as ODrive's 0.6 DBC and the odrive package's enums list it
+    (5, SENSORLESS_CONTROL, is in the DBC's value table only; 15 and 16 came with 0.6.x)."""
 
     UNDEFINED = 0
     IDLE = 1
     STARTUP_SEQUENCE = 2
     FULL_CALIBRATION_SEQUENCE = 3
     MOTOR_CALIBRATION = 4
+    SENSORLESS_CONTROL = 5
     ENCODER_INDEX_SEARCH = 6
     ENCODER_OFFSET_CALIBRATION = 7
     CLOSED_LOOP_CONTROL = 8
@@ -80,6 +84,8 @@ class AxisState(enum.IntEnum):
     ENCODER_HALL_POLARITY_CALIBRATION = 12
     ENCODER_HALL_PHASE_CALIBRATION = 13
     ANTICOGGING_CALIBRATION = 14
+    HARMONIC_CALIBRATION = 15
+    HARMONIC_CALIBRATION_COMMUTATION = 16
 
 
 class ControlMode(enum.IntEnum):
@@ -109,9 +115,10 @@ class ProcedureResult(enum.IntEnum):
 
 
 class AxisError(enum.IntFlag):
-    """ODrive 0.6 ODriveError bits, the heartbeat's axis_error and Get_Error's
-    active_errors.  (0.5.x numbered axis errors differently: its WATCHDOG_TIMER_EXPIRED
-    was 0x800, which 0.6 uses for DC_BUS_OVER_REGEN_CURRENT.)"""
+    """ODrive 0.6.x ODriveError bits, the heartbeat's axis_error and Get_Error's
+    active_errors (0x20000 as odrive 0.6.11's enums name it; bits not listed show in hex).
+    (0.5.x numbered axis errors differently: its WATCHDOG_TIMER_EXPIRED was 0x800, which
+    0.6 uses for DC_BUS_OVER_REGEN_CURRENT.)"""
 
     INITIALIZING = 0x00000001
     SYSTEM_LEVEL = 0x00000002
@@ -129,6 +136,7 @@ class AxisError(enum.IntFlag):
     INVERTER_OVER_TEMP = 0x00004000
     VELOCITY_LIMIT_VIOLATION = 0x00008000
     POSITION_LIMIT_VIOLATION = 0x00010000
+    REQUESTED_CURRENT_TOO_HIGH = 0x00020000
     WATCHDOG_TIMER_EXPIRED = 0x01000000
     ESTOP_REQUESTED = 0x02000000
     SPINOUT_DETECTED = 0x04000000
@@ -174,12 +182,24 @@ def frame_id(node_id: int, cmd: int) -> int:
 
 # -- payload layouts -------------------------------------------------------------------
 
-HEARTBEAT = struct.Struct("<IBBB")  # axis_error, axis_state, procedure_result, trajectory_done
-HEARTBEAT_TX = struct.Struct("<IBBBx")  # sent with its reserved 8th byte, as the firmware does
-U32 = struct.Struct("<I")  # Set_Axis_State
+# data length of each message in ODrive's DBC (config/can/odrive_cansimple.dbc)
+LENGTHS = {
+    Cmd.HEARTBEAT: 8,
+    Cmd.ESTOP: 0,
+    Cmd.GET_ERROR: 8,
+    Cmd.SET_AXIS_STATE: 8,
+    Cmd.GET_ENCODER_ESTIMATES: 8,
+    Cmd.SET_CONTROLLER_MODE: 8,
+    Cmd.SET_INPUT_POS: 8,
+    Cmd.SET_INPUT_TORQUE: 8,
+    Cmd.CLEAR_ERRORS: 1,
+}
+# axis_error, axis_state, procedure_result, trajectory_done (bit 0), reserved byte
+HEARTBEAT = struct.Struct("<IBBBx")
+U32 = struct.Struct("<I4x")  # Set_Axis_State
 TWO_U32 = struct.Struct("<II")  # Set_Controller_Mode, Get_Error
 TWO_F32 = struct.Struct("<ff")  # Get_Encoder_Estimates
-F32 = struct.Struct("<f")  # Set_Input_Torque
+F32 = struct.Struct("<f4x")  # Set_Input_Torque
 INPUT_POS = struct.Struct("<fhh")  # input_pos, vel_ff, torque_ff
 U8 = struct.Struct("<B")  # Clear_Errors identify
 
@@ -194,8 +214,9 @@ def _float32(value: float, what: str) -> float:
     return value
 
 
-def _payload(message: can.Message, cmd: int, size: int) -> bytearray:
+def _payload(message: can.Message, cmd: Cmd) -> bytearray:
     data = message.data
+    size = LENGTHS[cmd]
     if not size <= len(data) <= MAX_DLC:
         raise OdriveFrameError(
             message, cmd, "dlc", f"{len(data)} data bytes, expected {size}..{MAX_DLC}"
@@ -214,7 +235,7 @@ def _finite(message: can.Message, cmd: int, *values: float) -> None:
 
 class Heartbeat(NamedTuple):
     axis_error: int
-    axis_state: AxisState
+    axis_state: AxisState | int  # an int: a state firmware 0.6 does not list
     procedure_result: int
     trajectory_done: bool
 
@@ -229,16 +250,14 @@ def encode_heartbeat(
     return _message(
         node_id,
         Cmd.HEARTBEAT,
-        HEARTBEAT_TX.pack(axis_error, axis_state, procedure_result, trajectory_done),
+        HEARTBEAT.pack(axis_error, axis_state, procedure_result, trajectory_done),
     )
 
 
 def decode_heartbeat(message: can.Message) -> Heartbeat:
-    error, state, result, done = HEARTBEAT.unpack_from(_payload(message, Cmd.HEARTBEAT, 7))
+    error, state, result, done = HEARTBEAT.unpack_from(_payload(message, Cmd.HEARTBEAT))
     axis_state = _AXIS_STATES[state]
-    if axis_state is None:
-        raise OdriveFrameError(message, Cmd.HEARTBEAT, "axis_state", f"unknown axis state {state}")
-    return Heartbeat(error, axis_state, result, bool(done & 1))
+    return Heartbeat(error, state if axis_state is None else axis_state, result, bool(done & 1))
 
 
 def encode_encoder_estimates(node_id: int, pos: float, vel: float) -> can.Message:
@@ -248,7 +267,7 @@ def encode_encoder_estimates(node_id: int, pos: float, vel: float) -> can.Messag
 
 
 def decode_encoder_estimates(message: can.Message) -> tuple[float, float]:
-    pos, vel = TWO_F32.unpack_from(_payload(message, Cmd.GET_ENCODER_ESTIMATES, 8))
+    pos, vel = TWO_F32.unpack_from(_payload(message, Cmd.GET_ENCODER_ESTIMATES))
     _finite(message, Cmd.GET_ENCODER_ESTIMATES, pos, vel)
     return pos, vel
 
@@ -260,7 +279,7 @@ def encode_error_status(node_id: int, active_errors: int, disarm_reason: int) ->
 
 def decode_error_status(message: can.Message) -> tuple[int, int]:
     """(active_errors, disarm_reason) from a Get_Error answer."""
-    return TWO_U32.unpack_from(_payload(message, Cmd.GET_ERROR, 8))
+    return TWO_U32.unpack_from(_payload(message, Cmd.GET_ERROR))
 
 
 # -- host -> drive ---------------------------------------------------------------------
@@ -289,7 +308,7 @@ def encode_set_axis_state(node_id: int, state: AxisState) -> can.Message:
 
 
 def decode_set_axis_state(message: can.Message) -> AxisState:
-    (state,) = U32.unpack_from(_payload(message, Cmd.SET_AXIS_STATE, 4))
+    (state,) = U32.unpack_from(_payload(message, Cmd.SET_AXIS_STATE))
     axis_state = _AXIS_STATES[state] if state < 256 else None
     if axis_state is None:
         raise OdriveFrameError(
@@ -305,7 +324,7 @@ def encode_set_controller_mode(
 
 
 def decode_set_controller_mode(message: can.Message) -> tuple[ControlMode, InputMode]:
-    control, inputs = TWO_U32.unpack_from(_payload(message, Cmd.SET_CONTROLLER_MODE, 8))
+    control, inputs = TWO_U32.unpack_from(_payload(message, Cmd.SET_CONTROLLER_MODE))
     if control not in ControlMode._value2member_map_:
         raise OdriveFrameError(
             message, Cmd.SET_CONTROLLER_MODE, "control_mode", f"unknown control mode {control}"
@@ -340,7 +359,7 @@ def encode_set_input_pos(
 
 def decode_set_input_pos(message: can.Message) -> tuple[float, float, float]:
     """(pos turns, vel_ff turns/s, torque_ff N·m)."""
-    pos, vel_ff, torque_ff = INPUT_POS.unpack_from(_payload(message, Cmd.SET_INPUT_POS, 8))
+    pos, vel_ff, torque_ff = INPUT_POS.unpack_from(_payload(message, Cmd.SET_INPUT_POS))
     _finite(message, Cmd.SET_INPUT_POS, pos)
     return pos, vel_ff * FF_SCALE, torque_ff * FF_SCALE
 
@@ -351,7 +370,7 @@ def encode_set_input_torque(node_id: int, torque: float) -> can.Message:
 
 
 def decode_set_input_torque(message: can.Message) -> float:
-    (torque,) = F32.unpack_from(_payload(message, Cmd.SET_INPUT_TORQUE, 4))
+    (torque,) = F32.unpack_from(_payload(message, Cmd.SET_INPUT_TORQUE))
     _finite(message, Cmd.SET_INPUT_TORQUE, torque)
     return torque
 
@@ -361,6 +380,5 @@ def encode_clear_errors(node_id: int, identify: bool = False) -> can.Message:
 
 
 def decode_clear_errors(message: can.Message) -> bool:
-    """The identify flag (blink the LED); a frame without data means no identify."""
-    data = _payload(message, Cmd.CLEAR_ERRORS, 0)
-    return bool(data and data[0] & 1)
+    """The identify flag (blink the LED)."""
+    return bool(_payload(message, Cmd.CLEAR_ERRORS)[0] & 1)

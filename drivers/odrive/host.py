@@ -6,14 +6,25 @@ encoder_msg_rate_ms and heartbeat_msg_rate_ms); `receive` returns the actuator i
 every accepted estimate.  A force is sent as Set_Input_Torque in N·m at the motor shaft,
 lengths arrive as motor turns; both convert through `Scaling` (counts_per_rev = 1: turns).
 
+Axis state requests.  Set_Axis_State goes out only when the axis must change state: not
+when its last heartbeat already shows the state, nor when the host asked for it since
+that heartbeat.  Firmware restarts an axis that is asked for CLOSED_LOOP_CONTROL again
+(input reset, a gap in torque): braking, enable and reset never do that to an axis in
+closed loop.
+
 Braking (DESIGN §9).  ODrive's Estop, and IDLE on an axis without a mechanical brake,
 cut the motor and let a suspended platform fall: neither is ever used as a brake here.
 - POSITION_HOLD: Set_Controller_Mode(POSITION_CONTROL, PASSTHROUGH), Set_Axis_State(
-  CLOSED_LOOP_CONTROL), Set_Input_Pos(length): the drive servoes the cable at `length`
-  (firmware resets input_pos to the position estimate on the mode change, so the first
-  frame already holds).  Takes effect with no answer; `keepalive` re-sends Set_Input_Pos.
+  CLOSED_LOOP_CONTROL) where the axis is not in closed loop, Set_Input_Pos(length,
+  torque_ff = the last commanded torque): the drive servoes the cable at `length` and
+  keeps carrying the load it carried (firmware resets input_pos to the position estimate
+  on the mode change, so the first frame already holds; input_torque is the position
+  loop's feed-forward, which a torque_ff of 0 would drop).  Takes effect with no answer;
+  `keepalive` re-sends Set_Input_Pos.
 - HOLDING_BRAKE: Set_Axis_State(IDLE), only with has_holding_brake: the firmware engages
   the brake when it disarms.  Asked for without a brake, `brake` holds position instead.
+  An axis that is IDLE with its brake engaged stays so whichever mode is asked for: its
+  brake already holds, and releasing it into a position loop would let the load sag.
 
 Sequences (coroutines on a `Link`):
 - start: a heartbeat from every node (DriverError naming the missing ones), then every
@@ -21,24 +32,31 @@ Sequences (coroutines on a `Link`):
   READY); without one, closed-loop position control at the length of its first encoder
   estimate (HOLDING), because IDLE would let the platform fall.  Errors are cleared in
   the same batch and the sequence waits for heartbeats showing no error and that state.
-- enable: position hold at `lengths`, CLOSED_LOOP_CONTROL confirmed by heartbeat, then
-  Set_Input_Torque(0) and Set_Controller_Mode(TORQUE_CONTROL, PASSTHROUGH): zero torque
-  until the first `commands`.  After `brake`, force commands are ignored by the drive
-  (it is in position control) until `enable` runs again: a brake is never released by
-  a stray command.
+- enable: position hold at `lengths` with the enable forces as torque feed-forward (an
+  axis leaving its holding brake takes up the load at once), CLOSED_LOOP_CONTROL
+  confirmed by heartbeat, then Set_Input_Torque(forces) and Set_Controller_Mode(
+  TORQUE_CONTROL, PASSTHROUGH).  After `brake`, a force command only changes the position
+  loop's feed-forward (firmware's input_torque): the position loop still holds the
+  length until `enable` runs again, so a brake is never released by a stray command.
 - reset_faults: Clear_Errors and the same hold as start, confirmed by heartbeats with
   axis_error == 0.
-While a sequence waits it feeds the watchdog of holding drives (`keepalive` every third
-of watchdog_timeout) and asks for the awaited frame by RTR, so it need not wait a whole
-heartbeat period.
+While a sequence waits it feeds the watchdog of every drive not in torque control
+(`keepalive` every third of watchdog_timeout) and asks for the awaited frame by RTR, so
+it need not wait a whole heartbeat period.
 
 Watchdog: set each axis' enable_watchdog and watchdog_timeout = DrivesConfig.
-watchdog_timeout.  Every command frame feeds it; `keepalive` feeds holding drives and
-never re-sends a force, so a daemon that stops commanding while ENABLED lets it expire.
-Real firmware disarms the axis (IDLE) on an axis error, watchdog expiry and Estop
-included: without a holding brake a dead host then lets the platform fall on real
-hardware.  The simulated drive (sim_bus.devices.odrive) holds position instead, as
-DrivesConfig.brake asks; fail-safe suspended ODrive robots need holding brakes.
+watchdog_timeout.  Firmware 0.6 counts it down in every axis state, from power-on, and
+feeds it on ANY frame with the axis' node id (commands, requests, malformed frames alike).
+So `keepalive` feeds every axis that is not following forces: Set_Input_Pos to a drive
+holding a position, a Get_Error request (RTR, once per third of watchdog_timeout) to an
+idle or braked one.  It never re-sends a force and sends nothing to a drive in torque
+control, so a daemon that stops commanding while ENABLED lets the watchdog expire; no
+other frame may go to an ODrive node id outside the cycle (it would feed the watchdog).
+Firmware disarms the axis (IDLE) on every axis error, watchdog expiry and Estop included:
+without a holding brake the platform then falls, which is why `cdprd check-config`
+refuses an ODrive robot without drives.has_holding_brake unless the config accepts that
+(drives.accept_fall_on_axis_error).  The simulated drive (sim_bus.devices.odrive) does
+the same.
 """
 
 from __future__ import annotations
@@ -80,6 +98,8 @@ from drivers.odrive.codec import (
     input_pos_payload,
     is_error_request,
 )
+
+MAX_TORQUE_FF = 32.767  # N·m: Set_Input_Pos' torque_ff is an int16 of 0.001 N·m
 
 
 class Intent(enum.Enum):
@@ -130,9 +150,12 @@ class OdriveDriver(ActuatorDriver):
         self.ignored = 0
         self.drive_errors: list[tuple[int, int] | None] = [None] * self.n
         self.intent = [Intent.NONE] * self.n
-        self._axis_state: list[AxisState | None] = [None] * self.n
+        self._axis_state: list[AxisState | int | None] = [None] * self.n
+        self._requested: list[AxisState | None] = [None] * self.n  # since the last heartbeat
+        self._next_idle_feed = -math.inf
         self._axis_error = [0] * self.n
         self._hold: list[bytes | None] = [None] * self.n  # Set_Input_Pos data while holding
+        self._torque = [0.0] * self.n  # N·m the next position hold feeds forward
         self._now: Callable[[], float] | None = None
         self._routes: dict[int, tuple[int, Cmd]] = {
             node << 5 | cmd: (i, cmd)
@@ -140,6 +163,7 @@ class OdriveDriver(ActuatorDriver):
             for cmd in (Cmd.GET_ENCODER_ESTIMATES, Cmd.HEARTBEAT, Cmd.GET_ERROR)
         }
         self._torque_ids = [node << 5 | Cmd.SET_INPUT_TORQUE for node in self.nodes]
+        self._feeds = [encode_request(node, Cmd.GET_ERROR) for node in self.nodes]
         self._pos_ids = [node << 5 | Cmd.SET_INPUT_POS for node in self.nodes]
         self._torque_per_newton = [s.motor_torque(1.0) for s in self.scalings]
         self._metres_per_turn = [s.metres_per_count for s in self.scalings]
@@ -157,7 +181,7 @@ class OdriveDriver(ActuatorDriver):
         if len(lengths) != self.n or not all(math.isfinite(x) for x in lengths):
             raise ValueError(f"enable needs {self.n} finite lengths, got {list(lengths)}")
         first = self.commands(forces)  # FrameError on a bad force, before anything moves
-        holds = [self._hold_payload(i, length) for i, length in enumerate(lengths)]
+        holds = [self._hold_payload(i, length, self._torque[i]) for i, length in enumerate(lengths)]
         for i, hold in enumerate(holds):
             if hold is None:
                 raise ValueError(f"actuator {i}: length {lengths[i]} m is no float32 position")
@@ -184,7 +208,8 @@ class OdriveDriver(ActuatorDriver):
         if self.has_holding_brake:
             for i, node in enumerate(self.nodes):
                 link.send(encode_clear_errors(node))
-                link.send(encode_set_axis_state(node, AxisState.IDLE))
+                for message in self._state_change(i, AxisState.IDLE):
+                    link.send(message)
                 self._set_intent(i, Intent.NONE, None)
             await self._confirm(link, AxisState.IDLE, what)
             return
@@ -197,6 +222,7 @@ class OdriveDriver(ActuatorDriver):
         )
         for i in range(self.n):
             pos, _ = decode_encoder_estimates(estimates[i])
+            self._torque[i] = 0.0  # the load is unknown: the position loop takes it up
             self._send_hold(link, i, input_pos_payload(pos), clear=True)
         await self._confirm(link, AxisState.CLOSED_LOOP_CONTROL, what)
 
@@ -280,7 +306,7 @@ class OdriveDriver(ActuatorDriver):
             return f"node {node} (nothing heard)"
         error = self._axis_error[i]
         fault = f", axis error 0x{error:08X} ({error_text(error)})" if error else ""
-        return f"node {node} (last heartbeat: {state.name}{fault}, {status.state.value})"
+        return f"node {node} (last heartbeat: {_state_name(state)}{fault}, {status.state.value})"
 
     # -- immediate frames ----------------------------------------------------------------
 
@@ -299,6 +325,7 @@ class OdriveDriver(ActuatorDriver):
                     f"actuator {i} (ODrive node {self.nodes[i]}): force {force} N "
                     f"is no finite float32 torque"
                 )
+            self._torque[i] = torque
             out.append(
                 can.Message(
                     arbitration_id=self._torque_ids[i], data=pack(torque), is_extended_id=False
@@ -314,12 +341,12 @@ class OdriveDriver(ActuatorDriver):
             raise ValueError(f"{len(lengths)} lengths for {self.n} ODrive actuators")
         out: list[can.Message] = []
         by_brake = mode is BrakeMode.HOLDING_BRAKE and self.has_holding_brake
-        for i, node in enumerate(self.nodes):
-            if by_brake:
-                out.append(encode_set_axis_state(node, AxisState.IDLE))
+        for i in range(self.n):
+            if by_brake or self._braked_idle(i):
+                out.extend(self._state_change(i, AxisState.IDLE))
                 self._set_intent(i, Intent.HOLD_BRAKE, None)
                 continue
-            hold = self._hold_payload(i, lengths[i])
+            hold = self._hold_payload(i, lengths[i], self._torque[i])
             out.extend(self._hold_frames(i, hold))
             self._set_intent(i, Intent.HOLD_POSITION, hold)
         return out
@@ -328,17 +355,25 @@ class OdriveDriver(ActuatorDriver):
         """IDLE on every axis: brakes engage where fitted, otherwise the drums free-wheel
         (only for a platform that rests on its support)."""
         out = []
-        for i, node in enumerate(self.nodes):
-            out.append(encode_set_axis_state(node, AxisState.IDLE))
+        for i in range(self.n):
+            out.extend(self._state_change(i, AxisState.IDLE))
             self._set_intent(i, Intent.NONE, None)
         return out
 
     def keepalive(self) -> list[can.Message]:
         """Set_Input_Pos again for every drive holding a position (Set_Controller_Mode
-        where no length is known); nothing for others: never a force."""
+        where no length is known); a Get_Error request, once per feed period, to every
+        idle or braked drive (its watchdog counts in IDLE too); nothing to a drive
+        following forces: never a force."""
         out = []
+        now = None if self._now is None else self._now()
+        feed_idle = now is None or now >= self._next_idle_feed
+        if feed_idle and now is not None:
+            self._next_idle_feed = now + self.feed_period
         for i, intent in enumerate(self.intent):
             if intent is not Intent.HOLD_POSITION:
+                if feed_idle and intent is not Intent.TORQUE:
+                    out.append(self._feeds[i])
                 continue
             hold = self._hold[i]
             if hold is None:
@@ -353,25 +388,40 @@ class OdriveDriver(ActuatorDriver):
         """RTR Get_Error to every node; answers land in `drive_errors`."""
         return [encode_request(node, Cmd.GET_ERROR) for node in self.nodes]
 
-    def _hold_payload(self, i: int, length: float) -> bytes | None:
+    def _hold_payload(self, i: int, length: float, torque: float) -> bytes | None:
+        """Set_Input_Pos data holding actuator i at `length` with `torque` (N·m) fed
+        forward (none where int16 of 0.001 N·m cannot carry it); None for no length."""
         if not math.isfinite(length):
             return None
+        feed_forward = torque if abs(torque) <= MAX_TORQUE_FF else 0.0
         try:
-            return input_pos_payload(self.scalings[i].position(length))
+            return input_pos_payload(self.scalings[i].position(length), 0.0, feed_forward)
         except FrameError:
             return None
 
     def _hold_frames(self, i: int, hold: bytes | None) -> list[can.Message]:
-        node = self.nodes[i]
-        frames = [
-            self._position_mode(i),
-            encode_set_axis_state(node, AxisState.CLOSED_LOOP_CONTROL),
-        ]
+        frames = [self._position_mode(i), *self._state_change(i, AxisState.CLOSED_LOOP_CONTROL)]
         if hold is not None:
             frames.append(
                 can.Message(arbitration_id=self._pos_ids[i], data=hold, is_extended_id=False)
             )
         return frames
+
+    def _braked_idle(self, i: int) -> bool:
+        """Axis i is (or was asked to be) IDLE with a holding brake engaged."""
+        requested = self._requested[i]
+        state = self._axis_state[i] if requested is None else requested
+        return self.has_holding_brake and state is AxisState.IDLE
+
+    def _state_change(self, i: int, state: AxisState) -> list[can.Message]:
+        """Set_Axis_State(state) unless axis i was asked for `state` since its last
+        heartbeat or, asked for nothing since, that heartbeat shows it: never a second
+        CLOSED_LOOP_CONTROL (a restart)."""
+        requested = self._requested[i]
+        if (self._axis_state[i] if requested is None else requested) is state:
+            return []
+        self._requested[i] = state
+        return [encode_set_axis_state(self.nodes[i], state)]
 
     def _position_mode(self, i: int) -> can.Message:
         return encode_set_controller_mode(
@@ -379,6 +429,8 @@ class OdriveDriver(ActuatorDriver):
         )
 
     def _set_intent(self, i: int, intent: Intent, hold: bytes | None) -> None:
+        if intent in (Intent.NONE, Intent.HOLD_BRAKE):
+            self._torque[i] = 0.0  # disarmed: nothing to feed forward
         self.intent[i] = intent
         self._hold[i] = hold
         self._refresh(i)
@@ -425,16 +477,21 @@ class OdriveDriver(ActuatorDriver):
 
     def _on_heartbeat(self, i: int, heartbeat: Heartbeat, now: float) -> None:
         error = heartbeat.axis_error
-        self._axis_state[i] = heartbeat.axis_state
+        state = heartbeat.axis_state
+        self._axis_state[i] = state
         self._axis_error[i] = error
+        if state is not self._requested[i]:
+            self._requested[i] = None  # reached, refused, or left since: ask again if needed
         status = self.status[i]
         status.heartbeat_stamp = now
         status.fault_code = error
-        status.fault = (
-            f"ODrive node {self.nodes[i]}: axis error 0x{error:08X} ({error_text(error)})"
-            if error
-            else None
-        )
+        node = self.nodes[i]
+        if error:
+            status.fault = f"ODrive node {node}: axis error 0x{error:08X} ({error_text(error)})"
+        elif not isinstance(state, AxisState):
+            status.fault = f"ODrive node {node}: unknown axis state {state} (not in firmware 0.6)"
+        else:
+            status.fault = None
         self._refresh(i)
 
     def _refresh(self, i: int) -> None:
@@ -444,7 +501,7 @@ class OdriveDriver(ActuatorDriver):
         holding = intent in (Intent.HOLD_POSITION, Intent.HOLD_BRAKE)
         if state is None or state is AxisState.UNDEFINED:
             drive_state = DriveState.UNKNOWN
-        elif self._axis_error[i]:
+        elif self._axis_error[i] or not isinstance(state, AxisState):
             drive_state = DriveState.FAULT
         elif state is AxisState.IDLE:
             drive_state = (
@@ -455,6 +512,10 @@ class OdriveDriver(ActuatorDriver):
         else:
             drive_state = DriveState.DISABLED  # a calibration or startup procedure runs
         self.status[i].state = drive_state
+
+
+def _state_name(state: AxisState | int) -> str:
+    return state.name if isinstance(state, AxisState) else f"unknown axis state {state}"
 
 
 def _decodes(i: int, message: can.Message) -> bool:

@@ -1,4 +1,4 @@
-"""Device side of one ODrive axis (CANSimple, firmware 0.6) for the simulator.
+"""Device side of one ODrive axis (CANSimple) for the simulator, behaving like firmware 0.6.
 
 States: IDLE (power stage off: the mechanical brake engages if fitted, otherwise the
 drum free-wheels, the dangerous case the host never chooses as a brake) and
@@ -6,29 +6,30 @@ CLOSED_LOOP_CONTROL in POSITION_CONTROL (servo to input_pos -> Actuation.POSITIO
 TORQUE_CONTROL (input_torque -> Actuation.TORQUE), both with PASSTHROUGH input.  Other
 control/input modes and the calibration states are refused and counted: the simulated
 drive is calibrated and has no velocity loop.  Like the firmware, entering closed loop or
-switching to position control sets input_pos to the position estimate (no jump), and
-Set_Input_Torque in position control is only stored.
-
-Power-on: `startup_closed_loop` (default: when there is no holding brake) models the axis
-setting startup_closed_loop_control, which a suspended robot without brakes needs: the
-drive holds its power-on length instead of free-wheeling until the host starts.
+switching to position control sets input_pos to the position estimate (no jump), and in
+position control input_torque (Set_Input_Torque, or Set_Input_Pos' torque_ff) is the
+torque feed-forward added to the position servo.  Asked for CLOSED_LOOP_CONTROL while
+in it, the axis restarts it as the firmware does (input_pos to the estimate, input_torque
+to 0: a gap in torque), counted in `restarts`.  The axis powers on IDLE.  A holding brake
+opens BRAKE_RELEASE_TIME after the axis arms (a spring-applied brake opens some 20 ms
+after its coil is energised; the motor current is up by then) and closes as it disarms.
 
 Cyclic frames from `on_tick`: Heartbeat every heartbeat_period, Get_Encoder_Estimates at
 feedback_rate_hz (turns and turns/s from `measure`).  RTR frames for Heartbeat,
 Get_Encoder_Estimates and Get_Error are answered at once.
 
-Watchdog: armed in closed loop; fed by every accepted command frame addressed to the axis
-(Set_Axis_State, Set_Controller_Mode, Set_Input_Pos, Set_Input_Torque, Clear_Errors), not
-by requests.  Expiry, an injected fault, or any axis error sets the error bits and takes
-the configured safe action: DrivesConfig.brake position_hold holds the current length in
-closed loop, holding_brake goes IDLE with the brake on.  The real firmware disarms (IDLE)
-on every axis error, which without a brake lets the platform fall; this simulated drive
-never does.  Estop is different, as on the real drive: ESTOP_REQUESTED and IDLE.
-While an error is latched, motion commands are refused (counted) until Clear_Errors;
-Set_Axis_State(IDLE) and Estop are always obeyed.
+Watchdog (watchdog_timeout set: enable_watchdog on): counts from power-on in every state,
+as the firmware's does, so it fires before any host talks unless a frame comes in time;
+fed by ANY frame with the axis' node id (commands, remote requests, unknown or malformed
+frames alike).  Expiry, an injected fault, Estop or any other axis error latches its error
+bits and disarms the axis (IDLE): with a holding brake the brake holds, without one the
+winch goes free (torque 0) and a suspended platform falls.  Errors latch until
+Clear_Errors (no state request clears them); meanwhile motion commands are refused
+(counted) and Set_Axis_State(IDLE) and Estop are obeyed.
 
-Malformed frames (short DLC, out-of-range enums) are counted in `counters.rejected` and
-ignored; so are NaN/inf floats, which a real ODrive would take: this one refuses them.
+Malformed frames (shorter than their DBC length, out-of-range enums) are counted in
+`counters.rejected` and ignored; so are NaN/inf floats, which a real ODrive would take:
+this one refuses them.
 """
 
 from __future__ import annotations
@@ -39,7 +40,7 @@ from collections.abc import Callable
 
 import can
 
-from drivers.base import Actuation, BrakeMode, FrameCounters, Scaling, VirtualDrive
+from drivers.base import Actuation, FrameCounters, Scaling, VirtualDrive
 from drivers.config import DrivesConfig
 from drivers.odrive.codec import (
     NODE_ID_MAX,
@@ -68,6 +69,7 @@ _SUPPORTED_MODES = frozenset(
     }
 )
 _ERROR_MAX = 0xFFFFFFFF
+BRAKE_RELEASE_TIME = 0.02  # s from arming to the holding brake open
 
 
 class OdriveAxis(VirtualDrive):
@@ -78,30 +80,20 @@ class OdriveAxis(VirtualDrive):
     frames for it that it has nothing to do with (its own messages, unknown commands).
     """
 
-    def __init__(
-        self,
-        node_id: int,
-        scaling: Scaling,
-        config: DrivesConfig,
-        *,
-        startup_closed_loop: bool | None = None,
-    ) -> None:
+    def __init__(self, node_id: int, scaling: Scaling, config: DrivesConfig) -> None:
         if not 0 <= node_id <= NODE_ID_MAX:
             raise ValueError(f"ODrive node ids run 0..{NODE_ID_MAX}, not {node_id}")
         if scaling.counts_per_rev != 1.0:
             raise ValueError(f"ODrive node {node_id} reports turns: counts_per_rev must be 1")
         super().__init__(node_id, scaling)
         self.has_holding_brake = config.has_holding_brake
-        self.safe_brake = config.brake
         self.watchdog_timeout = config.watchdog_timeout
         self.heartbeat_period = config.heartbeat_period
         self.estimate_period = 1.0 / config.feedback_rate_hz
-        self.startup_closed_loop = (
-            not config.has_holding_brake if startup_closed_loop is None else startup_closed_loop
-        )
         self.counters = FrameCounters()
         self.refused: Counter[str] = Counter()
         self.ignored = 0
+        self.restarts = 0  # CLOSED_LOOP_CONTROL asked for while in it
         self.axis_state = AxisState.IDLE
         self.axis_error = 0
         self.disarm_reason = 0
@@ -111,8 +103,9 @@ class OdriveAxis(VirtualDrive):
         self.input_mode = InputMode.PASSTHROUGH
         self.input_pos = 0.0  # turns
         self.input_torque = 0.0  # N·m
-        self._powered = False  # the first measure() is power-on
-        self._watchdog_deadline: float | None = None  # None: armed at the next tick
+        self._watchdog_deadline: float | None = None  # None: armed at the first tick
+        self._brake_opens: float | None = None  # when the brake opens after arming
+        self._brake_open = False
         self._next_heartbeat: float | None = None
         self._next_estimate = 0.0
         self._handlers: dict[int, Callable[[can.Message, float], list[can.Message]]] = {
@@ -128,13 +121,6 @@ class OdriveAxis(VirtualDrive):
 
     # -- VirtualDrive ---------------------------------------------------------------------
 
-    def measure(self, length: float, rate: float) -> None:
-        super().measure(length, rate)
-        if not self._powered:
-            self._powered = True
-            if self.startup_closed_loop:
-                self._arm(None)
-
     def on_frame(self, message: can.Message, now: float) -> list[can.Message]:
         arbitration_id = message.arbitration_id
         if (
@@ -145,6 +131,7 @@ class OdriveAxis(VirtualDrive):
         ):
             return []
         cmd = arbitration_id & 0x1F
+        self._feed(now)  # any frame for this node id, as the firmware counts it
         if message.is_remote_frame:
             return self._answer(cmd)
         handler = self._handlers.get(cmd)
@@ -158,12 +145,11 @@ class OdriveAxis(VirtualDrive):
             return []
 
     def on_tick(self, now: float) -> list[can.Message]:
-        if (
-            self.axis_state is AxisState.CLOSED_LOOP_CONTROL
-            and not self.axis_error
-            and self._expired(now)
-        ):
+        if self._expired(now):
             self._fault(AxisError.WATCHDOG_TIMER_EXPIRED, "watchdog timer expired")
+        if self._brake_opens is not None and now >= self._brake_opens:
+            self._brake_opens, self._brake_open = None, True
+            self._apply()
         out: list[can.Message] = []
         if self._next_heartbeat is None:  # first tick: both cyclic messages start now
             self._next_heartbeat = self._next_estimate = now
@@ -176,8 +162,8 @@ class OdriveAxis(VirtualDrive):
         return out
 
     def inject_fault(self, code: int, text: str) -> list[can.Message]:
-        """Latch `code` (ODrive error bits) and take the safe action; the next heartbeat
-        reports it, as on the real drive (nothing is sent at once)."""
+        """Latch `code` (ODrive error bits) and disarm; the next heartbeat reports it, as
+        on the real drive (nothing is sent at once)."""
         if not 0 < code <= _ERROR_MAX:
             raise ValueError(f"an ODrive error code is a non-zero u32, not {code}")
         self._fault(code, text)
@@ -208,10 +194,7 @@ class OdriveAxis(VirtualDrive):
 
     def _on_estop(self, message: can.Message, now: float) -> list[can.Message]:
         self.counters.accepted += 1
-        self.axis_error |= AxisError.ESTOP_REQUESTED
-        self.disarm_reason = AxisError.ESTOP_REQUESTED
-        self.fault_text = "estop requested"
-        self._disarm()
+        self._fault(AxisError.ESTOP_REQUESTED, "estop requested")
         return []
 
     def _on_get_error(self, message: can.Message, now: float) -> list[can.Message]:
@@ -233,9 +216,11 @@ class OdriveAxis(VirtualDrive):
             self.refused[f"unsupported state {state.name}"] += 1
         elif self._accept_motion("Set_Axis_State"):
             self.procedure_result = ProcedureResult.SUCCESS
-            if self.axis_state is not AxisState.CLOSED_LOOP_CONTROL:
-                self._arm(now)
-        self._feed(now)
+            if self.axis_state is AxisState.CLOSED_LOOP_CONTROL:
+                self.restarts += 1
+            elif self.has_holding_brake:
+                self._brake_opens = now + BRAKE_RELEASE_TIME
+            self._arm()
         return []
 
     def _on_set_controller_mode(self, message: can.Message, now: float) -> list[can.Message]:
@@ -248,16 +233,15 @@ class OdriveAxis(VirtualDrive):
                 self.input_pos = self.scaling.position(self.length)
             self.control_mode, self.input_mode = control, inputs
             self._apply()
-        self._feed(now)
         return []
 
     def _on_set_input_pos(self, message: can.Message, now: float) -> list[can.Message]:
-        pos, _vel_ff, _torque_ff = decode_set_input_pos(message)  # feed-forwards: not modelled
+        pos, _vel_ff, torque_ff = decode_set_input_pos(message)  # vel_ff: no velocity loop
         self.counters.accepted += 1
         if self._accept_motion("Set_Input_Pos"):
             self.input_pos = pos
+            self.input_torque = torque_ff
             self._apply()
-        self._feed(now)
         return []
 
     def _on_set_input_torque(self, message: can.Message, now: float) -> list[can.Message]:
@@ -266,7 +250,6 @@ class OdriveAxis(VirtualDrive):
         if self._accept_motion("Set_Input_Torque"):
             self.input_torque = torque
             self._apply()
-        self._feed(now)
         return []
 
     def _on_clear_errors(self, message: can.Message, now: float) -> list[can.Message]:
@@ -276,7 +259,6 @@ class OdriveAxis(VirtualDrive):
         self.disarm_reason = 0
         self.fault_text = None
         self.procedure_result = ProcedureResult.SUCCESS
-        self._feed(now)
         return []
 
     # -- state --------------------------------------------------------------------------
@@ -296,32 +278,25 @@ class OdriveAxis(VirtualDrive):
             return False
         return now > self._watchdog_deadline
 
-    def _arm(self, now: float | None) -> None:
-        """IDLE -> CLOSED_LOOP_CONTROL; position control starts at the estimate, torque
+    def _arm(self) -> None:
+        """(Re)enter CLOSED_LOOP_CONTROL; position control starts at the estimate, torque
         control at zero torque."""
         self.axis_state = AxisState.CLOSED_LOOP_CONTROL
         self.input_pos = self.scaling.position(self.length)
         self.input_torque = 0.0
-        self._watchdog_deadline = None if now is None else now + self.watchdog_timeout
         self._apply()
 
     def _disarm(self) -> None:
         self.axis_state = AxisState.IDLE
+        self._brake_opens, self._brake_open = None, False
         self._apply()
 
     def _fault(self, code: int, text: str) -> None:
-        """Latch error bits; a closed-loop axis takes the configured safe action."""
+        """Latch error bits and disarm (IDLE), as firmware 0.6 does on every axis error."""
         self.axis_error |= code
         self.disarm_reason = code
         self.fault_text = text
-        if self.axis_state is not AxisState.CLOSED_LOOP_CONTROL:
-            return  # an idle axis stays idle (brake on where fitted)
-        if self.safe_brake is BrakeMode.HOLDING_BRAKE and self.has_holding_brake:
-            self._disarm()
-            return
-        self.control_mode, self.input_mode = ControlMode.POSITION_CONTROL, InputMode.PASSTHROUGH
-        self.input_pos = self.scaling.position(self.length)
-        self._apply()
+        self._disarm()
 
     def _apply(self) -> None:
         """The power stage and brake for the current state and mode."""
@@ -331,11 +306,11 @@ class OdriveAxis(VirtualDrive):
             self.target_length = math.nan
             self.brake_engaged = self.has_holding_brake
             return
-        self.brake_engaged = False
+        self.brake_engaged = self.has_holding_brake and not self._brake_open
         if self.control_mode is ControlMode.POSITION_CONTROL:
             self.actuation = Actuation.POSITION
             self.target_length = self.scaling.length(self.input_pos)
-            self.force = 0.0
+            self.force = self.scaling.force(self.input_torque)  # the feed-forward
         else:
             self.actuation = Actuation.TORQUE
             self.force = self.scaling.force(self.input_torque)

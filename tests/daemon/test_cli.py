@@ -55,7 +55,20 @@ ZERO_LENGTH = (  # cable 0's anchor where its attachment is at the home pose (0,
     "{anchor: [1.50, 1.50, 2.50], attachment: [0.20, -0.20, 0.30]}",
     "{anchor: [0.20, -0.20, 1.55], attachment: [0.20, -0.20, 0.30]}",
 )
+ODRIVE = (CONFIG / "reference8-odrive.yaml").read_text()
+ODRIVE = ODRIVE.replace("robot: robots/reference8.yaml", f"robot: {ROBOTS / 'reference8.yaml'}")
+BRAKES = "  has_holding_brake: true"
+assert BRAKES in ODRIVE
 NAMED = {  # case: (file content, the problem each error line names after 'error: FILE: ')
+    "an ODrive robot without brakes": (
+        ODRIVE.replace(BRAKES, "  has_holding_brake: false"),
+        "drives.has_holding_brake: an ODrive robot needs holding brakes: ODrive firmware 0.6 "
+        "disarms an axis (IDLE, motor unpowered) on every axis error",
+    ),
+    "accept_fall_on_axis_error for CiA 402": (
+        example(("  protocol: cia402", "  protocol: cia402\n  accept_fall_on_axis_error: true")),
+        "drives: accept_fall_on_axis_error applies to protocol odrive only",
+    ),
     "not UTF-8": (b"# r\xe9glages\n" + EXAMPLE.encode(), "line 1: not UTF-8 text (byte 0xe9"),
     "5000-deep lists": (
         example() + "extra: " + "[" * 5000 + "]" * 5000 + "\n",
@@ -79,7 +92,7 @@ NAMED = {  # case: (file content, the problem each error line names after 'error
     ),
     "a plant mismatch of the wrong size": (
         example(("step: 0.001\n", "step: 0.001\n    mismatch: {anchor_offsets: [[0, 0, 0]]}\n")),
-        "sim.plant: mismatch.anchor_offsets: 1 offsets for 8 cables",
+        "sim.plant: mismatch.anchor_offsets: 1 entries for 8 cables",
     ),
     "watchdog_timeout: true": (
         example(("watchdog_timeout: 0.05", "watchdog_timeout: true")),
@@ -145,6 +158,17 @@ def test_check_config_names_file_key_and_problem_in_one_line(
     assert line.startswith(f"error: {path}: ") and problem in line, line
 
 
+def test_check_config_takes_an_odrive_robot_with_brakes_or_an_accepted_fall(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = tmp_path / "cdprd.yaml"
+    accepted = "  has_holding_brake: false\n  accept_fall_on_axis_error: true"
+    for text in (ODRIVE, ODRIVE.replace(BRAKES, accepted)):
+        path.write_text(text)
+        assert main(["check-config", str(path)]) == 0, capsys.readouterr().err
+        assert "drives: odrive nodes [0, 1, 2, 3, 4, 5, 6, 7]" in capsys.readouterr().out
+
+
 @pytest.mark.parametrize("kind", ["device", "directory", "pipe"])
 def test_check_config_refuses_a_path_that_is_not_a_regular_file(
     kind: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
@@ -169,7 +193,7 @@ def cdprd(*args: str) -> subprocess.Popen[str]:
 def test_run_refuses_what_check_config_refuses_with_the_same_lines(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    cases = ["not UTF-8", "an unknown sim key", "rate_hz: 8:20"]
+    cases = ["not UTF-8", "an unknown sim key", "rate_hz: 8:20", "an ODrive robot without brakes"]
     cases.append("a plant mismatch of the wrong size")
     runs = []
     for i, case in enumerate(cases):

@@ -1,6 +1,7 @@
 """`cdprd demo`, the README's main command: simulator + daemon + zenoh client in one
 process; the run must end holding, with sub-millimetre tracking of the simulated
-platform and no slack cable."""
+platform and no slack cable.  With --view and --record (issue 20's interface) it serves
+the live view and writes the run's MCAP in Foxglove's standard schemas."""
 
 from __future__ import annotations
 
@@ -10,6 +11,10 @@ import sys
 from pathlib import Path
 
 import pytest
+from mcap.reader import make_reader
+
+from daemon.process.recording import CYCLE_TOPIC
+from tests.loopback import free_port
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -17,8 +22,11 @@ ROOT = Path(__file__).resolve().parents[2]
 @pytest.mark.timeout(120)
 def test_demo_flies_the_figure_eight_and_ends_holding(tmp_path: Path) -> None:
     plot = tmp_path / "demo.png"
+    view = free_port()
+    command = ["demo", "--plot", str(plot), "--view", f"127.0.0.1:{view}"]
+    command += ["--record", str(tmp_path / "run.mcap")]
     run = subprocess.run(
-        [sys.executable, "-m", "daemon.cli", "demo", "--plot", str(plot)],
+        [sys.executable, "-m", "daemon.cli", *command],
         cwd=ROOT,
         capture_output=True,
         text=True,
@@ -35,3 +43,12 @@ def test_demo_flies_the_figure_eight_and_ends_holding(tmp_path: Path) -> None:
     assert f"3-D view at the largest tension written to {drawing}" in out
     data = drawing.read_bytes()
     assert data.startswith(b"\x89PNG") and len(data) > 10_000
+    assert f"live view: ws://127.0.0.1:{view}" in out
+    (recording,) = tmp_path.glob("run-*.mcap")
+    assert f"telemetry recorded to {recording}" in out
+    with recording.open("rb") as stream:
+        summary = make_reader(stream).get_summary()
+    schemas = {c.topic: summary.schemas[c.schema_id].name for c in summary.channels.values()}
+    assert schemas["/tf"] == "foxglove.FrameTransforms"
+    assert schemas["/cdpr/scene"] == "foxglove.SceneUpdate"
+    assert CYCLE_TOPIC in schemas

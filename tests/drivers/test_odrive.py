@@ -24,6 +24,12 @@ from drivers.odrive.host import Intent, OdriveDriver
 
 ROOT = Path(__file__).resolve().parents[2]
 DBC = cantools.database.load_file(ROOT / "config" / "can" / "odrive_cansimple.dbc")
+REFERENCE = cantools.database.load_file(ROOT / "tests" / "data" / "odrive-cansimple-0.6.10.dbc")
+_HEARTBEAT = REFERENCE.get_message_by_name("Axis0_Heartbeat")
+REFERENCE_STATES = _HEARTBEAT.get_signal_by_name("Axis_State").choices
+REFERENCE_ERRORS = {
+    int(k): str(v) for k, v in _HEARTBEAT.get_signal_by_name("Axis_Error").choices.items()
+}
 
 NODES = [3, 5, 7, 11, 13, 17, 19, 63]
 RADII = [0.05, 0.04, 0.06, 0.05, 0.05, 0.05, 0.05, 0.03]
@@ -109,10 +115,13 @@ def test_dbc_value_tables_match_the_enums() -> None:
         (modes.get_signal_by_name("Control_Mode"), ControlMode),
         (modes.get_signal_by_name("Input_Mode"), InputMode),
     ]
+    # 15 and 16 came after the 0.6.10 DBC (odrive 0.6.11's enums list them)
+    newer = {15: "HARMONIC_CALIBRATION", 16: "HARMONIC_CALIBRATION_COMMUTATION"}
     for signal, enum_type in tables:
-        assert {int(k): str(v) for k, v in signal.choices.items()} == {
-            m.value: m.name for m in enum_type
-        }
+        named = {m.value: m.name for m in enum_type}
+        if enum_type is AxisState:
+            assert {k: named.pop(k) for k in newer} == newer
+        assert {int(k): str(v) for k, v in signal.choices.items()} == named
 
 
 def test_error_bits_are_odrive_0_6() -> None:
@@ -163,7 +172,7 @@ def test_error_status_round_trip(node, active, reason) -> None:
 @given(nodes, st.sampled_from(list(AxisState)))
 def test_set_axis_state_round_trip(node, state) -> None:
     message = codec.encode_set_axis_state(node, state)
-    assert len(message.data) == 4
+    assert message.data == struct.pack("<I", state) + bytes(4)  # 8 bytes, as ODrive's DBC
     assert codec.decode_set_axis_state(message) is state
     assert dbc_decode(message) == {"Axis_Requested_State": state}
     back = dbc_encode("Set_Axis_State", {"Axis_Requested_State": int(state)}, node)
@@ -195,7 +204,7 @@ def test_set_input_pos_round_trip(node, pos, vel_ff, torque_ff) -> None:
 @given(nodes, finite_f32)
 def test_set_input_torque_round_trip(node, torque) -> None:
     message = codec.encode_set_input_torque(node, torque)
-    assert len(message.data) == 4
+    assert message.data == struct.pack("<f", torque) + bytes(4)  # 8 bytes, as ODrive's DBC
     assert codec.decode_set_input_torque(message) == torque
     assert dbc_decode(message) == {"Input_Torque": torque}
     back = dbc_encode("Set_Input_Torque", {"Input_Torque": torque}, node)
@@ -270,11 +279,7 @@ def test_decoders_return_valid_values_or_raise_frame_error(cmd, decode, data) ->
     ("message", "decode", "reason"),
     [
         (frame(1, 1, bytes(6)), codec.decode_heartbeat, "Heartbeat.dlc"),
-        (
-            frame(1, 1, bytes([0, 0, 0, 0, 5, 0, 0, 0])),
-            codec.decode_heartbeat,
-            "Heartbeat.axis_state",
-        ),
+        (frame(1, 1, bytes(7)), codec.decode_heartbeat, "Heartbeat.dlc"),
         (frame(1, 9, bytes(7)), codec.decode_encoder_estimates, "Get_Encoder_Estimates.dlc"),
         (
             frame(1, 9, struct.pack("<ff", math.nan, 0.0)),
@@ -282,15 +287,16 @@ def test_decoders_return_valid_values_or_raise_frame_error(cmd, decode, data) ->
             "Get_Encoder_Estimates.non_finite",
         ),
         (
-            frame(1, 7, struct.pack("<I", 15)),
+            frame(1, 7, struct.pack("<I4x", 17)),
             codec.decode_set_axis_state,
             "Set_Axis_State.axis_state",
         ),
         (
-            frame(1, 7, struct.pack("<I", 1 << 20)),
+            frame(1, 7, struct.pack("<I4x", 1 << 20)),
             codec.decode_set_axis_state,
             "Set_Axis_State.axis_state",
         ),
+        (frame(1, 7, struct.pack("<I", 8)), codec.decode_set_axis_state, "Set_Axis_State.dlc"),
         (
             frame(1, 11, struct.pack("<II", 4, 1)),
             codec.decode_set_controller_mode,
@@ -302,11 +308,16 @@ def test_decoders_return_valid_values_or_raise_frame_error(cmd, decode, data) ->
             "Set_Controller_Mode.input_mode",
         ),
         (
-            frame(1, 14, struct.pack("<f", math.inf)),
+            frame(1, 14, struct.pack("<f4x", math.inf)),
             codec.decode_set_input_torque,
             "Set_Input_Torque.non_finite",
         ),
-        (frame(1, 14, bytes(3)), codec.decode_set_input_torque, "Set_Input_Torque.dlc"),
+        (
+            frame(1, 14, struct.pack("<f", 1.0)),
+            codec.decode_set_input_torque,
+            "Set_Input_Torque.dlc",
+        ),
+        (frame(1, 24, b""), codec.decode_clear_errors, "Clear_Errors.dlc"),
         (
             frame(1, 12, struct.pack("<fhh", -math.inf, 0, 0)),
             codec.decode_set_input_pos,
@@ -321,8 +332,31 @@ def test_malformed_frames_name_their_problem(message, decode, reason) -> None:
 
 
 def test_longer_frames_are_accepted_like_the_firmware_does() -> None:
-    padded = frame(2, Cmd.SET_INPUT_TORQUE, struct.pack("<f", 1.5) + bytes(4))
-    assert codec.decode_set_input_torque(padded) == 1.5
+    padded = frame(2, Cmd.CLEAR_ERRORS, b"\x01" + bytes(7))
+    assert codec.decode_clear_errors(padded) is True
+
+
+@pytest.mark.parametrize("state", range(17))
+def test_every_axis_state_of_firmware_0_6_is_decoded_and_named(state: int) -> None:
+    data = struct.pack("<IBBBx", 0, state, 0, 0)
+    heartbeat = codec.decode_heartbeat(frame(1, Cmd.HEARTBEAT, data))
+    assert isinstance(heartbeat.axis_state, AxisState) and heartbeat.axis_state == state
+    name = {15: "HARMONIC_CALIBRATION", 16: "HARMONIC_CALIBRATION_COMMUTATION"}.get(state)
+    assert heartbeat.axis_state.name == (name or str(REFERENCE_STATES[state]))
+
+
+def test_an_unlisted_axis_state_is_decoded_not_dropped() -> None:
+    heartbeat = codec.decode_heartbeat(frame(1, 1, struct.pack("<IBBBx", 0, 42, 0, 1)))
+    assert heartbeat == (0, 42, 0, True)
+    assert not isinstance(heartbeat.axis_state, AxisState)
+
+
+def test_every_error_bit_of_firmware_0_6_is_named() -> None:
+    assert AxisError.REQUESTED_CURRENT_TOO_HIGH == 0x20000  # odrive 0.6.11's enums
+    for bit, name in REFERENCE_ERRORS.items():
+        if bit:
+            assert AxisError(bit).name == name
+    assert codec.error_text(0x20000 | 0x80000000) == "REQUESTED_CURRENT_TOO_HIGH|0x80000000"
 
 
 # -- host: scaling and sign conventions --------------------------------------------------
@@ -359,7 +393,7 @@ def test_commands_convert_forces_to_motor_torque_with_sign() -> None:
     assert len(frames) == 8
     for i, (message, force) in enumerate(zip(frames, forces, strict=True)):
         assert message.arbitration_id == NODES[i] << 5 | Cmd.SET_INPUT_TORQUE
-        assert not message.is_extended_id and len(message.data) == 4
+        assert not message.is_extended_id and message.data[4:] == bytes(4)  # 8 bytes, DBC
         torque = codec.decode_set_input_torque(message)
         expected = DIRECTIONS[i] * force * RADII[i] / 5.0
         assert torque == pytest.approx(expected, rel=1e-6)
@@ -486,7 +520,7 @@ def test_holding_brake_is_idle_only_with_a_brake() -> None:
     with_brake = make_driver(has_holding_brake=True, brake="holding_brake")
     items = decoded(with_brake.brake(lengths, BrakeMode.HOLDING_BRAKE))
     assert items == [(node, Cmd.SET_AXIS_STATE, AxisState.IDLE) for node in NODES]
-    assert with_brake.keepalive() == []  # IDLE: no watchdog to feed
+    assert requests(with_brake.keepalive()) == NODES  # IDLE: the watchdog counts too
     with_brake.receive(codec.encode_heartbeat(NODES[0], 0, AxisState.IDLE), 0.0)
     assert with_brake.status[0].state is DriveState.HOLDING
     # Asked for the holding brake without one: position hold, never IDLE.
@@ -524,7 +558,124 @@ def test_brake_without_a_length_holds_at_the_drives_own_estimate() -> None:
 def test_disable_idles_every_axis() -> None:
     driver = make_driver()
     assert decoded(driver.disable()) == [(n, Cmd.SET_AXIS_STATE, AxisState.IDLE) for n in NODES]
+    assert requests(driver.keepalive()) == NODES  # feeds the idle axes' watchdogs
+    assert driver.disable() == []  # asked for IDLE already
+
+
+def requests(frames: list[can.Message]) -> list[int]:
+    """The nodes `frames` send a Get_Error request (RTR) to, each frame being one."""
+    assert all(m.is_remote_frame and m.arbitration_id & 0x1F == Cmd.GET_ERROR for m in frames)
+    return [m.arbitration_id >> 5 for m in frames]
+
+
+def heartbeats(driver: OdriveDriver, state: AxisState) -> None:
+    for node in NODES:
+        driver.receive(codec.encode_heartbeat(node, 0, state), 0.0)
+
+
+def commanded_states(frames: list[can.Message]) -> list[AxisState]:
+    return [value for _, cmd, value in decoded(frames) if cmd is Cmd.SET_AXIS_STATE]
+
+
+@pytest.mark.parametrize("mode", list(BrakeMode))
+def test_brake_never_restarts_an_axis_in_closed_loop(mode: BrakeMode) -> None:
+    """Firmware restarts an axis asked for CLOSED_LOOP_CONTROL while in it (a torque gap
+    at the moment of braking): the brake of a torque-controlled axis only changes mode."""
+    driver = make_driver()
+    heartbeats(driver, AxisState.CLOSED_LOOP_CONTROL)
+    frames = driver.brake([1.0] * 8, mode)
+    assert commanded_states(frames) == []
+    assert [cmd for _, cmd, _ in decoded(frames)] == [
+        Cmd.SET_CONTROLLER_MODE,
+        Cmd.SET_INPUT_POS,
+    ] * 8
+
+
+def test_axis_state_is_requested_once_until_a_heartbeat_says_otherwise() -> None:
+    driver = make_driver()
+    heartbeats(driver, AxisState.IDLE)
+    assert (
+        commanded_states(driver.brake([1.0] * 8, BrakeMode.POSITION_HOLD))
+        == [AxisState.CLOSED_LOOP_CONTROL] * 8
+    )
+    assert commanded_states(driver.brake([1.0] * 8, BrakeMode.POSITION_HOLD)) == []
+    heartbeats(driver, AxisState.CLOSED_LOOP_CONTROL)  # reached
+    assert commanded_states(driver.brake([1.0] * 8, BrakeMode.POSITION_HOLD)) == []
+    heartbeats(driver, AxisState.IDLE)  # dropped out (an axis error, on firmware 0.6)
+    assert (
+        commanded_states(driver.brake([1.0] * 8, BrakeMode.POSITION_HOLD))
+        == [AxisState.CLOSED_LOOP_CONTROL] * 8
+    )
+    assert commanded_states(driver.disable()) == [AxisState.IDLE] * 8  # asked since
+    heartbeats(driver, AxisState.IDLE)
+    assert commanded_states(driver.disable()) == []
+
+
+def test_a_braked_idle_axis_stays_braked_whatever_brake_mode() -> None:
+    """Its brake holds already: releasing it into a position loop would let the load sag."""
+    driver = make_driver(has_holding_brake=True)
+    heartbeats(driver, AxisState.IDLE)
+    assert driver.brake([1.0] * 8, BrakeMode.POSITION_HOLD) == []
+    assert driver.intent == [Intent.HOLD_BRAKE] * 8
+    heartbeats(driver, AxisState.CLOSED_LOOP_CONTROL)  # armed: held by position control
+    assert Cmd.SET_INPUT_POS in [
+        cmd for _, cmd, _ in decoded(driver.brake([1.0] * 8, BrakeMode.POSITION_HOLD))
+    ]
+
+
+def test_position_hold_feeds_the_last_torque_forward() -> None:
+    """Firmware 0.6 takes Set_Input_Pos' torque_ff as input_torque, the position loop's
+    feed-forward: the hold after torque control keeps carrying the load (0 would drop it
+    onto the position loop)."""
+    driver = make_driver()
+    heartbeats(driver, AxisState.CLOSED_LOOP_CONTROL)
+    forces = [-100.0, -50.0, 10.0, 0.0, -1.0, 2.5, -300.0, 7.0]
+    driver.commands(forces)
+    holds = [
+        v
+        for _, cmd, v in decoded(driver.brake([1.0] * 8, BrakeMode.POSITION_HOLD))
+        if cmd is Cmd.SET_INPUT_POS
+    ]
+    for i, (_pos, _vel_ff, torque_ff) in enumerate(holds):
+        assert torque_ff == pytest.approx(driver.scalings[i].motor_torque(forces[i]), abs=6e-4)
+    assert [m.data for m in driver.keepalive()] == [
+        m.data for m in driver.brake([1.0] * 8, BrakeMode.POSITION_HOLD)[1::2]
+    ]
+    driver.disable()
+    heartbeats(driver, AxisState.IDLE)
+    assert all(
+        v[2] == 0.0
+        for _, cmd, v in decoded(driver.brake([1.0] * 8, BrakeMode.POSITION_HOLD))
+        if cmd is Cmd.SET_INPUT_POS
+    )  # disarmed: nothing carried any more
+
+
+def test_keepalive_feeds_idle_axes_once_per_feed_period() -> None:
+    """Firmware 0.6 counts the watchdog in IDLE too and any frame feeds it: idle axes get
+    a Get_Error request (RTR) every third of watchdog_timeout, holding ones Set_Input_Pos
+    every call, torque-controlled ones nothing."""
+    driver = make_driver()
+    clock = [0.0]
+    driver._now = lambda: clock[0]  # as start() leaves it
+    driver.disable()
+    driver.intent[1] = Intent.TORQUE
+    assert requests(driver.keepalive()) == [n for i, n in enumerate(NODES) if i != 1]
+    clock[0] += driver.feed_period * 0.9
     assert driver.keepalive() == []
+    clock[0] += driver.feed_period * 0.2
+    assert len(driver.keepalive()) == 7
+
+
+def test_an_unlisted_axis_state_is_a_named_fault() -> None:
+    driver = make_driver()
+    driver.receive(frame(NODES[2], Cmd.HEARTBEAT, struct.pack("<IBBBx", 0, 42, 0, 1)), 1.0)
+    status = driver.status[2]
+    assert status.state is DriveState.FAULT
+    assert status.fault == f"ODrive node {NODES[2]}: unknown axis state 42 (not in firmware 0.6)"
+    assert status.heartbeat_stamp == 1.0  # heard, not a silent axis
+    assert driver.counters.rejected == {}
+    driver.receive(codec.encode_heartbeat(NODES[2], 0, AxisState.HARMONIC_CALIBRATION), 2.0)
+    assert status.state is DriveState.DISABLED and status.fault is None
 
 
 # -- host: hostile input --------------------------------------------------------------------
@@ -540,8 +691,7 @@ def test_hostile_frames_are_counted_and_never_acted_on() -> None:
         frame(NODES[0], 9, struct.pack("<ff", math.nan, 0.0)),
         frame(NODES[0], 9, struct.pack("<ff", 0.0, -math.inf)),
         frame(NODES[0], 1, bytes(3)),  # short heartbeat
-        frame(NODES[0], 1, struct.pack("<IBBBx", 0, 99, 0, 0)),  # unknown axis state
-        frame(NODES[0], 1, struct.pack("<IBBBx", 0, 5, 0, 0)),  # 0.5's SENSORLESS_CONTROL
+        frame(NODES[0], 1, bytes(7)),  # the DBC's heartbeat has 8 bytes
         frame(NODES[0], 3, bytes(5)),  # Get_Error answer of the wrong length
         frame(NODES[0], 9, bytes(12), is_fd=True),
     ]
@@ -550,8 +700,7 @@ def test_hostile_frames_are_counted_and_never_acted_on() -> None:
     assert driver.counters.rejected == {
         "Get_Encoder_Estimates.dlc": 2,
         "Get_Encoder_Estimates.non_finite": 2,
-        "Heartbeat.dlc": 1,
-        "Heartbeat.axis_state": 2,
+        "Heartbeat.dlc": 2,
         "Get_Error.dlc": 1,
     }
     ignored = [

@@ -46,14 +46,21 @@ def config(**extra: object) -> DrivesConfig:
     )
 
 
-def axes(cfg: DrivesConfig, **kwargs: object) -> list[OdriveAxis]:
+def axes(cfg: DrivesConfig) -> list[OdriveAxis]:
     devices = [
-        OdriveAxis(node, scaling, cfg, **kwargs)
+        OdriveAxis(node, scaling, cfg)
         for node, scaling in zip(cfg.nodes, cfg.scalings(RADII), strict=True)
     ]
     for device, length in zip(devices, LENGTHS, strict=True):
         device.measure(length, 0.0)
     return devices
+
+
+def closed_loop(device: OdriveAxis, now: float = 0.0) -> OdriveAxis:
+    """`device` asked into CLOSED_LOOP_CONTROL (position control at its length)."""
+    device.on_frame(codec.encode_set_axis_state(device.node_id, AxisState.CLOSED_LOOP_CONTROL), now)
+    assert device.axis_state is AxisState.CLOSED_LOOP_CONTROL
+    return device
 
 
 class SimLink:
@@ -63,7 +70,8 @@ class SimLink:
         self.driver = driver
         self.devices = list(devices)
         self.ticks = 0
-        self.sent: list[can.Message] = []
+        self.sent: list[can.Message] = []  # by the host
+        self.heard: list[can.Message] = []  # from the devices, as the host received them
         self.inbox: deque[can.Message] = deque()
 
     @property
@@ -90,6 +98,7 @@ class SimLink:
     def _drain(self, match: Callable[[can.Message], bool] | None = None) -> can.Message | None:
         while self.inbox:
             message = self.inbox.popleft()
+            self.heard.append(message)
             self.driver.receive(message, self.t)
             if match is not None and match(message):
                 return message
@@ -143,22 +152,33 @@ def frame(node: int, cmd: int, data: bytes) -> can.Message:
 # -- the device alone -----------------------------------------------------------------------
 
 
-def test_power_on_state_depends_on_the_brake() -> None:
-    no_brake = axes(config())[0]
-    assert no_brake.axis_state is AxisState.CLOSED_LOOP_CONTROL  # startup_closed_loop
-    assert no_brake.actuation is Actuation.POSITION
-    assert no_brake.target_length == pytest.approx(LENGTHS[0])
-    assert not no_brake.brake_engaged
+def test_power_on_is_idle_braked_or_free() -> None:
     braked = axes(config(has_holding_brake=True))[0]
     assert braked.axis_state is AxisState.IDLE
     assert braked.actuation is Actuation.OFF and braked.brake_engaged
     # An IDLE axis without a brake free-wheels: what the host must never choose.
-    free = axes(config(), startup_closed_loop=False)[0]
+    free = axes(config())[0]
+    assert free.axis_state is AxisState.IDLE
     assert free.actuation is Actuation.OFF and not free.brake_engaged
 
 
+@pytest.mark.parametrize("has_brake", [False, True])
+def test_watchdog_fires_at_power_on_before_any_host_talks(has_brake: bool) -> None:
+    """Firmware 0.6 counts the axis watchdog from power-on, in IDLE too."""
+    device = axes(config(has_holding_brake=has_brake, watchdog_timeout=0.05))[0]
+    for k in range(1, 50):
+        device.on_tick(k * TICK)
+    assert device.axis_error == 0
+    for k in range(50, 60):
+        device.on_tick(k * TICK)
+    assert device.axis_error == AxisError.WATCHDOG_TIMER_EXPIRED
+    assert device.axis_state is AxisState.IDLE and device.brake_engaged is has_brake
+    (heartbeat,) = device.on_frame(codec.encode_request(3, Cmd.HEARTBEAT), 0.06)
+    assert codec.decode_heartbeat(heartbeat)[:2] == (AxisError.WATCHDOG_TIMER_EXPIRED, 1)
+
+
 def test_cyclic_heartbeat_and_estimates() -> None:
-    device = axes(config(feedback_rate_hz=250.0, heartbeat_period=0.1))[1]
+    device = axes(config(feedback_rate_hz=250.0, heartbeat_period=0.1, watchdog_timeout=10.0))[1]
     device.measure(LENGTHS[1], 0.3)
     out: list[can.Message] = []
     for k in range(1, 1001):
@@ -169,7 +189,8 @@ def test_cyclic_heartbeat_and_estimates() -> None:
     pos, vel = codec.decode_encoder_estimates(estimates[-1])
     assert pos == pytest.approx(device.scaling.position(LENGTHS[1]), rel=1e-6)
     assert vel == pytest.approx(device.scaling.velocity(0.3), rel=1e-6)
-    assert codec.decode_heartbeat(heartbeats[0]).axis_state is AxisState.CLOSED_LOOP_CONTROL
+    assert codec.decode_heartbeat(heartbeats[0]).axis_state is AxisState.IDLE
+    assert all(len(m.data) == 8 for m in heartbeats + estimates)
 
 
 def test_remote_requests_are_answered_at_once() -> None:
@@ -184,7 +205,7 @@ def test_remote_requests_are_answered_at_once() -> None:
 
 
 def test_torque_and_position_commands_drive_the_winch() -> None:
-    device = axes(config())[1]  # direction -1
+    device = closed_loop(axes(config())[1])  # direction -1
     device.on_frame(codec.encode_set_input_torque(5, 0.4), 0.0)
     assert device.actuation is Actuation.POSITION  # position control: torque only stored
     device.on_frame(
@@ -206,11 +227,11 @@ def test_torque_and_position_commands_drive_the_winch() -> None:
     assert device.target_length == pytest.approx(2.6, rel=1e-6)
     device.on_frame(codec.encode_set_axis_state(5, AxisState.IDLE), 0.004)
     assert device.actuation is Actuation.OFF and not device.brake_engaged
-    assert device.counters.accepted == 6 and device.counters.rejected_total == 0
+    assert device.counters.accepted == 7 and device.counters.rejected_total == 0
 
 
 def test_unsupported_states_and_modes_are_refused() -> None:
-    device = axes(config())[0]
+    device = closed_loop(axes(config())[0])
     device.on_frame(codec.encode_set_axis_state(3, AxisState.FULL_CALIBRATION_SEQUENCE), 0.0)
     assert device.axis_state is AxisState.CLOSED_LOOP_CONTROL
     assert device.procedure_result == codec.ProcedureResult.INVALID_STATE
@@ -229,18 +250,21 @@ def test_unsupported_states_and_modes_are_refused() -> None:
 
 
 def test_device_refuses_non_finite_and_malformed_frames() -> None:
-    device = axes(config())[0]
+    device = closed_loop(axes(config())[0])
     device.on_frame(
         codec.encode_set_controller_mode(3, ControlMode.TORQUE_CONTROL, InputMode.PASSTHROUGH), 0
     )
     device.on_frame(codec.encode_set_input_torque(3, 0.5), 0.0)
     force = device.force
     hostile = [
-        frame(3, Cmd.SET_INPUT_TORQUE, struct.pack("<f", math.nan)),
-        frame(3, Cmd.SET_INPUT_TORQUE, struct.pack("<f", -math.inf)),
+        frame(3, Cmd.SET_INPUT_TORQUE, struct.pack("<f4x", math.nan)),
+        frame(3, Cmd.SET_INPUT_TORQUE, struct.pack("<f4x", -math.inf)),
         frame(3, Cmd.SET_INPUT_TORQUE, bytes(2)),
+        frame(3, Cmd.SET_INPUT_TORQUE, struct.pack("<f", 0.1)),  # 4 bytes: the DBC says 8
         frame(3, Cmd.SET_INPUT_POS, struct.pack("<fhh", math.nan, 0, 0)),
-        frame(3, Cmd.SET_AXIS_STATE, struct.pack("<I", 99)),
+        frame(3, Cmd.SET_AXIS_STATE, struct.pack("<I4x", 99)),
+        frame(3, Cmd.SET_AXIS_STATE, struct.pack("<I", 1)),  # IDLE in 4 bytes: refused
+        frame(3, Cmd.CLEAR_ERRORS, b""),
         frame(3, Cmd.SET_CONTROLLER_MODE, struct.pack("<II", 7, 1)),
         frame(3, Cmd.SET_CONTROLLER_MODE, bytes(4)),
         frame(3, Cmd.GET_ERROR, bytes(3)),
@@ -249,9 +273,11 @@ def test_device_refuses_non_finite_and_malformed_frames() -> None:
         assert device.on_frame(message, 0.01) == []
     assert device.counters.rejected == {
         "Set_Input_Torque.non_finite": 2,
-        "Set_Input_Torque.dlc": 1,
+        "Set_Input_Torque.dlc": 2,
         "Set_Input_Pos.non_finite": 1,
         "Set_Axis_State.axis_state": 1,
+        "Set_Axis_State.dlc": 1,
+        "Clear_Errors.dlc": 1,
         "Set_Controller_Mode.control_mode": 1,
         "Set_Controller_Mode.dlc": 1,
         "Get_Error.dlc": 1,
@@ -292,7 +318,7 @@ def test_device_survives_anything_addressed_to_it(frames) -> None:
 
 
 def test_flood_leaves_the_drive_in_control() -> None:
-    device = axes(config())[0]
+    device = closed_loop(axes(config())[0])
     junk = frame(3, Cmd.SET_INPUT_POS, struct.pack("<fhh", math.inf, 0, 0))
     for k in range(20000):
         device.on_frame(junk, k * 1e-5)
@@ -301,32 +327,25 @@ def test_flood_leaves_the_drive_in_control() -> None:
 
 
 @pytest.mark.parametrize(
-    ("extra", "actuation", "state", "brake"),
-    [
-        ({}, Actuation.POSITION, AxisState.CLOSED_LOOP_CONTROL, False),
-        ({"has_holding_brake": True}, Actuation.POSITION, AxisState.CLOSED_LOOP_CONTROL, False),
-        (
-            {"has_holding_brake": True, "brake": "holding_brake"},
-            Actuation.OFF,
-            AxisState.IDLE,
-            True,
-        ),
-    ],
+    "extra",
+    [{}, {"has_holding_brake": True}, {"has_holding_brake": True, "brake": "holding_brake"}],
 )
-def test_injected_fault_takes_the_configured_safe_action(extra, actuation, state, brake) -> None:
-    device = axes(config(**extra), startup_closed_loop=True)[0]
+def test_any_axis_error_disarms_the_axis_as_firmware_0_6_does(extra) -> None:
+    """Whatever DrivesConfig.brake says: IDLE, the brake holds where fitted, otherwise the
+    winch goes free (torque 0) and a suspended platform falls."""
+    has_brake = bool(extra.get("has_holding_brake"))
+    device = closed_loop(axes(config(**extra))[0])
     device.on_frame(
         codec.encode_set_controller_mode(3, ControlMode.TORQUE_CONTROL, InputMode.PASSTHROUGH), 0
     )
     device.on_frame(codec.encode_set_input_torque(3, -0.3), 0.0)
-    device.measure(1.25, 0.0)
+    assert device.actuation is Actuation.TORQUE and device.force != 0.0
     assert device.inject_fault(AxisError.DRV_FAULT, "gate driver fault") == []
     assert device.axis_error == AxisError.DRV_FAULT and device.fault_text == "gate driver fault"
-    assert (device.actuation, device.axis_state, device.brake_engaged) == (actuation, state, brake)
-    if actuation is Actuation.POSITION:
-        assert device.target_length == pytest.approx(1.25)  # where it was, never a fall
+    assert (device.actuation, device.axis_state) == (Actuation.OFF, AxisState.IDLE)
+    assert device.force == 0.0 and device.brake_engaged is has_brake
     (heartbeat,) = device.on_frame(codec.encode_request(3, Cmd.HEARTBEAT), 0.0)
-    assert codec.decode_heartbeat(heartbeat)[:2] == (AxisError.DRV_FAULT, state)
+    assert codec.decode_heartbeat(heartbeat)[:2] == (AxisError.DRV_FAULT, AxisState.IDLE)
     with pytest.raises(ValueError, match="non-zero u32"):
         device.inject_fault(0, "nothing")
 
@@ -339,9 +358,8 @@ def test_fault_on_an_idle_axis_keeps_it_idle() -> None:
 
 
 def test_errors_latch_until_clear_errors() -> None:
-    device = axes(config())[0]
+    device = closed_loop(axes(config())[0])
     device.inject_fault(AxisError.SPINOUT_DETECTED, "spinout")
-    held = device.target_length
     for message in [
         codec.encode_set_controller_mode(3, ControlMode.TORQUE_CONTROL, InputMode.PASSTHROUGH),
         codec.encode_set_input_pos(3, 100.0),
@@ -349,20 +367,21 @@ def test_errors_latch_until_clear_errors() -> None:
         codec.encode_set_axis_state(3, AxisState.CLOSED_LOOP_CONTROL),
     ]:
         device.on_frame(message, 0.0)
-    assert device.actuation is Actuation.POSITION and device.target_length == held
-    assert sum(device.refused.values()) == 4
+    assert device.actuation is Actuation.OFF and device.axis_state is AxisState.IDLE
+    assert sum(device.refused.values()) == 4  # no state request clears the error
     (status,) = device.on_frame(codec.encode_request(3, Cmd.GET_ERROR), 0.0)
     assert codec.decode_error_status(status) == (AxisError.SPINOUT_DETECTED,) * 2
     device.on_frame(codec.encode_clear_errors(3), 0.0)
     assert device.axis_error == 0 and device.fault_text is None
-    assert device.axis_state is AxisState.CLOSED_LOOP_CONTROL  # clearing changes no state
+    assert device.axis_state is AxisState.IDLE  # clearing changes no state
+    closed_loop(device)
     device.on_frame(codec.encode_set_input_pos(3, 100.0), 0.0)
     assert device.target_length == pytest.approx(device.scaling.length(100.0))
 
 
 def test_estop_idles_the_axis_and_without_a_brake_it_free_wheels() -> None:
     for has_brake in (False, True):
-        device = axes(config(has_holding_brake=has_brake), startup_closed_loop=True)[0]
+        device = closed_loop(axes(config(has_holding_brake=has_brake))[0])
         device.on_frame(codec.encode_estop(3), 0.0)
         assert device.axis_error == AxisError.ESTOP_REQUESTED
         assert device.axis_state is AxisState.IDLE and device.actuation is Actuation.OFF
@@ -370,7 +389,7 @@ def test_estop_idles_the_axis_and_without_a_brake_it_free_wheels() -> None:
 
 
 def test_watchdog_expiry_on_the_device() -> None:
-    device = axes(config(watchdog_timeout=0.05))[0]
+    device = closed_loop(axes(config(watchdog_timeout=0.05))[0])
     device.on_frame(
         codec.encode_set_controller_mode(3, ControlMode.TORQUE_CONTROL, InputMode.PASSTHROUGH), 0
     )
@@ -379,14 +398,36 @@ def test_watchdog_expiry_on_the_device() -> None:
         device.on_frame(codec.encode_set_input_torque(3, 0.1), now)
         device.on_tick(now)
     assert device.axis_error == 0 and device.actuation is Actuation.TORQUE
-    # RTR requests do not feed it.
-    for k in range(1, 60):
+    # Any frame with its node id feeds it, as the firmware counts: requests, malformed
+    # frames, unknown commands.
+    feeds = [
+        codec.encode_request(3, Cmd.HEARTBEAT),
+        frame(3, Cmd.SET_INPUT_TORQUE, bytes(2)),
+        frame(3, 0x1F, bytes(8)),
+    ]
+    for k in range(1, 301):
         now = 1.0 + k * TICK
-        device.on_frame(codec.encode_request(3, Cmd.HEARTBEAT), now)
+        if k % 40 == 0:
+            device.on_frame(feeds[k // 40 % 3], now)
+        device.on_tick(now)
+    assert device.axis_error == 0 and device.actuation is Actuation.TORQUE
+    for k in range(1, 60):  # frames for another node do not
+        now = 1.3 + k * TICK
+        device.on_frame(codec.encode_set_input_torque(4, 0.1), now)
         device.on_tick(now)
     assert device.axis_error == AxisError.WATCHDOG_TIMER_EXPIRED
-    assert device.actuation is Actuation.POSITION
-    assert device.target_length == pytest.approx(LENGTHS[0])
+    assert device.actuation is Actuation.OFF and not device.brake_engaged  # no brake: free
+
+
+def test_closed_loop_asked_again_restarts_the_axis() -> None:
+    """What firmware does and the host must avoid: input reset, a gap in torque."""
+    device = closed_loop(axes(config())[0])
+    device.on_frame(
+        codec.encode_set_controller_mode(3, ControlMode.TORQUE_CONTROL, InputMode.PASSTHROUGH), 0
+    )
+    device.on_frame(codec.encode_set_input_torque(3, -0.3), 0.0)
+    closed_loop(device)
+    assert device.restarts == 1 and device.force == 0.0
 
 
 # -- host <-> device -------------------------------------------------------------------------
@@ -394,9 +435,9 @@ def test_watchdog_expiry_on_the_device() -> None:
 
 def test_start_without_brakes_holds_the_measured_lengths() -> None:
     driver, devices, link = setup()
-    link.run(0.2)  # powered up holding, no host yet: every watchdog expires
+    link.run(0.2)  # powered up, no host yet: every watchdog expires (free winches)
     assert all(d.axis_error == AxisError.WATCHDOG_TIMER_EXPIRED for d in devices)
-    assert all(d.actuation is Actuation.POSITION for d in devices)
+    assert all(d.actuation is Actuation.OFF for d in devices)
     assert all(s.state is DriveState.FAULT for s in driver.status)
     asyncio.run(driver.start(link, link.now))
     for i, device in enumerate(devices):
@@ -422,8 +463,11 @@ def test_start_with_brakes_leaves_the_axes_idle_and_braked() -> None:
     for i, device in enumerate(devices):
         assert device.axis_state is AxisState.IDLE and device.brake_engaged
         assert driver.status[i].state is DriveState.READY
-    link.run(1.0)  # IDLE: nothing to feed, no watchdog error
+    link.run(1.0, lambda: link.send_all(driver.keepalive()))  # IDLE: fed by requests
     assert all(d.axis_error == 0 for d in devices)
+    link.run(0.2)  # a dead host: the watchdog counts in IDLE too
+    assert all(d.axis_error == AxisError.WATCHDOG_TIMER_EXPIRED for d in devices)
+    assert all(d.brake_engaged for d in devices)
 
 
 def test_start_names_the_silent_nodes() -> None:
@@ -477,7 +521,7 @@ def test_enable_fails_on_a_faulted_drive_and_names_it() -> None:
         asyncio.run(driver.enable(link, [f.length for f in driver.feedback], HOLDING))
     assert "node 7" in str(info.value) and "INVERTER_OVER_TEMP" in str(info.value)
     assert "node 3" not in str(info.value)
-    assert devices[2].actuation is Actuation.POSITION  # still holding
+    assert devices[2].actuation is Actuation.OFF  # firmware 0.6: disarmed by the error
 
 
 def test_sequences_need_start_first() -> None:
@@ -489,21 +533,18 @@ def test_sequences_need_start_first() -> None:
 
 
 @pytest.mark.parametrize(
-    ("extra", "actuation", "brake"),
-    [
-        ({}, Actuation.POSITION, False),
-        ({"has_holding_brake": True, "brake": "holding_brake"}, Actuation.OFF, True),
-    ],
+    ("extra", "brake"),
+    [({}, False), ({"has_holding_brake": True, "brake": "holding_brake"}, True)],
 )
-def test_dead_host_ends_braked_by_the_watchdog(extra, actuation, brake) -> None:
+def test_dead_host_ends_disarmed_by_the_watchdog(extra, brake) -> None:
+    """Firmware 0.6: IDLE, so only a holding brake keeps the load; without one the
+    winch is free (what check-config refuses unless accepted)."""
     driver, devices, link = enabled(**extra)
     link.send_all(driver.commands([-50.0] * 4))
     link.run(0.2)  # the daemon stops: no commands, no keepalive
     for i, device in enumerate(devices):
         assert device.axis_error & AxisError.WATCHDOG_TIMER_EXPIRED
-        assert device.actuation is actuation and device.brake_engaged is brake
-        if actuation is Actuation.POSITION:
-            assert device.target_length == pytest.approx(LENGTHS[i], abs=1e-6)
+        assert device.actuation is Actuation.OFF and device.brake_engaged is brake
         status = driver.status[i]
         assert status.state is DriveState.FAULT
         assert "WATCHDOG_TIMER_EXPIRED" in status.fault
@@ -541,6 +582,9 @@ def test_reset_after_estop_rearms_the_hold() -> None:
 
 def test_brake_modes_on_the_devices() -> None:
     driver, devices, link = enabled(has_holding_brake=True)
+    assert all(d.brake_engaged for d in devices)  # armed: the brakes open 20 ms later
+    link.run(0.03, lambda: link.send_all(driver.commands(HOLDING)))
+    assert not any(d.brake_engaged for d in devices)
     link.send_all(driver.brake([f.length for f in driver.feedback], BrakeMode.POSITION_HOLD))
     assert all(d.actuation is Actuation.POSITION and not d.brake_engaged for d in devices)
     link.run(0.5, lambda: link.send_all(driver.keepalive()))
@@ -564,10 +608,30 @@ def test_force_commands_after_a_brake_do_not_release_it() -> None:
     assert all(d.force == pytest.approx(-5.0, rel=1e-6) for d in devices)
 
 
+@pytest.mark.parametrize("extra", [{}, {"has_holding_brake": True}])
+def test_braking_and_enabling_never_restart_an_axis(extra) -> None:
+    """Set_Axis_State(CLOSED_LOOP_CONTROL) reaches an axis only when it is not in closed
+    loop: braking a torque-controlled axis, enabling a holding one and resetting a
+    healthy one leave the firmware's closed loop running (no torque gap)."""
+    driver, devices, link = enabled(**extra)
+    link.run(0.2, lambda: link.send_all(driver.commands([-50.0] * 4)))
+    link.send_all(driver.brake([f.length for f in driver.feedback], BrakeMode.POSITION_HOLD))
+    assert all(d.actuation is Actuation.POSITION for d in devices)
+    link.run(0.2, lambda: link.send_all(driver.keepalive()))
+    asyncio.run(driver.enable(link, [f.length for f in driver.feedback], HOLDING))
+    asyncio.run(driver.reset_faults(link))  # with a brake: IDLE, asked once
+    asyncio.run(driver.enable(link, [f.length for f in driver.feedback], HOLDING))
+    link.run(0.2, lambda: link.send_all(driver.commands(HOLDING)))
+    assert all(d.actuation is Actuation.TORQUE and d.axis_error == 0 for d in devices)
+    assert [d.restarts for d in devices] == [0] * 4
+    states = [codec.decode_set_axis_state(m) for m in link.sent if m.arbitration_id & 0x1F == 7]
+    assert states.count(AxisState.CLOSED_LOOP_CONTROL) == 4 * (2 if extra else 1)  # from IDLE
+
+
 def test_disable_idles_the_devices() -> None:
     driver, devices, link = enabled(has_holding_brake=True)
     link.send_all(driver.disable())
-    link.run(0.15)
+    link.run(0.15, lambda: link.send_all(driver.keepalive()))  # the idle watchdogs fed
     assert all(d.actuation is Actuation.OFF and d.brake_engaged for d in devices)
     assert all(s.state is DriveState.READY for s in driver.status)
 

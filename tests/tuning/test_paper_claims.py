@@ -23,7 +23,7 @@ import pytest
 from scipy.optimize import least_squares
 
 from cdpr import Pose, Robot, liediff, retract
-from cdpr.control_spec import DEFAULT_PID, ControllerSpec
+from cdpr.control_spec import DEFAULT_PID, ControllerSpec, TensionSpec
 from cdpr.controller import ParallelController, static_tensions, tension_solver
 from daemon.config import load_config
 from sim_bus.plant.config import PlantConfig, parse_plant_config
@@ -107,9 +107,13 @@ def test_unchanged_gains_settle_the_robot_across_the_workspace(
 # of reference8: 12.5 k_p at the 310 N mid-range tensions) the rig, which has no
 # internal tension, no longer predicts the mode (fitted poles and settling time 27 %
 # off).  Such modes are left out here by that criterion, fixed before comparing, and
-# the last test shows the same mode matching once the internal tension is low.
+# the last test shows the same mode matching once the internal tension is low.  And with
+# the paper's timing (command_lead 0): a lead evaluates the model at the measured pose
+# carried forward by its twist, which turns that same internal stiffness into damping
+# the rig has no part for (the heaviest modes' fastest pole 25-33 % off; settling within
+# 10 %).
 
-MEASURED = ControllerSpec(model_at="measured")
+MEASURED = ControllerSpec(model_at="measured", command_lead=0.0)
 CLAIM2_POSES = [((0.0, 0.0, 0.0), (0.0, 0.0, 0.0)), *SPREAD[:3]]  # home and three more
 OFFSET = 2e-3  # m: the largest cable-length change of the initial displacement
 DURATION = 5.0  # s: the rig settles within 4.2 s for every modal mass here
@@ -186,7 +190,9 @@ def predict_on(
     robot: Robot, spec: ControllerSpec, pose: Pose, rig_config: PlantConfig | None
 ) -> PoseAnalysis:
     """predict() with the rig's plant model `rig_config` (None: the simulator's)."""
-    rig = rig_for(robot, spec, rig_config)
+    # the controller's twist estimate (reference8 declares a cable stiffness) takes its low
+    # frequencies from the poses: the rig reads the true rate, not the drives' difference
+    rig = rig_for(robot, spec, rig_config)._replace(true_rate=True)
     analysed = analyse_pose(robot, rig, tension_solver(robot, spec), pose)
     assert analysed.feasible, analysed.detail
     return analysed
@@ -245,7 +251,7 @@ def test_the_left_out_mode_matches_once_the_internal_tension_is_low() -> None:
     internal = predict(robot, MEASURED, robot.home).internal_stiffness / DEFAULT_PID.kp
     pitch = int(np.argmax(np.abs(internal)))
     assert abs(internal[pitch]) > INTERNAL_LIMIT
-    low = ControllerSpec(model_at="measured", tension={"reference": 60.0})
+    low = MEASURED.model_copy(update={"tension": TensionSpec(reference=60.0)})
     c = compare_mode(robot, low, robot.home, pitch)
     assert abs(c.internal) < INTERNAL_LIMIT / 2
     assert c.pole_error <= MATCH and c.settling_error <= MATCH
