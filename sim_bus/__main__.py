@@ -164,7 +164,7 @@ async def simulate(setup: SimSetup, args: argparse.Namespace) -> int:
         for bus in device.values():
             bus.shutdown()
         raise
-    robot = VirtualRobot(setup.robot, setup.drives, setup.sim.plant)
+    robot = VirtualRobot(setup.robot, setup.drives, setup.sim.plant, setup.sim.rig)
     meters = {c.bus_name: BusLoadMeter(c.bitrate) for c in setup.buses}
     runner = SimulatorRunner(robot, device, meters, setup.sim.wake(setup.drives))
     for kind, cable, at in args.fault:

@@ -6,7 +6,7 @@ import numpy as np
 
 from cdpr import Pose, Robot, liediff
 from cdpr.controller import ControlOutput, Hold, ParallelController
-from sim_bus.plant import Plant, equilibrium_tensions
+from sim_bus.plant import Plant, PlantConfig, equilibrium_tensions
 from tuning.lockstep import Recording, run_lockstep
 
 RATE = 500.0
@@ -19,13 +19,15 @@ def hold_run(
     duration: float,
     start: Pose | None = None,
     start_tensions: np.ndarray | None = None,
+    plant_config: PlantConfig | None = None,
 ) -> tuple[Recording, list[ControlOutput]]:
     """Plant at rest at `start` (home) under `start_tensions` (the plant's equilibrium),
-    controller reset there and asked to hold `target`; returns (recording, outputs)."""
+    controller reset there and asked to hold `target`; returns (recording, outputs).
+    `plant_config` makes the plant (the TRUE robot: mismatch, actuator model)."""
     start = robot.home if start is None else start
     if start_tensions is None:
         start_tensions = equilibrium_tensions(robot, start)
-    plant = Plant(robot)
+    plant = Plant(robot, plant_config)
     plant.reset(start, start_tensions)
     controller.reset(start)
     controller.follow(Hold(target))

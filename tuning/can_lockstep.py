@@ -142,20 +142,9 @@ def run_experiment(
     driver = link.driver
     plan = experiment.plan
     bring_up(link, [experiment.load.hold], plan.period)
-    aborted: list[Abort] = []
-
-    def cycle(t: float) -> list[float] | None:
-        try:
-            command = experiment.cycle(t, driver.feedback[0], driver.status[0])
-        except Abort as exc:
-            aborted.append(exc)
-            return None
-        if experiment.done:
-            return None
-        experiment.sent(t, command)
-        return [command]
-
-    run_cycles(link, plan.period, cycle, plan.settle + plan.duration + 1.0)
+    run_cycles(
+        link, plan.period, lambda t: experiment.forces(t, driver), plan.settle + plan.duration + 1.0
+    )
     last = driver.feedback[0].length
     brake(link, [last if math.isfinite(last) else math.nan], brake_mode)
-    return aborted[0] if aborted else None
+    return experiment.abort

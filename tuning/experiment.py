@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from drivers.base import DriveState, Feedback, NodeStatus
+from drivers.base import ActuatorDriver, DriveState, Feedback, NodeStatus
 
 SLACK_WINDOW = 0.01  # s over which the drum's acceleration is estimated from its rates
 SATURATED_FOR = 0.5  # s the stabiliser may stay pinned at the amplitude
@@ -33,7 +33,8 @@ SATURATED_FOR = 0.5  # s the stabiliser may stay pinned at the amplitude
 
 class Abort(RuntimeError):  # noqa: N818 (an outcome, not a bug)
     """The experiment stopped: `kind` is drive_fault, slack_cable, length_limit,
-    force_limit or no_feedback; the message says what was seen."""
+    force_limit or no_feedback (or, on a bus in real time, startup or bus_lost); the
+    message says what was seen."""
 
     def __init__(self, kind: str, message: str) -> None:
         super().__init__(f"{kind.replace('_', ' ')}: {message}")
@@ -67,7 +68,8 @@ class Plan:
     excitation: the PRBS level (N, <= amplitude); duration: excitation time (s) after
     `settle` s of holding; travel: the largest |l - l_start| allowed (m); the actuator's
     length range and force limit; m0_guess (kg), k0_guess (N s/m): the robot file's
-    values, for the stabiliser and the slack test; seed: the PRBS's."""
+    values, for the stabiliser and the slack test; seed: the PRBS's; stale_cycles: as
+    the daemon's safety.stale_cycles."""
 
     amplitude: float
     excitation: float
@@ -83,6 +85,7 @@ class Plan:
     stabiliser_hz: float = 1.0
     prbs_hold: int = 1  # loop periods per PRBS bit
     seed: int = 0
+    stale_cycles: int = 3  # cycles in a row without new feedback before no_feedback
 
     def check(self, load: Load) -> None:
         """ValueError naming the limit a plan breaks for `load`."""
@@ -108,19 +111,35 @@ class Plan:
 @dataclass
 class Record:
     """What was commanded and measured: command times (s, when sent) and values (N), and
-    the feedback samples (s: their receive stamps; m; m/s)."""
+    the feedback samples (s: their receive stamps; m; m/s).  `transit` (s) is the bus's
+    one-way delay where it was measured (from the feedback frames' own stamps; 0 in
+    simulated time), taken to delay the commands as much on their way to the drive."""
 
     command_t: list[float] = field(default_factory=list)
     command: list[float] = field(default_factory=list)
+    opened: list[float] = field(default_factory=list)  # s: each command's cycle opened
     sample_t: list[float] = field(default_factory=list)
     length: list[float] = field(default_factory=list)
     rate: list[float] = field(default_factory=list)
     excitation_start: float = math.nan
     hold: float = 0.0
+    transit: float = 0.0
+
+    def latencies(self) -> np.ndarray:
+        """Per command, the time (s) from the later of its cycle's opening and the newest
+        feedback sample before it to its sending: the loop's latency on the host's
+        clock, as the daemon counts it (daemon.service.cycle_stats)."""
+        stamps = np.array(self.sample_t)
+        sent = np.array(self.command_t)
+        newest = np.searchsorted(stamps, sent, side="right") - 1
+        valid = newest >= 0
+        since = np.maximum(stamps[newest[valid]], np.array(self.opened)[valid])
+        return sent[valid] - since
 
     def arrays(self) -> dict[str, np.ndarray]:
+        """The record for the fit: command_t when the commands reached the drive."""
         return {
-            "command_t": np.array(self.command_t),
+            "command_t": np.array(self.command_t) + self.transit,
             "command": np.array(self.command),
             "sample_t": np.array(self.sample_t),
             "length": np.array(self.length),
@@ -130,7 +149,8 @@ class Record:
 
 class WinchExperiment:
     """The per-cycle logic: `cycle(t, feedback, status)` returns the command (N) or raises
-    Abort; `sent(t, command)` records when it went out; `done` once the excitation ran."""
+    Abort; `sent(t, command)` records when it went out; `done` once the excitation ran.
+    `forces(t, driver)` is both for drive 0 of a driver, as a cycle runs it."""
 
     def __init__(self, plan: Plan, load: Load) -> None:
         plan.check(load)
@@ -151,6 +171,25 @@ class WinchExperiment:
         self._pinned = 0
         self._stale = 0
         self.done = False
+        self.abort: Abort | None = None
+
+    def forces(
+        self, t: float, driver: ActuatorDriver, opened: float | None = None
+    ) -> list[float] | None:
+        """The cycle at host time t (s; opened at `opened`, default t) for drive 0 of
+        `driver`: its command, recorded as sent; None once the excitation ran or the
+        experiment aborted (`abort` says why: the caller brakes)."""
+        if self.abort is not None:
+            return None
+        try:
+            command = self.cycle(t, driver.feedback[0], driver.status[0])
+        except Abort as exc:
+            self.abort = exc
+            return None
+        if self.done:
+            return None
+        self.sent(t, command, opened)
+        return [command]
 
     def cycle(self, t: float, feedback: Feedback, status: NodeStatus) -> float:
         """The command for the cycle at host time t (s)."""
@@ -159,7 +198,7 @@ class WinchExperiment:
             raise Abort("drive_fault", f"the drive reports {status.fault or 'a fault'}")
         if feedback.count == self._count:
             self._stale += 1
-            if self._stale > 3:
+            if self._stale > plan.stale_cycles:
                 raise Abort("no_feedback", f"no new feedback for {self._stale} cycles")
         else:
             self._stale = 0
@@ -176,18 +215,12 @@ class WinchExperiment:
                 f"(actuator range {plan.length_min}..{plan.length_max} m)",
             )
         elapsed = t - self._t0
-        u = 0.0
-        if elapsed >= plan.settle:
-            if math.isnan(self.record.excitation_start):
-                self.record.excitation_start = t
-            k = int((elapsed - plan.settle) / plan.period + 0.5) // plan.prbs_hold
-            if k >= len(self._prbs) - 1:
-                self.done = True
-            u = float(self._prbs[min(k, len(self._prbs) - 1)])
-        stabiliser = -self.kp * offset - self.kd * rate
-        delta = u + stabiliser
+        if elapsed >= plan.settle and math.isnan(self.record.excitation_start):
+            self.record.excitation_start = t
+        u, loop = self.drive(elapsed, offset, rate)
+        delta = u + loop
         a = plan.amplitude
-        self._pinned = self._pinned + 1 if abs(stabiliser) > a else 0
+        self._pinned = self._pinned + 1 if abs(loop) > a else 0
         if self._pinned * plan.period > SATURATED_FOR:
             raise Abort(
                 "force_limit",
@@ -196,9 +229,24 @@ class WinchExperiment:
             )
         return self.load.hold + min(a, max(-a, delta))
 
-    def sent(self, t: float, command: float) -> None:
+    def drive(self, elapsed: float, offset: float, rate: float) -> tuple[float, float]:
+        """The command's change from the hold `elapsed` s into the run, the winch
+        `offset` m from where it started at `rate` m/s: (the excitation: the PRBS once
+        settled; the loop's share: the stabiliser).  Sets `done` at the PRBS's end."""
+        plan = self.plan
+        u = 0.0
+        if elapsed >= plan.settle:
+            k = int((elapsed - plan.settle) / plan.period + 0.5) // plan.prbs_hold
+            if k >= len(self._prbs) - 1:
+                self.done = True
+            u = float(self._prbs[min(k, len(self._prbs) - 1)])
+        return u, -self.kp * offset - self.kd * rate
+
+    def sent(self, t: float, command: float, opened: float | None = None) -> None:
+        """`command` went out at t (s), in the cycle opened at `opened` (default t)."""
         self.record.command_t.append(t)
         self.record.command.append(command)
+        self.record.opened.append(t if opened is None else opened)
 
     def _sample(self, fb: Feedback) -> None:
         rec = self.record

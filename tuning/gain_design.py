@@ -41,6 +41,7 @@ class Design(NamedTuple):
     latency: float
     settling_target: float
     ok: bool
+    rig: Rig  # the identified winch's rig with these gains (Rig.loop predicts a load)
 
     def controller_section(self, rate_hz: float) -> dict[str, object]:
         """The `controller:` section for the config (gains per unit mass)."""
@@ -54,6 +55,19 @@ def identified_robot(robot: Robot, model: Identified) -> Robot:
     for actuator in [spec["actuator"]] + [c["actuator"] for c in spec["cables"]]:
         actuator.update({"m0": model.m0, "k0": model.k0})
     return Robot.from_dict(spec, source=f"{robot.name} with the identified actuator")
+
+
+def identified_plant(robot: Robot, model: Identified) -> PlantConfig:
+    """The analysis's plant model of the identified winch: its force lag, the robot
+    file's cable stiffness (else the simulator's) and the fitted cable damping (else
+    the simulator's)."""
+    return PlantConfig(
+        actuator=ActuatorModelConfig(c=[model.lag]),
+        cable=CableConfig(
+            stiffness=robot.actuators[0].cable_stiffness or PlantConfig().cable.stiffness,
+            damping=model.cable_damping or PlantConfig().cable.damping,
+        ),
+    )
 
 
 def family(w: float) -> PidSpec:
@@ -70,15 +84,8 @@ def design(
 ) -> Design:
     """The fastest gains of the family that pass every check (module docstring); the
     slowest candidate, ok False, if none does."""
-    config = PlantConfig(
-        actuator=ActuatorModelConfig(c=[model.lag]),
-        cable=CableConfig(
-            stiffness=robot.actuators[0].cable_stiffness or PlantConfig().cable.stiffness,
-            damping=model.cable_damping or PlantConfig().cable.damping,
-        ),
-    )
     spec = ControllerSpec(rate_hz=rate_hz, pid=family(10.0))
-    base = rig_for(identified_robot(robot, model), spec, config)
+    base = rig_for(identified_robot(robot, model), spec, identified_plant(robot, model))
     lo, hi = max(model.m0, modal_range[0]), max(model.m0, modal_range[1])
     masses = np.geomspace(model.m0, MASS_MARGIN * hi, SWEEP_MASSES)
     result = None
@@ -111,4 +118,4 @@ def _check(
         and all(loop.stable for loop in sweep)
         and all(loop.settling_time <= target for loop in modal_loops)
     )
-    return Design(gains, w, sweep, modal_loops, latency, target, ok and math.isfinite(w))
+    return Design(gains, w, sweep, modal_loops, latency, target, ok and math.isfinite(w), rig)

@@ -13,10 +13,18 @@ loop's own delays are part of the data rather than of the model.  scipy's least 
 fits m0, k0, tau (and D, a constant force bias and the starting length) to the measured
 lengths; each parameter's confidence is 1.96 standard errors from the Jacobian at the
 optimum (white-residual assumption: indicative, not a guarantee).
+
+With the drum clamped (m = inf) the drum only moves by the cable's stretch: m0 is read
+from the frequency of the drum on the cable's spring, so it rests on the robot file's
+EA; the cable's damping acts on the drum's rate just as k0 does (the two cannot be told
+apart: the fit's Jacobian is singular along them), so D stays at the simulator's
+default and k0 takes any difference; and a force bias only shifts the length, which
+each segment's constant takes.  A free drum or a hanging mass gives k0 on its own.
 """
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import numpy as np
@@ -31,12 +39,14 @@ from tuning.experiment import Load
 Array = NDArray[np.float64]
 GRID = 5e-4  # s: the simulation grid of the prediction
 NAMES = ("m0", "k0", "lag", "cable_damping", "bias")
+RANGE = 20.0  # the fitted m0, k0, lag and damping lie within this factor of the guess
 
 
 class Identified(NamedTuple):
     """The fitted model: m0 (kg), k0 (N s/m), lag (s: Assumption 1's c_2), the cable's
-    damping (N s per unit strain; None without a cable load), and per parameter the
-    relative 95 % half-width; the RMS residual (m) against the RMS response (m)."""
+    damping (N s per unit strain; None where not fitted: no load, or clamped), and per
+    parameter the relative 95 % half-width; the RMS residual (m) against the RMS
+    response (m)."""
 
     m0: float
     k0: float
@@ -46,6 +56,7 @@ class Identified(NamedTuple):
     residual_rms: float
     response_rms: float
     samples: int
+    bias: float = 0.0  # N: the constant force offset the fit found
 
     def actuator_model(self) -> ActuatorModelConfig:
         """The force lag as sim_bus.plant's actuator section (c = [lag])."""
@@ -65,8 +76,11 @@ class Setup(NamedTuple):
     segment: float = 0.25  # s: see segment_residuals
 
 
-def segment_residuals(setup: Setup, params: Array, data: dict[str, Array]) -> Array:
-    """Measured minus predicted lengths (m) for parameters `params` (NAMES[:5]).
+def segment_residuals(
+    setup: Setup, params: Array, data: dict[str, Array], fitted: Array | None = None
+) -> Array:
+    """Measured minus predicted lengths (m) for parameters `params` (NAMES[:5]); the
+    predicted lengths also go into `fitted` (one per sample) when given.
 
     The record is cut into segments of `segment` seconds; in each, the model starts from
     the initial state that fits best (a linear least-squares problem, solved exactly),
@@ -105,10 +119,25 @@ def segment_residuals(setup: Setup, params: Array, data: dict[str, Array]) -> Ar
         lo, hi = np.searchsorted(stamps, grid[j * per + np.array([0, per - 1])])
         tau = stamps[lo:hi] - grid[j * per]
         y = measured[lo:hi] - np.interp(tau, local, forced[j])
-        free = np.column_stack([np.interp(tau, local, col) for col in basis.T])
+        # the free response, and a constant: the length the load holds the drum at
+        # (a rigid-body mode gives one already; a clamped drum has none)
+        free = np.column_stack([np.ones(len(tau))] + [np.interp(tau, local, c) for c in basis.T])
         x0, *_ = np.linalg.lstsq(free, y, rcond=None)
         out.append(y - free @ x0)
+        if fitted is not None:
+            fitted[lo:hi] = measured[lo:hi] - out[-1]
     return np.concatenate(out)
+
+
+def fitted_lengths(setup: Setup, model: Identified, data: dict[str, Array]) -> Array:
+    """The model's lengths (m) at the record's samples, each segment from its best
+    initial state as in the fit (NaN for samples after the last whole segment)."""
+    params = np.array([model.m0, model.k0, model.lag, model.cable_damping or 0.0, model.bias])
+    if model.cable_damping is None:
+        params[3] = setup.damping_guess
+    fitted = np.full(len(data["sample_t"]), np.nan)
+    segment_residuals(setup, params, data, fitted)
+    return fitted
 
 
 def _system(setup: Setup, m0: float, k0: float, lag: float, damping: float) -> signal.StateSpace:
@@ -128,22 +157,29 @@ def fit(setup: Setup, data: dict[str, Array]) -> Identified:
         raise ValueError("too few samples to fit (the experiment ended early)")
     act = setup.actuator
     cabled = setup.load.mass > 0.0
+    clamped = math.isinf(setup.load.mass)
     guess = np.array([act.m0, max(act.k0, 0.1), setup.lag_guess, setup.damping_guess, 0.0])
     logs = [0, 1, 2, 3]  # fitted as logarithms: positive, and relative steps
-    free = [0, 1, 2, 4] + ([3] if cabled else [])
+    # clamped (module docstring): the bias and the cable's damping stay at the guess
+    free = [0, 1, 2] + ([] if clamped else [4]) + ([3] if cabled and not clamped else [])
+
+    start = guess.copy()
+    start[logs] = np.log(start[logs])
 
     def params_of(x: Array) -> Array:
-        params = guess.copy()
+        params = start.copy()
         params[free] = x
         params[logs] = np.exp(params[logs])
         return params
 
-    start = guess.copy()
-    start[logs] = np.log(start[logs])
+    # within a factor RANGE of the guess either way (the bias is free): a flat direction
+    # cannot send a step to exp() overflow
+    spread = np.where(np.isin(free, logs), np.log(RANGE), np.inf)
     result = optimize.least_squares(
         lambda x: segment_residuals(setup, params_of(x), data),
         start[free],
-        method="lm",
+        method="trf",
+        bounds=(start[free] - spread, start[free] + spread),
         x_scale=np.ones(len(free)),
         diff_step=1e-6,
         xtol=1e-10,
@@ -165,9 +201,10 @@ def fit(setup: Setup, data: dict[str, Array]) -> Identified:
         m0=float(params[0]),
         k0=float(params[1]),
         lag=float(params[2]),
-        cable_damping=float(params[3]) if cabled else None,
+        cable_damping=float(params[3]) if 3 in free else None,
         confidence=confidence,
         residual_rms=float(np.sqrt(np.mean(result.fun**2))),
         response_rms=float(np.sqrt(np.mean(response**2))),
         samples=n,
+        bias=float(params[4]),
     )

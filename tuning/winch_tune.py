@@ -25,6 +25,8 @@ from tuning.can_lockstep import LockstepLink, run_experiment
 from tuning.experiment import Abort, Load, Plan, Record, WinchExperiment
 from tuning.identify import Identified, Setup, fit
 
+LATENCY_PERCENTILE = 95.0
+
 
 class Request(NamedTuple):
     """What the user asks for: the cable (`drive`), the load (a hanging mass in kg, or
@@ -81,13 +83,16 @@ def setup_for(robot: Robot, request: Request, record: Record) -> Setup:
 
 class Run(NamedTuple):
     """One experiment: its record, its abort (None: it ran to the end), the fitted model
-    (None after an abort), frames exchanged and the excitation time (s)."""
+    (None after an abort), frames exchanged, the excitation time (s) and the loop's
+    latency (s: from a sample to its answer taking effect: the LATENCY_PERCENTILE of the
+    host's, receipt to command, plus the bus's delay both ways)."""
 
     record: Record
     abort: Abort | None
     model: Identified | None
     frames: int
     experiment_seconds: float
+    latency: float
 
 
 def identify_simulated(
@@ -99,10 +104,25 @@ def identify_simulated(
     faults: list[tuple[float, str]] | None = None,
     true_load: float | None = None,
 ) -> Run:
-    """The experiment against the simulator's rig (sim.rig for `request`), the drive's
+    """The identification experiment against the simulator's rig (run_simulated)."""
+    experiment = WinchExperiment(plan_for(robot, request, rate_hz), load_of(robot, request))
+    abort, frames = run_simulated(robot, drives, plant, request, experiment, faults, true_load)
+    return finish(robot, request, experiment, abort, frames)
+
+
+def run_simulated(
+    robot: Robot,
+    drives: DrivesConfig,
+    plant: PlantConfig,
+    request: Request,
+    experiment: WinchExperiment,
+    faults: list[tuple[float, str]] | None = None,
+    true_load: float | None = None,
+) -> tuple[Abort | None, int]:
+    """`experiment` against the simulator's rig (sim.rig for `request`), the drive's
     frames exchanged in simulated time; `faults` (simulated time, kind: drive, snap or
     silent) are injected on the way; `true_load` (kg) hangs instead of the mass the
-    request names (a user who got the load wrong)."""
+    request names (a user who got the load wrong).  Its abort, and the frames."""
     mass = request.load_mass if true_load is None else true_load
     rig = RigConfig(
         drive=request.drive,
@@ -114,11 +134,10 @@ def identify_simulated(
     one = drives.single(request.drive)
     driver = protocol_driver(one, [drives.scalings_for(robot)[request.drive]])
     link = LockstepLink(sim, driver)
-    experiment = WinchExperiment(plan_for(robot, request, rate_hz), load_of(robot, request))
     for at, kind in faults or []:
         link.schedule(at, _fault(sim, kind))
     abort = run_experiment(link, experiment, one.brake)
-    return finish(robot, request, experiment, abort, link.frames_sent + link.frames_received)
+    return abort, link.frames_sent + link.frames_received
 
 
 def finish(
@@ -131,7 +150,10 @@ def finish(
     model = None
     if abort is None:
         model = fit(setup_for(robot, request, record), record.arrays())
-    return Run(record, abort, model, frames, seconds)
+    latencies = record.latencies()
+    host = float(np.percentile(latencies, LATENCY_PERCENTILE)) if len(latencies) else 0.0
+    latency = host + 2.0 * record.transit  # the sample's way in, the command's way out
+    return Run(record, abort, model, frames, seconds, latency)
 
 
 def _fault(sim: VirtualRobot, kind: str) -> Callable[[], list[can.Message]]:

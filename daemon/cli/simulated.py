@@ -86,7 +86,7 @@ def simulated_robot(config: DaemonConfig, sim: SimConfig) -> VirtualRobot:
     at its home pose."""
     where = f"{config.source}: sim.plant"
     try:
-        return VirtualRobot(config.robot, config.drives, sim.plant)
+        return VirtualRobot(config.robot, config.drives, sim.plant, sim.rig)
     except ConfigError as exc:
         raise exc.within(where) from None
     except ValueError as exc:  # no static equilibrium (sim_bus.plant.statics)

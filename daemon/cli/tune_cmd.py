@@ -1,24 +1,40 @@
 """`cdprd tune`: identify ONE winch's single-actuator model and propose gains (paper §4).
 
-    cdprd tune --config FILE --sim [--drive K] [--load-mass KG | --clamped [--preload N]]
-               [--amplitude N] [--duration S] [--travel M] [--json]
+    cdprd tune --config FILE [--sim [--lockstep]] [--drive K]
+               [--load-mass KG | --clamped [--preload N]]
+               [--amplitude N] [--duration S] [--travel M] [--json] [--plot PNG]
+               [--check-loads KG,KG,...]
 
 Drives cable K's drive through the config's driver in torque mode, the winch carrying
 the passive load named (a hanging mass, none, or the drum clamped), with a bounded PRBS
 experiment (tuning.experiment: never more than --amplitude from the holding force;
-abort and brake on a drive fault, slack cable, length or force limit, naming it); fits
-Assumption 1's m0, k0 and force lag (tuning.identify); designs PID gains checked over
-m in [m0, 1.5 x the robot's largest modal mass] at the measured latency
-(tuning.gain_design); prints the actuator block for the robot file and the controller
-section.  --sim runs it against the simulator's one-winch rig (sim.rig with the config's
-sim.plant: its mismatch and actuator model are the TRUE winch), the drive's CAN frames
-exchanged in simulated time.
+abort and brake on a drive fault, slack cable, length or force limit, lost feedback or
+bus, naming it); fits Assumption 1's m0, k0 and force lag (tuning.identify); designs
+PID gains checked over m in [m0, 1.5 x the robot's largest modal mass] at the measured
+loop latency (tuning.gain_design); prints the actuator block for the robot file and the
+controller section.
 
---json prints one object: drive, load {mass, clamped, hold}, experiment {seconds,
-frames, samples, abort}, model {m0, k0, lag, cable_damping, confidence, residual_rms,
-response_rms}, actuator (the robot file's block), actuator_model (sim.plant.actuator),
-gains {kp, ki, kd, derivative_filter, bandwidth, ok, modal_mass_range, modal_loops
-[{mass, settling_time, overshoot, poles}]}, controller (the config section).
+Without --sim it runs in real time on the bus the config's `can:` section names
+(hardware, or `python -m sim_bus` with a `sim.rig` section as a separate process over
+socketcand) through the daemon's bus port, timer and driver (daemon.cli.tune_bus), at
+the daemon core's scheduling (`realtime:`).  --sim runs the same in real time against
+the in-process simulator's one-winch rig (sim.rig from the request, the config's
+sim.plant: its mismatch and actuator model are the TRUE winch); --sim --lockstep
+exchanges the drive's CAN frames in simulated time instead (fast, deterministic).
+
+--json prints one object: drive, load {mass, clamped}, experiment {seconds, frames,
+samples, latency, transit, abort}, model {m0, k0, lag, cable_damping, confidence,
+residual_rms, response_rms}, actuator (the robot file's block), actuator_model
+(sim.plant.actuator), gains {kp, ki, kd, derivative_filter, bandwidth, ok,
+modal_mass_range, modal_loops [{mass, settling_time, overshoot, poles}]}, controller
+(the config section), plot (the --plot file), checks (--check-loads: per load {load,
+mass, settling_time, overshoot, predicted_settling_time, predicted_overshoot, abort}).
+After an abort of the identification: {drive, abort, reason}.
+--plot PNG draws the data, the fit and the closed-loop poles across the mass range
+(tuning.tune_plot).  --check-loads 0,5,10 flies the proposed gains on the winch through
+a step of the length reference with each load hung (tuning.load_check; on the bus the
+user hangs each and presses Enter) and sets the measured settling time and overshoot
+against the identified model's; exit 3 if one aborted.
 Exit 0 on success, 3 when the experiment aborted (the drive was braked), 1 on a bad
 config or request.
 """
@@ -26,9 +42,12 @@ config or request.
 from __future__ import annotations
 
 import argparse
+import asyncio
+import dataclasses
 import json
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import yaml
@@ -36,9 +55,15 @@ import yaml
 from cdpr import ConfigError
 from daemon.cli.analyze_cmd import _clean
 from daemon.cli.run_cmd import load_checked, report
+from daemon.config import DaemonConfig
+from daemon.process.app import close_bus, open_bus
+from daemon.process.realtime import realtime
 
 if TYPE_CHECKING:
+    from tuning.experiment import Abort, WinchExperiment
     from tuning.gain_design import Design
+    from tuning.identify import Identified
+    from tuning.load_check import CheckResult
     from tuning.winch_tune import Request, Run
 
 ABORTED = 3
@@ -50,6 +75,11 @@ def add_parser(subparsers: Any) -> None:
     )
     p.add_argument("--config", required=True, help="daemon config YAML")
     p.add_argument("--sim", action="store_true", help="the simulator's one-winch rig")
+    p.add_argument(
+        "--lockstep",
+        action="store_true",
+        help="with --sim: exchange the frames in simulated time (fast, deterministic)",
+    )
     p.add_argument("--drive", type=int, default=0, help="cable index of the winch (default 0)")
     load = p.add_mutually_exclusive_group()
     load.add_argument("--load-mass", type=float, default=0.0, help="hanging mass, kg (0: none)")
@@ -59,25 +89,28 @@ def add_parser(subparsers: Any) -> None:
     p.add_argument("--duration", type=float, default=20.0, help="excitation time, s")
     p.add_argument("--travel", type=float, default=0.1, help="largest length excursion, m")
     p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("--plot", metavar="PNG", help="write the data, fit and gain check to PNG")
+    p.add_argument(
+        "--check-loads",
+        type=_loads,
+        metavar="KG,KG,...",
+        help="fly the proposed gains through a step with each load hung (kg)",
+    )
     p.set_defaults(handler=run)
 
 
 def run(args: argparse.Namespace) -> int:
     from tuning.experiment import Plan
     from tuning.gain_design import design
-    from tuning.winch_tune import Request, identify_simulated, load_of, plan_for
+    from tuning.winch_tune import Request, load_of, plan_for
     from tuning.workspace_analysis import analyse
 
-    try:
-        config = load_checked(args.config)
-    except ConfigError as exc:
-        report(exc)
+    if args.lockstep and not args.sim:
+        print("error: --lockstep runs the simulator in simulated time: add --sim", file=sys.stderr)
         return 1
-    if not args.sim:
-        print("error: only --sim is implemented so far (no real-time bus path)", file=sys.stderr)
+    if args.plot and not Path(args.plot).resolve().parent.is_dir():
+        print(f"error: --plot {args.plot}: no such directory", file=sys.stderr)
         return 1
-    from daemon.cli.simulated import sim_section
-
     request = Request(
         drive=args.drive,
         load_mass=args.load_mass,
@@ -87,20 +120,27 @@ def run(args: argparse.Namespace) -> int:
         duration=args.duration,
         travel=args.travel,
     )
+    try:
+        config = load_checked(args.config, _rig_edit(request) if args.sim else None)
+    except ConfigError as exc:
+        report(exc)
+        return 1
     robot, rate = config.robot, config.controller.rate_hz
     try:
         plan: Plan = plan_for(robot, request, rate)
         plan.check(load_of(robot, request))
-    except ValueError as exc:
+        config.drives.single(args.drive)
+    except (ValueError, ConfigError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
     say = _progress(args.json)
+    where = "simulated time" if args.lockstep else ("in-process simulator" if args.sim else "bus")
     say(
         f"tune: cable {args.drive} ({config.drives.protocol} node "
-        f"{config.drives.nodes[args.drive]}), load {_load(request)}, amplitude "
+        f"{config.drives.nodes[args.drive]}, {where}), load {_load(request)}, amplitude "
         f"+-{plan.amplitude:g} N, {plan.duration:g} s PRBS of +-{plan.excitation:g} N"
     )
-    result = identify_simulated(robot, config.drives, sim_section(config).plant, request, rate)
+    result = _experiment(args, config, request, say)
     say(f"experiment: {result.experiment_seconds:.1f} s, {result.frames} CAN frames")
     if result.abort is not None:
         say(f"ABORTED and braked: {result.abort}")
@@ -114,15 +154,163 @@ def run(args: argparse.Namespace) -> int:
     say("analysing the robot's modal masses (Lemma 1)")
     analysis = analyse(robot, config.controller, points_per_axis=3)
     modal = analysis.grid.mass_range
-    latency = 0.0  # in simulated time the commands act at the sample's instant
-    say("designing gains over the mass range")
-    gains = design(robot, model, modal, latency, rate)
+    say(f"designing gains over the mass range, loop latency {result.latency * 1e3:.3g} ms")
+    gains = design(robot, model, modal, result.latency, rate)
     out = _report(args.drive, request, result, gains, modal, rate)
+    aborted = False
+    if args.check_loads:
+        checks = _check_loads(args, config, request, model, gains, say)
+        if checks is None:
+            print("error: standard input ended before the next load was hung", file=sys.stderr)
+            return 1
+        out["checks"] = [
+            {**c._replace(abort=None)._asdict(), "abort": None if c.abort is None else str(c.abort)}
+            for c in checks
+        ]
+        aborted = any(c.abort is not None for c in checks)
+    if args.plot:
+        from tuning.tune_plot import write_tune_plot
+        from tuning.winch_tune import setup_for
+
+        setup = setup_for(robot, request, result.record)
+        try:
+            write_tune_plot(Path(args.plot), result.record, setup, model, gains)
+        except OSError as exc:
+            print(f"error: cannot write {args.plot}: {exc.strerror or exc}", file=sys.stderr)
+            return 1
+        out["plot"] = args.plot
     if args.json:
         print(json.dumps(_clean(out)))
     else:
         _print(out)
-    return 0
+    return ABORTED if aborted else 0
+
+
+def _loads(text: str) -> list[float]:
+    try:
+        loads = [float(part) for part in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected masses in kg, e.g. 0,5,10") from None
+    bad = [m for m in loads if not 0.0 <= m < float("inf")]
+    if bad:
+        raise argparse.ArgumentTypeError(f"load {bad[0]:g} kg: a mass must be finite and >= 0")
+    return loads
+
+
+def _rig_edit(request: Request) -> Callable[[dict[str, Any]], None]:
+    """--sim: the config's sim.rig becomes the winch and load the request names."""
+
+    def edit(data: dict[str, Any]) -> None:
+        sim = dict(data.get("sim") or {})
+        rig = dict(sim.get("rig") or {}, drive=request.drive, clamped=request.clamped)
+        if request.clamped:
+            rig.update(load_mass=0.0, preload=request.preload)
+        else:
+            rig["load_mass"] = request.load_mass
+        data["sim"] = {**sim, "rig": rig}
+
+    return edit
+
+
+def _experiment(
+    args: argparse.Namespace, config: DaemonConfig, request: Request, say: Callable[[str], None]
+) -> Run:
+    """The identification experiment: in simulated time (--sim --lockstep), or in real
+    time on the in-process simulator's bus (--sim) or the bus the config names."""
+    from daemon.cli.simulated import sim_section
+    from tuning.experiment import WinchExperiment
+    from tuning.winch_tune import finish, identify_simulated, load_of, plan_for
+
+    robot, rate = config.robot, config.controller.rate_hz
+    if args.lockstep:
+        return identify_simulated(robot, config.drives, sim_section(config).plant, request, rate)
+    experiment = WinchExperiment(plan_for(robot, request, rate), load_of(robot, request))
+    abort, frames = asyncio.run(_on_bus(config, request, args.sim, say, experiment))
+    return finish(robot, request, experiment, abort, frames)
+
+
+def _check_loads(
+    args: argparse.Namespace,
+    config: DaemonConfig,
+    request: Request,
+    model: Identified,
+    gains: Design,
+    say: Callable[[str], None],
+) -> list[CheckResult] | None:
+    """--check-loads: the proposed gains flown through a step with each load hung (in
+    the simulator: its rig with that load; on the bus: the user hangs it and presses
+    Enter); None if standard input ends before a load is hung."""
+    from daemon.cli.simulated import sim_section
+    from tuning.load_check import check_result, step_check
+    from tuning.winch_tune import run_simulated
+
+    robot, rate = config.robot, config.controller.rate_hz
+    results = []
+    for mass in args.check_loads:
+        hung, check = step_check(robot, request, rate, model, gains, mass)
+        if args.lockstep:
+            plant = sim_section(config).plant
+            check.abort, _ = run_simulated(robot, config.drives, plant, hung, check)
+        else:
+            if not args.sim:
+                say(f"hang {mass:g} kg on cable {request.drive} (0: none), then press Enter")
+                if not sys.stdin.readline():
+                    return None
+            hung_config = load_checked(args.config, _rig_edit(hung)) if args.sim else config
+            check.abort, _ = asyncio.run(_on_bus(hung_config, hung, args.sim, say, check))
+        result = check_result(check, gains)
+        results.append(result)
+        say(_check_line(result))
+    return results
+
+
+def _check_line(c: CheckResult) -> str:
+    if c.abort is not None:
+        return f"check {c.load:g} kg: ABORTED and braked: {c.abort}"
+    return (
+        f"check {c.load:g} kg (m {c.mass:.3g} kg): settling {c.settling_time:.3g} s "
+        f"(model {c.predicted_settling_time:.3g} s), overshoot {100 * c.overshoot:.1f} % "
+        f"(model {100 * c.predicted_overshoot:.1f} %)"
+    )
+
+
+async def _on_bus(
+    config: DaemonConfig,
+    request: Request,
+    sim: bool,
+    say: Callable[[str], None],
+    experiment: WinchExperiment,
+) -> tuple[Abort | None, int]:
+    """`experiment` in real time on the in-process simulator's bus (`sim`) or the bus
+    the config names: its abort, and the frames."""
+    from daemon.cli.tune_bus import BusExperiment
+    from drivers.factory import protocol_driver
+
+    robot, drives = config.robot, config.drives
+    one = drives.single(request.drive)
+    driver = protocol_driver(one, [drives.scalings_for(robot)[request.drive]])
+    experiment.plan = dataclasses.replace(
+        experiment.plan, stale_cycles=config.safety.stale_cycles
+    )
+    if sim:
+        from daemon.cli.simulated import InProcessSimulator
+
+        simulator = InProcessSimulator(config)
+        buses, close = simulator.daemon_bus, simulator.close
+        simulator.start()
+    else:
+        buses = open_bus(config)
+        close = lambda: close_bus(buses)  # noqa: E731
+    try:
+        bus = buses[one.bus_names()[0]] if isinstance(buses, Mapping) else buses
+        runner = BusExperiment(
+            bus, driver, experiment, one.brake, config.safety.feedback_deadline, say
+        )
+        with realtime(config.realtime):  # the daemon core's scheduling, for the same cycle
+            abort = await runner.run()
+    finally:
+        close()
+    return abort, runner.frames
 
 
 def _report(
@@ -137,6 +325,8 @@ def _report(
             "seconds": result.experiment_seconds,
             "frames": result.frames,
             "samples": len(result.record.sample_t),
+            "latency": result.latency,
+            "transit": result.record.transit,
             "abort": None,
         },
         "model": {

@@ -4,9 +4,14 @@ amplitude bound, and every abort path (each brakes the drive and names the reaso
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import numpy as np
 import pytest
+import yaml
 
+from daemon.cli import main
 from daemon.config import load_config
 from sim_bus.plant.config import parse_plant_config
 from tuning.experiment import Load, WinchExperiment
@@ -87,3 +92,60 @@ def test_a_plan_that_could_slacken_or_saturate_is_refused() -> None:
         WinchExperiment(plan, Load.hanging(60.0, 9.81))
     with pytest.raises(ValueError, match=r"cables 0\.\.7"):
         plan_for(robot, Request(drive=8), 500.0)
+
+
+def tune_config(tmp_path: Path) -> Path:
+    """The odrive example with the true winch (30 % off the robot file) as sim.plant."""
+    config = tmp_path / "tune.yaml"
+    data = yaml.safe_load(Path("config/reference8-odrive.yaml").read_text())
+    data["robot"] = str(Path("config/robots/reference8.yaml").resolve())
+    data["sim"]["plant"].update(
+        actuator={"c": [TRUE["lag"]]}, mismatch={"m0_scale": 1.3, "k0_scale": 0.7}
+    )
+    config.write_text(yaml.safe_dump(data))
+    return config
+
+
+def test_tune_plots_the_data_the_fit_and_the_poles(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    config = tune_config(tmp_path)
+    png = tmp_path / "tune.png"
+    args = ["tune", "--config", str(config), "--sim", "--lockstep", "--duration", "3"]
+    assert main([*args, "--json", "--plot", str(png)]) == 0
+    assert json.loads(capsys.readouterr().out)["plot"] == str(png)
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 20_000
+    assert main([*args, "--plot", str(tmp_path / "missing" / "tune.png")]) == 1
+    err = capsys.readouterr().err
+    assert "--plot" in err and "no such directory" in err
+
+
+def test_a_clamped_drum_is_identified_too() -> None:
+    """m = inf: the drum moves by the cable's stretch alone (tuning.identify: m0 from the
+    cable's spring, the cable's damping held at the simulator's default)."""
+    config = load_config("config/reference8-odrive.yaml")
+    run = identify_simulated(
+        config.robot, config.drives, plant(), Request(clamped=True, duration=8.0), 500.0
+    )
+    assert run.model is not None
+    for name, true in TRUE.items():
+        assert getattr(run.model, name) == pytest.approx(true, rel=0.05), name
+    assert run.model.cable_damping is None  # not fitted: it cannot be told from k0
+
+
+def test_tune_checks_the_gains_at_each_hung_load_against_the_model(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """--check-loads: the proposed gains flown on the winch through a step with 0, 5 and
+    10 kg hung settle and overshoot as the identified model predicts for m0 + load."""
+    args = ["tune", "--config", str(tune_config(tmp_path)), "--sim", "--lockstep", "--json"]
+    assert main([*args, "--duration", "4", "--check-loads", "0,5,10"]) == 0
+    checks = json.loads(capsys.readouterr().out)["checks"]
+    assert [c["load"] for c in checks] == [0.0, 5.0, 10.0]
+    for c in checks:
+        assert c["abort"] is None
+        assert c["settling_time"] == pytest.approx(c["predicted_settling_time"], rel=0.10), c
+        assert c["overshoot"] == pytest.approx(c["predicted_overshoot"], abs=0.01), c
+    with pytest.raises(SystemExit):
+        main([*args, "--check-loads", "0,-5"])
+    assert "load -5 kg: a mass must be finite and >= 0" in capsys.readouterr().err
