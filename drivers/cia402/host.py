@@ -163,7 +163,7 @@ class Cia402Driver(ActuatorDriver):
         self.plan = setup if setup is not None else plan(config)
         self.eds = self.plan.eds
         self.od = self.plan.od
-        self.clock: Callable[[], float] = time.monotonic  # paces the host heartbeat
+        self.clock: Callable[[], float] = time.monotonic  # paces the host heartbeat (start sets it)
         self._heartbeat = encode_heartbeat(config.profile.host_node, NmtState.OPERATIONAL)
         self._next_heartbeat = -math.inf
         rated = config.rated_torque
@@ -404,6 +404,7 @@ class Cia402Driver(ActuatorDriver):
     # -- sequences ------------------------------------------------------------------------
 
     async def start(self, link: Link, now: Callable[[], float]) -> None:
+        self.clock = now  # the link's time (simulated time in lock-step runs)
         found: list[State] = []
         self._standing, self._feeding = [], True
         try:
