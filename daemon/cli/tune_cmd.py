@@ -372,6 +372,8 @@ def _print(out: dict[str, Any]) -> None:
     print(yaml.safe_dump({"actuator": out["actuator"]}, sort_keys=False).rstrip())
     print("simulator / analysis force lag (sim.plant.actuator):")
     print(yaml.safe_dump({"actuator": out["actuator_model"]}).rstrip())
+    print("the daemon's command timing (drives section; controller.command_lead auto):")
+    print(f"  force_lag: {m['lag']:.4g}")
     g = out["gains"]
     lo, hi = g["modal_mass_range"]
     print(
