@@ -498,9 +498,11 @@ def _check_cia402_capture(capture: Path) -> None:
 
 
 def _check_odrive_capture(capture: Path) -> None:
-    """Every CANSimple frame of the drives decodes with the DBC (cantools); the only
-    frames of the wrong size are the garbage this test sent."""
-    db = cantools.database.load_file(ROOT / "config" / "can" / "odrive_cansimple.dbc")
+    """Every CANSimple frame of the drives decodes strictly with ODrive's published 0.6
+    DBC (tests/data, cantools; the shipped config/can copy equals it); the only frames
+    of the wrong size are the garbage this test sent."""
+    reference = ROOT / "tests" / "data" / "odrive-cansimple-0.6.10.dbc"
+    db = cantools.database.load_file(reference, strict=True)
     by_cmd = {m.frame_id: m for m in db.messages}  # the DBC describes node 0
     counts: dict[str, int] = {}
     torques, odd = [], []
@@ -511,7 +513,7 @@ def _check_odrive_capture(capture: Path) -> None:
         if len(data) != spec.length:
             odd.append(can_id)
             continue
-        decoded = spec.decode(data)
+        decoded = spec.decode(data, decode_choices=False, scaling=True)
         counts[spec.name] = counts.get(spec.name, 0) + 1
         if spec.name == "Set_Input_Torque":
             torques.append(decoded["Input_Torque"])
