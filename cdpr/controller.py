@@ -215,6 +215,16 @@ class ParallelController:
         self._prepared = _Prepared(t, ref, ahead, guess, f_b, model)
         self.stretch.update(self.period)
 
+    def set_payload(self, mass: float, center_of_mass: tuple[float, ...]) -> None:
+        """Use this platform mass (kg) and centre of mass (m, platform frame) from now on
+        (identify-payload's estimate, applied); ValueError naming the limit if it lies
+        beyond controller.adaptation's, or the estimate is off."""
+        if self.payload is None:
+            raise ValueError("the payload estimate is off (controller.adaptation.enabled)")
+        self.payload.set(mass, center_of_mass)
+        self._take_over(self.payload.platform)
+        self._prepared = None  # its model is the old one
+
     def _take_over(self, platform: PlatformInertia) -> None:
         """Use `platform` in the model from now on; what its static wrench changes the
         integral action gives up at once, as far as it holds it

@@ -287,3 +287,63 @@ class PayloadEstimate:
 
     def _inertia(self, mass: float, com: Sequence[float]) -> PlatformInertia:
         return PlatformInertia(mass, com, self.file.inertia, self.file.gravity)
+
+
+class StaticFit(NamedTuple):
+    """identify-payload's estimate: mass (kg) and centre of mass (m, platform frame) with
+    their standard deviations (inf for a component the poses did not reveal: it is the
+    robot file's), the RMS of what the fit leaves of the wrenches (N, torques / LENGTH)
+    and how many samples it used."""
+
+    mass: float
+    center_of_mass: tuple[float, float, float]
+    mass_std: float
+    center_of_mass_std: tuple[float, float, float]
+    residual_rms: float
+    samples: int
+
+
+def static_fit(robot: Robot, samples: Sequence[tuple[Pose, ArrayLike]]) -> StaticFit:
+    """The mass and centre of mass that explain the drives' `forces` holding the
+    platform at rest at each `pose` (samples of (pose, forces)): the cables' wrench
+    Lambda(pose)^T f balances m g and the moment (R m c_b) x g.  One pose reveals the mass
+    and the centre of mass across gravity; poses tilted about two axes reveal all of it.
+    ValueError if there are no samples."""
+    if not samples:
+        raise ValueError("static_fit: no samples")
+    zero = [0.0] * 6
+    rows = []
+    for pose, forces in samples:
+        wrench = robot.jacobian(pose).T.dot(np.asarray(forces, dtype=float))
+        rows.append(np.array(regressor(pose, zero, zero, robot.platform.gravity,
+                                       wrench.tolist(), [0.0] * 9)).reshape(6, 5))  # fmt: skip
+    Z = np.concatenate(rows)
+    Y, y = Z[:, :4], Z[:, 4]
+    values, vectors = np.linalg.eigh(Y.T.dot(Y) / len(samples))
+    excited = values > EXCITED
+    V, lam = vectors[:, excited], values[excited]
+    file = robot.platform
+    x = V.dot(V.T.dot(Y.T.dot(y)) / len(samples) / lam)
+    if not excited.all():  # the centre of mass along what was not seen: the file's
+        U = vectors[:, ~excited]
+        kept = parameters(float(x[0]), file.center_of_mass)
+        x = x + U.dot(U.T.dot(kept - x))
+    residual = y - Y.dot(x)
+    dof = max(len(y) - int(excited.sum()), 1)
+    sigma2 = float(residual.dot(residual)) / dof
+    # covariance of x in the revealed directions; unrevealed ones: unbounded
+    cov = V.dot(V.T / lam[:, None]) * sigma2 / len(samples)
+    mass, com = mass_and_com(x)
+    # c = LENGTH h' / m: its first-order sensitivity to (m, h')
+    J = np.zeros((3, 4))
+    J[:, 0] = -np.asarray(com) / mass
+    J[:, 1:] = np.eye(3) * LENGTH / mass
+    com_var = np.diag(J.dot(cov).dot(J.T))
+    if not excited.all():
+        hidden = np.abs(vectors[1:, ~excited]).max(axis=1) > 0.1  # per platform axis
+        com_var = np.where(hidden, math.inf, com_var)
+    std = tuple(math.sqrt(max(float(v), 0.0)) for v in com_var)
+    return StaticFit(
+        mass, com, math.sqrt(max(float(cov[0, 0]), 0.0)), std,  # type: ignore[arg-type]
+        math.sqrt(float(residual.dot(residual)) / len(y)), len(samples),
+    )  # fmt: skip
