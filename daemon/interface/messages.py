@@ -314,7 +314,7 @@ def decode_command(
     if name == "payload":
         return _payload_args(data)
     if name == "identify_payload":
-        return {"apply": _flag(data, "apply", "identify_payload")}
+        return {"apply": True} if _flag(data, "apply", "identify_payload") else {}
     if name != "goto":
         return {}
     if "position" not in data:
