@@ -24,11 +24,15 @@ SAMPLE_EVERY-th cycle; every SOLVE_EVERY cycles the estimate moves, with time co
 `time_constant`, towards the least-squares solution in the directions the data excite
 (eigenvalues of the mean Y^T Y above EXCITED, i.e. an excitation of 1 m/s^2 RMS) and not
 at all in the others, where the centre of mass stays (a new mass at the old centre of
-mass).  At rest G = -g: the mass and the horizontal (world) components of R h are
-identified, the vertical one is not (a centre of mass moved along gravity changes no
-static wrench); tilting the platform or accelerating it sideways excites it.  The model
-takes the estimate while it lies within the configured limits; an estimate beyond them
-is a fault (`fault`: the daemon brakes), never the model.  Nothing moves while frozen.
+mass); and only as far as the solution lies beyond a dead zone (DEAD_ZONE of the mass:
+the regression's own errors, ~0.2 % at rest, or a mode ringing down, do not move the
+model; the integral action has the rest).
+
+At rest G = -g: the mass and the horizontal (world) components of R h are identified,
+the vertical one is not (a centre of mass moved along gravity changes no static
+wrench); tilting the platform or accelerating it sideways excites it.  The model takes
+the estimate while it lies within the configured limits; an estimate beyond them is a
+fault (`fault`: the daemon brakes), never the model.  Nothing moves while frozen.
 
 `static_fit` is the same regression over a few poses held at rest (identify-payload):
 mass and centre of mass with their standard deviations.
@@ -57,6 +61,7 @@ WINDOW = 1.0  # s: forgetting time of the least-squares data
 EXCITED = 1.0  # (m/s^2)^2: the least mean eigenvalue of Y^T Y of a direction identified
 SAMPLE_EVERY = 4  # cycles between two samples taken in (~30 us each: not every cycle)
 SOLVE_EVERY = 20  # cycles between two solutions (eigh ~20 us), between two samples
+DEAD_ZONE = 0.005  # of the file's mass: a smaller difference is left to the integral action
 DEFAULT_MASS_RANGE = (0.8, 1.5)  # mass_min, mass_max as multiples of the file's mass
 
 
@@ -171,6 +176,7 @@ class PayloadEstimate:
         self._forget = math.exp(-SAMPLE_EVERY * period / WINDOW)
         self._gain = SOLVE_EVERY * period / (spec.time_constant + SOLVE_EVERY * period)
         self._prior = parameters(self.file.mass, self.file.center_of_mass)
+        self._dead_zone = DEAD_ZONE * self.file.mass
         self.platform = self.file
         self._x = self._prior.copy()  # the estimate, unbounded (the fault check)
         self._observed: tuple[Pose, Array, float, Array, Reference, Array, Array] | None = None
@@ -249,8 +255,13 @@ class PayloadEstimate:
         if excited.shape[1] == 0:
             return False
         x = self._x
-        # the least-squares solution in the excited directions
+        # towards the least-squares solution in the excited directions, as far as it lies
+        # beyond the dead zone
         along = excited.T.dot(b) / values[values > EXCITED] - excited.T.dot(x)
+        distance = math.sqrt(float(along.dot(along)))
+        if distance <= self._dead_zone:
+            return False
+        along *= 1.0 - self._dead_zone / distance
         x = x + self._gain * excited.dot(along)
         # and in the others the centre of mass where it was (a new mass at the old
         # centre of mass, not at p)
