@@ -3,7 +3,7 @@
 robot file does not know; the daemon (`cdprd run`, its core and companion processes)
 drives it, its online estimate learning the payload while it holds; the command line asks
 for the static estimate, which the companion makes by holding five poses, and the core
-applies it."""
+applies it; `cdprd payload --freeze` then freezes the estimate."""
 
 from __future__ import annotations
 
@@ -53,17 +53,9 @@ def test_identify_payload_from_the_command_line(tmp_path: Path) -> None:
             client.enable()
             wait_status(client, "hold", 10.0)
             time.sleep(2.0)  # the online estimate takes the payload in
-            cli = subprocess.run(
-                [
-                    sys.executable, "-m", "daemon.cli", "identify-payload", "--apply",
-                    "--prefix", PREFIX, "--connect", f"tcp/127.0.0.1:{zenoh_port}",
-                ],
-                cwd=ROOT, capture_output=True, text=True, timeout=120,
-            )  # fmt: skip
-            assert cli.returncode == 0, cli.stderr
-            result = json.loads(cli.stdout)
-            time.sleep(0.3)  # a state snapshot after the estimate was applied
+            result = _cdprd(zenoh_port, "identify-payload", "--apply")
             payload = client.request("payload")
+            frozen = _cdprd(zenoh_port, "payload", "--freeze")
             status = client.status()
         finish(daemon)
     finally:
@@ -77,3 +69,17 @@ def test_identify_payload_from_the_command_line(tmp_path: Path) -> None:
     assert np.abs(np.subtract(result["center_of_mass"], TRUE_COM)).max() < 3e-3, result
     # applied, and the online estimate since agrees with it
     assert payload["mass"] == pytest.approx(TRUE_MASS, rel=0.01) and payload["frozen"] is False
+    assert frozen["frozen"] is True and frozen["mass"] == pytest.approx(TRUE_MASS, rel=0.01)
+
+
+def _cdprd(port: int, *command: str) -> dict:
+    """What `cdprd COMMAND` prints, run against the daemon on zenoh `port`."""
+    cli = subprocess.run(
+        [
+            sys.executable, "-m", "daemon.cli", *command,
+            "--prefix", PREFIX, "--connect", f"tcp/127.0.0.1:{port}",
+        ],
+        cwd=ROOT, capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert cli.returncode == 0, cli.stderr
+    return json.loads(cli.stdout)
