@@ -8,10 +8,13 @@ the closed-loop figures of the standard trajectory set (`tracking`): per traject
 events, the ratio of its RMS position error to the joint-space baseline's
 (`baseline_ratio`), and the same run under model mismatch (plant mass +10 %, m0 -10 %, 5
 um encoder noise), and without the command lead (`no_lead`, and `lead_ratio`: RMS with
-the lead / without; `command_lead_s` the lead used); and the holding robot's response to
-a 50 N horizontal push (`disturbance`: peak error, 2 % settling time, the error left
-after 20 s, and whether the peak exceeds the daemon's default tracking-error bound,
-which would brake it).
+the lead / without; `command_lead_s` the lead used), and with a payload (`payload10`:
++10 % mass, `payload30`: +30 % and the centre of mass 5 cm off; flight RMS and holding
+RMS with the payload estimate on, `adaptation_off` beside); the step without the
+payload estimate (`step_adaptation_off`, `step_ratio`); and the holding robot's response
+to a 50 N horizontal push (`disturbance`: peak error, 2 % settling time, the error left
+after 20 s, whether the peak exceeds the daemon's default tracking-error bound, and
+`braked`: that, or a controller fault).
 
     python bench/controller.py [--json] [--calls N] [--skip-tracking]
 """
@@ -29,6 +32,7 @@ from cdpr import Robot
 from cdpr.control_spec import ControllerSpec
 from cdpr.controller import ParallelController
 from daemon.config import SafetyConfig
+from tuning.comparison import payload_figures
 from tuning.comparison import standard_set_figures as tracking
 from tuning.disturbance import step_response
 from tuning.scenarios import STANDARD_SET
@@ -59,6 +63,15 @@ def step_us(robot: Robot, spec: ControllerSpec, calls: int) -> dict[str, float]:
     return per_call_us(replay, calls, warm_up=0)
 
 
+def tracking_with_payload(robot: Robot, spec: ControllerSpec) -> dict[str, dict]:
+    """The standard set's figures with `payload10` and `payload30` added per trajectory
+    (tuning.comparison.payload_figures)."""
+    figures = tracking(robot, spec)
+    for name, payload in payload_figures(robot, spec).items():
+        figures[name].update(payload)
+    return figures
+
+
 def disturbance(robot: Robot, spec: ControllerSpec) -> dict[str, float | bool | str]:
     """A 50 N horizontal push on the holding robot, for 20 s (tuning.disturbance)."""
     f = step_response(robot, spec, wrench=(50.0, 0.0, 0.0, 0.0, 0.0, 0.0), duration=20.0)
@@ -70,6 +83,7 @@ def disturbance(robot: Robot, spec: ControllerSpec) -> dict[str, float | bool | 
         "final_mm": round(f.final_mm, 3),
         "fault": f.fault,
         "exceeds_tracking_bound": f.peak_mm > bound_mm,  # the daemon would brake
+        "braked": bool(f.fault) or f.peak_mm > bound_mm,
     }
 
 
@@ -83,16 +97,26 @@ def main(argv: list[str] | None = None) -> int:
     robot = Robot.from_yaml(REFERENCE8)
     spec = ControllerSpec()
     results: dict[str, dict] = {"step": step_us(robot, spec, args.calls)}
+    # the same replay without the payload estimate, in the same run (issue 19: the
+    # estimate's work must leave the step's median within 1.15x)
+    fixed = spec.model_copy(
+        update={"adaptation": spec.adaptation.model_copy(update={"enabled": False})}
+    )
+    results["step_adaptation_off"] = step_us(robot, fixed, args.calls)
+    results["step_ratio"] = round(
+        results["step"]["median_us"] / results["step_adaptation_off"]["median_us"], 3
+    )
     results.update(tension.measure(robot, calls=max(args.calls, 2000)))
     if not args.skip_tracking:
-        results["tracking"] = tracking(robot, spec)
+        results["tracking"] = tracking_with_payload(robot, spec)
         results["command_lead_s"] = ParallelController(robot, spec).lead
         results["disturbance"] = disturbance(robot, spec)
     if args.json:
         print(json.dumps(results))
         return 0
-    timed = ("step", "tda_osqp", "tda_osqp_shortcut", "tda_closed_form")
+    timed = ("step", "step_adaptation_off", "tda_osqp", "tda_osqp_shortcut", "tda_closed_form")
     print_timings({name: results[name] for name in timed})
+    print(f"step median with / without the payload estimate: {results['step_ratio']:.3f}")
     for name, f in results.get("tracking", {}).items():
         print(
             f"{name:14s} rms {f['rms_mm']:.3f} mm  max {f['max_mm']:.3f} mm  "
@@ -101,6 +125,18 @@ def main(argv: list[str] | None = None) -> int:
             f"baseline rms {f['baseline']['rms_mm']:.3f} mm (ratio {f['baseline_ratio']:.2f})  "
             f"mismatch rms {f['mismatch']['rms_mm']:.3f} mm max {f['mismatch']['max_mm']:.3f} mm  "
             f"no lead rms {f['no_lead']['rms_mm']:.3f} mm (ratio {f['lead_ratio']:.2f})"
+        )
+        for payload in ("payload10", "payload30"):
+            p, off = f[payload], f[payload]["adaptation_off"]
+            print(
+                f"{'':14s} {payload}: rms {p['rms_mm']:.3f} mm hold {p['hold_mm']:.3f} mm  "
+                f"(adaptation off: rms {off['rms_mm']:.3f} mm hold {off['hold_mm']:.3f} mm)"
+            )
+    if "disturbance" in results:
+        d = results["disturbance"]
+        print(
+            f"50 N push: peak {d['peak_mm']:.2f} mm  settle {d['settle_s']:.2f} s  "
+            f"braked {d['braked']}"
         )
     return 0
 

@@ -73,6 +73,32 @@ class TensionSpec(StrictModel):
     reference: PositiveFloat | None = None
 
 
+MIN_ADAPTATION_TIME = 0.1  # s: a faster estimate would reach into the loop's own dynamics
+
+
+class AdaptationSpec(StrictModel):
+    """Online estimate of the platform's mass and centre of mass (cdpr.payload): the
+    model M, mu follows it, the gains never change.  mass_min / mass_max: the platform's
+    total mass (kg) the estimate may take (default 0.8x and 1.5x the robot file's); com_max:
+    how far (m) the centre of mass may move from the file's; a payload beyond these is a
+    fault (the daemon brakes), not an update.  time_constant (s): how slowly the model
+    follows the estimate.  frozen: keep the model as it is (as set, or the file's)."""
+
+    enabled: bool = True
+    frozen: bool = False
+    mass_min: PositiveFloat | None = None
+    mass_max: PositiveFloat | None = None
+    com_max: PositiveFloat = 0.1
+    time_constant: Annotated[float, Field(ge=MIN_ADAPTATION_TIME, le=60.0)] = 0.5
+
+    @model_validator(mode="after")
+    def _mass_range(self) -> AdaptationSpec:
+        low, high = self.mass_min, self.mass_max
+        if low is not None and high is not None and low >= high:
+            raise ValueError(f"mass_min ({low:g} kg) must lie below mass_max ({high:g} kg)")
+        return self
+
+
 class ControllerSpec(StrictModel):
     """The parallel-actuator controller (paper §5).
 
@@ -90,6 +116,7 @@ class ControllerSpec(StrictModel):
     measurement's instant).  "auto": the measured sample-to-command latency, plus the
     drive's force lag, plus half a period (the command is held for one); 0: the
     command is evaluated for the measurement's instant (the paper's literal timing).
+    adaptation: the payload estimate (AdaptationSpec, cdpr.payload).
     """
 
     rate_hz: Annotated[float, Field(gt=0.0, le=10000.0)] = 500.0
@@ -101,6 +128,7 @@ class ControllerSpec(StrictModel):
     velocity_filter: PositiveFloat = 0.05
     tension: TensionSpec = TensionSpec()
     command_lead: float | Literal["auto"] = "auto"
+    adaptation: AdaptationSpec = AdaptationSpec()
 
     @field_validator("command_lead", mode="before")
     @classmethod

@@ -22,6 +22,7 @@ measurement with the reference at t, its own instant.
 
 from __future__ import annotations
 
+import copy
 import math
 from typing import NamedTuple, Protocol
 
@@ -30,15 +31,19 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.linalg.lapack import dpotrs
 
 from cdpr.control_spec import DEFAULT_FORCE_LAG, ControllerSpec
+from cdpr.dynamics import PlatformInertia
 from cdpr.forward_kinematics import FKResult
+from cdpr.payload import PayloadEstimate
 from cdpr.pose import Pose, liediff, liediff6, retract
 from cdpr.robot import Robot
+from cdpr.so3 import quat_to_r9
 from cdpr.stretch import ComplianceScale
 from cdpr.tension import TensionLimits, TensionSolver, make_tension_solver
 from cdpr.trajectory import Reference, WrenchCheck
 
 Array = NDArray[np.float64]
 _ZERO6 = np.zeros(6)
+_ZERO6_LIST = [0.0] * 6
 
 
 class ReferenceSource(Protocol):
@@ -139,9 +144,14 @@ class ParallelController:
         spec: ControllerSpec | None = None,
         drive_lag: float = DEFAULT_FORCE_LAG,
     ) -> None:
-        self.robot = robot
         self.spec = spec = spec or ControllerSpec()
         self.period = spec.period
+        # the payload estimate (cdpr.payload) moves this controller's own model only
+        self.payload: PayloadEstimate | None = None
+        if spec.adaptation.enabled:
+            robot = copy.copy(robot)
+            self.payload = PayloadEstimate(robot, spec.adaptation, self.period)
+        self.robot = robot
         self.drive_lag = drive_lag
         self.lead = spec.lead(drive_lag)  # s: see set_latency
         self.loop = spec.linear_controller().discretise(self.period, 6, spec.discretisation)
@@ -159,6 +169,8 @@ class ParallelController:
         (on enable, after a brake: the platform is at rest)."""
         self.source: ReferenceSource = Hold(pose)
         self.loop.reset()
+        if self.payload is not None:
+            self.payload.clear()
         self._pose = pose
         self._twist = _ZERO6.copy()
         self._tensions = static_tensions(self.robot, self.tension, pose)
@@ -188,9 +200,12 @@ class ParallelController:
         """Compute the measurement-free part of the step at time t ahead of it: the
         reference samples (at t, and at t + lead for the command), the forward-kinematics
         guess, f_b and, with model_at = "reference", the model terms; and the last
-        cycle's step of the cables' stiffness estimate (cdpr.stretch).  step(t, ...) uses
-        it; a step at another time, reset(), follow() and set_latency() discard it."""
+        cycle's step of the cables' stiffness estimate (cdpr.stretch) and of the payload
+        estimate (cdpr.payload, whose model the terms then use).  step(t, ...) uses it; a
+        step at another time, reset(), follow() and set_latency() discard it."""
         robot = self.robot
+        if self.payload is not None and self.payload.update():
+            self._take_over(self.payload.platform)
         ref = self.source.sample(t)
         ahead = self.source.sample(t + self.lead) if self.lead else ref
         guess = retract(self._pose, self._twist * self.period)
@@ -199,6 +214,29 @@ class ParallelController:
         f_b = robot.k0 * Lam_r.dot(ahead.twist)  # ndarray.dot: see the cdpr.kinematics docstring
         self._prepared = _Prepared(t, ref, ahead, guess, f_b, model)
         self.stretch.update(self.period)
+
+    def set_payload(self, mass: float, center_of_mass: tuple[float, ...]) -> None:
+        """Use this platform mass (kg) and centre of mass (m, platform frame) from now on
+        (identify-payload's estimate, applied); ValueError naming the limit if it lies
+        beyond controller.adaptation's, or the estimate is off."""
+        if self.payload is None:
+            raise ValueError("the payload estimate is off (controller.adaptation.enabled)")
+        self.payload.set(mass, center_of_mass)
+        self._take_over(self.payload.platform)
+        self._prepared = None  # its model is the old one
+
+    def _take_over(self, platform: PlatformInertia) -> None:
+        """Use `platform` in the model from now on; what its static wrench changes the
+        integral action gives up at once, as far as it holds it
+        (DiscreteController.hand_over): the integral held the payload until the estimate
+        knew it, and would hold it twice after."""
+        robot = self.robot
+        R = quat_to_r9(*self._pose.quaternion_tuple)
+        before = robot.platform.mass_and_bias(R, _ZERO6_LIST)[6::7]
+        after = platform.mass_and_bias(R, _ZERO6_LIST)[6::7]
+        robot.platform = platform
+        change = [a - b for a, b in zip(after, before, strict=True)]
+        self.loop.hand_over(-np.linalg.solve(robot.mass_matrix(self._pose), change))
 
     @property
     def pose(self) -> Pose:
@@ -223,6 +261,8 @@ class ParallelController:
             # what came before the switch is over: let it go (its memory with it)
             self.source = _pending(self.source, t)
         ref, guess = prepared.reference, prepared.guess
+        if self.payload is not None and self.payload.fault:
+            return self._fault(ref, self._pose, 0.0, self.payload.fault)
         # the encoders measure the drums; the last planned tensions stretch the cables
         lengths = np.asarray(lengths, dtype=float)
         fk = robot.forward_kinematics(self.stretch.stretched(lengths, self._tensions), guess)
@@ -252,6 +292,10 @@ class ParallelController:
         if result.feasible:
             commands = result.forces + f_b
             self._tensions = result.tensions
+            if self.payload is not None:
+                self.payload.observe(
+                    pose, twist, self.lead, result.forces, prepared.ahead, Lam, c
+                )
         else:
             commands = np.full(robot.n_cables, np.nan)
         return ControlOutput(

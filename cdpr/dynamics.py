@@ -41,6 +41,11 @@ class PlatformInertia:
         about_p = self.inertia + self.mass * (cb @ cb * np.eye(3) - np.outer(cb, cb))
         self._I_p = tuple(about_p.reshape(9).tolist())  # I_pb, see the module docstring
 
+    @property
+    def inertia_about_p(self) -> tuple[float, ...]:
+        """I_pb, the inertia about p (platform frame), row-major."""
+        return self._I_p
+
     def mass_and_bias(self, R: Sequence[float], phi: Sequence[float]) -> list[float]:
         """[M_p | mu_p], 6 x 7 row-major as 42 floats, for rotation R and twist phi."""
         m = self.mass

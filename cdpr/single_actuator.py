@@ -129,6 +129,19 @@ class DiscreteController:
         self._K = np.block([[Dd, Cd], [Bd, Ad]])
         self._stack = np.zeros((self._order + Ad.shape[0], channels))
         self.state = self._stack[self._order :]  # a view: (states, channels)
+        self._hold = _hold_direction(Ad, Cd)
+
+    def hand_over(self, delta: Array) -> None:
+        """Move each channel's output by `delta` without an error to cause it, as far as
+        the integrators hold output of the opposite sign (never past zero): when a better
+        model takes over what the integral action held.  The integrators' state is the one
+        that holds a constant output at zero error (Ad v = v); nothing moves without one."""
+        if self._hold is None:
+            return
+        v, w = self._hold
+        held = w.dot(self.state)  # per channel, the output the integrators hold
+        take = np.where(delta * held < 0.0, np.sign(delta) * np.minimum(abs(delta), abs(held)), 0)
+        self.state += np.outer(v, take)
 
     def reset(self) -> None:
         """Zero the state (integrators, filters): on enable and after a brake."""
@@ -140,6 +153,24 @@ class DiscreteController:
         out = self._K.dot(self._stack)
         self.state[:] = out[1:]
         return out[0]
+
+
+def _hold_direction(Ad: Array, Cd: Array) -> tuple[Array, Array] | None:
+    """A state direction v with Ad v = v (an integrator's) scaled to Cd v = 1, and the
+    left eigenvector w (w Ad = w, w v = 1) that reads the state's component along it;
+    None without one."""
+    if Ad.shape[0] == 0:
+        return None
+    values, vectors = np.linalg.eig(Ad)
+    left_values, left_vectors = np.linalg.eig(Ad.T)
+    for k in np.flatnonzero(np.abs(values - 1.0) < 1e-9):
+        v = np.real(vectors[:, k])
+        gain = float(Cd.reshape(-1).dot(v))
+        j = int(np.argmin(np.abs(left_values - 1.0)))
+        w = np.real(left_vectors[:, j])
+        if abs(gain) > 1e-12 and abs(float(w.dot(v))) > 1e-12:
+            return v / gain, w * gain / float(w.dot(v))
+    return None
 
 
 class SingleActuatorTracker:

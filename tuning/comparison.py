@@ -9,13 +9,16 @@ from __future__ import annotations
 
 from typing import Any
 
+import numpy as np
+
 from cdpr import Robot
 from cdpr.baseline import JointSpaceController
 from cdpr.control_spec import ControllerSpec
 from cdpr.controller import ParallelController
+from cdpr.trajectory import Trajectory
 from sim_bus.plant.config import PlantConfig, parse_plant_config
 from tuning.scenarios import STANDARD_SET
-from tuning.tracking import run_tracking
+from tuning.tracking import pose_errors, run_tracking
 
 MISMATCH = {
     "mismatch": {"mass_scale": 1.1, "m0_scale": 0.9},
@@ -47,6 +50,63 @@ def standard_set_figures(robot: Robot, spec: ControllerSpec) -> dict[str, dict[s
         figures["lead_ratio"] = round(paper.rms_mm / late.rms_mm, 3)
         out[name] = figures
     return out
+
+
+# issue 19: a payload of +10 % of the platform's mass, and +30 % with the centre of mass
+# moved 5 cm (3 cm sideways, 4 cm down: the vertical part only tilts and sideways
+# accelerations reveal)
+PAYLOADS = {
+    "payload10": {"mismatch": {"mass_scale": 1.1}},
+    "payload30": {"mismatch": {"mass_scale": 1.3, "center_of_mass_offset": [0.03, 0.0, -0.04]}},
+}
+WARM_UP = 2.0  # s the robot holds the start pose with the payload before the flight
+HOLD = 1.0  # s it holds the last pose after the flight
+
+
+def payload_figures(robot: Robot, spec: ControllerSpec) -> dict[str, dict[str, Any]]:
+    """Per trajectory of STANDARD_SET and payload of PAYLOADS: the paper's controller with
+    the payload estimate on (spec's adaptation) holding the start pose for WARM_UP s, then
+    flying the trajectory: the RMS position error over the flight (`rms_mm`) and over the
+    HOLD s of holding after it (`hold_mm`), and the same with the estimate off
+    (`adaptation_off`)."""
+    spec_on = spec.model_copy(
+        update={"adaptation": spec.adaptation.model_copy(update={"enabled": True})}
+    )
+    spec_off = spec.model_copy(
+        update={"adaptation": spec.adaptation.model_copy(update={"enabled": False})}
+    )
+    out: dict[str, dict[str, Any]] = {}
+    for name, make in STANDARD_SET.items():
+        trajectory = make(robot)
+        figures: dict[str, Any] = {}
+        for label, plant in PAYLOADS.items():
+            config = parse_plant_config(plant)
+            on, off = (
+                _payload_run(robot, trajectory, ParallelController(robot, s), config)
+                for s in (spec_on, spec_off)
+            )
+            figures[label] = {**on, "adaptation_off": off}
+        out[name] = figures
+    return out
+
+
+def _payload_run(
+    robot: Robot, trajectory: Trajectory, controller: ParallelController, config: PlantConfig
+) -> dict[str, float | str]:
+    result = run_tracking(robot, trajectory, controller, config, settle=HOLD, warm_up=WARM_UP)
+    rec = result.recording
+    flown = trajectory.shifted(WARM_UP)
+    times = rec.t
+    errors, _ = pose_errors(
+        [flown.sample(t).pose for t in times.tolist()], [rec.pose(i) for i in range(len(times))]
+    )
+    flight = (times >= flown.start_time) & (times <= flown.end_time)
+    hold = times > flown.end_time
+    return {
+        "rms_mm": round(float(np.sqrt(np.mean(errors[flight] ** 2))), 4),
+        "hold_mm": round(float(np.sqrt(np.mean(errors[hold] ** 2))), 4),
+        "fault": result.fault,
+    }
 
 
 def _rounded(figures: dict[str, Any]) -> dict[str, Any]:

@@ -50,17 +50,23 @@ class TrackingFigures(NamedTuple):
     slack_events: int  # samples where some cable went below SLACK_TENSION (after a taut one)
 
 
-def tracking_figures(
-    references: Sequence[Pose], poses: Sequence[Pose], tensions: ArrayLike
-) -> TrackingFigures:
-    """Figures of one run: the pose at sample i against reference i, tensions (N) one
-    row per sample."""
+def pose_errors(references: Sequence[Pose], poses: Sequence[Pose]) -> tuple[Array, Array]:
+    """Per sample, the position error (mm) and the orientation error (deg) of the pose
+    against its reference."""
     pos_err, ang_err = [], []
     for ref, pose in zip(references, poses, strict=True):
         error = liediff(ref, pose)
         pos_err.append(math.hypot(*error[:3].tolist()))
         ang_err.append(math.degrees(math.hypot(*error[3:].tolist())))
-    pos, ang = np.array(pos_err) * 1e3, np.array(ang_err)
+    return np.array(pos_err) * 1e3, np.array(ang_err)
+
+
+def tracking_figures(
+    references: Sequence[Pose], poses: Sequence[Pose], tensions: ArrayLike
+) -> TrackingFigures:
+    """Figures of one run: the pose at sample i against reference i, tensions (N) one
+    row per sample."""
+    pos, ang = pose_errors(references, poses)
     tensions = np.asarray(tensions, dtype=float)
     slack = np.any(tensions < SLACK_TENSION, axis=1)
     onsets = int(np.count_nonzero(slack[1:] & ~slack[:-1]) + slack[0])
@@ -98,12 +104,17 @@ def run_tracking(
     config: PlantConfig | None = None,
     rate_hz: float = 500.0,
     settle: float = 0.5,
+    warm_up: float = 0.0,
 ) -> TrackingResult:
-    """Track `trajectory` with `controller` on a plant of `robot` (see module docstring)."""
+    """Track `trajectory` with `controller` on a plant of `robot` (see module docstring),
+    the controller holding the start pose for `warm_up` s before the trajectory (shifted
+    by that much) begins."""
     plant = Plant(robot, config)
     start = start_pose(trajectory)
     plant.reset(start, equilibrium_tensions(plant.robot, start))
     controller.reset(start)
+    if warm_up:
+        trajectory = trajectory.shifted(warm_up)
     controller.follow(trajectory)
     faults: list[str] = []
 
@@ -117,7 +128,7 @@ def run_tracking(
             return np.zeros(robot.n_cables)
         return commands
 
-    duration = trajectory.end_time - trajectory.start_time + settle
+    duration = trajectory.end_time - trajectory.start_time + warm_up + settle
     recording = run_lockstep(plant, control, duration, rate_hz)
     return _figures(trajectory, recording, faults[0] if faults else "")
 

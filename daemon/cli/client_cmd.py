@@ -4,6 +4,8 @@
     cdprd status | enable | disable | hold | reset
     cdprd brake [--reason TEXT]
     cdprd goto x y z [qw qx qy qz]
+    cdprd identify-payload [--apply]
+    cdprd payload [--freeze | --unfreeze]
     common options: --prefix cdpr/<robot>  --connect tcp/127.0.0.1:7447  --timeout S
                     --zenoh-config FILE (raw zenoh keys, e.g. TLS certificates)
 
@@ -32,6 +34,7 @@ from daemon.interface.client import (
 )
 
 EXIT_OK, EXIT_REFUSED, EXIT_USAGE, EXIT_UNREACHABLE = 0, 1, 2, 3
+IDENTIFY_TIMEOUT = 120.0  # s: identify-payload moves through five poses
 REQUEST_FILE_MAX_BYTES = 64 << 20  # a trajectory file (the daemon limits what it takes)
 _SIMPLE = {
     "status": "print the daemon's safety state",
@@ -94,6 +97,25 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
         "pose", nargs="+", metavar="x y z [qw qx qy qz]", help="position (m), quaternion"
     )
     goto.set_defaults(run=_runner("goto", _prepare_goto))
+    identify = subparsers.add_parser(
+        "identify-payload",
+        parents=[common],
+        help="hold a few poses, estimate the platform's mass and centre of mass statically",
+    )
+    identify.add_argument(
+        "--apply", action="store_true", help="use the estimate in the controller's model"
+    )
+    identify.set_defaults(
+        run=_runner("identify_payload", lambda a: lambda c: c.identify_payload(a.apply)),
+        timeout=IDENTIFY_TIMEOUT,
+    )
+    payload = subparsers.add_parser(
+        "payload", parents=[common], help="print, freeze or unfreeze the payload estimate"
+    )
+    frozen = payload.add_mutually_exclusive_group()
+    frozen.add_argument("--freeze", dest="frozen", action="store_const", const=True)
+    frozen.add_argument("--unfreeze", dest="frozen", action="store_const", const=False)
+    payload.set_defaults(run=_runner("payload", lambda a: lambda c: c.payload(a.frozen)))
 
 
 def _runner(

@@ -30,6 +30,7 @@ from cdpr.description import (
     show_path,
     validate_section,
 )
+from cdpr.payload import payload_limits
 from cdpr.pose_limits import PoseLimits
 from cdpr.trajectory import (
     TrajectoryLimits,
@@ -159,6 +160,11 @@ class DaemonConfig:
         self.base = base
         self.source = source
         self.controller: ControllerSpec = parse_controller(raw.controller, source)
+        if self.controller.adaptation.enabled:
+            try:
+                payload_limits(robot, self.controller.adaptation)
+            except ValueError as exc:
+                raise ConfigError(f"{source}: controller.{exc}") from None
         self.drives: DrivesConfig = parse_drives(raw.drives, source)
         if len(self.drives.nodes) != robot.n_cables:
             raise ConfigError(

@@ -124,6 +124,25 @@ class CdprClient:
             body["quaternion"] = dict(quaternion)
         return self.request("goto", body)
 
+    def identify_payload(self, apply: bool = False) -> dict[str, Any]:
+        """Hold a few poses and estimate the payload statically (applied if `apply`)."""
+        return self.request("identify_payload", {"apply": apply})
+
+    def payload(
+        self,
+        frozen: bool | None = None,
+        mass: float | None = None,
+        center_of_mass: Sequence[float] | None = None,
+    ) -> dict[str, Any]:
+        """The payload estimate; freeze or unfreeze it, or set mass and centre of mass."""
+        body: dict[str, Any] = {}
+        if frozen is not None:
+            body["frozen"] = frozen
+        if mass is not None:
+            body["mass"] = float(mass)
+            body["center_of_mass"] = [float(c) for c in center_of_mass or ()]
+        return self.request("payload", body)
+
     def send_trajectory(
         self,
         trajectory: Trajectory | Mapping[str, Any],

@@ -16,6 +16,10 @@ Inputs (objects; unknown keys, wrong types, NaN/Infinity tokens are refused):
         goto:  {"position": [x, y, z], "quaternion": {"w", "x", "y", "z"}}
                (quaternion optional: identity)
         brake: {"reason": "operator stop"}  (optional)
+        payload: {"frozen": true} and/or {"mass": 11.0, "center_of_mass": [x, y, z]}
+               (the payload estimate: freeze/unfreeze it, or set it; {} reports it)
+        identify_payload: {"apply": false}  (hold a few poses, estimate the payload
+               statically, apply it if asked)
 
 Outputs:
 
@@ -58,7 +62,12 @@ MAX_REASON_CHARS = 600  # error texts echo input (e.g. unknown keys): keep repli
 EVENT_KEY = "event"  # the name of an event: trajectory_accepted / _rejected (interface),
 # state, fault, ... (service)
 MAX_BRAKE_REASON = 200
-_ARGS = {"goto": ("position", "quaternion"), "brake": ("reason",)}
+_ARGS = {
+    "goto": ("position", "quaternion"),
+    "brake": ("reason",),
+    "payload": ("frozen", "mass", "center_of_mass"),
+    "identify_payload": ("apply",),
+}
 _IDENTITY = {"w": 1.0, "x": 0.0, "y": 0.0, "z": 0.0}
 _XYZ = ("x", "y", "z")
 _WXYZ = ("w", "x", "y", "z")
@@ -302,6 +311,10 @@ def decode_command(
                 field="reason",
             )
         return {"reason": reason}
+    if name == "payload":
+        return _payload_args(data)
+    if name == "identify_payload":
+        return {"apply": True} if _flag(data, "apply", "identify_payload") else {}
     if name != "goto":
         return {}
     if "position" not in data:
@@ -309,6 +322,35 @@ def decode_command(
     position = _vec3(data["position"], "position")
     quaternion = _unit_quaternion(data.get("quaternion", _IDENTITY), "quaternion", unit_tolerance)
     return {"pose": Pose(position, quaternion)}
+
+
+def _payload_args(data: dict[str, Any]) -> dict[str, Any]:
+    """payload: {"frozen"} and/or {"mass", "center_of_mass"} (both or neither)."""
+    args: dict[str, Any] = {}
+    if "frozen" in data:
+        args["frozen"] = _flag(data, "frozen", "payload")
+    if ("mass" in data) != ("center_of_mass" in data):
+        missing = "center_of_mass" if "mass" in data else "mass"
+        raise CommandError(
+            "bad_request", f"payload: give mass and center_of_mass together ({missing} missing)",
+            field=missing,
+        )  # fmt: skip
+    if "mass" in data:
+        mass = data["mass"]
+        if type(mass) not in (int, float) or not (math.isfinite(mass) and mass > 0.0):
+            raise CommandError(
+                "bad_request", "payload.mass: expected a positive number (kg)", field="mass"
+            )
+        args["mass"] = float(mass)
+        args["center_of_mass"] = _vec3(data["center_of_mass"], "center_of_mass")
+    return args
+
+
+def _flag(data: dict[str, Any], key: str, where: str) -> bool:
+    value = data.get(key, False)
+    if not isinstance(value, bool):
+        raise CommandError("bad_request", f"{where}.{key}: expected true or false", field=key)
+    return value
 
 
 def reply_ok(command: str, result: dict[str, Any], ident: str | None = None) -> dict[str, Any]:

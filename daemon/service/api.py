@@ -22,7 +22,10 @@ from cdpr.trajectory import TrajectoryError
 if TYPE_CHECKING:
     from cdpr.trajectory import Trajectory
 
-COMMANDS = ("enable", "disable", "hold", "brake", "reset", "goto", "status")
+COMMANDS = (
+    "enable", "disable", "hold", "brake", "reset", "goto", "status",
+    "payload", "identify_payload",
+)  # fmt: skip
 """The command names, each served on `<prefix>/cmd/<name>`."""
 
 ERROR_CODES = (
@@ -80,6 +83,9 @@ class DaemonHandler(Protocol):
         args, already validated: {} for every command except
             goto:  {"pose": cdpr.pose.Pose}  (unit quaternion, normalised)
             brake: {"reason": str} or {}     (the sender's reason, <= 200 characters)
+            payload: any of {"frozen": bool, "mass": float (kg),
+                             "center_of_mass": [x, y, z] (m, platform frame)}
+            identify_payload: {"apply": bool}
         Raise CommandError to refuse (e.g. "invalid_state" for enable while BRAKED).
         """
         ...

@@ -35,6 +35,7 @@ from cdpr.trajectory import (
 )
 from daemon.config import DaemonConfig
 from daemon.service.api import CommandError, rejection
+from daemon.service.identify_payload import identify_payload
 from daemon.service.safety import SafetyState
 
 PLANNING_LEAD = 0.05  # s ahead of now a planned transition begins (planning takes time)
@@ -114,6 +115,9 @@ class Planner:
             return self._hold()
         if name == "goto":
             return self._goto(args)
+        if name == "identify_payload":
+            self._require_moving("identify the payload")
+            return identify_payload(self, args)
         return self.link.command(name, args)
 
     async def slack(self) -> None:

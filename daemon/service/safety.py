@@ -49,6 +49,7 @@ class Trigger(enum.Enum):
     COMMAND = "command"  # a client asked to brake
     STARTUP = "startup"  # the drives did not come up
     COMPANION_LOST = "companion_lost"  # no companion process for safety.companion_lost s
+    PAYLOAD_LIMIT = "payload_limit"  # the payload estimate beyond controller.adaptation
 
 
 @dataclass(frozen=True)
@@ -240,6 +241,8 @@ class SafetyMonitor:
             trigger = Trigger.FK_RESIDUAL if "kinematics" in reason else Trigger.OUT_OF_WORKSPACE
             if "non-finite" in reason:
                 trigger = Trigger.NAN
+            if reason.startswith("payload"):
+                trigger = Trigger.PAYLOAD_LIMIT
             return Fault(trigger, f"{reason} (FK residual {output.fk_residual:.3g} m)")
         commands = output.commands.tolist()
         if not all(map(math.isfinite, commands)):

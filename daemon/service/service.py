@@ -612,6 +612,34 @@ class Service:
 
     # -- state ---------------------------------------------------------------------------
 
+    def _payload(self, args: dict[str, Any]) -> dict[str, Any]:
+        """Freeze or unfreeze the payload estimate, or set it (identify-payload's, applied;
+        within controller.adaptation's limits); the reply is the estimate."""
+        estimate = self.controller.payload
+        if estimate is None:
+            raise CommandError(
+                "invalid_state", "the payload estimate is off (controller.adaptation.enabled)"
+            )
+        if "mass" in args:
+            try:
+                self.controller.set_payload(args["mass"], args["center_of_mass"])
+            except ValueError as exc:
+                raise CommandError("rejected", str(exc)) from None
+        if "frozen" in args:
+            estimate.frozen = args["frozen"]
+        return self._payload_state()
+
+    def _payload_state(self) -> dict[str, Any] | None:
+        """The payload estimate as published (None when it is off)."""
+        estimate = self.controller.payload
+        if estimate is None:
+            return None
+        return {
+            "mass": estimate.mass,
+            "center_of_mass": list(estimate.center_of_mass),
+            "frozen": estimate.frozen,
+        }
+
     def status(self) -> dict[str, Any]:
         """Safety state, fault and active conditions (the reply to most commands)."""
         fault = self.machine.fault
@@ -660,6 +688,8 @@ class Service:
             )
         # the cables' EA as identified, a multiple of the robot file's (cdpr.stretch)
         state["stiffness_scale"] = self.controller.stretch.stiffness_scale
+        # the platform's mass and centre of mass as estimated (cdpr.payload)
+        state["payload"] = self._payload_state()
         return state
 
 
@@ -669,4 +699,5 @@ _COMMANDS: dict[str, Callable[[Service, dict[str, Any]], Any]] = {
     "brake": Service._brake_command,
     "reset": Service._reset,
     "status": Service._status,
+    "payload": Service._payload,
 }

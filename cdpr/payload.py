@@ -1,0 +1,360 @@
+"""The platform's mass and centre of mass, identified from the wrench the cables exert
+and the motion (issue 19: payload adaptation; DESIGN §15 step 6).
+
+The platform's dynamics are linear in its inertial parameters.  With h = m c_b (the
+first moment, platform frame), c = R c_b, G = a - g (a = p'' the reference point's
+acceleration), and I_p the inertia about p (the model's, not estimated: a payload of a
+few kilograms a few centimetres off changes it by a few per cent), the platform's wrench
+about p is
+
+    force  = m G + ([w']x + [w]x[w]x) R h
+    torque = (R h) x G + I_p w' + w x (I_p w)
+
+so  Y(R, w, w', a) x = y  with x = (m, h / L), the torque rows divided by L (LENGTH, so
+that every entry of Y is an acceleration and every parameter a mass).  The wrench y is
+what the cables exert on the platform: the planned forces f_p (which the drives realise)
+along the cables where the measured platform will be when they act, Lambda(eta ahead)^T
+f_p, less the drums' share m0 Lambda^T (Lambda alpha + c).  (Along the reference's cables
+the geometric stiffness of a sagging or lagging platform would be taken for mass.)
+alpha is the reference's: the true acceleration differs by the tracking error's, which
+averages out over the window.
+
+Least squares with exponential forgetting (WINDOW) accumulates Y^T Y and Y^T y of every
+SAMPLE_EVERY-th cycle; every SOLVE_EVERY cycles the estimate moves, with time constant
+`time_constant`, towards the least-squares solution in the directions the data excite
+(eigenvalues of the mean Y^T Y above EXCITED, i.e. an excitation of 1 m/s^2 RMS) and not
+at all in the others, where the centre of mass stays (a new mass at the old centre of
+mass); and only as far as the solution lies beyond a dead zone (DEAD_ZONE of the mass:
+the regression's own errors, ~0.2 % at rest, or a mode ringing down, do not move the
+model; the integral action has the rest).
+
+At rest G = -g: the mass and the horizontal (world) components of R h are identified,
+the vertical one is not (a centre of mass moved along gravity changes no static
+wrench); tilting the platform or accelerating it sideways excites it.  The model takes
+the estimate while it lies within the configured limits; an estimate beyond them is a
+fault (`fault`: the daemon brakes), never the model.  Nothing moves while frozen.
+
+`static_fit` is the same regression over a few poses held at rest (identify-payload):
+mass and centre of mass with their standard deviations.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import NamedTuple
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from cdpr.control_spec import AdaptationSpec
+from cdpr.dynamics import PlatformInertia
+from cdpr.pose import Pose, retract
+from cdpr.robot import Robot
+from cdpr.so3 import quat_to_r9
+from cdpr.trajectory import Reference
+
+Array = NDArray[np.float64]
+
+LENGTH = 0.2  # m: the length scale between forces and torques (about a platform's size)
+WINDOW = 1.0  # s: forgetting time of the least-squares data
+EXCITED = 1.0  # (m/s^2)^2: the least mean eigenvalue of Y^T Y of a direction identified
+SAMPLE_EVERY = 4  # cycles between two samples taken in (~30 us each: not every cycle)
+SOLVE_EVERY = 20  # cycles between two solutions (eigh ~20 us), between two samples
+DEAD_ZONE = 0.005  # of the file's mass: a smaller difference is left to the integral action
+DEFAULT_MASS_RANGE = (0.8, 1.5)  # mass_min, mass_max as multiples of the file's mass
+
+
+class PayloadLimits(NamedTuple):
+    """What the estimate may take: mass in [mass_min, mass_max] kg, centre of mass within
+    com_max m of the robot file's."""
+
+    mass_min: float
+    mass_max: float
+    com_max: float
+
+
+def payload_limits(robot: Robot, spec: AdaptationSpec) -> PayloadLimits:
+    """The limits of `spec` for `robot` (defaults from its mass); ValueError naming the key
+    when the robot file's own mass lies outside them."""
+    mass = robot.platform.mass
+    low, high = DEFAULT_MASS_RANGE
+    limits = PayloadLimits(
+        mass * low if spec.mass_min is None else spec.mass_min,
+        mass * high if spec.mass_max is None else spec.mass_max,
+        spec.com_max,
+    )
+    if not limits.mass_min <= mass <= limits.mass_max:
+        key = "mass_min" if mass < limits.mass_min else "mass_max"
+        raise ValueError(
+            f"adaptation.{key}: the robot file's platform mass {mass:g} kg lies outside "
+            f"[{limits.mass_min:g}, {limits.mass_max:g}] kg"
+        )
+    return limits
+
+
+def regressor(
+    pose: Pose,
+    accel: Sequence[float],
+    twist: Sequence[float],
+    gravity: Sequence[float],
+    wrench: Sequence[float],
+    inertia_about_p: Sequence[float],
+) -> list[float]:
+    """[Y | y] (6 x 5, row-major, 30 floats) for the platform at `pose` moving with
+    `twist` and `accel` under `wrench` (world frame, about p), with the inertia about p
+    (platform frame, 9 floats) taken as known: see the module docstring."""
+    r00, r01, r02, r10, r11, r12, r20, r21, r22 = R = quat_to_r9(*pose.quaternion_tuple)
+    gx = accel[0] - gravity[0]
+    gy = accel[1] - gravity[1]
+    gz = accel[2] - gravity[2]
+    wx, wy, wz = twist[3], twist[4], twist[5]
+    dx, dy, dz = accel[3], accel[4], accel[5]
+    # K = [w']x + [w]x[w]x = [w']x + w w^T - |w|^2 I
+    ww = wx * wx + wy * wy + wz * wz
+    k = (
+        wx * wx - ww, wx * wy - dz, wx * wz + dy,
+        wy * wx + dz, wy * wy - ww, wy * wz - dx,
+        wz * wx - dy, wz * wy + dx, wz * wz - ww,
+    )  # fmt: skip
+    cols = ((r00, r10, r20), (r01, r11, r21), (r02, r12, r22))  # R's columns
+    force_h = [
+        [LENGTH * (k[3 * i] * c[0] + k[3 * i + 1] * c[1] + k[3 * i + 2] * c[2]) for c in cols]
+        for i in range(3)
+    ]
+    # (R x) x G for x the unit vectors: each column of R crossed with G
+    torque_h = [
+        [c[1] * gz - c[2] * gy for c in cols],
+        [c[2] * gx - c[0] * gz for c in cols],
+        [c[0] * gy - c[1] * gx for c in cols],
+    ]
+    # the known inertia's torque, I_p w' + w x (I_p w) with I_p = R I_pb R^T (world)
+    i00, i01, i02, i10, i11, i12, i20, i21, i22 = inertia_about_p
+    bw = (r00 * wx + r10 * wy + r20 * wz, r01 * wx + r11 * wy + r21 * wz,
+          r02 * wx + r12 * wy + r22 * wz)  # fmt: skip
+    bd = (r00 * dx + r10 * dy + r20 * dz, r01 * dx + r11 * dy + r21 * dz,
+          r02 * dx + r12 * dy + r22 * dz)  # fmt: skip
+    hb = (i00 * bw[0] + i01 * bw[1] + i02 * bw[2], i10 * bw[0] + i11 * bw[1] + i12 * bw[2],
+          i20 * bw[0] + i21 * bw[1] + i22 * bw[2])  # fmt: skip
+    tb = (
+        i00 * bd[0] + i01 * bd[1] + i02 * bd[2] + bw[1] * hb[2] - bw[2] * hb[1],
+        i10 * bd[0] + i11 * bd[1] + i12 * bd[2] + bw[2] * hb[0] - bw[0] * hb[2],
+        i20 * bd[0] + i21 * bd[1] + i22 * bd[2] + bw[0] * hb[1] - bw[1] * hb[0],
+    )
+    known = [R[3 * i] * tb[0] + R[3 * i + 1] * tb[1] + R[3 * i + 2] * tb[2] for i in range(3)]
+    g = (gx, gy, gz)
+    rows: list[float] = []
+    for i in range(3):
+        rows += (g[i], *force_h[i], wrench[i])
+    for i in range(3):
+        rows += (0.0, *torque_h[i], (wrench[3 + i] - known[i]) / LENGTH)
+    return rows
+
+
+def parameters(mass: float, center_of_mass: Sequence[float]) -> Array:
+    """x = (m, m c_b / LENGTH)."""
+    return np.array([mass, *(mass * c / LENGTH for c in center_of_mass)])
+
+
+def mass_and_com(x: ArrayLike) -> tuple[float, tuple[float, float, float]]:
+    """(m, c_b) of x = (m, h / LENGTH)."""
+    m, hx, hy, hz = (float(v) for v in np.asarray(x).tolist())
+    return m, (LENGTH * hx / m, LENGTH * hy / m, LENGTH * hz / m)
+
+
+class PayloadEstimate:
+    """The online estimate of `robot`'s platform mass and centre of mass (module
+    docstring), for cycles `period` s apart (the drums' m0 are the robot file's).
+    `platform` is the model to use: the robot file's until the estimate moves it."""
+
+    def __init__(self, robot: Robot, spec: AdaptationSpec, period: float) -> None:
+        self.file = robot.platform
+        self.limits = payload_limits(robot, spec)
+        self.frozen = spec.frozen
+        self._robot = robot
+        self._m0 = robot.m0
+        self._forget = math.exp(-SAMPLE_EVERY * period / WINDOW)
+        self._gain = SOLVE_EVERY * period / (spec.time_constant + SOLVE_EVERY * period)
+        self._prior = parameters(self.file.mass, self.file.center_of_mass)
+        self._dead_zone = DEAD_ZONE * self.file.mass
+        self.platform = self.file
+        self._x = self._prior.copy()  # the estimate, unbounded (the fault check)
+        self._observed: tuple[Pose, Array, float, Array, Reference, Array, Array] | None = None
+        self.fault = ""
+        self.clear()
+
+    @property
+    def mass(self) -> float:
+        return self.platform.mass
+
+    @property
+    def center_of_mass(self) -> tuple[float, float, float]:
+        return self.platform.center_of_mass
+
+    def clear(self) -> None:
+        """Forget the data and a fault; the estimate restarts from the model in use (at
+        enable: a payload still beyond the limits faults again once it is seen)."""
+        self._sums = np.zeros((5, 5))
+        self._weight = 0.0
+        self._cycles = 0
+        self._x = parameters(self.platform.mass, self.platform.center_of_mass)
+        self.fault = ""
+
+    def set(self, mass: float, center_of_mass: Sequence[float]) -> None:
+        """Use this mass and centre of mass (identify-payload's, applied), within the limits
+        (ValueError naming the limit if not); the online data restart from it."""
+        problem = self._beyond(parameters(mass, center_of_mass))
+        if problem:
+            raise ValueError(problem)
+        self.platform = self._inertia(mass, center_of_mass)
+        self.clear()
+
+    def observe(
+        self, pose: Pose, twist: Array, lead: float, forces: Array, reference: Reference,
+        Lam: Array, c: Array,
+    ) -> None:  # fmt: skip
+        """A cycle's planned forces f_p (less f_b: what the drives exert on the cables),
+        for `lead` s after the platform was measured at (pose, twist), following
+        `reference` (at t + lead) with the model's Lambda, c there: kept for the next
+        `update` (the cycle's slack)."""
+        if not self.frozen:
+            self._observed = (pose, twist, lead, forces, reference, Lam, c)
+
+    def update(self) -> bool:
+        """Once a cycle: every SAMPLE_EVERY cycles take in the last observed cycle, every
+        SOLVE_EVERY cycles (on another cycle) move the estimate.  True when the model
+        (`platform`) changed."""
+        observed, self._observed = self._observed, None
+        self._cycles += 1
+        phase = self._cycles % SOLVE_EVERY
+        if phase == SAMPLE_EVERY // 2:
+            return self._solve()
+        if observed is None or phase % SAMPLE_EVERY:
+            return False
+        pose, twist, lead, forces, reference, Lam, c = observed
+        accel = reference.accel
+        # the cables' wrench on the platform (module docstring)
+        pose = retract(pose, twist * lead)
+        jacobian = self._robot.jacobian(pose)
+        platform = jacobian.T.dot(forces) - Lam.T.dot(self._m0 * (Lam.dot(accel) + c))
+        row = regressor(pose, accel.tolist(), reference.twist.tolist(), self.file.gravity,
+                        platform.tolist(), self.platform.inertia_about_p)  # fmt: skip
+        Z = np.array(row).reshape(6, 5)
+        self._sums *= self._forget
+        self._sums += Z.T.dot(Z)
+        self._weight = self._weight * self._forget + 1.0
+        return False
+
+    def _solve(self) -> bool:
+        if self._weight == 0.0:
+            return False
+        mean = self._sums / self._weight
+        A, b = mean[:4, :4], mean[:4, 4]
+        values, vectors = np.linalg.eigh(A)
+        excited = vectors[:, values > EXCITED]
+        if excited.shape[1] == 0:
+            return False
+        x = self._x
+        # towards the least-squares solution in the excited directions, as far as it lies
+        # beyond the dead zone
+        along = excited.T.dot(b) / values[values > EXCITED] - excited.T.dot(x)
+        distance = math.sqrt(float(along.dot(along)))
+        if distance <= self._dead_zone:
+            return False
+        along *= 1.0 - self._dead_zone / distance
+        x = x + self._gain * excited.dot(along)
+        # and in the others the centre of mass where it was (a new mass at the old
+        # centre of mass, not at p)
+        others = vectors[:, values <= EXCITED]
+        if others.shape[1]:
+            kept = parameters(float(x[0]), mass_and_com(self._x)[1])
+            x = x + others.dot(others.T.dot(kept - x))
+        self._x = x
+        problem = self._beyond(x)
+        if problem:
+            self.fault = problem
+            return False
+        mass, com = mass_and_com(x)
+        self.platform = self._inertia(mass, com)
+        return True
+
+    def _beyond(self, x: Array) -> str:
+        """Why x lies beyond the limits ("" if it does not)."""
+        mass, com = mass_and_com(x)
+        low, high, com_max = self.limits
+        if not low <= mass <= high:
+            key, limit = ("mass_max", high) if mass > high else ("mass_min", low)
+            return (
+                f"payload beyond limits: platform mass {mass:.3g} kg, "
+                f"adaptation.{key} {limit:g} kg"
+            )
+        moved = math.dist(com, self.file.center_of_mass)
+        if moved > com_max:
+            return (
+                f"payload beyond limits: centre of mass {moved * 1e3:.0f} mm from the robot "
+                f"file's, adaptation.com_max {com_max * 1e3:.0f} mm"
+            )
+        return ""
+
+    def _inertia(self, mass: float, com: Sequence[float]) -> PlatformInertia:
+        return PlatformInertia(mass, com, self.file.inertia, self.file.gravity)
+
+
+class StaticFit(NamedTuple):
+    """identify-payload's estimate: mass (kg) and centre of mass (m, platform frame) with
+    their standard deviations (inf for a component the poses did not reveal: it is the
+    robot file's), the RMS of what the fit leaves of the wrenches (N, torques / LENGTH)
+    and how many samples it used."""
+
+    mass: float
+    center_of_mass: tuple[float, float, float]
+    mass_std: float
+    center_of_mass_std: tuple[float, float, float]
+    residual_rms: float
+    samples: int
+
+
+def static_fit(robot: Robot, samples: Sequence[tuple[Pose, ArrayLike]]) -> StaticFit:
+    """The mass and centre of mass that explain the drives' `forces` holding the
+    platform at rest at each `pose` (samples of (pose, forces)): the cables' wrench
+    Lambda(pose)^T f balances m g and the moment (R m c_b) x g.  One pose reveals the mass
+    and the centre of mass across gravity; poses tilted about two axes reveal all of it.
+    ValueError if there are no samples."""
+    if not samples:
+        raise ValueError("static_fit: no samples")
+    zero = [0.0] * 6
+    rows = []
+    for pose, forces in samples:
+        wrench = robot.jacobian(pose).T.dot(np.asarray(forces, dtype=float))
+        rows.append(np.array(regressor(pose, zero, zero, robot.platform.gravity,
+                                       wrench.tolist(), [0.0] * 9)).reshape(6, 5))  # fmt: skip
+    Z = np.concatenate(rows)
+    Y, y = Z[:, :4], Z[:, 4]
+    values, vectors = np.linalg.eigh(Y.T.dot(Y) / len(samples))
+    excited = values > EXCITED
+    V, lam = vectors[:, excited], values[excited]
+    file = robot.platform
+    x = V.dot(V.T.dot(Y.T.dot(y)) / len(samples) / lam)
+    if not excited.all():  # the centre of mass along what was not seen: the file's
+        U = vectors[:, ~excited]
+        kept = parameters(float(x[0]), file.center_of_mass)
+        x = x + U.dot(U.T.dot(kept - x))
+    residual = y - Y.dot(x)
+    dof = max(len(y) - int(excited.sum()), 1)
+    sigma2 = float(residual.dot(residual)) / dof
+    # covariance of x in the revealed directions; unrevealed ones: unbounded
+    cov = V.dot(V.T / lam[:, None]) * sigma2 / len(samples)
+    mass, com = mass_and_com(x)
+    # c = LENGTH h' / m: its first-order sensitivity to (m, h')
+    J = np.zeros((3, 4))
+    J[:, 0] = -np.asarray(com) / mass
+    J[:, 1:] = np.eye(3) * LENGTH / mass
+    com_var = np.diag(J.dot(cov).dot(J.T))
+    if not excited.all():
+        hidden = np.abs(vectors[1:, ~excited]).max(axis=1) > 0.1  # per platform axis
+        com_var = np.where(hidden, math.inf, com_var)
+    std = tuple(math.sqrt(max(float(v), 0.0)) for v in com_var)
+    return StaticFit(
+        mass, com, math.sqrt(max(float(cov[0, 0]), 0.0)), std,  # type: ignore[arg-type]
+        math.sqrt(float(residual.dot(residual)) / len(y)), len(samples),
+    )  # fmt: skip

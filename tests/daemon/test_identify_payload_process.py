@@ -1,0 +1,85 @@
+"""`cdprd identify-payload --apply` against a running daemon over zenoh (issue 19 item
+2): the simulator (a separate process, serving socketcand on 127.0.0.1) carries 2 kg the
+robot file does not know; the daemon (`cdprd run`, its core and companion processes)
+drives it, its online estimate learning the payload while it holds; the command line asks
+for the static estimate, which the companion makes by holding five poses, and the core
+applies it; `cdprd payload --freeze` then freezes the estimate."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tests.daemon.test_daemon_payload import PAYLOAD, TRUE_COM, TRUE_MASS
+from tests.loopback import free_port
+from tests.processes import (
+    PREFIX,
+    ROOT,
+    connect,
+    daemon_config,
+    finish,
+    serve_simulator,
+    simulator_configs,
+    wait_status,
+)
+
+pytestmark = pytest.mark.timeout(150)
+
+def test_identify_payload_from_the_command_line(tmp_path: Path) -> None:
+    zenoh_port = free_port()
+    sim_config, data = simulator_configs(tmp_path, zenoh_port)
+    data["sim"]["plant"]["mismatch"] = {"payload": PAYLOAD}
+    sim_config.write_text(json.dumps(data))  # YAML is a superset of JSON
+    sim, port, channel = serve_simulator(sim_config, "--duration", "140")
+    daemon = None
+    try:
+        config = daemon_config(tmp_path, data, port, channel)
+        with (tmp_path / "daemon.log").open("w") as daemon_log:
+            daemon = subprocess.Popen(
+                [sys.executable, "-m", "daemon.cli", "run", "--config", str(config)],
+                cwd=ROOT,
+                stdout=daemon_log,
+                stderr=subprocess.STDOUT,
+                text=True,
+            )
+        with connect(zenoh_port, daemon) as client:
+            wait_status(client, "idle", 10.0)
+            client.enable()
+            wait_status(client, "hold", 10.0)
+            time.sleep(2.0)  # the online estimate takes the payload in
+            result = _cdprd(zenoh_port, "identify-payload", "--apply")
+            payload = client.request("payload")
+            frozen = _cdprd(zenoh_port, "payload", "--freeze")
+            status = client.status()
+        finish(daemon)
+    finally:
+        if daemon is not None and daemon.poll() is None:
+            finish(daemon)
+        sim.terminate()
+        sim.communicate(timeout=10)
+    assert status["state"] == "hold" and status["fault"] is None, status
+    assert result["poses"] == 5 and result["applied"] is True, result
+    assert result["mass"] == pytest.approx(TRUE_MASS, rel=0.01), result
+    assert np.abs(np.subtract(result["center_of_mass"], TRUE_COM)).max() < 3e-3, result
+    # applied, and the online estimate since agrees with it
+    assert payload["mass"] == pytest.approx(TRUE_MASS, rel=0.01) and payload["frozen"] is False
+    assert frozen["frozen"] is True and frozen["mass"] == pytest.approx(TRUE_MASS, rel=0.01)
+
+
+def _cdprd(port: int, *command: str) -> dict:
+    """What `cdprd COMMAND` prints, run against the daemon on zenoh `port`."""
+    cli = subprocess.run(
+        [
+            sys.executable, "-m", "daemon.cli", *command,
+            "--prefix", PREFIX, "--connect", f"tcp/127.0.0.1:{port}",
+        ],
+        cwd=ROOT, capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert cli.returncode == 0, cli.stderr
+    return json.loads(cli.stdout)
