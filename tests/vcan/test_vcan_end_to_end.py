@@ -514,8 +514,9 @@ def _check_odrive_capture(capture: Path) -> None:
             odd.append(can_id)
             continue
         decoded = spec.decode(data, decode_choices=False, scaling=True)
-        counts[spec.name] = counts.get(spec.name, 0) + 1
-        if spec.name == "Set_Input_Torque":
+        name = spec.name.removeprefix("Axis0_")  # the reference names node 0's messages
+        counts[name] = counts.get(name, 0) + 1
+        if name == "Set_Input_Torque":
             torques.append(decoded["Input_Torque"])
     assert sorted(odd) == [0x041, 0x049], "only the garbage frames have the wrong size"
     assert counts.get("Heartbeat", 0) > 8 * 3, counts
