@@ -4,6 +4,7 @@
     cdprd status | enable | disable | hold | reset
     cdprd brake [--reason TEXT]
     cdprd goto x y z [qw qx qy qz]
+    cdprd home [--pose NAME]      (the platform resting at the robot file's pose NAME)
     common options: --prefix cdpr/<robot>  --connect tcp/127.0.0.1:7447  --timeout S
                     --zenoh-config FILE (raw zenoh keys, e.g. TLS certificates)
 
@@ -94,6 +95,15 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
         "pose", nargs="+", metavar="x y z [qw qx qy qz]", help="position (m), quaternion"
     )
     goto.set_defaults(run=_runner("goto", _prepare_goto))
+    home = subparsers.add_parser(
+        "home",
+        parents=[common],
+        help="set every cable's length offset with the platform resting at a known pose",
+    )
+    home.add_argument(
+        "--pose", help="the robot file's pose (poses:) it rests at (default: the home pose)"
+    )
+    home.set_defaults(run=_runner("home", lambda args: lambda c: c.home(args.pose)))
 
 
 def _runner(

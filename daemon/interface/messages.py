@@ -16,6 +16,7 @@ Inputs (objects; unknown keys, wrong types, NaN/Infinity tokens are refused):
         goto:  {"position": [x, y, z], "quaternion": {"w", "x", "y", "z"}}
                (quaternion optional: identity)
         brake: {"reason": "operator stop"}  (optional)
+        home:  {"pose": "dock"}  (optional: a pose named in the robot file, default home)
 
 Outputs:
 
@@ -58,7 +59,8 @@ MAX_REASON_CHARS = 600  # error texts echo input (e.g. unknown keys): keep repli
 EVENT_KEY = "event"  # the name of an event: trajectory_accepted / _rejected (interface),
 # state, fault, ... (service)
 MAX_BRAKE_REASON = 200
-_ARGS = {"goto": ("position", "quaternion"), "brake": ("reason",)}
+MAX_POSE_NAME = 64  # the robot file's pose names
+_ARGS = {"goto": ("position", "quaternion"), "brake": ("reason",), "home": ("pose",)}
 _IDENTITY = {"w": 1.0, "x": 0.0, "y": 0.0, "z": 0.0}
 _XYZ = ("x", "y", "z")
 _WXYZ = ("w", "x", "y", "z")
@@ -302,6 +304,17 @@ def decode_command(
                 field="reason",
             )
         return {"reason": reason}
+    if name == "home":
+        pose = data.get("pose")
+        if pose is None:
+            return {}
+        if not isinstance(pose, str) or not 0 < len(pose) <= MAX_POSE_NAME:
+            raise CommandError(
+                "bad_request",
+                f"home.pose: expected a pose name of up to {MAX_POSE_NAME} characters",
+                field="pose",
+            )
+        return {"pose_name": pose}
     if name != "goto":
         return {}
     if "position" not in data:

@@ -22,7 +22,7 @@ from cdpr.trajectory import TrajectoryError
 if TYPE_CHECKING:
     from cdpr.trajectory import Trajectory
 
-COMMANDS = ("enable", "disable", "hold", "brake", "reset", "goto", "status")
+COMMANDS = ("enable", "disable", "hold", "brake", "reset", "goto", "status", "home")
 """The command names, each served on `<prefix>/cmd/<name>`."""
 
 ERROR_CODES = (
@@ -80,6 +80,7 @@ class DaemonHandler(Protocol):
         args, already validated: {} for every command except
             goto:  {"pose": cdpr.pose.Pose}  (unit quaternion, normalised)
             brake: {"reason": str} or {}     (the sender's reason, <= 200 characters)
+            home:  {"pose_name": str} or {}  (a pose of the robot file; default home)
         Raise CommandError to refuse (e.g. "invalid_state" for enable while BRAKED).
         """
         ...

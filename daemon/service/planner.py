@@ -35,6 +35,7 @@ from cdpr.trajectory import (
 )
 from daemon.config import DaemonConfig
 from daemon.service.api import CommandError, rejection
+from daemon.service.calibration_state import OffsetStore
 from daemon.service.safety import SafetyState
 
 PLANNING_LEAD = 0.05  # s ahead of now a planned transition begins (planning takes time)
@@ -106,6 +107,9 @@ class Planner:
             config.robot, tension_solver(config.robot, config.controller)
         )
         self._holds = 0  # hold commands so far: plans under way when one came are dropped
+        # homing's offsets and the drives that lost theirs, kept in the state directory
+        self.store = OffsetStore(config.state_dir, config.robot.name, config.robot.n_cables)
+        link.subscribe(self.store.on_event)
 
     # -- DaemonHandler --------------------------------------------------------------------
 
@@ -114,6 +118,8 @@ class Planner:
             return self._hold()
         if name == "goto":
             return self._goto(args)
+        if name == "home":
+            return self._home(args)
         return self.link.command(name, args)
 
     async def slack(self) -> None:
@@ -194,6 +200,11 @@ class Planner:
             stop, "hold", lead=HOLD_LEAD, validate="none", attempts=HOLD_ATTEMPTS
         )
         return await self.link.command("status", {})
+
+    async def _home(self, args: dict[str, Any]) -> dict[str, Any]:
+        """The core homes (and applies the offsets); they are stored here."""
+        result = await self.link.command("home", args)
+        return {**result, **await self.store.store(result["offsets"], result["method"])}
 
     async def _goto(self, args: dict[str, Any]) -> dict[str, Any]:
         self._require_moving("goto")
