@@ -8,7 +8,7 @@ import numpy as np
 
 from cdpr import ConfigError, Robot
 from cdpr.description import load_yaml
-from daemon.cli import analyze_cmd, client_cmd, demo_cmd, run_cmd, tune_cmd
+from daemon.cli import analyze_cmd, calibrate_cmd, client_cmd, demo_cmd, run_cmd, tune_cmd
 
 
 def check_config(path: str) -> int:
@@ -74,6 +74,7 @@ def main(argv: list[str] | None = None) -> int:
     run_cmd.add_parsers(sub)
     demo_cmd.add_parser(sub)
     tune_cmd.add_parser(sub)
+    calibrate_cmd.add_parser(sub)
     args = parser.parse_args(argv)
     if hasattr(args, "handler"):
         return args.handler(args)

@@ -740,6 +740,7 @@ class Service:
             "conditions": [f.message for f in self.faults],
             "drives": [{"state": s.state.value, "fault": s.fault} for s in self.driver.status],
             "offsets": {
+                "values": self.offsets.offsets,
                 "method": self.offsets.method,
                 "time": self.offsets.time,
                 "invalid": self.offsets.refusal(),
