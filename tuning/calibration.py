@@ -279,7 +279,8 @@ def _identifiability(
     reduced = _eliminate_poses(J, model.n_params)
     scales = np.linalg.norm(reduced, axis=0)
     scales[scales == 0.0] = 1.0
-    _, sv, vt = np.linalg.svd(reduced / scales, full_matrices=False)
+    _, sv, vt = np.linalg.svd(reduced / scales, full_matrices=True)
+    sv = np.concatenate([sv, np.zeros(len(vt) - len(sv))])  # fewer equations than unknowns
     good = sv > RANK_TOLERANCE * sv.max()
     lines = []
     anchors_dir = model.Pa

@@ -195,6 +195,9 @@ def _fly(config: DaemonConfig, args: argparse.Namespace) -> tuple[np.ndarray, li
 
 
 def _record_poses(client: CdprClient, poses: list[Pose], dwell: float) -> list[Sample]:
+    """Fly to each pose and average the state at rest there; a pose the daemon refuses
+    to go to (the way there leaves the wrench set, say) is skipped."""
+    from daemon.interface.client import RequestError
     from tuning.calibration import Sample
 
     rows: list[tuple[float, list[float], list[float]]] = []
@@ -210,7 +213,13 @@ def _record_poses(client: CdprClient, poses: list[Pose], dwell: float) -> list[S
     try:
         for k, pose in enumerate(poses):
             q = pose.quaternion.tolist()
-            reply = client.goto(pose.position.tolist(), dict(zip("wxyz", q, strict=True)))
+            try:
+                reply = client.goto(pose.position.tolist(), dict(zip("wxyz", q, strict=True)))
+            except RequestError as exc:
+                if exc.code != "rejected":
+                    raise
+                _say(f"flying: pose {k + 1} of {len(poses)} refused, skipped: {exc.reason}")
+                continue
             settle = float(reply.get("duration", 0.0)) + dwell
             time.sleep(settle)
             with lock:
