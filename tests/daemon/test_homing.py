@@ -15,7 +15,9 @@ import pytest
 from daemon.config import DaemonConfig, load_config
 from daemon.service.api import CommandError
 from daemon.service.calibration_state import state_path
+from daemon.service.homing import LengthOffsets
 from daemon.service.safety import SafetyState
+from drivers.base import Feedback, NodeStatus
 from drivers.cia402 import codec as cia402
 from drivers.cia402.codec import NmtState
 from tests.daemon_stack import DRIVER_CONFIGS, Stack
@@ -56,8 +58,7 @@ async def settle(stack: Stack) -> None:
     """Until the start-up trust check has judged the first set (held or braked)."""
     service = stack.service
     await stack.until(
-        lambda: service.machine.state is SafetyState.BRAKED
-        or all(np.isfinite(service.trust.held)),
+        lambda: service.machine.state is SafetyState.BRAKED or all(np.isfinite(service.trust.held)),
         5.0,
     )
 
@@ -193,3 +194,30 @@ def test_a_corrupt_state_file_is_named_refuses_enable_and_is_kept(tmp_path: Path
 
     run(scenario())
     assert stored(config)["method"] == "home at pose home"
+
+
+def test_a_drive_back_from_a_silence_elsewhere_loses_its_offset() -> None:
+    """An ODrive power cycle (firmware 0.6 sends no boot-up message): drive 1 silent
+    while the others answer, back where it was: kept; back 300 mm off: lost, named.  A
+    silence of every drive (the host stalled) counts for none."""
+    offsets = LengthOffsets([0.0] * 3, [1, 2, 3], silent_cycles=5, tolerance=1e-3)
+    status = [NodeStatus() for _ in range(3)]
+    feedback = [Feedback(length=2.0) for _ in range(3)]
+    assert offsets.watch(status, feedback, [True] * 3) == []
+    for _ in range(10):
+        offsets.watch(status, feedback, [True, False, True])
+    feedback[1].length = 2.0005
+    assert offsets.watch(status, feedback, [True] * 3) == []
+    for _ in range(10):
+        offsets.watch(status, feedback, [False] * 3)  # nobody answers: not drive 1's silence
+    feedback[1].length = 2.3
+    assert offsets.watch(status, feedback, [True] * 3) == []
+    for _ in range(10):
+        offsets.watch(status, feedback, [True, False, True])
+    feedback[1].length = 2.0
+    [(drive, why)] = offsets.watch(status, feedback, [True] * 3)
+    assert drive == 1 and why.startswith("silent for 10 cycles, it came back -300.0 mm")
+    assert "drive 1 (node 2): silent for 10 cycles" in offsets.refusal()
+    status[2].restarts += 1
+    [(drive, why)] = offsets.watch(status, feedback, [True] * 3)
+    assert drive == 2 and why.startswith("the drive restarted (boot-up)")

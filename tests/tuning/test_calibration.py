@@ -123,3 +123,52 @@ def test_rest_samples_average_the_end_of_each_stretch_at_rest() -> None:
     samples = rest_samples(t, lengths, forces, twists)
     assert [s.lengths[0] for s in samples] == [2.0, 2.5]
     assert all(math.isclose(s.forces[3], -100.0) for s in samples)
+
+
+def test_calibrate_from_a_recording_writes_a_new_robot_file_and_stores_the_offsets(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A telemetry MCAP with the platform at rest at 30 poses (1 s each, moving in
+    between): `cdprd calibrate --from-recording` finds the truth, writes it beside
+    nothing it overwrites, and stores the offsets as the daemon's state."""
+    import json
+
+    import yaml
+
+    from daemon.cli import main
+    from daemon.process.recording import CycleRecord, TelemetryRecorder
+
+    rng = np.random.default_rng(6)
+    robot, true, zero = make_truth(rng)
+    poses = select_poses(robot, 30, candidate_poses(robot, 300, rng))
+    used = np.zeros(8)  # drives.length_offset, nothing stored: the offsets in force
+    samples = measure(robot, true, zero, poses, used)
+    recording = tmp_path / "run.mcap"
+    with TelemetryRecorder(recording) as recorder:
+        t = 0.0
+        for sample in samples:
+            for k in range(120):  # 1 s at rest, 0.2 s on the way to the next pose
+                twist = [0.0] * 6 if k < 100 else [0.2, 0, 0, 0, 0, 0]
+                lengths, forces = sample.lengths, sample.forces
+                record = CycleRecord(
+                    t, (0, 0, 1), (1, 0, 0, 0), twist, lengths, -forces, forces, "hold"
+                )
+                recorder.record(record)
+                t += 0.01
+    config = yaml.safe_load((ROBOT.parents[1] / "reference8-cia402.yaml").read_text())
+    config["robot"] = str(ROBOT)
+    config["state_dir"] = str(tmp_path / "state")
+    path = tmp_path / "cdprd.yaml"
+    path.write_text(yaml.safe_dump(config))
+    output = tmp_path / "calibrated.yaml"
+    code = main(["calibrate", "--config", str(path), "--from-recording", str(recording),
+                 "--output", str(output), "--json"])  # fmt: skip
+    report = json.loads(capsys.readouterr().out)
+    assert code == 0 and report["poses"] == 30 and report["unidentifiable"] == []
+    corrected = Robot.from_yaml(output)
+    R, t = best_fit(np.asarray(true.geometry.anchors), np.asarray(robot.geometry.anchors))
+    in_gauge = np.asarray(true.geometry.anchors) @ R.T + t
+    assert np.abs(np.asarray(corrected.geometry.anchors) - in_gauge).max() < 1e-5
+    state = json.loads((tmp_path / "state" / "reference8.calibration.json").read_text())
+    assert np.abs(np.array(state["offsets"]) - zero).max() < 1e-5
+    assert state["method"] == f"calibrate (robot file {output})"
