@@ -171,7 +171,7 @@ def _fly(config: DaemonConfig, args: argparse.Namespace) -> tuple[np.ndarray, li
 
     robot = config.robot
     rng = np.random.default_rng(args.seed)
-    limits = config.pose_limits
+    limits = config.reference_limits  # what a goto's samples must keep
     candidates = [
         p
         for p in candidate_poses(robot, 10 * args.poses, rng, args.reach, args.tilt)
