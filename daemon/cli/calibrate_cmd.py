@@ -20,9 +20,9 @@ residual, and progress on stderr while it flies and solves.
 Writes the corrected robot file beside the old one (ROBOT.calibrated-YYYYmmdd-HHMMSS.yaml,
 or --output; an existing file is never overwritten) and, where the config has a
 state_dir, the calibrated offsets as the stored state (method "calibrate"): restart the
-daemon with the new robot file (robot: in the config) to fly it.  The offsets in force
-while the data were taken are the daemon's (status) when flying, the stored state's (or
-drives.length_offset) for a recording.
+daemon with the new robot file (robot: in the config) to fly it.  The offsets the
+lengths were read with are the daemon's in force (status) when flying; a recording's
+cycle records carry the lengths as the drivers read them, with drives.length_offset.
 
 Exit codes: 0 done, 1 refused or failed (the reason is printed; too few poses names the
 parameters that cannot be identified), 2 usage, 3 no daemon reachable.
@@ -245,11 +245,10 @@ def _record_poses(client: CdprClient, poses: list[Pose], dwell: float) -> list[S
 
 
 def _from_recording(config: DaemonConfig, path: Path) -> tuple[np.ndarray, list[Sample]]:
-    """Samples at rest from a telemetry MCAP; the offsets the daemon had in force then."""
+    """Samples at rest from a telemetry MCAP, and the offsets its lengths were read with."""
     from mcap.reader import make_reader
 
     from daemon.process.recording import CYCLE_TOPIC
-    from daemon.service.calibration_state import StateFileError, load_state, state_path
     from tuning.calibration import rest_samples
 
     times, lengths, forces, twists = [], [], [], []
@@ -268,15 +267,9 @@ def _from_recording(config: DaemonConfig, path: Path) -> tuple[np.ndarray, list[
         raise CalibrationError(f"{path}: cannot read the cycle records: {exc}") from None
     samples = rest_samples(times, lengths, forces, twists) if times else []
     _say(f"{path}: {len(times)} cycle records, {len(samples)} poses at rest")
+    # the cycle records carry the lengths as the drivers read them: with drives.length_offset
     robot = config.robot
     offsets = np.array([s.length_offset for s in config.drives.scalings_for(robot)])
-    if config.state_dir is not None:
-        try:
-            state = load_state(state_path(config.state_dir, robot.name), robot.name, robot.n_cables)
-        except StateFileError as exc:
-            raise CalibrationError(f"the offsets in force are unknown: {exc}") from None
-        if state is not None:
-            offsets = np.array(state.offsets)
     if len(samples) < 2:
         raise CalibrationError(f"{path}: {len(samples)} poses at rest: nothing to calibrate")
     return offsets, samples
