@@ -46,7 +46,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -60,7 +60,10 @@ from cdpr.so3 import exp_so3
 
 Array = NDArray[np.float64]
 RANK_TOLERANCE = 1e-6  # singular value (unit-norm columns) / the largest: not identifiable
+MAX_NFEV = 300  # residual evaluations per solve
 NOISE = 1e-5  # m: length noise assumed for the predicted standard deviations
+TENSION_MARGIN = 2.0  # candidate poses: the lowest planned tension at least this x t_min
+FORCE_SHARE = 0.8  # and the highest at most this share of force_max
 GROUPS = ("anchors", "attachments", "offsets", "drum_radius_scale", "stiffness")
 Progress = Callable[[str], None]
 
@@ -92,7 +95,7 @@ class Calibration:
     unidentifiable: list[str]  # one line per combination held at the file's value
     predicted_std: dict[str, float]  # per group: the largest predicted std (its unit)
     iterations: int = 0
-    extra: dict[str, Any] = field(default_factory=dict)
+    converged: bool = True  # the solver met its tolerances within MAX_NFEV
 
     def report(self) -> dict[str, Any]:
         """The figures (for JSON and the command line)."""
@@ -112,6 +115,7 @@ class Calibration:
             "offsets": self.offsets.tolist(),
             "poses": len(self.poses),
             "iterations": self.iterations,
+            "converged": self.converged,
         }
 
 
@@ -146,6 +150,8 @@ class _Model:
         self.Pa = rigid_complement(self.anchors0)
         self.Pb = rigid_complement(self.attachments0)
         self.Ps = rigid_complement_scales(n)
+        # the physical parameters each group's coordinates move (None: one to one)
+        self.bases = {"anchors": self.Pa, "attachments": self.Pb, "drum_radius_scale": self.Ps}
         self.na = self.Pa.shape[1]
         self.nb = self.Pb.shape[1]
         self.raw = np.array([s.lengths for s in samples]) - offsets  # m x n
@@ -226,19 +232,6 @@ class _Model:
             J[j, :, P + 6 * j + 3 : P + 6 * j + 6] = cross[j] @ _left_jacobian(deltas[j, 3:])
         return J.reshape(m * n, -1)
 
-    def names(self) -> list[str]:
-        """A readable name per parameter coordinate (gauge coordinates by group)."""
-        out = []
-        for name, sl in self.slices.items():
-            size = sl.stop - sl.start
-            if name == "offsets":
-                out += [f"{name}[{k}]" for k in range(size)]
-            elif name == "stiffness":
-                out.append("stiffness (EA scale)")
-            else:
-                out += [f"{name} (gauge coordinate {k})" for k in range(size)]
-        return out
-
 
 def _left_jacobian(w: Array) -> Array:
     """J_l(w) of SO(3): d exp(w) / dw = J_l(w) as a left perturbation."""
@@ -273,9 +266,11 @@ def _group_of(model: _Model, index: int) -> str:
 def _identifiability(
     model: _Model, J: Array, noise: float
 ) -> tuple[Array, Array, Array, list[str], dict[str, float], Array]:
-    """(singular values, right singular vectors of the identifiable span (scaled
-    coordinates), column scales, the unidentifiable combinations as text, predicted std
-    per group, per-parameter physical directions of the unidentifiable combinations)."""
+    """Of the pose-eliminated Jacobian with unit-norm columns: (its singular values, one
+    per parameter coordinate, zeros where there are fewer equations; the right singular
+    vectors of the identifiable span; the column scales; each unidentifiable combination
+    as text; each group's largest predicted standard deviation for length noise `noise`,
+    in the group's unit; the mask of identifiable singular values)."""
     reduced = _eliminate_poses(J, model.n_params)
     scales = np.linalg.norm(reduced, axis=0)
     scales[scales == 0.0] = 1.0
@@ -283,52 +278,42 @@ def _identifiability(
     sv = np.concatenate([sv, np.zeros(len(vt) - len(sv))])  # fewer equations than unknowns
     good = sv > RANK_TOLERANCE * sv.max()
     lines = []
-    anchors_dir = model.Pa
-    attach_dir = model.Pb
     for k in np.flatnonzero(~good):
         direction = vt[k] / scales
         direction /= np.abs(direction).max()
-        parts = []
-        for i in np.argsort(-np.abs(direction))[:6]:
-            if abs(direction[i]) < 0.2:
-                break
-            group = _group_of(model, int(i))
-            if group == "anchors":
-                effect = anchors_dir[:, i - model.slices["anchors"].start].reshape(model.n, 3)
-                cables = np.argsort(-np.linalg.norm(effect, axis=1))[:2]
-                parts.append("anchors of cables " + ", ".join(map(str, cables)))
-            elif group == "attachments":
-                effect = attach_dir[:, i - model.slices["attachments"].start].reshape(model.n, 3)
-                cables = np.argsort(-np.linalg.norm(effect, axis=1))[:2]
-                parts.append("attachments of cables " + ", ".join(map(str, cables)))
-            elif group == "stiffness":
-                parts.append("the cables' EA")
-            elif group == "drum_radius_scale":
-                effect = model.Ps[:, i - model.slices[group].start]
-                cables = np.argsort(-np.abs(effect))[:2]
-                parts.append("drum radii of cables " + ", ".join(map(str, cables)))
-            else:
-                parts.append(f"{group}[{int(i) - model.slices[group].start}]")
-        unique = list(dict.fromkeys(parts))
-        lines.append(f"singular value {sv[k]:.2e}: " + " with ".join(unique))
-    # predicted covariance in the identifiable span: (V S^-2 V^T) noise^2, unscaled
-    V = vt[good].T
+        parts = [
+            _describe(model, int(i))
+            for i in np.argsort(-np.abs(direction))[:6]
+            if abs(direction[i]) >= 0.2
+        ]
+        lines.append(f"singular value {sv[k]:.2e}: " + " with ".join(dict.fromkeys(parts)))
+    # covariance in the identifiable span, (V S^-2 V^T) noise^2, in parameter units
+    V = vt[good].T / scales[:, None]
     cov = (V / sv[good] ** 2) @ V.T * noise**2
-    std = np.sqrt(np.clip(np.diag(cov), 0.0, None)) / scales
     predicted = {}
     for name, sl in model.slices.items():
-        values = std[sl]
-        if name == "anchors":
-            values = np.abs(model.Pa) @ values  # an anchor coordinate's std, bounded
-        elif name == "attachments":
-            values = np.abs(model.Pb) @ values
-        elif name == "drum_radius_scale":
-            values = np.abs(model.Ps) @ values
-        predicted[name] = float(values.max())
+        basis = model.bases.get(name)
+        block = cov[sl, sl] if basis is None else basis @ cov[sl, sl] @ basis.T
+        predicted[name] = float(np.sqrt(np.clip(np.diag(block), 0.0, None)).max())
     return sv, vt[good], scales, lines, predicted, good
 
 
-def _initial_poses(robot: Robot, offsets: Array, samples: Sequence[Sample]) -> list[Pose]:
+def _describe(model: _Model, index: int) -> str:
+    """The parameters coordinate `index` moves, in words."""
+    group = _group_of(model, index)
+    column = index - model.slices[group].start
+    basis = model.bases.get(group)
+    if group == "stiffness":
+        return "the cables' EA"
+    if basis is None:
+        return f"{group}[{column}]"
+    effect = np.abs(basis[:, column]).reshape(model.n, -1).sum(axis=1)
+    cables = ", ".join(map(str, np.argsort(-effect)[:2]))
+    words = {"anchors": "anchors", "attachments": "attachments", "drum_radius_scale": "drum radii"}
+    return f"{words[group]} of cables {cables}"
+
+
+def _initial_poses(robot: Robot, samples: Sequence[Sample]) -> list[Pose]:
     """Forward kinematics of each sample with the file's model (stretch under the
     measured tensions), warm-started from the previous one."""
     poses, guess = [], robot.home
@@ -354,44 +339,19 @@ def identify(
     needed to fit even the poses."""
     say = progress or (lambda _text: None)
     offsets = np.asarray(offsets, dtype=float)
-    n = robot.n_cables
     if len(samples) < 2:
         raise ValueError(f"calibration needs poses: {len(samples)} given")
     model = _Model(robot, offsets, samples)
-    x0 = model.initial(offsets, _initial_poses(robot, offsets, samples))
+    x0 = model.initial(offsets, _initial_poses(robot, samples))
     say(f"identifiability: {len(samples)} poses, {model.n_params} parameters")
-    J = model.jacobian(x0)
-    sv, basis, scales, lines, _, _ = _identifiability(model, J, noise)
     p = model.n_params
-    # solve in the identifiable span of the parameters (scaled) and every pose
-    free = basis.T / scales[:, None]  # p x r: parameter change per identifiable coordinate
-
-    def expand(z: Array) -> Array:
-        x = x0.copy()
-        x[:p] += free @ z[: free.shape[1]]
-        x[p:] += z[free.shape[1] :]
-        return x
-
-    r = free.shape[1]
-    evaluations = [0]
-
-    def fun(z: Array) -> Array:
-        evaluations[0] += 1
-        return model.residuals(expand(z))
-
-    def jac(z: Array) -> Array:
-        Jx = model.jacobian(expand(z))
-        say(
-            f"solving: evaluation {evaluations[0]}, residual RMS "
-            f"{math.sqrt(np.mean(model.residuals(expand(z)) ** 2)) * 1e3:.4f} mm"
-        )
-        return np.hstack([Jx[:, :p] @ free, Jx[:, p:]])
-
-    z0 = np.zeros(r + 6 * len(samples))
-    solution = least_squares(
-        fun, z0, jac=jac, method="lm", x_scale="jac", xtol=1e-10, ftol=1e-12, max_nfev=200
-    )
-    x = expand(solution.x)
+    # first the offsets alone (the file's geometry): homing with wrong anchors, or none,
+    # leaves them centimetres off, and the poses forward kinematics gave with them too
+    only_offsets = np.eye(p)[:, model.slices["offsets"]]
+    x0, _, _ = _least_squares(model, x0, only_offsets, say, "offsets")
+    _, basis, scales, _, _, _ = _identifiability(model, model.jacobian(x0), noise)
+    # then everything, in the identifiable span of the parameters (scaled)
+    x, nfev, converged = _least_squares(model, x0, basis.T / scales[:, None], say, "all parameters")
     J = model.jacobian(x)
     sv, _, _, lines, predicted, good = _identifiability(model, J, noise)
     anchors, attachments, o, s, c, poses = model.unpack(x)
@@ -415,9 +375,41 @@ def identify(
         condition=float(identifiable.max() / identifiable.min()),
         unidentifiable=lines,
         predicted_std=predicted,
-        iterations=int(solution.nfev),
-        extra={"cables": n},
+        iterations=nfev,
+        converged=converged,
     )
+
+
+def _least_squares(
+    model: _Model, x0: Array, free: Array, say: Progress, what: str
+) -> tuple[Array, int, bool]:
+    """Minimise the residuals over x0 + free z (free: p x r, parameter change per
+    coordinate) and every pose; (the solution, function evaluations, converged)."""
+    p, r = model.n_params, free.shape[1]
+    evaluations = [0]
+
+    def expand(z: Array) -> Array:
+        x = x0.copy()
+        x[:p] += free @ z[:r]
+        x[p:] += z[r:]
+        return x
+
+    def fun(z: Array) -> Array:
+        evaluations[0] += 1
+        return model.residuals(expand(z))
+
+    def jac(z: Array) -> Array:
+        x = expand(z)
+        rms = math.sqrt(float(np.mean(model.residuals(x) ** 2)))
+        say(f"solving {what}: evaluation {evaluations[0]}, residual RMS {rms * 1e3:.4f} mm")
+        Jx = model.jacobian(x)
+        return np.hstack([Jx[:, :p] @ free, Jx[:, p:]])
+
+    z0 = np.zeros(r + 6 * model.m)
+    solution = least_squares(
+        fun, z0, jac=jac, method="lm", x_scale="jac", xtol=1e-10, ftol=1e-12, max_nfev=MAX_NFEV
+    )
+    return expand(solution.x), int(solution.nfev), bool(solution.success)
 
 
 def corrected_robot(robot: Robot, calibration: Calibration) -> dict[str, Any]:
@@ -450,10 +442,12 @@ def candidate_poses(
     controller: ControllerSpec | None = None,
 ) -> list[Pose]:
     """Up to `count` random poses within `reach` (m, per axis) of home and `tilt` (rad)
-    of its orientation whose static wrench the cables can hold (every tension within
-    t_min..force_max) and whose lengths lie within the actuators' limits."""
+    of its orientation whose static wrench the cables hold with a margin (every planned
+    tension from TENSION_MARGIN x t_min to FORCE_SHARE x force_max) and whose lengths lie
+    within the actuators' limits."""
     solver = tension_solver(robot, controller or ControllerSpec())
     home = robot.home
+    f_max = float(robot.force_max.min())
     out = []
     for _ in range(count * 5):
         if len(out) == count:
@@ -464,12 +458,13 @@ def candidate_poses(
         lengths = robot.cable_lengths(pose)
         if robot.length_violations(lengths):
             continue
-        try:
-            tensions = static_tensions(robot, solver, pose)
-        except Exception:  # no feasible distribution: outside the wrench-feasible set
+        zero = np.zeros(robot.n_cables)
+        held = solver.solve(robot.jacobian(pose), robot.bias_wrench(pose, np.zeros(6)), zero, zero)
+        if not held.feasible:  # outside the wrench-feasible set
             continue
-        if not np.all(np.isfinite(tensions)):
-            continue
+        t = held.tensions
+        if t.min() < TENSION_MARGIN * robot.t_min.max() or t.max() > FORCE_SHARE * f_max:
+            continue  # near its edge: moving there could leave it
         out.append(pose)
     return out
 

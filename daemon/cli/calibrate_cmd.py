@@ -7,15 +7,16 @@ item 4; DESIGN §15 step 5).
 
 Flying: the daemon must be enabled (HOLD).  Poses are picked for identifiability
 (greedy D-optimal from random candidates within --reach of home and --tilt of its
-orientation, inside the config's workspace box and the cables' limits), flown with
-`goto`, and at each the lengths and commanded forces are averaged over the last 0.3 s
-of --dwell at rest (from the published state).  From a recording: the telemetry MCAP of
-a run (recording.telemetry, or run --record), every stretch of at least 0.6 s at rest
-giving a pose.  Either way tuning.calibration solves for the anchors, attachments,
-each cable's length offset and drum radius, and the cables' EA, and reports which are
-identifiable (singular values and condition number of the identification Jacobian, the
-poses eliminated; the gauge freedoms fixed as tuning.calibration says), the fit
-residual, and progress on stderr while it flies and solves.
+orientation, inside the limits a goto keeps and the cables' limits), flown to one by one
+by slow rest-to-rest trajectories (SPEED), and at each the lengths and commanded forces
+are averaged over the last 0.3 s of --dwell at rest (from the published state).  From a
+recording: the telemetry MCAP of a run (recording.telemetry, or run --record), every
+stretch of at least 0.6 s at rest giving a pose.  Either way tuning.calibration solves
+for the anchors, attachments, each cable's length offset and drum radius, and the
+cables' EA, and reports which are identifiable (singular values and condition number of
+the identification Jacobian, the poses eliminated; the gauge freedoms fixed as
+tuning.calibration says), the fit residual, and progress on stderr while it flies and
+solves.
 
 Writes the corrected robot file beside the old one (ROBOT.calibrated-YYYYmmdd-HHMMSS.yaml,
 or --output; an existing file is never overwritten) and, where the config has a
@@ -43,7 +44,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import yaml
 
-from cdpr import ConfigError, Pose, Robot
+from cdpr import ConfigError, Pose, Robot, liediff
 from daemon.cli.run_cmd import load_checked
 
 if TYPE_CHECKING:
@@ -53,6 +54,8 @@ if TYPE_CHECKING:
 
 EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_UNREACHABLE = 0, 1, 2, 3
 AVERAGE = 0.3  # s at the end of each dwell averaged into a sample
+SPEED = 0.2  # m/s (and rad/s) of the moves between poses
+MOVE_MIN = 1.5  # s: the shortest move
 MIN_POSES = 8  # below this the command refuses before flying
 
 
@@ -156,6 +159,11 @@ def _solve(robot: Robot, offsets: np.ndarray, samples: list[Sample]) -> Calibrat
         calibration = identify(robot, offsets, samples, progress=_say)
     except ValueError as exc:
         raise CalibrationError(f"calibration failed: {exc}") from None
+    if not calibration.converged:
+        raise CalibrationError(
+            f"the fit did not converge in {calibration.iterations} evaluations (residual RMS "
+            f"{calibration.residual_rms * 1e3:.4f} mm): check the data, fly more poses"
+        )
     if calibration.unidentifiable:
         raise CalibrationError(
             f"{len(samples)} poses do not identify every parameter ("
@@ -195,33 +203,44 @@ def _fly(config: DaemonConfig, args: argparse.Namespace) -> tuple[np.ndarray, li
 
 
 def _record_poses(client: CdprClient, poses: list[Pose], dwell: float) -> list[Sample]:
-    """Fly to each pose and average the state at rest there; a pose the daemon refuses
-    to go to (the way there leaves the wrench set, say) is skipped."""
+    """Move slowly to each pose (a rest-to-rest trajectory at SPEED, not a goto at the
+    trajectory limits: the model is not calibrated yet) and average the state at rest
+    there; a pose the daemon refuses to go to (the way leaves the wrench set, say) is
+    skipped."""
+    from cdpr.trajectory import Trajectory, Waypoint
     from daemon.interface.client import RequestError
     from tuning.calibration import Sample
 
     rows: list[tuple[float, list[float], list[float]]] = []
+    latest: list[Pose] = []
     lock = threading.Lock()
 
     def on_state(state: dict[str, Any]) -> None:
-        if state.get("state") == "hold" and "forces" in state:
+        if state.get("state") in ("hold", "tracking") and "pose" in state:
+            q = state["pose"]["quaternion"]
             with lock:
-                rows.append((time.monotonic(), state["lengths"], state["forces"]))
+                latest[:] = [Pose(state["pose"]["position"], (q["w"], q["x"], q["y"], q["z"]))]
+                if state["state"] == "hold":
+                    rows.append((time.monotonic(), state["lengths"], state["forces"]))
 
     samples = []
     subscriber = client.subscribe_state(on_state)
     try:
-        for k, pose in enumerate(poses):
-            q = pose.quaternion.tolist()
+        here = _wait_for_pose(latest, lock)
+        for k, target in enumerate(poses):
+            error = liediff(here, target)
+            distance = max(float(np.linalg.norm(error[:3])), float(np.linalg.norm(error[3:])))
+            move = max(MOVE_MIN, distance / SPEED)
+            trajectory = Trajectory([Waypoint(0.0, here), Waypoint(move, target)])
             try:
-                reply = client.goto(pose.position.tolist(), dict(zip("wxyz", q, strict=True)))
+                reply = client.send_trajectory(trajectory)
             except RequestError as exc:
                 if exc.code != "rejected":
                     raise
                 _say(f"flying: pose {k + 1} of {len(poses)} refused, skipped: {exc.reason}")
                 continue
-            settle = float(reply.get("duration", 0.0)) + dwell
-            time.sleep(settle)
+            time.sleep(float(reply["result"].get("duration", move)) + dwell)
+            here = target
             with lock:
                 recent = [r for r in rows if r[0] >= time.monotonic() - AVERAGE]
                 rows.clear()
@@ -242,6 +261,17 @@ def _record_poses(client: CdprClient, poses: list[Pose], dwell: float) -> list[S
     finally:
         subscriber.undeclare()
     return samples
+
+
+def _wait_for_pose(latest: list[Pose], lock: threading.Lock, timeout: float = 5.0) -> Pose:
+    """The first measured pose the daemon publishes."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        with lock:
+            if latest:
+                return latest[0]
+        time.sleep(0.05)
+    raise CalibrationError(f"no state with a pose from the daemon within {timeout:g} s")
 
 
 def _from_recording(config: DaemonConfig, path: Path) -> tuple[np.ndarray, list[Sample]]:

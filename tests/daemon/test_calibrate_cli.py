@@ -27,7 +27,7 @@ def config_file(tmp_path: Path, port: int) -> Path:
     data["robot"] = str(ROOT / "config" / "robots" / "reference8.yaml")
     data["zenoh"]["listen"] = [f"tcp/127.0.0.1:{port}"]
     data["state_dir"] = str(tmp_path / "state")
-    data["realtime"] = {"priority": 0, "lock_memory": False}
+    data["realtime"] = {"lock_memory": False}
     path = tmp_path / "cdprd.yaml"
     path.write_text(yaml.safe_dump(data))
     return path
