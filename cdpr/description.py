@@ -186,6 +186,8 @@ class RobotSpec(StrictModel):
     cables: Annotated[list[CableSpec], Field(min_length=6, max_length=64)]
     home: PoseSpec
     forward_kinematics: ForwardKinematicsSpec = ForwardKinematicsSpec()
+    # named resting poses (docking fixtures) for `cdprd home --pose NAME`; "home" is `home`
+    poses: dict[Annotated[str, Field(pattern=r"^[A-Za-z0-9_\-]{1,64}$")], PoseSpec] = {}
 
     @model_validator(mode="after")
     def _merged_actuators_valid(self) -> RobotSpec:
@@ -200,6 +202,12 @@ class RobotSpec(StrictModel):
                     raise ValueError(
                         f"cables.{i}.actuator (merged with defaults): {_first_message(exc)}"
                     ) from None
+        return self
+
+    @model_validator(mode="after")
+    def _home_not_renamed(self) -> RobotSpec:
+        if "home" in self.poses:
+            raise ValueError("poses.home: 'home' names the home pose (the home: key)")
         return self
 
     def actuator_of(self, index: int) -> ActuatorSpec:

@@ -59,6 +59,9 @@ class Robot:
             [0.0 if a.cable_stiffness is None else 1.0 / a.cable_stiffness for a in self.actuators]
         )
         self.home = Pose(spec.home.position, spec.home.quaternion.as_tuple())
+        self.poses = {"home": self.home} | {
+            name: Pose(p.position, p.quaternion.as_tuple()) for name, p in spec.poses.items()
+        }
         fk = spec.forward_kinematics
         self.fk_settings = FKSettings(fk.max_iterations, fk.step_tolerance, fk.max_residual)
         self._check_home()

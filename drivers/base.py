@@ -143,6 +143,7 @@ class NodeStatus:
     fault: str | None = None  # readable fault text while the drive reports one
     fault_code: int = 0  # the protocol's code (402: EMCY error code; ODrive: axis error)
     heartbeat_stamp: float = -math.inf  # monotonic time of the last heartbeat
+    restarts: int = 0  # restarts seen since start (402 boot-up): position from a new zero
 
 
 @dataclass

@@ -8,7 +8,7 @@ import numpy as np
 
 from cdpr import ConfigError, Robot
 from cdpr.description import load_yaml
-from daemon.cli import analyze_cmd, client_cmd, demo_cmd, run_cmd, tune_cmd
+from daemon.cli import analyze_cmd, calibrate_cmd, client_cmd, demo_cmd, run_cmd, tune_cmd
 from drivers.cia402.profile import plan as drive_plan
 
 
@@ -79,6 +79,7 @@ def main(argv: list[str] | None = None) -> int:
     run_cmd.add_parsers(sub)
     demo_cmd.add_parser(sub)
     tune_cmd.add_parser(sub)
+    calibrate_cmd.add_parser(sub)
     args = parser.parse_args(argv)
     if hasattr(args, "handler"):
         return args.handler(args)

@@ -6,6 +6,7 @@
     cdprd goto x y z [qw qx qy qz]
     cdprd identify-payload [--apply]
     cdprd payload [--freeze | --unfreeze]
+    cdprd home [--pose NAME]      (the platform resting at the robot file's pose NAME)
     common options: --prefix cdpr/<robot>  --connect tcp/127.0.0.1:7447  --timeout S
                     --zenoh-config FILE (raw zenoh keys, e.g. TLS certificates)
 
@@ -116,6 +117,15 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     frozen.add_argument("--freeze", dest="frozen", action="store_const", const=True)
     frozen.add_argument("--unfreeze", dest="frozen", action="store_const", const=False)
     payload.set_defaults(run=_runner("payload", lambda a: lambda c: c.payload(a.frozen)))
+    home = subparsers.add_parser(
+        "home",
+        parents=[common],
+        help="set every cable's length offset with the platform resting at a known pose",
+    )
+    home.add_argument(
+        "--pose", help="the robot file's pose (poses:) it rests at (default: the home pose)"
+    )
+    home.set_defaults(run=_runner("home", lambda args: lambda c: c.home(args.pose)))
 
 
 def _runner(

@@ -11,6 +11,7 @@ static wrench in W).
 from __future__ import annotations
 
 import math
+import os
 from collections import Counter
 from collections.abc import Callable
 from pathlib import Path
@@ -148,6 +149,9 @@ class FileConfig(StrictModel):
     view: ViewConfig = ViewConfig()
     sim: dict[str, Any] = Field(default_factory=dict)  # sim_bus.config validates it
     ros2: dict[str, Any] = Field(default_factory=dict)  # Ros2Settings validates it
+    # homing and calibration state (daemon.service.calibration_state); default: systemd's
+    # $STATE_DIRECTORY (the unit's StateDirectory=cdprd, /var/lib/cdprd), else none
+    state_dir: Annotated[str, Field(min_length=1)] | None = None
 
 
 class DaemonConfig:
@@ -196,6 +200,7 @@ class DaemonConfig:
         self.view: ViewConfig = raw.view
         self.sim = raw.sim
         self.ros2: Ros2Settings = validate_section(Ros2Settings, raw.ros2, source, "ros2")
+        self.state_dir = _state_dir(self, raw.state_dir)
         try:
             lo, hi = workspace_box(robot, raw.safety)
         except ConfigError as exc:
@@ -233,6 +238,15 @@ class DaemonConfig:
         """A path from the config, resolved against the config file's directory."""
         p = Path(relative)
         return p if p.is_absolute() else self.base / p
+
+
+def _state_dir(config: DaemonConfig, configured: str | None) -> Path | None:
+    """Where homing and calibration state lives: `state_dir` (from the config's directory),
+    else the first of systemd's $STATE_DIRECTORY, else None (kept in memory only)."""
+    if configured is not None:
+        return config.path(configured)
+    systemd = os.environ.get("STATE_DIRECTORY", "").split(":")[0]
+    return Path(systemd) if systemd else None
 
 
 def workspace_box(robot: Robot, safety: SafetyConfig) -> tuple[np.ndarray, np.ndarray]:

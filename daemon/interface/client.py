@@ -115,6 +115,11 @@ class CdprClient:
     def reset(self) -> dict[str, Any]:
         return self.request("reset")
 
+    def home(self, pose: str | None = None) -> dict[str, Any]:
+        """Home at the robot file's pose `pose` (default: its home pose), where the
+        platform rests now: every cable's length offset set and stored."""
+        return self.request("home", None if pose is None else {"pose": pose})
+
     def goto(
         self, position: Sequence[float], quaternion: Mapping[str, float] | None = None
     ) -> dict[str, Any]:

@@ -20,6 +20,7 @@ Inputs (objects; unknown keys, wrong types, NaN/Infinity tokens are refused):
                (the payload estimate: freeze/unfreeze it, or set it; {} reports it)
         identify_payload: {"apply": false}  (hold a few poses, estimate the payload
                statically, apply it if asked)
+        home:  {"pose": "dock"}  (optional: a pose named in the robot file, default home)
 
 Outputs:
 
@@ -62,11 +63,13 @@ MAX_REASON_CHARS = 600  # error texts echo input (e.g. unknown keys): keep repli
 EVENT_KEY = "event"  # the name of an event: trajectory_accepted / _rejected (interface),
 # state, fault, ... (service)
 MAX_BRAKE_REASON = 200
+MAX_POSE_NAME = 64  # the robot file's pose names
 _ARGS = {
     "goto": ("position", "quaternion"),
     "brake": ("reason",),
     "payload": ("frozen", "mass", "center_of_mass"),
     "identify_payload": ("apply",),
+    "home": ("pose",),
 }
 _IDENTITY = {"w": 1.0, "x": 0.0, "y": 0.0, "z": 0.0}
 _XYZ = ("x", "y", "z")
@@ -315,6 +318,17 @@ def decode_command(
         return _payload_args(data)
     if name == "identify_payload":
         return {"apply": True} if _flag(data, "apply", "identify_payload") else {}
+    if name == "home":
+        pose = data.get("pose")
+        if pose is None:
+            return {}
+        if not isinstance(pose, str) or not 0 < len(pose) <= MAX_POSE_NAME:
+            raise CommandError(
+                "bad_request",
+                f"home.pose: expected a pose name of up to {MAX_POSE_NAME} characters",
+                field="pose",
+            )
+        return {"pose_name": pose}
     if name != "goto":
         return {}
     if "position" not in data:

@@ -24,7 +24,7 @@ if TYPE_CHECKING:
 
 COMMANDS = (
     "enable", "disable", "hold", "brake", "reset", "goto", "status",
-    "payload", "identify_payload",
+    "payload", "identify_payload", "home",
 )  # fmt: skip
 """The command names, each served on `<prefix>/cmd/<name>`."""
 
@@ -86,6 +86,7 @@ class DaemonHandler(Protocol):
             payload: any of {"frozen": bool, "mass": float (kg),
                              "center_of_mass": [x, y, z] (m, platform frame)}
             identify_payload: {"apply": bool}
+            home:  {"pose_name": str} or {}  (a pose of the robot file; default home)
         Raise CommandError to refuse (e.g. "invalid_state" for enable while BRAKED).
         """
         ...

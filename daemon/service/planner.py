@@ -35,6 +35,7 @@ from cdpr.trajectory import (
 )
 from daemon.config import DaemonConfig
 from daemon.service.api import CommandError, rejection
+from daemon.service.calibration_state import OffsetStore
 from daemon.service.identify_payload import identify_payload
 from daemon.service.safety import SafetyState
 
@@ -107,6 +108,9 @@ class Planner:
             config.robot, tension_solver(config.robot, config.controller)
         )
         self._holds = 0  # hold commands so far: plans under way when one came are dropped
+        # homing's offsets and the drives that lost theirs, kept in the state directory
+        self.store = OffsetStore(config.state_dir, config.robot.name, config.robot.n_cables)
+        link.subscribe(self.store.on_event)
 
     # -- DaemonHandler --------------------------------------------------------------------
 
@@ -118,6 +122,8 @@ class Planner:
         if name == "identify_payload":
             self._require_moving("identify the payload")
             return identify_payload(self, args)
+        if name == "home":
+            return self._home(args)
         return self.link.command(name, args)
 
     async def slack(self) -> None:
@@ -198,6 +204,11 @@ class Planner:
             stop, "hold", lead=HOLD_LEAD, validate="none", attempts=HOLD_ATTEMPTS
         )
         return await self.link.command("status", {})
+
+    async def _home(self, args: dict[str, Any]) -> dict[str, Any]:
+        """The core homes (and applies the offsets); they are stored here."""
+        result = await self.link.command("home", args)
+        return {**result, **await self.store.store(result["offsets"], result["method"])}
 
     async def _goto(self, args: dict[str, Any]) -> dict[str, Any]:
         self._require_moving("goto")

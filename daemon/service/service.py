@@ -25,14 +25,17 @@ import numpy as np
 
 from cdpr import Pose
 from cdpr.controller import ControlOutput, ParallelController, static_tensions
+from cdpr.homing import homed_offsets
 from cdpr.trajectory import Reference
 from cdpr.trajectory.core import Curve
 from daemon.config import DaemonConfig
 from daemon.service.api import CommandError
 from daemon.service.bus_port import Buses, open_port
+from daemon.service.calibration_state import StateFileError, load_state, state_path
 from daemon.service.command_lead import LatencyMedian
 from daemon.service.cycle_stats import CycleStats
 from daemon.service.gc_policy import CollectorPolicy
+from daemon.service.homing import LengthOffsets
 from daemon.service.planner import PLANNING_LEAD
 from daemon.service.safety import Fault, SafetyMonitor, SafetyState, StateMachine, Trigger
 from daemon.service.trusted_lengths import TrustedLengths
@@ -46,6 +49,9 @@ log = logging.getLogger("cdprd")
 STARTUP_TIMEOUT = 5.0  # s for the drives to come up
 SLACK_MARGIN = 3e-4  # s before a tick at which background work stops (> its longest step)
 RETRUST_CYCLES = 50  # cycles a reset waits for a complete set to judge afresh
+HOME_SAMPLES = 50  # cycles of feedback homing averages, each checked for rest
+REST_RATE = 2e-3  # m/s: a cable moving faster is not at rest (homing is refused)
+REST_SPREAD = 5e-4  # m: nor one whose length varies more over the samples
 EXIT_BUS_LOST = os.EX_UNAVAILABLE  # 69, sysexits' "service unavailable": the bus is gone
 EventSink = Callable[[dict[str, Any]], None]
 Result = TypeVar("Result")
@@ -105,6 +111,14 @@ class Service:
             rest_tensions=static_tensions(robot, self.controller.tension, robot.home),
             stretch=self.controller.stretch,
         )
+        # the length offsets in force (homing, calibration) and whether each still holds
+        self.offsets = LengthOffsets(
+            [s.length_offset for s in config.drives.scalings_for(robot)],
+            config.drives.nodes,
+            silent_cycles=math.ceil(config.drives.heartbeat_timeout / self.period),
+            tolerance=config.safety.feedback_tolerance,
+        )
+        self._load_offsets()
         self._trajectory: Curve | None = None
         self._scheduled: list[Curve] = []  # accepted, beginning later, by start time
         self.last_output = None
@@ -274,7 +288,12 @@ class Service:
             lengths = [fb.length + fb.rate * min(instant - fb.stamp, reach) for fb in feedback]
         else:
             lengths = [fb.length for fb in feedback]
+        lengths = self.offsets.read(lengths)
         rates = [fb.rate for fb in feedback]
+        for drive, why in self.offsets.watch(self.driver.status, feedback, fresh):
+            node = self.offsets.nodes[drive]
+            log.error("drive %d (node %d): length offset lost: %s", drive, node, why)
+            self._emit({"event": "offset_lost", "drive": drive, "why": why})
         implausible = self.trust.check(lengths, rates, fresh, instant)
         faults = [Fault(Trigger.IMPLAUSIBLE_FEEDBACK, f.message()) for f in implausible]
         faults += self.monitor.check_drives(feedback, self.driver.status, now)
@@ -363,7 +382,7 @@ class Service:
     def _hold_lengths(self) -> list[float]:
         """The last trusted lengths (NaN for a cable never trusted: no drive was
         enabled then, and the driver keeps it so)."""
-        return list(self.trust.held)
+        return self.offsets.write(self.trust.held)
 
     def _on_bus_error(self, what: str, bus_off: bool = False) -> None:
         self.stats.bus_errors += 1
@@ -419,6 +438,9 @@ class Service:
             raise CommandError(
                 "invalid_state", "cannot enable: " + "; ".join(f.message for f in self.faults)
             )
+        unhomed = self.offsets.refusal()
+        if unhomed is not None:
+            raise CommandError("invalid_state", f"cannot enable: {unhomed}")
         pose = self._measured_pose()
         holding = -static_tensions(self.robot, self.controller.tension, pose)
         self._busy = True
@@ -487,6 +509,101 @@ class Service:
 
     def _status(self, args: dict[str, Any]) -> dict[str, Any]:
         return self.status()
+
+    def _load_offsets(self) -> None:
+        """The stored offsets (state_dir), if any, in place of drives.length_offset; an
+        unreadable state file leaves every offset invalid until homed again, and is kept."""
+        if self.config.state_dir is None:
+            return
+        path = state_path(self.config.state_dir, self.robot.name)
+        try:
+            state = load_state(path, self.robot.name, self.n)
+        except StateFileError as exc:
+            log.error("calibration state: %s: every offset invalid until homed again", exc)
+            self.offsets.invalidate_all(f"state file unreadable: {exc}")
+            return
+        if state is not None:
+            self.offsets.adopt(state)
+            log.info("length offsets from %s (%s)", path, state.method)
+
+    async def _home(self, args: dict[str, Any]) -> dict[str, Any]:
+        """Set every cable's length offset so that the lengths read equal the model's at
+        the named resting pose (cdpr.homing), once the platform is seen at rest over
+        HOME_SAMPLES cycles.  Only while the drives are not following forces (IDLE or
+        BRAKED): the controller's lengths must not jump under it."""
+        state = self.machine.state
+        if state not in (SafetyState.IDLE, SafetyState.BRAKED):
+            raise CommandError(
+                "invalid_state", f"cannot home while {state.value} (needs idle or braked)"
+            )
+        name = str(args.get("pose_name") or "home")
+        pose = self.robot.poses.get(name)
+        if pose is None:
+            raise CommandError(
+                "bad_request",
+                f"home: no pose {name!r} in the robot file (poses: {', '.join(self.robot.poses)})",
+                field="pose",
+            )
+        self._busy = True
+        try:
+            samples = await self._rest_samples()
+        finally:
+            self._busy = False
+        lengths = np.mean(samples, axis=0)
+        tensions = static_tensions(self.robot, self.controller.tension, pose)
+        configured = np.array(self.offsets.configured)
+        offsets = homed_offsets(
+            self.robot, pose, tensions, self.controller.stretch.scale, lengths, configured
+        )
+        method = f"home at pose {name}"
+        changes = self.offsets.set(offsets.tolist(), method, time.time())
+        self.trust.shift(changes)
+        moved = [round(c * 1e3, 2) for c in changes]
+        log.info("homed at pose %s: offsets changed by %s mm", name, moved)
+        self._emit({"event": "homed", "pose": name})
+        return {
+            "offsets": self.offsets.offsets,
+            "changes_mm": [c * 1e3 for c in changes],
+            "method": method,
+            "time": self.offsets.time,
+            "pose": name,
+        }
+
+    async def _rest_samples(self) -> list[list[float]]:
+        """HOME_SAMPLES cycles of driver lengths; CommandError naming the drive if any
+        moves (its mean rate above REST_RATE, or its length spread above REST_SPREAD:
+        one cycle's rate is too noisy to judge) or reports nothing."""
+        lengths, rates = [], []
+        for _ in range(HOME_SAMPLES):
+            await asyncio.sleep(self.period)
+            feedback = self.driver.feedback
+            lengths.append([fb.length for fb in feedback])
+            rates.append([fb.rate for fb in feedback])
+        finite = np.isfinite(lengths).all(axis=0) & np.isfinite(rates).all(axis=0)
+        if not finite.all():
+            raise CommandError(
+                "invalid_state", f"home: no feedback from drive {int(np.argmin(finite))}"
+            )
+        mean = np.abs(np.mean(rates, axis=0))
+        spread = np.ptp(lengths, axis=0)
+        k = int(np.argmax(mean))
+        node = self.offsets.nodes
+        if mean[k] > REST_RATE:
+            raise CommandError(
+                "invalid_state",
+                f"home: the platform is not at rest: drive {k} (node {node[k]}) moves at "
+                f"{mean[k] * 1e3:.2f} mm/s over {HOME_SAMPLES} cycles (at rest: below "
+                f"{REST_RATE * 1e3:g} mm/s)",
+            )
+        k = int(np.argmax(spread))
+        if spread[k] > REST_SPREAD:
+            raise CommandError(
+                "invalid_state",
+                f"home: the platform is not at rest: drive {k} (node {node[k]}) length varied "
+                f"by {spread[k] * 1e3:.2f} mm over {HOME_SAMPLES} cycles (at rest: below "
+                f"{REST_SPREAD * 1e3:g} mm)",
+            )
+        return lengths
 
     async def in_slack(self, steps: Generator[Any, None, Result]) -> Result:
         """Run a step generator (validation, transition planning: a Planner on this loop)
@@ -650,6 +767,12 @@ class Service:
             else {"trigger": fault.trigger.value, "message": fault.message},
             "conditions": [f.message for f in self.faults],
             "drives": [{"state": s.state.value, "fault": s.fault} for s in self.driver.status],
+            "offsets": {
+                "values": self.offsets.offsets,
+                "method": self.offsets.method,
+                "time": self.offsets.time,
+                "invalid": self.offsets.refusal(),
+            },
         }
 
     def state(self) -> dict[str, Any]:
@@ -659,7 +782,7 @@ class Service:
         state: dict[str, Any] = {
             "t": self.now(),
             **self.status(),
-            "lengths": [fb.length for fb in feedback],
+            "lengths": self.offsets.read([fb.length for fb in feedback]),
             "rates": [fb.rate for fb in feedback],
             "cycle": {
                 **self.stats.summary(),
@@ -700,4 +823,5 @@ _COMMANDS: dict[str, Callable[[Service, dict[str, Any]], Any]] = {
     "reset": Service._reset,
     "status": Service._status,
     "payload": Service._payload,
+    "home": Service._home,
 }

@@ -174,6 +174,12 @@ class TrustedLengths:
                 return
         self._linearise(pose)
 
+    def shift(self, changes: Sequence[float]) -> None:
+        """The lengths' offsets changed by `changes` (m, homing): the trusted lengths
+        move with them, and the next complete set is judged like the first one."""
+        self.held[:] = [x + d for x, d in zip(self.held, changes, strict=True)]
+        self.retrust()
+
     def retrust(self) -> None:
         """Check the next complete set like the first one (an explicit reset: the
         measurements are trusted again if they fit one pose).  `held` stays meanwhile,
@@ -292,6 +298,7 @@ class TrustedLengths:
         if not flagged:
             robot, stretch = self.robot, self.stretch
             guess = robot.home if self._pose is None else self._pose
+            scale = stretch.scale
             fk = stretch.fit(lengths, lambda pose: self.rest_tensions, guess)
             stretched = stretch.stretched(lengths, self.rest_tensions)
             self._linearise(fk.pose)
@@ -301,6 +308,7 @@ class TrustedLengths:
                 self._times[:] = [instant] * self.n
                 self._first, self._failed = False, []
                 return []
+            stretch.scale = scale  # a fit to lengths that fit no pose says nothing of EA
             residuals = self._residuals((stretched - robot.cable_lengths(fk.pose)).tolist())
             worst = residuals.index(max(residuals))
             why = f"; the lengths fit no pose ({fk.reason})"

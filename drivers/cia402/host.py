@@ -393,6 +393,7 @@ class Cia402Driver(ActuatorDriver):
             self._lost[i] = True
             status = self.status[i]
             status.state, status.fault_code = DriveState.FAULT, 0
+            status.restarts += state is NmtState.BOOT_UP
             status.fault = (
                 f"node {self.nodes[i]}: the drive restarted (boot-up heartbeat while "
                 "operational): its configuration and position are lost; it needs start() again"

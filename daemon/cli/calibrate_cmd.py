@@ -1,0 +1,357 @@
+"""`cdprd calibrate`: identify the robot's geometry from redundant cable lengths (issue 16
+item 4; DESIGN §15 step 5).
+
+    cdprd calibrate --config FILE [--poses N] [--reach X Y Z] [--tilt RAD] [--dwell S]
+                    [--output FILE] [--json]   + the client options (--prefix, --connect)
+    cdprd calibrate --config FILE --from-recording RUN.mcap [--output FILE] [--json]
+
+Flying: the daemon must be enabled (HOLD).  Poses are picked for identifiability
+(greedy D-optimal from random candidates within --reach of home and --tilt of its
+orientation, inside the limits a goto keeps and the cables' limits), flown to one by one
+by slow rest-to-rest trajectories (SPEED), and at each the lengths and commanded forces
+are averaged over the last 0.3 s of --dwell at rest (from the published state).  From a
+recording: the telemetry MCAP of a run (recording.telemetry, or run --record), every
+stretch of at least 0.6 s at rest giving a pose.  Either way tuning.calibration solves
+for the anchors, attachments, each cable's length offset and drum radius, and the
+cables' EA, and reports which are identifiable (singular values and condition number of
+the identification Jacobian, the poses eliminated; the gauge freedoms fixed as
+tuning.calibration says), the fit residual, and progress on stderr while it flies and
+solves.
+
+Writes the corrected robot file beside the old one (ROBOT.calibrated-YYYYmmdd-HHMMSS.yaml,
+or --output; an existing file is never overwritten) and, where the config has a
+state_dir, the calibrated offsets as the stored state (method "calibrate"): restart the
+daemon with the new robot file (robot: in the config) to fly it.  The offsets the
+lengths were read with are the daemon's in force (status) when flying; a recording's
+cycle records carry the lengths as the drivers read them, with drives.length_offset.
+
+Exit codes: 0 done, 1 refused or failed (the reason is printed; too few poses names the
+parameters that cannot be identified), 2 usage, 3 no daemon reachable.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import math
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import yaml
+
+from cdpr import ConfigError, Pose, Robot, liediff
+from daemon.cli.run_cmd import load_checked
+
+if TYPE_CHECKING:
+    from daemon.config import DaemonConfig
+    from daemon.interface.client import CdprClient
+    from tuning.calibration import Calibration, Sample
+
+EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_UNREACHABLE = 0, 1, 2, 3
+AVERAGE = 0.3  # s at the end of each dwell averaged into a sample
+SPEED = 0.2  # m/s (and rad/s) of the moves between poses
+MOVE_MIN = 1.5  # s: the shortest move
+MIN_POSES = 8  # below this the command refuses before flying
+
+
+class CalibrationError(Exception):
+    """The calibration cannot go on (the message says why)."""
+
+
+def add_parser(subparsers: Any) -> None:
+    from daemon.interface.client import DEFAULT_CONNECT
+
+    p = subparsers.add_parser(
+        "calibrate",
+        help="identify anchors, attachments, offsets, drum radii and EA from redundant lengths",
+    )
+    p.add_argument("--config", required=True, help="the daemon's config YAML")
+    p.add_argument("--from-recording", metavar="MCAP", help="a run's telemetry instead of flying")
+    p.add_argument("--poses", type=int, default=40, help="poses to fly (default 40)")
+    p.add_argument(
+        "--reach", type=float, nargs=3, default=(0.6, 0.6, 0.45), metavar=("X", "Y", "Z"),
+        help="how far from home the poses may lie, m per axis (default 0.6 0.6 0.45)",
+    )  # fmt: skip
+    p.add_argument("--tilt", type=float, default=0.2, help="largest tilt from home, rad")
+    p.add_argument("--dwell", type=float, default=1.5, help="seconds at rest at each pose")
+    p.add_argument("--seed", type=int, default=0, help="of the candidate poses")
+    p.add_argument("--output", help="the corrected robot file (default: beside the old one)")
+    p.add_argument("--json", action="store_true", help="print the report as one JSON object")
+    p.add_argument("--prefix", help="key prefix of the daemon (default: the only one)")
+    p.add_argument("--connect", default=DEFAULT_CONNECT, help="zenoh endpoint of the daemon")
+    p.add_argument("--timeout", type=float, default=10.0, help="seconds per daemon request")
+    p.set_defaults(handler=run)
+
+
+def _say(text: str) -> None:
+    print(text, file=sys.stderr, flush=True)
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        config = load_checked(args.config)
+    except ConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    if args.poses < MIN_POSES and args.from_recording is None:
+        print(f"usage error: --poses: at least {MIN_POSES}", file=sys.stderr)
+        return EXIT_USAGE
+    output = _output_path(config, args.output)
+    if output.exists():
+        print(f"error: {output} exists: not overwritten (give another --output)", file=sys.stderr)
+        return EXIT_USAGE
+    from daemon.interface.client import RequestError, UnreachableError
+
+    started = time.perf_counter()
+    try:
+        if args.from_recording is not None:
+            offsets, samples = _from_recording(config, Path(args.from_recording))
+        else:
+            offsets, samples = _fly(config, args)
+        calibration = _solve(config.robot, offsets, samples)
+    except UnreachableError as exc:
+        print(f"error: no daemon reachable: {exc}", file=sys.stderr)
+        return EXIT_UNREACHABLE
+    except RequestError as exc:
+        print(f"error: the daemon refused ({exc.code}): {exc.reason}", file=sys.stderr)
+        return EXIT_FAILED
+    except CalibrationError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_FAILED
+    seconds = time.perf_counter() - started
+    from tuning.calibration import corrected_robot
+
+    corrected = corrected_robot(config.robot, calibration)
+    _write_new(output, corrected, calibration)
+    stored = _store_offsets(config, calibration, output)
+    report = {
+        **calibration.report(),
+        "robot_file": str(output),
+        "offsets_stored": stored,
+        "seconds": seconds,
+    }
+    if args.json:
+        print(json.dumps(report))
+    else:
+        _print_report(report, calibration)
+    return EXIT_OK
+
+
+def _output_path(config: DaemonConfig, given: str | None) -> Path:
+    if given is not None:
+        return Path(given)
+    raw = config.raw.robot
+    source = config.path(raw) if isinstance(raw, str) else config.base / f"{config.robot.name}.yaml"
+    stamp = datetime.datetime.now().strftime("%Y%m%d-%H%M%S")
+    return source.with_name(f"{source.stem}.calibrated-{stamp}.yaml")
+
+
+def _solve(robot: Robot, offsets: np.ndarray, samples: list[Sample]) -> Calibration:
+    from tuning.calibration import identify
+
+    _say(f"solving: {len(samples)} poses")
+    try:
+        calibration = identify(robot, offsets, samples, progress=_say)
+    except ValueError as exc:
+        raise CalibrationError(f"calibration failed: {exc}") from None
+    if not calibration.converged:
+        raise CalibrationError(
+            f"the fit did not converge in {calibration.iterations} evaluations (residual RMS "
+            f"{calibration.residual_rms * 1e3:.4f} mm): check the data, fly more poses"
+        )
+    if calibration.unidentifiable:
+        raise CalibrationError(
+            f"{len(samples)} poses do not identify every parameter ("
+            f"{len(calibration.unidentifiable)} combinations unidentifiable; fly more poses, "
+            "further apart): " + "; ".join(calibration.unidentifiable)
+        )
+    return calibration
+
+
+def _fly(config: DaemonConfig, args: argparse.Namespace) -> tuple[np.ndarray, list[Sample]]:
+    from daemon.interface.client import CdprClient
+    from tuning.calibration import candidate_poses, select_poses
+
+    robot = config.robot
+    rng = np.random.default_rng(args.seed)
+    limits = config.reference_limits  # what a goto's samples must keep
+    candidates = [
+        p
+        for p in candidate_poses(robot, 10 * args.poses, rng, args.reach, args.tilt)
+        if limits.violation(p) is None
+    ]
+    if len(candidates) < args.poses:
+        raise CalibrationError(
+            f"only {len(candidates)} candidate poses lie in the workspace: reduce --poses "
+            "or widen --reach"
+        )
+    poses = select_poses(robot, args.poses, candidates)
+    _say(f"flying {len(poses)} poses (greedy D-optimal of {len(candidates)} candidates)")
+    with CdprClient(args.prefix, args.connect, timeout=args.timeout) as client:
+        status = client.status()
+        if status["state"] != "hold":
+            raise CalibrationError(
+                f"the daemon is {status['state']}: enable it (cdprd enable) at rest first"
+            )
+        offsets = np.array(status["offsets"]["values"], dtype=float)
+        return offsets, _record_poses(client, poses, args.dwell)
+
+
+def _record_poses(client: CdprClient, poses: list[Pose], dwell: float) -> list[Sample]:
+    """Move slowly to each pose (a rest-to-rest trajectory at SPEED, not a goto at the
+    trajectory limits: the model is not calibrated yet) and average the state at rest
+    there; a pose the daemon refuses to go to (the way leaves the wrench set, say) is
+    skipped."""
+    from cdpr.trajectory import Trajectory, Waypoint
+    from daemon.interface.client import RequestError
+    from tuning.calibration import Sample
+
+    rows: list[tuple[float, list[float], list[float]]] = []
+    latest: list[Pose] = []
+    lock = threading.Lock()
+
+    def on_state(state: dict[str, Any]) -> None:
+        if state.get("state") in ("hold", "tracking") and "pose" in state:
+            q = state["pose"]["quaternion"]
+            with lock:
+                latest[:] = [Pose(state["pose"]["position"], (q["w"], q["x"], q["y"], q["z"]))]
+                if state["state"] == "hold":
+                    rows.append((time.monotonic(), state["lengths"], state["forces"]))
+
+    samples = []
+    subscriber = client.subscribe_state(on_state)
+    try:
+        here = _wait_for_pose(latest, lock)
+        for k, target in enumerate(poses):
+            error = liediff(here, target)
+            distance = max(float(np.linalg.norm(error[:3])), float(np.linalg.norm(error[3:])))
+            move = max(MOVE_MIN, distance / SPEED)
+            trajectory = Trajectory([Waypoint(0.0, here), Waypoint(move, target)])
+            try:
+                reply = client.send_trajectory(trajectory)
+            except RequestError as exc:
+                if exc.code != "rejected":
+                    raise
+                _say(f"flying: pose {k + 1} of {len(poses)} refused, skipped: {exc.reason}")
+                continue
+            time.sleep(float(reply["result"].get("duration", move)) + dwell)
+            here = target
+            with lock:
+                recent = [r for r in rows if r[0] >= time.monotonic() - AVERAGE]
+                rows.clear()
+            if not recent:
+                state = client.status()
+                raise CalibrationError(
+                    f"pose {k + 1}: no state at rest from the daemon ({state['state']}"
+                    + (f": {state['fault']['message']}" if state.get("fault") else "")
+                    + ")"
+                )
+            samples.append(
+                Sample(
+                    np.mean([r[1] for r in recent], axis=0),
+                    np.mean([r[2] for r in recent], axis=0),
+                )
+            )
+            _say(f"flying: pose {k + 1} of {len(poses)} recorded")
+    finally:
+        subscriber.undeclare()
+    return samples
+
+
+def _wait_for_pose(latest: list[Pose], lock: threading.Lock, timeout: float = 5.0) -> Pose:
+    """The first measured pose the daemon publishes."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        with lock:
+            if latest:
+                return latest[0]
+        time.sleep(0.05)
+    raise CalibrationError(f"no state with a pose from the daemon within {timeout:g} s")
+
+
+def _from_recording(config: DaemonConfig, path: Path) -> tuple[np.ndarray, list[Sample]]:
+    """Samples at rest from a telemetry MCAP, and the offsets its lengths were read with."""
+    from mcap.reader import make_reader
+
+    from daemon.process.recording import CYCLE_TOPIC
+    from tuning.calibration import rest_samples
+
+    times, lengths, forces, twists = [], [], [], []
+    try:
+        with open(path, "rb") as stream:
+            for _, _, message in make_reader(stream).iter_messages([CYCLE_TOPIC]):
+                row = json.loads(message.data)
+                if row.get("safety", {}).get("state") not in ("hold", "tracking"):
+                    continue
+                twist = row["twist"]
+                times.append(row["t"])
+                lengths.append([math.nan if x is None else x for x in row["lengths"]])
+                forces.append([math.nan if x is None else x for x in row["forces"]])
+                twists.append(twist["linear"] + twist["angular"])
+    except (OSError, ValueError, KeyError) as exc:
+        raise CalibrationError(f"{path}: cannot read the cycle records: {exc}") from None
+    samples = rest_samples(times, lengths, forces, twists) if times else []
+    _say(f"{path}: {len(times)} cycle records, {len(samples)} poses at rest")
+    # the cycle records carry the lengths as the drivers read them: with drives.length_offset
+    robot = config.robot
+    offsets = np.array([s.length_offset for s in config.drives.scalings_for(robot)])
+    if len(samples) < 2:
+        raise CalibrationError(f"{path}: {len(samples)} poses at rest: nothing to calibrate")
+    return offsets, samples
+
+
+def _write_new(path: Path, robot: dict[str, Any], calibration: Calibration) -> None:
+    now = datetime.datetime.now().isoformat(timespec="seconds")
+    header = (
+        f"# calibrated by cdprd calibrate on {now}"
+        f" from {len(calibration.poses)} poses: residual RMS {calibration.residual_rms * 1e3:.4f}"
+        f" mm, condition {calibration.condition:.3g}\n"
+    )
+    with open(path, "x") as f:  # never overwrites
+        f.write(header)
+        yaml.safe_dump(robot, f, sort_keys=False)
+
+
+def _store_offsets(config: DaemonConfig, calibration: Calibration, robot_file: Path) -> str | None:
+    """The calibrated offsets as the stored state (None: no state_dir)."""
+    from daemon.service.calibration_state import new_state, save_state, state_path
+
+    if config.state_dir is None:
+        return None
+    path = state_path(config.state_dir, config.robot.name)
+    state = new_state(
+        config.robot.name, calibration.offsets.tolist(), f"calibrate (robot file {robot_file})"
+    )
+    try:
+        save_state(path, state)
+    except OSError as exc:
+        _say(f"warning: offsets not stored in {path}: {exc}")
+        return None
+    return str(path)
+
+
+def _print_report(report: dict[str, Any], calibration: Calibration) -> None:
+    std = report["predicted_std"]
+    print(f"corrected robot file: {report['robot_file']}")
+    print(
+        f"fit: {report['poses']} poses, residual RMS {report['residual_rms_mm']:.4f} mm, "
+        f"max {report['residual_max_mm']:.4f} mm"
+    )
+    sv = report["singular_values"]
+    print(
+        f"identification Jacobian (poses eliminated, columns scaled): {sv['count']} singular "
+        f"values {sv['smallest']:.3g} .. {sv['largest']:.3g}, condition {report['condition']:.3g}"
+    )
+    print(
+        "predicted std at 10 um length noise: " + ", ".join(f"{k} {v:.3g}" for k, v in std.items())
+    )
+    print(f"EA: {calibration.stiffness_scale:.4f} x the file's")
+    print("offsets (m): " + " ".join(f"{x:.5f}" for x in calibration.offsets))
+    print("drum radius scales: " + " ".join(f"{x:.6f}" for x in calibration.drum_radius_scale))
+    print(f"offsets stored: {report['offsets_stored'] or 'no (no state_dir): set them by homing'}")
+    print(f"took {report['seconds']:.1f} s")
