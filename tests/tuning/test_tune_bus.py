@@ -2,9 +2,10 @@
 one winch whose true m0, k0 and lag are 30 % off the robot file) as a separate process
 over socketcand, it identifies m0 and k0 within 10 % and the force lag within 50 %
 (real-time jitter and the bus's delays are in the data: the lag, 2.6 ms, about a period,
-is what a loaded host disturbs most; 1 % in simulated time, bench/tune.py), and a slack cable during the experiment brakes the drive over
-the bus (Set_Input_Pos after the last torque command) and says why; `--sim` does the
-same against the in-process simulator."""
+is what a loaded host disturbs most; 1 % in simulated time, bench/tune.py), and a
+slack cable during the experiment brakes the drive over the bus (Set_Input_Pos after
+the last torque command) and says why; `--sim` does the same against the in-process
+simulator."""
 
 from __future__ import annotations
 
