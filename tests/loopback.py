@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import json
 import socket
+
+import zenoh
 
 
 def free_port() -> int:
@@ -10,3 +13,15 @@ def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+def zenoh_peer(port: int) -> zenoh.Session:
+    """A zenoh peer that connects to tcp/127.0.0.1:`port` only: no listening, no
+    multicast scouting, no gossip (what a planner on the same host would open)."""
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"peer"')
+    conf.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
+    conf.insert_json5("listen/endpoints", "[]")
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("scouting/gossip/enabled", "false")
+    return zenoh.open(conf)

@@ -13,7 +13,7 @@ import yaml
 
 from daemon.service.calibration_state import state_path
 from tests.loopback import free_port
-from tests.processes import CONFIG, ROOT, connect, finish, wait_status
+from tests.processes import CONFIG, ROOT, connect, finish, start_daemon, wait_status
 
 
 def cdprd(*args: str, timeout: float = 120.0) -> subprocess.CompletedProcess[str]:
@@ -42,10 +42,7 @@ def test_home_then_calibrate_with_too_few_poses_names_what_is_unidentifiable(
     command says which, exits 1, and writes no robot file."""
     port = free_port()
     path = config_file(tmp_path, port)
-    daemon = subprocess.Popen(
-        [sys.executable, "-m", "daemon.cli", "run", "--sim", "--config", str(path)],
-        cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-    )  # fmt: skip
+    daemon = start_daemon(path, "--sim")
     try:
         client = connect(port, daemon)
         wait_status(client, "idle", 30.0)

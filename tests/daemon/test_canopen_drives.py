@@ -30,7 +30,15 @@ from daemon.service.service import Service
 from tests.canopen_drive import ENABLED, QUICK_STOP, VENDOR_EDS, drives_for
 from tests.daemon_stack import DRIVER_CONFIGS
 from tests.loopback import free_port
-from tests.processes import ROOT, connect, daemon_config, finish, simulator_configs, wait_status
+from tests.processes import (
+    ROOT,
+    connect,
+    daemon_config,
+    finish,
+    simulator_configs,
+    start_daemon,
+    wait_status,
+)
 
 pytestmark = pytest.mark.timeout(90)
 CHANNELS = itertools.count()
@@ -168,13 +176,7 @@ def test_cdprd_run_brings_up_canopen_drives_in_another_process(tmp_path: Path, e
     daemon = None
     try:
         config = daemon_config(tmp_path, data, port, "vcan0")
-        daemon = subprocess.Popen(
-            [sys.executable, "-m", "daemon.cli", "run", "--config", str(config)],
-            cwd=ROOT,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
-            text=True,
-        )
+        daemon = start_daemon(config)
         with connect(zenoh_port, daemon) as client:
             wait_status(client, "idle", 20.0)
             client.enable()

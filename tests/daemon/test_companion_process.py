@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import signal
 import subprocess
-import sys
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -27,12 +26,12 @@ import pytest
 
 from tests.loopback import free_port
 from tests.processes import (
-    ROOT,
     connect,
     daemon_config,
     finish,
     serve_simulator,
     simulator_configs,
+    start_daemon,
     truth,
     wait_status,
 )
@@ -53,13 +52,7 @@ class Rig:
         self.truth_log = tmp_path / "truth.jsonl"
 
     def start_daemon(self, name: str) -> subprocess.Popen:
-        with (self.tmp_path / f"{name}.log").open("w") as log:  # the child keeps it open
-            return subprocess.Popen(
-                [sys.executable, "-m", "daemon.cli", "run", "--config", str(self.config)],
-                cwd=ROOT,
-                stdout=log,
-                stderr=subprocess.STDOUT,
-            )
+        return start_daemon(self.config, log=self.tmp_path / f"{name}.log")
 
     def log(self, name: str) -> str:
         return (self.tmp_path / f"{name}.log").read_text()

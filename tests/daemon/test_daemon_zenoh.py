@@ -14,22 +14,13 @@ import pytest
 import yaml
 import zenoh
 
-from tests.loopback import free_port
+from tests.loopback import free_port, zenoh_peer
 from tests.processes import finish
 
 ROOT = Path(__file__).resolve().parents[2]
 CONFIG = ROOT / "config" / "reference8-cia402.yaml"
 PREFIX = "cdpr/reference8"
 
-
-def _session(port: int) -> zenoh.Session:
-    conf = zenoh.Config()
-    conf.insert_json5("mode", '"peer"')
-    conf.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
-    conf.insert_json5("listen/endpoints", "[]")
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    conf.insert_json5("scouting/gossip/enabled", "false")
-    return zenoh.open(conf)
 
 
 def _get(session: zenoh.Session, key: str, body: dict | None = None) -> dict:
@@ -66,7 +57,7 @@ def test_plain_zenoh_client_drives_a_simulated_daemon(tmp_path: Path) -> None:
     events: list[dict] = []
     try:
         time.sleep(1.0)
-        session = _session(port)
+        session = zenoh_peer(port)
         try:
             session.declare_subscriber(
                 f"{PREFIX}/state", lambda s: states.append(json.loads(s.payload.to_bytes()))

@@ -14,8 +14,6 @@ and the platform stays within 2 mm of where it was (on main the forgery moves it
 from __future__ import annotations
 
 import math
-import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
@@ -36,6 +34,7 @@ from tests.processes import (
     finish,
     serve_simulator,
     simulator_configs,
+    start_daemon,
     truth,
     wait_status,
 )
@@ -116,14 +115,7 @@ def test_a_forged_or_glitching_length_brakes_naming_the_drive_and_nothing_moves(
     daemon = None
     try:
         config = daemon_config(tmp_path, data, port, channel)
-        with (tmp_path / "daemon.log").open("w") as daemon_log:  # the child keeps it open
-            daemon = subprocess.Popen(
-                [sys.executable, "-m", "daemon.cli", "run", "--config", str(config)],
-                cwd=ROOT,
-                stdout=daemon_log,
-                stderr=subprocess.STDOUT,
-                text=True,
-            )
+        daemon = start_daemon(config, log=tmp_path / "daemon.log")
         events: list[dict] = []
         with connect(zenoh_port, daemon) as client:
             wait_status(client, "idle", 10.0)

@@ -26,6 +26,7 @@ from tests.processes import (
     finish,
     serve_simulator,
     simulator_configs,
+    start_daemon,
     wait_status,
 )
 
@@ -40,14 +41,7 @@ def test_identify_payload_from_the_command_line(tmp_path: Path) -> None:
     daemon = None
     try:
         config = daemon_config(tmp_path, data, port, channel)
-        with (tmp_path / "daemon.log").open("w") as daemon_log:
-            daemon = subprocess.Popen(
-                [sys.executable, "-m", "daemon.cli", "run", "--config", str(config)],
-                cwd=ROOT,
-                stdout=daemon_log,
-                stderr=subprocess.STDOUT,
-                text=True,
-            )
+        daemon = start_daemon(config, log=tmp_path / "daemon.log")
         with connect(zenoh_port, daemon) as client:
             wait_status(client, "idle", 10.0)
             client.enable()

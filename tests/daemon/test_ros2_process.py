@@ -30,7 +30,7 @@ import zenoh
 import zenoh.ext as ze
 from rosbags.typesys import Stores, get_typestore
 
-from tests.loopback import free_port
+from tests.loopback import free_port, zenoh_peer
 from tests.processes import finish
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -58,15 +58,6 @@ def key(topic: str, msgtype: str) -> str:
     """<domain_id>/<fully_qualified_name>/<type_name>/<type_hash> (design.md)."""
     return f"{DOMAIN}/{topic.strip('/')}/{dds(msgtype)}/{STORE.hash_rihs01(msgtype)}"
 
-
-def session(port: int) -> zenoh.Session:
-    conf = zenoh.Config()
-    conf.insert_json5("mode", '"peer"')
-    conf.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
-    conf.insert_json5("listen/endpoints", "[]")
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    conf.insert_json5("scouting/gossip/enabled", "false")
-    return zenoh.open(conf)
 
 
 class Inbox:
@@ -174,7 +165,7 @@ def test_a_ros2_node_on_rmw_zenoh_sees_the_daemon_and_flies_it(tmp_path: Path) -
     )
     try:
         time.sleep(1.0)
-        s = session(port)
+        s = zenoh_peer(port)
         try:
             _exercise(s)
         finally:
