@@ -5,8 +5,6 @@ unchanged, a valid one accepted and flown, state and events seen; SIGTERM exits 
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -15,10 +13,8 @@ import yaml
 import zenoh
 
 from tests.loopback import free_port, zenoh_peer
-from tests.processes import finish
+from tests.processes import CONFIG, ROOT, finish, start_daemon
 
-ROOT = Path(__file__).resolve().parents[2]
-CONFIG = ROOT / "config" / "reference8-cia402.yaml"
 PREFIX = "cdpr/reference8"
 
 
@@ -46,13 +42,7 @@ def test_plain_zenoh_client_drives_a_simulated_daemon(tmp_path: Path) -> None:
     data["zenoh"]["listen"] = [f"tcp/127.0.0.1:{port}"]
     config = tmp_path / "cdprd.yaml"
     config.write_text(yaml.safe_dump(data))
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "daemon.cli", "run", "--config", str(config), "--sim"],
-        cwd=ROOT,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-    )
+    proc = start_daemon(config, "--sim")
     states: list[dict] = []
     events: list[dict] = []
     try:

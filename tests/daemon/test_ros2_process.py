@@ -16,8 +16,6 @@ rmw_zenoh's design document (tests/data/rmw_zenoh_reference.md):
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
@@ -31,10 +29,8 @@ import zenoh.ext as ze
 from rosbags.typesys import Stores, get_typestore
 
 from tests.loopback import free_port, zenoh_peer
-from tests.processes import finish
+from tests.processes import CONFIG, ROOT, finish, start_daemon
 
-ROOT = Path(__file__).resolve().parents[2]
-CONFIG = ROOT / "config" / "reference8-cia402.yaml"
 PREFIX = "cdpr/reference8"
 STORE = get_typestore(Stores.ROS2_JAZZY)
 DOMAIN = 7
@@ -156,13 +152,7 @@ def test_a_ros2_node_on_rmw_zenoh_sees_the_daemon_and_flies_it(tmp_path: Path) -
     data["ros2"] = {"enabled": True, "domain_id": DOMAIN, "namespace": NAMESPACE, "rate_hz": 20}
     config = tmp_path / "cdprd.yaml"
     config.write_text(yaml.safe_dump(data))
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "daemon.cli", "run", "--config", str(config), "--sim"],
-        cwd=ROOT,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-    )
+    proc = start_daemon(config, "--sim")
     try:
         time.sleep(1.0)
         s = zenoh_peer(port)
