@@ -6,6 +6,7 @@ bus agree on node ids, scaling and watchdogs by construction.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from typing import Annotated, Any, Literal
 
@@ -28,6 +29,18 @@ def _an_int(value: Any) -> Any:
 BusName = Annotated[str, Field(min_length=1, max_length=64)]
 Direction = Annotated[Literal[1, -1], BeforeValidator(_an_int)]
 PositiveSeconds = Annotated[float, Field(gt=0.0, le=10.0, allow_inf_nan=False)]
+
+
+def _whole_ms(value: Any) -> Any:
+    """CiA 301 heartbeat times (0x1016, 0x1017) count whole milliseconds."""
+    if type(value) in (int, float) and abs(value * 1000 - round(value * 1000)) > 1e-6:
+        raise ValueError(f"{value} s is no whole number of milliseconds (CiA 301 counts ms)")
+    return value
+
+
+WholeMs = Annotated[
+    float, Field(ge=0.001, le=10.0, allow_inf_nan=False), BeforeValidator(_whole_ms)
+]
 
 
 # -- the CiA 402 drive profile (drives.profile) ------------------------------------------
@@ -109,6 +122,16 @@ class Cia402Profile(StrictModel):
     sdo_writes: list[SdoWrite] = Field(default_factory=list)
 
 
+# the host heartbeat's defaults (DrivesConfig.host_heartbeat)
+DEFAULT_CYCLE_PERIOD = 1.0 / 500.0  # s: the controller's default rate, for a bare drives config
+HEARTBEAT_PERIOD_MIN = 0.004  # s
+HOST_HICCUP = 0.013  # s: the longest hold-up of a loaded host (PERF-FACTS: 2-13 ms)
+
+
+def _ceil_ms(seconds: float) -> float:
+    return math.ceil(seconds * 1000 - 1e-6) / 1000
+
+
 class DrivesConfig(StrictModel):
     """One protocol per bus; lists run in cable order (one entry per cable), scalars
     apply to every drive.
@@ -136,6 +159,11 @@ class DrivesConfig(StrictModel):
       "auto" allows for it.  Default: the simulator's actuator (2 ms).
     profile: CiA 402 only: the drive's EDS, the PDO mapping and extra SDO writes the host
       configures at start-up (Cia402Profile).
+    host_heartbeat_period / consumer_heartbeat_time (CiA 402): how often the host sends
+      its own heartbeat, and the time after its last one at which each drive's consumer
+      (0x1016) declares the daemon dead and reacts (0x6007/0x605A): the detection time of
+      a drive without an RPDO deadline.  Whole ms; default (null) from the control
+      period, `host_heartbeat`.  The consumer time must be at least twice the period.
     """
 
     protocol: Literal["cia402", "odrive"]
@@ -155,6 +183,9 @@ class DrivesConfig(StrictModel):
     accept_fall_on_axis_error: bool = False
     force_lag: Annotated[float, Field(ge=0.0, le=0.05, allow_inf_nan=False)] = DEFAULT_FORCE_LAG
     profile: Cia402Profile = Field(default_factory=Cia402Profile)
+    # the host's heartbeat and the drives' consumer of it (host_heartbeat)
+    host_heartbeat_period: WholeMs | None = None
+    consumer_heartbeat_time: WholeMs | None = None
 
     @model_validator(mode="after")
     def _consistent(self) -> DrivesConfig:
@@ -191,7 +222,37 @@ class DrivesConfig(StrictModel):
                 f"heartbeat_timeout ({self.heartbeat_timeout} s) must exceed "
                 f"heartbeat_period ({self.heartbeat_period} s)"
             )
+        period, consumer = self.host_heartbeat_period, self.consumer_heartbeat_time
+        if period is not None and consumer is not None and consumer < 2 * period:
+            raise ValueError(
+                f"consumer_heartbeat_time ({consumer} s) must be at least twice "
+                f"host_heartbeat_period ({period} s): one late heartbeat must not stop the drives"
+            )
         return self
+
+    def host_heartbeat(self, cycle_period: float = DEFAULT_CYCLE_PERIOD) -> tuple[float, float]:
+        """(host heartbeat period, drives' consumer time) in whole ms, for a control cycle
+        of `cycle_period` s; ValueError names the key a configured pair breaks.
+
+        The heartbeat goes out with a cycle's SYNC, so at most once per cycle.  Default
+        period: whole cycles, at least HEARTBEAT_PERIOD_MIN (a 1-byte frame every 4 ms is
+        1.6 % of a 1 Mbit/s bus).  Default consumer time: the longest gap between two
+        heartbeats on a host held up by HOST_HICCUP (period + one cycle + the hiccup),
+        at least twice the period.  Short, because a drive without an RPDO deadline applies
+        the last torque for that long after the daemon dies."""
+        cycles = max(1, math.ceil(HEARTBEAT_PERIOD_MIN / cycle_period - 1e-9))
+        period = self.host_heartbeat_period or _ceil_ms(cycles * cycle_period)
+        sent = max(period, cycle_period)  # never more often than the cycle
+        consumer = self.consumer_heartbeat_time or _ceil_ms(
+            max(2 * sent, sent + cycle_period + HOST_HICCUP)
+        )
+        if consumer < 2 * sent:
+            raise ValueError(
+                f"consumer_heartbeat_time: {consumer * 1e3:g} ms is less than twice the host "
+                f"heartbeat's period ({sent * 1e3:g} ms: host_heartbeat_period, at most once "
+                "per control cycle): one late heartbeat would stop the drives"
+            )
+        return period, consumer
 
     def bus_names(self) -> list[str | None]:
         """The bus each drive is on, in cable order (None: `bus` not given, the only bus)."""

@@ -4,18 +4,19 @@ The drive profile (drives.profile, checked against the EDS by drivers.cia402.pro
 says which PDOs carry what; the defaults are codec.RPDO1/RPDO2/TPDO1/TPDO2.
 
 Cycle (Timing.SYNC): `cycle_start` sends SYNC (and the host's heartbeat every
-heartbeat_period); every drive answers with its TPDOs.  `receive` returns a cable's index
-when the last of a drive's TPDOs since the latest SYNC arrives: feedback is complete for
-the cycle.  A TPDO after its drive's sample was complete is counted as rejected and
-dropped.  A mode of operation display other than 8 or 10 while operation is enabled is a
-drive FAULT (reported, the frame still counts).  `commands` sends one torque RPDO per
-drive (controlword "enable operation", target torque in per mille of the rated torque,
-mode 10).
+host_heartbeat_period, also between SDO requests); every drive answers with its TPDOs.
+`receive` returns a cable's index when the last of a drive's TPDOs since the latest SYNC
+arrives: feedback is complete for the cycle.  A TPDO after its drive's sample was
+complete is counted as rejected and dropped.  A mode of operation display other than 8
+or 10 while operation is enabled is a drive FAULT (reported, the frame still counts).
+`commands` sends one torque RPDO per drive (controlword "enable operation", target
+torque in per mille of the rated torque, mode 10).
 
 Torque: force f (N along +l) -> motor torque Scaling.motor_torque(f) -> per mille of
 `rated_torque`, rounded to the nearest per mille and clamped to +- the drive's max
-torque 0x6072 (read at start-up, EDS default before); clamps are counted in
-`torque_limited`.  A non-finite force raises FrameError (the caller brakes instead).
+torque 0x6072 (read at start-up after the profile's writes, EDS default before); clamps
+are counted in `torque_limited`.  A non-finite force raises FrameError (the caller
+brakes instead).
 
 Brake (DESIGN §9; never a quick stop, which only ramps torque to zero and lets a
 suspended platform fall):
@@ -165,6 +166,7 @@ class Cia402Driver(ActuatorDriver):
         self.od = self.plan.od
         self.clock: Callable[[], float] = time.monotonic  # paces the host heartbeat (start sets it)
         self._heartbeat = encode_heartbeat(config.profile.host_node, NmtState.OPERATIONAL)
+        self._heartbeat_period = config.host_heartbeat()[0]
         self._next_heartbeat = -math.inf
         rated = config.rated_torque
         assert rated is not None  # DrivesConfig requires it for cia402
@@ -211,11 +213,17 @@ class Cia402Driver(ActuatorDriver):
     def cycle_start(self) -> list[can.Message]:
         """SYNC, and the host heartbeat when one is due (the drives consume it: 0x1016)."""
         self._epoch += 1
+        return [encode_sync(), *self._heartbeat_due()]
+
+    def _heartbeat_due(self) -> list[can.Message]:
+        """The host heartbeat if host_heartbeat_period has passed since the last one, by
+        `clock` (the daemon's monotonic time: paced by the core's cycle timer, and by the
+        SDO exchanges of a start-up or reset, never by the companion process)."""
         now = self.clock()
         if now < self._next_heartbeat:
-            return [encode_sync()]
-        self._next_heartbeat = now + self.config.heartbeat_period
-        return [encode_sync(), self._heartbeat]
+            return []
+        self._next_heartbeat = now + self._heartbeat_period
+        return [self._heartbeat]
 
     def commands(self, forces: Sequence[float]) -> list[can.Message]:
         if len(forces) != self.n:
@@ -440,9 +448,10 @@ class Cia402Driver(ActuatorDriver):
                     f"node {node}: motor rated torque 0x6076 is {rated} N·m, "
                     f"config rated_torque is {config.rated_torque} N·m"
                 )
-            self.max_torque[i] = await self._read(link, i, MAX_TORQUE)
             for step in self.plan.writes:
                 await self._write(link, i, step.index, step.subindex, step.value, step)
+            # after the writes: a profile's sdo_writes may set it
+            self.max_torque[i] = await self._read(link, i, MAX_TORQUE)
         for node in self.nodes:
             link.send(encode_nmt(NmtCommand.START, node))
         await self._await_heartbeats(link, now)
@@ -529,7 +538,7 @@ class Cia402Driver(ActuatorDriver):
             (self._rpdo2[i], self._hold_pack(_ENABLE, target, MODE_CSP))
             for i, target in enumerate(targets)
         ]
-        round_timeout = min(0.02, self.config.watchdog_timeout / 2)
+        round_timeout = min(0.02, self.config.watchdog_timeout / 2, self._heartbeat_period)
         pending = set(range(self.n))
         seen: dict[int, tuple[State | None, int]] = {}
         for _ in range(max(1, math.ceil(self.enable_timeout / round_timeout))):
@@ -643,6 +652,8 @@ class Cia402Driver(ActuatorDriver):
         if self._feeding:  # drives taken over: their deadlines stay fed through start()
             for frame in self.keepalive():
                 link.send(frame)
+        for frame in self._heartbeat_due():  # the drives' consumers stay fed too
+            link.send(frame)
         link.send(request)
         reply = await link.expect(
             self._sdo_reply(self.nodes[i], index, sub), self.sdo_timeout, what
@@ -771,11 +782,14 @@ class Cia402Driver(ActuatorDriver):
             return not pending
 
         timeout = self.config.heartbeat_timeout
-        step = min(timeout, self.config.watchdog_timeout / 2)  # keepalive between steps
+        # keepalive and heartbeat between steps
+        step = min(timeout, self.config.watchdog_timeout / 2, self._heartbeat_period)
         for _ in range(math.ceil(timeout / step)):
             if self._feeding:
                 for frame in self.keepalive():
                     link.send(frame)
+            for frame in self._heartbeat_due():
+                link.send(frame)
             with contextlib.suppress(DriverError):
                 await link.expect(match, step, "operational heartbeats from the CiA 402 nodes")
                 return

@@ -90,6 +90,7 @@ class DrivePlan:
     writes: tuple[SdoStep, ...]
     unused: tuple[int, ...]  # communication indices of the EDS's other PDOs (disabled)
     watchdog: str  # what a drive does when the daemon dies
+    detection: float  # s: the longest a dead daemon goes unnoticed by a drive
 
     @property
     def layouts(self) -> tuple[PdoLayout, ...]:
@@ -131,7 +132,7 @@ def plan(config: DrivesConfig) -> DrivePlan:
         if (index, 0) not in mapped:
             name = od_variable(od, index).name if index in od else "it"
             raise ProfileError("profile.tpdo", f"no TPDO maps 0x{index:04X} ({name})")
-    writes, watchdog = _host_writes(od, config, rpdos)
+    writes, watchdog, detection = _host_writes(od, config, rpdos)
     own = {(step.index, step.subindex) for step in writes}
     for k, extra in enumerate(profile.sdo_writes):
         key, (index, sub) = f"profile.sdo_writes.{k}", extra.object
@@ -150,7 +151,9 @@ def plan(config: DrivesConfig) -> DrivePlan:
         for comm in (*range(0x1400, 0x1600), *range(0x1800, 0x1A00))
         if comm in od and comm not in used
     )
-    return DrivePlan(path, od, rpdos, tpdos, torque, hold, tuple(writes), unused, watchdog)
+    return DrivePlan(
+        path, od, rpdos, tpdos, torque, hold, tuple(writes), unused, watchdog, detection
+    )
 
 
 def _layouts(od: ObjectDictionary, specs: Sequence[PdoSpec], receive: bool) -> tuple:
@@ -201,23 +204,30 @@ def _carrying(layouts: Sequence[PdoLayout], key: str, indices: tuple[int, ...]) 
 
 def _host_writes(
     od: ObjectDictionary, config: DrivesConfig, rpdos: Sequence[PdoLayout]
-) -> tuple[list[SdoStep], str]:
-    """The host's own standard writes where the EDS has them, and the watchdog verdict."""
+) -> tuple[list[SdoStep], str, float]:
+    """The host's own standard writes where the EDS has them, the watchdog verdict and
+    its detection time (s: the shortest of the consumer time and the RPDO deadlines; the
+    torque RPDO goes out every cycle, the heartbeat every host_heartbeat_period)."""
     key = "profile.eds"
     heartbeat_ms = max(1, round(config.heartbeat_period * 1000))
-    consumer_ms = max(1, round(config.heartbeat_timeout * 1000))
+    try:
+        consumer_ms = round(config.host_heartbeat()[1] * 1000)
+    except ValueError as exc:
+        raise ProfileError(key, str(exc)) from None
     deadline_ms = max(1, round(config.watchdog_timeout * 1000))
     host = config.profile.host_node
     writes = [_checked(od, key, PRODUCER_HEARTBEAT, 0, heartbeat_ms)]
     if COB_ID_SYNC in od:
         writes.append(_checked(od, key, COB_ID_SYNC, 0, SYNC_ID))
-    watchdogs = []
+    watchdogs, detection = [], []
     if _has(od, CONSUMER_HEARTBEAT, 1):
         writes.append(_checked(od, key, CONSUMER_HEARTBEAT, 1, host << 16 | consumer_ms))
         watchdogs.append(f"consumer heartbeat 0x1016 on node {host}, {consumer_ms} ms")
+        detection.append(consumer_ms / 1000)
     for layout in rpdos:
         if _has(od, layout.comm_index, RPDO_DEADLINE_SUB):
             writes.append(_checked(od, key, layout.comm_index, RPDO_DEADLINE_SUB, deadline_ms))
+            detection.append(deadline_ms / 1000)
             watchdogs.append(
                 f"{layout.name} deadline 0x{layout.comm_index:04X}:05, {deadline_ms} ms"
             )
@@ -250,7 +260,7 @@ def _host_writes(
             "brake: a quick stop may ramp torque to zero and a dead daemon would leave "
             "them free-wheeling under load",
         )
-    return writes, f"{'; '.join(watchdogs)} -> {reaction}"
+    return writes, f"{'; '.join(watchdogs)} -> {reaction}", min(detection)
 
 
 def _has(od: ObjectDictionary, index: int, sub: int) -> bool:

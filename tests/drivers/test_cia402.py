@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import asyncio
 import math
+import re
 import struct
 from collections import deque
 from collections.abc import Callable
@@ -19,6 +20,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+from cdpr import ConfigError
 from drivers.base import Actuation, BrakeMode, DriverError, DriveState, FrameError, Timing
 from drivers.cia402 import codec
 from drivers.cia402.codec import (
@@ -768,14 +770,15 @@ def test_start_configures_every_drive_through_sdo() -> None:
         assert device.heartbeat_period == config.heartbeat_period
         assert device.rpdo_timeout == config.watchdog_timeout
         assert device.brake_reaction is BrakeMode.POSITION_HOLD
-        assert device.consumers == {127: config.heartbeat_timeout}  # the host's heartbeat
+        assert device.consumers == {127: config.host_heartbeat()[1]}  # the host's heartbeat
         assert device.values[(0x6007, 0)] == 3 and device.values[(0x605A, 0)] == 6
         assert device.actuation is Actuation.POSITION  # power-on hold: no brake fitted
     assert [s.state for s in driver.status] == [DriveState.HOLDING] * 3
     assert all(s.heartbeat_stamp > 0 for s in driver.status)
     assert driver.nmt_state == [NmtState.OPERATIONAL] * 3
     ids = {m.arbitration_id for m in link.sent}
-    assert ids == {0x000} | {0x600 + n for n in (1, 2, 3)}  # NMT and SDO only
+    # NMT, SDO and the host's heartbeat (its consumers stay fed through the start-up)
+    assert ids == {0x000, 0x77F} | {0x600 + n for n in (1, 2, 3)}
     writes = [
         bytes(m.data) for m in link.sent if m.arbitration_id == 0x601 and m.data[0] & 0xE0 == 0x20
     ]
@@ -964,7 +967,10 @@ def test_brake_position_hold_round_trip() -> None:
 
 
 def test_brake_holding_brake_round_trip_and_disable() -> None:
-    driver, devices, link = make_bus(brake="holding_brake", has_holding_brake=True)
+    # a patient consumer heartbeat: the host stays silent for 0.2 s below
+    driver, devices, link = make_bus(
+        brake="holding_brake", has_holding_brake=True, consumer_heartbeat_time=0.5
+    )
     link.run(driver.enable(link, [1.5] * 3, [0.0] * 3))
     link.cycle([-60.0] * 3)
     assert all(d.actuation is Actuation.TORQUE and not d.brake_engaged for d in devices)
@@ -982,7 +988,7 @@ def test_brake_holding_brake_round_trip_and_disable() -> None:
 
 
 def test_rpdo_timeout_brakes_faults_and_resets_without_moving() -> None:
-    driver, devices, link = make_bus()
+    driver, devices, link = make_bus(consumer_heartbeat_time=0.1)  # the deadline fires first
     link.run(driver.enable(link, [1.5] * 3, [0.0] * 3))
     link.cycle([-60.0] * 3)
     devices[1].measure(1.62, 0.3)
@@ -1104,3 +1110,94 @@ def test_heartbeats_keep_arriving_after_start() -> None:
         s.heartbeat_stamp >= f + 0.2 - 1e-9 for s, f in zip(driver.status, first, strict=True)
     )
     assert driver.counters.rejected_total == 0
+
+
+# -- a dead daemon (issue 15: drives without an RPDO deadline) -------------------------------
+
+VENDOR_EDS = Path(__file__).resolve().parents[1] / "data" / "generic_servo_cia402.eds"
+
+
+def vendor_bus() -> tuple[Cia402Driver, list[Cia402Drive], MemoryLink]:
+    """Three strict simulated drives with the vendor EDS (no RPDO deadline 0x1400:05: the
+    consumer heartbeat is their only watchdog), started by the host with its defaults."""
+    config = drives_config(rated_torque=1.0, profile={"eds": str(VENDOR_EDS)})
+    scalings = config.scalings([RADIUS] * 3)
+    driver = Cia402Driver(config, scalings)
+    devices = [
+        Cia402Drive(node, s, config, eds=VENDOR_EDS)
+        for node, s in zip(config.nodes, scalings, strict=True)
+    ]
+    for device in devices:
+        device.measure(1.5, 0.0)
+    link = MemoryLink(driver, devices)
+    link.run(driver.start(link, lambda: link.t))
+    return driver, devices, link
+
+
+def test_a_killed_daemon_leaves_drives_without_deadline_holding_within_twice_the_consumer_time():
+    """kill -9 of the daemon while it commands torque at 500 Hz: no goodbye frame, no
+    heartbeat any more.  A drive without an RPDO deadline applies the last torque until
+    its consumer heartbeat expires; the host set that to a few cycles' worth (19 ms at
+    the default 500 Hz), so each drive holds (QUICK STOP ACTIVE, position) within twice
+    that of the kill, and not before it: the heartbeat every 4 ms keeps it fed."""
+    driver, devices, link = vendor_bus()
+    assert not any(d.rpdo_timeout for d in devices)  # no deadline in this EDS
+    consumer = devices[0].consumers[127]
+    assert consumer == 0.019 and all(d.consumers == {127: consumer} for d in devices)
+    link.run(driver.enable(link, [1.5] * 3, [0.0] * 3))
+    for _ in range(100):  # 0.2 s of control at 500 Hz
+        link.cycle([-60.0] * 3)
+        link.advance(0.002)
+        assert all(d.state is State.OPERATION_ENABLED for d in devices)
+    assert all(d.actuation is Actuation.TORQUE for d in devices)
+    killed, held = link.t, {}
+    for _ in range(1000):  # the host is gone: only the drives tick
+        link.advance(0.001)
+        for device in devices:
+            if device.state is State.QUICK_STOP_ACTIVE and device.node_id not in held:
+                held[device.node_id] = link.t - killed
+                assert device.actuation is Actuation.POSITION  # holds, never free-wheels
+        if len(held) == len(devices):
+            break
+    assert sorted(held) == [1, 2, 3]
+    assert all(delay <= 2 * consumer for delay in held.values()), held
+
+
+def test_the_host_reads_max_torque_after_the_profiles_writes() -> None:
+    """A profile that lowers the max torque 0x6072 gets its clamp: the host reads the
+    limit after applying sdo_writes, not the drive's value from before them."""
+    writes = [{"object": 0x6072, "value": 1500}]
+    driver, devices, link = make_bus(profile={"sdo_writes": writes})
+    assert all(d.values[(0x6072, 0)] == 1500 for d in devices)
+    assert driver.max_torque == [1500] * 3
+    link.run(driver.enable(link, [1.5] * 3, [0.0] * 3))
+    link.cycle([-1000.0] * 3)  # 4000 per mille of the rated torque asked
+    assert driver.torque_limited == [1, 1, 1]
+    assert all(abs(d.values[(0x6071, 0)]) == 1500 for d in devices)
+
+
+@pytest.mark.parametrize(
+    ("overrides", "problem"),
+    [
+        ({"consumer_heartbeat_time": 0.0025}, "0.0025 s is no whole number of milliseconds"),
+        (
+            {"host_heartbeat_period": 0.01, "consumer_heartbeat_time": 0.015},
+            "consumer_heartbeat_time (0.015 s) must be at least twice host_heartbeat_period",
+        ),
+    ],
+)
+def test_host_heartbeat_settings_are_whole_ms_and_leave_a_margin(overrides, problem) -> None:
+    with pytest.raises(ConfigError, match=re.escape(problem)):
+        drives_config(**overrides)
+
+
+def test_host_heartbeat_defaults_follow_the_control_rate() -> None:
+    """Whole cycles of at least 4 ms; the consumer time allows one period, one cycle and a
+    13 ms hold-up of the host, and at least two periods."""
+    config = drives_config()
+    assert config.host_heartbeat() == (0.004, 0.019)  # 500 Hz
+    assert config.host_heartbeat(0.001) == (0.004, 0.018)  # 1 kHz
+    assert config.host_heartbeat(0.01) == (0.01, 0.033)  # 100 Hz: every cycle
+    slow = drives_config(host_heartbeat_period=0.002, consumer_heartbeat_time=0.01)
+    with pytest.raises(ValueError, match="consumer_heartbeat_time: 10 ms is less than twice"):
+        slow.host_heartbeat(0.01)  # the heartbeat goes out at most once per 10 ms cycle

@@ -47,6 +47,7 @@ def host_config(eds: Path = VENDOR_EDS):
             "counts_per_rev": 4096,
             "watchdog_timeout": 0.2,
             "heartbeat_timeout": 1.0,
+            "consumer_heartbeat_time": 1.0,
             "profile": {"eds": str(eds)},
         }
     )
