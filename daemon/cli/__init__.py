@@ -9,6 +9,7 @@ import numpy as np
 from cdpr import ConfigError, Robot
 from cdpr.description import load_yaml
 from daemon.cli import analyze_cmd, calibrate_cmd, client_cmd, demo_cmd, run_cmd, tune_cmd
+from daemon.config.watchdog_drift import FORMULA
 from drivers.cia402.profile import plan as drive_plan
 
 
@@ -51,6 +52,15 @@ def check_config(path: str) -> int:
             plan = drive_plan(d)
             print(f"drive profile: EDS {plan.eds}")
             print(f"drive watchdog (when the daemon dies): {plan.watchdog}")
+            print(
+                f"host heartbeat: every {d.host_heartbeat_period * 1e3:g} ms (node "
+                f"{d.profile.host_node}); a drive notices a dead daemon within "
+                f"{plan.detection * 1e3:g} ms"
+            )
+            limit = config.safety.max_watchdog_drift * 1e3
+            print(f"drift before a drive notices ({FORMULA}; limit {limit:g} mm):")
+            for bound in config.watchdog_drift:
+                print(f"  {bound.text()}")
         for c in config.buses:
             where = f"bus: {c.interface} {c.channel} at {c.bitrate} bit/s"
             if len(config.buses) > 1:

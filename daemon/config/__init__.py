@@ -41,6 +41,7 @@ from cdpr.trajectory import (
 )
 from daemon.config.ros2_config import Ros2Settings
 from daemon.config.view_config import ViewConfig
+from daemon.config.watchdog_drift import DriftBound, check_drift, drift_bounds
 from daemon.config.zenoh_config import ZenohSettings
 from drivers.cia402.profile import ProfileError, plan, with_eds_from
 from drivers.config import CanConfig, CanSection, DrivesConfig, can_buses, parse_drives
@@ -73,6 +74,9 @@ class SafetyConfig(StrictModel):
       silent before the core kills and restarts it.
     companion_lost: seconds a moving robot goes on (its trajectory, then holding) without
       a live companion before it brakes; an idle or braked robot is held anyway.
+    max_watchdog_drift: the most a cable may move (m) between the daemon's death and the
+      moment its drive notices and holds (daemon.config.watchdog_drift); a config whose
+      bound exceeds it is refused.
     """
 
     workspace_min: Vec3 | None = None
@@ -88,6 +92,7 @@ class SafetyConfig(StrictModel):
     bus_lost_exit: Annotated[float, Field(gt=0.0, le=60.0)] = 1.0
     companion_hang: Annotated[float, Field(ge=0.2, le=60.0)] = 1.0
     companion_lost: Annotated[float, Field(gt=0.0, le=3600.0)] = 10.0
+    max_watchdog_drift: PositiveFloat = 0.05
 
 
 class LoggingConfig(StrictModel):
@@ -183,12 +188,22 @@ class DaemonConfig:
             )
         # CiA 402: the drive profile checked against the drive's EDS now, not at start-up
         # (the plan itself is not kept: the config crosses to the companion by pickle)
+        # the drives' watchdog and what it lets a cable do (check_drift, after the limits)
+        self.watchdog_drift: list[DriftBound] = []
         if self.drives.protocol == "cia402":
             self.drives = with_eds_from(self.drives, base)
             try:
-                plan(self.drives)
+                period, consumer = self.drives.host_heartbeat(self.controller.period)
+            except ValueError as exc:
+                raise ConfigError(f"{source}: drives.{exc}") from None
+            self.drives = self.drives.model_copy(
+                update={"host_heartbeat_period": period, "consumer_heartbeat_time": consumer}
+            )
+            try:
+                detection = plan(self.drives).detection
             except ProfileError as exc:
                 raise ConfigError(f"{source}: drives.{exc}") from None
+            self.watchdog_drift = drift_bounds(robot, self.drives.nodes, raw.trajectory, detection)
         # the buses of `can:` (one, or a list), the first the only one in a single-bus config
         self.buses: list[CanConfig] = can_buses(raw.can, self.drives, source)
         self.safety = raw.safety
@@ -228,6 +243,7 @@ class DaemonConfig:
                 f"exceed the fastest cable rate the trajectory limits allow ({fastest:.3g} m/s: "
                 "linear_speed + angular_speed x the farthest attachment)"
             )
+        check_drift(self.watchdog_drift, raw.safety.max_watchdog_drift, source)
 
     @property
     def channels(self) -> str:

@@ -254,10 +254,58 @@ def test_check_config_prints_what_each_drive_does_when_the_daemon_dies(
     out = capsys.readouterr().out
     assert f"drive profile: EDS {DEFAULT_EDS}" in out
     assert (
-        "drive watchdog (when the daemon dies): consumer heartbeat 0x1016 on node 127, 350 ms; "
+        "drive watchdog (when the daemon dies): consumer heartbeat 0x1016 on node 127, 19 ms; "
         "RPDO1 deadline 0x1400:05, 50 ms; RPDO2 deadline 0x1401:05, 50 ms -> quick stop "
         "(0x6007 = 3), then holds in QUICK STOP ACTIVE (0x605A = 6)"
     ) in out
+    assert (
+        "host heartbeat: every 4 ms (node 127); a drive notices a dead daemon within 19 ms"
+    ) in out
+    # per drive, the bound: force_max 600 N / (m0 1.9 kg + 10 kg) = 50.4 m/s^2; the cable
+    # rate 1 m/s + 2 rad/s x 0.41 m = 1.82 m/s; over 19 ms, 9.1 + 34.6 mm
+    assert (
+        "drift before a drive notices (s = 0.5 a t^2 + v t, a = force_max / (m0 + platform "
+        "mass); limit 50 mm):\n"
+    ) in out
+    for k in range(8):
+        assert (
+            f"  cable {k} (node {k + 1}): 43.8 mm = 0.5 x 50.4 m/s^2 x (19 ms)^2 + 1.82 m/s x "
+            "19 ms\n"
+        ) in out
+
+
+SLOW_CONSUMER = "  consumer_heartbeat_time: 0.35\n"
+
+
+def test_check_config_refuses_a_watchdog_that_lets_a_cable_drift_too_far(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The vendor EDS has no RPDO deadline: a 350 ms consumer heartbeat (the old default)
+    lets each cable run on under its last torque for 350 ms, 3.7 m by the bound; refused
+    with the drive and the numbers named.  Allowed once the limit says so."""
+    (tmp_path / "vendor").mkdir()
+    (tmp_path / "vendor" / "drive.eds").write_text(eds_without(*DEADLINES))
+    path = tmp_path / "cdprd.yaml"
+    path.write_text(example(("  heartbeat_timeout: 0.35\n", SLOW_CONSUMER + PROFILE)))
+    assert main(["check-config", str(path)]) == 1
+    (line,) = capsys.readouterr().err.splitlines()
+    assert line == (
+        f"error: {path}: safety.max_watchdog_drift: a dead daemon goes unnoticed for 350 ms, "
+        "in which cable 0 (node 1): 3726.9 mm = 0.5 x 50.4 m/s^2 x (350 ms)^2 + 1.82 m/s x "
+        "350 ms under the last torque (s = 0.5 a t^2 + v t, a = force_max / (m0 + platform "
+        "mass)), more than the 50 mm allowed: shorten drives.consumer_heartbeat_time (and "
+        "host_heartbeat_period), or give the drives an RPDO deadline (drives.watchdog_timeout)"
+    )
+    path.write_text(
+        example(
+            ("  heartbeat_timeout: 0.35\n", SLOW_CONSUMER + PROFILE),
+            ("safety:\n", "safety:\n  max_watchdog_drift: 4.0\n"),
+        )
+    )
+    assert main(["check-config", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "(when the daemon dies): consumer heartbeat 0x1016 on node 127, 350 ms -> " in out
+    assert "  cable 7 (node 8): 3726.9 mm = 0.5 x 50.4 m/s^2 x (350 ms)^2" in out
 
 
 UNSAFE = {  # objects missing from the drive's EDS: the problem check-config names
