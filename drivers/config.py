@@ -124,8 +124,7 @@ class Cia402Profile(StrictModel):
 
 # the host heartbeat's defaults (DrivesConfig.host_heartbeat)
 DEFAULT_CYCLE_PERIOD = 1.0 / 500.0  # s: the controller's default rate, for a bare drives config
-HEARTBEAT_PERIOD_MIN = 0.004  # s
-HOST_HICCUP = 0.013  # s: the longest hold-up of a loaded host (PERF-FACTS: 2-13 ms)
+HEARTBEAT_PERIOD_MIN = 0.01  # s
 
 
 def _ceil_ms(seconds: float) -> float:
@@ -235,17 +234,16 @@ class DrivesConfig(StrictModel):
         of `cycle_period` s; ValueError names the key a configured pair breaks.
 
         The heartbeat goes out with a cycle's SYNC, so at most once per cycle.  Default
-        period: whole cycles, at least HEARTBEAT_PERIOD_MIN (a 1-byte frame every 4 ms is
-        1.6 % of a 1 Mbit/s bus).  Default consumer time: the longest gap between two
-        heartbeats on a host held up by HOST_HICCUP (period + one cycle + the hiccup),
-        at least twice the period.  Short, because a drive without an RPDO deadline applies
-        the last torque for that long after the daemon dies."""
+        period: whole cycles, at least HEARTBEAT_PERIOD_MIN (a 1-byte frame every 10 ms is
+        0.6 % of a 1 Mbit/s bus).  Default consumer time: watchdog_timeout, the host
+        silence the drives' RPDO deadline tolerates too (a shorter one stopped the drives
+        when a loaded host stalled for 20-50 ms), and at least two periods.  Short either
+        way: a drive without an RPDO deadline applies the last torque for that long after
+        the daemon dies."""
         cycles = max(1, math.ceil(HEARTBEAT_PERIOD_MIN / cycle_period - 1e-9))
         period = self.host_heartbeat_period or _ceil_ms(cycles * cycle_period)
         sent = max(period, cycle_period)  # never more often than the cycle
-        consumer = self.consumer_heartbeat_time or _ceil_ms(
-            max(2 * sent, sent + cycle_period + HOST_HICCUP)
-        )
+        consumer = self.consumer_heartbeat_time or _ceil_ms(max(2 * sent, self.watchdog_timeout))
         if consumer < 2 * sent:
             raise ValueError(
                 f"consumer_heartbeat_time: {consumer * 1e3:g} ms is less than twice the host "

@@ -92,7 +92,7 @@ class SafetyConfig(StrictModel):
     bus_lost_exit: Annotated[float, Field(gt=0.0, le=60.0)] = 1.0
     companion_hang: Annotated[float, Field(ge=0.2, le=60.0)] = 1.0
     companion_lost: Annotated[float, Field(gt=0.0, le=3600.0)] = 10.0
-    max_watchdog_drift: PositiveFloat = 0.05
+    max_watchdog_drift: PositiveFloat = 0.2
 
 
 class LoggingConfig(StrictModel):

@@ -254,23 +254,23 @@ def test_check_config_prints_what_each_drive_does_when_the_daemon_dies(
     out = capsys.readouterr().out
     assert f"drive profile: EDS {DEFAULT_EDS}" in out
     assert (
-        "drive watchdog (when the daemon dies): consumer heartbeat 0x1016 on node 127, 19 ms; "
+        "drive watchdog (when the daemon dies): consumer heartbeat 0x1016 on node 127, 50 ms; "
         "RPDO1 deadline 0x1400:05, 50 ms; RPDO2 deadline 0x1401:05, 50 ms -> quick stop "
         "(0x6007 = 3), then holds in QUICK STOP ACTIVE (0x605A = 6)"
     ) in out
     assert (
-        "host heartbeat: every 4 ms (node 127); a drive notices a dead daemon within 19 ms"
+        "host heartbeat: every 10 ms (node 127); a drive notices a dead daemon within 50 ms"
     ) in out
     # per drive, the bound: force_max 600 N / (m0 1.9 kg + 10 kg) = 50.4 m/s^2; the cable
-    # rate 1 m/s + 2 rad/s x 0.41 m = 1.82 m/s; over 19 ms, 9.1 + 34.6 mm
+    # rate 1 m/s + 2 rad/s x 0.41 m = 1.82 m/s; over 50 ms, 63.0 + 91.2 mm
     assert (
         "drift before a drive notices (s = 0.5 a t^2 + v t, a = force_max / (m0 + platform "
-        "mass); limit 50 mm):\n"
+        "mass); limit 200 mm):\n"
     ) in out
     for k in range(8):
         assert (
-            f"  cable {k} (node {k + 1}): 43.8 mm = 0.5 x 50.4 m/s^2 x (19 ms)^2 + 1.82 m/s x "
-            "19 ms\n"
+            f"  cable {k} (node {k + 1}): 154.3 mm = 0.5 x 50.4 m/s^2 x (50 ms)^2 + 1.82 m/s "
+            "x 50 ms\n"
         ) in out
 
 
@@ -293,7 +293,7 @@ def test_check_config_refuses_a_watchdog_that_lets_a_cable_drift_too_far(
         f"error: {path}: safety.max_watchdog_drift: a dead daemon goes unnoticed for 350 ms, "
         "in which cable 0 (node 1): 3726.9 mm = 0.5 x 50.4 m/s^2 x (350 ms)^2 + 1.82 m/s x "
         "350 ms under the last torque (s = 0.5 a t^2 + v t, a = force_max / (m0 + platform "
-        "mass)), more than the 50 mm allowed: shorten drives.consumer_heartbeat_time (and "
+        "mass)), more than the 200 mm allowed: shorten drives.consumer_heartbeat_time (and "
         "host_heartbeat_period), or give the drives an RPDO deadline (drives.watchdog_timeout)"
     )
     path.write_text(

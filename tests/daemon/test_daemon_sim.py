@@ -502,3 +502,30 @@ def test_a_hold_is_never_refused_for_want_of_planning_time(
             assert service.machine.fault is None
 
     run(scenario())
+
+
+def test_the_core_sends_the_host_heartbeat_every_few_cycles() -> None:
+    """CiA 402: the service's cycle timer paces the host heartbeat (id 0x77F) at
+    host_heartbeat_period, 10 ms at 500 Hz: one in every five or six SYNCs (counted, not
+    timed), without a companion process; the drives consume it with the 50 ms the host
+    wrote, and none of them reacts."""
+
+    async def scenario() -> None:
+        config = config_for("cia402")
+        async with Stack(config) as stack:
+            sent: list[int] = []
+            stack.service.frame_listeners.append(
+                lambda frame, received: sent.append(frame.arbitration_id) if not received else None
+            )
+            for _ in range(200):
+                await asyncio.sleep(0.005)
+                if sent.count(0x080) >= 150:
+                    break
+            syncs, beats = sent.count(0x080), sent.count(0x77F)
+            assert syncs >= 150
+            assert syncs / 6 - 1 <= beats <= syncs / 5 + 1, (syncs, beats)
+            for drive in stack.sim.robot.drives:
+                assert drive.consumers == {127: 0.05}
+            assert stack.service.machine.state is SafetyState.IDLE, stack.service.faults
+
+    run(scenario())
