@@ -106,15 +106,23 @@ def finish(proc: subprocess.Popen, terminate: bool = True, timeout: float = 15.0
     return out
 
 
+def patient_watchdogs(data: dict, timeout: float = 0.2) -> None:
+    """Config `data` with patient drive watchdogs for a loaded test machine (drive-side
+    timeouts and the drives' consumer of the host heartbeat `timeout`, the host's consumer
+    of theirs 1 s), so that only what a test does decides how its run ends.  A dead
+    daemon then goes unnoticed for `timeout`: the drift the config accepts is raised
+    with it (safety.max_watchdog_drift, not what these tests are about)."""
+    data["drives"].update(watchdog_timeout=timeout, heartbeat_timeout=1.0)
+    data.setdefault("safety", {})["max_watchdog_drift"] = 10.0
+
+
 def simulator_configs(tmp_path: Path, zenoh_port: int) -> tuple[Path, dict]:
     """The reference8 CiA 402 config for `python -m sim_bus` (its file, and its data for
     daemon_config), zenoh on `zenoh_port`."""
     data = yaml.safe_load(CONFIG.read_text())
     data["robot"] = str(ROOT / "config" / "robots" / "reference8.yaml")
     data["zenoh"]["listen"] = [f"tcp/127.0.0.1:{zenoh_port}"]
-    # three processes and TCP relays on a busy 2-CPU host: patient drive watchdogs, so
-    # that only what the test does decides how the run ends
-    data["drives"].update(watchdog_timeout=0.2, heartbeat_timeout=1.0)
+    patient_watchdogs(data)  # three processes and TCP relays on a busy 2-CPU host
     sim = tmp_path / "sim.yaml"
     sim.write_text(yaml.safe_dump(data))
     return sim, data

@@ -34,7 +34,7 @@ from daemon.service.service import EXIT_BUS_LOST, STARTUP_TIMEOUT, Service
 from sim_bus.bus import loopbus
 from tests.daemon_stack import config_for
 from tests.loopback import free_port
-from tests.processes import finish, serve_simulator
+from tests.processes import finish, patient_watchdogs, serve_simulator
 from tests.systemd_notify import NotifySocket
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -166,7 +166,7 @@ def _config_file(tmp_path: Path, zenoh_port: int, can_section: dict) -> Path:
     data["zenoh"]["listen"] = [f"tcp/127.0.0.1:{zenoh_port}"]
     data["can"] = can_section
     data["safety"]["stale_cycles"] = 25
-    data["drives"]["watchdog_timeout"] = 0.25
+    patient_watchdogs(data, 0.25)
     path = tmp_path / "cdprd.yaml"
     path.write_text(yaml.safe_dump(data))
     return path

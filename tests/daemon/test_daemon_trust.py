@@ -24,6 +24,7 @@ from drivers.cia402.codec import NmtState
 from drivers.odrive import codec as odrive
 from drivers.odrive.codec import Cmd
 from tests.daemon_stack import DRIVER_CONFIGS, Stack
+from tests.processes import patient_watchdogs
 
 pytestmark = pytest.mark.timeout(60)
 PROTOCOLS = ["cia402", "odrive"]
@@ -39,10 +40,7 @@ def run(coro):
 def config_for(protocol: str) -> DaemonConfig:
     """The example config with patient drive watchdogs: on a busy host a stalled loop
     would otherwise end a run by a watchdog fault before the trust checks are seen."""
-    return load_config(
-        DRIVER_CONFIGS[protocol],
-        lambda data: data["drives"].update(watchdog_timeout=0.2, heartbeat_timeout=1.0),
-    )
+    return load_config(DRIVER_CONFIGS[protocol], patient_watchdogs)
 
 
 class Forger:

@@ -21,6 +21,7 @@ from drivers.base import Feedback, NodeStatus
 from drivers.cia402 import codec as cia402
 from drivers.cia402.codec import NmtState
 from tests.daemon_stack import DRIVER_CONFIGS, Stack
+from tests.processes import patient_watchdogs
 
 pytestmark = pytest.mark.timeout(90)
 STRETCH_UNKNOWN = 1e-3  # m: the model's tensions at rest against the true ones, as stretch
@@ -36,7 +37,7 @@ def run(coro):
 def homing_config(protocol: str, state_dir: Path, offsets: list[float] | None) -> DaemonConfig:
     def edit(data: dict) -> None:
         data["state_dir"] = str(state_dir)
-        data["drives"].update(watchdog_timeout=0.2, heartbeat_timeout=1.0)
+        patient_watchdogs(data)
         if offsets is not None:
             plant = data.setdefault("sim", {}).setdefault("plant", {})
             plant["mismatch"] = {"encoder_offsets": offsets}

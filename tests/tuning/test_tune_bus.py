@@ -23,7 +23,13 @@ import yaml
 
 from daemon.cli import main
 from drivers.odrive.codec import Cmd
-from tests.processes import ROOT, daemon_config, finish, serve_simulator
+from tests.processes import (
+    ROOT,
+    daemon_config,
+    finish,
+    patient_watchdogs,
+    serve_simulator,
+)
 
 CONFIG = ROOT / "config" / "reference8-odrive.yaml"
 DRIVE = 3
@@ -37,8 +43,7 @@ def configs(tmp_path: Path, load_mass: float) -> tuple[Path, dict]:
     the tune's (no rig: the winch is on the bus)."""
     data = yaml.safe_load(CONFIG.read_text())
     data["robot"] = str(ROOT / "config" / "robots" / "reference8.yaml")
-    # patient watchdogs, as the other process tests: a loaded 2-CPU host
-    data["drives"].update(watchdog_timeout=0.2, heartbeat_timeout=1.0)
+    patient_watchdogs(data)  # as the other process tests: a loaded 2-CPU host
     # a 0.25 ms plant step: the simulator applies a command from the start of the step it
     # arrives in, which would shorten the lag it shows by half a step on average
     data["sim"]["plant"].update(

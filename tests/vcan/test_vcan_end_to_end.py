@@ -46,7 +46,7 @@ import yaml
 from daemon.interface.client import CdprClient, ClientError
 from drivers.cia402 import codec as cia402
 from tests.loopback import free_port
-from tests.processes import realtime_child
+from tests.processes import patient_watchdogs, realtime_child
 
 pytestmark = [pytest.mark.vcan, pytest.mark.timeout(240)]
 
@@ -118,7 +118,7 @@ def _write_config(
     # ... and on the guest's one CPU the companion, at normal priority behind the
     # simulator's and the core's SCHED_FIFO, goes unscheduled for over a second at times
     data["safety"]["companion_hang"] = 5.0
-    data["drives"].update(watchdog_timeout=0.5, heartbeat_timeout=1.0)
+    patient_watchdogs(data, 0.5)
     if protocol is ODRIVE:  # 8 x 500 streamed estimates a second saturate the guest
         data["drives"]["feedback_rate_hz"] = 2 * RATE_HZ
     data["sim"]["wake_period"] = 0.005 if protocol is ODRIVE else 0.002
