@@ -144,7 +144,8 @@ class DrivesConfig(StrictModel):
     rated_torque: motor rated torque (N·m), the 402 torque unit is its per-mille (0x6076).
     brake: position_hold (servo at the current length) or holding_brake (mechanical
       brake, needs has_holding_brake).  Also the drives' own watchdog reaction.
-    watchdog_timeout: drive-side command timeout (402 RPDO timeout, ODrive axis watchdog).
+    watchdog_timeout: drive-side command timeout (402 RPDO timeout, ODrive axis watchdog;
+      by default also the 402 drives' consumer time of the host heartbeat).
     heartbeat_period / heartbeat_timeout: drive heartbeat production / host consumer.
     feedback_rate_hz: cyclic feedback rate for drives that stream it (ODrive encoder
       estimates); SYNC-driven drives answer every SYNC instead.
@@ -161,8 +162,9 @@ class DrivesConfig(StrictModel):
     host_heartbeat_period / consumer_heartbeat_time (CiA 402): how often the host sends
       its own heartbeat, and the time after its last one at which each drive's consumer
       (0x1016) declares the daemon dead and reacts (0x6007/0x605A): the detection time of
-      a drive without an RPDO deadline.  Whole ms; default (null) from the control
-      period, `host_heartbeat`.  The consumer time must be at least twice the period.
+      a drive without an RPDO deadline.  Whole ms; default (null): `host_heartbeat`
+      (whole control cycles of at least 10 ms; watchdog_timeout).  The consumer time must
+      be at least twice the period.
     """
 
     protocol: Literal["cia402", "odrive"]
