@@ -124,7 +124,7 @@ class Cia402Profile(StrictModel):
 
 # the host heartbeat's defaults (DrivesConfig.host_heartbeat)
 DEFAULT_CYCLE_PERIOD = 1.0 / 500.0  # s: the controller's default rate, for a bare drives config
-HEARTBEAT_PERIOD_MIN = 0.01  # s
+HEARTBEAT_PERIOD_MIN = 0.005  # s
 
 
 def _ceil_ms(seconds: float) -> float:
@@ -163,8 +163,8 @@ class DrivesConfig(StrictModel):
       its own heartbeat, and the time after its last one at which each drive's consumer
       (0x1016) declares the daemon dead and reacts (0x6007/0x605A): the detection time of
       a drive without an RPDO deadline.  Whole ms; default (null): `host_heartbeat`
-      (whole control cycles of at least 10 ms; watchdog_timeout).  The consumer time must
-      be at least twice the period.
+      (whole control cycles of at least 5 ms; watchdog_timeout + a period + a cycle).
+      The consumer time must be at least twice the period.
     """
 
     protocol: Literal["cia402", "odrive"]
@@ -236,16 +236,19 @@ class DrivesConfig(StrictModel):
         of `cycle_period` s; ValueError names the key a configured pair breaks.
 
         The heartbeat goes out with a cycle's SYNC, so at most once per cycle.  Default
-        period: whole cycles, at least HEARTBEAT_PERIOD_MIN (a 1-byte frame every 10 ms is
-        0.6 % of a 1 Mbit/s bus).  Default consumer time: watchdog_timeout, the host
-        silence the drives' RPDO deadline tolerates too (a shorter one stopped the drives
-        when a loaded host stalled for 20-50 ms), and at least two periods.  Short either
-        way: a drive without an RPDO deadline applies the last torque for that long after
-        the daemon dies."""
+        period: whole cycles, at least HEARTBEAT_PERIOD_MIN (a 1-byte frame every 5 ms is
+        1.2 % of a 1 Mbit/s bus).  Default consumer time: watchdog_timeout, the host
+        silence the RPDO deadline tolerates (19 ms stopped the drives when a loaded host
+        stalled), counted from the heartbeat that would have come next (+ one period and
+        one cycle): where a drive has both, its deadline, fed every cycle, fires first.
+        At least two periods.  Short either way: a drive without an RPDO deadline applies
+        the last torque for that long after the daemon dies."""
         cycles = max(1, math.ceil(HEARTBEAT_PERIOD_MIN / cycle_period - 1e-9))
         period = self.host_heartbeat_period or _ceil_ms(cycles * cycle_period)
         sent = max(period, cycle_period)  # never more often than the cycle
-        consumer = self.consumer_heartbeat_time or _ceil_ms(max(2 * sent, self.watchdog_timeout))
+        consumer = self.consumer_heartbeat_time or _ceil_ms(
+            max(2 * sent, self.watchdog_timeout + sent + cycle_period)
+        )
         if consumer < 2 * sent:
             raise ValueError(
                 f"consumer_heartbeat_time: {consumer * 1e3:g} ms is less than twice the host "

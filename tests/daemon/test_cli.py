@@ -254,12 +254,12 @@ def test_check_config_prints_what_each_drive_does_when_the_daemon_dies(
     out = capsys.readouterr().out
     assert f"drive profile: EDS {DEFAULT_EDS}" in out
     assert (
-        "drive watchdog (when the daemon dies): consumer heartbeat 0x1016 on node 127, 50 ms; "
+        "drive watchdog (when the daemon dies): consumer heartbeat 0x1016 on node 127, 58 ms; "
         "RPDO1 deadline 0x1400:05, 50 ms; RPDO2 deadline 0x1401:05, 50 ms -> quick stop "
         "(0x6007 = 3), then holds in QUICK STOP ACTIVE (0x605A = 6)"
     ) in out
     assert (
-        "host heartbeat: every 10 ms (node 127); a drive notices a dead daemon within 50 ms"
+        "host heartbeat: every 6 ms (node 127); a drive notices a dead daemon within 50 ms"
     ) in out
     # per drive, the bound: force_max 600 N / (m0 1.9 kg + 10 kg) = 50.4 m/s^2; the cable
     # rate 1 m/s + 2 rad/s x 0.41 m = 1.82 m/s; over 50 ms, 63.0 + 91.2 mm

@@ -506,8 +506,8 @@ def test_a_hold_is_never_refused_for_want_of_planning_time(
 
 def test_the_core_sends_the_host_heartbeat_every_few_cycles() -> None:
     """CiA 402: the service's cycle timer paces the host heartbeat (id 0x77F) at
-    host_heartbeat_period, 10 ms at 500 Hz: one in every five or six SYNCs (counted, not
-    timed), without a companion process; the drives consume it with the 50 ms the host
+    host_heartbeat_period, 6 ms at 500 Hz: one in every three or four SYNCs (counted, not
+    timed), without a companion process; the drives consume it with the 58 ms the host
     wrote, and none of them reacts."""
 
     async def scenario() -> None:
@@ -523,9 +523,9 @@ def test_the_core_sends_the_host_heartbeat_every_few_cycles() -> None:
                     break
             syncs, beats = sent.count(0x080), sent.count(0x77F)
             assert syncs >= 150
-            assert syncs / 6 - 1 <= beats <= syncs / 5 + 1, (syncs, beats)
+            assert syncs / 4 - 1 <= beats <= syncs / 3 + 1, (syncs, beats)
             for drive in stack.sim.robot.drives:
-                assert drive.consumers == {127: 0.05}
+                assert drive.consumers == {127: 0.058}
             assert stack.service.machine.state is SafetyState.IDLE, stack.service.faults
 
     run(scenario())

@@ -1137,13 +1137,14 @@ def vendor_bus() -> tuple[Cia402Driver, list[Cia402Drive], MemoryLink]:
 def test_a_killed_daemon_leaves_drives_without_deadline_holding_within_twice_the_consumer_time():
     """kill -9 of the daemon while it commands torque at 500 Hz: no goodbye frame, no
     heartbeat any more.  A drive without an RPDO deadline applies the last torque until
-    its consumer heartbeat expires; the host set that to tens of ms (50 ms, as the RPDO
-    deadline it lacks), so each drive holds (QUICK STOP ACTIVE, position) within twice
-    that of the kill, and not before it: the heartbeat every 10 ms keeps it fed."""
+    its consumer heartbeat expires; the host set that to tens of ms (58 ms: the 50 ms of
+    the RPDO deadline it lacks after the heartbeat due next), so each drive holds (QUICK
+    STOP ACTIVE, position) within twice that of the kill, and not before it: the
+    heartbeat every 6 ms keeps it fed."""
     driver, devices, link = vendor_bus()
     assert not any(d.rpdo_timeout for d in devices)  # no deadline in this EDS
     consumer = devices[0].consumers[127]
-    assert consumer == 0.05 and all(d.consumers == {127: consumer} for d in devices)
+    assert consumer == 0.058 and all(d.consumers == {127: consumer} for d in devices)
     link.run(driver.enable(link, [1.5] * 3, [0.0] * 3))
     for _ in range(100):  # 0.2 s of control at 500 Hz
         link.cycle([-60.0] * 3)
@@ -1192,13 +1193,13 @@ def test_host_heartbeat_settings_are_whole_ms_and_leave_a_margin(overrides, prob
 
 
 def test_host_heartbeat_defaults_follow_the_control_rate() -> None:
-    """Whole cycles of at least 10 ms; the consumer time is watchdog_timeout (what the
-    RPDO deadline allows), at least two periods."""
+    """Whole cycles of at least 5 ms; the consumer time is watchdog_timeout (what the
+    RPDO deadline allows) after the heartbeat due next (+ a period and a cycle)."""
     config = drives_config()
-    assert config.host_heartbeat() == (0.01, 0.05)  # 500 Hz: every 5th cycle
-    assert config.host_heartbeat(1 / 300) == (0.01, 0.05)  # 300 Hz: every 3rd cycle
-    assert config.host_heartbeat(0.03) == (0.03, 0.06)  # 33 Hz: every cycle
-    assert drives_config(watchdog_timeout=0.02).host_heartbeat() == (0.01, 0.02)
+    assert config.host_heartbeat() == (0.006, 0.058)  # 500 Hz: every 3rd cycle
+    assert config.host_heartbeat(1 / 300) == (0.007, 0.061)  # 300 Hz: every 2nd cycle
+    assert config.host_heartbeat(0.03) == (0.03, 0.11)  # 33 Hz: every cycle
+    assert drives_config(watchdog_timeout=0.02).host_heartbeat() == (0.006, 0.028)
     slow = drives_config(host_heartbeat_period=0.002, consumer_heartbeat_time=0.01)
     with pytest.raises(ValueError, match="consumer_heartbeat_time: 10 ms is less than twice"):
         slow.host_heartbeat(0.01)  # the heartbeat goes out at most once per 10 ms cycle
