@@ -771,7 +771,7 @@ class Cia402Driver(ActuatorDriver):
             status.fault, status.fault_code = emcy_text(code), code
 
     async def _await_heartbeats(self, link: Link, now: Callable[[], float]) -> None:
-        pending = set(range(self.n))
+        pending, started = set(range(self.n)), now()
         index = {HEARTBEAT_BASE + node: i for i, node in enumerate(self.nodes)}
 
         def match(message: can.Message) -> bool:
@@ -785,6 +785,15 @@ class Cia402Driver(ActuatorDriver):
         # keepalive and heartbeat between steps
         step = min(timeout, self.config.watchdog_timeout / 2, self._heartbeat_period)
         for _ in range(math.ceil(timeout / step)):
+            # heartbeats that came between two steps (receive() saw them, no match did)
+            pending -= {
+                i
+                for i in pending
+                if self.nmt_state[i] is NmtState.OPERATIONAL
+                and self.status[i].heartbeat_stamp >= started
+            }
+            if not pending:
+                return
             if self._feeding:
                 for frame in self.keepalive():
                     link.send(frame)

@@ -865,6 +865,24 @@ def test_start_waits_for_operational_heartbeats() -> None:
         link.run(driver.start(link, lambda: link.t))
 
 
+def test_start_counts_heartbeats_received_between_its_waits() -> None:
+    """A heartbeat that reaches receive() while start() is between two waits (the
+    daemon's loop ran the bus reader first) counts: start() waits for heartbeats in short
+    steps, so that its own heartbeat keeps the drives' consumers fed."""
+    driver, _, link = make_bus(started=False)
+
+    def straight_to_receive(message: can.Message) -> bool:
+        """Heartbeats reach receive() as the drives send them, never a wait's match."""
+        if message.arbitration_id & 0x780 != 0x700:
+            return False
+        driver.receive(message, link.t)
+        return True
+
+    link.drop = straight_to_receive
+    link.run(driver.start(link, lambda: link.t))
+    assert [s.state for s in driver.status] == [DriveState.HOLDING] * 3
+
+
 def test_start_names_a_drive_that_ignores_its_controlword() -> None:
     driver, devices, link = make_bus(started=False)
     devices[0]._control = lambda *args, **kwargs: []  # obeys nothing
