@@ -817,12 +817,15 @@ def test_start_names_a_silent_node() -> None:
         link.run(driver.start(link, lambda: link.t))
 
 
-def test_start_takes_over_enabled_drives_without_a_torque_step() -> None:
-    """A restarted host finds its drives enabled (one in torque, one holding): it reads
+@pytest.mark.parametrize("layout", ["default", "compact"])
+def test_start_takes_over_enabled_drives_without_a_torque_step(layout: str) -> None:
+    """A restarted host finds its drives enabled (two in torque, one holding): it reads
     state, mode and position first, never sends NMT pre-operational to them, and keeps
-    sending what they do; the forces never change."""
+    sending what they do; the forces never change (with the compact layout's shared
+    torque RPDO too: every drive's torque is read before it goes out)."""
     lengths = [1.5, 2.5, 0.75]
-    driver, devices, link = make_bus(lengths)
+    profile = compact_profile() if layout == "compact" else {}
+    driver, devices, link = make_bus(lengths, profile=profile)
     link.run(driver.enable(link, lengths, [0.0] * 3))
     link.cycle([-100.0, -60.0, -20.0])
     link.cycle([-100.0, -60.0, -20.0])
@@ -840,7 +843,8 @@ def test_start_takes_over_enabled_drives_without_a_torque_step() -> None:
     assert devices[2].target_length == pytest.approx(before[2][2], abs=1e-5)
     assert all(d.state is State.OPERATION_ENABLED for d in devices)
     assert [s.state for s in again.status] == [DriveState.ENABLED] * 2 + [DriveState.HOLDING]
-    assert len(again.keepalive()) == 3  # it goes on feeding their deadlines
+    # it goes on feeding their deadlines (compact: one torque frame for both)
+    assert len(again.keepalive()) == (2 if layout == "compact" else 3)
 
 
 def test_an_unexpected_mode_display_is_a_reported_fault_not_a_dropped_frame() -> None:
