@@ -1160,6 +1160,10 @@ def test_the_compact_layout_sends_one_torque_frame_and_the_controlword_on_change
     link.sent.clear()
     link.cycle(forces)  # torque again: the controlword and mode go out again
     assert frames(link.sent[1:]) == frames([shared, *control])
+    link.mute.add(1)  # silent: no position on SYNC, no sample (the daemon's stale check)
+    counts = [fb.count for fb in driver.feedback]
+    assert sorted(i for i in link.cycle(forces) if i is not None) == [1, 2]
+    assert [fb.count - c for fb, c in zip(driver.feedback, counts, strict=True)] == [0, 1, 1]
 
 
 def no_dummies(tmp_path: Path) -> Path:
