@@ -76,8 +76,14 @@ _CYCLIC = (CONTROLWORD, MODE_OF_OPERATION, TARGET_TORQUE, TARGET_POSITION)  # th
 _EVERY_SYNC = 1
 # the dummy entries (CiA 301 data-type objects) of each size, unsigned first
 _DUMMY_FOR_BITS = {8: (0x0005, 0x0002), 16: (0x0006, 0x0003), 32: (0x0007, 0x0004)}
-_DUMMY_NAMES = dict(zip(DUMMIES, ("INTEGER8", "INTEGER16", "INTEGER32", "UNSIGNED8",
-                                  "UNSIGNED16", "UNSIGNED32"), strict=True))  # fmt: skip
+_DUMMY_NAMES = {
+    0x0002: "INTEGER8",
+    0x0003: "INTEGER16",
+    0x0004: "INTEGER32",
+    0x0005: "UNSIGNED8",
+    0x0006: "UNSIGNED16",
+    0x0007: "UNSIGNED32",
+}
 
 
 class ProfileError(ValueError):
