@@ -56,11 +56,23 @@ ObjectRef = Annotated[
 
 class PdoSpec(StrictModel):
     """One PDO the host maps: its number (1..4, predefined COB-IDs), the objects in frame
-    order, and its transmission type (RPDO: 254/255 event-driven; TPDO: 1 = every SYNC)."""
+    order (0x0002-0x0007: dummy entries, where the EDS's [DummyUsage] allows them), and
+    its transmission type (RPDO: 254/255 event-driven; TPDO: 1 = every SYNC, 254/255 = on
+    change, at most once per inhibit_time).
+
+    shared (RPDO only): one frame for all the drives of a bus: each drive's objects in
+      turn, in cable order, every drive mapping dummy entries over the others' bytes.
+    cob_id: the COB-ID every drive of the bus takes for this RPDO (default: the
+      predefined one of each drive; a shared RPDO: that of the bus's lowest node id).
+    inhibit_time (TPDO): 0x18xx:03, least time between two event-driven TPDOs (100 us).
+    """
 
     number: Annotated[int, Field(ge=1, le=4)]
     objects: Annotated[list[ObjectRef], Field(min_length=1, max_length=8)]
     transmission_type: Annotated[int, Field(ge=0, le=255)]
+    shared: bool = False
+    cob_id: Annotated[int, Field(ge=1, le=0x7FF)] | None = None
+    inhibit_time: Annotated[int, Field(ge=0, le=0xFFFF)] = 0
 
 
 class SdoWrite(StrictModel):

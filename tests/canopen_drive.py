@@ -4,8 +4,9 @@ tests/data/generic_servo_cia402.eds (its default mapping RPDO1 = controlword, TP
 statusword, no 0x2000/0x2001) is the SDO server (object dictionary, access and size
 checks), the NMT slave, the heartbeat producer and the PDO codec.  `CanopenDrive` adds
 only what canopen leaves to a drive's application: the 402 state machine on the
-controlword, the PDO configuration taking effect at NMT start, TPDOs on SYNC, and the
-consumer heartbeat 0x1016 with its 0x6007 / 0x605A reaction (`check_heartbeat`)."""
+controlword, the PDO configuration taking effect at NMT start, TPDOs on SYNC and
+event-driven ones on change, RPDO dummy entries skipped, and the consumer heartbeat
+0x1016 with its 0x6007 / 0x605A reaction (`check_heartbeat`)."""
 
 from __future__ import annotations
 
@@ -52,6 +53,7 @@ class CanopenDrive:
         self.torques: list[int] = []  # target torques received while enabled in mode 10
         self.heard: float | None = None  # monotonic time of the consumed heartbeat
         self.lost: float | None = None  # when the consumer heartbeat expired
+        self.sent: dict[int, bytes] = {}  # event-driven TPDO COB-ID -> the data last sent
         self.node.add_write_callback(self._on_write)
         network.subscribe(0x000, self._on_nmt)
         network.subscribe(0x080, self._on_sync)
@@ -71,8 +73,10 @@ class CanopenDrive:
         if index == 0x6040:
             controlword = struct.unpack("<H", data)[0]
             self.store(0x6041, "<H", next_statusword(self.value(0x6041), controlword))
+            self.events()
         elif index == 0x6060 and data[0] != 0:  # 0: no change
             self.store(0x6061, "<b", struct.unpack("<b", data)[0])
+            self.events()
         elif index == 0x6071 and self.value(0x6041) == ENABLED and self.value(0x6061) == 10:
             self.torques.append(struct.unpack("<h", data)[0])
         elif (index, subindex) == (0x1016, 1):
@@ -97,6 +101,20 @@ class CanopenDrive:
                 self.store(0x6041, "<H", QUICK_STOP)
             elif option in (2, 3):
                 self.store(0x6041, "<H", SWITCH_ON_DISABLED)
+            self.events()
+
+    def events(self, starting: bool = False) -> None:
+        """The event-driven TPDOs (type 254/255) whose data changed, sent while
+        operational (`starting`: at NMT start, which canopen's NMT slave may apply later)."""
+        if not starting and self.node.nmt.state != "OPERATIONAL":
+            return
+        for pdo in self.node.tpdo.map.values():
+            if pdo.enabled and pdo.trans_type in (254, 255):
+                for var in pdo.map:
+                    var.set_data(self.node.get_data(var.index, var.subindex))
+                if self.sent.get(pdo.cob_id) != bytes(pdo.data):
+                    self.sent[pdo.cob_id] = bytes(pdo.data)
+                    pdo.transmit()
 
     def _on_nmt(self, can_id: int, data: bytearray, timestamp: float) -> None:
         """At NMT start the PDO configuration written by SDO takes effect."""
@@ -106,11 +124,15 @@ class CanopenDrive:
             for pdo in self.node.rpdo.map.values():
                 if pdo.enabled and self._on_rpdo not in pdo.callbacks:
                     pdo.add_callback(self._on_rpdo)
+            self.sent = {}
+            self.events(starting=True)
 
     def _on_rpdo(self, pdo) -> None:
-        """Mapped objects written in frame order (mode before the torque it is for)."""
+        """Mapped objects written in frame order (mode before the torque it is for); a
+        dummy entry (0x0002-0x0007) skips another drive's bytes."""
         for var in sorted(pdo.map, key=lambda v: v.index != 0x6060):
-            self.node.set_data(var.index, var.subindex, var.get_data())
+            if var.index >= 0x1000:
+                self.node.set_data(var.index, var.subindex, var.get_data())
 
     def _on_sync(self, can_id: int, data: bytearray, timestamp: float) -> None:
         if self.node.nmt.state != "OPERATIONAL":

@@ -42,7 +42,7 @@ from cdpr.trajectory import (
 from daemon.config.ros2_config import Ros2Settings
 from daemon.config.view_config import ViewConfig
 from daemon.config.zenoh_config import ZenohSettings
-from drivers.cia402.profile import ProfileError, plan, with_eds_from
+from drivers.cia402.profile import ProfileError, plans, with_eds_from
 from drivers.config import CanConfig, CanSection, DrivesConfig, can_buses, parse_drives
 
 Fraction = Annotated[float, Field(gt=0.0, lt=1.0)]
@@ -186,9 +186,18 @@ class DaemonConfig:
         if self.drives.protocol == "cia402":
             self.drives = with_eds_from(self.drives, base)
             try:
-                plan(self.drives)
+                checked = plans(self.drives)
             except ProfileError as exc:
-                raise ConfigError(f"{source}: drives.{exc}") from None
+                bus = f" (bus {exc.bus})" if exc.bus else ""
+                raise ConfigError(f"{source}: drives.{exc}{bus}") from None
+            if self.controller.velocity == "drive" and not all(
+                p.velocity for p in checked.values()
+            ):
+                raise ConfigError(
+                    f"{source}: controller.velocity: drive, but no TPDO on SYNC of "
+                    "drives.profile maps velocity actual 0x606C: set controller.velocity: "
+                    "differentiate (the twist from successive poses)"
+                )
         # the buses of `can:` (one, or a list), the first the only one in a single-bus config
         self.buses: list[CanConfig] = can_buses(raw.can, self.drives, source)
         self.safety = raw.safety
