@@ -10,7 +10,8 @@ unknown tension.  Cycle by cycle (`Pretension.step`):
    the clip, so it pulls wind_force and no more.  A cable is taut when it has pulled
    wind_force while staying within taut_band of one length for taut_time.  A cable not
    taut after taut_timeout, or wound in by more than max_wind_in, aborts (broken or
-   unhooked); so does any cable moving faster than twice wind_speed.
+   unhooked); so does any cable moving faster than twice wind_speed, or paying out
+   faster than wind_speed (it carries a load: the platform is not on the fixture).
 2. ramp: when every cable is taut at once, all tensions go linearly from wind_force to
    the planned ones (`ramp_target`: the tension distribution for `carry` of the static
    wrench holding the platform at the pose), the largest change at ramp_rate.  The
@@ -180,6 +181,13 @@ class Pretension:
         h = max(t - self._last_t, 0.0)
         self._last_t = t
         spec = self.spec
+        paying = np.flatnonzero(rates > spec.wind_speed) if self.phase == "wind" else ()
+        if len(paying):
+            k = int(paying[0])
+            return self._abort(
+                f"cable {k} pays out at {rates[k]:+.3f} m/s against the wind-in: it carries a "
+                "load (is the platform resting on the fixture?)"
+            )
         fast = np.flatnonzero(np.abs(rates) > 2.0 * spec.wind_speed)
         if fast.size:
             k = int(fast[0])
