@@ -229,3 +229,21 @@ def test_pretension_of_a_hanging_platform_brakes_before_it_drops() -> None:
             assert truth.moved < 5e-3  # ~2.2 mm: a cycle or two of falling, then the brake
 
     run(main())
+
+
+def test_feedback_lost_during_pretension_brakes_naming_the_drive() -> None:
+    config = slack_config("odrive")
+
+    async def main() -> None:
+        async with Stack(config) as stack:
+            service = stack.service
+            await started(stack)
+            command = asyncio.ensure_future(stack.planner.command("pretension", {}))
+            await stack.until(lambda: service.machine.state is SafetyState.PRETENSION, 10.0)
+            stack.sim.robot.silence(5)
+            with pytest.raises(CommandError, match=r"pretension aborted: BRAKE \[stale_feedback\]"):
+                await command
+            assert "drive 5: no feedback" in service.machine.fault.message
+            assert service.status()["pretension"]["phase"] == "aborted"
+
+    run(main())
