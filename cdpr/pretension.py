@@ -54,6 +54,7 @@ from cdpr.tension import TensionSolver
 Array = NDArray[np.float64]
 SPEED_BANDWIDTH = 30.0  # rad/s of the wind-in speed servo, per unit drum mass m0
 INTEGRAL_RATIO = 20.0  # 1/s: the servo's integral gain over its proportional gain
+STRETCH_PRIOR = 1e-4  # m: the weight of "the file's EA is right" in the motion watch
 
 
 class PretensionSpec(StrictModel):
@@ -128,8 +129,9 @@ class Pretension:
         self._since = np.zeros(n)  # when each cable last left its band
         self._last_t = math.nan
         lengths_at_pose = robot.cable_lengths(pose)
-        self._jacobian_pinv = np.linalg.pinv(robot.jacobian(pose))
+        self._jacobian = robot.jacobian(pose)
         self._drum_at = lambda t: robot.drum_lengths(lengths_at_pose, t * compliance_scale)
+        self._stretch_from = np.zeros(n)  # the drum lengths the model gives at the ramp start
         self._ramp_from = np.full(n, spec.wind_force)
         self._ramp_start = math.nan
         self._ramp_duration = 0.0
@@ -252,7 +254,8 @@ class Pretension:
         self._ramp_start = t
         change = float(np.abs(self.planned - self._ramp_from).max())
         self._ramp_duration = change / self.spec.ramp_rate
-        self._baseline = lengths - self._drum_at(self._ramp_from)
+        self._baseline = lengths.copy()
+        self._stretch_from = self._drum_at(self._ramp_from)
 
     def _tension(self, t: float, lengths: Array) -> Array:
         """Ramp and settle: the tensions at time t, after the motion watch."""
@@ -274,13 +277,23 @@ class Pretension:
         return -tensions
 
     def _watch(self, lengths: Array, tensions: Array) -> str | None:
-        """How far the platform moved if beyond max_motion / max_rotation, else None:
-        the lengths' change less the stretch the tensions explain, through Lambda+
-        (the cables carry the tensions commanded: the platform is at rest)."""
-        residual = lengths - self._drum_at(tensions) - self._baseline
-        delta = self._jacobian_pinv @ residual
+        """How far the platform moved if beyond max_motion / max_rotation, else None.
+        The lengths' change since the ramp began is a pose change (Lambda delta) plus the
+        stretch the tension change gives, known up to the cables' true stiffness: the
+        model's stretch pattern times a factor k, fitted with delta by least squares (n > 6
+        cables; k kept near 1 by a prior worth STRETCH_PRIOR of length while the stretch
+        is small), so that an EA off the file's does not look like motion."""
+        change = lengths - self._baseline
+        stretch = self._drum_at(tensions) - self._stretch_from
+        n = self.n
+        system = np.zeros((n + 1, 7))
+        system[:n, :6] = self._jacobian
+        system[:n, 6] = stretch
+        system[n, 6] = STRETCH_PRIOR
+        target = np.append(change, STRETCH_PRIOR)
+        delta = np.linalg.lstsq(system, target, rcond=None)[0]
         motion = float(np.linalg.norm(delta[:3]))
-        rotation = float(np.linalg.norm(delta[3:]))
+        rotation = float(np.linalg.norm(delta[3:6]))
         self.motion = max(self.motion, motion)
         self.rotation = max(self.rotation, rotation)
         spec = self.spec

@@ -32,6 +32,7 @@ Array = NDArray[np.float64]
 class PretensionRun:
     taut_seconds: float  # s from the start until the last cable was taut
     motion_mm: float  # largest true platform displacement from its resting position
+    watched_mm: float  # the largest the pretension's own watch saw (cdpr.pretension)
     peak_force_n: float  # largest true cable tension
     loop_close_step_n: float  # largest change of a force command when the loop closed
     closed_at: float  # s, when the position loop closed (nan: never)
@@ -114,6 +115,7 @@ def run_pretension(
     return PretensionRun(
         taut_seconds=float(np.nanmax(pretension.taut_at)),
         motion_mm=float(moved * 1e3),
+        watched_mm=pretension.motion * 1e3,
         peak_force_n=float(recording.tensions[until].max()),
         loop_close_step_n=bringup.step_at_close,
         closed_at=bringup.closed_at,

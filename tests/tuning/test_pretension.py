@@ -11,7 +11,7 @@ from cdpr import Robot
 from cdpr.control_spec import ControllerSpec
 from cdpr.controller import ParallelController
 from cdpr.pretension import PretensionSpec, ramp_target
-from sim_bus.plant import PlantConfig
+from sim_bus.plant import CableConfig, PlantConfig
 from tests.daemon_stack import CONFIGS
 from tuning.pretension import run_pretension
 
@@ -52,6 +52,17 @@ def test_from_slack_cables_to_the_position_loop_without_moving(mismatch: dict) -
     assert run.peak_force_n < ROBOT.force_max.min()
     assert run.peak_force_n < 1.2 * static.max()
     assert run.loop_close_step_n < 3.0  # N, of ~270 N: encoder noise through kd
+
+
+@pytest.mark.parametrize("scale", [0.5, 2.0])
+def test_a_cable_stiffness_off_the_file_does_not_look_like_motion(scale: float) -> None:
+    """The ramp stretches the cables by the file's EA x 1/scale: the watch fits that
+    factor with the motion, so the motion it sees stays near the truth (~0.1 mm)."""
+    config = plant().model_copy(update={"cable": CableConfig(stiffness=1e5 * scale)})
+    run = run_pretension(ROBOT, config, CONTROLLER)
+    assert run.fault == ""
+    assert run.motion_mm < 0.5
+    assert run.watched_mm < 0.5
 
 
 def test_a_cable_that_never_gets_taut_aborts_naming_it() -> None:
