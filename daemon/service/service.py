@@ -130,6 +130,7 @@ class Service:
         self._pretension_waiter: asyncio.Future[None] | None = None
         self._pretension_cycles = 0  # cycles waited for the homed lengths to be judged
         self.loop_close_step: float | None = None  # N, the largest force change at close
+        self._close_forces: np.ndarray | None = None  # the last before it, until measured
         self._pretension_name = "home"  # its pose's name
         self._pretension_changes: list[float] = []  # mm, the offsets' changes at its homing
         self.collector = CollectorPolicy()
@@ -356,6 +357,9 @@ class Service:
         if fault is not None:
             self.brake(fault)
             return
+        if self._close_forces is not None:  # the first command after pretension
+            self.loop_close_step = float(np.abs(output.commands - self._close_forces).max())
+            self._close_forces = None
         try:
             frames = self.driver.commands(output.commands)
         except FrameError as exc:
@@ -646,8 +650,14 @@ class Service:
         done = self._pretension_waiter = self._loop.create_future()
         self.machine.pretension()
         self._emit({"event": "state", "why": f"pretension at pose {name}"})
-        await done
-        if self.machine.state is SafetyState.BRAKED:
+        await done  # homed, and the homed lengths trusted; or braked
+        if self.machine.state is SafetyState.PRETENSION:
+            self._close_loop(pretension)
+        for _ in range(RETRUST_CYCLES):  # the first cycle in HOLD measures the step
+            if self.loop_close_step is not None or not self.machine.moving:
+                break
+            await asyncio.sleep(self.period)
+        if not self.machine.moving:
             raise CommandError("rejected", f"pretension aborted: {self.machine.fault.line()}")
         offsets = self.offsets
         return {
@@ -663,12 +673,12 @@ class Service:
     def _pretension_cycle(self, lengths: list[float], rates: list[float]) -> None:
         """One cycle of PRETENSION: cdpr.pretension's forces while it winds, ramps and
         settles; then homing at its pose, and once the homed lengths are trusted (one
-        pose, `_run_cycle`'s check) the position loop closes."""
+        pose, `_run_cycle`'s check) the command is woken to close the loop."""
         p = self.pretension
         assert p is not None
         t = self._opened - self.t0
         if p.active:
-            forces = p.step(t, lengths, rates)
+            p.step(t, lengths, rates)
             if p.fault is not None:
                 self.brake(Fault(Trigger.PRETENSION, p.fault))
                 return
@@ -681,25 +691,28 @@ class Service:
             return
         if p.phase != "done":
             return
-        if self.trust.retrusting:
-            self._pretension_cycles += 1
-            if self._pretension_cycles > RETRUST_CYCLES:
-                self.brake(Fault(Trigger.PRETENSION, "the homed lengths were never judged"))
+        if not self.trust.retrusting:
+            self._end_pretension()  # the command closes the loop (off the cycle)
             return
+        self._pretension_cycles += 1
+        if self._pretension_cycles > RETRUST_CYCLES:
+            self.brake(Fault(Trigger.PRETENSION, "the homed lengths were never judged"))
+
+    def _close_loop(self, p: Pretension) -> None:
+        """The pretension's end: the pose measured from the homed lengths under its
+        tensions (as enable does), the loop closed there with the fixture's share preset
+        (Pretension.close); the next cycle is the controller's, and `_control` measures
+        how far its commands differ from the last ones (loop_close_step)."""
         try:
             pose = self._measured_pose(lambda pose: p.planned)
         except CommandError as exc:
-            self.brake(Fault(Trigger.PRETENSION, f"after homing: {exc}"))
+            self.brake(Fault(Trigger.PRETENSION, f"after homing: {exc.reason}"))
             return
-        forces = p.forces.copy()
-        p.close(self.controller, pose, t)
+        self._close_forces = p.forces.copy()
+        p.close(self.controller, pose, self.now())
         self._source_version += 1
         self.machine.go("tensioned")
         self._emit({"event": "state", "why": "pretension done: position loop closed"})
-        self._control(lengths, rates)
-        if self.machine.moving and self.last_output is not None:
-            self.loop_close_step = float(np.abs(self.last_output.commands - forces).max())
-        self._end_pretension()
 
     def _pretension_home(self, p: Pretension) -> None:
         """Home at the pretension's pose with its settled lengths and tensions."""
@@ -725,6 +738,8 @@ class Service:
         p = self.pretension
         if why and p is not None and p.phase not in ("closed", "aborted"):
             p.phase, p.fault = "aborted", p.fault or why
+        if why:
+            self._close_forces = None
 
     async def _rest_samples(self) -> list[list[float]]:
         """HOME_SAMPLES cycles of driver lengths; CommandError naming the drive if any
