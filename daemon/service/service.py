@@ -131,6 +131,7 @@ class Service:
         self._pretension_cycles = 0  # cycles waited for the homed lengths to be judged
         self.loop_close_step: float | None = None  # N, the largest force change at close
         self._close_forces: np.ndarray | None = None  # the last before it, until measured
+        self.brakes = 0  # brake() calls: a sequence that waited sees whether one came
         self._pretension_name = "home"  # its pose's name
         self._pretension_changes: list[float] = []  # mm, the offsets' changes at its homing
         self.collector = CollectorPolicy()
@@ -393,6 +394,7 @@ class Service:
         (driver brake frames), logging one line.  BRAKED first: a brake frame that fails
         to send reports a bus error, which must not brake all over again."""
         braked = self.machine.brake(fault, supersede)
+        self.brakes += 1
         self._send(self.driver.brake(self._hold_lengths(), self.config.drives.brake))
         self._trajectory = None
         self._scheduled.clear()
@@ -634,6 +636,7 @@ class Service:
             )  # fmt: skip
         except ValueError as exc:
             raise CommandError("rejected", f"pretension at pose {name}: {exc}") from None
+        brakes = self.brakes
         self._busy = True
         try:
             await self.driver.enable(self.port, raw, pretension.forces.tolist())
@@ -642,7 +645,7 @@ class Service:
             raise CommandError("drive_error", f"pretension: enable failed: {exc}") from None
         finally:
             self._busy = False
-        if self.machine.state is not state:  # braked meanwhile
+        if self.brakes != brakes:  # braked meanwhile (maybe braked again)
             raise CommandError("invalid_state", f"pretension aborted: {self.machine.fault.line()}")
         self.pretension, self._pretension_cycles, self.loop_close_step = pretension, 0, None
         self._pretension_name = name

@@ -247,3 +247,27 @@ def test_feedback_lost_during_pretension_brakes_naming_the_drive() -> None:
             assert service.status()["pretension"]["phase"] == "aborted"
 
     run(main())
+
+
+def test_a_brake_while_the_drives_enable_for_pretension_aborts_it() -> None:
+    """Braked (slack cables at start-up), then braked again while the drives enable:
+    the state was and is BRAKED, and the pretension must not start all the same."""
+    config = slack_config("cia402")
+
+    async def main() -> None:
+        async with Stack(config) as stack:
+            service = stack.service
+            await started(stack)
+            enable = service.driver.enable
+
+            async def enable_then_brake(*args: object) -> None:
+                await enable(*args)
+                service.command("brake", {"reason": "operator stop"})
+
+            service.driver.enable = enable_then_brake
+            with pytest.raises(CommandError, match="pretension aborted"):
+                await stack.planner.command("pretension", {})
+            assert service.machine.state is SafetyState.BRAKED
+            assert service.pretension is None
+
+    run(main())
