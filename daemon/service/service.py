@@ -681,7 +681,12 @@ class Service:
         assert p is not None
         t = self._opened - self.t0
         if p.active:
-            p.step(t, lengths, rates)
+            try:
+                p.step(t, lengths, rates)
+            except Exception as exc:
+                log.exception("pretension step raised")
+                self.brake(Fault(Trigger.CONTROLLER_EXCEPTION, f"{type(exc).__name__}: {exc}"))
+                return
             if p.fault is not None:
                 self.brake(Fault(Trigger.PRETENSION, p.fault))
                 return
