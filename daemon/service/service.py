@@ -661,7 +661,9 @@ class Service:
                 break
             await asyncio.sleep(self.period)
         if not self.machine.moving:
-            raise CommandError("rejected", f"pretension aborted: {self.machine.fault.line()}")
+            fault = self.machine.fault
+            why = fault.line() if fault is not None else self.machine.state.value
+            raise CommandError("rejected", f"pretension aborted: {why}")
         offsets = self.offsets
         return {
             **self.status(),
