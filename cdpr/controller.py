@@ -238,6 +238,18 @@ class ParallelController:
         change = [a - b for a, b in zip(after, before, strict=True)]
         self.loop.hand_over(-np.linalg.solve(robot.mass_matrix(self._pose), change))
 
+    def preload(self, wrench: ArrayLike) -> None:
+        """Start the integral action holding `wrench` (force, torque about p) beyond the
+        model's static one, at the pose of the last reset: the loop closes where a fixture
+        still carries part of the load without a step in force (cdpr.pretension).
+        ValueError without integral action."""
+        self.loop.preset(np.linalg.solve(self.robot.mass_matrix(self._pose), wrench))
+
+    def release(self, wrench: ArrayLike) -> None:
+        """Move the wrench the integral action holds by `wrench`, as far as it holds one
+        of the opposite sign (DiscreteController.hand_over): a preload given up."""
+        self.loop.hand_over(np.linalg.solve(self.robot.mass_matrix(self._pose), wrench))
+
     @property
     def pose(self) -> Pose:
         """The last measured pose (forward kinematics)."""

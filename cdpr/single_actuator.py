@@ -147,6 +147,14 @@ class DiscreteController:
         """Zero the state (integrators, filters): on enable and after a brake."""
         self.state[:] = 0.0
 
+    def preset(self, output: Array) -> None:
+        """Zero the state but for the integrators, which hold `output` per channel at zero
+        error (a bumpless start where something else carried part of the load);
+        ValueError without integral action."""
+        if self._hold is None:
+            raise ValueError("the controller has no integral action to hold an output")
+        self.state[:] = np.outer(self._hold[0], output)
+
     def step(self, error: Array) -> Array:
         """One sample: `error` is l x channels ([e; e'; ...]); returns a (channels,)."""
         self._stack[: self._order] = error

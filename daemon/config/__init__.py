@@ -33,6 +33,7 @@ from cdpr.description import (
 )
 from cdpr.payload import payload_limits
 from cdpr.pose_limits import PoseLimits
+from cdpr.pretension import PretensionSpec
 from cdpr.trajectory import (
     TrajectoryLimits,
     cable_speed_bounds,
@@ -152,6 +153,8 @@ class FileConfig(StrictModel):
     # homing and calibration state (daemon.service.calibration_state); default: systemd's
     # $STATE_DIRECTORY (the unit's StateDirectory=cdprd, /var/lib/cdprd), else none
     state_dir: Annotated[str, Field(min_length=1)] | None = None
+    # bring-up from slack cables on a docking fixture (cdpr.pretension, `cdprd pretension`)
+    pretension: PretensionSpec = PretensionSpec()
 
 
 class DaemonConfig:
@@ -210,6 +213,7 @@ class DaemonConfig:
         self.sim = raw.sim
         self.ros2: Ros2Settings = validate_section(Ros2Settings, raw.ros2, source, "ros2")
         self.state_dir = _state_dir(self, raw.state_dir)
+        self.pretension: PretensionSpec = raw.pretension
         try:
             lo, hi = workspace_box(robot, raw.safety)
         except ConfigError as exc:
