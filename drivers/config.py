@@ -15,6 +15,7 @@ from pydantic import BeforeValidator, Discriminator, Field, Tag, model_validator
 from cdpr import ConfigError, Robot
 from cdpr.control_spec import DEFAULT_FORCE_LAG
 from cdpr.description import FiniteFloat, PositiveFloat, StrictModel, validate_section
+from cdpr.spool import Spool, drum_spool
 from drivers.base import BrakeMode, Scaling
 
 
@@ -243,11 +244,15 @@ class DrivesConfig(StrictModel):
         return self.protocol == "odrive"
 
     def scalings_for(self, robot: Robot) -> list[Scaling]:
-        """One Scaling per cable of `robot` (drum radii from its description)."""
-        return self.scalings([a.drum_radius for a in robot.actuators])
+        """One Scaling per cable of `robot` (drum radii and spools from its description)."""
+        spools = [drum_spool(a) for a in robot.actuators]
+        return self.scalings([a.drum_radius for a in robot.actuators], spools)
 
-    def scalings(self, drum_radii: Sequence[float]) -> list[Scaling]:
-        """One Scaling per cable, drum radii from the robot description."""
+    def scalings(
+        self, drum_radii: Sequence[float], spools: Sequence[Spool | None] | None = None
+    ) -> list[Scaling]:
+        """One Scaling per cable, drum radii (and spools, default none) from the robot
+        description."""
         if len(drum_radii) != len(self.nodes):
             raise ValueError(f"drives list {len(self.nodes)} nodes for {len(drum_radii)} cables")
         n = len(self.nodes)
@@ -255,6 +260,7 @@ class DrivesConfig(StrictModel):
         offsets = (
             self.length_offset if isinstance(self.length_offset, list) else [self.length_offset] * n
         )
+        spools = [None] * n if spools is None else spools
         return [
             Scaling(
                 drum_radius=float(radius),
@@ -262,8 +268,11 @@ class DrivesConfig(StrictModel):
                 counts_per_rev=self.counts_per_rev,
                 direction=direction,
                 length_offset=offset,
+                spool=spool,
             )
-            for radius, direction, offset in zip(drum_radii, directions, offsets, strict=True)
+            for radius, direction, offset, spool in zip(
+                drum_radii, directions, offsets, spools, strict=True
+            )
         ]
 
 

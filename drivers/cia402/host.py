@@ -193,8 +193,11 @@ class Cia402Driver(ActuatorDriver):
         self._next_heartbeat = -math.inf
         rated = config.rated_torque
         assert rated is not None  # DrivesConfig requires it for cia402
-        # per mille of rated torque per newton along +l, per cable
-        self._permille = [s.motor_torque(1.0) / rated * 1000.0 for s in self.scalings]
+        # per mille of rated torque per newton along +l, per cable (a drum with a spool:
+        # at its latest length, _on_tpdo)
+        self._permille = [
+            s.motor_torque(1.0, s.length_offset) / rated * 1000.0 for s in self.scalings
+        ]
         self.max_torque = [int(od_value(od_variable(self.od, MAX_TORQUE)))] * self.n
         self.torque_limited = [0] * self.n  # commands clamped to +-max_torque
         self.nmt_state: list[NmtState | None] = [None] * self.n
@@ -399,7 +402,10 @@ class Cia402Driver(ActuatorDriver):
             feedback.rate = (length - last) / (sync - at) if sync > at and _isfinite(last) else 0.0
             self._sample[i] = (length, sync)
         else:
-            feedback.rate = scaling.rate(self._velocity[i])
+            feedback.rate = scaling.rate(self._velocity[i], length)
+        if scaling.spool is not None:  # the drum's radius follows the length
+            rated = self.config.rated_torque or 1.0
+            self._permille[i] = scaling.motor_torque(1.0, length) / rated * 1000.0
         feedback.stamp = now
         feedback.count += 1
         return i

@@ -321,7 +321,7 @@ class Cia402Drive(VirtualDrive):
         return _i32(self.scaling.position(self.length + self.glitch))
 
     def _velocity(self) -> int:
-        return _i32(self.scaling.velocity(self.rate))
+        return _i32(self.scaling.velocity(self.rate, self.length))
 
     # -- VirtualDrive ---------------------------------------------------------------------
 
@@ -582,7 +582,7 @@ class Cia402Drive(VirtualDrive):
                 limit = self.max_torque
                 torque = max(-limit, min(limit, self.target_torque))
                 self.actuation = Actuation.TORQUE
-                self.force = self.scaling.force(torque * self.rated_torque / 1000.0)
+                self.force = self.scaling.force(torque * self.rated_torque / 1000.0, self.length)
                 self.target_length = math.nan
             else:
                 self.actuation = Actuation.POSITION
