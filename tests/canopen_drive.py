@@ -15,9 +15,6 @@ from pathlib import Path
 
 import canopen
 
-from cdpr.controller import static_tensions, tension_solver
-from daemon.config import DaemonConfig
-
 VENDOR_EDS = Path(__file__).resolve().parent / "data" / "generic_servo_cia402.eds"
 
 # statusword of each 402 state the slave reaches (CiA 402 table, bit 5 quick stop)
@@ -54,7 +51,7 @@ class CanopenDrive:
         self.lost: float | None = None  # when the consumer heartbeat expired
         self.node.add_write_callback(self._on_write)
         network.subscribe(0x000, self._on_nmt)
-        network.subscribe(0x080, self._on_sync)
+        network.subscribe(0x080, self.on_sync)
         self.node.nmt.state = "PRE-OPERATIONAL"
 
     def store(self, index: int, form: str, value: int) -> None:
@@ -112,7 +109,8 @@ class CanopenDrive:
         for var in sorted(pdo.map, key=lambda v: v.index != 0x6060):
             self.node.set_data(var.index, var.subindex, var.get_data())
 
-    def _on_sync(self, can_id: int, data: bytearray, timestamp: float) -> None:
+    def on_sync(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        """In OPERATIONAL, the SYNC-triggered TPDOs with the objects as they are now."""
         if self.node.nmt.state != "OPERATIONAL":
             return
         for pdo in self.node.tpdo.map.values():
@@ -121,16 +119,3 @@ class CanopenDrive:
                     var.set_data(self.node.get_data(var.index, var.subindex))
                 pdo.transmit()
 
-
-def drives_for(config: DaemonConfig, network: canopen.Network) -> list[CanopenDrive]:
-    """One drive per cable of `config` on `network`, at the position of the cable its
-    drum paid out with the platform resting at home (elastic cables stretch under the
-    holding tensions)."""
-    robot = config.robot
-    tensions = static_tensions(robot, tension_solver(robot, config.controller), robot.home)
-    lengths = robot.drum_lengths(robot.cable_lengths(robot.home), tensions)
-    scalings = config.drives.scalings_for(robot)
-    return [
-        CanopenDrive(network, node, round(s.position(length)))
-        for node, s, length in zip(config.drives.nodes, scalings, lengths, strict=True)
-    ]
