@@ -9,8 +9,11 @@ consumer heartbeat 0x1016 with its 0x6007 / 0x605A reaction (`check_heartbeat`).
 
 from __future__ import annotations
 
+import contextlib
 import struct
 import time
+from collections.abc import Callable
+from contextlib import AbstractContextManager
 from pathlib import Path
 
 import canopen
@@ -49,6 +52,9 @@ class CanopenDrive:
         self.torques: list[int] = []  # target torques received while enabled in mode 10
         self.heard: float | None = None  # monotonic time of the consumed heartbeat
         self.lost: float | None = None  # when the consumer heartbeat expired
+        # entered around applying an RPDO: a power stage coupled to a plant
+        # (tests/canopen_robot.py) takes its whole content at once, at its arrival
+        self.rpdo_guard: Callable[[], AbstractContextManager] = contextlib.nullcontext
         self.node.add_write_callback(self._on_write)
         network.subscribe(0x000, self._on_nmt)
         network.subscribe(0x080, self.on_sync)
@@ -105,9 +111,11 @@ class CanopenDrive:
                     pdo.add_callback(self._on_rpdo)
 
     def _on_rpdo(self, pdo) -> None:
-        """Mapped objects written in frame order (mode before the torque it is for)."""
-        for var in sorted(pdo.map, key=lambda v: v.index != 0x6060):
-            self.node.set_data(var.index, var.subindex, var.get_data())
+        """Mapped objects written in frame order (mode before the torque it is for), as
+        one (`rpdo_guard`)."""
+        with self.rpdo_guard():
+            for var in sorted(pdo.map, key=lambda v: v.index != 0x6060):
+                self.node.set_data(var.index, var.subindex, var.get_data())
 
     def on_sync(self, can_id: int, data: bytearray, timestamp: float) -> None:
         """In OPERATIONAL, the SYNC-triggered TPDOs with the objects as they are now."""

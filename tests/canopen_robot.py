@@ -9,7 +9,11 @@ operation) it holds the length it had when it got there, from power-on (no holdi
 brake: the power-on hold of the project's strict simulated drive, sim_bus/devices).
 After every plant step the drum's position and velocity go into 0x6064 / 0x606C (the
 devices' Scaling), so the TPDOs canopen sends on SYNC carry the real motion (those of
-the moment the SYNC was sent), and each drive's consumer heartbeat is checked."""
+the moment the SYNC was sent), and each drive's consumer heartbeat is checked.  An RPDO
+acts from its arrival, whole: the plant is brought up to that moment under the old
+command, then the frame's objects are written together (a plant step never sees the
+new mode with the old target), as a drive's power stage takes a command when it
+arrives, not at the simulation thread's next wake-up."""
 
 from __future__ import annotations
 
@@ -17,6 +21,8 @@ import math
 import threading
 import time
 from collections import deque
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 import can
 import canopen
@@ -85,23 +91,23 @@ class CanopenActuator(VirtualDrive):
         raise NotImplementedError("the canopen drives have no simulated device faults")
 
 
-
 class CanopenRobot:
     """The plant of `config` (its `sim.plant`) under one CanopenDrive per cable on
     `network` (their motor's rated torque 0x6076 = the config's rated_torque), stepped in
-real time by a thread between `start()` and `close()`.
+    real time by a thread between `start()` and `close()`.
     `truth()` is the true platform position every TRUTH_PERIOD s: rows (monotonic time,
     x, y, z)."""
 
     def __init__(self, config: DaemonConfig, network: canopen.Network) -> None:
         self.drives: list[CanopenDrive] = []
-        self._lock = threading.Lock()  # the plant thread and canopen's (at a SYNC)
+        self._lock = threading.Lock()  # the plant thread and canopen's (a SYNC, an RPDO)
         self._t0 = math.nan  # wall-clock time at plant time 0 (frames carry wall-clock stamps)
 
         def devices(drives: DrivesConfig, scalings: list[Scaling]) -> list[VirtualDrive]:
             self.drives = [CanopenDrive(network, node, 0) for node in drives.nodes]
             for drive in self.drives:  # the motor's, a stored parameter of the drive
                 drive.store(0x6076, "<I", round(drives.rated_torque * 1000))
+                drive.rpdo_guard = self._command_arrives
             return [CanopenActuator(d, s) for d, s in zip(self.drives, scalings, strict=True)]
 
         self.robot = VirtualRobot(
@@ -135,6 +141,13 @@ real time by a thread between `start()` and `close()`.
         """The plant up to now (whole steps), under the lock."""
         if not math.isnan(self._t0):
             self.robot.advance_to(time.time() - self._t0)
+
+    @contextmanager
+    def _command_arrives(self) -> Iterator[None]:
+        """An RPDO's objects are written: the plant up to now first, all under the lock."""
+        with self._lock:
+            self._advance()
+            yield
 
     def _on_sync(self, can_id: int, data: bytearray, timestamp: float) -> None:
         """Every drive answers a SYNC with the encoder readings of the moment the SYNC
