@@ -4,9 +4,9 @@ project's plant (tests/canopen_robot.py: the true platform moves with the torque
 get and their TPDOs carry the real motion).  In this process (the service on a python-can
 virtual bus) and as separate processes (`cdprd run` over socketcand to
 tests/canopen_drives_process.py), the daemon configures them at start-up, enables them
-into a hold, flies the standard figure-eight with the TRUE platform tracking the
-reference, and holds; a stop
-(SIGTERM) leaves them holding in mode 8; a daemon that vanishes
+into a hold, flies the standard trajectories (tuning.scenarios) with the TRUE platform
+tracking the reference, and holds; a stop (SIGTERM) leaves them holding in mode 8, the
+platform still within HOLD_DRIFT; a daemon that vanishes
 (kill -9: no frame, no heartbeat any more) leaves each of them holding in QUICK STOP
 ACTIVE by the consumer heartbeat reaction the host configured (0x1016 on the host's
 heartbeat, 0x6007 = 3, 0x605A = 6) within twice the consumer heartbeat time."""
@@ -56,27 +56,25 @@ pytestmark = pytest.mark.timeout(90)
 CHANNELS = itertools.count()
 CONSUMER = 0.5  # s: the drives' consumer heartbeat time (heartbeat_timeout)
 PROCESS_CONSUMER = 1.0  # s: the same with three processes and TCP relays on a busy host
-# Truth against reference over the figure-eight, measured on a loaded 2-CPU host: RMS
-# 0.14-0.34 mm, worst 0.4-1.9 mm in this process (python threads: the plant, canopen
-# and the daemon share one interpreter); 0.77-0.86 mm, worst 2.2-2.4 mm against
-# `cdprd run` (its reference from the published states), so bounds with margin:
+# Truth against reference, measured on a loaded 2-CPU host (the figures in the issue
+# note): RMS 0.2-0.4 mm in this process, about 0.8 mm against `cdprd run` (its reference
+# from the published states), so bounds with margin:
 TRACK_RMS = 2e-3  # m
 TRACK_MAX = 6e-3  # m
-# the vertical lift braked 4 runs in 12 (feedback geometry near its top, once its
-# orientation error): left out until that is understood (see the issue note)
-FLIGHTS = ("figure_eight",)
-# feedback_tolerance: in this process a length once stepped 2.7 mm more than its rate
-# said (a thread late by more than the plant's history?), and near the lift's top the
-# four cables of higher tension (0, 2, 4, 6) read 1.1-2.9 mm off the pose the others
-# give: the default 1 mm braked 3 runs in 6, 2 mm 2 in 8 (not explained yet)
-FEEDBACK_TOLERANCE = 4e-3
-# the daemon's own orientation bound (0.05 rad) was reached at the figure-eight's +-10 deg
-# wobble with the controller at RATE_HZ (canopen's one thread cannot answer 500 SYNCs a
-# second): 2.93 and 3.09 deg in 2 runs of 12; the TRUE position is what is checked here
-ORIENTATION_ERROR = 0.1  # rad
-
+FLIGHTS = tuple(STANDARD_SET)
+HOLD_DRIFT = 0.5e-3  # m: how far the true platform may move over the second after a stop
+SETTLE = 1.0  # s: that second
 
 RATE_HZ = 100  # canopen answers each SYNC from one thread
+# The gains of the reference config are for 500 Hz.  At 100 Hz its kd (20 per unit mass,
+# acting on the drums' rates, which carry the drum-cable mode above this rate's 50 Hz
+# Nyquist frequency) makes the loop unstable once commands act 2 ms or more after the
+# SYNC (lock-step: tuning.lockstep.run_lockstep with latency 0.002 s on the figure-eight:
+# commands step by 500 N, the platform breaks away; 500 Hz holds up to 3 ms).  Here they
+# act 1.7 ms (median) to 3 ms (99th percentile) after it: the drums rang, the cables read
+# millimetres off one pose and the daemon braked on implausible feedback (the vertical
+# lift, 1 run in 6 of the figure-eight).  kd 10 is stable in lock-step up to 6 ms.
+PID_AT_RATE = {"kp": 100.0, "ki": 50.0, "kd": 10.0}
 DRIVES = {  # the drives: the vendor EDS, a motor of 2 N·m rated torque (0x6076)
     "rated_torque": 2.0,
     "watchdog_timeout": 0.2,
@@ -88,13 +86,9 @@ DRIVES = {  # the drives: the vendor EDS, a motor of 2 N·m rated torque (0x6076
 def canopen_config(channel: str) -> DaemonConfig:
     def edit(data: dict) -> None:
         data["can"] = {"interface": "virtual", "channel": channel}
-        data["controller"]["rate_hz"] = RATE_HZ
+        data["controller"].update(rate_hz=RATE_HZ, pid=PID_AT_RATE)
         data["drives"].update(DRIVES)
-        data["safety"].update(
-            stale_cycles=10,
-            feedback_tolerance=FEEDBACK_TOLERANCE,
-            tracking_error_orientation=ORIENTATION_ERROR,
-        )
+        data["safety"].update(stale_cycles=10)
 
     return load_config(DRIVER_CONFIGS["cia402"], edit)
 
@@ -136,8 +130,28 @@ def check_tracking(name: str, errors: np.ndarray) -> None:
     )
 
 
-@pytest.mark.parametrize("end", ["stop", "vanish"])
-def test_eight_canopen_drives_fly_the_standard_trajectories_and_end_holding(end: str) -> None:
+def check_hold(
+    what: str, truth: np.ndarray, seconds: float = SETTLE, bound: float | None = HOLD_DRIFT
+) -> None:
+    """The true platform (rows t, x, y, z from the end on) moved at most `bound` (m; None:
+    only printed) from where it was at the end over the `seconds` after it."""
+    window = truth[truth[:, 0] <= truth[0, 0] + seconds]
+    assert len(window) > 10, f"only {len(window)} samples after the end"
+    drift = float(np.linalg.norm(window[:, 1:] - window[0, 1:], axis=1).max())
+    print(f"{what}: the platform moved {drift * 1e3:.3f} mm over {seconds:.2f} s")
+    assert bound is None or drift <= bound, (
+        f"{what}: the platform moved {drift * 1e3:.3f} mm over {seconds:.2f} s "
+        f"(at most {bound * 1e3} mm)"
+    )
+
+
+@pytest.mark.parametrize(
+    ("end", "flights"),
+    [("stop", FLIGHTS), pytest.param("vanish", ("figure_eight",), marks=pytest.mark.slow)],
+)
+def test_eight_canopen_drives_fly_the_standard_trajectories_and_end_holding(
+    end: str, flights: tuple[str, ...]
+) -> None:
     channel = f"cdprd-canopen-{os.getpid()}-{next(CHANNELS)}"
     config = canopen_config(channel)
     # as the daemon's core would (tests/daemon_stack.Stack): the threads started below
@@ -149,14 +163,16 @@ def test_eight_canopen_drives_fly_the_standard_trajectories_and_end_holding(end:
         bus = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
         robot.start()
         try:
-            asyncio.run(asyncio.wait_for(_fly_and_end(config, robot, bus, end), 80))
+            asyncio.run(asyncio.wait_for(_fly_and_end(config, robot, bus, end, flights), 80))
         finally:
             robot.close()
             bus.shutdown()
             network.disconnect()
 
 
-async def _fly_and_end(config: DaemonConfig, robot: CanopenRobot, bus, end: str) -> None:
+async def _fly_and_end(
+    config: DaemonConfig, robot: CanopenRobot, bus, end: str, flights: tuple[str, ...]
+) -> None:
     drives = robot.drives
     service = Service(config, bus)
     service.driver.sdo_timeout = 2.0  # canopen answers from its one thread, maybe late
@@ -175,7 +191,7 @@ async def _fly_and_end(config: DaemonConfig, robot: CanopenRobot, bus, end: str)
             assert [v.index for v in drive.node.tpdo[1].map] == [0x6041, 0x6064, 0x6061]
         await service.command("enable", {})
         assert service.machine.state is SafetyState.HOLD, service.machine.fault
-        for name in FLIGHTS:
+        for name in flights:
             since, first = time.monotonic(), len(references)
             done = len(events)
             await planner.submit_trajectory(STANDARD_SET[name](config.robot), None)
@@ -189,12 +205,14 @@ async def _fly_and_end(config: DaemonConfig, robot: CanopenRobot, bus, end: str)
             check_tracking(name, tracking_errors(np.array(references[first:]), robot.truth(since)))
         assert all(d.value(0x6041) == ENABLED and d.value(0x6061) == 10 for d in drives)
         assert all(any(t != 0 for t in d.torques) for d in drives), "torque commanded"
+        ended = time.monotonic()
         if end == "stop":
             service.stop()
             await _until(lambda: all(d.value(0x6061) == 8 for d in drives), "hold in mode 8", 5)
             assert all(d.value(0x6041) == ENABLED for d in drives)
+            await asyncio.sleep(SETTLE)
+            check_hold("stop", robot.truth(ended))
             return
-        vanished = time.monotonic()
         bus.shutdown()  # the daemon is gone: no frame, no heartbeat from now on
         await _until(
             lambda: all(d.value(0x6041) == QUICK_STOP for d in drives),
@@ -202,21 +220,25 @@ async def _fly_and_end(config: DaemonConfig, robot: CanopenRobot, bus, end: str)
             4 * CONSUMER,
         )
         lost, words = [d.lost for d in drives], [d.value(0x1016, 1) for d in drives]
-        check_reactions(vanished, CONSUMER, lost, words)
+        late = check_reactions(ended, CONSUMER, lost, words)
+        await asyncio.sleep(SETTLE)
+        what = "vanish, until a second after the last hold"
+        check_hold(what, robot.truth(ended), late + SETTLE, None)
     finally:
         service.close()
 
 
-def check_reactions(gone: float, consumer: float, lost: list, words: list[int]) -> None:
+def check_reactions(gone: float, consumer: float, lost: list, words: list[int]) -> float:
     """Each drive went into its hold reaction (stamped `lost`, monotonic) within twice
     its consumer heartbeat time `consumer` of the daemon being `gone`, by the consumer
-    heartbeat 0x1016:01 (`words`) the host set."""
+    heartbeat 0x1016:01 (`words`) the host set.  Returns the last one's delay (s)."""
     assert words == [127 << 16 | round(consumer * 1000)] * len(words), words
     late = max(t - gone for t in lost if t is not None)
     print(f"last hold reaction {late:.3f} s after the daemon went (consumer {consumer} s)")
     assert None not in lost and late <= 2 * consumer, (
         f"a drive reacted {late:.3f} s after the daemon went (2 x {consumer} s allowed)"
     )
+    return late
 
 
 # -- as separate processes: `cdprd run` and the drives over socketcand --------------------
@@ -308,17 +330,17 @@ class States:
         return np.array(rows).reshape(-1, 4)
 
 
-@pytest.mark.timeout(120)
-@pytest.mark.parametrize("end", ["sigterm", "kill"])
-def test_cdprd_run_flies_canopen_drives_in_another_process(tmp_path: Path, end: str) -> None:
+@pytest.mark.slow
+@pytest.mark.timeout(150)
+@pytest.mark.parametrize(("end", "flights"), [("sigterm", FLIGHTS), ("kill", ("figure_eight",))])
+def test_cdprd_run_flies_canopen_drives_in_another_process(
+    tmp_path: Path, end: str, flights: tuple[str, ...]
+) -> None:
     zenoh_port = free_port()
     _, data = simulator_configs(tmp_path, zenoh_port)
     # three processes and TCP relays on a busy host: a patient consumer heartbeat
     data["drives"].update(DRIVES, heartbeat_timeout=PROCESS_CONSUMER)
-    data["controller"]["rate_hz"] = RATE_HZ
-    data["safety"].update(
-        feedback_tolerance=FEEDBACK_TOLERANCE, tracking_error_orientation=ORIENTATION_ERROR
-    )
+    data["controller"].update(rate_hz=RATE_HZ, pid=PID_AT_RATE)
     (tmp_path / "drives.yaml").write_text(yaml.safe_dump(data))
     drives, port = _drives_process(tmp_path / "drives.yaml")
     daemon = None
@@ -331,7 +353,7 @@ def test_cdprd_run_flies_canopen_drives_in_another_process(tmp_path: Path, end: 
             client.enable()
             wait_status(client, "hold", 5.0)
             robot = config_robot(data)
-            for name in FLIGHTS:
+            for name in flights:
                 since, first = time.monotonic(), len(watch.events)
                 client.send_trajectory(STANDARD_SET[name](robot))
                 watch.wait_event("trajectory_done", first, 30)
@@ -346,15 +368,18 @@ def test_cdprd_run_flies_canopen_drives_in_another_process(tmp_path: Path, end: 
             "every drive enabled under torque",
         )
         assert all(d["mode"] == 10 for d in held)
+        ended = time.monotonic()
         if end == "sigterm":
             out = finish(daemon)
             assert daemon.returncode == 0, out
             after = _wait_drives(
                 drives, lambda ds: all(d["mode"] == 8 for d in ds), "every drive in mode 8"
             )
-            assert all(d["statusword"] == ENABLED for d in after), after
+            # holding at the daemon's target, or (its heartbeat gone) by their reaction
+            assert all(d["statusword"] in (ENABLED, QUICK_STOP) for d in after), after
+            time.sleep(max(0.0, ended + SETTLE + 0.1 - time.monotonic()))
+            check_hold("sigterm", _truth(drives, ended))
         else:
-            killed = time.monotonic()
             daemon.kill()
             daemon.wait(10)
             after = _wait_drives(
@@ -363,9 +388,12 @@ def test_cdprd_run_flies_canopen_drives_in_another_process(tmp_path: Path, end: 
                 "every drive in QUICK STOP ACTIVE",
                 polls=round(4 * PROCESS_CONSUMER / 0.05),
             )
-            check_reactions(
-                killed, PROCESS_CONSUMER, [d["lost"] for d in after], [d["consumer"] for d in after]
+            late = check_reactions(
+                ended, PROCESS_CONSUMER, [d["lost"] for d in after], [d["consumer"] for d in after]
             )
+            time.sleep(SETTLE)
+            what = "kill -9, until a second after the last hold"
+            check_hold(what, _truth(drives, ended), late + SETTLE, None)
     finally:
         if daemon is not None and daemon.poll() is None:
             finish(daemon)
