@@ -29,12 +29,15 @@ import numpy as np
 import pytest
 import yaml
 
+from cdpr.controller import ParallelController
 from cdpr.pose import Pose, retract
+from daemon.cli.simulated import sim_section
 from daemon.config import DaemonConfig, load_config
 from daemon.process.realtime import realtime
 from daemon.service.planner import LocalLink, Planner
 from daemon.service.safety import SafetyState
 from daemon.service.service import Service
+from sim_bus.plant import Plant, equilibrium_tensions
 from tests.canopen_drive import ENABLED, QUICK_STOP, VENDOR_EDS
 from tests.canopen_robot import CanopenRobot
 from tests.daemon_stack import DRIVER_CONFIGS
@@ -50,7 +53,8 @@ from tests.processes import (
     start_daemon,
     wait_status,
 )
-from tuning.scenarios import STANDARD_SET
+from tuning.lockstep import run_lockstep
+from tuning.scenarios import STANDARD_SET, start_pose
 
 pytestmark = pytest.mark.timeout(90)
 CHANNELS = itertools.count()
@@ -79,6 +83,8 @@ RATE_HZ = 100  # canopen answers each SYNC from one thread
 # figure-eight).  kd 10 is stable in lock-step up to 4 ms on every standard trajectory
 # (the edge move rings from 6 ms), kd 7 up to 10 ms, tracking as well (RMS 0.03-0.07 mm).
 PID_AT_RATE = {"kp": 100.0, "ki": 50.0, "kd": 7.0}
+COMMAND_DELAY = 0.008  # s: the margin test_the_gains_at_rate_keep_a_command_delay_margin asks
+RINGING = 50.0  # N: a command step beyond this from one cycle to the next (stable: 2-6 N)
 DRIVES = {  # the drives: the vendor EDS, a motor of 2 N·m rated torque (0x6076)
     "rated_torque": 2.0,
     "watchdog_timeout": 0.2,
@@ -95,6 +101,33 @@ def canopen_config(channel: str) -> DaemonConfig:
         data["safety"].update(stale_cycles=10)
 
     return load_config(DRIVER_CONFIGS["cia402"], edit)
+
+
+@pytest.mark.parametrize("name", FLIGHTS)
+def test_the_gains_at_rate_keep_a_command_delay_margin(name: str) -> None:
+    """In lock-step (no threads, no timing), the controller of these tests flies each
+    standard trajectory on their plant with every command acting COMMAND_DELAY after its
+    measurement: twice what this process's coupling takes at its 99th percentile, for
+    the TCP relays of `cdprd run`.  Every cycle feasible, no command ringing."""
+    config = canopen_config("lock-step")
+    robot, trajectory = config.robot, STANDARD_SET[name](config.robot)
+    controller = ParallelController(robot, config.controller)
+    controller.set_latency(COMMAND_DELAY)
+    plant = Plant(robot, sim_section(config).plant)
+    start = start_pose(trajectory)
+    plant.reset(start, equilibrium_tensions(plant.robot, start))
+    controller.reset(start)
+    controller.follow(trajectory)
+
+    def control(t: float, lengths: np.ndarray, rates: np.ndarray) -> np.ndarray:
+        out = controller.step(t, lengths, rates)
+        assert out.feasible, f"{name}, t = {t:.2f} s: {out.reason}"
+        return out.commands
+
+    duration = trajectory.end_time - trajectory.start_time + 0.5
+    recording = run_lockstep(plant, control, duration, RATE_HZ, COMMAND_DELAY)
+    step = float(np.abs(np.diff(recording.commands, axis=0)).max())
+    assert step < RINGING, f"{name}: a command stepped {step:.0f} N in one cycle"
 
 
 async def _until(condition, what: str, seconds: float) -> None:
