@@ -98,7 +98,6 @@ def canopen_config(channel: str) -> DaemonConfig:
         data["can"] = {"interface": "virtual", "channel": channel}
         data["controller"].update(rate_hz=RATE_HZ, pid=PID_AT_RATE)
         data["drives"].update(DRIVES)
-        data["safety"].update(stale_cycles=10)
 
     return load_config(DRIVER_CONFIGS["cia402"], edit)
 
