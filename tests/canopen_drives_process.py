@@ -5,8 +5,9 @@ printed as "PORT <n>").  A line "status" on stdin prints one JSON line: per driv
 statusword, mode display, target position, position actual, the torque commands it
 received, its consumer heartbeat 0x1016:01 and when (monotonic) that expired; a line
 "truth SINCE" prints the true platform positions sampled at monotonic time >= SINCE as
-one JSON line of [t, x, y, z] rows.  Exits when stdin closes or after --lifetime
-seconds.
+one JSON line of [t, x, y, z] rows; a line "delays" prints the seconds from the latest
+SYNC to each command the drives received as one JSON list.  Exits when stdin closes or
+after --lifetime seconds.
 
     python -m tests.canopen_drives_process --config FILE [--lifetime 120]
 """
@@ -68,6 +69,8 @@ async def serve(config_path: str, lifetime: float) -> None:
                 print(status(), flush=True)
             elif command == b"truth":
                 print(json.dumps(robot.truth(float(args[0])).tolist()), flush=True)
+            elif command == b"delays":
+                print(json.dumps(robot.command_delays().tolist()), flush=True)
 
     with LoopBus(channel) as served:
         loop.add_reader(sys.stdin.fileno(), stdin_readable)

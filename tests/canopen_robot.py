@@ -13,7 +13,8 @@ the moment the SYNC was sent), and each drive's consumer heartbeat is checked.  
 acts from its arrival, whole: the plant is brought up to that moment under the old
 command, then the frame's objects are written together (a plant step never sees the
 new mode with the old target), as a drive's power stage takes a command when it
-arrives, not at the simulation thread's next wake-up."""
+arrives, not at the simulation thread's next wake-up.  `command_delays()`: how long after
+the latest SYNC (the moment its readings are of) each command arrived."""
 
 from __future__ import annotations
 
@@ -116,6 +117,8 @@ class CanopenRobot:
         network.unsubscribe(0x080)  # the drives answer a SYNC from _on_sync
         network.subscribe(0x080, self._on_sync)
         self._truth: list[tuple[float, float, float, float]] = []
+        self._synced = math.nan  # wall-clock stamp of the latest SYNC
+        self._delays: deque[float] = deque(maxlen=100_000)  # s, SYNC to each command
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="canopen-plant", daemon=True)
 
@@ -137,6 +140,10 @@ class CanopenRobot:
         rows = [r for r in list(self._truth) if r[0] >= since]
         return np.array(rows).reshape(-1, 4)
 
+    def command_delays(self) -> np.ndarray:
+        """Seconds from the latest SYNC to each command (RPDO) since the start."""
+        return np.array(self._delays)
+
     def _advance(self) -> None:
         """The plant up to now (whole steps), under the lock."""
         if not math.isnan(self._t0):
@@ -146,6 +153,7 @@ class CanopenRobot:
     def _command_arrives(self) -> Iterator[None]:
         """An RPDO's objects are written: the plant up to now first, all under the lock."""
         with self._lock:
+            self._delays.append(time.time() - self._synced)
             self._advance()
             yield
 
@@ -154,6 +162,7 @@ class CanopenRobot:
         was sent (its frame's stamp), however late canopen's thread sees it, as a drive
         latches its inputs at the SYNC (the plant waits until they all have)."""
         with self._lock:
+            self._synced = timestamp
             self._advance()
             robot = self.robot
             ago = max(0, round((robot.t - (timestamp - self._t0)) / robot.plant.config.step))
