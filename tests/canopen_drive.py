@@ -10,14 +10,14 @@ event-driven ones on change, RPDO dummy entries skipped, and the consumer heartb
 
 from __future__ import annotations
 
+import contextlib
 import struct
 import time
+from collections.abc import Callable
+from contextlib import AbstractContextManager
 from pathlib import Path
 
 import canopen
-
-from cdpr.controller import static_tensions, tension_solver
-from daemon.config import DaemonConfig
 
 VENDOR_EDS = Path(__file__).resolve().parent / "data" / "generic_servo_cia402.eds"
 
@@ -54,9 +54,12 @@ class CanopenDrive:
         self.heard: float | None = None  # monotonic time of the consumed heartbeat
         self.lost: float | None = None  # when the consumer heartbeat expired
         self.sent: dict[int, bytes] = {}  # event-driven TPDO COB-ID -> the data last sent
+        # entered around applying an RPDO: a power stage coupled to a plant
+        # (tests/canopen_robot.py) takes its whole content at once, at its arrival
+        self.rpdo_guard: Callable[[], AbstractContextManager] = contextlib.nullcontext
         self.node.add_write_callback(self._on_write)
         network.subscribe(0x000, self._on_nmt)
-        network.subscribe(0x080, self._on_sync)
+        network.subscribe(0x080, self.on_sync)
         self.node.nmt.state = "PRE-OPERATIONAL"
 
     def store(self, index: int, form: str, value: int) -> None:
@@ -128,13 +131,15 @@ class CanopenDrive:
             self.events(starting=True)
 
     def _on_rpdo(self, pdo) -> None:
-        """Mapped objects written in frame order (mode before the torque it is for); a
-        dummy entry (0x0002-0x0007) skips another drive's bytes."""
-        for var in sorted(pdo.map, key=lambda v: v.index != 0x6060):
-            if var.index >= 0x1000:
-                self.node.set_data(var.index, var.subindex, var.get_data())
+        """Mapped objects written in frame order (mode before the torque it is for), as
+        one (`rpdo_guard`); a dummy entry (0x0002-0x0007) skips another drive's bytes."""
+        with self.rpdo_guard():
+            for var in sorted(pdo.map, key=lambda v: v.index != 0x6060):
+                if var.index >= 0x1000:
+                    self.node.set_data(var.index, var.subindex, var.get_data())
 
-    def _on_sync(self, can_id: int, data: bytearray, timestamp: float) -> None:
+    def on_sync(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        """In OPERATIONAL, the SYNC-triggered TPDOs with the objects as they are now."""
         if self.node.nmt.state != "OPERATIONAL":
             return
         for pdo in self.node.tpdo.map.values():
@@ -143,16 +148,3 @@ class CanopenDrive:
                     var.set_data(self.node.get_data(var.index, var.subindex))
                 pdo.transmit()
 
-
-def drives_for(config: DaemonConfig, network: canopen.Network) -> list[CanopenDrive]:
-    """One drive per cable of `config` on `network`, at the position of the cable its
-    drum paid out with the platform resting at home (elastic cables stretch under the
-    holding tensions)."""
-    robot = config.robot
-    tensions = static_tensions(robot, tension_solver(robot, config.controller), robot.home)
-    lengths = robot.drum_lengths(robot.cable_lengths(robot.home), tensions)
-    scalings = config.drives.scalings_for(robot)
-    return [
-        CanopenDrive(network, node, round(s.position(length)))
-        for node, s, length in zip(config.drives.nodes, scalings, lengths, strict=True)
-    ]
