@@ -192,6 +192,7 @@ def fly_calibration(
 
 
 @pytest.mark.slow
+@pytest.mark.long
 @pytest.mark.timeout(900)
 def test_calibration_through_the_daemon_finds_the_true_robot(tmp_path: Path) -> None:
     """The issue's case: every anchor 20 mm off, encoder zeros anywhere within a drum
