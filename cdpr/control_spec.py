@@ -99,6 +99,20 @@ class AdaptationSpec(StrictModel):
         return self
 
 
+class DisturbanceObserverSpec(StrictModel):
+    """The external wrench observer (cdpr.wrench_observer): the wrench on the platform
+    that the model does not explain, estimated from its motion, enters the model's bias
+    wrench so the command cancels it; the gains never change.  bandwidth_hz: the
+    observer's first-order filter; force_max (N) / torque_max (N·m, about p): an estimate
+    beyond either is a fault (the daemon brakes: a collision, a stuck platform or a push
+    harder than a person leaning on it), never compensated."""
+
+    enabled: bool = True
+    bandwidth_hz: Annotated[float, Field(gt=0.0, le=50.0)] = 4.0
+    force_max: PositiveFloat = 100.0
+    torque_max: PositiveFloat = 20.0
+
+
 class ControllerSpec(StrictModel):
     """The parallel-actuator controller (paper §5).
 
@@ -117,6 +131,7 @@ class ControllerSpec(StrictModel):
     drive's force lag, plus half a period (the command is held for one); 0: the
     command is evaluated for the measurement's instant (the paper's literal timing).
     adaptation: the payload estimate (AdaptationSpec, cdpr.payload).
+    disturbance_observer: the external wrench observer (DisturbanceObserverSpec).
     """
 
     rate_hz: Annotated[float, Field(gt=0.0, le=10000.0)] = 500.0
@@ -129,6 +144,7 @@ class ControllerSpec(StrictModel):
     tension: TensionSpec = TensionSpec()
     command_lead: float | Literal["auto"] = "auto"
     adaptation: AdaptationSpec = AdaptationSpec()
+    disturbance_observer: DisturbanceObserverSpec = DisturbanceObserverSpec()
 
     @field_validator("command_lead", mode="before")
     @classmethod
