@@ -85,6 +85,8 @@ def test_state_space_config_reproduces_the_pid() -> None:
         ({"tension": {"method": "magic"}}, "tension.method"),
         ({"gains": 1}, "gains"),
         ([1, 2], "expected a mapping"),
+        ({"disturbance_observer": {"bandwidth_hz": 80.0}}, "disturbance_observer.bandwidth_hz"),
+        ({"disturbance_observer": {"force_max": 0.0}}, "disturbance_observer.force_max"),
     ],
 )
 def test_bad_controller_config_names_the_key(data: object, message: str) -> None:
