@@ -754,6 +754,8 @@ class Service:
         return {
             "mass": estimate.mass,
             "center_of_mass": list(estimate.center_of_mass),
+            # about the centre of mass, platform frame (the file's unless adaptation.inertia)
+            "inertia": estimate.platform.inertia.tolist(),
             "frozen": estimate.frozen,
         }
 
