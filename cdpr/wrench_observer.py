@@ -21,9 +21,10 @@ the delay for a push, and the figures of the standard set get worse, not better.
 Two stages, not one: the drums' rates see the platform through elastic cables, and
 above the cable modes (10-20 Hz on reference8) a force moves the drums alone, a mass
 several times lighter than M; one stage leaves enough gain there to ring the mode up
-(at 4 Hz with half the stiffness), two roll it off: on reference8, stable to 7 Hz with
-the cables 0.5x as stiff as the file says, the platform 30 % heavier and the drives'
-lag doubled, and to 8 Hz with the cables 0.5x-2x; 4 Hz is the default.
+(at 4 Hz with half the stiffness), two roll it off.  On reference8 (the 50 N push,
+lock-step) 4 Hz, the default, is stable with the cables 0.5x-2x as stiff as the file
+says, also with the platform 30 % heavier, its centre of mass 5 cm off and the drives'
+lag doubled; 8 Hz rings up in that combination, and is stable to 10 Hz without it.
 
 The controller subtracts w_hat from its command wrench (the model's bias wrench with
 the push in it): the push is cancelled within about 1 / (2 pi bandwidth) s instead of
