@@ -58,6 +58,22 @@ def edge_move(robot: Robot, duration: float = 2.3) -> Trajectory:
     return Trajectory([Waypoint(0.0, start), Waypoint(duration, end)])
 
 
+def rotation_wobble(
+    robot: Robot, amplitude_deg: float = 12.0, rate: float = 4.0, laps: float = 3.0
+) -> Trajectory:
+    """The platform turning about all three axes at home, out of phase and at three
+    rates (s, 1.5 s, 0.75 s with ds/dt = `rate`), for `laps` laps of s: angular
+    accelerations of a few rad/s^2 about every axis, which reveal the inertia."""
+    a = math.radians(amplitude_deg)
+    centre = robot.home.position
+
+    def pose(s: float) -> Pose:
+        return Pose.from_rotvec(centre, (a * math.sin(s), a * math.sin(1.5 * s),
+                                         a * math.sin(0.75 * s)))  # fmt: skip
+
+    return _eased(pose, 2.0 * math.pi * laps, rate, ease=1.0)
+
+
 STANDARD_SET: dict[str, Callable[[Robot], Trajectory]] = {
     "figure_eight": figure_eight,
     "vertical_lift": vertical_lift,

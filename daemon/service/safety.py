@@ -53,6 +53,8 @@ class Trigger(enum.Enum):
     COMPANION_LOST = "companion_lost"  # no companion process for safety.companion_lost s
     PAYLOAD_LIMIT = "payload_limit"  # the payload estimate beyond controller.adaptation
     PRETENSION = "pretension"  # pretension aborted: a cable not taut, the platform moved
+    # the external wrench estimate beyond controller.disturbance_observer's bounds
+    EXTERNAL_WRENCH = "external_wrench"
 
 
 @dataclass(frozen=True)
@@ -262,6 +264,8 @@ class SafetyMonitor:
                 trigger = Trigger.NAN
             if reason.startswith("payload"):
                 trigger = Trigger.PAYLOAD_LIMIT
+            if reason.startswith("external wrench"):
+                trigger = Trigger.EXTERNAL_WRENCH
             return Fault(trigger, f"{reason} (FK residual {output.fk_residual:.3g} m)")
         commands = output.commands.tolist()
         if not all(map(math.isfinite, commands)):

@@ -936,6 +936,8 @@ class Service:
         return {
             "mass": estimate.mass,
             "center_of_mass": list(estimate.center_of_mass),
+            # about the centre of mass, platform frame (the file's unless adaptation.inertia)
+            "inertia": estimate.platform.inertia.tolist(),
             "frozen": estimate.frozen,
         }
 
@@ -997,6 +999,9 @@ class Service:
         state["stiffness_scale"] = self.controller.stretch.stiffness_scale
         # the platform's mass and centre of mass as estimated (cdpr.payload)
         state["payload"] = self._payload_state()
+        # the external wrench the model does not explain (cdpr.wrench_observer)
+        observer = self.controller.observer
+        state["external_wrench"] = None if observer is None else observer.estimate.tolist()
         return state
 
 
