@@ -183,6 +183,7 @@ class ParallelController:
         if self.observer is not None:
             self.observer.clear()
         self._observed: tuple[Array, Array, Array] | None = None  # for the observer
+        self._observing = True  # the external wrench observer takes in cycles
         self._pose = pose
         self._twist = _ZERO6.copy()
         self._tensions = static_tensions(self.robot, self.tension, pose)
@@ -254,7 +255,7 @@ class ParallelController:
         after = platform.mass_and_bias(R, _ZERO6_LIST)[6::7]
         robot.platform = platform
         change = [a - b for a, b in zip(after, before, strict=True)]
-        if self.observer is not None:  # it held the rest of the payload until now
+        if self.observer is not None and self._observing:  # it held the rest until now
             self.observer.take_over(np.array(change))
         self.loop.hand_over(-np.linalg.solve(robot.mass_matrix(self._pose), change))
 
@@ -264,6 +265,13 @@ class ParallelController:
         still carries part of the load without a step in force (cdpr.pretension).
         ValueError without integral action."""
         self.loop.preset(np.linalg.solve(self.robot.mass_matrix(self._pose), wrench))
+
+    def observe_external(self, observing: bool) -> None:
+        """Let the external wrench observer take in cycles (True, the default after
+        reset()) or keep it where it is (False): while a fixture may still carry part of
+        the load (cdpr.pretension's unload), the observer would cancel the fixture's
+        reaction within a fraction of a second and so keep the load on the fixture."""
+        self._observing = observing
 
     def release(self, wrench: ArrayLike) -> None:
         """Move the wrench the integral action holds by `wrench`, as far as it holds one
@@ -323,7 +331,8 @@ class ParallelController:
         tau_c = M.dot(alpha_c) + mu
         if self.observer is not None:  # the push the model does not explain, cancelled
             tau_c -= self.observer.estimate
-            self._observed = (twist, M, tau_c - mu)
+            if self._observing:
+                self._observed = (twist, M, tau_c - mu)
         f0 = robot.m0 * (Lam.dot(alpha_c) + c)
         result = self.tension.solve(Lam, tau_c, f_b, f0)
         if result.feasible:

@@ -154,6 +154,7 @@ class Pretension:
         model = controller.robot
         self._preload = (self.spec.carry - 1.0) * model.bias_wrench(pose, np.zeros(6))
         controller.preload(self._preload)
+        controller.observe_external(False)  # until the fixture's share is given up
         self._closed_at = self._last_t = t
         self.phase = "unload"
 
@@ -168,6 +169,7 @@ class Pretension:
         if share > 0.0:
             controller.release(-self._preload * (share / spec.unload_time))
         if t >= self._closed_at + spec.unload_time:
+            controller.observe_external(True)
             self.phase = "closed"
 
     def step(self, t: float, lengths: ArrayLike, rates: ArrayLike) -> Array:
