@@ -20,7 +20,16 @@ calibration's gauge (the world frame as the file's anchor frame, least squares):
                             one, and before calibration (the file, homed), and any fault
     calibrate_seconds       wall time of the lock-step flight plus the solve
 
-    python bench/calibration.py [--json] [--poses N] [--seed S]
+Pretension (item 3), the same truth with the platform resting on a docking fixture at
+home and every cable 2-10 cm slack (random), brought up in lock-step (tuning.pretension:
+cdpr.pretension, homing, the loop closed and held for 1 s):
+
+    pretension_motion_mm    the platform's largest true displacement from where it rested
+    pretension_peak_force_n the largest true cable tension (force_max is 600 N)
+    pretension_taut_seconds simulated time until the last cable was taut
+    pretension_loop_close_step_n  the largest change of a force command at the loop close
+
+    python bench/calibration.py [--json] [--poses N] [--seed S] [--pretension-only]
 """
 
 from __future__ import annotations
@@ -37,12 +46,15 @@ from timing import REFERENCE8
 from cdpr import Robot
 from cdpr.control_spec import ControllerSpec
 from sim_bus.plant.config import PlantConfig
+from sim_bus.plant.fixture import FixtureConfig
 from tuning.calibration import candidate_poses, corrected_robot, identify, select_poses
 from tuning.calibration_flight import best_fit, fly_poses, home, model_frame, track
+from tuning.pretension import run_pretension
 from tuning.scenarios import STANDARD_SET
 
 ANCHOR_MOVE = 0.02  # m
 EA_FACTOR = 0.6
+SLACK = (0.02, 0.10)  # m, the range each cable's slack is drawn from
 
 
 def truth(robot: Robot, rng: np.random.Generator) -> PlantConfig:
@@ -63,17 +75,37 @@ def truth(robot: Robot, rng: np.random.Generator) -> PlantConfig:
     )
 
 
+def pretension(robot: Robot, config: PlantConfig, seed: int) -> dict[str, float]:
+    """The pretension keys: `config`'s truth on a fixture at home, cables slack."""
+    slack = np.random.default_rng([seed, 3]).uniform(*SLACK, robot.n_cables)
+    on_fixture = config.model_copy(update={"fixture": FixtureConfig(slack_m=slack.tolist())})
+    run = run_pretension(robot, on_fixture, ControllerSpec())
+    if run.fault:
+        raise SystemExit(f"error: pretension aborted: {run.fault}")
+    return {
+        "pretension_motion_mm": run.motion_mm,
+        "pretension_peak_force_n": run.peak_force_n,
+        "pretension_taut_seconds": run.taut_seconds,
+        "pretension_loop_close_step_n": run.loop_close_step_n,
+    }
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--json", action="store_true", help="one JSON object")
     parser.add_argument("--poses", type=int, default=60, help="calibration poses (default 60)")
     parser.add_argument("--seed", type=int, default=16)
+    parser.add_argument(
+        "--pretension-only", action="store_true", help="only the pretension keys (seconds)"
+    )
     args = parser.parse_args(argv)
     say = (lambda text: print(text, file=sys.stderr)) if args.json else print
     robot = Robot.from_yaml(REFERENCE8)
     spec = ControllerSpec()
     rng = np.random.default_rng(args.seed)
     config = truth(robot, rng)
+    if args.pretension_only:
+        return report(pretension(robot, config, args.seed), args.json)
     from sim_bus.plant import Plant
 
     true_robot = Plant(robot, config).robot
@@ -133,10 +165,8 @@ def main(argv: list[str] | None = None) -> int:
         "tracking_extra_mm": extra,
         "before_anchor_error_max_mm": float(before * 1e3),
         "calibrate_seconds": seconds,
-        "pretension_motion_mm": None,
-        "pretension_peak_force_n": None,
-        "note": "pretension keys belong to issue 16 item 3 (not measured here); lock-step "
-        "flight in simulated time",
+        **pretension(robot, config, args.seed),
+        "note": "lock-step flight in simulated time",
         "poses": len(samples),
         "residual_rms_mm": calibration.residual_rms * 1e3,
         "condition": calibration.condition,
@@ -144,7 +174,11 @@ def main(argv: list[str] | None = None) -> int:
         "homing_offset_error_max_mm": float(np.abs(homed - true_offsets).max() * 1e3),
         "runs": runs,
     }
-    if args.json:
+    return report(result, args.json)
+
+
+def report(result: dict, as_json: bool) -> int:
+    if as_json:
         print(json.dumps(result))
     else:
         for key, value in result.items():

@@ -14,7 +14,8 @@ RMS with the payload estimate on, `adaptation_off` beside); the step without the
 payload estimate (`step_adaptation_off`, `step_ratio`); and the holding robot's response
 to a 50 N horizontal push (`disturbance`: peak error, 2 % settling time, the error left
 after 20 s, whether the peak exceeds the daemon's default tracking-error bound, and
-`braked`: that, or a controller fault).
+`braked`: that, or a controller fault; with the external wrench observer as configured,
+and under `observer_off` without it).
 
     python bench/controller.py [--json] [--calls N] [--skip-tracking]
 """
@@ -72,8 +73,18 @@ def tracking_with_payload(robot: Robot, spec: ControllerSpec) -> dict[str, dict]
     return figures
 
 
-def disturbance(robot: Robot, spec: ControllerSpec) -> dict[str, float | bool | str]:
-    """A 50 N horizontal push on the holding robot, for 20 s (tuning.disturbance)."""
+def disturbance(robot: Robot, spec: ControllerSpec) -> dict:
+    """A 50 N horizontal push on the holding robot, for 20 s (tuning.disturbance), with
+    the external wrench observer as configured and, under `observer_off`, without it."""
+    off = spec.disturbance_observer.model_copy(update={"enabled": False})
+    figures = push_figures(robot, spec)
+    figures["observer_off"] = push_figures(
+        robot, spec.model_copy(update={"disturbance_observer": off})
+    )
+    return figures
+
+
+def push_figures(robot: Robot, spec: ControllerSpec) -> dict[str, float | bool | str]:
     f = step_response(robot, spec, wrench=(50.0, 0.0, 0.0, 0.0, 0.0, 0.0), duration=20.0)
     bound_mm = SafetyConfig().tracking_error_position * 1e3
     return {
@@ -134,10 +145,11 @@ def main(argv: list[str] | None = None) -> int:
             )
     if "disturbance" in results:
         d = results["disturbance"]
-        print(
-            f"50 N push: peak {d['peak_mm']:.2f} mm  settle {d['settle_s']:.2f} s  "
-            f"braked {d['braked']}"
-        )
+        for name, p in (("observer", d), ("observer off", d["observer_off"])):
+            print(
+                f"50 N push, {name}: peak {p['peak_mm']:.2f} mm  settle {p['settle_s']:.2f} s  "
+                f"exceeds bound {p['exceeds_tracking_bound']}  braked {p['braked']}"
+            )
     return 0
 
 

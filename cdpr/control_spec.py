@@ -77,18 +77,24 @@ MIN_ADAPTATION_TIME = 0.1  # s: a faster estimate would reach into the loop's ow
 
 
 class AdaptationSpec(StrictModel):
-    """Online estimate of the platform's mass and centre of mass (cdpr.payload): the
+    """Online estimate of the platform's mass, centre of mass and inertia (cdpr.payload): the
     model M, mu follows it, the gains never change.  mass_min / mass_max: the platform's
     total mass (kg) the estimate may take (default 0.8x and 1.5x the robot file's); com_max:
     how far (m) the centre of mass may move from the file's; a payload beyond these is a
-    fault (the daemon brakes), not an update.  time_constant (s): how slowly the model
-    follows the estimate.  frozen: keep the model as it is (as set, or the file's)."""
+    fault (the daemon brakes), not an update.  inertia: estimate the inertia too, where
+    rotation excites it (off by default: on reference8's elastic cables the estimate is
+    biased, cdpr.payload); beyond inertia_scale_max times the file's, or below 1 / it, a
+    fault.
+    time_constant (s): how slowly the model follows the estimate.  frozen: keep the model
+    as it is (as set, or the file's)."""
 
     enabled: bool = True
     frozen: bool = False
     mass_min: PositiveFloat | None = None
     mass_max: PositiveFloat | None = None
     com_max: PositiveFloat = 0.1
+    inertia: bool = False
+    inertia_scale_max: Annotated[float, Field(gt=1.0)] = 2.0
     time_constant: Annotated[float, Field(ge=MIN_ADAPTATION_TIME, le=60.0)] = 0.5
 
     @model_validator(mode="after")
@@ -97,6 +103,20 @@ class AdaptationSpec(StrictModel):
         if low is not None and high is not None and low >= high:
             raise ValueError(f"mass_min ({low:g} kg) must lie below mass_max ({high:g} kg)")
         return self
+
+
+class DisturbanceObserverSpec(StrictModel):
+    """The external wrench observer (cdpr.wrench_observer): the wrench on the platform
+    that the model does not explain, estimated from its motion, enters the model's bias
+    wrench so the command cancels it; the gains never change.  bandwidth_hz: the
+    observer's first-order filter; force_max (N) / torque_max (N·m, about p): an estimate
+    beyond either is a fault (the daemon brakes: a collision, a stuck platform or a push
+    harder than a person leaning on it), never compensated."""
+
+    enabled: bool = True
+    bandwidth_hz: Annotated[float, Field(gt=0.0, le=50.0)] = 4.0
+    force_max: PositiveFloat = 100.0
+    torque_max: PositiveFloat = 20.0
 
 
 class ControllerSpec(StrictModel):
@@ -117,6 +137,7 @@ class ControllerSpec(StrictModel):
     drive's force lag, plus half a period (the command is held for one); 0: the
     command is evaluated for the measurement's instant (the paper's literal timing).
     adaptation: the payload estimate (AdaptationSpec, cdpr.payload).
+    disturbance_observer: the external wrench observer (DisturbanceObserverSpec).
     """
 
     rate_hz: Annotated[float, Field(gt=0.0, le=10000.0)] = 500.0
@@ -129,6 +150,7 @@ class ControllerSpec(StrictModel):
     tension: TensionSpec = TensionSpec()
     command_lead: float | Literal["auto"] = "auto"
     adaptation: AdaptationSpec = AdaptationSpec()
+    disturbance_observer: DisturbanceObserverSpec = DisturbanceObserverSpec()
 
     @field_validator("command_lead", mode="before")
     @classmethod

@@ -30,7 +30,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.linalg.lapack import dpotrs
 
-from cdpr.control_spec import DEFAULT_FORCE_LAG, ControllerSpec
+from cdpr.control_spec import DEFAULT_FORCE_LAG, MAX_COMMAND_LEAD, ControllerSpec
 from cdpr.dynamics import PlatformInertia
 from cdpr.forward_kinematics import FKResult
 from cdpr.payload import PayloadEstimate
@@ -40,6 +40,7 @@ from cdpr.so3 import quat_to_r9
 from cdpr.stretch import ComplianceScale
 from cdpr.tension import TensionLimits, TensionSolver, make_tension_solver
 from cdpr.trajectory import Reference, WrenchCheck
+from cdpr.wrench_observer import WrenchObserver
 
 Array = NDArray[np.float64]
 _ZERO6 = np.zeros(6)
@@ -152,6 +153,14 @@ class ParallelController:
             robot = copy.copy(robot)
             self.payload = PayloadEstimate(robot, spec.adaptation, self.period)
         self.robot = robot
+        # the external wrench the model does not explain (cdpr.wrench_observer)
+        self.observer: WrenchObserver | None = None
+        if spec.disturbance_observer.enabled:
+            o = spec.disturbance_observer
+            self.observer = WrenchObserver(
+                self.period, o.bandwidth_hz, o.force_max, o.torque_max,
+                max_delay=MAX_COMMAND_LEAD + self.period,
+            )  # fmt: skip
         self.drive_lag = drive_lag
         self.lead = spec.lead(drive_lag)  # s: see set_latency
         self.loop = spec.linear_controller().discretise(self.period, 6, spec.discretisation)
@@ -171,6 +180,10 @@ class ParallelController:
         self.loop.reset()
         if self.payload is not None:
             self.payload.clear()
+        if self.observer is not None:
+            self.observer.clear()
+        self._observed: tuple[Array, Array, Array] | None = None  # for the observer
+        self._observing = True  # the external wrench observer takes in cycles
         self._pose = pose
         self._twist = _ZERO6.copy()
         self._tensions = static_tensions(self.robot, self.tension, pose)
@@ -200,12 +213,18 @@ class ParallelController:
         """Compute the measurement-free part of the step at time t ahead of it: the
         reference samples (at t, and at t + lead for the command), the forward-kinematics
         guess, f_b and, with model_at = "reference", the model terms; and the last
-        cycle's step of the cables' stiffness estimate (cdpr.stretch) and of the payload
-        estimate (cdpr.payload, whose model the terms then use).  step(t, ...) uses it; a
-        step at another time, reset(), follow() and set_latency() discard it."""
+        cycle's step of the cables' stiffness estimate (cdpr.stretch), of the payload
+        estimate (cdpr.payload, whose model the terms then use) and of the external
+        wrench observer (cdpr.wrench_observer, whose estimate the command cancels).
+        step(t, ...) uses it; a step at another time, reset(), follow() and
+        set_latency() discard it."""
         robot = self.robot
         if self.payload is not None and self.payload.update():
             self._take_over(self.payload.platform)
+        if self._observed is not None:
+            assert self.observer is not None
+            self.observer.update(*self._observed, self.lead)
+            self._observed = None
         ref = self.source.sample(t)
         ahead = self.source.sample(t + self.lead) if self.lead else ref
         guess = retract(self._pose, self._twist * self.period)
@@ -236,7 +255,28 @@ class ParallelController:
         after = platform.mass_and_bias(R, _ZERO6_LIST)[6::7]
         robot.platform = platform
         change = [a - b for a, b in zip(after, before, strict=True)]
+        if self.observer is not None and self._observing:  # it held the rest until now
+            self.observer.take_over(np.array(change))
         self.loop.hand_over(-np.linalg.solve(robot.mass_matrix(self._pose), change))
+
+    def preload(self, wrench: ArrayLike) -> None:
+        """Start the integral action holding `wrench` (force, torque about p) beyond the
+        model's static one, at the pose of the last reset: the loop closes where a fixture
+        still carries part of the load without a step in force (cdpr.pretension).
+        ValueError without integral action."""
+        self.loop.preset(np.linalg.solve(self.robot.mass_matrix(self._pose), wrench))
+
+    def observe_external(self, observing: bool) -> None:
+        """Let the external wrench observer take in cycles (True, the default after
+        reset()) or keep it where it is (False): while a fixture may still carry part of
+        the load (cdpr.pretension's unload), the observer would cancel the fixture's
+        reaction within a fraction of a second and so keep the load on the fixture."""
+        self._observing = observing
+
+    def release(self, wrench: ArrayLike) -> None:
+        """Move the wrench the integral action holds by `wrench`, as far as it holds one
+        of the opposite sign (DiscreteController.hand_over): a preload given up."""
+        self.loop.hand_over(np.linalg.solve(self.robot.mass_matrix(self._pose), wrench))
 
     @property
     def pose(self) -> Pose:
@@ -263,6 +303,8 @@ class ParallelController:
         ref, guess = prepared.reference, prepared.guess
         if self.payload is not None and self.payload.fault:
             return self._fault(ref, self._pose, 0.0, self.payload.fault)
+        if self.observer is not None and self.observer.fault:
+            return self._fault(ref, self._pose, 0.0, self.observer.fault)
         # the encoders measure the drums; the last planned tensions stretch the cables
         lengths = np.asarray(lengths, dtype=float)
         fk = robot.forward_kinematics(self.stretch.stretched(lengths, self._tensions), guess)
@@ -287,6 +329,10 @@ class ParallelController:
             Lam, c, M, mu = robot.model_terms(retract(pose, twist * self.lead), twist)
         f_b = prepared.f_b
         tau_c = M.dot(alpha_c) + mu
+        if self.observer is not None:  # the push the model does not explain, cancelled
+            tau_c -= self.observer.estimate
+            if self._observing:
+                self._observed = (twist, M, tau_c - mu)
         f0 = robot.m0 * (Lam.dot(alpha_c) + c)
         result = self.tension.solve(Lam, tau_c, f_b, f0)
         if result.feasible:

@@ -96,6 +96,38 @@ class PulleySpec(StrictModel):
         return (v[0] / n, v[1] / n, v[2] / n)
 
 
+class SpoolSpec(StrictModel):
+    """Spool buildup of a drum (cdpr.spool): the radius grows by a cable diameter per
+    layer.  cable_diameter (m); turns_per_layer, or drum_width (m) for drum_width /
+    cable_diameter turns (one of the two); wound_at_zero: the cable wound on the drum (m)
+    at cable length 0, so wound_at_zero - l at length l (at least length_max: the drum
+    never runs empty)."""
+
+    cable_diameter: PositiveFloat
+    turns_per_layer: PositiveFloat | None = None
+    drum_width: PositiveFloat | None = None
+    wound_at_zero: PositiveFloat
+
+    @model_validator(mode="after")
+    def _one_width(self) -> SpoolSpec:
+        if (self.turns_per_layer is None) == (self.drum_width is None):
+            raise ValueError("give either turns_per_layer or drum_width (one of them)")
+        if self.drum_width is not None and self.drum_width < self.cable_diameter:
+            raise ValueError(
+                f"drum_width ({self.drum_width} m) is narrower than the cable_diameter "
+                f"({self.cable_diameter} m)"
+            )
+        return self
+
+    @property
+    def turns(self) -> float:
+        """Turns per layer."""
+        if self.turns_per_layer is not None:
+            return self.turns_per_layer
+        assert self.drum_width is not None
+        return self.drum_width / self.cable_diameter
+
+
 class ActuatorOverrides(StrictModel):
     """Per-cable overrides of the actuator defaults (every field optional)."""
 
@@ -107,6 +139,7 @@ class ActuatorOverrides(StrictModel):
     length_max: PositiveFloat | None = None
     t_min: NonNegativeFloat | None = None
     cable_stiffness: PositiveFloat | None = None
+    spool: SpoolSpec | None = None
 
 
 class ActuatorSpec(StrictModel):
@@ -117,6 +150,7 @@ class ActuatorSpec(StrictModel):
     t_min: minimum cable tension kept by the tension distribution, N.
     cable_stiffness: EA of the cable (N per unit strain) for the stretch correction of
     the encoder lengths, l_geometric = l_drum (1 + t / EA); None: inextensible.
+    spool: the drum's radius growing with the cable wound on (SpoolSpec); None: constant.
     """
 
     m0: PositiveFloat
@@ -127,6 +161,7 @@ class ActuatorSpec(StrictModel):
     length_max: PositiveFloat
     t_min: NonNegativeFloat
     cable_stiffness: PositiveFloat | None = None
+    spool: SpoolSpec | None = None
 
     @model_validator(mode="after")
     def _ranges(self) -> ActuatorSpec:
@@ -136,6 +171,17 @@ class ActuatorSpec(StrictModel):
             )
         if self.t_min >= self.force_max:
             raise ValueError(f"t_min ({self.t_min}) must be below force_max ({self.force_max})")
+        spool = self.spool
+        if spool is not None and spool.wound_at_zero < self.length_max:
+            raise ValueError(
+                f"spool.wound_at_zero ({spool.wound_at_zero} m) must be at least length_max "
+                f"({self.length_max} m): the drum would run empty"
+            )
+        if spool is not None and spool.cable_diameter >= 2.0 * self.drum_radius:
+            raise ValueError(
+                f"spool.cable_diameter ({spool.cable_diameter} m) must be below twice the "
+                f"drum_radius ({self.drum_radius} m)"
+            )
         return self
 
 
@@ -212,7 +258,7 @@ class RobotSpec(StrictModel):
 
     def actuator_of(self, index: int) -> ActuatorSpec:
         """The actuator parameters of cable `index` (defaults with its overrides)."""
-        overrides = self.cables[index].actuator.model_dump(exclude_none=True)
+        overrides = {k: v for k, v in self.cables[index].actuator if v is not None}
         return self.actuator.model_copy(update=overrides)
 
 

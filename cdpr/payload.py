@@ -1,17 +1,20 @@
-"""The platform's mass and centre of mass, identified from the wrench the cables exert
-and the motion (issue 19: payload adaptation; DESIGN §15 step 6).
+"""The platform's mass, centre of mass and, where rotation excites it, inertia,
+identified from the wrench the cables exert and the motion (issue 19: payload
+adaptation; DESIGN §15 step 6).
 
-The platform's dynamics are linear in its inertial parameters.  With h = m c_b (the
+The platform's dynamics are linear in its ten inertial parameters.  With h = m c_b (the
 first moment, platform frame), c = R c_b, G = a - g (a = p'' the reference point's
-acceleration), and I_p the inertia about p (the model's, not estimated: a payload of a
-few kilograms a few centimetres off changes it by a few per cent), the platform's wrench
-about p is
+acceleration), and I_p = R I_pb R^T the inertia about p, the platform's wrench about p is
 
     force  = m G + ([w']x + [w]x[w]x) R h
-    torque = (R h) x G + I_p w' + w x (I_p w)
+    torque = (R h) x G + R (I_pb w_b' + w_b x (I_pb w_b))     (w_b = R^T w)
 
-so  Y(R, w, w', a) x = y  with x = (m, h / L), the torque rows divided by L (LENGTH, so
-that every entry of Y is an acceleration and every parameter a mass).  The wrench y is
+so  Y(R, w, w', a) x = y  with x = (m, h / L, I_pb / L_I^2) (I_pb's six entries xx, xy,
+xz, yy, yz, zz), the torque rows divided by L (LENGTH): every parameter is a mass, every
+entry of Y an acceleration, and with L_I^2 = L x 1 m (INERTIA_LENGTH) an angular
+acceleration of 1 rad/s^2 is an entry of 1 m/s^2: the inertia is identified in the
+directions an angular acceleration of about 1 rad/s^2 RMS excites (EXCITED), and stays
+the robot file's (about the centre of mass) under pure translation.  The wrench y is
 what the cables exert on the platform: the planned forces f_p (which the drives realise)
 along the cables where the measured platform will be when they act, Lambda(eta ahead)^T
 f_p, less the drums' share m0 Lambda^T (Lambda alpha + c).  (Along the reference's cables
@@ -23,19 +26,22 @@ Least squares with exponential forgetting (WINDOW) accumulates Y^T Y and Y^T y o
 SAMPLE_EVERY-th cycle; every SOLVE_EVERY cycles the estimate moves, with time constant
 `time_constant`, towards the least-squares solution in the directions the data excite
 (eigenvalues of the mean Y^T Y above EXCITED, i.e. an excitation of 1 m/s^2 RMS) and not
-at all in the others, where the centre of mass stays (a new mass at the old centre of
-mass); and only as far as the solution lies beyond a dead zone (DEAD_ZONE of the mass:
-the regression's own errors, ~0.2 % at rest, or a mode ringing down, do not move the
-model; the integral action has the rest).
+at all in the others, where the centre of mass and the inertia about it stay (a new mass
+at the old centre of mass, with the old inertia about it); and only as far as the
+solution lies beyond a dead zone (DEAD_ZONE of the mass: the regression's own errors,
+~0.2 % at rest, or a mode ringing down, do not move the model; the integral action has
+the rest).
 
 At rest G = -g: the mass and the horizontal (world) components of R h are identified,
 the vertical one is not (a centre of mass moved along gravity changes no static
-wrench); tilting the platform or accelerating it sideways excites it.  The model takes
-the estimate while it lies within the configured limits; an estimate beyond them is a
-fault (`fault`: the daemon brakes), never the model.  Nothing moves while frozen.
+wrench); tilting the platform or accelerating it sideways excites it.  The inertia
+needs angular accelerations.  The model takes the estimate while it lies within the
+configured limits (an inertia about the centre of mass whose diagonal lies within
+inertia_scale_max of the file's either way, positive definite); an estimate beyond them
+is a fault (`fault`: the daemon brakes), never the model.  Nothing moves while frozen.
 
 `static_fit` is the same regression over a few poses held at rest (identify-payload):
-mass and centre of mass with their standard deviations.
+mass and centre of mass with their standard deviations (at rest the inertia shows not).
 """
 
 from __future__ import annotations
@@ -57,6 +63,9 @@ from cdpr.trajectory import Reference
 Array = NDArray[np.float64]
 
 LENGTH = 0.2  # m: the length scale between forces and torques (about a platform's size)
+INERTIA_LENGTH = math.sqrt(LENGTH)  # m: 1 rad/s^2 on the inertia is 1 m/s^2 on the mass
+PARAMETERS = 10  # m, h (3), I_pb (6)
+_INERTIA_ENTRIES = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))  # of I_pb, in x
 WINDOW = 1.0  # s: forgetting time of the least-squares data
 EXCITED = 1.0  # (m/s^2)^2: the least mean eigenvalue of Y^T Y of a direction identified
 SAMPLE_EVERY = 4  # cycles between two samples taken in (~30 us each: not every cycle)
@@ -67,11 +76,13 @@ DEFAULT_MASS_RANGE = (0.8, 1.5)  # mass_min, mass_max as multiples of the file's
 
 class PayloadLimits(NamedTuple):
     """What the estimate may take: mass in [mass_min, mass_max] kg, centre of mass within
-    com_max m of the robot file's."""
+    com_max m of the robot file's, the inertia's diagonal (about the centre of mass)
+    within inertia_scale_max of the file's either way."""
 
     mass_min: float
     mass_max: float
     com_max: float
+    inertia_scale_max: float
 
 
 def payload_limits(robot: Robot, spec: AdaptationSpec) -> PayloadLimits:
@@ -83,6 +94,7 @@ def payload_limits(robot: Robot, spec: AdaptationSpec) -> PayloadLimits:
         mass * low if spec.mass_min is None else spec.mass_min,
         mass * high if spec.mass_max is None else spec.mass_max,
         spec.com_max,
+        spec.inertia_scale_max,
     )
     if not limits.mass_min <= mass <= limits.mass_max:
         key = "mass_min" if mass < limits.mass_min else "mass_max"
@@ -99,11 +111,9 @@ def regressor(
     twist: Sequence[float],
     gravity: Sequence[float],
     wrench: Sequence[float],
-    inertia_about_p: Sequence[float],
 ) -> list[float]:
-    """[Y | y] (6 x 5, row-major, 30 floats) for the platform at `pose` moving with
-    `twist` and `accel` under `wrench` (world frame, about p), with the inertia about p
-    (platform frame, 9 floats) taken as known: see the module docstring."""
+    """[Y | y] (6 x 11, row-major, 66 floats) for the platform at `pose` moving with
+    `twist` and `accel` under `wrench` (world frame, about p): see the module docstring."""
     r00, r01, r02, r10, r11, r12, r20, r21, r22 = R = quat_to_r9(*pose.quaternion_tuple)
     gx = accel[0] - gravity[0]
     gy = accel[1] - gravity[1]
@@ -128,38 +138,68 @@ def regressor(
         [c[2] * gx - c[0] * gz for c in cols],
         [c[0] * gy - c[1] * gx for c in cols],
     ]
-    # the known inertia's torque, I_p w' + w x (I_p w) with I_p = R I_pb R^T (world)
-    i00, i01, i02, i10, i11, i12, i20, i21, i22 = inertia_about_p
+    # the inertia's torque R (I_pb bd + bw x (I_pb bw)), per entry of I_pb (bw = R^T w,
+    # bd = R^T w'): I_pb v = E(v) (xx, xy, xz, yy, yz, zz)
     bw = (r00 * wx + r10 * wy + r20 * wz, r01 * wx + r11 * wy + r21 * wz,
           r02 * wx + r12 * wy + r22 * wz)  # fmt: skip
     bd = (r00 * dx + r10 * dy + r20 * dz, r01 * dx + r11 * dy + r21 * dz,
           r02 * dx + r12 * dy + r22 * dz)  # fmt: skip
-    hb = (i00 * bw[0] + i01 * bw[1] + i02 * bw[2], i10 * bw[0] + i11 * bw[1] + i12 * bw[2],
-          i20 * bw[0] + i21 * bw[1] + i22 * bw[2])  # fmt: skip
-    tb = (
-        i00 * bd[0] + i01 * bd[1] + i02 * bd[2] + bw[1] * hb[2] - bw[2] * hb[1],
-        i10 * bd[0] + i11 * bd[1] + i12 * bd[2] + bw[2] * hb[0] - bw[0] * hb[2],
-        i20 * bd[0] + i21 * bd[1] + i22 * bd[2] + bw[0] * hb[1] - bw[1] * hb[0],
-    )
-    known = [R[3 * i] * tb[0] + R[3 * i + 1] * tb[1] + R[3 * i + 2] * tb[2] for i in range(3)]
+    scale = INERTIA_LENGTH * INERTIA_LENGTH / LENGTH
+    torque_i: list[list[float]] = [[], [], []]
+    for i, j in _INERTIA_ENTRIES:
+        # E(v)'s column for entry (i, j): v_j at row i and v_i at row j
+        ed, ew = [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]
+        ed[i] += bd[j]
+        ew[i] += bw[j]
+        if i != j:
+            ed[j] += bd[i]
+            ew[j] += bw[i]
+        body = (
+            ed[0] + bw[1] * ew[2] - bw[2] * ew[1],
+            ed[1] + bw[2] * ew[0] - bw[0] * ew[2],
+            ed[2] + bw[0] * ew[1] - bw[1] * ew[0],
+        )
+        for row in range(3):
+            torque_i[row].append(
+                scale * (R[3 * row] * body[0] + R[3 * row + 1] * body[1] + R[3 * row + 2] * body[2])
+            )
     g = (gx, gy, gz)
+    zero = (0.0,) * 6
     rows: list[float] = []
     for i in range(3):
-        rows += (g[i], *force_h[i], wrench[i])
+        rows += (g[i], *force_h[i], *zero, wrench[i])
     for i in range(3):
-        rows += (0.0, *torque_h[i], (wrench[3 + i] - known[i]) / LENGTH)
+        rows += (0.0, *torque_h[i], *torque_i[i], wrench[3 + i] / LENGTH)
     return rows
 
 
-def parameters(mass: float, center_of_mass: Sequence[float]) -> Array:
-    """x = (m, m c_b / LENGTH)."""
-    return np.array([mass, *(mass * c / LENGTH for c in center_of_mass)])
+def parameters(
+    mass: float, center_of_mass: Sequence[float], inertia: ArrayLike | None = None
+) -> Array:
+    """x = (m, m c_b / LENGTH, I_pb / INERTIA_LENGTH^2) for the inertia about the centre
+    of mass `inertia` (3 x 3, platform frame; zeros if None)."""
+    c = np.asarray(center_of_mass, dtype=float)
+    I_c = np.zeros((3, 3)) if inertia is None else np.asarray(inertia, dtype=float)
+    I_p = I_c + mass * (c.dot(c) * np.eye(3) - np.outer(c, c))
+    entries = [I_p[i, j] / INERTIA_LENGTH**2 for i, j in _INERTIA_ENTRIES]
+    return np.array([mass, *(mass * c / LENGTH), *entries])
 
 
 def mass_and_com(x: ArrayLike) -> tuple[float, tuple[float, float, float]]:
-    """(m, c_b) of x = (m, h / LENGTH)."""
-    m, hx, hy, hz = (float(v) for v in np.asarray(x).tolist())
+    """(m, c_b) of x."""
+    m, hx, hy, hz = (float(v) for v in np.asarray(x)[:4].tolist())
     return m, (LENGTH * hx / m, LENGTH * hy / m, LENGTH * hz / m)
+
+
+def inertia_about_com(x: ArrayLike) -> Array:
+    """I_b, the inertia about the centre of mass (3 x 3, platform frame), of x."""
+    x = np.asarray(x, dtype=float)
+    mass, com = mass_and_com(x)
+    I_p = np.zeros((3, 3))
+    for (i, j), value in zip(_INERTIA_ENTRIES, x[4:], strict=True):
+        I_p[i, j] = I_p[j, i] = value * INERTIA_LENGTH**2
+    c = np.array(com)
+    return I_p - mass * (c.dot(c) * np.eye(3) - np.outer(c, c))
 
 
 class PayloadEstimate:
@@ -171,14 +211,15 @@ class PayloadEstimate:
         self.file = robot.platform
         self.limits = payload_limits(robot, spec)
         self.frozen = spec.frozen
+        self.inertia = spec.inertia  # estimate the inertia too (where rotation excites it)
         self._robot = robot
         self._m0 = robot.m0
         self._forget = math.exp(-SAMPLE_EVERY * period / WINDOW)
         self._gain = SOLVE_EVERY * period / (spec.time_constant + SOLVE_EVERY * period)
-        self._prior = parameters(self.file.mass, self.file.center_of_mass)
         self._dead_zone = DEAD_ZONE * self.file.mass
         self.platform = self.file
-        self._x = self._prior.copy()  # the estimate, unbounded (the fault check)
+        # the estimate, unbounded (the fault check)
+        self._x = parameters(self.file.mass, self.file.center_of_mass, self.file.inertia)
         self._observed: tuple[Pose, Array, float, Array, Reference, Array, Array] | None = None
         self.fault = ""
         self.clear()
@@ -194,19 +235,20 @@ class PayloadEstimate:
     def clear(self) -> None:
         """Forget the data and a fault; the estimate restarts from the model in use (at
         enable: a payload still beyond the limits faults again once it is seen)."""
-        self._sums = np.zeros((5, 5))
+        self._sums = np.zeros((PARAMETERS + 1, PARAMETERS + 1))
         self._weight = 0.0
         self._cycles = 0
-        self._x = parameters(self.platform.mass, self.platform.center_of_mass)
+        platform = self.platform
+        self._x = parameters(platform.mass, platform.center_of_mass, platform.inertia)
         self.fault = ""
 
     def set(self, mass: float, center_of_mass: Sequence[float]) -> None:
         """Use this mass and centre of mass (identify-payload's, applied), within the limits
         (ValueError naming the limit if not); the online data restart from it."""
-        problem = self._beyond(parameters(mass, center_of_mass))
+        problem = self._beyond(parameters(mass, center_of_mass, self.platform.inertia))
         if problem:
             raise ValueError(problem)
-        self.platform = self._inertia(mass, center_of_mass)
+        self.platform = self._inertia(mass, center_of_mass, self.platform.inertia)
         self.clear()
 
     def observe(
@@ -238,8 +280,8 @@ class PayloadEstimate:
         jacobian = self._robot.jacobian(pose)
         platform = jacobian.T.dot(forces) - Lam.T.dot(self._m0 * (Lam.dot(accel) + c))
         row = regressor(pose, accel.tolist(), reference.twist.tolist(), self.file.gravity,
-                        platform.tolist(), self.platform.inertia_about_p)  # fmt: skip
-        Z = np.array(row).reshape(6, 5)
+                        platform.tolist())  # fmt: skip
+        Z = np.array(row).reshape(6, PARAMETERS + 1)
         self._sums *= self._forget
         self._sums += Z.T.dot(Z)
         self._weight = self._weight * self._forget + 1.0
@@ -249,12 +291,16 @@ class PayloadEstimate:
         if self._weight == 0.0:
             return False
         mean = self._sums / self._weight
-        A, b = mean[:4, :4], mean[:4, 4]
+        n = PARAMETERS if self.inertia else 4
+        A, b = mean[:n, :n], mean[:n, PARAMETERS]
+        x = self._x
+        if n < PARAMETERS:  # the inertia as the model has it: its torque is known
+            b = b - mean[:n, n:PARAMETERS].dot(x[n:])
+            x = x[:n]
         values, vectors = np.linalg.eigh(A)
         excited = vectors[:, values > EXCITED]
         if excited.shape[1] == 0:
             return False
-        x = self._x
         # towards the least-squares solution in the excited directions, as far as it lies
         # beyond the dead zone
         along = excited.T.dot(b) / values[values > EXCITED] - excited.T.dot(x)
@@ -263,25 +309,29 @@ class PayloadEstimate:
             return False
         along *= 1.0 - self._dead_zone / distance
         x = x + self._gain * excited.dot(along)
-        # and in the others the centre of mass where it was (a new mass at the old
-        # centre of mass, not at p)
+        # and in the others the centre of mass and the inertia about it where they were
+        # (a new mass at the old centre of mass, not at p)
         others = vectors[:, values <= EXCITED]
+        inertia = inertia_about_com(self._x)
         if others.shape[1]:
-            kept = parameters(float(x[0]), mass_and_com(self._x)[1])
+            kept = parameters(float(x[0]), mass_and_com(self._x)[1], inertia)[:n]
             x = x + others.dot(others.T.dot(kept - x))
+        if n < PARAMETERS:  # the same inertia about the new centre of mass
+            mass, com = mass_and_com(x)
+            x = parameters(mass, com, inertia)
         self._x = x
         problem = self._beyond(x)
         if problem:
             self.fault = problem
             return False
         mass, com = mass_and_com(x)
-        self.platform = self._inertia(mass, com)
+        self.platform = self._inertia(mass, com, inertia_about_com(x))
         return True
 
     def _beyond(self, x: Array) -> str:
         """Why x lies beyond the limits ("" if it does not)."""
         mass, com = mass_and_com(x)
-        low, high, com_max = self.limits
+        low, high, com_max, scale = self.limits
         if not low <= mass <= high:
             key, limit = ("mass_max", high) if mass > high else ("mass_min", low)
             return (
@@ -294,10 +344,20 @@ class PayloadEstimate:
                 f"payload beyond limits: centre of mass {moved * 1e3:.0f} mm from the robot "
                 f"file's, adaptation.com_max {com_max * 1e3:.0f} mm"
             )
+        inertia = inertia_about_com(x)
+        ratios = np.diag(inertia) / np.diag(self.file.inertia)
+        if not np.all(np.linalg.eigvalsh(inertia) > 0.0) or not (
+            1.0 / scale <= ratios.min() and ratios.max() <= scale
+        ):
+            return (
+                f"payload beyond limits: inertia diagonal {np.diag(inertia).round(4).tolist()} "
+                f"kg m^2, adaptation.inertia_scale_max {scale:g} of the robot file's "
+                f"{np.diag(self.file.inertia).round(4).tolist()}"
+            )
         return ""
 
-    def _inertia(self, mass: float, com: Sequence[float]) -> PlatformInertia:
-        return PlatformInertia(mass, com, self.file.inertia, self.file.gravity)
+    def _inertia(self, mass: float, com: Sequence[float], inertia: Array) -> PlatformInertia:
+        return PlatformInertia(mass, com, inertia, self.file.gravity)
 
 
 class StaticFit(NamedTuple):
@@ -326,10 +386,11 @@ def static_fit(robot: Robot, samples: Sequence[tuple[Pose, ArrayLike]]) -> Stati
     rows = []
     for pose, forces in samples:
         wrench = robot.jacobian(pose).T.dot(np.asarray(forces, dtype=float))
-        rows.append(np.array(regressor(pose, zero, zero, robot.platform.gravity,
-                                       wrench.tolist(), [0.0] * 9)).reshape(6, 5))  # fmt: skip
+        row = regressor(pose, zero, zero, robot.platform.gravity, wrench.tolist())
+        # at rest the inertia's columns are zero: mass and first moment only
+        rows.append(np.array(row).reshape(6, PARAMETERS + 1)[:, [0, 1, 2, 3, PARAMETERS]])
     Z = np.concatenate(rows)
-    Y, y = Z[:, :4], Z[:, 4]
+    Y, y = Z[:, :4], Z[:, -1]
     values, vectors = np.linalg.eigh(Y.T.dot(Y) / len(samples))
     excited = values > EXCITED
     V, lam = vectors[:, excited], values[excited]
@@ -337,7 +398,7 @@ def static_fit(robot: Robot, samples: Sequence[tuple[Pose, ArrayLike]]) -> Stati
     x = V.dot(V.T.dot(Y.T.dot(y)) / len(samples) / lam)
     if not excited.all():  # the centre of mass along what was not seen: the file's
         U = vectors[:, ~excited]
-        kept = parameters(float(x[0]), file.center_of_mass)
+        kept = parameters(float(x[0]), file.center_of_mass)[:4]
         x = x + U.dot(U.T.dot(kept - x))
     residual = y - Y.dot(x)
     dof = max(len(y) - int(excited.sum()), 1)

@@ -19,6 +19,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy import signal
 
+from cdpr.wrench_observer import WrenchObserver
+
 Array = NDArray[np.float64]
 Discretisation = Literal["zoh", "bilinear", "euler", "backward_diff"]
 
@@ -147,6 +149,14 @@ class DiscreteController:
         """Zero the state (integrators, filters): on enable and after a brake."""
         self.state[:] = 0.0
 
+    def preset(self, output: Array) -> None:
+        """Zero the state but for the integrators, which hold `output` per channel at zero
+        error (a bumpless start where something else carried part of the load);
+        ValueError without integral action."""
+        if self._hold is None:
+            raise ValueError("the controller has no integral action to hold an output")
+        self.state[:] = np.outer(self._hold[0], output)
+
     def step(self, error: Array) -> Array:
         """One sample: `error` is l x channels ([e; e'; ...]); returns a (channels,)."""
         self._stack[: self._order] = error
@@ -177,7 +187,10 @@ class SingleActuatorTracker:
     """The paper's closed-loop feed-forward controller for ONE actuator with effective
     mass m (§4): f_c = m (l_r'' + a) + k0 l_r' + bias, a from the discrete controller on
     [l - l_r, l' - l_r'].  `bias` is the known static load (e.g. -preload on the rig).
-    It is how the gains are tuned and checked on a single actuator."""
+    It is how the gains are tuned and checked on a single actuator.  With an `observer`
+    (cdpr.wrench_observer, size 1) the force the model does not explain is estimated
+    and cancelled, as on the robot; `lead` (s) is when a command acts after its
+    measurement (the drive's force lag and half a period)."""
 
     def __init__(
         self,
@@ -187,6 +200,8 @@ class SingleActuatorTracker:
         k0: float,
         bias: float = 0.0,
         method: Discretisation = "zoh",
+        observer: WrenchObserver | None = None,
+        lead: float = 0.0,
     ) -> None:
         if controller.order > 2:
             raise ValueError("the tracker measures e and e' only (controller order <= 2)")
@@ -194,6 +209,7 @@ class SingleActuatorTracker:
             raise ValueError(f"mass must be positive and finite, got {mass}")
         self.loop = controller.discretise(period, 1, method)
         self.mass, self.k0, self.bias = float(mass), float(k0), float(bias)
+        self.observer, self.lead = observer, lead
         self._error = np.zeros((controller.order, 1))
 
     def command(
@@ -204,4 +220,9 @@ class SingleActuatorTracker:
         if self._error.shape[0] > 1:
             self._error[1, 0] = rate - ref_rate
         a = float(self.loop.step(self._error)[0])
-        return self.mass * (ref_accel + a) + self.k0 * ref_rate + self.bias
+        net = self.mass * (ref_accel + a)
+        if self.observer is not None:
+            net -= float(self.observer.estimate[0])
+            self.observer.update(np.array([rate]), np.array([[self.mass]]), np.array([net]),
+                                 self.lead)  # fmt: skip
+        return net + self.k0 * ref_rate + self.bias

@@ -23,6 +23,8 @@ from typing import Protocol
 
 import can
 
+from cdpr.spool import Spool
+
 
 class DriverError(RuntimeError):
     """A drive did not do what the protocol asked of it (names the node and the step)."""
@@ -71,6 +73,8 @@ class Scaling:
     increments per MOTOR revolution (1.0 for drives that report turns); `gear_ratio`
     motor revolutions per drum revolution; `length_offset` the cable length (m) at
     motor position 0.  Forces are along +l (N), motor torques in N·m at the motor shaft.
+    With a `spool` (cdpr.spool) the drum's radius follows the cable length: rates,
+    velocities, torques and forces then convert at a cable length (`length`, m).
     """
 
     drum_radius: float
@@ -78,6 +82,8 @@ class Scaling:
     counts_per_rev: float = 1.0
     direction: int = 1
     length_offset: float = 0.0
+    spool: Spool | None = None
+    _zero_angle: float = field(init=False, repr=False, compare=False, default=0.0)
 
     def __post_init__(self) -> None:
         if self.direction not in (1, -1):
@@ -86,10 +92,12 @@ class Scaling:
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be a positive finite number, not {value}")
+        if self.spool is not None:  # the wound angle at motor position 0
+            object.__setattr__(self, "_zero_angle", self.spool.angle(self.length_offset))
 
     @property
     def metres_per_count(self) -> float:
-        """Cable length per encoder increment, signed by `direction`."""
+        """Cable length per encoder increment at drum_radius, signed by `direction`."""
         return (
             self.direction
             * 2.0
@@ -98,29 +106,51 @@ class Scaling:
             / (self.gear_ratio * self.counts_per_rev)
         )
 
+    @property
+    def radians_per_count(self) -> float:
+        """Drum angle paid out per encoder increment, signed by `direction`."""
+        return self.direction * 2.0 * math.pi / (self.gear_ratio * self.counts_per_rev)
+
+    def radius(self, length: float | None = None) -> float:
+        """The drum's effective radius (m): drum_radius, or the spool's at cable length
+        `length` (ValueError without it)."""
+        if self.spool is None:
+            return self.drum_radius
+        if length is None:
+            raise ValueError("a drum with a spool converts at a cable length: give `length`")
+        return self.spool.radius_at(length)
+
     def length(self, position: float) -> float:
         """Cable length (m) from a motor position in encoder increments."""
-        return self.length_offset + position * self.metres_per_count
+        if self.spool is None:
+            return self.length_offset + position * self.metres_per_count
+        return self.spool.length(self._zero_angle - position * self.radians_per_count)
 
     def position(self, length: float) -> float:
         """Motor position (increments, not rounded) at cable length `length`."""
-        return (length - self.length_offset) / self.metres_per_count
+        if self.spool is None:
+            return (length - self.length_offset) / self.metres_per_count
+        return (self._zero_angle - self.spool.angle(length)) / self.radians_per_count
 
-    def rate(self, velocity: float) -> float:
+    def rate(self, velocity: float, length: float | None = None) -> float:
         """Cable rate (m/s) from a motor velocity in increments per second."""
-        return velocity * self.metres_per_count
+        if self.spool is None:
+            return velocity * self.metres_per_count
+        return velocity * self.radians_per_count * self.radius(length)
 
-    def velocity(self, rate: float) -> float:
+    def velocity(self, rate: float, length: float | None = None) -> float:
         """Motor velocity (increments/s) at cable rate `rate`."""
-        return rate / self.metres_per_count
+        if self.spool is None:
+            return rate / self.metres_per_count
+        return rate / (self.radians_per_count * self.radius(length))
 
-    def motor_torque(self, force: float) -> float:
+    def motor_torque(self, force: float, length: float | None = None) -> float:
         """Motor torque (N·m) producing force `force` along +l (lossless gearing)."""
-        return self.direction * force * self.drum_radius / self.gear_ratio
+        return self.direction * force * self.radius(length) / self.gear_ratio
 
-    def force(self, torque: float) -> float:
+    def force(self, torque: float, length: float | None = None) -> float:
         """Force along +l (N) from a motor torque (N·m)."""
-        return self.direction * torque * self.gear_ratio / self.drum_radius
+        return self.direction * torque * self.gear_ratio / self.radius(length)
 
 
 @dataclass

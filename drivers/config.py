@@ -16,6 +16,7 @@ from pydantic import BeforeValidator, Discriminator, Field, Tag, model_validator
 from cdpr import ConfigError, Robot
 from cdpr.control_spec import DEFAULT_FORCE_LAG
 from cdpr.description import FiniteFloat, PositiveFloat, StrictModel, validate_section
+from cdpr.spool import Spool, drum_spool
 from drivers.base import BrakeMode, Scaling
 
 
@@ -69,11 +70,23 @@ ObjectRef = Annotated[
 
 class PdoSpec(StrictModel):
     """One PDO the host maps: its number (1..4, predefined COB-IDs), the objects in frame
-    order, and its transmission type (RPDO: 254/255 event-driven; TPDO: 1 = every SYNC)."""
+    order (0x0002-0x0007: dummy entries, where the EDS's [DummyUsage] allows them), and
+    its transmission type (RPDO: 254/255 event-driven; TPDO: 1 = every SYNC, 254/255 = on
+    change, at most once per inhibit_time).
+
+    shared (RPDO only): one frame for all the drives of a bus: each drive's objects in
+      turn, in cable order, every drive mapping dummy entries over the others' bytes.
+    cob_id: the COB-ID every drive of the bus takes for this RPDO (default: the
+      predefined one of each drive; a shared RPDO: that of the bus's lowest node id).
+    inhibit_time (TPDO): 0x18xx:03, least time between two event-driven TPDOs (100 us).
+    """
 
     number: Annotated[int, Field(ge=1, le=4)]
     objects: Annotated[list[ObjectRef], Field(min_length=1, max_length=8)]
     transmission_type: Annotated[int, Field(ge=0, le=255)]
+    shared: bool = False
+    cob_id: Annotated[int, Field(ge=1, le=0x7FF)] | None = None
+    inhibit_time: Annotated[int, Field(ge=0, le=0xFFFF)] = 0
 
 
 class SdoWrite(StrictModel):
@@ -295,11 +308,15 @@ class DrivesConfig(StrictModel):
         return self.protocol == "odrive"
 
     def scalings_for(self, robot: Robot) -> list[Scaling]:
-        """One Scaling per cable of `robot` (drum radii from its description)."""
-        return self.scalings([a.drum_radius for a in robot.actuators])
+        """One Scaling per cable of `robot` (drum radii and spools from its description)."""
+        spools = [drum_spool(a) for a in robot.actuators]
+        return self.scalings([a.drum_radius for a in robot.actuators], spools)
 
-    def scalings(self, drum_radii: Sequence[float]) -> list[Scaling]:
-        """One Scaling per cable, drum radii from the robot description."""
+    def scalings(
+        self, drum_radii: Sequence[float], spools: Sequence[Spool | None] | None = None
+    ) -> list[Scaling]:
+        """One Scaling per cable, drum radii (and spools, default none) from the robot
+        description."""
         if len(drum_radii) != len(self.nodes):
             raise ValueError(f"drives list {len(self.nodes)} nodes for {len(drum_radii)} cables")
         n = len(self.nodes)
@@ -307,6 +324,7 @@ class DrivesConfig(StrictModel):
         offsets = (
             self.length_offset if isinstance(self.length_offset, list) else [self.length_offset] * n
         )
+        spools = [None] * n if spools is None else spools
         return [
             Scaling(
                 drum_radius=float(radius),
@@ -314,8 +332,11 @@ class DrivesConfig(StrictModel):
                 counts_per_rev=self.counts_per_rev,
                 direction=direction,
                 length_offset=offset,
+                spool=spool,
             )
-            for radius, direction, offset in zip(drum_radii, directions, offsets, strict=True)
+            for radius, direction, offset, spool in zip(
+                drum_radii, directions, offsets, spools, strict=True
+            )
         ]
 
 

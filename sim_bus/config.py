@@ -58,6 +58,9 @@ class SimConfig(StrictModel):
     serve_socketcand: str | None = None
     wake_period: PositiveFloat | None = None
     rig: RigConfig | None = None
+    # the true robot: a robot file (relative to the config file) or an inline description,
+    # in place of the daemon's `robot:` (see true_base); plant.mismatch applies on top
+    robot: str | dict[str, Any] | None = None
 
     @model_validator(mode="after")
     def _wake_not_below_step(self) -> SimConfig:
@@ -83,8 +86,24 @@ class SimConfig(StrictModel):
         return period
 
 
+def true_base(sim: SimConfig, robot: Robot, base: Path, source: str = "config") -> Robot:
+    """The robot the simulator builds its truth on: `sim.robot` (a file relative to `base`,
+    the config's directory, or inline) with as many cables as the daemon's `robot`, or
+    `robot` itself when unset (the truth is then the daemon's file with plant.mismatch).
+    A calibrated robot file stays the daemon's while the simulated truth stays put."""
+    if sim.robot is None:
+        return robot
+    true = Robot.from_reference(sim.robot, base, source, "sim.robot")
+    if true.n_cables != robot.n_cables:
+        raise ConfigError(
+            f"{source}: sim.robot: the true robot has {true.n_cables} cables, the robot "
+            f"{robot.n_cables}"
+        )
+    return true
+
+
 class SimSetup(NamedTuple):
-    robot: Robot
+    robot: Robot  # the simulated robot before plant.mismatch (true_base)
     drives: DrivesConfig
     buses: list[CanConfig]  # the `can:` section's buses, one or several
     sim: SimConfig
@@ -109,4 +128,5 @@ def load_sim_setup(path: str | Path) -> SimSetup:
     drives = parse_drives(data["drives"], source)
     can = validate_section(CanFile, {k: v for k, v in data.items() if k == "can"}, source).can
     sim = parse_sim(data.get("sim"), source)
+    robot = true_base(sim, robot, path.resolve().parent, source)
     return SimSetup(robot, drives, can_buses(can, drives, source), sim)

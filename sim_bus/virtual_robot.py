@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import can
 import numpy as np
@@ -99,10 +99,14 @@ def bench_rig(robot: Robot, config: PlantConfig, rig: RigConfig) -> SingleActuat
     return SingleActuatorRig(actuator, load, config, rig.cable_length, preload)
 
 
+DeviceFactory = Callable[[DrivesConfig, list[Scaling]], list[VirtualDrive]]
+
+
 class VirtualRobot:
     """Plant + virtual drives.  `t` is simulated time in seconds from the start.  With
     `rig`, the plant is one winch on the bench (sim_bus.config.RigConfig) behind the
-    drive of cable `rig.drive` alone (its index here is 0)."""
+    drive of cable `rig.drive` alone (its index here is 0).  `devices` makes the drives
+    from the config and the devices' scalings (default: the project's virtual drives)."""
 
     def __init__(
         self,
@@ -110,6 +114,7 @@ class VirtualRobot:
         drives: DrivesConfig,
         plant: PlantConfig | None = None,
         rig: RigConfig | None = None,
+        devices: DeviceFactory = make_virtual_drives,
     ) -> None:
         if rig is None:
             self.plant: Plant | SingleActuatorRig = Plant(robot, plant)
@@ -119,7 +124,7 @@ class VirtualRobot:
             self.plant = bench_rig(robot, plant or PlantConfig(), rig)
             drives, scalings = drives.single(rig.drive), [drives.scalings_for(robot)[rig.drive]]
         self.protocol = drives.protocol
-        self.drives = make_virtual_drives(drives, scalings)
+        self.drives = devices(drives, scalings)
         self.n = len(self.drives)
         buses = drives.bus_names()
         # each drive's bus where there are several (frames are routed by channel), else None

@@ -4,19 +4,20 @@ tests/data/generic_servo_cia402.eds (its default mapping RPDO1 = controlword, TP
 statusword, no 0x2000/0x2001) is the SDO server (object dictionary, access and size
 checks), the NMT slave, the heartbeat producer and the PDO codec.  `CanopenDrive` adds
 only what canopen leaves to a drive's application: the 402 state machine on the
-controlword, the PDO configuration taking effect at NMT start, TPDOs on SYNC, and the
-consumer heartbeat 0x1016 with its 0x6007 / 0x605A reaction (`check_heartbeat`)."""
+controlword, the PDO configuration taking effect at NMT start, TPDOs on SYNC and
+event-driven ones on change, RPDO dummy entries skipped, and the consumer heartbeat
+0x1016 with its 0x6007 / 0x605A reaction (`check_heartbeat`)."""
 
 from __future__ import annotations
 
+import contextlib
 import struct
 import time
+from collections.abc import Callable
+from contextlib import AbstractContextManager
 from pathlib import Path
 
 import canopen
-
-from cdpr.controller import static_tensions, tension_solver
-from daemon.config import DaemonConfig
 
 VENDOR_EDS = Path(__file__).resolve().parent / "data" / "generic_servo_cia402.eds"
 
@@ -52,9 +53,13 @@ class CanopenDrive:
         self.torques: list[int] = []  # target torques received while enabled in mode 10
         self.heard: float | None = None  # monotonic time of the consumed heartbeat
         self.lost: float | None = None  # when the consumer heartbeat expired
+        self.sent: dict[int, bytes] = {}  # event-driven TPDO COB-ID -> the data last sent
+        # entered around applying an RPDO: a power stage coupled to a plant
+        # (tests/canopen_robot.py) takes its whole content at once, at its arrival
+        self.rpdo_guard: Callable[[], AbstractContextManager] = contextlib.nullcontext
         self.node.add_write_callback(self._on_write)
         network.subscribe(0x000, self._on_nmt)
-        network.subscribe(0x080, self._on_sync)
+        network.subscribe(0x080, self.on_sync)
         self.node.nmt.state = "PRE-OPERATIONAL"
 
     def store(self, index: int, form: str, value: int) -> None:
@@ -71,8 +76,10 @@ class CanopenDrive:
         if index == 0x6040:
             controlword = struct.unpack("<H", data)[0]
             self.store(0x6041, "<H", next_statusword(self.value(0x6041), controlword))
+            self.events()
         elif index == 0x6060 and data[0] != 0:  # 0: no change
             self.store(0x6061, "<b", struct.unpack("<b", data)[0])
+            self.events()
         elif index == 0x6071 and self.value(0x6041) == ENABLED and self.value(0x6061) == 10:
             self.torques.append(struct.unpack("<h", data)[0])
         elif (index, subindex) == (0x1016, 1):
@@ -97,6 +104,20 @@ class CanopenDrive:
                 self.store(0x6041, "<H", QUICK_STOP)
             elif option in (2, 3):
                 self.store(0x6041, "<H", SWITCH_ON_DISABLED)
+            self.events()
+
+    def events(self, starting: bool = False) -> None:
+        """The event-driven TPDOs (type 254/255) whose data changed, sent while
+        operational (`starting`: at NMT start, which canopen's NMT slave may apply later)."""
+        if not starting and self.node.nmt.state != "OPERATIONAL":
+            return
+        for pdo in self.node.tpdo.map.values():
+            if pdo.enabled and pdo.trans_type in (254, 255):
+                for var in pdo.map:
+                    var.set_data(self.node.get_data(var.index, var.subindex))
+                if self.sent.get(pdo.cob_id) != bytes(pdo.data):
+                    self.sent[pdo.cob_id] = bytes(pdo.data)
+                    pdo.transmit()
 
     def _on_nmt(self, can_id: int, data: bytearray, timestamp: float) -> None:
         """At NMT start the PDO configuration written by SDO takes effect."""
@@ -106,13 +127,19 @@ class CanopenDrive:
             for pdo in self.node.rpdo.map.values():
                 if pdo.enabled and self._on_rpdo not in pdo.callbacks:
                     pdo.add_callback(self._on_rpdo)
+            self.sent = {}
+            self.events(starting=True)
 
     def _on_rpdo(self, pdo) -> None:
-        """Mapped objects written in frame order (mode before the torque it is for)."""
-        for var in sorted(pdo.map, key=lambda v: v.index != 0x6060):
-            self.node.set_data(var.index, var.subindex, var.get_data())
+        """Mapped objects written in frame order (mode before the torque it is for), as
+        one (`rpdo_guard`); a dummy entry (0x0002-0x0007) skips another drive's bytes."""
+        with self.rpdo_guard():
+            for var in sorted(pdo.map, key=lambda v: v.index != 0x6060):
+                if var.index >= 0x1000:
+                    self.node.set_data(var.index, var.subindex, var.get_data())
 
-    def _on_sync(self, can_id: int, data: bytearray, timestamp: float) -> None:
+    def on_sync(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        """In OPERATIONAL, the SYNC-triggered TPDOs with the objects as they are now."""
         if self.node.nmt.state != "OPERATIONAL":
             return
         for pdo in self.node.tpdo.map.values():
@@ -121,16 +148,3 @@ class CanopenDrive:
                     var.set_data(self.node.get_data(var.index, var.subindex))
                 pdo.transmit()
 
-
-def drives_for(config: DaemonConfig, network: canopen.Network) -> list[CanopenDrive]:
-    """One drive per cable of `config` on `network`, at the position of the cable its
-    drum paid out with the platform resting at home (elastic cables stretch under the
-    holding tensions)."""
-    robot = config.robot
-    tensions = static_tensions(robot, tension_solver(robot, config.controller), robot.home)
-    lengths = robot.drum_lengths(robot.cable_lengths(robot.home), tensions)
-    scalings = config.drives.scalings_for(robot)
-    return [
-        CanopenDrive(network, node, round(s.position(length)))
-        for node, s, length in zip(config.drives.nodes, scalings, lengths, strict=True)
-    ]

@@ -1,9 +1,13 @@
 """A separate process for tests/daemon/test_canopen_drives.py: the eight canopen drives
-of tests/canopen_drive.py for a daemon config's `drives:` on a LoopBus served over
-socketcand on 127.0.0.1 (a free port, printed as "PORT <n>").  Each drive's consumer
-heartbeat is checked every 10 ms.  A line "status" on stdin prints one JSON line: per
-drive its statusword, mode display, target position, position actual and the torque
-commands it received.  Exits when stdin closes or after --lifetime seconds.
+of tests/canopen_drive.py on the plant (tests/canopen_robot.py) for a daemon config's
+`drives:` and `sim:`, on a LoopBus served over socketcand on 127.0.0.1 (a free port,
+printed as "PORT <n>").  A line "status" on stdin prints one JSON line: per drive its
+statusword, mode display, target position, position actual, the torque commands it
+received, its consumer heartbeat 0x1016:01 and when (monotonic) that expired; a line
+"truth SINCE" prints the true platform positions sampled at monotonic time >= SINCE as
+one JSON line of [t, x, y, z] rows; a line "delays" prints the seconds from the latest
+SYNC to each command the drives received as one JSON list.  Exits when stdin closes or
+after --lifetime seconds.
 
     python -m tests.canopen_drives_process --config FILE [--lifetime 120]
 """
@@ -16,14 +20,13 @@ import contextlib
 import json
 import os
 import sys
-import time
 
 import canopen
 
 from daemon.config import load_config
 from sim_bus.bus.loopbus import LoopBus
 from sim_bus.bus.socketcand import SocketcandServer
-from tests.canopen_drive import drives_for
+from tests.canopen_robot import CanopenRobot
 
 
 async def serve(config_path: str, lifetime: float) -> None:
@@ -32,7 +35,8 @@ async def serve(config_path: str, lifetime: float) -> None:
     channel = f"canopen-drives-{os.getpid()}"
     network = canopen.Network()
     network.connect(interface="cdprd_loop", channel=channel)
-    drives = drives_for(config, network)
+    robot = CanopenRobot(config, network)
+    drives = robot.drives
     done = asyncio.Event()
     lines = bytearray()
 
@@ -45,6 +49,8 @@ async def serve(config_path: str, lifetime: float) -> None:
                     "target": d.value(0x607A),
                     "position": d.value(0x6064),
                     "torques": d.torques[-100:],
+                    "consumer": d.value(0x1016, 1),
+                    "lost": d.lost,
                 }
                 for d in drives
             ]
@@ -58,24 +64,22 @@ async def serve(config_path: str, lifetime: float) -> None:
         while b"\n" in lines:
             line, _, rest = bytes(lines).partition(b"\n")
             lines[:] = rest
-            if line.strip() == b"status":
+            command, *args = line.split() or [b""]
+            if command == b"status":
                 print(status(), flush=True)
-
-    async def watch() -> None:
-        while True:
-            now = time.monotonic()
-            for drive in drives:
-                drive.check_heartbeat(now)
-            await asyncio.sleep(0.01)
+            elif command == b"truth":
+                print(json.dumps(robot.truth(float(args[0])).tolist()), flush=True)
+            elif command == b"delays":
+                print(json.dumps(robot.command_delays().tolist()), flush=True)
 
     with LoopBus(channel) as served:
         loop.add_reader(sys.stdin.fileno(), stdin_readable)
-        watcher = loop.create_task(watch())
+        robot.start()
         async with SocketcandServer(served) as server:
             print(f"PORT {server.port}", flush=True)
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(done.wait(), lifetime)
-        watcher.cancel()
+        robot.close()
         loop.remove_reader(sys.stdin.fileno())
     network.disconnect()
 

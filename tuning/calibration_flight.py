@@ -164,6 +164,8 @@ def fly_poses(
     stopped)."""
     plant = _plant(robot, config, start)
     flight = _Flight(model, spec, Encoders(plant, model, offsets))
+    if flight.controller.payload is not None:  # the file's platform, as `cdprd calibrate`
+        flight.controller.payload.frozen = True
     # the moves start from the pose measured at enable (the first cycle)
     run_lockstep(plant, flight.control, 0.1, spec.rate_hz)
     t, here = 0.1, flight.controller.pose

@@ -46,13 +46,32 @@ def vertical_lift(robot: Robot, height: float = 1.0, duration: float = 4.0) -> T
     return Trajectory([Waypoint(0.0, Pose(low, q)), Waypoint(duration, Pose(high, q))])
 
 
-def edge_move(robot: Robot, duration: float = 2.2) -> Trajectory:
+def edge_move(robot: Robot, duration: float = 2.3) -> Trajectory:
     """Rest to rest across the workspace 0.55 m from the centre line, low and with a
-    turn: 1.2 m in `duration` s (peak 1.0 m/s at the default)."""
+    turn: 1.2 m in `duration` s.  Two waypoints make a minimum-jerk move, whose peak
+    speed is 15/8 of the mean: 0.98 m/s at the default, inside the trajectory limit
+    linear_speed of 1 m/s (the default's, and the reference configs'), so that the
+    daemon accepts it."""
     home = robot.home.position
     start = Pose.from_rotvec(home + np.array((-0.6, 0.55, -0.35)), (0.0, 0.0, -0.15))
     end = Pose.from_rotvec(home + np.array((0.6, 0.55, -0.35)), (0.0, 0.0, 0.15))
     return Trajectory([Waypoint(0.0, start), Waypoint(duration, end)])
+
+
+def rotation_wobble(
+    robot: Robot, amplitude_deg: float = 12.0, rate: float = 4.0, laps: float = 3.0
+) -> Trajectory:
+    """The platform turning about all three axes at home, out of phase and at three
+    rates (s, 1.5 s, 0.75 s with ds/dt = `rate`), for `laps` laps of s: angular
+    accelerations of a few rad/s^2 about every axis, which reveal the inertia."""
+    a = math.radians(amplitude_deg)
+    centre = robot.home.position
+
+    def pose(s: float) -> Pose:
+        return Pose.from_rotvec(centre, (a * math.sin(s), a * math.sin(1.5 * s),
+                                         a * math.sin(0.75 * s)))  # fmt: skip
+
+    return _eased(pose, 2.0 * math.pi * laps, rate, ease=1.0)
 
 
 STANDARD_SET: dict[str, Callable[[Robot], Trajectory]] = {

@@ -10,7 +10,8 @@ from cdpr import ConfigError, Robot
 from cdpr.description import load_yaml
 from daemon.cli import analyze_cmd, calibrate_cmd, client_cmd, demo_cmd, run_cmd, tune_cmd
 from daemon.config.watchdog_drift import FORMULA
-from drivers.cia402.profile import plan as drive_plan
+from drivers.cia402.profile import plans as drive_plans
+from sim_bus.bus.cycle_frames import bus_cycles
 
 
 def check_config(path: str) -> int:
@@ -48,8 +49,9 @@ def check_config(path: str) -> int:
             f"drives: {d.protocol} nodes {d.nodes}, brake {d.brake.value}, "
             f"watchdog {d.watchdog_timeout * 1e3:g} ms"
         )
+        loads: dict[str, str] = {}
         if d.protocol == "cia402":  # what a dead daemon leaves behind (checked at load)
-            plan = drive_plan(d)
+            plan = next(iter(drive_plans(d).values()))
             print(f"drive profile: EDS {plan.eds}")
             print(f"drive watchdog (when the daemon dies): {plan.watchdog}")
             print(
@@ -61,12 +63,18 @@ def check_config(path: str) -> int:
             print(f"drift before a drive notices ({FORMULA}; limit {limit:g} mm):")
             for bound in config.watchdog_drift:
                 print(f"  {bound.text()}")
+            rate = config.controller.rate_hz
+            loads = {
+                bus.name: f", load {bus.load(rate) * 100:.1f} % at {rate:g} Hz (worst-case "
+                "stuffing)"
+                for bus in bus_cycles(d, robot, config.buses)
+            }
         for c in config.buses:
             where = f"bus: {c.interface} {c.channel} at {c.bitrate} bit/s"
             if len(config.buses) > 1:
                 nodes = [n for n, b in zip(d.nodes, d.bus_names(), strict=True) if b == c.bus_name]
                 where = f"bus {c.bus_name}: {where.removeprefix('bus: ')}, nodes {nodes}"
-            print(where)
+            print(where + loads.get(c.bus_name, ""))
         print(
             f"controller: {config.controller.rate_hz:g} Hz, model at {config.controller.model_at}; "
             f"home pose in W: yes"

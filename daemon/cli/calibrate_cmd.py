@@ -2,6 +2,7 @@
 item 4; DESIGN §15 step 5).
 
     cdprd calibrate --config FILE [--poses N] [--reach X Y Z] [--tilt RAD] [--dwell S]
+                    [--average S]
                     [--output FILE] [--json]   + the client options (--prefix, --connect)
     cdprd calibrate --config FILE --from-recording RUN.mcap [--output FILE] [--json]
 
@@ -9,7 +10,13 @@ Flying: the daemon must be enabled (HOLD).  Poses are picked for identifiability
 (greedy D-optimal from random candidates within --reach of home and --tilt of its
 orientation, inside the limits a goto keeps and the cables' limits), flown to one by one
 by slow rest-to-rest trajectories (SPEED), and at each the lengths and commanded forces
-are averaged over the last 0.3 s of --dwell at rest (from the published state).  From a
+are averaged over the last --average s of --dwell (default its second half), from the
+published state, while the platform flies a small loop (DITHER) about the pose: at rest
+each length reads the same encoder count all along, whose rounding (15 um on reference8's
+drives) is then an error of every sample that the fit amplifies (the identification is
+ill-conditioned: condition numbers of thousands); swept over a few counts the average
+resolves the length far finer, and the loop's effect on the mean length (its curvature,
+DITHER^2 / length) is nanometres.  From a
 recording: the telemetry MCAP of a run (recording.telemetry, or run --record), every
 stretch of at least 0.6 s at rest giving a pose.  Either way tuning.calibration solves
 for the anchors, attachments, each cable's length offset and drum radius, and the
@@ -32,12 +39,14 @@ parameters that cannot be identified), 2 usage, 3 no daemon reachable.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import datetime
 import json
 import math
 import sys
 import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -53,10 +62,10 @@ if TYPE_CHECKING:
     from tuning.calibration import Calibration, Sample
 
 EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_UNREACHABLE = 0, 1, 2, 3
-AVERAGE = 0.3  # s at the end of each dwell averaged into a sample
 SPEED = 0.2  # m/s (and rad/s) of the moves between poses
 MOVE_MIN = 1.5  # s: the shortest move
 MIN_POSES = 8  # below this the command refuses before flying
+DITHER = 2e-4  # m: the loop flown about each pose while its state is averaged
 
 
 class CalibrationError(Exception):
@@ -79,6 +88,9 @@ def add_parser(subparsers: Any) -> None:
     )  # fmt: skip
     p.add_argument("--tilt", type=float, default=0.2, help="largest tilt from home, rad")
     p.add_argument("--dwell", type=float, default=1.5, help="seconds at rest at each pose")
+    p.add_argument(
+        "--average", type=float, help="seconds at the end of each dwell averaged (default: half)"
+    )
     p.add_argument("--seed", type=int, default=0, help="of the candidate poses")
     p.add_argument("--output", help="the corrected robot file (default: beside the old one)")
     p.add_argument("--json", action="store_true", help="print the report as one JSON object")
@@ -101,6 +113,12 @@ def run(args: argparse.Namespace) -> int:
     if args.poses < MIN_POSES and args.from_recording is None:
         print(f"usage error: --poses: at least {MIN_POSES}", file=sys.stderr)
         return EXIT_USAGE
+    average = args.dwell / 2 if args.average is None else args.average
+    if not 0.0 < average <= args.dwell:
+        print(f"usage error: --average: more than 0 s, at most --dwell ({args.dwell:g} s)",
+              file=sys.stderr)  # fmt: skip
+        return EXIT_USAGE
+    args.average = average
     output = _output_path(config, args.output)
     if output.exists():
         print(f"error: {output} exists: not overwritten (give another --output)", file=sys.stderr)
@@ -199,14 +217,40 @@ def _fly(config: DaemonConfig, args: argparse.Namespace) -> tuple[np.ndarray, li
                 f"the daemon is {status['state']}: enable it (cdprd enable) at rest first"
             )
         offsets = np.array(status["offsets"]["values"], dtype=float)
-        return offsets, _record_poses(client, poses, args.dwell)
+        with _file_platform(client, robot):
+            return offsets, _record_poses(client, poses, args.dwell, args.average)
 
 
-def _record_poses(client: CdprClient, poses: list[Pose], dwell: float) -> list[Sample]:
+@contextlib.contextmanager
+def _file_platform(client: CdprClient, robot: Robot) -> Iterator[None]:
+    """The robot file's platform in the daemon's model, frozen while flying, the payload
+    estimate unfrozen after: an uncalibrated geometry looks like a payload to the estimate
+    (cdpr.payload), which would drift to its limit (adaptation.com_max) and brake, and
+    the forces recorded are whatever holds the platform either way.  Nothing to do when
+    the estimate is off."""
+    from daemon.interface.client import RequestError
+
+    platform = robot.platform
+    try:
+        client.payload(True, platform.mass, [float(c) for c in platform.center_of_mass])
+    except RequestError as exc:
+        if exc.code != "invalid_state":
+            raise
+        yield
+        return
+    try:
+        yield
+    finally:
+        client.payload(False)
+
+
+def _record_poses(
+    client: CdprClient, poses: list[Pose], dwell: float, average: float
+) -> list[Sample]:
     """Move slowly to each pose (a rest-to-rest trajectory at SPEED, not a goto at the
-    trajectory limits: the model is not calibrated yet) and average the state at rest
-    there; a pose the daemon refuses to go to (the way leaves the wrench set, say) is
-    skipped."""
+    trajectory limits: the model is not calibrated yet), wait, and average the state over
+    the dither loop there (the module docstring); a pose the daemon refuses to go to (the
+    way leaves the wrench set, say) is skipped."""
     from cdpr.trajectory import Trajectory, Waypoint
     from daemon.interface.client import RequestError
     from tuning.calibration import Sample
@@ -220,8 +264,7 @@ def _record_poses(client: CdprClient, poses: list[Pose], dwell: float) -> list[S
             q = state["pose"]["quaternion"]
             with lock:
                 latest[:] = [Pose(state["pose"]["position"], (q["w"], q["x"], q["y"], q["z"]))]
-                if state["state"] == "hold":
-                    rows.append((time.monotonic(), state["lengths"], state["forces"]))
+                rows.append((time.monotonic(), state["lengths"], state["forces"]))
 
     samples = []
     subscriber = client.subscribe_state(on_state)
@@ -239,10 +282,14 @@ def _record_poses(client: CdprClient, poses: list[Pose], dwell: float) -> list[S
                     raise
                 _say(f"flying: pose {k + 1} of {len(poses)} refused, skipped: {exc.reason}")
                 continue
-            time.sleep(float(reply["result"].get("duration", move)) + dwell)
+            time.sleep(float(reply["result"].get("duration", move)) + dwell - average)
             here = target
             with lock:
-                recent = [r for r in rows if r[0] >= time.monotonic() - AVERAGE]
+                rows.clear()
+            _dither(client, target, average)
+            time.sleep(average)
+            with lock:
+                recent = list(rows)
                 rows.clear()
             if not recent:
                 state = client.status()
@@ -261,6 +308,28 @@ def _record_poses(client: CdprClient, poses: list[Pose], dwell: float) -> list[S
     finally:
         subscriber.undeclare()
     return samples
+
+
+def _dither(client: CdprClient, pose: Pose, duration: float) -> None:
+    """Send a loop of DITHER about `pose` (at rest there) lasting `duration`: through
+    +-DITHER along each axis in turn and back, at rest at each corner (the daemon
+    validates a transition's first segment as a trajectory of its own, which must end
+    at rest).  If the daemon refuses it the platform stays at rest, averaged as it is."""
+    from cdpr.trajectory import Trajectory, Waypoint
+    from daemon.interface.client import RequestError
+
+    steps = [np.zeros(3)] + [DITHER * sign * axis for sign in (1, -1) for axis in np.eye(3)]
+    dt = duration / len(steps)
+    rest = np.zeros(6)
+    waypoints = [
+        Waypoint(k * dt, Pose(pose.position + step, pose.quaternion_tuple), rest, rest)
+        for k, step in enumerate(steps)
+    ]
+    try:
+        client.send_trajectory(Trajectory([*waypoints, Waypoint(duration, pose)]))
+    except RequestError as exc:
+        if exc.code != "rejected":
+            raise
 
 
 def _wait_for_pose(latest: list[Pose], lock: threading.Lock, timeout: float = 5.0) -> Pose:

@@ -7,6 +7,7 @@
     cdprd identify-payload [--apply]
     cdprd payload [--freeze | --unfreeze]
     cdprd home [--pose NAME]      (the platform resting at the robot file's pose NAME)
+    cdprd pretension [--pose NAME]  (from slack cables, the platform on a fixture there)
     common options: --prefix cdpr/<robot>  --connect tcp/127.0.0.1:7447  --timeout S
                     --zenoh-config FILE (raw zenoh keys, e.g. TLS certificates)
 
@@ -36,6 +37,7 @@ from daemon.interface.client import (
 
 EXIT_OK, EXIT_REFUSED, EXIT_USAGE, EXIT_UNREACHABLE = 0, 1, 2, 3
 IDENTIFY_TIMEOUT = 120.0  # s: identify-payload moves through five poses
+PRETENSION_TIMEOUT = 120.0  # s: winding in (up to pretension.taut_timeout), ramp, settle
 REQUEST_FILE_MAX_BYTES = 64 << 20  # a trajectory file (the daemon limits what it takes)
 _SIMPLE = {
     "status": "print the daemon's safety state",
@@ -126,6 +128,18 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
         "--pose", help="the robot file's pose (poses:) it rests at (default: the home pose)"
     )
     home.set_defaults(run=_runner("home", lambda args: lambda c: c.home(args.pose)))
+    pretension = subparsers.add_parser(
+        "pretension",
+        parents=[common],
+        help="wind slack cables in, tension them without moving the platform, close the loop",
+    )
+    pretension.add_argument(
+        "--pose", help="the robot file's pose (poses:) of the fixture it rests on (default home)"
+    )
+    pretension.set_defaults(
+        run=_runner("pretension", lambda args: lambda c: c.pretension(args.pose)),
+        timeout=PRETENSION_TIMEOUT,
+    )
 
 
 def _runner(

@@ -19,7 +19,7 @@ from daemon.process.app import ServiceHook, serve
 from daemon.service.bus_port import Buses
 from sim_bus.bus.frame_faults import FaultyBus
 from sim_bus.bus.loopbus import LoopBus
-from sim_bus.config import SimConfig, parse_sim
+from sim_bus.config import SimConfig, parse_sim, true_base
 from sim_bus.runner import SimulatorRunner
 from sim_bus.virtual_robot import VirtualRobot
 
@@ -85,8 +85,9 @@ def simulated_robot(config: DaemonConfig, sim: SimConfig) -> VirtualRobot:
     it cannot be built: e.g. a plant mismatch whose true robot has no static equilibrium
     at its home pose."""
     where = f"{config.source}: sim.plant"
+    robot = true_base(sim, config.robot, config.base, config.source)
     try:
-        return VirtualRobot(config.robot, config.drives, sim.plant, sim.rig)
+        return VirtualRobot(robot, config.drives, sim.plant, sim.rig)
     except ConfigError as exc:
         raise exc.within(where) from None
     except ValueError as exc:  # no static equilibrium (sim_bus.plant.statics)

@@ -33,6 +33,7 @@ from cdpr.description import (
 )
 from cdpr.payload import payload_limits
 from cdpr.pose_limits import PoseLimits
+from cdpr.pretension import PretensionSpec
 from cdpr.trajectory import (
     TrajectoryLimits,
     cable_speed_bounds,
@@ -43,7 +44,7 @@ from daemon.config.ros2_config import Ros2Settings
 from daemon.config.view_config import ViewConfig
 from daemon.config.watchdog_drift import DriftBound, check_drift, drift_bounds
 from daemon.config.zenoh_config import ZenohSettings
-from drivers.cia402.profile import ProfileError, plan, with_eds_from
+from drivers.cia402.profile import ProfileError, plans, with_eds_from
 from drivers.config import CanConfig, CanSection, DrivesConfig, can_buses, parse_drives
 
 Fraction = Annotated[float, Field(gt=0.0, lt=1.0)]
@@ -157,6 +158,8 @@ class FileConfig(StrictModel):
     # homing and calibration state (daemon.service.calibration_state); default: systemd's
     # $STATE_DIRECTORY (the unit's StateDirectory=cdprd, /var/lib/cdprd), else none
     state_dir: Annotated[str, Field(min_length=1)] | None = None
+    # bring-up from slack cables on a docking fixture (cdpr.pretension, `cdprd pretension`)
+    pretension: PretensionSpec = PretensionSpec()
 
 
 class DaemonConfig:
@@ -200,9 +203,19 @@ class DaemonConfig:
                 update={"host_heartbeat_period": period, "consumer_heartbeat_time": consumer}
             )
             try:
-                detection = plan(self.drives).detection
+                checked = plans(self.drives)
             except ProfileError as exc:
-                raise ConfigError(f"{source}: drives.{exc}") from None
+                bus = f" (bus {exc.bus})" if exc.bus else ""
+                raise ConfigError(f"{source}: drives.{exc}{bus}") from None
+            if self.controller.velocity == "drive" and not all(
+                p.velocity for p in checked.values()
+            ):
+                raise ConfigError(
+                    f"{source}: controller.velocity: drive, but no TPDO on SYNC of "
+                    "drives.profile maps velocity actual 0x606C: set controller.velocity: "
+                    "differentiate (the twist from successive poses)"
+                )
+            detection = max(p.detection for p in checked.values())
             self.watchdog_drift = drift_bounds(robot, self.drives.nodes, raw.trajectory, detection)
         # the buses of `can:` (one, or a list), the first the only one in a single-bus config
         self.buses: list[CanConfig] = can_buses(raw.can, self.drives, source)
@@ -216,6 +229,7 @@ class DaemonConfig:
         self.sim = raw.sim
         self.ros2: Ros2Settings = validate_section(Ros2Settings, raw.ros2, source, "ros2")
         self.state_dir = _state_dir(self, raw.state_dir)
+        self.pretension: PretensionSpec = raw.pretension
         try:
             lo, hi = workspace_box(robot, raw.safety)
         except ConfigError as exc:

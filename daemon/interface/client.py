@@ -120,6 +120,11 @@ class CdprClient:
         platform rests now: every cable's length offset set and stored."""
         return self.request("home", None if pose is None else {"pose": pose})
 
+    def pretension(self, pose: str | None = None) -> dict[str, Any]:
+        """Wind the slack cables in, tension them and close the position loop, the
+        platform resting on a fixture at the robot file's pose `pose` (default home)."""
+        return self.request("pretension", None if pose is None else {"pose": pose})
+
     def goto(
         self, position: Sequence[float], quaternion: Mapping[str, float] | None = None
     ) -> dict[str, Any]:

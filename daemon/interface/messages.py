@@ -21,6 +21,7 @@ Inputs (objects; unknown keys, wrong types, NaN/Infinity tokens are refused):
         identify_payload: {"apply": false}  (hold a few poses, estimate the payload
                statically, apply it if asked)
         home:  {"pose": "dock"}  (optional: a pose named in the robot file, default home)
+        pretension: {"pose": "dock"}  (as home: the fixture's pose the platform rests at)
 
 Outputs:
 
@@ -70,6 +71,7 @@ _ARGS = {
     "payload": ("frozen", "mass", "center_of_mass"),
     "identify_payload": ("apply",),
     "home": ("pose",),
+    "pretension": ("pose",),
 }
 _IDENTITY = {"w": 1.0, "x": 0.0, "y": 0.0, "z": 0.0}
 _XYZ = ("x", "y", "z")
@@ -318,14 +320,14 @@ def decode_command(
         return _payload_args(data)
     if name == "identify_payload":
         return {"apply": True} if _flag(data, "apply", "identify_payload") else {}
-    if name == "home":
+    if name in ("home", "pretension"):
         pose = data.get("pose")
         if pose is None:
             return {}
         if not isinstance(pose, str) or not 0 < len(pose) <= MAX_POSE_NAME:
             raise CommandError(
                 "bad_request",
-                f"home.pose: expected a pose name of up to {MAX_POSE_NAME} characters",
+                f"{name}.pose: expected a pose name of up to {MAX_POSE_NAME} characters",
                 field="pose",
             )
         return {"pose_name": pose}

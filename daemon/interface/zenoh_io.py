@@ -80,7 +80,7 @@ MESSAGES_PER_PASS = 1  # per queue and loop pass: the control cycle waits for at
 CLOSE_GRACE = 1.0  # s: how long close() waits for commands still running (enable, reset)
 # the commands that wait for the drives or for planning and validation: one at a time
 # (another meanwhile gets "busy"); a hold plans too but must never be turned away
-_ONE_AT_A_TIME = ("enable", "reset", "goto", "identify_payload", "home")
+_ONE_AT_A_TIME = ("enable", "reset", "goto", "identify_payload", "home", "pretension")
 MAX_COMMAND_BYTES = 16 * 1024  # commands are small: decoding one on a zenoh thread is short
 PARSE_SLICE = 2e-4  # s: the parse thread works at most about this long at a time,
 PARSE_PAUSE = 1e-5  # s: then sleeps at least this long (see _Yielding)

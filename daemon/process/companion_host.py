@@ -205,7 +205,7 @@ class CompanionHost:
                 self._lost_since = None
             elif self._lost_since is None:
                 self._lost_since = self._last_heard
-            elif now - self._lost_since > safety.companion_lost and self.service.machine.moving:
+            elif now - self._lost_since > safety.companion_lost and self.service.machine.powered:
                 self.service.brake(
                     Fault(
                         Trigger.COMPANION_LOST,

@@ -24,7 +24,7 @@ if TYPE_CHECKING:
 
 COMMANDS = (
     "enable", "disable", "hold", "brake", "reset", "goto", "status",
-    "payload", "identify_payload", "home",
+    "payload", "identify_payload", "home", "pretension",
 )  # fmt: skip
 """The command names, each served on `<prefix>/cmd/<name>`."""
 
@@ -87,6 +87,7 @@ class DaemonHandler(Protocol):
                              "center_of_mass": [x, y, z] (m, platform frame)}
             identify_payload: {"apply": bool}
             home:  {"pose_name": str} or {}  (a pose of the robot file; default home)
+            pretension: as home (the fixture's pose the platform rests at)
         Raise CommandError to refuse (e.g. "invalid_state" for enable while BRAKED).
         """
         ...

@@ -122,8 +122,8 @@ class Planner:
         if name == "identify_payload":
             self._require_moving("identify the payload")
             return identify_payload(self, args)
-        if name == "home":
-            return self._home(args)
+        if name in ("home", "pretension"):
+            return self._home(name, args)
         return self.link.command(name, args)
 
     async def slack(self) -> None:
@@ -205,9 +205,10 @@ class Planner:
         )
         return await self.link.command("status", {})
 
-    async def _home(self, args: dict[str, Any]) -> dict[str, Any]:
-        """The core homes (and applies the offsets); they are stored here."""
-        result = await self.link.command("home", args)
+    async def _home(self, name: str, args: dict[str, Any]) -> dict[str, Any]:
+        """The core homes (home, or pretension at its end) and applies the offsets;
+        they are stored here."""
+        result = await self.link.command(name, args)
         return {**result, **await self.store.store(result["offsets"], result["method"])}
 
     async def _goto(self, args: dict[str, Any]) -> dict[str, Any]:

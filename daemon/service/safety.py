@@ -2,9 +2,10 @@
 
 States: INIT → IDLE (drives holding, brakes on) → HOLD (enabled, holding a pose) →
 TRACKING → HOLD …; any fault → BRAKED; leaving BRAKED needs every fault condition gone
-AND an explicit reset, which lands in IDLE.  The service asks `check_*` every cycle and
-brakes on the first Fault returned; each Fault carries one readable line naming the
-trigger and the values.
+AND an explicit reset, which lands in IDLE.  PRETENSION (IDLE or BRAKED → HOLD) winds
+slack cables in and tensions them before the position loop closes (cdpr.pretension).
+The service asks `check_*` every cycle and brakes on the first Fault returned; each
+Fault carries one readable line naming the trigger and the values.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ class SafetyState(enum.Enum):
     HOLD = "hold"
     TRACKING = "tracking"
     BRAKED = "braked"
+    PRETENSION = "pretension"  # winding slack cables in, tensioning them (cdpr.pretension)
 
 
 class Trigger(enum.Enum):
@@ -50,6 +52,9 @@ class Trigger(enum.Enum):
     STARTUP = "startup"  # the drives did not come up
     COMPANION_LOST = "companion_lost"  # no companion process for safety.companion_lost s
     PAYLOAD_LIMIT = "payload_limit"  # the payload estimate beyond controller.adaptation
+    PRETENSION = "pretension"  # pretension aborted: a cable not taut, the platform moved
+    # the external wrench estimate beyond controller.disturbance_observer's bounds
+    EXTERNAL_WRENCH = "external_wrench"
 
 
 @dataclass(frozen=True)
@@ -70,6 +75,8 @@ _ALLOWED = {
     "finish": {SafetyState.TRACKING},
     "reset": {SafetyState.BRAKED},
     "started": {SafetyState.INIT},
+    "pretension": {SafetyState.IDLE, SafetyState.BRAKED},
+    "tensioned": {SafetyState.PRETENSION},
 }
 _TARGET = {
     "enable": SafetyState.HOLD,
@@ -79,6 +86,8 @@ _TARGET = {
     "finish": SafetyState.HOLD,
     "reset": SafetyState.IDLE,
     "started": SafetyState.IDLE,
+    "pretension": SafetyState.PRETENSION,
+    "tensioned": SafetyState.HOLD,
 }
 
 
@@ -113,6 +122,13 @@ class StateMachine:
         self._move(SafetyState.BRAKED, fault.trigger.value)
         return True
 
+    def pretension(self) -> SafetyState:
+        """Begin pretension: from IDLE, or from BRAKED (slack cables fit no pose, which
+        brakes at start-up), the fault on record then cleared; "tensioned" ends it in HOLD."""
+        state = self.go("pretension")
+        self.fault = None
+        return state
+
     def reset(self, active: Sequence[Fault]) -> SafetyState:
         """Leave BRAKED for IDLE, only when no fault condition is active."""
         if active:
@@ -133,6 +149,11 @@ class StateMachine:
     def moving(self) -> bool:
         """True while the controller commands force (HOLD or TRACKING)."""
         return self.state in (SafetyState.HOLD, SafetyState.TRACKING)
+
+    @property
+    def powered(self) -> bool:
+        """True while the drives follow the daemon's forces (moving, or pretension)."""
+        return self.moving or self.state is SafetyState.PRETENSION
 
 
 class SafetyMonitor:
@@ -243,6 +264,8 @@ class SafetyMonitor:
                 trigger = Trigger.NAN
             if reason.startswith("payload"):
                 trigger = Trigger.PAYLOAD_LIMIT
+            if reason.startswith("external wrench"):
+                trigger = Trigger.EXTERNAL_WRENCH
             return Fault(trigger, f"{reason} (FK residual {output.fk_residual:.3g} m)")
         commands = output.commands.tolist()
         if not all(map(math.isfinite, commands)):

@@ -26,6 +26,7 @@ import numpy as np
 from cdpr import Pose
 from cdpr.controller import ControlOutput, ParallelController, static_tensions
 from cdpr.homing import homed_offsets
+from cdpr.pretension import Pretension, ramp_target
 from cdpr.trajectory import Reference
 from cdpr.trajectory.core import Curve
 from daemon.config import DaemonConfig
@@ -123,6 +124,16 @@ class Service:
         self._scheduled: list[Curve] = []  # accepted, beginning later, by start time
         self.last_output = None
         self.faults: list[Fault] = []  # conditions active at the last check
+        # the last pretension (cdpr.pretension; published while it runs and after), and
+        # its command waiting for it to end (in HOLD, or braked)
+        self.pretension: Pretension | None = None
+        self._pretension_waiter: asyncio.Future[None] | None = None
+        self._pretension_cycles = 0  # cycles waited for the homed lengths to be judged
+        self.loop_close_step: float | None = None  # N, the largest force change at close
+        self._close_forces: np.ndarray | None = None  # the last before it, until measured
+        self.brakes = 0  # brake() calls: a sequence that waited sees whether one came
+        self._pretension_name = "home"  # its pose's name
+        self._pretension_changes: list[float] = []  # mm, the offsets' changes at its homing
         self.collector = CollectorPolicy()
         self._extrapolation_limit = 2.0 / config.drives.feedback_rate_hz
 
@@ -168,7 +179,7 @@ class Service:
     def stop(self, trigger: Trigger = Trigger.SIGTERM, exit_code: int = 0) -> None:
         """Brake (if anything moves), then end `wait_stopped` with `exit_code` (a
         non-zero code given before stays: a later stop does not make a failure clean)."""
-        if self.machine.moving or self.machine.state is SafetyState.INIT:
+        if self.machine.powered or self.machine.state is SafetyState.INIT:
             self.brake(Fault(trigger, "stop requested: braking before exit"))
         else:
             self._send(self.driver.brake(self._hold_lengths(), self.config.drives.brake))
@@ -294,7 +305,9 @@ class Service:
             node = self.offsets.nodes[drive]
             log.error("drive %d (node %d): length offset lost: %s", drive, node, why)
             self._emit({"event": "offset_lost", "drive": drive, "why": why})
-        implausible = self.trust.check(lengths, rates, fresh, instant)
+        winding = self.pretension is not None and self.pretension.active
+        judge = self.trust.track if winding else self.trust.check
+        implausible = judge(lengths, rates, fresh, instant)
         faults = [Fault(Trigger.IMPLAUSIBLE_FEEDBACK, f.message()) for f in implausible]
         faults += self.monitor.check_drives(feedback, self.driver.status, now)
         stale = self.monitor.check_freshness(fresh)
@@ -305,10 +318,12 @@ class Service:
             faults.append(bus)
         self.faults = faults
         state = self.machine.state
-        if faults and state in (SafetyState.IDLE, SafetyState.HOLD, SafetyState.TRACKING):
+        if faults and state in _WATCHED:
             self.brake(faults[0])
         elif self.machine.moving and not self._busy:
             self._control(lengths, rates)
+        elif state is SafetyState.PRETENSION:
+            self._pretension_cycle(lengths, rates)
         elif state is not SafetyState.INIT:
             self._send(self.driver.keepalive())
         done = time.monotonic()
@@ -325,6 +340,11 @@ class Service:
         the cycle's instant, when SYNC latched the drives' positions.  `lengths` and
         `rates` passed the plausibility checks (an implausible one brakes instead)."""
         t = self._opened - self.t0
+        pretension = self.pretension
+        if pretension is not None and pretension.phase == "unload":
+            pretension.unload(self.controller, t)
+            if pretension.phase == "closed":
+                self._end_pretension()
         try:
             output = self.controller.step(t, lengths, rates)
         except Exception as exc:
@@ -338,6 +358,9 @@ class Service:
         if fault is not None:
             self.brake(fault)
             return
+        if self._close_forces is not None:  # the first command after pretension
+            self.loop_close_step = float(np.abs(output.commands - self._close_forces).max())
+            self._close_forces = None
         try:
             frames = self.driver.commands(output.commands)
         except FrameError as exc:
@@ -371,9 +394,11 @@ class Service:
         (driver brake frames), logging one line.  BRAKED first: a brake frame that fails
         to send reports a bus error, which must not brake all over again."""
         braked = self.machine.brake(fault, supersede)
+        self.brakes += 1
         self._send(self.driver.brake(self._hold_lengths(), self.config.drives.brake))
         self._trajectory = None
         self._scheduled.clear()
+        self._end_pretension(fault.message)
         if braked:
             deliberate = fault.trigger in (Trigger.SIGTERM, Trigger.COMMAND)
             log.log(logging.WARNING if deliberate else logging.ERROR, fault.line())
@@ -464,6 +489,7 @@ class Service:
         self._send(self.driver.brake(self._hold_lengths(), self.config.drives.brake))
         self._trajectory = None
         self._scheduled.clear()
+        self._end_pretension("disabled")
         self.machine.go("disable")
         self._emit({"event": "state", "why": "disabled"})
         return self.status()
@@ -536,14 +562,7 @@ class Service:
             raise CommandError(
                 "invalid_state", f"cannot home while {state.value} (needs idle or braked)"
             )
-        name = str(args.get("pose_name") or "home")
-        pose = self.robot.poses.get(name)
-        if pose is None:
-            raise CommandError(
-                "bad_request",
-                f"home: no pose {name!r} in the robot file (poses: {', '.join(self.robot.poses)})",
-                field="pose",
-            )
+        name, pose = self._named_pose("home", args)
         self._busy = True
         try:
             samples = await self._rest_samples()
@@ -568,6 +587,169 @@ class Service:
             "time": self.offsets.time,
             "pose": name,
         }
+
+    def _named_pose(self, what: str, args: dict[str, Any]) -> tuple[str, Pose]:
+        """The robot file's pose args["pose_name"] (default home) and its name;
+        CommandError naming the poses there are for an unknown one."""
+        name = str(args.get("pose_name") or "home")
+        pose = self.robot.poses.get(name)
+        if pose is None:
+            raise CommandError(
+                "bad_request",
+                f"{what}: no pose {name!r} in the robot file "
+                f"(poses: {', '.join(self.robot.poses)})",
+                field="pose",
+            )
+        return name, pose
+
+    # -- pretension (cdpr.pretension) ---------------------------------------------------
+
+    async def _pretension(self, args: dict[str, Any]) -> dict[str, Any]:
+        """Bring the platform resting on a fixture at the robot file's pose (args
+        "pose_name", default home) from slack cables to the position loop: the drives
+        enabled in force, cdpr.pretension's wind, ramp and settle in the cycle, homing at
+        the pose with the settled lengths, the loop closed bumplessly (`_pretension_cycle`).
+        From IDLE, or BRAKED where the only conditions are lengths that fit no pose (slack
+        cables at start-up).  The reply comes when the loop has closed (HOLD; the fixture's
+        share of the weight is then handed over for unload_time); CommandError naming the
+        reason if it aborted (braked)."""
+        state = self.machine.state
+        if state not in (SafetyState.IDLE, SafetyState.BRAKED):
+            raise CommandError(
+                "invalid_state", f"cannot pretension while {state.value} (needs idle or braked)"
+            )
+        blocking = [f for f in self.faults if f.trigger is not Trigger.IMPLAUSIBLE_FEEDBACK]
+        if blocking:
+            raise CommandError(
+                "invalid_state", "cannot pretension: " + "; ".join(f.message for f in blocking)
+            )
+        name, pose = self._named_pose("pretension", args)
+        raw = [fb.length for fb in self.driver.feedback]
+        if not all(map(math.isfinite, raw)):
+            raise CommandError("invalid_state", "pretension: no feedback from every drive yet")
+        spec, solver = self.config.pretension, self.controller.tension
+        try:
+            target = ramp_target(self.robot, solver, pose, spec.carry)
+            pretension = Pretension(
+                self.robot, spec, pose, target, self.controller.stretch.scale,
+                self.offsets.read(raw),
+            )  # fmt: skip
+        except ValueError as exc:
+            raise CommandError("rejected", f"pretension at pose {name}: {exc}") from None
+        brakes = self.brakes
+        self._busy = True
+        try:
+            await self.driver.enable(self.port, raw, pretension.forces.tolist())
+        except DriverError as exc:
+            self.brake(Fault(Trigger.DRIVE_FAULT, f"pretension: enable failed: {exc}"))
+            raise CommandError("drive_error", f"pretension: enable failed: {exc}") from None
+        finally:
+            self._busy = False
+        if self.brakes != brakes:  # braked meanwhile (maybe braked again)
+            raise CommandError("invalid_state", f"pretension aborted: {self.machine.fault.line()}")
+        self.pretension, self._pretension_cycles, self.loop_close_step = pretension, 0, None
+        self._pretension_name = name
+        assert self._loop is not None
+        done = self._pretension_waiter = self._loop.create_future()
+        self.machine.pretension()
+        self._emit({"event": "state", "why": f"pretension at pose {name}"})
+        await done  # homed, and the homed lengths trusted; or braked
+        if self.machine.state is SafetyState.PRETENSION:
+            self._close_loop(pretension)
+        for _ in range(RETRUST_CYCLES):  # the first cycle in HOLD measures the step
+            if self.loop_close_step is not None or not self.machine.moving:
+                break
+            await asyncio.sleep(self.period)
+        if not self.machine.moving:
+            fault = self.machine.fault
+            why = fault.line() if fault is not None else self.machine.state.value
+            raise CommandError("rejected", f"pretension aborted: {why}")
+        offsets = self.offsets
+        return {
+            **self.status(),
+            "offsets": offsets.offsets,
+            "changes_mm": self._pretension_changes,
+            "method": offsets.method,
+            "time": offsets.time,
+            "pose": name,
+            "loop_close_step_n": self.loop_close_step,
+        }
+
+    def _pretension_cycle(self, lengths: list[float], rates: list[float]) -> None:
+        """One cycle of PRETENSION: cdpr.pretension's forces while it winds, ramps and
+        settles; then homing at its pose, and once the homed lengths are trusted (one
+        pose, `_run_cycle`'s check) the command is woken to close the loop."""
+        p = self.pretension
+        assert p is not None
+        t = self._opened - self.t0
+        if p.active:
+            try:
+                p.step(t, lengths, rates)
+            except Exception as exc:
+                log.exception("pretension step raised")
+                self.brake(Fault(Trigger.CONTROLLER_EXCEPTION, f"{type(exc).__name__}: {exc}"))
+                return
+            if p.fault is not None:
+                self.brake(Fault(Trigger.PRETENSION, p.fault))
+                return
+            if p.phase == "done":
+                self._pretension_home(p)
+        try:
+            self._send(self.driver.commands(p.forces))
+        except FrameError as exc:
+            self.brake(Fault(Trigger.NAN, str(exc)))
+            return
+        if p.phase != "done":
+            return
+        if not self.trust.retrusting:
+            self._end_pretension()  # the command closes the loop (off the cycle)
+            return
+        self._pretension_cycles += 1
+        if self._pretension_cycles > RETRUST_CYCLES:
+            self.brake(Fault(Trigger.PRETENSION, "the homed lengths were never judged"))
+
+    def _close_loop(self, p: Pretension) -> None:
+        """The pretension's end: the pose measured from the homed lengths under its
+        tensions (as enable does), the loop closed there with the fixture's share preset
+        (Pretension.close); the next cycle is the controller's, and `_control` measures
+        how far its commands differ from the last ones (loop_close_step)."""
+        try:
+            pose = self._measured_pose(lambda pose: p.planned)
+        except CommandError as exc:
+            self.brake(Fault(Trigger.PRETENSION, f"after homing: {exc.reason}"))
+            return
+        self._close_forces = p.forces.copy()
+        p.close(self.controller, pose, self.now())
+        self._source_version += 1
+        self.machine.go("tensioned")
+        self._emit({"event": "state", "why": "pretension done: position loop closed"})
+
+    def _pretension_home(self, p: Pretension) -> None:
+        """Home at the pretension's pose with its settled lengths and tensions."""
+        assert p.settled_lengths is not None
+        driver = np.array(self.offsets.write(p.settled_lengths.tolist()))
+        offsets = homed_offsets(
+            self.robot, p.pose, p.planned, self.controller.stretch.scale, driver,
+            np.array(self.offsets.configured),
+        )  # fmt: skip
+        name = self._pretension_name
+        changes = self.offsets.set(offsets.tolist(), f"pretension at pose {name}", time.time())
+        self.trust.shift(changes)
+        self._pretension_changes = [c * 1e3 for c in changes]
+        log.info("pretension at pose %s: homed, offsets changed by %s mm", name,
+                 [round(c * 1e3, 2) for c in changes])  # fmt: skip
+        self._emit({"event": "homed", "pose": name})
+
+    def _end_pretension(self, why: str = "") -> None:
+        """Wake the pretension command (closed, braked, disabled)."""
+        waiter, self._pretension_waiter = self._pretension_waiter, None
+        if waiter is not None and not waiter.done():
+            waiter.set_result(None)
+        p = self.pretension
+        if why and p is not None and p.phase not in ("closed", "aborted"):
+            p.phase, p.fault = "aborted", p.fault or why
+        if why:
+            self._close_forces = None
 
     async def _rest_samples(self) -> list[list[float]]:
         """HOME_SAMPLES cycles of driver lengths; CommandError naming the drive if any
@@ -711,18 +893,18 @@ class Service:
                 "invalid_state", f"cannot {action} while {self.machine.state.value} (enable first)"
             )
 
-    def _measured_pose(self) -> Pose:
+    def _measured_pose(self, tensions_at: Callable[[Pose], np.ndarray] | None = None) -> Pose:
         """The platform pose from the current lengths, stretch-corrected with the static
-        tensions of the pose (the platform is at rest when enabling): forward
-        kinematics alternated with the statics and the cables' stiffness estimate
-        (cdpr.stretch), starting from the home pose."""
+        tensions of the pose (the platform is at rest when enabling; `tensions_at` the
+        tensions at a pose where they are others): forward kinematics alternated with the
+        statics and the cables' stiffness estimate (cdpr.stretch), from the home pose."""
         lengths = np.array(self.trust.held)
         if not np.all(np.isfinite(lengths)):
             raise CommandError("invalid_state", "no feedback from every drive yet")
         robot, solver = self.robot, self.controller.tension
-        fk = self.controller.stretch.fit(
-            lengths, lambda pose: static_tensions(robot, solver, pose), robot.home
-        )
+        if tensions_at is None:
+            tensions_at = lambda pose: static_tensions(robot, solver, pose)  # noqa: E731
+        fk = self.controller.stretch.fit(lengths, tensions_at, robot.home)
         if not fk.converged:
             raise CommandError("invalid_state", f"forward kinematics failed: {fk.reason}")
         return fk.pose
@@ -754,6 +936,8 @@ class Service:
         return {
             "mass": estimate.mass,
             "center_of_mass": list(estimate.center_of_mass),
+            # about the centre of mass, platform frame (the file's unless adaptation.inertia)
+            "inertia": estimate.platform.inertia.tolist(),
             "frozen": estimate.frozen,
         }
 
@@ -773,6 +957,8 @@ class Service:
                 "time": self.offsets.time,
                 "invalid": self.offsets.refusal(),
             },
+            # the last pretension: phase, each cable's time to taut, motion seen
+            "pretension": None if self.pretension is None else self.pretension.summary(),
         }
 
     def state(self) -> dict[str, Any]:
@@ -813,9 +999,14 @@ class Service:
         state["stiffness_scale"] = self.controller.stretch.stiffness_scale
         # the platform's mass and centre of mass as estimated (cdpr.payload)
         state["payload"] = self._payload_state()
+        # the external wrench the model does not explain (cdpr.wrench_observer)
+        observer = self.controller.observer
+        state["external_wrench"] = None if observer is None else observer.estimate.tolist()
         return state
 
 
+# the states in which a fault condition brakes
+_WATCHED = (SafetyState.IDLE, SafetyState.HOLD, SafetyState.TRACKING, SafetyState.PRETENSION)
 _COMMANDS: dict[str, Callable[[Service, dict[str, Any]], Any]] = {
     "enable": Service._enable,
     "disable": Service._disable,
@@ -824,4 +1015,5 @@ _COMMANDS: dict[str, Callable[[Service, dict[str, Any]], Any]] = {
     "status": Service._status,
     "payload": Service._payload,
     "home": Service._home,
+    "pretension": Service._pretension,
 }

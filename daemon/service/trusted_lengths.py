@@ -159,6 +159,31 @@ class TrustedLengths:
                 self._times[k] = instant
         return flagged
 
+    def track(
+        self,
+        lengths: Sequence[float],
+        rates: Sequence[float],
+        fresh: Sequence[bool],
+        instant: float,
+    ) -> list[Implausible]:
+        """`check` while pretension winds slack cables in (cdpr.pretension): they move
+        without the platform, so the lengths fit no one pose and only the rate and step
+        checks apply; each fresh cable that passes them is trusted (a brake holds it where
+        it is), and the next complete set `check` sees is judged like the first one."""
+        flagged = []
+        isfinite = math.isfinite
+        for k in range(self.n):
+            x, v = lengths[k], rates[k]
+            if not (fresh[k] and isfinite(x) and isfinite(v)):
+                continue
+            problem = self._per_cable(k, x, v, instant, own_rate=False)
+            if problem is None:
+                self.held[k], self._rates[k], self._times[k] = x, v, instant
+            else:
+                flagged.append(problem)
+        self.retrust()
+        return flagged
+
     def follow_pose(self, pose: Pose) -> None:
         """A pose measured from trusted lengths (the controller's forward kinematics):
         the consistency check is linearised there again once it moved REFRESH_DISTANCE."""

@@ -137,9 +137,18 @@ class PdoEntry:
         return self.index << 16 | self.subindex << 8 | self.bits
 
 
+DUMMIES = range(0x0002, 0x0008)  # CiA 301 data-type objects usable as dummy mapping entries
+
+
 @dataclass(frozen=True)
 class PdoLayout:
-    """One PDO: where the EDS describes it and the struct that codes it."""
+    """One PDO: where the EDS describes it and the struct that codes it.
+
+    A shared RPDO (`slots` > 1) is one frame for several drives on a bus, all at COB-ID
+    `cob`: `entries` are one drive's objects, the frame holds `slots` of them in turn, and
+    drive k maps `dummies` (CiA 301 dummy entries, the same sizes) over the others' bytes
+    (`mapped(k)`).  `struct` codes the whole frame; `inhibit` is a TPDO's 0x18xx:03 (in
+    100 us)."""
 
     name: str
     cob_base: int
@@ -148,27 +157,45 @@ class PdoLayout:
     transmission_type: int
     entries: tuple[PdoEntry, ...]
     struct: struct.Struct
+    cob: int | None = None  # the COB-ID of every drive (None: cob_base + node id)
+    slots: int = 1
+    dummies: tuple[PdoEntry, ...] = ()
+    inhibit: int = 0
 
     def cob_id(self, node: int) -> int:
-        return self.cob_base + node
+        return self.cob_base + node if self.cob is None else self.cob
+
+    @property
+    def on_sync(self) -> bool:
+        """A TPDO sent on SYNC (transmission type 1..240), not on an event."""
+        return 1 <= self.transmission_type <= 240
+
+    def mapped(self, slot: int = 0) -> tuple[PdoEntry, ...]:
+        """The mapping of the drive that fills `slot` (dummies over the other slots)."""
+        if self.slots == 1:
+            return self.entries
+        return self.dummies * slot + self.entries + self.dummies * (self.slots - 1 - slot)
 
     @property
     def receive(self) -> bool:
         """True for an RPDO (the drive receives it)."""
         return self.comm_index < 0x1800
 
-    def mapping_procedure(self, node: int) -> tuple[tuple[int, int, int], ...]:
-        """The (index, sub, value) writes that set this PDO in drive `node` by the CiA 301
-        procedure: COB-ID bit 31 set, transmission type, sub0 = 0, entries, sub0, COB-ID
-        valid again."""
+    def mapping_procedure(self, node: int, slot: int = 0) -> tuple[tuple[int, int, int], ...]:
+        """The (index, sub, value) writes that set this PDO in drive `node` (filling
+        `slot` of a shared one) by the CiA 301 procedure: COB-ID bit 31 set, transmission
+        type (and a TPDO's inhibit time), sub0 = 0, entries, sub0, COB-ID valid again."""
         comm, mapping, cob = self.comm_index, self.map_index, self.cob_id(node)
-        entries = tuple((mapping, k + 1, e.mapping) for k, e in enumerate(self.entries))
+        mapped = self.mapped(slot)
+        entries = tuple((mapping, k + 1, e.mapping) for k, e in enumerate(mapped))
+        inhibit = ((comm, 3, self.inhibit),) if self.inhibit else ()
         return (
             (comm, 1, cob | PDO_INVALID),
             (comm, 2, self.transmission_type),
+            *inhibit,
             (mapping, 0, 0),
             *entries,
-            (mapping, 0, len(self.entries)),
+            (mapping, 0, len(mapped)),
             (comm, 1, cob),
         )
 

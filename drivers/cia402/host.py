@@ -1,16 +1,22 @@
 """Host side of CiA 402 drives in cyclic synchronous torque (CST) mode on one CANopen bus.
 
 The drive profile (drives.profile, checked against the EDS by drivers.cia402.profile)
-says which PDOs carry what; the defaults are codec.RPDO1/RPDO2/TPDO1/TPDO2.
+says which PDOs carry what; the defaults are codec.RPDO1/RPDO2/TPDO1/TPDO2.  In the
+compact layout (profile.py) one shared RPDO carries the target torques of every drive of
+the bus, controlword and mode go in each drive's control RPDO only when they change (the
+first torque command after a hold, brake, enable or SDO controlword), the statusword comes
+in an event-driven TPDO, and without velocity actual the rate is the difference of the
+last two samples' lengths over the time between their SYNCs.
 
 Cycle (Timing.SYNC): `cycle_start` sends SYNC (and the host's heartbeat every
 host_heartbeat_period, also between SDO requests); every drive answers with its TPDOs.
-`receive` returns a cable's index when the last of a drive's TPDOs since the latest SYNC
-arrives: feedback is complete for the cycle.  A TPDO after its drive's sample was
-complete is counted as rejected and dropped.  A mode of operation display other than 8
-or 10 while operation is enabled is a drive FAULT (reported, the frame still counts).
+`receive` returns a cable's index when the last of a drive's TPDOs on SYNC since the
+latest SYNC arrives: feedback is complete for the cycle (and the drive alive).  A TPDO
+on SYNC after its drive's sample was complete is counted as rejected and dropped;
+event-driven TPDOs update the state.  A mode of operation display other than 8 or 10
+while operation is enabled is a drive FAULT (reported, the frame still counts).
 `commands` sends one torque RPDO per drive (controlword "enable operation", target
-torque in per mille of the rated torque, mode 10).
+torque in per mille of the rated torque, mode 10), or the shared one.
 
 Torque: force f (N along +l) -> motor torque Scaling.motor_torque(f) -> per mille of
 `rated_torque`, rounded to the nearest per mille and clamped to +- the drive's max
@@ -139,8 +145,27 @@ def _packer(layout: PdoLayout, target: int) -> Callable[[int, int, int], bytes]:
     and the mode in any order (other mapped objects are sent as 0)."""
     order = (CONTROLWORD, target, MODE_OF_OPERATION)
     slots = [order.index(e.index) if e.index in order else 3 for e in layout.entries]
-    pack, pick = layout.struct.pack, itemgetter(*slots)
+    pack = layout.struct.pack
+    if len(slots) == 1:  # itemgetter of one item gives the item, not a tuple
+        (slot,) = slots
+        return lambda controlword, value, mode: pack((controlword, value, mode, 0)[slot])
+    pick = itemgetter(*slots)
     return lambda controlword, value, mode: pack(*pick((controlword, value, mode, 0)))
+
+
+def _torque_frames(layout: PdoLayout, nodes: Sequence[int]) -> Callable[[list[int]], list]:
+    """frames(torques, per mille) of the torque RPDO: one shared frame for the bus, or
+    one frame per drive with "enable operation" and mode 10."""
+    if layout.slots > 1:
+        cob, pack = layout.cob_id(nodes[0]), layout.struct.pack
+        return lambda torques: [
+            _Message(arbitration_id=cob, data=pack(*torques), is_extended_id=False)
+        ]
+    ids, pack = [layout.cob_id(node) for node in nodes], _packer(layout, TARGET_TORQUE)
+    return lambda torques: [
+        _Message(arbitration_id=can_id, data=pack(_ENABLE, torque, MODE_CST), is_extended_id=False)
+        for can_id, torque in zip(ids, torques, strict=True)
+    ]
 
 
 class Cia402Driver(ActuatorDriver):
@@ -170,8 +195,11 @@ class Cia402Driver(ActuatorDriver):
         self._next_heartbeat = -math.inf
         rated = config.rated_torque
         assert rated is not None  # DrivesConfig requires it for cia402
-        # per mille of rated torque per newton along +l, per cable
-        self._permille = [s.motor_torque(1.0) / rated * 1000.0 for s in self.scalings]
+        # per mille of rated torque per newton along +l, per cable (a drum with a spool:
+        # at its latest length, _on_tpdo)
+        self._permille = [
+            s.motor_torque(1.0, s.length_offset) / rated * 1000.0 for s in self.scalings
+        ]
         self.max_torque = [int(od_value(od_variable(self.od, MAX_TORQUE)))] * self.n
         self.torque_limited = [0] * self.n  # commands clamped to +-max_torque
         self.nmt_state: list[NmtState | None] = [None] * self.n
@@ -181,28 +209,44 @@ class Cia402Driver(ActuatorDriver):
         self._lost = [False] * self.n
         torque, hold = self.plan.torque, self.plan.hold
         self._torque_pack = _packer(torque, TARGET_TORQUE)
+        self._torque_frames = _torque_frames(torque, self.nodes)
+        self._shared = torque.slots > 1
         self._hold_pack = _packer(hold, TARGET_POSITION)
         self._rpdo1 = [torque.cob_id(node) for node in self.nodes]  # torque RPDO ids
         self._rpdo2 = [hold.cob_id(node) for node in self.nodes]  # hold RPDO ids
+        # controlword and mode: in the torque RPDO, or in the control RPDO, sent when
+        # they change: `_in_torque` says the drive was told "enable operation" in mode 10
+        control = self.plan.control or torque
+        self._control = self.plan.control is not None
+        self._cw_pack = _packer(control, TARGET_TORQUE)
+        self._cw_ids = [control.cob_id(node) for node in self.nodes]
+        self._in_torque = [False] * self.n
+        self._held = [0] * self.n  # target torques of drives taken over in mode 10
         self._routes: dict[int, tuple[Callable[[int, int, bytearray, float], int | None], int]] = {}
-        # TPDO id -> (bit in the sample, name, struct, slot of each _FEEDBACK object or -1)
+        # TPDO id -> (bit in the sample, 0 for an event-driven TPDO; name, struct, slot
+        # of each _FEEDBACK object or -1)
         self._tpdo: dict[int, tuple[int, str, struct.Struct, tuple[int, ...]]] = {}
+        synced = [layout for layout in self.plan.tpdos if layout.on_sync]
         for i, node in enumerate(self.nodes):
-            for k, layout in enumerate(self.plan.tpdos):
+            for layout in self.plan.tpdos:
+                bit = 1 << synced.index(layout) if layout.on_sync else 0
                 mapped = [e.index for e in layout.entries]
                 slots = tuple(mapped.index(x) if x in mapped else -1 for x in _FEEDBACK)
-                self._tpdo[layout.cob_id(node)] = (1 << k, layout.name, layout.struct, slots)
+                self._tpdo[layout.cob_id(node)] = (bit, layout.name, layout.struct, slots)
                 self._routes[layout.cob_id(node)] = (self._on_tpdo, i)
             self._routes[EMCY_BASE + node] = (self._on_emcy, i)
             self._routes[HEARTBEAT_BASE + node] = (self._on_heartbeat, i)
         # feedback: SYNCs sent; per drive the TPDO bits seen since the latest SYNC (-1:
         # sample complete) and the SYNC count they belong to
         self._epoch = 0
-        self._full = (1 << len(self.plan.tpdos)) - 1
+        self._sync_at = 0.0  # clock() when the latest SYNC went out
+        self._full = (1 << len(synced)) - 1
         self._got = [0] * self.n
         self._got_epoch = [-1] * self.n
         self.position: list[int | None] = [None] * self.n  # last position actual (increments)
         self._velocity = [0] * self.n
+        self._differentiate = not self.plan.velocity
+        self._sample: list[tuple[float, float]] = [(math.nan, 0.0)] * self.n  # length, SYNC
         self._statusword = [0] * self.n
         self.mode_display = [0] * self.n
         self._standing: list[tuple[int, bytes]] = []  # frames keepalive() repeats
@@ -213,6 +257,7 @@ class Cia402Driver(ActuatorDriver):
     def cycle_start(self) -> list[can.Message]:
         """SYNC, and the host heartbeat when one is due (the drives consume it: 0x1016)."""
         self._epoch += 1
+        self._sync_at = self.clock()  # the moment the drives latch their TPDOs
         return [encode_sync(), *self._heartbeat_due()]
 
     def _heartbeat_due(self) -> list[can.Message]:
@@ -228,9 +273,8 @@ class Cia402Driver(ActuatorDriver):
     def commands(self, forces: Sequence[float]) -> list[can.Message]:
         if len(forces) != self.n:
             raise FrameError(f"{len(forces)} forces for {self.n} CiA 402 drives")
-        frames = []
-        permille, limits, ids = self._permille, self.max_torque, self._rpdo1
-        pack = self._torque_pack
+        torques = []
+        permille, limits = self._permille, self.max_torque
         for i in range(self.n):
             force = forces[i]
             if not _isfinite(force):
@@ -245,13 +289,16 @@ class Cia402Driver(ActuatorDriver):
             elif torque < -limit:
                 torque = -limit
                 self.torque_limited[i] += 1
-            frames.append(
-                _Message(
-                    arbitration_id=ids[i],
-                    data=pack(_ENABLE, torque, MODE_CST),
-                    is_extended_id=False,
-                )
-            )
+            torques.append(torque)
+        frames = self._torque_frames(torques)
+        if self._control:  # the torque goes first: mode 10 then starts from it
+            for i in range(self.n):
+                if not self._in_torque[i]:
+                    self._in_torque[i] = True
+                    data = self._cw_pack(_ENABLE, 0, MODE_CST)
+                    frames.append(
+                        _Message(arbitration_id=self._cw_ids[i], data=data, is_extended_id=False)
+                    )
         self._standing = []
         return frames
 
@@ -267,16 +314,18 @@ class Cia402Driver(ActuatorDriver):
             if mode is BrakeMode.POSITION_HOLD and target is not None:
                 standing.append((self._rpdo2[i], self._hold_pack(_ENABLE, target, MODE_CSP)))
             else:
-                off = self._torque_pack(DISABLE_OPERATION.value, 0, MODE_CST)
-                standing.append((self._rpdo1[i], off))
+                off = self._cw_pack(DISABLE_OPERATION.value, 0, MODE_CST)
+                standing.append((self._cw_ids[i], off))
         self._standing = standing
+        self._in_torque = [False] * self.n
         return self.keepalive()
 
     def disable(self) -> list[can.Message]:
         """Disable voltage with the release-hold bit: every power stage off, also a
         drive holding by its own fault reaction; holding brakes engage where fitted."""
         word = Command.DISABLE_VOLTAGE.value | CONTROL_RELEASE_HOLD
-        self._standing = [(can_id, self._torque_pack(word, 0, MODE_CST)) for can_id in self._rpdo1]
+        self._standing = [(can_id, self._cw_pack(word, 0, MODE_CST)) for can_id in self._cw_ids]
+        self._in_torque = [False] * self.n
         return self.keepalive()
 
     def keepalive(self) -> list[can.Message]:
@@ -329,11 +378,12 @@ class Cia402Driver(ActuatorDriver):
         if status_at >= 0 and decode_statusword(values[status_at]) is None:
             word = values[status_at]
             raise Cia402FrameError(can_id, "statusword pattern", f"0x{word:04X} is no 402 state")
-        if self._got_epoch[i] != self._epoch:
-            self._got_epoch[i], self._got[i] = self._epoch, 0
-        if self._got[i] < 0:
-            self.counters.reject("TPDO after the sample was complete")
-            return None
+        if bit:
+            if self._got_epoch[i] != self._epoch:
+                self._got_epoch[i], self._got[i] = self._epoch, 0
+            if self._got[i] < 0:
+                self.counters.reject("TPDO after the sample was complete")
+                return None
         self.counters.accepted += 1
         if mode_at >= 0:
             self.mode_display[i] = values[mode_at]
@@ -344,6 +394,8 @@ class Cia402Driver(ActuatorDriver):
             self.position[i] = values[position_at]
         if velocity_at >= 0:
             self._velocity[i] = values[velocity_at]
+        if not bit:  # event-driven: no part of the cycle's sample
+            return None
         got = self._got[i] | bit
         if got != self._full:
             self._got[i] = got
@@ -352,8 +404,17 @@ class Cia402Driver(ActuatorDriver):
         if self.position[i] is None:
             return None
         scaling, feedback = self.scalings[i], self.feedback[i]
-        feedback.length = scaling.length(self.position[i])
-        feedback.rate = scaling.rate(self._velocity[i])
+        length = feedback.length = scaling.length(self.position[i])
+        if self._differentiate:  # over the time between the SYNCs that latched them
+            last, at = self._sample[i]
+            sync = self._sync_at
+            feedback.rate = (length - last) / (sync - at) if sync > at and _isfinite(last) else 0.0
+            self._sample[i] = (length, sync)
+        else:
+            feedback.rate = scaling.rate(self._velocity[i], length)
+        if scaling.spool is not None:  # the drum's radius follows the length
+            rated = self.config.rated_torque or 1.0
+            self._permille[i] = scaling.motor_torque(1.0, length) / rated * 1000.0
         feedback.stamp = now
         feedback.count += 1
         return i
@@ -423,6 +484,8 @@ class Cia402Driver(ActuatorDriver):
 
     async def _start(self, link: Link, now: Callable[[], float], found: list[State]) -> None:
         config = self.config
+        if self._shared:  # a shared torque frame must carry each drive's torque at once
+            await self._read_held_torques(link)
         words = []
         for i in range(self.n):  # first what every drive does: take over the enabled ones
             self._started[i] = self._lost[i] = False
@@ -481,22 +544,39 @@ class Cia402Driver(ActuatorDriver):
         self.position[i] = position
         self._release_standing(i)
         if mode == MODE_CST:
-            torque = await self._read(link, i, TARGET_TORQUE)
-            frame = (self._rpdo1[i], self._torque_pack(_ENABLE, torque, MODE_CST))
+            self._in_torque[i] = True
+            if self._shared:  # every drive's torque, read before any went out
+                frame = (self._rpdo1[i], bytes(self._torque_frames(self._held)[0].data))
+            else:
+                torque = await self._read(link, i, TARGET_TORQUE)
+                frame = (self._rpdo1[i], self._torque_pack(_ENABLE, torque, MODE_CST))
+            self._standing = [f for f in self._standing if f[0] != frame[0]]
         else:
             frame = (self._rpdo2[i], self._hold_pack(_ENABLE, position, MODE_CSP))
         self._standing.append(frame)
         link.send(_Message(arbitration_id=frame[0], data=frame[1], is_extended_id=False))
 
+    async def _read_held_torques(self, link: Link) -> None:
+        """The target torque of every drive found applying one (OPERATION ENABLED in mode
+        10), before the shared torque frame that carries them all goes out."""
+        self._held = [0] * self.n
+        for i in range(self.n):
+            if self._state_of(i, await self._read(link, i, STATUSWORD)) is not (
+                State.OPERATION_ENABLED
+            ):
+                continue
+            if await self._read(link, i, MODE_DISPLAY) == MODE_CST:
+                self._held[i] = await self._read(link, i, TARGET_TORQUE)
+
     async def _configure_pdos(self, link: Link, i: int) -> None:
         """The profile's PDO mapping in drive i (CiA 301 procedure) where it differs, read
         back; every other PDO of the EDS switched off."""
         node = self.nodes[i]
-        checks = self._pdo_checks(node)
+        checks = self._pdo_checks(node, i)
         values = [await self._read(link, i, index, sub) for index, sub, _, _ in checks]
         if any(v != expected for v, (_, _, expected, _) in zip(values, checks, strict=True)):
             for layout in self.plan.layouts:
-                for index, sub, value in layout.mapping_procedure(node):
+                for index, sub, value in layout.mapping_procedure(node, i):
                     await self._write(link, i, index, sub, value)
             for index, sub, expected, what in checks:
                 value = await self._read(link, i, index, sub)
@@ -538,6 +618,7 @@ class Cia402Driver(ActuatorDriver):
             (self._rpdo2[i], self._hold_pack(_ENABLE, target, MODE_CSP))
             for i, target in enumerate(targets)
         ]
+        self._in_torque = [False] * self.n
         round_timeout = min(0.02, self.config.watchdog_timeout / 2, self._heartbeat_period)
         pending = set(range(self.n))
         seen: dict[int, tuple[State | None, int]] = {}
@@ -595,8 +676,9 @@ class Cia402Driver(ActuatorDriver):
     # -- sequence helpers -----------------------------------------------------------------
 
     def _release_standing(self, i: int) -> None:
-        """Stop repeating brake/enable frames to drive i (keepalive)."""
-        mine = (self._rpdo1[i], self._rpdo2[i])
+        """Stop repeating brake/enable frames to drive i (keepalive; a shared torque
+        frame stays: it is the other drives' too)."""
+        mine = {self._rpdo2[i], self._cw_ids[i]} | (set() if self._shared else {self._rpdo1[i]})
         self._standing = [(can_id, data) for can_id, data in self._standing if can_id not in mine]
 
     def _names(self, indices: Iterable[int]) -> str:
@@ -608,14 +690,17 @@ class Cia402Driver(ActuatorDriver):
                 f"node {self.nodes[i]} is not started ({self.status[i].fault or 'start() not run'})"
             )
 
-    def _pdo_checks(self, node: int) -> list[tuple[int, int, int, str]]:
-        """(index, sub, value the profile needs, what) for the drive's PDO configuration."""
+    def _pdo_checks(self, node: int, slot: int) -> list[tuple[int, int, int, str]]:
+        """(index, sub, value the profile needs, what) for the PDO configuration of the
+        drive that fills `slot` of the shared PDOs."""
         checks = []
         for layout in self.plan.layouts:
-            comm, mapping = layout.comm_index, layout.map_index
+            comm, mapping, entries = layout.comm_index, layout.map_index, layout.mapped(slot)
             checks.append((comm, 1, layout.cob_id(node), f"{layout.name} COB-ID 0x{comm:04X}:01"))
             checks.append((comm, 2, layout.transmission_type, f"{layout.name} transmission type"))
-            checks.append((mapping, 0, len(layout.entries), f"{layout.name} mapped object count"))
+            if layout.inhibit:
+                checks.append((comm, 3, layout.inhibit, f"{layout.name} inhibit time"))
+            checks.append((mapping, 0, len(entries), f"{layout.name} mapped object count"))
             checks.extend(
                 (
                     mapping,
@@ -623,7 +708,7 @@ class Cia402Driver(ActuatorDriver):
                     entry.mapping,
                     f"{layout.name} mapping 0x{mapping:04X}:{k + 1:02X}",
                 )
-                for k, entry in enumerate(layout.entries)
+                for k, entry in enumerate(entries)
             )
         return checks
 
@@ -733,6 +818,8 @@ class Cia402Driver(ActuatorDriver):
         )
         what = f"node {node}: SDO write {detail}"
         data = value if isinstance(value, bytes) else var.encode_raw(value)
+        if index == CONTROLWORD:  # the next torque command sends the control RPDO again
+            self._in_torque[i] = False
         await self._download(link, i, index, sub, data, what)
 
     def _state_of(self, i: int, statusword: int) -> State:

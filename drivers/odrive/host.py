@@ -165,7 +165,9 @@ class OdriveDriver(ActuatorDriver):
         self._torque_ids = [node << 5 | Cmd.SET_INPUT_TORQUE for node in self.nodes]
         self._feeds = [encode_request(node, Cmd.GET_ERROR) for node in self.nodes]
         self._pos_ids = [node << 5 | Cmd.SET_INPUT_POS for node in self.nodes]
-        self._torque_per_newton = [s.motor_torque(1.0) for s in self.scalings]
+        # N·m per N, per cable (a drum with a spool: at its latest length, receive)
+        self._torque_per_newton = [s.motor_torque(1.0, s.length_offset) for s in self.scalings]
+        self._spooled = [s if s.spool is not None else None for s in self.scalings]
         self._metres_per_turn = [s.metres_per_count for s in self.scalings]
         self._offsets = [s.length_offset for s in self.scalings]
 
@@ -455,9 +457,15 @@ class OdriveDriver(ActuatorDriver):
             if cmd is Cmd.GET_ENCODER_ESTIMATES:
                 pos, vel = decode_encoder_estimates(message)
                 feedback = self.feedback[i]
-                scale = self._metres_per_turn[i]
-                feedback.length = self._offsets[i] + pos * scale
-                feedback.rate = vel * scale
+                spooled = self._spooled[i]
+                if spooled is None:
+                    scale = self._metres_per_turn[i]
+                    feedback.length = self._offsets[i] + pos * scale
+                    feedback.rate = vel * scale
+                else:  # the drum's radius follows the length (cdpr.spool)
+                    feedback.length = length = spooled.length(pos)
+                    feedback.rate = spooled.rate(vel, length)
+                    self._torque_per_newton[i] = spooled.motor_torque(1.0, length)
                 feedback.stamp = now
                 feedback.count += 1
                 self.counters.accepted += 1

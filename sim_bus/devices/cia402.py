@@ -14,8 +14,11 @@ quick stop option 0x605A = 2 (ramp, then power stage off).
 PDOs follow the mapping in the object dictionary: the master changes it by the CiA 301
 procedure (COB-ID bit 31 set, sub0 = 0, entries, sub0, valid again); a mapping written
 otherwise, or naming an object that cannot be mapped, is refused with the abort code.
+An RPDO may map dummy entries (0x0002-0x0007) where the EDS's [DummyUsage] allows them:
+their bytes are skipped, so drives sharing one RPDO COB-ID each take their own bytes.
 RPDO fields are written into the dictionary (a mode of operation 0 means "no change");
-TPDOs of transmission type 1..240 go out on every n-th SYNC.
+TPDOs of transmission type 1..240 go out on every n-th SYNC, those of type 254/255 when
+their data changes (and on entering OPERATIONAL), at most once per inhibit time 0x18xx:03.
 
 NMT: boot-up message at the first tick (then PRE-OPERATIONAL), start / stop / enter
 pre-operational / reset node / reset communication; SDO in pre-operational and
@@ -37,7 +40,7 @@ or engages its holding brake and switches off; the reaction stays latched
 moves by itself — until operation is enabled again or "disable voltage" comes with
 controlword bit 15.  A drive whose power stage was off stays off (brake on where fitted).
 
-RPDO deadline: armed by each RPDO that leaves the drive OPERATION ENABLED, it expires
+RPDO deadline: armed by each RPDO that finds or leaves the drive OPERATION ENABLED, it expires
 0x1400:05 ms after the last one: brake reaction, FAULT, EMCY 0x8250.  Consumer heartbeat
 (0x1016 sub k = node << 16 | ms): armed by the first heartbeat of that node, it expires
 that long after the latest: EMCY 0x8130 and the 0x6007 reaction.  `inject_fault`
@@ -85,6 +88,7 @@ from drivers.cia402.codec import (
     COB_ID_SYNC,
     CONSUMER_HEARTBEAT,
     CONTROLWORD,
+    DUMMIES,
     EDS_PATH,
     ERROR_CODE,
     ERROR_REGISTER,
@@ -211,6 +215,7 @@ class Cia402Drive(VirtualDrive):
         self._consumed: dict[int, float] = {}  # node -> its heartbeat's expiry
         self._transfer: tuple[str, tuple[int, int], bytes, int] | None = None  # segmented
         self._syncs = 0
+        self._sent: dict[int, tuple[bytes, float]] = {}  # event-driven TPDO -> data, time sent
         self._reset_values(communication_only=False)
         self._live: dict[tuple[int, int], Callable[[], int]] = {
             (STATUSWORD, 0): lambda: encode_statusword(self.state, self.hold is not None),
@@ -278,6 +283,7 @@ class Cia402Drive(VirtualDrive):
         }
         self._rpdos: dict[int, tuple[str, struct.Struct, list[tuple[int, int]]]] = {}
         self.tpdos: list[tuple[int, struct.Struct, list[tuple[int, int]], int]] = []
+        self._inhibit: dict[int, float] = {}  # event-driven TPDO COB-ID -> inhibit time (s)
         for comm in (*range(0x1400, 0x1600), *range(0x1800, 0x1A00)):
             cob = self.values.get((comm, 1))
             if cob is None or cob & PDO_INVALID:
@@ -294,6 +300,8 @@ class Cia402Drive(VirtualDrive):
             else:
                 kind = self.values.get((comm, 2), 0)
                 self.tpdos.append((cob & 0x7FF, layout.struct, keys, kind))
+                if kind in (254, 255):
+                    self._inhibit[cob & 0x7FF] = self.values.get((comm, 3), 0) / 10_000
         self._routes = routes
 
     def _variable(self, index: int, subindex: int) -> ODVariable | int:
@@ -313,7 +321,7 @@ class Cia402Drive(VirtualDrive):
         return _i32(self.scaling.position(self.length + self.glitch))
 
     def _velocity(self) -> int:
-        return _i32(self.scaling.velocity(self.rate))
+        return _i32(self.scaling.velocity(self.rate, self.length))
 
     # -- VirtualDrive ---------------------------------------------------------------------
 
@@ -347,7 +355,7 @@ class Cia402Drive(VirtualDrive):
             out += handler(message, now)
         except Cia402FrameError as exc:
             self.counters.reject(exc.reason)
-        return out
+        return out + self._events(now)
 
     def on_tick(self, now: float) -> list[can.Message]:
         if self.nmt_state is None:
@@ -357,7 +365,7 @@ class Cia402Drive(VirtualDrive):
             out.append(encode_heartbeat(self.node_id, self.nmt_state))
             due = self._next_heartbeat + self.heartbeat_period
             self._next_heartbeat = due if due > now else now + self.heartbeat_period
-        return out
+        return out + self._events(now)
 
     def inject_fault(self, code: int, text: str, *, persistent: bool = False) -> list[can.Message]:
         """The drive detects fault `code` (an EMCY error code): brake reaction, FAULT,
@@ -405,6 +413,7 @@ class Cia402Drive(VirtualDrive):
             NmtCommand.STOP: NmtState.STOPPED,
             NmtCommand.ENTER_PRE_OPERATIONAL: NmtState.PRE_OPERATIONAL,
         }[command]
+        self._sent = {}  # event-driven TPDOs go out once on entering OPERATIONAL
         return []
 
     def _on_sync(self, message: can.Message, now: float) -> list[can.Message]:
@@ -417,6 +426,23 @@ class Cia402Drive(VirtualDrive):
         for cob, layout, keys, kind in self.tpdos:
             if 1 <= kind <= 240 and self._syncs % kind == 0:
                 data = layout.pack(*(self._value(key) for key in keys))
+                out.append(can.Message(arbitration_id=cob, data=data, is_extended_id=False))
+        return out
+
+    def _events(self, now: float) -> list[can.Message]:
+        """The event-driven TPDOs whose data changed since they were last sent (all of
+        them after NMT start), where their inhibit time allows."""
+        if not self._inhibit or self.nmt_state is not NmtState.OPERATIONAL:
+            return []
+        out = []
+        for cob, layout, keys, _ in self.tpdos:
+            inhibit = self._inhibit.get(cob)
+            if inhibit is None:
+                continue
+            data = layout.pack(*(self._value(key) for key in keys))
+            last = self._sent.get(cob)
+            if last is None or (data != last[0] and now - last[1] >= inhibit):
+                self._sent[cob] = (data, now)
                 out.append(can.Message(arbitration_id=cob, data=data, is_extended_id=False))
         return out
 
@@ -436,7 +462,11 @@ class Cia402Drive(VirtualDrive):
                 f"{name} length",
                 f"{len(message.data)} bytes, the mapping has {layout.size}",
             )
-        fields = dict(zip(keys, layout.unpack(message.data), strict=True))
+        fields = {
+            key: value
+            for key, value in zip(keys, layout.unpack(message.data), strict=True)
+            if key[0] not in DUMMIES  # another drive's bytes
+        }
         mode = fields.pop((MODE_OF_OPERATION, 0), MODE_NO_CHANGE)
         if mode != MODE_NO_CHANGE and mode not in MODES:
             raise Cia402FrameError(can_id, "mode of operation", f"{mode} is not 0, 8 or 10")
@@ -451,6 +481,8 @@ class Cia402Drive(VirtualDrive):
         self.target_torque = self.values[(TARGET_TORQUE, 0)]
         self.target_position = self.values[(TARGET_POSITION, 0)]
         if controlword is None:
+            if self.state is State.OPERATION_ENABLED and self.rpdo_timeout > 0:
+                self._deadline = now + self.rpdo_timeout
             self._apply()
             return []
         return self._control(controlword, now, from_rpdo=True)
@@ -550,7 +582,7 @@ class Cia402Drive(VirtualDrive):
                 limit = self.max_torque
                 torque = max(-limit, min(limit, self.target_torque))
                 self.actuation = Actuation.TORQUE
-                self.force = self.scaling.force(torque * self.rated_torque / 1000.0)
+                self.force = self.scaling.force(torque * self.rated_torque / 1000.0, self.length)
                 self.target_length = math.nan
             else:
                 self.actuation = Actuation.POSITION
@@ -707,8 +739,11 @@ class Cia402Drive(VirtualDrive):
                 for k, e in enumerate(layout.entries):
                     var = self.od[e.index] if not e.subindex else self.od[e.index][e.subindex]
                     usable = var.writable if index < 0x1800 else var.readable
+                    mappable = var.pdo_mappable
+                    if e.index in DUMMIES:  # in the OD only where [DummyUsage] allows it
+                        mappable = usable = index < 0x1800  # RPDOs only
                     if (
-                        not (var.pdo_mappable and usable)
+                        not (mappable and usable)
                         or self.values[(index, k + 1)] & 0xFF != e.bits
                     ):
                         return ABORT_NOT_MAPPABLE

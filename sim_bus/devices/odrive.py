@@ -189,7 +189,9 @@ class OdriveAxis(VirtualDrive):
     def _estimate(self) -> can.Message:
         scaling = self.scaling
         return encode_encoder_estimates(
-            self.node_id, scaling.position(self.length + self.glitch), scaling.velocity(self.rate)
+            self.node_id,
+            scaling.position(self.length + self.glitch),
+            scaling.velocity(self.rate, self.length),
         )
 
     def _on_estop(self, message: can.Message, now: float) -> list[can.Message]:
@@ -310,10 +312,10 @@ class OdriveAxis(VirtualDrive):
         if self.control_mode is ControlMode.POSITION_CONTROL:
             self.actuation = Actuation.POSITION
             self.target_length = self.scaling.length(self.input_pos)
-            self.force = self.scaling.force(self.input_torque)  # the feed-forward
+            self.force = self.scaling.force(self.input_torque, self.length)  # the feed-forward
         else:
             self.actuation = Actuation.TORQUE
-            self.force = self.scaling.force(self.input_torque)
+            self.force = self.scaling.force(self.input_torque, self.length)
             self.target_length = math.nan
 
 

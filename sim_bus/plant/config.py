@@ -23,6 +23,7 @@ from cdpr.description import (
     validate_section,
 )
 from sim_bus.plant.actuator import ActuatorModel
+from sim_bus.plant.fixture import FixtureConfig
 
 Wrench = tuple[FiniteFloat, FiniteFloat, FiniteFloat, FiniteFloat, FiniteFloat, FiniteFloat]
 Coefficients = list[NonNegativeFloat]
@@ -239,6 +240,8 @@ class PlantConfig(StrictModel):
     # relative standard deviation of the force a drive produces against its command,
     # drawn anew for every held command (drive current noise; `cdprd tune`'s noisy case)
     force_noise: Annotated[float, Field(ge=0.0, le=0.5)] = 0.0
+    # the platform starts resting on a docking fixture, its cables slack (sim_bus.plant.fixture)
+    fixture: FixtureConfig | None = None
 
     @property
     def substep(self) -> float:

@@ -29,6 +29,7 @@ from cdpr import Pose, Robot
 from cdpr.so3 import quat_to_r9, rotate_quat_by_rotvec
 from sim_bus.plant.config import DisturbanceConfig, PlantConfig
 from sim_bus.plant.encoder import Encoders
+from sim_bus.plant.fixture import Fixture
 from sim_bus.plant.statics import equilibrium_tensions
 from sim_bus.plant.winch import Winches
 
@@ -70,7 +71,10 @@ class Plant:
         self._h = config.substep
         self._steps = 0
         self.time = 0.0
+        self._fixture: Fixture | None = None
         self.reset(true.home, equilibrium_tensions(true, true.home))
+        if config.fixture is not None:
+            self._rest_on_fixture()
 
     # -- set-up and inputs ------------------------------------------------------------
 
@@ -132,6 +136,24 @@ class Plant:
         """Cable k snaps: from now on it carries no tension."""
         self.winches.broken[k] = True
         self._cache = None
+
+    def _rest_on_fixture(self) -> None:
+        """config.fixture: the platform at rest on the fixture (sunk by its weight over
+        the contact's stiffness), every cable slack_m longer than taut, nothing commanded."""
+        fixture = self.config.fixture
+        assert fixture is not None
+        pose = fixture.resting_pose(self.robot)
+        self.reset(pose, np.zeros(self.n))
+        self._fixture = Fixture(fixture, pose)
+        winches = self.winches
+        for k, slack in enumerate(fixture.slack_for(self.n)):
+            winches.lengths[k] += slack
+        winches.commands = [0.0] * self.n
+        for k in range(self.n):
+            winches.states[k] = [0.0] * winches.order
+        weight = [self._mass * g / fixture.stiffness for g in self._gravity]
+        self._xc = [x + w for x, w in zip(self._xc, weight, strict=True)]
+        self.encoders.reset(winches.lengths, winches.rates)
 
     # -- time -----------------------------------------------------------------------
 
@@ -221,7 +243,8 @@ class Plant:
         vx = vc[0] - (wy * cz - wz * cy)
         vy = vc[1] - (wz * cx - wx * cz)
         vz = vc[2] - (wx * cy - wy * cx)
-        table = self._evaluate([xc[0] - cx, xc[1] - cy, xc[2] - cz], R)
+        position = [xc[0] - cx, xc[1] - cy, xc[2] - cz]
+        table = self._evaluate(position, R)
         tensions, (fx, fy, fz, tx, ty, tz) = self.winches.pull(table, (vx, vy, vz, wx, wy, wz))
         if self._disturbance is not None:
             dfx, dfy, dfz, dtx, dty, dtz = self._disturbance(self.time if t is None else t)
@@ -231,6 +254,11 @@ class Plant:
             tx += dtx
             ty += dty
             tz += dtz
+        if self._fixture is not None:
+            contact = self._fixture.wrench(position, self._q, (vx, vy, vz), (wx, wy, wz))
+            if contact is not None:
+                fx, fy, fz, tx, ty, tz = (a + b for a, b in zip(
+                    (fx, fy, fz, tx, ty, tz), contact, strict=True))  # fmt: skip
         self._cache = (R, c, table, tensions, (fx, fy, fz, tx, ty, tz))
         return self._cache
 

@@ -19,7 +19,7 @@ from cdpr.trajectory import Trajectory, Waypoint
 from sim_bus.plant.config import parse_plant_config
 from tests.conftest import load_robot
 from tuning.comparison import HOLD, PAYLOADS, WARM_UP, payload_figures
-from tuning.scenarios import STANDARD_SET
+from tuning.scenarios import STANDARD_SET, rotation_wobble
 from tuning.tracking import run_tracking
 
 ON = ControllerSpec()
@@ -76,14 +76,16 @@ def test_the_estimate_cuts_the_tracking_error(
     figures: dict[str, dict], scenario: str, payload: str
 ) -> None:
     """Issue 19's goals after 2 s with the payload: flight RMS <= 0.5 mm (+10 %) and
-    <= 1.0 mm (+30 %), holding <= 0.2 mm; and at least three times better than without
-    the estimate (measured: 0.14-0.27 mm flight, 0.01-0.13 mm holding, 7-24 times)."""
+    <= 1.0 mm (+30 %), holding <= 0.2 mm; and at least twice better in flight than
+    without the estimate (measured: 0.03-0.05 mm flight, 0.01-0.04 mm holding, 2.3-13
+    times; the external wrench observer takes most of a payload's wrench on its own,
+    0.08-0.49 mm without the estimate, 1.2-6.0 mm without either)."""
     on = figures[scenario][payload]
     off = on["adaptation_off"]
     assert on["fault"] == "" and off["fault"] == ""
     assert on["rms_mm"] <= GOAL_MM[payload], on
     assert on["hold_mm"] <= HOLD_GOAL_MM, on
-    assert on["rms_mm"] * 3.0 <= off["rms_mm"], (on, off)
+    assert on["rms_mm"] * 2.0 <= off["rms_mm"], (on, off)
 
 
 def test_a_payload_beyond_the_limits_is_a_fault(reference8: Robot) -> None:
@@ -186,3 +188,45 @@ def test_the_integral_hands_over_only_what_it_holds() -> None:
     pd = pid(100.0, 0.0, 20.0).discretise(0.002, 1, "zoh")
     pd.hand_over(np.array([1.0]))
     assert pd.step(np.zeros((2, 1)))[0] == 0.0
+
+
+def _without_stretch(robot: Robot) -> Robot:
+    """`robot` with rigid cables (no cable_stiffness): for a plant of stiff cables."""
+    data = robot.spec.model_dump(exclude_none=True)
+    for actuator in [data["actuator"]] + [cable["actuator"] for cable in data["cables"]]:
+        actuator.pop("cable_stiffness", None)
+    return Robot.from_dict(data)
+
+
+@pytest.mark.parametrize("scale", [0.7, 1.5])
+def test_the_inertia_converges_where_rotation_excites_it(reference8: Robot, scale: float) -> None:
+    """adaptation.inertia on, the platform's true inertia `scale` times the file's, the
+    platform turning about all three axes (a few rad/s^2): the diagonal within 10 % and
+    the products within 0.005 kg m^2 of the truth (measured: within 8 %, 0.002), the
+    mass within 1 %.  Stiff cables (EA 1e7): on reference8's EA 1e5 the estimate is
+    biased by up to a third (its effect on the cables' wrench is taken for inertia),
+    hence off by default."""
+    robot = _without_stretch(reference8)
+    spec = ControllerSpec.model_validate({"adaptation": {"inertia": True}})
+    plant = parse_plant_config(
+        {"cable": {"stiffness": 1e7}, "substeps": 10, "mismatch": {"inertia_scale": scale}}
+    )
+    controller = ParallelController(robot, spec)
+    result = run_tracking(robot, rotation_wobble(robot), controller, plant, settle=0.5)
+    assert result.fault == ""
+    truth = robot.platform.inertia * scale
+    inertia = controller.payload.platform.inertia
+    np.testing.assert_allclose(np.diag(inertia), np.diag(truth), rtol=0.1)
+    assert np.abs(inertia - np.diag(np.diag(inertia))).max() < 0.005
+    assert controller.payload.mass == pytest.approx(robot.platform.mass, rel=0.01)
+
+
+def test_pure_translation_leaves_the_inertia_the_files(reference8: Robot) -> None:
+    """The vertical lift with 10 % more mass and the inertia estimated: no rotation, no
+    inertia: it stays the robot file's (about the centre of mass), the mass converges."""
+    spec = ControllerSpec.model_validate({"adaptation": {"inertia": True}})
+    controller, fault = _fly(reference8, spec, PAYLOADS["payload10"], "vertical_lift")
+    assert fault == ""
+    np.testing.assert_allclose(controller.payload.platform.inertia, reference8.platform.inertia,
+                               atol=1e-12)  # fmt: skip
+    assert controller.payload.mass == pytest.approx(11.0, rel=0.01)

@@ -82,3 +82,11 @@ def test_calibrate_never_overwrites_a_robot_file(tmp_path: Path) -> None:
     assert run.returncode == 2
     assert f"error: {output} exists: not overwritten" in run.stderr
     assert output.read_text() == "mine\n"
+
+
+@pytest.mark.parametrize("average", ["2.0", "0", "-1"])
+def test_calibrate_averages_within_the_dwell(tmp_path: Path, average: str) -> None:
+    path = config_file(tmp_path, free_port())
+    run = cdprd("calibrate", "--config", str(path), "--dwell", "1.0", "--average", average)
+    assert run.returncode == 2
+    assert "usage error: --average: more than 0 s, at most --dwell (1 s)" in run.stderr

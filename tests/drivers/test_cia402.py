@@ -21,6 +21,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from cdpr import ConfigError
+from cdpr.description import load_yaml
 from drivers.base import Actuation, BrakeMode, DriverError, DriveState, FrameError, Timing
 from drivers.cia402 import codec
 from drivers.cia402.codec import (
@@ -274,7 +275,7 @@ def test_a_profile_the_eds_refuses_is_named(tmp_path: Path) -> None:
         (
             {
                 "tpdo": [
-                    {"number": 1, "objects": [0x6041, 0x6064, 0x6061], "transmission_type": 255},
+                    {"number": 1, "objects": [0x6041, 0x6064, 0x6061], "transmission_type": 0},
                     {"number": 2, "objects": [0x606C], "transmission_type": 1},
                 ]
             },
@@ -819,12 +820,15 @@ def test_start_names_a_silent_node() -> None:
         link.run(driver.start(link, lambda: link.t))
 
 
-def test_start_takes_over_enabled_drives_without_a_torque_step() -> None:
-    """A restarted host finds its drives enabled (one in torque, one holding): it reads
+@pytest.mark.parametrize("layout", ["default", "compact"])
+def test_start_takes_over_enabled_drives_without_a_torque_step(layout: str) -> None:
+    """A restarted host finds its drives enabled (two in torque, one holding): it reads
     state, mode and position first, never sends NMT pre-operational to them, and keeps
-    sending what they do; the forces never change."""
+    sending what they do; the forces never change (with the compact layout's shared
+    torque RPDO too: every drive's torque is read before it goes out)."""
     lengths = [1.5, 2.5, 0.75]
-    driver, devices, link = make_bus(lengths)
+    profile = compact_profile() if layout == "compact" else {}
+    driver, devices, link = make_bus(lengths, profile=profile)
     link.run(driver.enable(link, lengths, [0.0] * 3))
     link.cycle([-100.0, -60.0, -20.0])
     link.cycle([-100.0, -60.0, -20.0])
@@ -842,7 +846,8 @@ def test_start_takes_over_enabled_drives_without_a_torque_step() -> None:
     assert devices[2].target_length == pytest.approx(before[2][2], abs=1e-5)
     assert all(d.state is State.OPERATION_ENABLED for d in devices)
     assert [s.state for s in again.status] == [DriveState.ENABLED] * 2 + [DriveState.HOLDING]
-    assert len(again.keepalive()) == 3  # it goes on feeding their deadlines
+    # it goes on feeding their deadlines (compact: one torque frame for both)
+    assert len(again.keepalive()) == (2 if layout == "compact" else 3)
 
 
 def test_an_unexpected_mode_display_is_a_reported_fault_not_a_dropped_frame() -> None:
@@ -1221,3 +1226,139 @@ def test_host_heartbeat_defaults_follow_the_control_rate() -> None:
     slow = drives_config(host_heartbeat_period=0.002, consumer_heartbeat_time=0.01)
     with pytest.raises(ValueError, match="consumer_heartbeat_time: 10 ms is less than twice"):
         slow.host_heartbeat(0.01)  # the heartbeat goes out at most once per 10 ms cycle
+
+
+# -- the compact layout (issue 18): one shared torque RPDO per bus -------------------------
+
+TWO_BUS = Path(__file__).resolve().parents[2] / "config" / "reference8-cia402-2bus.yaml"
+NODES = [1, 2, 3]  # drives_config's
+
+
+def frames(messages: list[can.Message]) -> list[tuple[int, bytes]]:
+    return [(m.arbitration_id, bytes(m.data)) for m in messages]
+
+
+def compact_profile(**changes: object) -> dict:
+    """drives.profile of config/reference8-cia402-2bus.yaml (the compact layout)."""
+    profile = load_yaml(TWO_BUS)["drives"]["profile"]
+    return {**profile, **changes}
+
+
+def test_the_compact_layout_sends_one_torque_frame_and_the_controlword_on_change() -> None:
+    driver, devices, link = make_bus(profile=compact_profile())
+    for slot, device in enumerate(devices):  # each its own 2 bytes of RPDO1 at 0x201
+        mapping = [device.values[(0x1600, k)] for k in range(1, 4)]
+        assert mapping == [0x60710010 if k == slot else 0x00060010 for k in range(3)]
+        assert device.values[(0x1400, 1)] == 0x201
+    link.run(driver.enable(link, [1.5] * 3, [0.0] * 3))
+    link.advance(0.001)
+    link.sent.clear()
+    forces = [10.0, -20.0, 30.0]
+    assert sorted(link.cycle(forces)) == [0, 1, 2]  # position alone completes the sample
+    torques = [round(permille(driver, i, f)) for i, f in enumerate(forces)]
+    shared = codec.message(0x201, struct.pack("<hhh", *torques))
+    control = [codec.message(0x400 + node, struct.pack("<Hb", 0x0F, MODE_CST)) for node in NODES]
+    assert frames(link.sent[1:]) == frames([shared, *control])  # torque first, then mode 10
+    assert [d.target_torque for d in devices] == torques
+    assert all(d.actuation is Actuation.TORQUE for d in devices)
+    link.advance(0.002)
+    link.sent.clear()
+    for device in devices:  # cable 0 pays out 1 mm in the 2 ms between two SYNCs
+        device.measure(1.501 if device is devices[0] else 1.5, 0.0)
+    link.cycle(forces)
+    assert frames(link.sent[1:]) == frames([shared])  # no change: no control RPDO
+    assert driver.feedback[0].rate == pytest.approx(0.5, abs=0.01)  # differentiated
+    assert driver.feedback[1].rate == pytest.approx(0.0, abs=0.01)
+    link.sent.clear()
+    for frame in driver.brake([1.501, 1.5, 1.5], BrakeMode.POSITION_HOLD):
+        link.send(frame)
+    assert {m.arbitration_id for m in link.sent} == {0x300 + node for node in NODES}
+    assert all(d.actuation is Actuation.POSITION for d in devices)
+    link.sent.clear()
+    link.cycle(forces)  # torque again: the controlword and mode go out again
+    assert frames(link.sent[1:]) == frames([shared, *control])
+    link.mute.add(1)  # silent: no position on SYNC, no sample (the daemon's stale check)
+    counts = [fb.count for fb in driver.feedback]
+    assert sorted(i for i in link.cycle(forces) if i is not None) == [1, 2]
+    assert [fb.count - c for fb, c in zip(driver.feedback, counts, strict=True)] == [0, 1, 1]
+
+
+def no_dummies(tmp_path: Path) -> Path:
+    """The drive's EDS with every dummy entry forbidden ([DummyUsage] all 0)."""
+    eds = tmp_path / "no_dummies.eds"
+    text = EDS_PATH.read_text()
+    for k in range(1, 8):
+        text = text.replace(f"Dummy000{k}=1", f"Dummy000{k}=0")
+    eds.write_text(text)
+    return eds
+
+
+def test_compact_layouts_the_eds_or_the_bus_refuse_are_named(tmp_path: Path) -> None:
+    eds = str(no_dummies(tmp_path))
+    torque = {"number": 1, "objects": [0x6071], "transmission_type": 255}
+    hold = {"number": 2, "objects": [0x6040, 0x607A, 0x6060], "transmission_type": 255}
+    control = {"number": 3, "objects": [0x6040, 0x6060], "transmission_type": 255}
+    cases = [
+        (
+            {"profile": compact_profile(eds=eds)},
+            r"profile.rpdo.0.shared: each drive skips the others' 16-bit 0x6071 with a dummy "
+            r"entry, 0x0006 \(UNSIGNED16\) or 0x0003 \(INTEGER16\), which the EDS does not allow",
+        ),
+        (
+            {"profile": compact_profile(eds=eds, rpdo=[{**torque, "objects": [6, 0x6071]}])},
+            r"profile.rpdo.0.objects.0: dummy entry 0x0006 \(UNSIGNED16\) is not allowed by "
+            r"the EDS \(\[DummyUsage\] Dummy0006 is not 1\)",
+        ),
+        (
+            {
+                "profile": compact_profile(),
+                "nodes": [1, 2, 3, 4, 5],
+                "direction": 1,
+                "length_offset": 0.0,
+            },
+            r"profile.rpdo.0.objects: 10 bytes for the 5 drives of the bus \(2 each\): a PDO "
+            "carries at most 8",
+        ),
+        (
+            {"profile": compact_profile(rpdo=[{**torque, "cob_id": 0x200}, hold, control])},
+            r"profile.rpdo.0.cob_id: nodes 1 and 2 both take byte 0 of COB-ID 0x200 "
+            r"\(0x6071\): two drives claiming the same bytes",
+        ),
+        (
+            {"profile": compact_profile(rpdo=[torque, hold, {**control, "cob_id": 0x182}])},
+            r"profile.rpdo.2.cob_id: COB-ID 0x182 of node 1's RPDO3 is also node 2's TPDO1's",
+        ),
+        (
+            {"profile": compact_profile(rpdo=[{**hold, "shared": True}, control])},
+            r"profile.rpdo.0.objects: a shared RPDO carries each drive's target torque 0x6071 "
+            "only",
+        ),
+        (
+            {"profile": compact_profile(rpdo=[{**torque, "shared": True}, hold])},
+            r"profile.rpdo: no RPDO maps 0x6040 \+ 0x6071 \+ 0x6060 together, nor are 0x6071 "
+            r"and 0x6040 \+ 0x6060 \(without a target\) mapped in two RPDOs",
+        ),
+        (
+            {"profile": compact_profile(tpdo=[{**compact_profile()["tpdo"][0], "shared": True}])},
+            r"profile.tpdo.0.shared: only an RPDO: each drive sends its own TPDOs",
+        ),
+        (
+            {"profile": compact_profile(rpdo=[torque, {**hold, "inhibit_time": 10}, control])},
+            r"profile.rpdo.1.inhibit_time: only an event-driven TPDO has one",
+        ),
+        (
+            {
+                "profile": compact_profile(
+                    tpdo=[
+                        {"number": 1, "objects": [0x6064, 0x6041, 0x6061], "transmission_type": 255}
+                    ]
+                )
+            },
+            r"profile.tpdo: no TPDO on SYNC \(transmission type 1\) maps 0x6064 \(position "
+            r"actual\): it is the host's feedback",
+        ),
+    ]
+    for overrides, message in cases:
+        config = drives_config(**overrides)
+        with pytest.raises(ValueError, match=message):
+            Cia402Driver(config, config.scalings([RADIUS] * len(config.nodes)))

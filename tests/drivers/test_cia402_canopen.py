@@ -22,7 +22,9 @@ import can
 import canopen
 import pytest
 
+from cdpr.description import load_yaml
 from daemon.service.bus_port import BusPort
+from drivers.base import DriveState
 from drivers.cia402.codec import EDS_PATH
 from drivers.cia402.host import Cia402Driver
 from drivers.config import parse_drives
@@ -30,6 +32,7 @@ from tests.canopen_drive import ENABLED, SWITCHED_ON, VENDOR_EDS, CanopenDrive
 from tests.processes import serve_simulator
 
 ROOT = Path(__file__).resolve().parents[2]
+TWO_BUS = ROOT / "config" / "reference8-cia402-2bus.yaml"
 NODES = [1, 2, 3]
 RADIUS = 0.05
 CHANNELS = itertools.count()
@@ -37,7 +40,7 @@ CHANNELS = itertools.count()
 pytestmark = pytest.mark.timeout(60)
 
 
-def host_config(eds: Path = VENDOR_EDS):
+def host_config(eds: Path = VENDOR_EDS, **profile: object):
     return parse_drives(
         {
             "protocol": "cia402",
@@ -48,7 +51,7 @@ def host_config(eds: Path = VENDOR_EDS):
             "watchdog_timeout": 0.2,
             "heartbeat_timeout": 1.0,
             "consumer_heartbeat_time": 1.0,
-            "profile": {"eds": str(eds)},
+            "profile": {"eds": str(eds), **profile},
         }
     )
 
@@ -142,6 +145,73 @@ def test_our_host_brings_up_canopen_slaves_with_their_vendor_default_mapping() -
     finally:
         bus.shutdown()
         restarted.shutdown()
+        network.disconnect()
+
+
+def test_canopen_slaves_take_the_compact_layout_with_one_torque_frame_for_all() -> None:
+    """The layout of config/reference8-cia402-2bus.yaml: canopen reads the shared RPDO's
+    dummy entries from the mapping our host wrote, and each slave takes its own torque
+    from the one frame; the statusword comes on change, the position on SYNC."""
+    channel = f"cdprd-canopen-{next(CHANNELS)}"
+    network = canopen.Network()
+    network.connect(interface="virtual", channel=channel, receive_own_messages=False)
+    compact = load_yaml(TWO_BUS)["drives"]["profile"]
+    config = host_config(rpdo=compact["rpdo"], tpdo=compact["tpdo"])
+    scalings = config.scalings([RADIUS] * len(NODES))
+    length = 1.5
+    drives = [
+        CanopenDrive(network, node, round(s.position(length)))
+        for node, s in zip(NODES, scalings, strict=True)
+    ]
+    bus = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
+    driver = Cia402Driver(config, scalings)
+    driver.sdo_timeout = 2.0
+
+    async def scenario() -> None:
+        port = BusPort(bus, lambda frames, now: [driver.receive(f, now) for f in frames])
+        port.open(asyncio.get_running_loop())
+        try:
+            await driver.start(port, time.monotonic)
+            for slot, drive in enumerate(drives):  # canopen's own reading of the mapping
+                rpdo1 = drive.node.rpdo[1]
+                assert rpdo1.cob_id == 0x201 and rpdo1.enabled
+                assert [v.index for v in rpdo1.map] == [
+                    0x6071 if k == slot else 0x0006 for k in range(len(NODES))
+                ]
+                assert [v.index for v in drive.node.rpdo[3].map] == [0x6040, 0x6060]
+                assert [v.index for v in drive.node.tpdo[1].map] == [0x6064]
+                tpdo2 = drive.node.tpdo[2]
+                assert [v.index for v in tpdo2.map] == [0x6041, 0x6061]
+                assert tpdo2.trans_type == 255 and drive.value(0x1801, 3) == 10
+            await driver.enable(port, [length] * len(NODES), [0.0] * len(NODES))
+            assert all(d.value(0x6041) == ENABLED and d.value(0x6061) == 8 for d in drives)
+            sent: list[can.Message] = []
+            for _ in range(6):  # the first torque finds mode 8: the mode follows it
+                for frame in driver.cycle_start() + driver.commands([10.0, -20.0, 30.0]):
+                    sent.append(frame)
+                    port.send(frame)
+                await asyncio.sleep(0.01)
+            await until(lambda: all(len(d.torques) >= 5 for d in drives), "torque commands")
+            assert [d.torques[-1] for d in drives] == [50, -100, 150]
+            assert all(d.value(0x6061) == 10 for d in drives)
+            torque_frames = [m for m in sent if m.arbitration_id == 0x201]
+            assert len(torque_frames) == 6 and all(len(m.data) == 6 for m in torque_frames)
+            assert len([m for m in sent if 0x401 <= m.arbitration_id <= 0x403]) == 3  # once
+            counts = [fb.count for fb in driver.feedback]
+            port.send(driver.cycle_start()[0])
+            await until(
+                lambda: all(fb.count > c for fb, c in zip(driver.feedback, counts, strict=True)),
+                "feedback after SYNC",
+            )
+            assert all(fb.length == pytest.approx(length, abs=1e-3) for fb in driver.feedback)
+            assert all(s.state is DriveState.ENABLED for s in driver.status)
+        finally:
+            port.close()
+
+    try:
+        asyncio.run(asyncio.wait_for(scenario(), 45))
+    finally:
+        bus.shutdown()
         network.disconnect()
 
 

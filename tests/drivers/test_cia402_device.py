@@ -556,3 +556,84 @@ def test_malformed_floods_change_nothing(frames: list[tuple[int, bytes, str]]) -
         assert send(device, codec.message(can_id, data), 0.01) == []
     assert device.counters.rejected_total == len(frames)
     assert (device.state, device.actuation, device.force, device.values) == before
+
+
+# -- the compact layout: a shared RPDO (dummy entries) and event-driven TPDOs --------------
+
+
+def no_dummies(tmp_path: Path) -> Path:
+    """The drive's EDS with every dummy entry forbidden ([DummyUsage] all 0)."""
+    eds = tmp_path / "no_dummies.eds"
+    text = EDS_PATH.read_text()
+    for k in range(1, 8):
+        text = text.replace(f"Dummy000{k}=1", f"Dummy000{k}=0")
+    eds.write_text(text)
+    return eds
+
+
+def map_pdo(device: Cia402Drive, comm: int, cob: int, entries: list[int], kind: int) -> int:
+    """The CiA 301 procedure; the abort code of the sub0 write that checks the entries."""
+    assert sdo_write(device, comm, 1, struct.pack("<L", cob | 0x8000_0000)).abort_code == 0
+    assert sdo_write(device, comm, 2, bytes((kind,))).abort_code == 0
+    assert sdo_write(device, comm + 0x200, 0, b"\x00").abort_code == 0
+    for k, entry in enumerate(entries):
+        assert sdo_write(device, comm + 0x200, k + 1, struct.pack("<L", entry)).abort_code == 0
+    code = sdo_write(device, comm + 0x200, 0, bytes((len(entries),))).abort_code
+    if code == 0:
+        assert sdo_write(device, comm, 1, struct.pack("<L", cob)).abort_code == 0
+    return code
+
+
+# node 5 fills slot 1 of four: UNSIGNED16 dummies over the other drives' torques
+SHARED = [0x00060010, 0x60710010, 0x00060010, 0x00060010]
+
+
+def test_a_shared_rpdo_gives_the_drive_its_own_bytes_where_the_eds_allows_dummies(
+    tmp_path: Path,
+) -> None:
+    device = drive(mapped=False)
+    device.on_frame(codec.encode_nmt(NmtCommand.ENTER_PRE_OPERATIONAL, NODE), 0.0)
+    assert map_pdo(device, 0x1400, 0x201, SHARED, 255) == 0
+    assert sdo_write(device, 0x1400, 5, struct.pack("<H", 100)).abort_code == 0
+    # a TPDO carries no dummy entry (CiA 301: receive side only)
+    assert map_pdo(device, 0x1800, 0x180 + NODE, [0x60410010, 0x00060010], 1) == 0x06040041
+    device.on_frame(codec.encode_nmt(NmtCommand.START, NODE), 0.0)
+    for word in (0x06, 0x07, 0x0F):
+        sdo_write(device, 0x6040, 0, struct.pack("<H", word))
+    sdo_write(device, 0x6060, 0, struct.pack("<b", MODE_CST))
+    send(device, codec.message(0x201, struct.pack("<hhhh", 11, 22, -33, 44)), 1.0)
+    assert device.target_torque == 22 and device.actuation is Actuation.TORQUE
+    assert not [key for key in device.values if key[0] < 0x1000]  # the dummies' bytes: dropped
+    assert device.on_tick(1.099) == []  # the torque-only RPDO feeds the deadline
+    send(device, codec.message(0x201, struct.pack("<hhhh", 0, -5, 0, 0)), 1.099)
+    assert device.on_tick(1.19) == [] and device.target_torque == -5
+    assert emcy_codes(device.on_tick(1.2)) == [0x8250]
+    # the same mapping in a drive whose EDS does not allow dummy entries
+    config = parse_drives({"protocol": "cia402", "nodes": [NODE], "rated_torque": 1.0})
+    strict = Cia402Drive(NODE, config.scalings([RADIUS])[0], config, eds=no_dummies(tmp_path))
+    strict.on_tick(0.0)
+    assert map_pdo(strict, 0x1400, 0x201, SHARED, 255) == 0x06040041
+
+
+def test_an_event_driven_tpdo_goes_out_on_change_at_most_once_per_inhibit_time() -> None:
+    device = drive(mapped=False)
+    device.on_frame(codec.encode_nmt(NmtCommand.ENTER_PRE_OPERATIONAL, NODE), 0.0)
+    assert map_pdo(device, 0x1800, 0x180 + NODE, [0x60640020], 1) == 0
+    assert map_pdo(device, 0x1801, 0x280 + NODE, [0x60410010, 0x60610008], 255) == 0
+    assert sdo_write(device, 0x1801, 3, struct.pack("<H", 100)).abort_code == 0  # 10 ms
+    assert device.on_tick(0.5) == []  # pre-operational: no PDO
+
+    def status(frames: list[can.Message]) -> list[State | None]:
+        words = [struct.unpack("<Hb", f.data)[0] for f in frames if f.arbitration_id == 0x285]
+        return [decode_statusword(word) for word in words]
+
+    started = device.on_frame(codec.encode_nmt(NmtCommand.START, NODE), 1.0)
+    assert status(started) == [State.SWITCH_ON_DISABLED]  # once on entering OPERATIONAL
+    assert status(device.on_tick(1.001)) == []  # nothing changed
+    sync = send(device, codec.encode_sync(), 1.002)  # position alone on SYNC
+    assert [(f.arbitration_id, len(f.data)) for f in sync] == [(0x185, 4)]
+    answer = sdo_write(device, 0x6040, 0, struct.pack("<H", 0x06), 1.003)
+    assert answer.kind is SdoKind.DOWNLOAD
+    assert status(device.on_tick(1.004)) == []  # changed, but within 10 ms of the last
+    assert status(device.on_tick(1.011)) == [State.READY_TO_SWITCH_ON]
+    assert status(device.on_tick(1.5)) == []

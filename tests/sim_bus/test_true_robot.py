@@ -5,17 +5,22 @@ from __future__ import annotations
 
 import asyncio
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 from cdpr import ConfigError, Robot
+from daemon.cli.simulated import sim_section, simulated_robot
+from daemon.config import load_config
 from drivers.config import parse_drives
-from sim_bus.config import parse_sim
+from sim_bus.config import load_sim_setup, parse_sim
 from sim_bus.plant import Plant, PlantConfig
 from sim_bus.virtual_robot import VirtualRobot
-from tests.conftest import load_robot
+from tests.conftest import ROBOTS, load_robot
 from tests.daemon_stack import Stack, config_for
+from tests.processes import CONFIG
 
 ODRIVES = parse_drives({"protocol": "odrive", "nodes": list(range(8))}, "config")
 
@@ -124,3 +129,77 @@ def test_the_daemon_reads_the_true_robot_through_the_drives(protocol: str) -> No
             assert moved[1] > 5e-3 and np.delete(moved, 1).max() < 1e-12
 
     asyncio.run(asyncio.wait_for(scenario(), 45))
+
+
+def true_robot_file(tmp_path: Path, moved: np.ndarray) -> Path:
+    """reference8 with its anchors moved by `moved` (n x 3), as a robot file."""
+    data = yaml.safe_load((ROBOTS / "reference8.yaml").read_text())
+    for cable, move in zip(data["cables"], moved, strict=True):
+        cable["anchor"] = (np.array(cable["anchor"]) + move).tolist()
+    data["name"] = "reference8-true"
+    path = tmp_path / "true.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+@pytest.mark.timeout(60)
+def test_sim_robot_names_a_true_robot_file_apart_from_the_daemons(tmp_path: Path) -> None:
+    """sim.robot: the plant spans the true file's anchors (with plant.mismatch on top),
+    the daemon still holds its own robot file and reads the true drum lengths."""
+    moved = np.zeros((8, 3))
+    moved[3] = [0.015, -0.01, 0.005]
+    path = true_robot_file(tmp_path, moved)
+    offsets = [0.0, 0.01, 0.0, 0.0, 0.0, 0.0, -0.02, 0.0]
+
+    async def scenario() -> None:
+        sim = {"robot": str(path), "plant": {"mismatch": {"encoder_offsets": offsets}}}
+        config = config_for("cia402", sim=sim)
+        async with Stack(config) as stack:
+            driver = stack.service.driver
+            await stack.until(lambda: all(math.isfinite(f.length) for f in driver.feedback), 5.0)
+            plant = stack.plant
+            assert plant.robot.name == "reference8-true"
+            np.testing.assert_allclose(
+                plant.robot.geometry.anchors, config.robot.geometry.anchors + moved, atol=1e-12
+            )
+            assert stack.service.robot.name == "reference8"
+            measured = np.array([f.length for f in driver.feedback])
+            np.testing.assert_allclose(measured, plant.drum_lengths + offsets, atol=2e-5)
+
+    asyncio.run(asyncio.wait_for(scenario(), 45))
+
+
+def test_sim_robot_relative_to_the_config_file(tmp_path: Path) -> None:
+    moved = np.full((8, 3), 0.01)
+    true_robot_file(tmp_path, moved)
+    data = yaml.safe_load(CONFIG.read_text())
+    data["robot"] = str(ROBOTS / "reference8.yaml")
+    data["sim"]["robot"] = "true.yaml"
+    path = tmp_path / "cdprd.yaml"
+    path.write_text(yaml.safe_dump(data))
+    setup = load_sim_setup(path)
+    assert setup.robot.name == "reference8-true"
+    robot = load_config(path).robot
+    np.testing.assert_allclose(setup.robot.geometry.anchors, robot.geometry.anchors + moved)
+
+
+@pytest.mark.parametrize(
+    ("value", "expected"),
+    [
+        ("missing.yaml", r"cdprd.yaml: sim.robot: .*missing.yaml: cannot read"),
+        (str(ROBOTS / "suspended6.yaml"), "sim.robot: the true robot has 6 cables, the robot 8"),
+        (7, r"sim.robot: Input should be a valid string, or an object \(got 7\)"),
+        ({"name": "x"}, "cdprd.yaml: sim.robot.platform: Field required"),
+    ],
+)
+def test_sim_robot_errors_name_the_key(tmp_path: Path, value: object, expected: str) -> None:
+    data = yaml.safe_load(CONFIG.read_text())
+    data["robot"] = str(ROBOTS / "reference8.yaml")
+    data["sim"]["robot"] = value
+    path = tmp_path / "cdprd.yaml"
+    path.write_text(yaml.safe_dump(data))
+    with pytest.raises(ConfigError, match=expected):
+        load_sim_setup(path)
+    with pytest.raises(ConfigError, match=expected):
+        config = load_config(path)
+        simulated_robot(config, sim_section(config))

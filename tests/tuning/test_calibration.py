@@ -14,7 +14,7 @@ from cdpr import Robot
 from cdpr.control_spec import ControllerSpec
 from cdpr.controller import static_tensions, tension_solver
 from daemon.cli.calibrate_cmd import CalibrationError, _solve
-from sim_bus.plant.config import MismatchConfig
+from sim_bus.plant.config import MismatchConfig, PlantConfig
 from tuning.calibration import (
     Sample,
     candidate_poses,
@@ -24,7 +24,7 @@ from tuning.calibration import (
     rigid_complement,
     select_poses,
 )
-from tuning.calibration_flight import best_fit
+from tuning.calibration_flight import best_fit, fly_poses, home
 
 ROBOT = Path(__file__).resolve().parents[2] / "config" / "robots" / "reference8.yaml"
 EA_FACTOR = 0.6
@@ -172,3 +172,23 @@ def test_calibrate_from_a_recording_writes_a_new_robot_file_and_stores_the_offse
     state = json.loads((tmp_path / "state" / "reference8.calibration.json").read_text())
     assert np.abs(np.array(state["offsets"]) - zero).max() < 1e-5
     assert state["method"] == f"calibrate (robot file {output})"
+
+
+def test_the_calibration_flight_flies_with_the_files_platform() -> None:
+    """Anchors 20 mm off look like a payload to the online estimate (cdpr.payload): free,
+    it ran to adaptation.com_max within a few poses and braked the flight; frozen at the
+    file's platform (as `cdprd calibrate` does) the flight records every pose."""
+    robot = Robot.from_yaml(ROBOT)
+    rng = np.random.default_rng(16)
+    moves = rng.normal(size=(8, 3))
+    config = PlantConfig.model_validate(
+        {
+            "cable": {"stiffness": 6e4},
+            "mismatch": {"anchor_offsets": (0.02 * moves / np.linalg.norm(moves, axis=1)[:, None])
+                         .tolist()},
+        }
+    )
+    poses = select_poses(robot, 3, candidate_poses(robot, 40, rng, reach=(0.3, 0.3, 0.22)))
+    offsets = home(robot, config, robot.home, np.zeros(8))
+    samples, fault = fly_poses(robot, robot, ControllerSpec(), config, offsets, poses, robot.home)
+    assert fault == "" and len(samples) == 3

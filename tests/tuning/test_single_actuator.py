@@ -9,6 +9,8 @@ import pytest
 from cdpr import ConfigError
 from cdpr.control_spec import ControllerSpec, parse_controller
 from cdpr.single_actuator import LinearController, SingleActuatorTracker, pid
+from cdpr.wrench_observer import WrenchObserver
+from sim_bus.plant import PlantConfig
 from sim_bus.plant.rig import SingleActuatorRig
 from tests.conftest import load_robot
 from tuning.analysis import Rig
@@ -83,6 +85,8 @@ def test_state_space_config_reproduces_the_pid() -> None:
         ({"tension": {"method": "magic"}}, "tension.method"),
         ({"gains": 1}, "gains"),
         ([1, 2], "expected a mapping"),
+        ({"disturbance_observer": {"bandwidth_hz": 80.0}}, "disturbance_observer.bandwidth_hz"),
+        ({"disturbance_observer": {"force_max": 0.0}}, "disturbance_observer.force_max"),
     ],
 )
 def test_bad_controller_config_names_the_key(data: object, message: str) -> None:
@@ -103,15 +107,24 @@ def test_bad_gains_are_rejected() -> None:
 
 
 def _rig_run(
-    load: float, gains: tuple[float, float, float], duration: float = 3.0, latency: float = 0.0
+    load: float,
+    gains: tuple[float, float, float],
+    duration: float = 3.0,
+    latency: float = 0.0,
+    observer: WrenchObserver | None = None,
+    mass_scale: float = 1.0,
+    bias_error: float = 0.0,
+    config: PlantConfig | None = None,
 ) -> np.ndarray:
-    """Track a smooth 5 cm move on the rig, the commands applied `latency` s late;
-    returns the length error (m) per cycle."""
+    """Track a smooth 5 cm move on the rig, the commands applied `latency` s late, the
+    tracker's mass `mass_scale` times the true one and its bias `bias_error` N off,
+    with an `observer` if given; returns the length error (m) per cycle."""
     actuator = load_robot("reference8").actuators[0]
-    rig = SingleActuatorRig(actuator, load, cable_length=2.0, preload=100.0)
+    rig = SingleActuatorRig(actuator, load, config, cable_length=2.0, preload=100.0)
     tracker = SingleActuatorTracker(
-        pid(*gains), PERIOD, actuator.m0 + load, actuator.k0, bias=-rig.preload
-    )
+        pid(*gains), PERIOD, (actuator.m0 + load) * mass_scale, actuator.k0,
+        bias=-rig.preload + bias_error, observer=observer, lead=2e-3 + PERIOD / 2,
+    )  # fmt: skip
     start = rig.equilibrium["length"]
 
     def reference(t: float) -> tuple[float, float, float]:
@@ -185,3 +198,26 @@ def test_heavier_loads_are_less_damped_by_back_emf() -> None:
     assert light.settling_time > 3 * heavy.settling_time
     with pytest.raises(ValueError, match="mass must be"):
         rig.loop(1.0)
+
+
+@pytest.mark.parametrize("mass_scale", [0.5, 1.0, 2.0])
+@pytest.mark.parametrize("stiffness", [0.5e5, 2e5])
+def test_the_wrench_observer_keeps_the_rig_stable_and_takes_an_unmodelled_force(
+    mass_scale: float, stiffness: float
+) -> None:
+    """The tracker with the observer (4 Hz, as the robot's default) on the rig whose
+    mass it has wrong by 2x either way and whose cable is half or twice as stiff as the
+    robot file's, with a 20 N force its bias does not know: the observer holds the 20 N,
+    the error is a third of the PID's alone and decays to the end (measured: 2.7-9.6 mm
+    against 8.5-34 mm; what is left, 0.08-0.25 mm, is the integral's charge running
+    down at ki / kp)."""
+    gains = (100.0, 10.0, 20.0)
+    config = PlantConfig.model_validate({"cable": {"stiffness": stiffness}})
+    observer = WrenchObserver(PERIOD, 4.0, force_max=100.0, size=1)
+    error = _rig_run(10.0, gains, observer=observer, mass_scale=mass_scale, bias_error=20.0,
+                     config=config)  # fmt: skip
+    assert observer.estimate[0] == pytest.approx(20.0, abs=0.5) and not observer.fault
+    end, before = np.abs(error[-250:]).max(), np.abs(error[-500:-250]).max()
+    assert end <= before and end < 3e-4
+    plain = _rig_run(10.0, gains, mass_scale=mass_scale, bias_error=20.0, config=config)
+    assert np.abs(error).max() < np.abs(plain).max() / 3

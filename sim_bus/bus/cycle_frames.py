@@ -1,0 +1,82 @@
+"""The load each bus of a CiA 402 config carries at a cycle rate, from its configured
+host driver and drive profile (sim_bus.bus.busload's frame model).
+
+One steady-state torque cycle on a bus is: the SYNC of the host driver, the torque
+commands it sends (one RPDO per drive, or one shared RPDO for the bus; a control RPDO
+sent on change is not part of the steady state), and each drive's TPDOs on SYNC (those
+sent on change are not either).  Heartbeats come at their own period, not each cycle:
+the host's (one per bus) and every drive's (0x1017, drives.heartbeat_period).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import can
+
+from cdpr import Robot
+from drivers.cia402.codec import HEARTBEAT_BASE, message
+from drivers.cia402.host import Cia402Driver
+from drivers.config import CanConfig, DrivesConfig
+from drivers.factory import make_driver
+from drivers.multibus import MultiBusDriver
+from sim_bus.bus.busload import Stuffing, cycle_load
+
+
+@dataclass(frozen=True)
+class BusCycle:
+    """One bus: the frames of a steady-state cycle, and the heartbeats per second."""
+
+    name: str
+    bitrate: int
+    cycle: list[can.Message]
+    heartbeats: float  # frames per second (1 data byte each)
+
+    def bits_per_cycle(self, stuffing: Stuffing = "worst") -> float:
+        """The bits of one cycle's frames (heartbeats not included)."""
+        return cycle_load(self.cycle, 1.0, self.bitrate, stuffing).bits_per_cycle
+
+    def heartbeat_bits(self, stuffing: Stuffing = "worst") -> float:
+        """The heartbeats' bits per second."""
+        beat = [message(HEARTBEAT_BASE, b"\x05")]
+        return cycle_load(beat, 1.0, self.bitrate, stuffing).bits_per_cycle * self.heartbeats
+
+    def load(self, rate_hz: float, stuffing: Stuffing = "worst") -> float:
+        """Fraction of the bus's bit time used at `rate_hz` cycles per second."""
+        bits = self.bits_per_cycle(stuffing) * rate_hz + self.heartbeat_bits(stuffing)
+        return bits / self.bitrate
+
+    def max_rate_hz(self, load: float, stuffing: Stuffing = "worst") -> float:
+        """The fastest cycle rate that keeps the bus at `load` (a fraction)."""
+        spare = load * self.bitrate - self.heartbeat_bits(stuffing)
+        return spare / self.bits_per_cycle(stuffing)
+
+
+def bus_cycles(drives: DrivesConfig, robot: Robot, buses: Sequence[CanConfig]) -> list[BusCycle]:
+    """Each bus of a CiA 402 config (`buses` as DaemonConfig.buses lists them)."""
+    if drives.protocol != "cia402":
+        raise ValueError(f"bus cycles are modelled for cia402 drives, not {drives.protocol}")
+    driver = make_driver(drives, robot)
+    parts = (
+        [(part.name, part.driver) for part in driver.parts]
+        if isinstance(driver, MultiBusDriver)
+        else [(buses[0].bus_name, driver)]
+    )
+    bitrates = {bus.bus_name: bus.bitrate for bus in buses}
+    out = []
+    for name, part in parts:
+        assert isinstance(part, Cia402Driver)
+        forces = [100.0] * part.n
+        part.cycle_start()  # the first cycle: the host heartbeat, the control RPDOs
+        part.commands(forces)
+        frames = [*part.cycle_start(), *part.commands(forces)]
+        for node in part.nodes:
+            frames += [
+                message(layout.cob_id(node), bytes(layout.struct.size))
+                for layout in part.plan.tpdos
+                if layout.on_sync
+            ]
+        heartbeats = (1 + part.n) / drives.heartbeat_period
+        out.append(BusCycle(name, bitrates[name], frames, heartbeats))
+    return out
