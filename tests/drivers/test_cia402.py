@@ -1235,7 +1235,9 @@ NODES = [1, 2, 3]  # drives_config's
 
 
 def frames(messages: list[can.Message]) -> list[tuple[int, bytes]]:
-    return [(m.arbitration_id, bytes(m.data)) for m in messages]
+    """(COB-ID, data) of `messages` but the host's heartbeat (its own pace, not a cycle's)."""
+    heartbeat = 0x700 + 127
+    return [(m.arbitration_id, bytes(m.data)) for m in messages if m.arbitration_id != heartbeat]
 
 
 def compact_profile(**changes: object) -> dict:
