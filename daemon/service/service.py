@@ -653,6 +653,16 @@ class Service:
         done = self._pretension_waiter = self._loop.create_future()
         self.machine.pretension()
         self._emit({"event": "state", "why": f"pretension at pose {name}"})
+        # the rest runs to its end even if the caller goes away (a cancelled command
+        # would leave the robot in PRETENSION, the loop never closed)
+        finish = asyncio.ensure_future(self._finish_pretension(done, pretension, name))
+        return await asyncio.shield(finish)
+
+    async def _finish_pretension(
+        self, done: asyncio.Future[None], pretension: Pretension, name: str
+    ) -> dict[str, Any]:
+        """Pretension after the drives enabled: once homed (or braked), close the loop,
+        wait for the first cycle in HOLD, and reply (or CommandError naming the abort)."""
         await done  # homed, and the homed lengths trusted; or braked
         if self.machine.state is SafetyState.PRETENSION:
             self._close_loop(pretension)

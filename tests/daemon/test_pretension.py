@@ -21,7 +21,7 @@ from daemon.service.safety import SafetyState, Trigger
 from tests.daemon.test_calibrate_cli import cdprd, config_file
 from tests.daemon_stack import DRIVER_CONFIGS, Stack
 from tests.loopback import free_port
-from tests.processes import connect, finish, start_daemon, wait_status
+from tests.processes import connect, finish, patient_watchdogs, start_daemon, wait_status
 
 pytestmark = pytest.mark.timeout(120)
 SLACK = [0.0, 0.06, 0.02, 0.05, 0.01, 0.03, 0.04, 0.06]
@@ -35,7 +35,7 @@ def slack_config(
     protocol: str, pretension: dict | None = None, mismatch: dict | None = None
 ) -> DaemonConfig:
     def edit(data: dict) -> None:
-        data["drives"].update(watchdog_timeout=0.2, heartbeat_timeout=1.0)
+        patient_watchdogs(data)
         plant = data.setdefault("sim", {}).setdefault("plant", {})
         plant["fixture"] = {"slack_m": SLACK}
         plant["mismatch"] = mismatch or {}
@@ -108,6 +108,26 @@ def test_pretension_from_slack_cables_holds_the_platform_where_it_rested(protoco
             # once holding, pretension is refused like enable
             with pytest.raises(CommandError, match="cannot pretension while hold"):
                 await stack.planner.command("pretension", {})
+
+    run(main())
+
+
+def test_a_pretension_whose_caller_went_away_still_closes_the_loop() -> None:
+    """The command's caller is cancelled while the cables wind in (a client that gave
+    up): the daemon still homes, closes the loop and holds, not left in PRETENSION."""
+    config = slack_config("cia402")
+
+    async def main() -> None:
+        async with Stack(config) as stack:
+            service = stack.service
+            await started(stack)
+            command = asyncio.create_task(stack.planner.command("pretension", {}))
+            await stack.until(lambda: service.machine.state is SafetyState.PRETENSION, 10.0)
+            command.cancel()
+            with pytest.raises(asyncio.CancelledError):
+                await command
+            await stack.until(lambda: service.machine.state is SafetyState.HOLD, 30.0)
+            assert service.offsets.method == "pretension at pose home"
 
     run(main())
 
@@ -207,10 +227,7 @@ def test_cdprd_pretension_through_the_cli_against_a_daemon_process(tmp_path: Pat
 def test_pretension_of_a_hanging_platform_brakes_before_it_drops() -> None:
     """No fixture: the platform hangs on taut cables (IDLE, held).  Winding in at 15 N
     lets the cables pay out under the weight: braked at once, naming the cable."""
-    config = load_config(
-        DRIVER_CONFIGS["cia402"],
-        lambda data: data["drives"].update(watchdog_timeout=0.2, heartbeat_timeout=1.0),
-    )
+    config = load_config(DRIVER_CONFIGS["cia402"], patient_watchdogs)
 
     async def main() -> None:
         async with Stack(config) as stack:
