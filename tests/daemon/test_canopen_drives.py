@@ -64,7 +64,7 @@ CHANNELS = itertools.count()
 # accepted below (safety.max_watchdog_drift, CANOPEN_DRIFT)
 CONSUMER = 0.5
 PROCESS_CONSUMER = 1.0  # s: the same with three processes and TCP relays on a busy host
-CANOPEN_DRIFT = 10.0  # m: safety.max_watchdog_drift for these consumer times
+CANOPEN_DRIFT = 50.0  # m: safety.max_watchdog_drift for these consumer times (27 m at 1 s)
 # Truth against reference, measured on a loaded 2-CPU host: RMS 0.2-0.8 mm, worst
 # 0.5-2.4 mm in this process (one run of 11 beside two CPU hogs: 5.9 mm); against `cdprd
 # run` RMS 0.7-1.6 mm, worst 2-4.9 mm, most of it the reference's time: a published
