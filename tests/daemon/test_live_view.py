@@ -102,7 +102,10 @@ def test_a_foxglove_client_sees_the_robot_as_zenoh_does_and_the_mcap_matches(
     pose = first["/cdpr/pose"].message.pose
     assert np.allclose(_xyz(pose.position), zenoh_position, atol=1e-4)
     o = pose.orientation
-    assert np.allclose([o.w, o.x, o.y, o.z], [q["w"], q["x"], q["y"], q["z"]], atol=1e-4)
+    # the angle between the two (different cycles of a hold: CI saw 2.5e-4 rad on a loaded
+    # host); a wrong frame or component order would be off by far more
+    dot = abs(np.dot([o.w, o.x, o.y, o.z], [q["w"], q["x"], q["y"], q["z"]]))
+    assert 2.0 * np.arccos(min(dot, 1.0)) < 1e-3
     platform = {t.child_frame_id: t for t in first["/tf"].message.transforms}["platform"]
     assert np.allclose(_xyz(platform.translation), zenoh_position, atol=1e-4)
     scene = {e.id: e for e in first["/cdpr/scene"].message.entities}
