@@ -48,6 +48,7 @@ from drivers.cia402.statemachine import (
 )
 from drivers.config import DrivesConfig, parse_drives
 from sim_bus.devices.cia402 import Cia402Drive
+from tests.drivers.test_cia402_device import no_dummies
 
 RADIUS = 0.05
 
@@ -1283,16 +1284,6 @@ def test_the_compact_layout_sends_one_torque_frame_and_the_controlword_on_change
     counts = [fb.count for fb in driver.feedback]
     assert sorted(i for i in link.cycle(forces) if i is not None) == [1, 2]
     assert [fb.count - c for fb, c in zip(driver.feedback, counts, strict=True)] == [0, 1, 1]
-
-
-def no_dummies(tmp_path: Path) -> Path:
-    """The drive's EDS with every dummy entry forbidden ([DummyUsage] all 0)."""
-    eds = tmp_path / "no_dummies.eds"
-    text = EDS_PATH.read_text()
-    for k in range(1, 8):
-        text = text.replace(f"Dummy000{k}=1", f"Dummy000{k}=0")
-    eds.write_text(text)
-    return eds
 
 
 def test_compact_layouts_the_eds_or_the_bus_refuse_are_named(tmp_path: Path) -> None:
