@@ -157,8 +157,9 @@ class DrivesConfig(StrictModel):
     rated_torque: motor rated torque (N·m), the 402 torque unit is its per-mille (0x6076).
     brake: position_hold (servo at the current length) or holding_brake (mechanical
       brake, needs has_holding_brake).  Also the drives' own watchdog reaction.
-    watchdog_timeout: drive-side command timeout (402 RPDO timeout, ODrive axis watchdog;
-      by default also the 402 drives' consumer time of the host heartbeat).
+    watchdog_timeout: drive-side command timeout: the ODrive axis watchdog; for 402
+      drives the host silence the default consumer time of the host heartbeat allows (the
+      host sets no RPDO deadline 0x14xx:05: drivers.cia402.profile).
     heartbeat_period / heartbeat_timeout: drive heartbeat production / host consumer.
     feedback_rate_hz: cyclic feedback rate for drives that stream it (ODrive encoder
       estimates); SYNC-driven drives answer every SYNC instead.
@@ -174,8 +175,8 @@ class DrivesConfig(StrictModel):
       configures at start-up (Cia402Profile).
     host_heartbeat_period / consumer_heartbeat_time (CiA 402): how often the host sends
       its own heartbeat, and the time after its last one at which each drive's consumer
-      (0x1016) declares the daemon dead and reacts (0x6007/0x605A): the detection time of
-      a drive without an RPDO deadline.  Whole ms; default (null): `host_heartbeat`
+      (0x1016) declares the daemon dead and reacts (0x6007/0x605A): the drives' detection
+      time of a dead daemon.  Whole ms; default (null): `host_heartbeat`
       (whole control cycles of at least 5 ms; watchdog_timeout + a period + a cycle).
       The consumer time must be at least twice the period.
     """
@@ -251,11 +252,10 @@ class DrivesConfig(StrictModel):
         The heartbeat goes out with a cycle's SYNC, so at most once per cycle.  Default
         period: whole cycles, at least HEARTBEAT_PERIOD_MIN (a 1-byte frame every 5 ms is
         1.2 % of a 1 Mbit/s bus).  Default consumer time: watchdog_timeout, the host
-        silence the RPDO deadline tolerates (19 ms stopped the drives when a loaded host
-        stalled), counted from the heartbeat that would have come next (+ one period and
-        one cycle): where a drive has both, its deadline, fed every cycle, fires first.
-        At least two periods.  Short either way: a drive without an RPDO deadline applies
-        the last torque for that long after the daemon dies."""
+        silence tolerated (19 ms stopped the drives when a loaded host stalled), counted
+        from the heartbeat that would have come next (+ one period and one cycle).  At
+        least two periods.  Short either way: the drives apply the last torque for that
+        long after the daemon dies (the consumer heartbeat is their only watchdog)."""
         cycles = max(1, math.ceil(HEARTBEAT_PERIOD_MIN / cycle_period - 1e-9))
         period = self.host_heartbeat_period or _ceil_ms(cycles * cycle_period)
         sent = max(period, cycle_period)  # never more often than the cycle

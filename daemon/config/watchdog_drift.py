@@ -1,8 +1,8 @@
 """How far a cable may move before its drive notices that the daemon died (issue 15).
 
 A CiA 402 drive applies the last torque the daemon sent until its own watchdog fires: the
-consumer heartbeat 0x1016 (the host's heartbeat stopped) or, where the drive has one, the
-RPDO deadline 0x14xx:05; the shorter is the detection time t (DrivePlan.detection).  Per
+consumer heartbeat 0x1016 (the host's heartbeat stopped; the host sets no RPDO deadline,
+drivers.cia402.profile), after the detection time t (DrivePlan.detection).  Per
 drive k, the bound on its cable's motion over t is
 
     s_k = 0.5 a_k t^2 + v_k t,   a_k = force_max_k / (m0_k + m)
@@ -68,6 +68,6 @@ def check_drift(bounds: list[DriftBound], limit: float, source: str = "config") 
                 f"{source}: safety.max_watchdog_drift: a dead daemon goes unnoticed for "
                 f"{bound.detection * 1e3:g} ms, in which {bound.text()} under the last "
                 f"torque ({FORMULA}), more than the {limit * 1e3:g} mm allowed: shorten "
-                "drives.consumer_heartbeat_time (and host_heartbeat_period), or give the "
-                "drives an RPDO deadline (drives.watchdog_timeout)"
+                "drives.consumer_heartbeat_time (and host_heartbeat_period), or, where it "
+                "is not set, drives.watchdog_timeout"
             )

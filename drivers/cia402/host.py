@@ -36,7 +36,7 @@ suspended platform fall):
   torque: the drive engages its holding brake as its power stage goes off.  Asked of a
   bus whose drives have no holding brake, brake() holds position instead.
 `brake` never raises and needs no answer; `keepalive` repeats the latest brake, disable or
-enable frames each cycle so the drives' RPDO deadline stays fed.
+enable frames each cycle (a lost frame is made good at the next one).
 
 Start-up (SDO, expedited and segmented, own small client since canopen's blocks on a
 thread), per drive: statusword read first; device type checked; NMT pre-operational only
@@ -46,7 +46,8 @@ the PDO mapping read back and, where it differs from the profile's, written by t
 again; the EDS's other PDOs switched off; rated torque checked against the config; then
 the plan's writes (SYNC COB-ID, heartbeat 0x1017, the drive's consumer of the host
 heartbeat 0x1016, abort connection option 0x6007 = quick stop, quick stop option 0x605A
-= hold, RPDO deadlines 0x14xx:05, each only where the EDS has it, then the profile's
+= hold, every mapped RPDO's deadline 0x14xx:05 off where the EDS has it: the host sends
+no RPDO every cycle in every state, and a drive times each RPDO apart; then the profile's
 sdo_writes).  NMT start, operational heartbeats awaited, and the 402 machine driven to
 SWITCHED ON.  A drive found in FAULT or QUICK STOP ACTIVE is left as it is (it holds by
 its own reaction).  A drive found OPERATION ENABLED is taken over without a torque step:
@@ -330,7 +331,7 @@ class Cia402Driver(ActuatorDriver):
 
     def keepalive(self) -> list[can.Message]:
         """The latest brake/disable/enable frames again (none after torque commands: a
-        torque command is never repeated, the drive's RPDO deadline brakes instead)."""
+        torque command is never repeated)."""
         return [
             _Message(arbitration_id=can_id, data=data, is_extended_id=False)
             for can_id, data in self._standing
@@ -734,7 +735,7 @@ class Cia402Driver(ActuatorDriver):
     async def _answer(
         self, link: Link, i: int, request: can.Message, index: int | None, sub: int, what: str
     ):
-        if self._feeding:  # drives taken over: their deadlines stay fed through start()
+        if self._feeding:  # drives taken over keep getting their frames through start()
             for frame in self.keepalive():
                 link.send(frame)
         for frame in self._heartbeat_due():  # the drives' consumers stay fed too

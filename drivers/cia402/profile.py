@@ -193,9 +193,7 @@ def plan(config: DrivesConfig) -> DrivePlan:
             f"no TPDO on SYNC (transmission type 1) maps 0x{POSITION_ACTUAL:04X} (position "
             "actual): it is the host's feedback, and the sign that a drive is alive, every cycle",
         )
-    writes, watchdog, detection = _host_writes(
-        od, config, [r for r in rpdos if r is not control]
-    )
+    writes, watchdog, detection = _host_writes(od, config, rpdos)
     own = {(step.index, step.subindex) for step in writes}
     for k, extra in enumerate(profile.sdo_writes):
         key, (index, sub) = f"profile.sdo_writes.{k}", extra.object
@@ -402,38 +400,37 @@ def _host_writes(
     od: ObjectDictionary, config: DrivesConfig, rpdos: Sequence[PdoLayout]
 ) -> tuple[list[SdoStep], str, float]:
     """The host's own standard writes where the EDS has them, the watchdog verdict and
-    its detection time (s: the shortest of the consumer time and the RPDO deadlines; the
-    torque RPDO goes out every cycle, the heartbeat every host_heartbeat_period)."""
+    its detection time (s: the consumer time of the host heartbeat).
+
+    Every RPDO's deadline 0x14xx:05 is switched off (0) where the EDS has it: a drive
+    times each RPDO apart (CiA 301), and the host sends none of them every cycle in every
+    enabled state (the torque RPDO in torque control, the hold RPDO in a hold, the
+    control RPDO on change), so a deadline would stop the drive at the first switch
+    between hold and torque control.  The consumer heartbeat, sent at its own pace in
+    every state, is the drive-side watchdog; a drive without it is refused."""
     key = "profile.eds"
     heartbeat_ms = max(1, round(config.heartbeat_period * 1000))
     try:
         consumer_ms = round(config.host_heartbeat()[1] * 1000)
     except ValueError as exc:
         raise ProfileError(key, str(exc)) from None
-    deadline_ms = max(1, round(config.watchdog_timeout * 1000))
     host = config.profile.host_node
     writes = [_checked(od, key, PRODUCER_HEARTBEAT, 0, heartbeat_ms)]
     if COB_ID_SYNC in od:
         writes.append(_checked(od, key, COB_ID_SYNC, 0, SYNC_ID))
-    watchdogs, detection = [], []
-    if _has(od, CONSUMER_HEARTBEAT, 1):
-        writes.append(_checked(od, key, CONSUMER_HEARTBEAT, 1, host << 16 | consumer_ms))
-        watchdogs.append(f"consumer heartbeat 0x1016 on node {host}, {consumer_ms} ms")
-        detection.append(consumer_ms / 1000)
-    for layout in rpdos:
-        if _has(od, layout.comm_index, RPDO_DEADLINE_SUB):
-            writes.append(_checked(od, key, layout.comm_index, RPDO_DEADLINE_SUB, deadline_ms))
-            detection.append(deadline_ms / 1000)
-            watchdogs.append(
-                f"{layout.name} deadline 0x{layout.comm_index:04X}:05, {deadline_ms} ms"
-            )
     where = f"{eds_path(config).name}"
-    if not watchdogs:
+    if not _has(od, CONSUMER_HEARTBEAT, 1):
         raise ProfileError(
             key,
-            f"{where} has neither a consumer heartbeat 0x1016 nor an RPDO deadline "
-            "0x1400:05: a dead daemon would leave the drives applying their last torque",
+            f"{where} has no consumer heartbeat 0x1016 (the host sets no RPDO deadline, "
+            "it sends each RPDO only in some states): a dead daemon would leave the "
+            "drives applying their last torque",
         )
+    writes.append(_checked(od, key, CONSUMER_HEARTBEAT, 1, host << 16 | consumer_ms))
+    watchdog = f"consumer heartbeat 0x1016 on node {host}, {consumer_ms} ms"
+    for layout in rpdos:
+        if _has(od, layout.comm_index, RPDO_DEADLINE_SUB):
+            writes.append(_checked(od, key, layout.comm_index, RPDO_DEADLINE_SUB, 0))
     if ABORT_CONNECTION_OPTION not in od:
         raise ProfileError(
             key,
@@ -456,7 +453,7 @@ def _host_writes(
             "brake: a quick stop may ramp torque to zero and a dead daemon would leave "
             "them free-wheeling under load",
         )
-    return writes, f"{'; '.join(watchdogs)} -> {reaction}", min(detection)
+    return writes, f"{watchdog} -> {reaction}", consumer_ms / 1000
 
 
 def _has(od: ObjectDictionary, index: int, sub: int) -> bool:

@@ -40,10 +40,15 @@ or engages its holding brake and switches off; the reaction stays latched
 moves by itself — until operation is enabled again or "disable voltage" comes with
 controlword bit 15.  A drive whose power stage was off stays off (brake on where fitted).
 
-RPDO deadline: armed by each RPDO that finds or leaves the drive OPERATION ENABLED, it expires
-0x1400:05 ms after the last one: brake reaction, FAULT, EMCY 0x8250.  Consumer heartbeat
-(0x1016 sub k = node << 16 | ms): armed by the first heartbeat of that node, it expires
-that long after the latest: EMCY 0x8130 and the 0x6007 reaction.  `inject_fault`
+RPDO deadlines (CiA 301 §7.5.2.35): each RPDO whose event timer 0x14xx:05 is non-zero has
+its own, started by its first reception in OPERATIONAL and restarted by each one after, in
+any 402 state; it expires 0x14xx:05 ms after that RPDO's latest reception (other RPDOs do
+not feed it): brake reaction, FAULT, EMCY 0x8250 (a drive already in FAULT keeps its
+fault and sends nothing), and it stays off until that RPDO comes again.  A deadline never
+armed never fires; leaving OPERATIONAL, a reset, the RPDO switched off (COB-ID bit 31) or
+its 0x14xx:05 set to 0 stop it.  Consumer heartbeat (0x1016 sub k = node << 16 | ms):
+armed by the first heartbeat of that node, it expires that long after the latest: EMCY
+0x8130 and the 0x6007 reaction.  `inject_fault`
 does the same with any code; a fault reset (controlword bit 7 rising edge) clears the
 fault unless its cause persists (`inject_fault(..., persistent=True)` until
 `clear_fault_cause()`), and then sends the EMCY error reset (code 0).
@@ -115,6 +120,7 @@ from drivers.cia402.codec import (
     Cia402FrameError,
     NmtCommand,
     NmtState,
+    PdoLayout,
     SdoKind,
     decode_heartbeat,
     decode_nmt,
@@ -210,7 +216,7 @@ class Cia402Drive(VirtualDrive):
         self.fault_text: str | None = None
         self.fault_persistent = False
         self._powered = False
-        self._deadline = math.inf  # RPDO deadline expiry (inf: disarmed)
+        self._expiry: dict[int, float] = {}  # RPDO COB-ID -> its deadline's expiry (armed)
         self._next_heartbeat = math.inf
         self._consumed: dict[int, float] = {}  # node -> its heartbeat's expiry
         self._transfer: tuple[str, tuple[int, int], bytes, int] | None = None  # segmented
@@ -265,7 +271,6 @@ class Cia402Drive(VirtualDrive):
         self.max_torque = values[(MAX_TORQUE, 0)]
         self.sync_id = values[(COB_ID_SYNC, 0)] & 0x7FF
         self.heartbeat_period = values[(PRODUCER_HEARTBEAT, 0)] / 1000.0
-        self.rpdo_timeout = values.get((0x1400, RPDO_DEADLINE_SUB), 0) / 1000.0
         consumers = {}
         for sub in range(1, values.get((CONSUMER_HEARTBEAT, 0), 0) + 1):
             entry = values.get((CONSUMER_HEARTBEAT, sub), 0)
@@ -281,7 +286,8 @@ class Cia402Drive(VirtualDrive):
             NMT_ID: self._on_nmt,
             SDO_REQUEST_BASE + self.node_id: self._on_sdo,
         }
-        self._rpdos: dict[int, tuple[str, struct.Struct, list[tuple[int, int]]]] = {}
+        # RPDO COB-ID -> layout, mapped objects, deadline 0x14xx:05 (s, 0: none)
+        self._rpdos: dict[int, tuple[PdoLayout, list[tuple[int, int]], float]] = {}
         self.tpdos: list[tuple[int, struct.Struct, list[tuple[int, int]], int]] = []
         self._inhibit: dict[int, float] = {}  # event-driven TPDO COB-ID -> inhibit time (s)
         for comm in (*range(0x1400, 0x1600), *range(0x1800, 0x1A00)):
@@ -295,7 +301,8 @@ class Cia402Drive(VirtualDrive):
             ]
             layout = pdo_layout(self.od, comm < 0x1800, (comm & 0x1FF) + 1, keys, 0)
             if comm < 0x1800:
-                self._rpdos[cob & 0x7FF] = (layout.name, layout.struct, keys)
+                deadline = self.values.get((comm, RPDO_DEADLINE_SUB), 0) / 1000.0
+                self._rpdos[cob & 0x7FF] = (layout, keys, deadline)
                 routes[cob & 0x7FF] = self._on_rpdo
             else:
                 kind = self.values.get((comm, 2), 0)
@@ -303,6 +310,14 @@ class Cia402Drive(VirtualDrive):
                 if kind in (254, 255):
                     self._inhibit[cob & 0x7FF] = self.values.get((comm, 3), 0) / 10_000
         self._routes = routes
+        self._expiry = {
+            cob: t for cob, t in self._expiry.items() if cob in self._rpdos and self._rpdos[cob][2]
+        }
+
+    @property
+    def rpdo_deadlines(self) -> dict[str, float]:
+        """The deadline (s) of each valid RPDO that has one, by name (RPDO1, ...)."""
+        return {layout.name: t for layout, _, t in self._rpdos.values() if t}
 
     def _variable(self, index: int, subindex: int) -> ODVariable | int:
         """The OD variable, or the SDO abort code for a missing one."""
@@ -388,10 +403,10 @@ class Cia402Drive(VirtualDrive):
             self.state, self.hold, self.controlword = State.SWITCH_ON_DISABLED, None, 0
             if self.power_on_hold and self._powered:
                 self.hold, self.hold_length = BrakeMode.POSITION_HOLD, self.length
-            self._deadline = math.inf
             if not self.fault_persistent:
                 self.fault_code, self.fault_text = 0, None
         self.nmt_state = NmtState.PRE_OPERATIONAL
+        self._expiry = {}
         self._next_heartbeat = now + self.heartbeat_period if self.heartbeat_period else math.inf
         out = [encode_heartbeat(self.node_id, NmtState.BOOT_UP)]
         if self.fault_persistent and not communication_only:
@@ -413,6 +428,8 @@ class Cia402Drive(VirtualDrive):
             NmtCommand.STOP: NmtState.STOPPED,
             NmtCommand.ENTER_PRE_OPERATIONAL: NmtState.PRE_OPERATIONAL,
         }[command]
+        if self.nmt_state is not NmtState.OPERATIONAL:
+            self._expiry = {}  # no PDOs outside OPERATIONAL: the deadlines stop
         self._sent = {}  # event-driven TPDOs go out once on entering OPERATIONAL
         return []
 
@@ -455,7 +472,8 @@ class Cia402Drive(VirtualDrive):
     def _on_rpdo(self, message: can.Message, now: float) -> list[can.Message]:
         """An RPDO: its fields into the dictionary, then the controlword (if mapped)."""
         can_id = message.arbitration_id
-        name, layout, keys = self._rpdos[can_id]
+        pdo, keys, deadline = self._rpdos[can_id]
+        name, layout = pdo.name, pdo.struct
         if len(message.data) != layout.size:
             raise Cia402FrameError(
                 can_id,
@@ -474,6 +492,8 @@ class Cia402Drive(VirtualDrive):
             self.counters.reject("RPDO outside OPERATIONAL")
             return []
         self.counters.accepted += 1
+        if deadline:
+            self._expiry[can_id] = now + deadline
         controlword = fields.pop((CONTROLWORD, 0), None)
         if mode != MODE_NO_CHANGE:
             self._set_mode(mode)
@@ -481,11 +501,9 @@ class Cia402Drive(VirtualDrive):
         self.target_torque = self.values[(TARGET_TORQUE, 0)]
         self.target_position = self.values[(TARGET_POSITION, 0)]
         if controlword is None:
-            if self.state is State.OPERATION_ENABLED and self.rpdo_timeout > 0:
-                self._deadline = now + self.rpdo_timeout
             self._apply()
             return []
-        return self._control(controlword, now, from_rpdo=True)
+        return self._control(controlword)
 
     def _set_mode(self, mode: int) -> None:
         """Mode of operation; entering mode 8 starts from the actual position (no jump to
@@ -496,8 +514,8 @@ class Cia402Drive(VirtualDrive):
 
     # -- 402 state machine ------------------------------------------------------------------
 
-    def _control(self, controlword: int, now: float, from_rpdo: bool) -> list[can.Message]:
-        """Apply a controlword; an RPDO that leaves the drive enabled feeds the deadline."""
+    def _control(self, controlword: int) -> list[can.Message]:
+        """Apply a controlword (from an RPDO, SDO or a 0x6007 reaction)."""
         previous, self.controlword = self.controlword, controlword
         self.values[(CONTROLWORD, 0)] = controlword
         out: list[can.Message] = []
@@ -516,10 +534,6 @@ class Cia402Drive(VirtualDrive):
             released = command is Command.DISABLE_VOLTAGE and controlword & CONTROL_RELEASE_HOLD
             if self.state is State.OPERATION_ENABLED or (released and not stopping):
                 self.hold = None
-        if self.state is not State.OPERATION_ENABLED:
-            self._deadline = math.inf
-        elif from_rpdo and self.rpdo_timeout > 0:
-            self._deadline = now + self.rpdo_timeout
         self._apply()
         return out
 
@@ -536,7 +550,6 @@ class Cia402Drive(VirtualDrive):
     def _fault(self, code: int, text: str, persistent: bool) -> list[can.Message]:
         self._brake_reaction()
         self.state = State.FAULT
-        self._deadline = math.inf
         self.fault_code, self.fault_text, self.fault_persistent = code, text, persistent
         self._apply()
         if self.nmt_state not in _SDO_STATES:
@@ -552,26 +565,31 @@ class Cia402Drive(VirtualDrive):
 
     def _watchdog(self, now: float) -> list[can.Message]:
         out = []
-        if now >= self._deadline:
-            out = self._fault(RPDO_TIMEOUT, "no RPDO within the 0x1400:05 deadline", False)
+        expired = [cob for cob, expiry in self._expiry.items() if now >= expiry]
+        for cob in expired:
+            del self._expiry[cob]  # off until that RPDO comes again
+        if expired and self.state not in _FAULTED:
+            pdo = self._rpdos[expired[0]][0]
+            text = f"no {pdo.name} within its deadline 0x{pdo.comm_index:04X}:05"
+            out = self._fault(RPDO_TIMEOUT, text, False)
         lost = [node for node, expiry in self._consumed.items() if now >= expiry]
         if lost:
             for node in lost:
                 del self._consumed[node]
-            out += self._connection_lost(now, f"no heartbeat from node {lost[0]} (0x1016)")
+            out += self._connection_lost(f"no heartbeat from node {lost[0]} (0x1016)")
         return out
 
-    def _connection_lost(self, now: float, text: str) -> list[can.Message]:
+    def _connection_lost(self, text: str) -> list[can.Message]:
         """Abort connection: EMCY 0x8130, then the 0x6007 reaction."""
         option = self.values.get((ABORT_CONNECTION_OPTION, 0), ABORT_FAULT)
         if option == ABORT_FAULT:
             return self._fault(HEARTBEAT_LOST, text, False)
         out = [encode_emcy(self.node_id, HEARTBEAT_LOST, error_register(HEARTBEAT_LOST))]
         if option == ABORT_QUICK_STOP:
-            out += self._control(Command.QUICK_STOP.value, now, from_rpdo=False)
+            out += self._control(Command.QUICK_STOP.value)
         elif option == ABORT_DISABLE_VOLTAGE:
             self.hold = BrakeMode.HOLDING_BRAKE if self.has_holding_brake else None
-            out += self._control(Command.DISABLE_VOLTAGE.value, now, from_rpdo=False)
+            out += self._control(Command.DISABLE_VOLTAGE.value)
         return out
 
     def _apply(self) -> None:
@@ -673,7 +691,7 @@ class Cia402Drive(VirtualDrive):
             return [self._abort(index, sub, code)]
         out = [encode_sdo_download_response(self.node_id, index, sub)]
         if index == CONTROLWORD:
-            out += self._control(self.values[(CONTROLWORD, 0)], now, from_rpdo=False)
+            out += self._control(self.values[(CONTROLWORD, 0)])
         return out
 
     def _abort(self, index: int, sub: int, code: int) -> can.Message:

@@ -253,24 +253,24 @@ def test_check_config_prints_what_each_drive_does_when_the_daemon_dies(
     assert main(["check-config", str(CONFIG / "reference8-cia402.yaml")]) == 0
     out = capsys.readouterr().out
     assert f"drive profile: EDS {DEFAULT_EDS}" in out
+    # the EDS has RPDO deadlines 0x14xx:05: the host turns them off (drivers.cia402.profile)
     assert (
-        "drive watchdog (when the daemon dies): consumer heartbeat 0x1016 on node 127, 58 ms; "
-        "RPDO1 deadline 0x1400:05, 50 ms; RPDO2 deadline 0x1401:05, 50 ms -> quick stop "
-        "(0x6007 = 3), then holds in QUICK STOP ACTIVE (0x605A = 6)"
+        "drive watchdog (when the daemon dies): consumer heartbeat 0x1016 on node 127, 58 ms "
+        "-> quick stop (0x6007 = 3), then holds in QUICK STOP ACTIVE (0x605A = 6)"
     ) in out
     assert (
-        "host heartbeat: every 6 ms (node 127); a drive notices a dead daemon within 50 ms"
+        "host heartbeat: every 6 ms (node 127); a drive notices a dead daemon within 58 ms"
     ) in out
     # per drive, the bound: force_max 600 N / (m0 1.9 kg + 10 kg) = 50.4 m/s^2; the cable
-    # rate 1 m/s + 2 rad/s x 0.41 m = 1.82 m/s; over 50 ms, 63.0 + 91.2 mm
+    # rate 1 m/s + 2 rad/s x 0.41 m = 1.82 m/s; over 58 ms, 84.8 + 105.8 mm
     assert (
         "drift before a drive notices (s = 0.5 a t^2 + v t, a = force_max / (m0 + platform "
         "mass); limit 200 mm):\n"
     ) in out
     for k in range(8):
         assert (
-            f"  cable {k} (node {k + 1}): 154.3 mm = 0.5 x 50.4 m/s^2 x (50 ms)^2 + 1.82 m/s "
-            "x 50 ms\n"
+            f"  cable {k} (node {k + 1}): 190.6 mm = 0.5 x 50.4 m/s^2 x (58 ms)^2 + 1.82 m/s "
+            "x 58 ms\n"
         ) in out
 
 
@@ -294,7 +294,7 @@ def test_check_config_refuses_a_watchdog_that_lets_a_cable_drift_too_far(
         "in which cable 0 (node 1): 3726.9 mm = 0.5 x 50.4 m/s^2 x (350 ms)^2 + 1.82 m/s x "
         "350 ms under the last torque (s = 0.5 a t^2 + v t, a = force_max / (m0 + platform "
         "mass)), more than the 200 mm allowed: shorten drives.consumer_heartbeat_time (and "
-        "host_heartbeat_period), or give the drives an RPDO deadline (drives.watchdog_timeout)"
+        "host_heartbeat_period), or, where it is not set, drives.watchdog_timeout"
     )
     path.write_text(
         example(
@@ -309,7 +309,8 @@ def test_check_config_refuses_a_watchdog_that_lets_a_cable_drift_too_far(
 
 
 UNSAFE = {  # objects missing from the drive's EDS: the problem check-config names
-    "no watchdog": (("1016", *DEADLINES), "neither a consumer heartbeat 0x1016 nor an RPDO"),
+    # RPDO deadlines do not count: the host sends no RPDO every cycle in every state
+    "no watchdog": (("1016",), "has no consumer heartbeat 0x1016 (the host sets no RPDO"),
     "no 0x6007": (("6007",), "has no abort connection option 0x6007"),
     "no 0x605A": (("605A",), "no quick stop option code 0x605A and the drives have no holding"),
 }

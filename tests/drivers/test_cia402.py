@@ -770,7 +770,7 @@ def test_start_configures_every_drive_through_sdo() -> None:
         assert device.nmt_state is NmtState.OPERATIONAL
         assert device.state is State.SWITCHED_ON
         assert device.heartbeat_period == config.heartbeat_period
-        assert device.rpdo_timeout == config.watchdog_timeout
+        assert device.rpdo_deadlines == {}  # off: the consumer heartbeat is the watchdog
         assert device.brake_reaction is BrakeMode.POSITION_HOLD
         assert device.consumers == {127: config.host_heartbeat()[1]}  # the host's heartbeat
         assert device.values[(0x6007, 0)] == 3 and device.values[(0x605A, 0)] == 6
@@ -785,7 +785,8 @@ def test_start_configures_every_drive_through_sdo() -> None:
         bytes(m.data) for m in link.sent if m.arbitration_id == 0x601 and m.data[0] & 0xE0 == 0x20
     ]
     assert bytes.fromhex("2b17100064000000") in writes  # 0x1017 = 100 ms
-    assert bytes.fromhex("2b00140532000000") in writes  # 0x1400:05 = 50 ms
+    assert bytes.fromhex("2b00140500000000") in writes  # 0x1400:05 = 0 (no deadline)
+    assert bytes.fromhex("2b01140500000000") in writes  # 0x1401:05 = 0
 
 
 def test_start_with_holding_brakes_ends_ready_with_brakes_on() -> None:
@@ -968,6 +969,35 @@ def test_cycles_keep_the_drives_fed_and_feedback_fresh() -> None:
     assert driver.counters.rejected_total == 0
 
 
+@pytest.mark.parametrize("layout", ["default", "compact"])
+def test_switching_between_hold_and_torque_never_lets_an_rpdo_deadline_expire(layout: str):
+    """A drive times each RPDO apart (CiA 301 event timer 0x14xx:05), and the host sends
+    the hold RPDO only in a hold, the torque RPDO only in torque control (compact: the
+    control RPDO only on change).  Hold (enable), torque, hold (brake), torque, 0.2 s
+    each at 500 Hz, four times the 50 ms watchdog_timeout: every drive of the project's
+    EDS (which has the deadlines) stays OPERATION ENABLED throughout."""
+    profile = compact_profile() if layout == "compact" else {}
+    driver, devices, link = make_bus(profile=profile)
+    link.run(driver.enable(link, [1.5] * 3, [0.0] * 3))
+    for phase in ("hold", "torque", "hold", "torque"):
+        if phase == "hold" and driver.status[0].state is DriveState.ENABLED:
+            for frame in driver.brake([f.length for f in driver.feedback], BrakeMode.POSITION_HOLD):
+                link.send(frame)
+        for _ in range(100):
+            if phase == "hold":
+                for frame in driver.keepalive():
+                    link.send(frame)
+                link.cycle()
+            else:
+                link.cycle([-50.0] * 3)
+            link.advance(0.002)
+            assert [(d.state, d.fault_text) for d in devices] == [
+                (State.OPERATION_ENABLED, None)
+            ] * 3, phase
+        wanted = Actuation.POSITION if phase == "hold" else Actuation.TORQUE
+        assert all(d.actuation is wanted for d in devices)
+
+
 def test_brake_position_hold_round_trip() -> None:
     driver, devices, link = make_bus()
     link.run(driver.enable(link, [1.5] * 3, [0.0] * 3))
@@ -1011,21 +1041,27 @@ def test_brake_holding_brake_round_trip_and_disable() -> None:
     assert all(d.state is State.SWITCH_ON_DISABLED and d.brake_engaged for d in devices)
 
 
-def test_rpdo_timeout_brakes_faults_and_resets_without_moving() -> None:
-    driver, devices, link = make_bus(consumer_heartbeat_time=0.1)  # the deadline fires first
+def drive_faults(devices: list[Cia402Drive], link: MemoryLink, code: int = 0x4310) -> None:
+    """Every drive detects fault `code` (its EMCY to the host's queue)."""
+    for device in devices:
+        link.queue.extend(device.inject_fault(code, "drive fault"))
+
+
+def test_a_drive_fault_brakes_and_resets_without_moving() -> None:
+    driver, devices, link = make_bus()
     link.run(driver.enable(link, [1.5] * 3, [0.0] * 3))
     link.cycle([-60.0] * 3)
     devices[1].measure(1.62, 0.3)
-    link.advance(0.06)  # the daemon stalls past the 50 ms deadline
+    drive_faults(devices, link)
     link.deliver()
     for device in devices:
-        assert device.state is State.FAULT and device.fault_code == 0x8250
+        assert device.state is State.FAULT and device.fault_code == 0x4310
         assert device.actuation is Actuation.POSITION
-    assert devices[1].target_length == 1.62  # held where it was when the deadline expired
+    assert devices[1].target_length == 1.62  # held where it was when it faulted
     for status in driver.status:
-        assert status.state is DriveState.FAULT and status.fault_code == 0x8250
-        assert "RPDO timeout" in status.fault
-    with pytest.raises(DriverError, match="node 1 is in FAULT \\(EMCY 0x8250: RPDO timeout"):
+        assert status.state is DriveState.FAULT and status.fault_code == 0x4310
+        assert "drive overtemperature" in status.fault
+    with pytest.raises(DriverError, match="node 1 is in FAULT \\(EMCY 0x4310: drive overtemp"):
         link.run(driver.enable(link, [1.5] * 3, [0.0] * 3))
     link.run(driver.reset_faults(link))
     for device in devices:
@@ -1044,7 +1080,7 @@ def test_keepalive_during_a_fault_reset_does_not_re_enable_the_drives() -> None:
     driver, devices, link = make_bus()
     link.run(driver.enable(link, [1.5] * 3, [0.0] * 3))
     link.cycle([-60.0] * 3)
-    link.advance(0.06)  # RPDO deadline: every drive faults and holds by itself
+    drive_faults(devices, link)  # every drive faults and holds by itself
     link.deliver()
     for frame in driver.brake([1.5] * 3, BrakeMode.POSITION_HOLD):
         link.send(frame)
@@ -1054,11 +1090,11 @@ def test_keepalive_during_a_fault_reset_does_not_re_enable_the_drives() -> None:
         assert device.state is State.SWITCHED_ON and device.actuation is Actuation.POSITION
 
 
-def test_rpdo_timeout_with_holding_brakes() -> None:
+def test_a_drive_fault_with_holding_brakes() -> None:
     driver, devices, link = make_bus(brake="holding_brake", has_holding_brake=True)
     link.run(driver.enable(link, [1.5] * 3, [0.0] * 3))
     link.cycle([-60.0] * 3)
-    link.advance(0.06)
+    drive_faults(devices, link)
     link.deliver()
     assert all(d.actuation is Actuation.OFF and d.brake_engaged for d in devices)
     assert all(s.state is DriveState.FAULT for s in driver.status)
@@ -1136,7 +1172,7 @@ def test_heartbeats_keep_arriving_after_start() -> None:
     assert driver.counters.rejected_total == 0
 
 
-# -- a dead daemon (issue 15: drives without an RPDO deadline) -------------------------------
+# -- a dead daemon (issue 15: the consumer heartbeat is the drives' watchdog) -----------------
 
 VENDOR_EDS = Path(__file__).resolve().parents[1] / "data" / "generic_servo_cia402.eds"
 
@@ -1158,15 +1194,16 @@ def vendor_bus() -> tuple[Cia402Driver, list[Cia402Drive], MemoryLink]:
     return driver, devices, link
 
 
-def test_a_killed_daemon_leaves_drives_without_deadline_holding_within_twice_the_consumer_time():
+@pytest.mark.parametrize("eds", ["vendor", "project"])
+def test_a_killed_daemon_leaves_the_drives_holding_within_twice_the_consumer_time(eds: str):
     """kill -9 of the daemon while it commands torque at 500 Hz: no goodbye frame, no
-    heartbeat any more.  A drive without an RPDO deadline applies the last torque until
-    its consumer heartbeat expires; the host set that to tens of ms (58 ms: the 50 ms of
-    the RPDO deadline it lacks after the heartbeat due next), so each drive holds (QUICK
-    STOP ACTIVE, position) within twice that of the kill, and not before it: the
-    heartbeat every 6 ms keeps it fed."""
-    driver, devices, link = vendor_bus()
-    assert not any(d.rpdo_timeout for d in devices)  # no deadline in this EDS
+    heartbeat any more.  The drives (the vendor EDS has no RPDO deadline, the project's
+    has them and the host turns them off) apply the last torque until their consumer
+    heartbeat expires; the host set that to tens of ms (58 ms: watchdog_timeout after the
+    heartbeat due next), so each drive holds (QUICK STOP ACTIVE, position) within twice
+    that of the kill, and not before it: the heartbeat every 6 ms keeps it fed."""
+    driver, devices, link = vendor_bus() if eds == "vendor" else make_bus()
+    assert all(d.rpdo_deadlines == {} for d in devices)
     consumer = devices[0].consumers[127]
     assert consumer == 0.058 and all(d.consumers == {127: consumer} for d in devices)
     link.run(driver.enable(link, [1.5] * 3, [0.0] * 3))
@@ -1217,8 +1254,8 @@ def test_host_heartbeat_settings_are_whole_ms_and_leave_a_margin(overrides, prob
 
 
 def test_host_heartbeat_defaults_follow_the_control_rate() -> None:
-    """Whole cycles of at least 5 ms; the consumer time is watchdog_timeout (what the
-    RPDO deadline allows) after the heartbeat due next (+ a period and a cycle)."""
+    """Whole cycles of at least 5 ms; the consumer time is watchdog_timeout after the
+    heartbeat due next (+ a period and a cycle)."""
     config = drives_config()
     assert config.host_heartbeat() == (0.006, 0.058)  # 500 Hz: every 3rd cycle
     assert config.host_heartbeat(1 / 300) == (0.007, 0.061)  # 300 Hz: every 2nd cycle

@@ -216,7 +216,7 @@ def test_sdo_aborts(request_frame: can.Message, abort: int) -> None:
 def test_sdo_downloads_configure_the_drive() -> None:
     device = drive(has_holding_brake=True)
     assert sdo_write(device, 0x1400, 5, struct.pack("<H", 20)).kind is SdoKind.DOWNLOAD
-    assert device.rpdo_timeout == 0.02
+    assert device.rpdo_deadlines == {"RPDO1": 0.02, "RPDO2": 0.1}
     sdo_write(device, 0x1005, 0, struct.pack("<L", 0x81))
     assert send(device, codec.encode_sync()) == [] and len(send(device, codec.message(0x81))) == 2
     assert send(device, codec.message(0x600 + NODE, b"\x80\x00\x10\x00\x00\x00\x00\x00")) == []
@@ -452,9 +452,9 @@ def test_quick_stop_brakes_and_never_ramps_torque_to_zero(brake: str) -> None:
 # -- RPDO deadline ---------------------------------------------------------------------------
 
 
-def test_rpdo_deadline_is_armed_only_by_rpdos_in_operation_enabled() -> None:
+def test_rpdo_deadline_faults_and_holds_where_the_deadline_expired() -> None:
     device = drive()
-    assert device.on_tick(5.0) == []  # never enabled: nothing to watch
+    assert device.on_tick(5.0) == []  # no RPDO yet: nothing to watch
     for word in (0x06, 0x07, 0x0F):  # enabled through SDO: not armed either
         sdo_write(device, 0x6040, 0, struct.pack("<H", word), 5.0)
     assert device.state is State.OPERATION_ENABLED and device.on_tick(6.0) == []
@@ -465,9 +465,54 @@ def test_rpdo_deadline_is_armed_only_by_rpdos_in_operation_enabled() -> None:
     device.measure(2.2, 0.0)
     assert emcy_codes(device.on_tick(6.2)) == [0x8250]
     assert device.state is State.FAULT and device.fault_code == 0x8250
+    assert device.fault_text == "no RPDO1 within its deadline 0x1400:05"
     assert device.actuation is Actuation.POSITION and device.target_length == 2.2
     assert struct.unpack("<B", sdo_read(device, 0x1001).data)[0] == 0x11
     assert struct.unpack("<H", sdo_read(device, 0x603F).data)[0] == 0x8250
+    assert device.on_tick(10.0) == []  # off until RPDO1 comes again: one EMCY
+
+
+def test_each_rpdo_has_its_own_deadline_from_its_first_reception() -> None:
+    """CiA 301: an RPDO's event timer watches that RPDO only.  RPDO2 (the hold) once,
+    then RPDO1 (torque) every 10 ms: RPDO1 does not feed RPDO2's deadline, which expires
+    100 ms after RPDO2 came, as a real drive's does after a hold -> torque switch."""
+    device = drive()
+    assert device.rpdo_deadlines == {"RPDO1": 0.1, "RPDO2": 0.1}
+    enable(device, now=1.0)
+    rpdo2(device, 0x0F, device._position(), now=1.0)
+    out, t = [], 1.0
+    for k in range(1, 20):  # 190 ms of torque control
+        t = 1.0 + 0.01 * k
+        out += rpdo1(device, 0x0F, 50, now=t) + device.on_tick(t + 0.005)
+        if device.state is State.FAULT:
+            break
+    assert emcy_codes(out) == [0x8250] and t == pytest.approx(1.1)
+    assert device.fault_text == "no RPDO2 within its deadline 0x1401:05"
+
+
+def test_an_rpdo_deadline_never_armed_never_fires_and_runs_in_every_402_state() -> None:
+    device = drive()
+    enable(device, now=1.0)
+    for k in range(1, 200):  # RPDO1 alone for 2 s: RPDO2's deadline was never armed
+        assert rpdo1(device, 0x0F, 50, now=1.0 + 0.01 * k) == []
+        assert device.on_tick(1.005 + 0.01 * k) == []
+    assert device.state is State.OPERATION_ENABLED
+    # a deadline is CiA 301's, not the 402 state's: armed in READY TO SWITCH ON too
+    device = drive()
+    rpdo1(device, Command.SHUTDOWN.value, now=1.0)
+    assert device.state is State.READY_TO_SWITCH_ON and device.on_tick(1.099) == []
+    assert emcy_codes(device.on_tick(1.1)) == [0x8250] and device.state is State.FAULT
+    # leaving OPERATIONAL stops it; after NMT start it waits for the next reception
+    device = drive()
+    enable(device, now=1.0)
+    send(device, codec.encode_nmt(NmtCommand.ENTER_PRE_OPERATIONAL, NODE), 1.05)
+    send(device, codec.encode_nmt(NmtCommand.START, NODE), 1.06)
+    assert device.on_tick(5.0) == [] and device.state is State.OPERATION_ENABLED
+    # so does 0x14xx:05 = 0 while armed
+    device = drive()
+    enable(device, now=1.0)
+    sdo_write(device, 0x1400, 5, b"\x00\x00", 1.05)
+    assert device.on_tick(5.0) == [] and device.state is State.OPERATION_ENABLED
 
 
 def test_rpdo_deadline_with_holding_brake_and_disabled_deadline() -> None:
