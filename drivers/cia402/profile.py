@@ -431,6 +431,8 @@ def _host_writes(
     for layout in rpdos:
         if _has(od, layout.comm_index, RPDO_DEADLINE_SUB):
             writes.append(_checked(od, key, layout.comm_index, RPDO_DEADLINE_SUB, 0))
+        else:
+            _refuse_fixed_deadline(od, key, where, layout)
     if ABORT_CONNECTION_OPTION not in od:
         raise ProfileError(
             key,
@@ -454,6 +456,23 @@ def _host_writes(
             "them free-wheeling under load",
         )
     return writes, f"{watchdog} -> {reaction}", consumer_ms / 1000
+
+
+def _refuse_fixed_deadline(od: ObjectDictionary, key: str, where: str, layout: PdoLayout) -> None:
+    """Refuse an RPDO whose deadline the EDS fixes (read-only) at a non-zero time: the
+    host cannot switch it off, and the drive would stop at the first switch between hold
+    and torque control (`_host_writes`)."""
+    try:
+        var = od_variable(od, layout.comm_index, RPDO_DEADLINE_SUB)
+    except KeyError:
+        return
+    if var.default:
+        raise ProfileError(
+            key,
+            f"{where}: {layout.name}'s deadline 0x{layout.comm_index:04X}:05 is "
+            f"{var.access_type} at {var.default} ms: the host cannot switch it off, and "
+            "it sends no RPDO every cycle in every state (map another RPDO)",
+        )
 
 
 def _has(od: ObjectDictionary, index: int, sub: int) -> bool:

@@ -332,6 +332,34 @@ def test_check_config_refuses_a_drive_a_dead_daemon_leaves_free_wheeling(
     assert line.startswith(f"error: {path}: drives.profile.eds: drive.eds ") and problem in line
 
 
+def test_check_config_refuses_an_rpdo_deadline_the_host_cannot_switch_off(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A read-only RPDO deadline is refused when its default is non-zero (the drive would
+    stop at the first switch between hold and torque control), accepted at 0."""
+    text = DEFAULT_EDS.read_text()
+    section = text.index("[1401sub5]")
+    read_only = text[:section] + text[section:].replace("AccessType=rw", "AccessType=ro", 1)
+    after = read_only[section:].replace("DefaultValue=0", "DefaultValue=50", 1)
+    fixed = read_only[:section] + after
+    for name, eds in (("zero", read_only), ("fixed", fixed)):  # EDS files are cached by path
+        (tmp_path / name / "vendor").mkdir(parents=True)
+        (tmp_path / name / "vendor" / "drive.eds").write_text(eds)
+        (tmp_path / name / "cdprd.yaml").write_text(
+            example(("  heartbeat_timeout: 0.35\n", PROFILE))
+        )
+    assert main(["check-config", str(tmp_path / "zero" / "cdprd.yaml")]) == 0
+    capsys.readouterr()
+    path = tmp_path / "fixed" / "cdprd.yaml"
+    assert main(["check-config", str(path)]) == 1
+    (line,) = capsys.readouterr().err.splitlines()
+    assert line == (
+        f"error: {path}: drives.profile.eds: drive.eds: RPDO2's deadline 0x1401:05 is ro "
+        "at 50 ms: the host cannot switch it off, and it sends no RPDO every cycle in every "
+        "state (map another RPDO)"
+    )
+
+
 def test_a_drive_without_quick_stop_hold_needs_its_holding_brake(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
