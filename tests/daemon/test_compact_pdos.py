@@ -9,17 +9,15 @@ import asyncio
 from pathlib import Path
 
 import can
-import numpy as np
 import pytest
 
-from cdpr import ConfigError, Pose
+from cdpr import ConfigError
 from daemon.cli import main
 from daemon.config import DaemonConfig, load_config
-from daemon.service.safety import SafetyState
 from drivers.cia402 import codec
 from sim_bus.bus.busload import message_bits
 from sim_bus.bus.cycle_frames import bus_cycles
-from tests.daemon.test_multibus import Spy
+from tests.daemon.test_multibus import goto_reading, read_spies, spy_on
 from tests.daemon_stack import Stack
 
 pytestmark = pytest.mark.timeout(120)
@@ -45,31 +43,14 @@ async def fly(config: DaemonConfig) -> tuple[float, dict[str, list[can.Message]]
     """Enable, goto 5 cm away, hold 0.3 s: the platform's final error (mm), and every
     frame each bus carried from the goto on."""
     async with Stack(config) as stack:
-        service = stack.service
-        spies = {name: Spy(bus.channel) for name, bus in stack.sim.daemon_bus.items()}
-
-        async def read_spies(seconds: float) -> None:
-            for _ in range(int(seconds / 0.005)):
-                for spy in spies.values():
-                    spy.read()
-                await asyncio.sleep(0.005)
-
+        spies = spy_on(stack)
         try:
             await stack.enable()
-            await read_spies(0.05)
+            await read_spies(spies, 0.05)
             for spy in spies.values():
                 spy.frames.clear()
-            home = config.robot.home
-            target = Pose(home.position + np.array([0.03, -0.02, 0.04]), home.quaternion)
-            await stack.planner.command("goto", {"pose": target})
-            for _ in range(100):
-                if service.machine.state is SafetyState.HOLD:
-                    break
-                await read_spies(0.05)
-            await read_spies(0.3)
-            assert service.machine.state is SafetyState.HOLD, service.machine.fault
-            error = np.linalg.norm(stack.plant.pose.position - target.position) * 1e3
-            return float(error), {name: spy.frames for name, spy in spies.items()}
+            error = await goto_reading(stack, spies, [0.03, -0.02, 0.04])
+            return error, {name: spy.frames for name, spy in spies.items()}
         finally:
             for spy in spies.values():
                 spy.bus.shutdown()

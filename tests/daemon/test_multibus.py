@@ -201,6 +201,34 @@ class Spy:
         self.bus.send(msg)
 
 
+def spy_on(stack: Stack) -> dict[str, Spy]:
+    """A spy on each of the stack's buses, by bus name."""
+    return {name: Spy(bus.channel) for name, bus in stack.sim.daemon_bus.items()}
+
+
+async def read_spies(spies: dict[str, Spy], seconds: float) -> None:
+    """Let the stack run `seconds`, every spy reading its bus every 5 ms."""
+    for _ in range(int(seconds / 0.005)):
+        for spy in spies.values():
+            spy.read()
+        await asyncio.sleep(0.005)
+
+
+async def goto_reading(stack: Stack, spies: dict[str, Spy], offset: list[float]) -> float:
+    """Goto `offset` (m) from home, the spies reading until the robot holds again and
+    0.3 s longer (at most 10 s): how far (mm) the platform ended from the target."""
+    home, service = stack.service.config.robot.home, stack.service
+    target = Pose(home.position + np.array(offset), home.quaternion)
+    await stack.planner.command("goto", {"pose": target})
+    for _ in range(200):
+        if service.machine.state is SafetyState.HOLD:
+            break
+        await read_spies(spies, 0.05)
+    await read_spies(spies, 0.3)
+    assert service.machine.state is SafetyState.HOLD, service.machine.fault
+    return float(np.linalg.norm(stack.plant.pose.position - target.position) * 1e3)
+
+
 def _nodes_heard(frames: list[can.Message]) -> set[int]:
     """The node ids of the node-addressed CiA 402 frames (all but NMT and SYNC)."""
     return {m.arbitration_id & 0x7F for m in frames if m.arbitration_id > cia402.SYNC_ID}
@@ -211,31 +239,13 @@ def test_eight_drives_on_two_buses_enable_hold_and_move() -> None:
         config = two_bus_config()
         async with Stack(config) as stack:
             service = stack.service
-            spies = {name: Spy(bus.channel) for name, bus in stack.sim.daemon_bus.items()}
-
-            async def read_spies(seconds: float) -> None:
-                for _ in range(int(seconds / 0.005)):
-                    for spy in spies.values():
-                        spy.read()
-                    await asyncio.sleep(0.005)
-
+            spies = spy_on(stack)
             try:
                 assert service.machine.state is SafetyState.IDLE
                 await stack.enable()
                 cycles = service.stats.cycles
-                await read_spies(0.3)
-                target = Pose(
-                    config.robot.home.position + np.array([0.03, -0.02, 0.04]),
-                    config.robot.home.quaternion,
-                )
-                await stack.planner.command("goto", {"pose": target})
-                for _ in range(200):
-                    if service.machine.state is SafetyState.HOLD:
-                        break
-                    await read_spies(0.05)
-                await read_spies(0.3)
-                assert service.machine.state is SafetyState.HOLD, service.machine.fault
-                error_mm = np.linalg.norm(stack.plant.pose.position - target.position) * 1e3
+                await read_spies(spies, 0.3)
+                error_mm = await goto_reading(stack, spies, [0.03, -0.02, 0.04])
                 assert error_mm < 1.0, f"{error_mm:.3f} mm from the goto target"
                 cycles = service.stats.cycles - cycles
                 for name, spy in spies.items():
@@ -252,7 +262,7 @@ def test_eight_drives_on_two_buses_enable_hold_and_move() -> None:
                 for _ in range(20):
                     spies["right"].send(cia402.encode_tpdo1(1, 0x0237, 10**6, 10))
                     spies["right"].send(cia402.encode_tpdo2(1, 0))
-                    await read_spies(0.01)
+                    await read_spies(spies, 0.01)
                 assert right.ignored - ignored == 40  # read on right, no drive's there
                 fresh = [
                     fb.count - c for fb, c in zip(service.driver.feedback, counts, strict=True)
