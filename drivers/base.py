@@ -157,12 +157,16 @@ class Scaling:
 class Feedback:
     """The newest feedback of one actuator.  `stamp` is the host's monotonic receive
     time (s), `count` increments with every accepted feedback frame, so a cycle can
-    tell fresh feedback from stale."""
+    tell fresh feedback from stale.  `first` and `second` (Timing.SYNC drivers): the
+    lengths of the first answer to one SYNC and of a second one, dropped (the pair that
+    disagrees most); the cycle that judges them sets them back to NaN (none)."""
 
     length: float = math.nan
     rate: float = math.nan
     stamp: float = -math.inf
     count: int = 0
+    first: float = math.nan
+    second: float = math.nan
 
 
 @dataclass

@@ -217,32 +217,40 @@ def validation_steps(
     wrench_check: WrenchCheck | None = None,
     pose_limits: PoseLimits | None = None,
     length_limits: LengthLimits | None = None,
+    segments: int | None = None,
 ) -> Iterator[float]:
     """`validate` one step at a time: yields each checked waypoint's and sample's time once
-    it passed, so a caller sharing an event loop with a control cycle can pause between."""
-    count = len(trajectory.waypoints)
+    it passed, so a caller sharing an event loop with a control cycle can pause between.
+    `segments`: only the first that many segments (a transition into a trajectory already
+    validated), whose end need not be at rest."""
+    if segments is None:
+        waypoints = trajectory.waypoints
+    else:
+        waypoints = tuple(trajectory.knot(k) for k in range(min(segments + 1, len(trajectory))))
+    count = len(waypoints)
     if count > limits.max_waypoints:
         raise TrajectoryError(
             "max_waypoints",
             f"{count} waypoints exceed the limit of {limits.max_waypoints}",
             value=float(count),
         )
-    if not trajectory.duration <= limits.max_duration:
+    duration = waypoints[-1].t - waypoints[0].t
+    if not duration <= limits.max_duration:
         raise TrajectoryError(
             "max_duration",
-            f"duration {trajectory.duration:.6g} s exceeds the limit {limits.max_duration:g} s",
-            value=trajectory.duration,
+            f"duration {duration:.6g} s exceeds the limit {limits.max_duration:g} s",
+            value=duration,
         )
     bounds = length_limits or LengthLimits(
         tuple(robot.length_min.tolist()), tuple(robot.length_max.tolist())
     )
     if pose_limits is not None:
-        for index, w in enumerate(trajectory.waypoints):
+        for index, w in enumerate(waypoints):
             _check_pose(pose_limits, w.pose, index, f"at t={w.t:.6g} s")
             yield w.t
-    steps = math.floor(trajectory.duration / limits.sample_period)
+    steps = math.floor(duration / limits.sample_period)
     grid = trajectory.start_time + limits.sample_period * np.arange(steps + 1)
-    knots = [w.t for w in trajectory.waypoints]
+    knots = [w.t for w in waypoints]
     for t in np.union1d(grid, knots).tolist():
         ref = trajectory.sample(t)
         index = trajectory.waypoint_index(t)

@@ -230,9 +230,10 @@ class Planner:
         what: str,
         pose_limits: PoseLimits,
         length_limits: LengthLimits,
+        segments: int | None = None,
     ) -> None:
-        """DESIGN §7 validation; every sampled pose inside `pose_limits`, its cable
-        lengths inside `length_limits`."""
+        """DESIGN §7 validation (of the first `segments` only, if given); every sampled
+        pose inside `pose_limits`, its cable lengths inside `length_limits`."""
         steps = validation_steps(
             trajectory,
             self.robot,
@@ -240,6 +241,7 @@ class Planner:
             self._wrench_check,
             pose_limits,
             length_limits,
+            segments,
         )
         try:
             await self.link.run_steps(steps)
@@ -276,9 +278,8 @@ class Planner:
                 reach = self.config.reference_lengths.widened_to(
                     self.robot.cable_lengths(begins).tolist()
                 )
-                if validate == "blend":
-                    blend = Trajectory([planned.knot(0), planned.knot(1)])
-                    await self._validate(blend, f"{what}'s approach", inside, reach)
+                if validate == "blend":  # its end may be moving: checked in place
+                    await self._validate(planned, f"{what}'s approach", inside, reach, segments=1)
                 else:
                     await self._validate(planned, what, inside, reach)
             if self._holds != holds and what != "hold":

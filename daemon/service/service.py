@@ -39,8 +39,8 @@ from daemon.service.gc_policy import CollectorPolicy
 from daemon.service.homing import LengthOffsets
 from daemon.service.planner import PLANNING_LEAD
 from daemon.service.safety import Fault, SafetyMonitor, SafetyState, StateMachine, Trigger
-from daemon.service.trusted_lengths import TrustedLengths
-from drivers.base import ActuatorDriver, DriverError, FrameError, Timing
+from daemon.service.trusted_lengths import Implausible, TrustedLengths
+from drivers.base import ActuatorDriver, DriverError, Feedback, FrameError, Timing
 from drivers.bus import CAN_ERR_BUSOFF
 from drivers.clock import PeriodicTimer
 from drivers.factory import make_driver
@@ -307,7 +307,7 @@ class Service:
             self._emit({"event": "offset_lost", "drive": drive, "why": why})
         winding = self.pretension is not None and self.pretension.active
         judge = self.trust.track if winding else self.trust.check
-        implausible = judge(lengths, rates, fresh, instant)
+        implausible = self._second_answers(feedback, judge(lengths, rates, fresh, instant))
         faults = [Fault(Trigger.IMPLAUSIBLE_FEEDBACK, f.message()) for f in implausible]
         faults += self.monitor.check_drives(feedback, self.driver.status, now)
         stale = self.monitor.check_freshness(fresh)
@@ -334,6 +334,24 @@ class Service:
         self.collector.after_cycle()  # the commands are out: now
         if self._slack_waiters:
             self._wake_slack_waiters()
+
+    def _second_answers(
+        self, feedback: list[Feedback], flagged: list[Implausible]
+    ) -> list[Implausible]:
+        """`flagged` and each drive not in it whose two answers to one SYNC, recorded by
+        the driver since the last cycle, disagree (TrustedLengths.second_answer); the
+        pairs are taken (NaN again)."""
+        correction = self.offsets.correction
+        for k in range(self.n):
+            fb = feedback[k]
+            first, second = fb.first, fb.second
+            if second != second:  # NaN: none
+                continue
+            fb.first = fb.second = math.nan
+            problem = self.trust.second_answer(k, first + correction[k], second + correction[k])
+            if problem is not None and all(f.cable != k for f in flagged):
+                flagged = [*flagged, problem]  # a new list: `judge` may return a kept one
+        return flagged
 
     def _control(self, lengths: list[float], rates: list[float]) -> None:
         """Controller step, checks and commands for the cycle opened at `self._opened`:

@@ -14,6 +14,14 @@ taken or seen than its instant says):
   mean rate x slack: tight while the cable stands still, where a glitch or a forged
   frame would otherwise pass the step bound unnamed.
 
+Two answers to one SYNC (`second_answer`; the CiA 402 host records them): their samples
+were taken at most `slack` apart (a late answer to the SYNC before, over relays on a
+loaded host), so their lengths differ by at most the step bound over no elapsed time,
+max_speed x slack + tolerance.  More means another node sends that drive's PDOs (a
+node-id conflict or a forger), whichever of the two came first: the length farther from
+the trusted one is named.  A drive that streams its feedback (Timing.CYCLIC, ODrive) has
+no SYNC to answer twice: each frame replaces the last, and the one a cycle takes is judged.
+
 Across cables (consistency): with n > 6 cables the lengths are redundant.  A rigid
 motion changes them by Lambda dx, which has no component in the left null space N of
 Lambda; one cable off by e leaves N N^T e_k e, largest on that cable when normalised by
@@ -241,7 +249,7 @@ class TrustedLengths:
             return None
         slack, tolerance = self.slack, self.tolerance
         step = x - trusted
-        bound = speed * (elapsed + slack) + tolerance
+        bound = self._step_bound(elapsed)
         if abs(step) > bound:
             return Implausible(
                 k,
@@ -264,6 +272,34 @@ class TrustedLengths:
                 f"its rate gives {expected * 1e3:+.2f} mm (allowed {allowed * 1e3:.2f} mm)",
             )
         return None
+
+    def _step_bound(self, elapsed: float) -> float:
+        """How far (m) a length may move in `elapsed` s between the instants of two
+        samples (module docstring: step)."""
+        return self.max_speed * (elapsed + self.slack) + self.tolerance
+
+    def second_answer(self, k: int, first: float, second: float) -> Implausible | None:
+        """Cable k answered one SYNC twice, with lengths `first` and `second` (m): an
+        Implausible if they are further apart than the step bound over no elapsed time
+        (module docstring), naming the one farther from the trusted length (the second
+        while none is trusted)."""
+        bound = self._step_bound(0.0)
+        apart = abs(second - first)
+        if not apart > bound:
+            return None
+        trusted = self.held[k]
+        x, other = second, first
+        if abs(first - trusted) > abs(second - trusted):  # False while trusted is NaN
+            x, other = first, second
+        return Implausible(
+            k,
+            self.nodes[k],
+            x,
+            f"length {x:.4f} m and {other:.4f} m in two answers to one SYNC, {apart:.4f} m "
+            f"apart (bound {bound:.4f} m at max_cable_speed {self.max_speed:g} m/s): a second "
+            "answer to one SYNC means another node sends this node's PDOs (node-id conflict "
+            "or forgery)",
+        )
 
     def _residuals(self, change: Sequence[float]) -> list[float]:
         """|N_k . N^T change| / |N_k| per cable (m): the part of `change` no rigid motion

@@ -12,8 +12,14 @@ Cycle (Timing.SYNC): `cycle_start` sends SYNC (and the host's heartbeat every
 host_heartbeat_period, also between SDO requests); every drive answers with its TPDOs.
 `receive` returns a cable's index when the last of a drive's TPDOs on SYNC since the
 latest SYNC arrives: feedback is complete for the cycle (and the drive alive).  A TPDO
-on SYNC after its drive's sample was complete is counted as rejected and dropped;
-event-driven TPDOs update the state.  A mode of operation display other than 8 or 10
+on SYNC after its drive's sample was complete is counted as rejected and dropped (one
+repeated within the sample replaces the earlier one).  Either is a second answer to one
+SYNC: on a bus never legitimate (another node sends this node's PDOs: a node-id conflict
+or a forger), but over relays on a loaded host a late answer to the SYNC before can land
+after the latest one.  So one carrying a position records its length beside the one
+already received (Feedback.first / second: the pair that disagrees most, until the
+daemon's cycle judges it, daemon.service.trusted_lengths).  Event-driven TPDOs update
+the state.  A mode of operation display other than 8 or 10
 while operation is enabled is a drive FAULT (reported, the frame still counts).
 `commands` sends one torque RPDO per drive (controlword "enable operation", target
 torque in per mille of the rated torque, mode 10), or the shared one.
@@ -382,7 +388,10 @@ class Cia402Driver(ActuatorDriver):
         if bit:
             if self._got_epoch[i] != self._epoch:
                 self._got_epoch[i], self._got[i] = self._epoch, 0
-            if self._got[i] < 0:
+            got = self._got[i]
+            if (got < 0 or got & bit) and position_at >= 0:
+                self._second_answer(i, values[position_at])
+            if got < 0:
                 self.counters.reject("TPDO after the sample was complete")
                 return None
         self.counters.accepted += 1
@@ -419,6 +428,18 @@ class Cia402Driver(ActuatorDriver):
         feedback.stamp = now
         feedback.count += 1
         return i
+
+    def _second_answer(self, i: int, position: int) -> None:
+        """Drive i answered the latest SYNC again with `position` (module docstring): its
+        length is recorded as Feedback.second beside the first answer's, when that pair
+        disagrees more than the one recorded."""
+        first = self.position[i]
+        if first is None:
+            return
+        scaling, feedback = self.scalings[i], self.feedback[i]
+        length, other = scaling.length(position), scaling.length(first)
+        if not abs(feedback.second - feedback.first) >= abs(length - other):  # or none yet
+            feedback.first, feedback.second = other, length
 
     def _update_state(self, i: int, statusword: int, mode: int) -> None:
         status = self.status[i]

@@ -24,6 +24,7 @@ from cdpr.trajectory import (
     goto,
     parse_trajectory,
     validate,
+    validation_steps,
 )
 from cdpr.trajectory.core import MIN_SEGMENT, Curve
 from cdpr.trajectory.limits import MAX_WAYPOINTS
@@ -559,6 +560,20 @@ def test_speed_limit_names_the_segment(reference8: Robot) -> None:
     assert (err.waypoint, err.limit) == (3, "linear_speed")
     assert err.value > LIMITS.linear_speed and f"{err.value:.6g} m/s" in str(err)
     assert str(err).startswith("waypoint 3: linear_speed:") and "at t=6." in str(err)
+
+
+def test_the_first_segments_alone_are_checked_where_they_lie(reference8: Robot) -> None:
+    """`segments`: a transition's first segment, checked in place although it ends
+    moving (a free interior velocity); what lies beyond is not judged, what lies within
+    is, naming its waypoint."""
+    tr = line(reference8, [0.0, 2.0, 4.0, 6.0, 6.5, 9.0], [0.0, 0.02, 0.04, 0.06, 0.56, 0.56])
+    assert np.any(tr.knot(1).twist)
+    times = list(validation_steps(tr, reference8, LIMITS, segments=1))
+    assert times[0] == 0.0 and times[-1] == 2.0 and len(times) == 201  # every 10 ms
+    assert list(validation_steps(tr, reference8, LIMITS, segments=3))[-1] == 6.0
+    with pytest.raises(TrajectoryError) as info:
+        list(validation_steps(tr, reference8, LIMITS, segments=4))
+    assert (info.value.waypoint, info.value.limit) == (3, "linear_speed")
 
 
 def test_accel_limit(reference8: Robot) -> None:

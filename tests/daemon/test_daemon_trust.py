@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import asyncio
 import math
+import re
 
 import can
 import numpy as np
@@ -46,11 +47,13 @@ def config_for(protocol: str) -> DaemonConfig:
 class Forger:
     """Inserts a forged copy of cable 0's position frame right after every real one the
     simulated drive sends (402: a TPDO1 with the position of `length`, before the drive's
-    TPDO2 completes the sample, since the host drops TPDOs after a complete sample;
-    ODrive: an encoder estimate), so the daemon reads the forgery last."""
+    TPDO2 completes the sample; ODrive: an encoder estimate), so the daemon reads the
+    forgery last.  `answer` (402): a whole forged answer (TPDO1 + TPDO2) after the
+    drive's, which the host drops as a second answer to the SYNC."""
 
-    def __init__(self, stack: Stack, length: float) -> None:
+    def __init__(self, stack: Stack, length: float, answer: bool = False) -> None:
         config = stack.config
+        self.answer = answer
         self.protocol = config.drives.protocol
         self.node = config.drives.nodes[0]
         self.position = config.drives.scalings_for(config.robot)[0].position(length)
@@ -66,8 +69,12 @@ class Forger:
             out.append(frame)
             if self.protocol == "cia402" and frame.arbitration_id == cia402.TPDO1_BASE + self.node:
                 statusword, _, mode = cia402.decode_tpdo1(frame.arbitration_id, frame.data)
-                position = round(self.position)
-                out.append(cia402.encode_tpdo1(self.node, statusword, position, mode))
+                self.forged = cia402.encode_tpdo1(self.node, statusword, round(self.position), mode)
+                if not self.answer:
+                    out.append(self.forged)
+                    self.sent += 1
+            elif self.answer and frame.arbitration_id == cia402.TPDO2_BASE + self.node:
+                out += [self.forged, cia402.encode_tpdo2(self.node, 0)]
                 self.sent += 1
             elif self.protocol == "odrive" and frame.arbitration_id == (
                 self.node << 5 | Cmd.GET_ENCODER_ESTIMATES
@@ -140,6 +147,34 @@ def test_a_forged_length_brakes_naming_the_drive_and_nothing_moves(
             assert f"length {FORGED:.4f} m" in service.machine.fault.message
             assert "max_cable_speed" in service.machine.fault.message
             assert any("drive 0" in c for c in service.status()["conditions"])
+
+    run(scenario())
+
+
+@pytest.mark.parametrize("enabled", [True, False], ids=["hold", "idle"])
+def test_a_forged_second_answer_to_one_sync_brakes_naming_the_drive(enabled: bool) -> None:
+    """The forger's whole answer (TPDO1 + TPDO2) comes after the drive's, every SYNC:
+    the host drops it, but the two answers to one SYNC are 1.8 m apart."""
+
+    async def scenario() -> None:
+        async with Stack(config_for("cia402")) as stack:
+            service = stack.service
+            if enabled:
+                await stack.enable()
+            await asyncio.sleep(0.2)
+            start = true_pose(stack)
+            forger = Forger(stack, FORGED, answer=True)
+            await stack.until(lambda: service.machine.state is SafetyState.BRAKED, 1.0)
+            await assert_stays(stack, start, 0.5)  # the forgery goes on meanwhile
+            assert forger.sent > 100
+            assert_braked_naming_drive_0(stack)
+            message = service.machine.fault.message
+            named = re.match(f"drive 0 .*: length {FORGED:.4f} m and ([0-9.]+) m in two", message)
+            assert named, message
+            assert float(named[1]) == pytest.approx(service.trust.held[0], abs=1e-3)  # the true
+            assert "answers to one SYNC" in message and "max_cable_speed" in message
+            rejected = service.driver.counters.rejected["TPDO after the sample was complete"]
+            assert rejected > 100  # the host dropped them: the drive's answers stood
 
     run(scenario())
 

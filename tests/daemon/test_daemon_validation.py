@@ -250,6 +250,47 @@ async def _settled(stack: Stack) -> None:
     raise AssertionError("the platform did not settle within 5 s of enabling")
 
 
+@pytest.mark.parametrize("start", ["here", "moving"])
+def test_a_trajectory_with_free_interior_velocities_is_flown_from_a_hold(start: str) -> None:
+    """Three waypoints, the middle one's velocity left free (DESIGN §7): from where the
+    robot holds ("here": no approach, the first segment is the trajectory's own), or from
+    elsewhere into a first waypoint given a velocity ("moving": the approach ends moving).
+    Either way the first-segment check must not ask its end to be at rest (on main: a
+    TrajectoryError out of the planner, an internal error to the sender); it is flown and
+    ends where it should."""
+
+    async def scenario() -> None:
+        config = config_for("cia402")
+        async with Stack(config) as stack:
+            service = stack.service
+            await stack.enable()
+            here = service.reference_at(service.now())[0].pose
+            up = np.array([0.0, 0.0, 0.05])
+            first = Waypoint(0.0, here)
+            if start == "moving":
+                first = Waypoint(
+                    0.0, Pose(here.position + up, here.quaternion), [0.0] * 2 + [0.02] + [0.0] * 3
+                )
+            end = Pose(here.position + 3 * up, here.quaternion)
+            trajectory = Trajectory(
+                [
+                    first,
+                    Waypoint(1.5, Pose(here.position + 2 * up, here.quaternion)),
+                    Waypoint(3.0, end),
+                ]
+            )
+            assert np.any(trajectory.knot(1).twist)  # the free interior velocity
+            reply = await stack.planner.submit_trajectory(trajectory, None)
+            assert reply["accepted"] and service.machine.state is SafetyState.TRACKING
+            await stack.until(lambda: service.machine.state is SafetyState.HOLD, 6.0)
+            assert service.machine.fault is None
+            assert [e["event"] for e in stack.events][-1] == "trajectory_done"
+            await asyncio.sleep(0.3)  # settled
+            assert np.linalg.norm(stack.plant.pose.position - end.position) < 2e-3
+
+    run(scenario())
+
+
 def test_enabled_outside_the_margin_it_may_move_back_in_but_not_further_out() -> None:
     """Enabled 1 cm above a floor fence at z = 1.0 (inside the box, within its tracking
     margin): a goto inwards is accepted, one further out and a trajectory that starts

@@ -128,6 +128,31 @@ def test_a_jump_beyond_the_step_bound_keeps_the_last_trusted_length() -> None:
         assert trust.held == lengths_at()
 
 
+def test_two_answers_to_one_sync_that_disagree_name_the_odd_one_whichever_came_first() -> None:
+    """A late answer to the SYNC before differs by at most the motion over `slack`: not
+    implausible.  More apart, the length farther from the trusted one is named (the
+    forged 4.1 m, not the true 2.33 m), with the other and the bound."""
+    trust = trusted_at_home()
+    true = lengths_at()[0]
+    bound = SPEED * SLACK + TOLERANCE
+    assert trust.second_answer(0, true, true + 0.99 * bound) is None  # a late answer
+    assert trust.second_answer(0, true, true - 0.99 * bound) is None
+    for first, second in [(true, 4.1), (4.1, true)]:
+        problem = trust.second_answer(0, first, second)
+        assert problem is not None and (problem.cable, problem.value) == (0, 4.1)
+        assert problem.message() == (
+            f"drive 0 (node 11): length 4.1000 m and {true:.4f} m in two answers to one "
+            f"SYNC, {4.1 - true:.4f} m apart (bound {bound:.4f} m at max_cable_speed 3 m/s):"
+            " a second answer to one SYNC means another node sends this node's PDOs "
+            "(node-id conflict or forgery)"
+        )
+    far = trust.second_answer(0, true, true + 1.01 * bound)
+    assert far is not None and far.value == true + 1.01 * bound
+    assert trust.held == lengths_at()  # judging a pair trusts nothing
+    # nothing trusted yet: the second answer is named
+    assert make().second_answer(2, 4.1, 2.0).message().startswith("drive 2 (node 13): length 2.0")
+
+
 def test_the_others_move_on_while_one_cable_is_rejected_for_its_step() -> None:
     trust = trusted_at_home()
     moved = lengths_at(dz=1e-3)

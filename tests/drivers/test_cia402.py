@@ -605,6 +605,33 @@ def test_feedback_is_complete_only_with_both_tpdos_of_one_sync() -> None:
     assert driver.position[0] == 200
 
 
+def test_a_second_answer_to_one_sync_is_dropped_and_its_length_recorded() -> None:
+    """Another node's TPDOs of node 1 (or a late answer) to the same SYNC, after the
+    sample or within it: the length of the second answer is recorded beside the first's
+    (the pair that disagrees most, until the daemon takes it), whichever came first."""
+    driver = host()
+    enabled = encode_statusword(State.OPERATION_ENABLED)
+    feedback, scaling = driver.feedback[0], driver.scalings[0]
+    assert math.isnan(feedback.first) and math.isnan(feedback.second)
+    driver.cycle_start()
+    real, late = tpdos(1, enabled, 1000, 0), tpdos(1, enabled, 1010, 0)
+    forged = tpdos(1, enabled, 90000, 0)
+    assert [driver.receive(frame, 0.0) for frame in real] == [None, 0]
+    assert [driver.receive(frame, 0.001) for frame in late + forged] == [None] * 4
+    assert driver.counters.rejected["TPDO after the sample was complete"] == 4
+    assert (driver.position[0], feedback.count) == (1000, 1)
+    assert feedback.length == scaling.length(1000)
+    assert (feedback.first, feedback.second) == (scaling.length(1000), scaling.length(90000))
+    feedback.first = feedback.second = math.nan  # taken
+    driver.cycle_start()  # the forged TPDO1 first, the real one within the same sample
+    assert driver.receive(forged[0], 0.002) is None
+    assert driver.receive(real[0], 0.002) is None  # it replaces the forged one
+    assert driver.receive(forged[1], 0.003) == 0
+    assert driver.receive(real[1], 0.003) is None
+    assert driver.position[0] == 1000
+    assert (feedback.first, feedback.second) == (scaling.length(90000), scaling.length(1000))
+
+
 def test_emcy_heartbeat_and_fault_texts() -> None:
     driver = host()
     beat = codec.encode_heartbeat(2, NmtState.OPERATIONAL)
