@@ -951,6 +951,26 @@ class Service:
             "frozen": estimate.frozen,
         }
 
+    def _observer(self, args: dict[str, Any]) -> dict[str, Any]:
+        """Hold the external wrench observer out of the loop, or let it back in
+        (args "held"; ParallelController.hold_observer: `cdprd calibrate` flies with it
+        held); the reply is its state."""
+        if self.controller.observer is None:
+            raise CommandError(
+                "invalid_state",
+                "the external wrench observer is off (controller.disturbance_observer.enabled)",
+            )
+        if "held" in args:
+            self.controller.hold_observer(args["held"])
+        return self._observer_state()
+
+    def _observer_state(self) -> dict[str, Any] | None:
+        """The external wrench observer as published (None when it is off)."""
+        observer = self.controller.observer
+        if observer is None:
+            return None
+        return {"held": self.controller.observer_held, "estimate": observer.estimate.tolist()}
+
     def status(self) -> dict[str, Any]:
         """Safety state, fault and active conditions (the reply to most commands)."""
         fault = self.machine.fault
@@ -1010,8 +1030,10 @@ class Service:
         # the platform's mass and centre of mass as estimated (cdpr.payload)
         state["payload"] = self._payload_state()
         # the external wrench the model does not explain (cdpr.wrench_observer)
-        observer = self.controller.observer
-        state["external_wrench"] = None if observer is None else observer.estimate.tolist()
+        observer = self._observer_state()
+        state["external_wrench"] = None if observer is None else observer["estimate"]
+        # whether that observer is held out of the loop (ParallelController.hold_observer)
+        state["observer_held"] = None if observer is None else observer["held"]
         return state
 
 
@@ -1026,4 +1048,5 @@ _COMMANDS: dict[str, Callable[[Service, dict[str, Any]], Any]] = {
     "payload": Service._payload,
     "home": Service._home,
     "pretension": Service._pretension,
+    "observer": Service._observer,
 }
