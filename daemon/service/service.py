@@ -134,6 +134,7 @@ class Service:
         self.brakes = 0  # brake() calls: a sequence that waited sees whether one came
         self._pretension_name = "home"  # its pose's name
         self._pretension_changes: list[float] = []  # mm, the offsets' changes at its homing
+        # (empty until it has homed)
         self.collector = CollectorPolicy()
         self._extrapolation_limit = 2.0 / config.drives.feedback_rate_hz
 
@@ -648,7 +649,7 @@ class Service:
         if self.brakes != brakes:  # braked meanwhile (maybe braked again)
             raise CommandError("invalid_state", f"pretension aborted: {self.machine.fault.line()}")
         self.pretension, self._pretension_cycles, self.loop_close_step = pretension, 0, None
-        self._pretension_name = name
+        self._pretension_name, self._pretension_changes = name, []
         assert self._loop is not None
         done = self._pretension_waiter = self._loop.create_future()
         self.machine.pretension()
@@ -662,7 +663,12 @@ class Service:
         self, done: asyncio.Future[None], pretension: Pretension, name: str
     ) -> dict[str, Any]:
         """Pretension after the drives enabled: once homed (or braked), close the loop,
-        wait for the first cycle in HOLD, and reply (or CommandError naming the abort)."""
+        wait for the first cycle in HOLD, and reply (or CommandError naming the abort).
+        Aborted after its homing (braked before the loop closed), the offsets it homed
+        stay in force: they were found at rest on the fixture, as `home` finds them, and
+        changing them under the brake would move the lengths it holds.  The refusal
+        carries them ("offsets", "method") for the planner to store: the next start-up
+        must read the offsets that were in force."""
         await done  # homed, and the homed lengths trusted; or braked
         if self.machine.state is SafetyState.PRETENSION:
             self._close_loop(pretension)
@@ -673,7 +679,10 @@ class Service:
         if not self.machine.moving:
             fault = self.machine.fault
             why = fault.line() if fault is not None else self.machine.state.value
-            raise CommandError("rejected", f"pretension aborted: {why}")
+            offsets = self.offsets
+            homed = bool(self._pretension_changes) and offsets.refusal() is None
+            kept = {"offsets": offsets.offsets, "method": offsets.method} if homed else {}
+            raise CommandError("rejected", f"pretension aborted: {why}", **kept)
         offsets = self.offsets
         return {
             **self.status(),
