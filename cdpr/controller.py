@@ -170,6 +170,7 @@ class ParallelController:
         self._smoothing = self.period / (spec.velocity_filter + self.period)
         self._stretch_corrected = bool(np.any(robot.compliance > 0.0))
         self.stretch = ComplianceScale(robot)  # the cables' EA as identified (cdpr.stretch)
+        self._observer_held = False  # hold_observer(): kept by reset()
         self._error = np.zeros((self.loop.Dd.shape[1], 6))
         self.reset(robot.home)
 
@@ -255,7 +256,8 @@ class ParallelController:
         after = platform.mass_and_bias(R, _ZERO6_LIST)[6::7]
         robot.platform = platform
         change = [a - b for a, b in zip(after, before, strict=True)]
-        if self.observer is not None and self._observing:  # it held the rest until now
+        if self.observer is not None and self._observing and not self._observer_held:
+            # it held the rest until now
             self.observer.take_over(np.array(change))
         self.loop.hand_over(-np.linalg.solve(robot.mass_matrix(self._pose), change))
 
@@ -272,6 +274,34 @@ class ParallelController:
         the load (cdpr.pretension's unload), the observer would cancel the fixture's
         reaction within a fraction of a second and so keep the load on the fixture."""
         self._observing = observing
+
+    def hold_observer(self, held: bool) -> None:
+        """Keep the external wrench observer out of the loop (True) or let it back in
+        (False, the default; reset() keeps what was set).  Held, its estimate is neither
+        subtracted from the command nor updated, and reads zero: what it held, the
+        integral action takes on at once (DiscreteController.take_on: no step in force);
+        let back in, it starts from zero (the motion meanwhile is not its to take in).
+
+        Out of the loop rather than frozen, for `cdprd calibrate`: each pose's lengths
+        and forces are to be those the robot file's model holds with its integral action
+        alone, the geometry error left uncompensated for the fit to see.  Taking in
+        cycles, the observer compensates the error as the poses are flown (the anchors
+        came out twice as far off); frozen, it would carry the error of the pose where it
+        stopped to every other pose, where it is another."""
+        observer = self.observer
+        if observer is None or held == self._observer_held:
+            return
+        self._observer_held = held
+        if held:
+            M = self.robot.mass_matrix(self._pose)
+            self.loop.take_on(-np.linalg.solve(M, observer.estimate))
+        observer.clear()
+        self._observed = None
+
+    @property
+    def observer_held(self) -> bool:
+        """The external wrench observer is kept out of the loop (hold_observer)."""
+        return self._observer_held
 
     def release(self, wrench: ArrayLike) -> None:
         """Move the wrench the integral action holds by `wrench`, as far as it holds one
@@ -329,7 +359,8 @@ class ParallelController:
             Lam, c, M, mu = robot.model_terms(retract(pose, twist * self.lead), twist)
         f_b = prepared.f_b
         tau_c = M.dot(alpha_c) + mu
-        if self.observer is not None:  # the push the model does not explain, cancelled
+        if self.observer is not None and not self._observer_held:
+            # the push the model does not explain, cancelled
             tau_c -= self.observer.estimate
             if self._observing:
                 self._observed = (twist, M, tau_c - mu)

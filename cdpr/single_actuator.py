@@ -140,10 +140,16 @@ class DiscreteController:
         that holds a constant output at zero error (Ad v = v); nothing moves without one."""
         if self._hold is None:
             return
-        v, w = self._hold
-        held = w.dot(self.state)  # per channel, the output the integrators hold
+        held = self._hold[1].dot(self.state)  # per channel, the output the integrators hold
         take = np.where(delta * held < 0.0, np.sign(delta) * np.minimum(abs(delta), abs(held)), 0)
-        self.state += np.outer(v, take)
+        self.take_on(take)
+
+    def take_on(self, delta: Array) -> None:
+        """Move each channel's output by `delta` without an error to cause it, whatever
+        the sign: the integrators take on what something else held until now (nothing
+        moves without them)."""
+        if self._hold is not None:
+            self.state += np.outer(self._hold[0], delta)
 
     def reset(self) -> None:
         """Zero the state (integrators, filters): on enable and after a brake."""

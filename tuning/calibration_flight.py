@@ -7,7 +7,8 @@ offsets in force turn positions into lengths.  `home` finds the offsets with the
 platform resting at a known pose (cdpr.homing, as the daemon's `home`); `fly_poses` flies
 the controller (the robot file's model, enabled at rest as the daemon does) through
 rest-to-rest moves to each pose, and records the lengths and commanded forces at rest
-there (tuning.calibration.Sample).  `track` runs a standard trajectory with a given
+there (tuning.calibration.Sample), the payload estimate frozen and the external wrench
+observer held as `cdprd calibrate` has them.  `track` runs a standard trajectory with a given
 model and offsets and measures the true platform in that model's world frame.
 Simulated time only: deterministic, as fast as the plant steps.
 """
@@ -164,8 +165,10 @@ def fly_poses(
     stopped)."""
     plant = _plant(robot, config, start)
     flight = _Flight(model, spec, Encoders(plant, model, offsets))
-    if flight.controller.payload is not None:  # the file's platform, as `cdprd calibrate`
+    # as `cdprd calibrate`: the file's platform, the external wrench observer held
+    if flight.controller.payload is not None:
         flight.controller.payload.frozen = True
+    flight.controller.hold_observer(True)
     # the moves start from the pose measured at enable (the first cycle)
     run_lockstep(plant, flight.control, 0.1, spec.rate_hz)
     t, here = 0.1, flight.controller.pose

@@ -103,10 +103,13 @@ def identify_simulated(
     rate_hz: float,
     faults: list[tuple[float, str]] | None = None,
     true_load: float | None = None,
+    true: Robot | None = None,
 ) -> Run:
     """The identification experiment against the simulator's rig (run_simulated)."""
     experiment = WinchExperiment(plan_for(robot, request, rate_hz), load_of(robot, request))
-    abort, frames = run_simulated(robot, drives, plant, request, experiment, faults, true_load)
+    abort, frames = run_simulated(
+        robot, drives, plant, request, experiment, faults, true_load, true
+    )
     return finish(robot, request, experiment, abort, frames)
 
 
@@ -118,11 +121,14 @@ def run_simulated(
     experiment: WinchExperiment,
     faults: list[tuple[float, str]] | None = None,
     true_load: float | None = None,
+    true: Robot | None = None,
 ) -> tuple[Abort | None, int]:
     """`experiment` against the simulator's rig (sim.rig for `request`), the drive's
     frames exchanged in simulated time; `faults` (simulated time, kind: drive, snap or
     silent) are injected on the way; `true_load` (kg) hangs instead of the mass the
-    request names (a user who got the load wrong).  Its abort, and the frames."""
+    request names (a user who got the load wrong); `true` is the robot the simulator
+    builds its winch on (sim.robot: sim_bus.config.true_base; default `robot`, the
+    host's).  Its abort, and the frames."""
     mass = request.load_mass if true_load is None else true_load
     rig = RigConfig(
         drive=request.drive,
@@ -130,7 +136,7 @@ def run_simulated(
         clamped=request.clamped,
         preload=request.preload,
     )
-    sim = VirtualRobot(robot, drives, plant, rig)
+    sim = VirtualRobot(robot if true is None else true, drives, plant, rig)
     one = drives.single(request.drive)
     driver = protocol_driver(one, [drives.scalings_for(robot)[request.drive]])
     link = LockstepLink(sim, driver)

@@ -43,10 +43,11 @@ import contextlib
 import datetime
 import json
 import math
+import signal
 import sys
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -217,22 +218,40 @@ def _fly(config: DaemonConfig, args: argparse.Namespace) -> tuple[np.ndarray, li
                 f"the daemon is {status['state']}: enable it (cdprd enable) at rest first"
             )
         offsets = np.array(status["offsets"]["values"], dtype=float)
-        with _file_platform(client, robot):
+        with _file_model(client, robot):
             return offsets, _record_poses(client, poses, args.dwell, args.average)
 
 
 @contextlib.contextmanager
-def _file_platform(client: CdprClient, robot: Robot) -> Iterator[None]:
-    """The robot file's platform in the daemon's model, frozen while flying, the payload
-    estimate unfrozen after: an uncalibrated geometry looks like a payload to the estimate
-    (cdpr.payload), which would drift to its limit (adaptation.com_max) and brake, and
-    the forces recorded are whatever holds the platform either way.  Nothing to do when
-    the estimate is off."""
+def _file_model(client: CdprClient, robot: Robot) -> Iterator[None]:
+    """While flying, the robot file's model alone in the daemon's loop: its platform, the
+    payload estimate frozen, and the external wrench observer held out of the loop
+    (ParallelController.hold_observer); both let go after, however the flight ends.  An
+    uncalibrated geometry looks like a payload to the estimate (cdpr.payload), which would
+    drift to its limit (adaptation.com_max) and brake, and like an external wrench to the
+    observer, which would compensate it while the poses are flown (anchors twice as far
+    off); the forces recorded are whatever holds the platform either way.  SIGTERM
+    meanwhile is an error (`_terminated`), so that they are let go then too."""
+    platform = robot.platform
+    com = [float(c) for c in platform.center_of_mass]
+    with contextlib.ExitStack() as held:
+        previous = signal.signal(signal.SIGTERM, _terminated)
+        held.callback(signal.signal, signal.SIGTERM, previous)
+        held.enter_context(
+            _held(lambda: client.payload(True, platform.mass, com), lambda: client.payload(False))
+        )
+        held.enter_context(_held(lambda: client.observer(True), lambda: client.observer(False)))
+        yield
+
+
+@contextlib.contextmanager
+def _held(hold: Callable[[], object], release: Callable[[], object]) -> Iterator[None]:
+    """`hold()` a part of the daemon's model, `release()` it on the way out, however;
+    nothing to do when the daemon has it off (the request refused with invalid_state)."""
     from daemon.interface.client import RequestError
 
-    platform = robot.platform
     try:
-        client.payload(True, platform.mass, [float(c) for c in platform.center_of_mass])
+        hold()
     except RequestError as exc:
         if exc.code != "invalid_state":
             raise
@@ -241,7 +260,12 @@ def _file_platform(client: CdprClient, robot: Robot) -> Iterator[None]:
     try:
         yield
     finally:
-        client.payload(False)
+        release()
+
+
+def _terminated(signum: int, frame: object) -> None:
+    """SIGTERM while calibrating: an error, so that what the flight holds is let go."""
+    raise CalibrationError("terminated (SIGTERM)")
 
 
 def _record_poses(

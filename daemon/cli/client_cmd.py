@@ -6,6 +6,7 @@
     cdprd goto x y z [qw qx qy qz]
     cdprd identify-payload [--apply]
     cdprd payload [--freeze | --unfreeze]
+    cdprd observer [--hold | --release]  (the external wrench observer out of the loop)
     cdprd home [--pose NAME]      (the platform resting at the robot file's pose NAME)
     cdprd pretension [--pose NAME]  (from slack cables, the platform on a fixture there)
     common options: --prefix cdpr/<robot>  --connect tcp/127.0.0.1:7447  --timeout S
@@ -119,6 +120,14 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     frozen.add_argument("--freeze", dest="frozen", action="store_const", const=True)
     frozen.add_argument("--unfreeze", dest="frozen", action="store_const", const=False)
     payload.set_defaults(run=_runner("payload", lambda a: lambda c: c.payload(a.frozen)))
+    observer = subparsers.add_parser(
+        "observer", parents=[common],
+        help="print the external wrench observer, hold it out of the loop or let it back in",
+    )  # fmt: skip
+    held = observer.add_mutually_exclusive_group()
+    held.add_argument("--hold", dest="held", action="store_const", const=True)
+    held.add_argument("--release", dest="held", action="store_const", const=False)
+    observer.set_defaults(run=_runner("observer", lambda a: lambda c: c.observer(a.held)))
     home = subparsers.add_parser(
         "home",
         parents=[common],

@@ -19,8 +19,9 @@ Without --sim it runs in real time on the bus the config's `can:` section names
 socketcand) through the daemon's bus port, timer and driver (daemon.cli.tune_bus), at
 the daemon core's scheduling (`realtime:`).  --sim runs the same in real time against
 the in-process simulator's one-winch rig (sim.rig from the request, the config's
-sim.plant: its mismatch and actuator model are the TRUE winch); --sim --lockstep
-exchanges the drive's CAN frames in simulated time instead (fast, deterministic).
+sim.robot and sim.plant: the true robot file, its mismatch and actuator model are the
+TRUE winch); --sim --lockstep exchanges the drive's CAN frames with the same winch in
+simulated time instead (fast, deterministic).
 
 --json prints one object: drive, load {mass, clamped}, experiment {seconds, frames,
 samples, latency, transit, abort}, model {m0, k0, lag, cable_damping, confidence,
@@ -60,6 +61,8 @@ from daemon.process.app import close_bus, open_bus
 from daemon.process.realtime import realtime
 
 if TYPE_CHECKING:
+    from cdpr import Robot
+    from sim_bus.plant.config import PlantConfig
     from tuning.experiment import Abort, WinchExperiment
     from tuning.gain_design import Design
     from tuning.identify import Identified
@@ -130,6 +133,7 @@ def run(args: argparse.Namespace) -> int:
         plan: Plan = plan_for(robot, request, rate)
         plan.check(load_of(robot, request))
         config.drives.single(args.drive)
+        simulated = _simulated(config) if args.lockstep else None
     except (ValueError, ConfigError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
@@ -140,7 +144,7 @@ def run(args: argparse.Namespace) -> int:
         f"{config.drives.nodes[args.drive]}, {where}), load {_load(request)}, amplitude "
         f"+-{plan.amplitude:g} N, {plan.duration:g} s PRBS of +-{plan.excitation:g} N"
     )
-    result = _experiment(args, config, request, say)
+    result = _experiment(args, config, request, simulated, say)
     say(f"experiment: {result.experiment_seconds:.1f} s, {result.frames} CAN frames")
     if result.abort is not None:
         say(f"ABORTED and braked: {result.abort}")
@@ -159,7 +163,7 @@ def run(args: argparse.Namespace) -> int:
     out = _report(args.drive, request, result, gains, modal, rate)
     aborted = False
     if args.check_loads:
-        checks = _check_loads(args, config, request, model, gains, say)
+        checks = _check_loads(args, config, request, simulated, model, gains, say)
         if checks is None:
             print("error: standard input ended before the next load was hung", file=sys.stderr)
             return 1
@@ -213,26 +217,43 @@ def _rig_edit(request: Request) -> Callable[[dict[str, Any]], None]:
 
 
 def _experiment(
-    args: argparse.Namespace, config: DaemonConfig, request: Request, say: Callable[[str], None]
+    args: argparse.Namespace,
+    config: DaemonConfig,
+    request: Request,
+    simulated: tuple[Robot, PlantConfig] | None,
+    say: Callable[[str], None],
 ) -> Run:
-    """The identification experiment: in simulated time (--sim --lockstep), or in real
-    time on the in-process simulator's bus (--sim) or the bus the config names."""
-    from daemon.cli.simulated import sim_section
+    """The identification experiment: in simulated time (--sim --lockstep: `simulated`,
+    the true robot and the plant), or in real time on the in-process simulator's bus
+    (--sim) or the bus the config names."""
     from tuning.experiment import WinchExperiment
     from tuning.winch_tune import finish, identify_simulated, load_of, plan_for
 
     robot, rate = config.robot, config.controller.rate_hz
-    if args.lockstep:
-        return identify_simulated(robot, config.drives, sim_section(config).plant, request, rate)
+    if simulated is not None:
+        true, plant = simulated
+        return identify_simulated(robot, config.drives, plant, request, rate, true=true)
     experiment = WinchExperiment(plan_for(robot, request, rate), load_of(robot, request))
     abort, frames = asyncio.run(_on_bus(config, request, args.sim, say, experiment))
     return finish(robot, request, experiment, abort, frames)
+
+
+def _simulated(config: DaemonConfig) -> tuple[Robot, PlantConfig]:
+    """--sim --lockstep: the robot the simulator builds its winch on (sim.robot, else the
+    daemon's robot: sim_bus.config.true_base, as the in-process simulator has it) and the
+    plant."""
+    from daemon.cli.simulated import sim_section
+    from sim_bus.config import true_base
+
+    sim = sim_section(config)
+    return true_base(sim, config.robot, config.base, config.source), sim.plant
 
 
 def _check_loads(
     args: argparse.Namespace,
     config: DaemonConfig,
     request: Request,
+    simulated: tuple[Robot, PlantConfig] | None,
     model: Identified,
     gains: Design,
     say: Callable[[str], None],
@@ -240,7 +261,6 @@ def _check_loads(
     """--check-loads: the proposed gains flown through a step with each load hung (in
     the simulator: its rig with that load; on the bus: the user hangs it and presses
     Enter); None if standard input ends before a load is hung."""
-    from daemon.cli.simulated import sim_section
     from tuning.load_check import check_result, step_check
     from tuning.winch_tune import run_simulated
 
@@ -248,9 +268,9 @@ def _check_loads(
     results = []
     for mass in args.check_loads:
         hung, check = step_check(robot, request, rate, model, gains, mass)
-        if args.lockstep:
-            plant = sim_section(config).plant
-            check.abort, _ = run_simulated(robot, config.drives, plant, hung, check)
+        if simulated is not None:  # --sim --lockstep
+            true, plant = simulated
+            check.abort, _ = run_simulated(robot, config.drives, plant, hung, check, true=true)
         else:
             if not args.sim:
                 say(f"hang {mass:g} kg on cable {request.drive} (0: none), then press Enter")

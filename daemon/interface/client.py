@@ -153,6 +153,10 @@ class CdprClient:
             body["center_of_mass"] = [float(c) for c in center_of_mass or ()]
         return self.request("payload", body)
 
+    def observer(self, held: bool | None = None) -> dict[str, Any]:
+        """The external wrench observer; hold it out of the loop, or let it back in."""
+        return self.request("observer", {} if held is None else {"held": held})
+
     def send_trajectory(
         self,
         trajectory: Trajectory | Mapping[str, Any],

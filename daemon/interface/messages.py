@@ -22,6 +22,8 @@ Inputs (objects; unknown keys, wrong types, NaN/Infinity tokens are refused):
                statically, apply it if asked)
         home:  {"pose": "dock"}  (optional: a pose named in the robot file, default home)
         pretension: {"pose": "dock"}  (as home: the fixture's pose the platform rests at)
+        observer: {"held": true}  (the external wrench observer out of the loop, or back
+               in with false; {} reports it)
 
 Outputs:
 
@@ -72,6 +74,7 @@ _ARGS = {
     "identify_payload": ("apply",),
     "home": ("pose",),
     "pretension": ("pose",),
+    "observer": ("held",),
 }
 _IDENTITY = {"w": 1.0, "x": 0.0, "y": 0.0, "z": 0.0}
 _XYZ = ("x", "y", "z")
@@ -320,6 +323,8 @@ def decode_command(
         return _payload_args(data)
     if name == "identify_payload":
         return {"apply": True} if _flag(data, "apply", "identify_payload") else {}
+    if name == "observer":
+        return {"held": _flag(data, "held", "observer")} if "held" in data else {}
     if name in ("home", "pretension"):
         pose = data.get("pose")
         if pose is None:

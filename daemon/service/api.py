@@ -24,7 +24,7 @@ if TYPE_CHECKING:
 
 COMMANDS = (
     "enable", "disable", "hold", "brake", "reset", "goto", "status",
-    "payload", "identify_payload", "home", "pretension",
+    "payload", "identify_payload", "home", "pretension", "observer",
 )  # fmt: skip
 """The command names, each served on `<prefix>/cmd/<name>`."""
 
@@ -88,6 +88,8 @@ class DaemonHandler(Protocol):
             identify_payload: {"apply": bool}
             home:  {"pose_name": str} or {}  (a pose of the robot file; default home)
             pretension: as home (the fixture's pose the platform rests at)
+            observer: {"held": bool} or {}  (the external wrench observer held out of
+                   the loop, or let back in)
         Raise CommandError to refuse (e.g. "invalid_state" for enable while BRAKED).
         """
         ...

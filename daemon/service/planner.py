@@ -207,8 +207,16 @@ class Planner:
 
     async def _home(self, name: str, args: dict[str, Any]) -> dict[str, Any]:
         """The core homes (home, or pretension at its end) and applies the offsets;
-        they are stored here."""
-        result = await self.link.command(name, args)
+        they are stored here, also those of a pretension that aborted after its homing
+        (the core keeps them in force, its refusal carries them: Service._finish_pretension)."""
+        try:
+            result = await self.link.command(name, args)
+        except CommandError as exc:
+            if "offsets" not in exc.details:
+                raise
+            kept = exc.details
+            stored = await self.store.store(kept["offsets"], kept["method"])
+            raise CommandError(exc.code, exc.reason, **kept, **stored) from None
         return {**result, **await self.store.store(result["offsets"], result["method"])}
 
     async def _goto(self, args: dict[str, Any]) -> dict[str, Any]:

@@ -134,6 +134,7 @@ class Service:
         self.brakes = 0  # brake() calls: a sequence that waited sees whether one came
         self._pretension_name = "home"  # its pose's name
         self._pretension_changes: list[float] = []  # mm, the offsets' changes at its homing
+        # (empty until it has homed)
         self.collector = CollectorPolicy()
         self._extrapolation_limit = 2.0 / config.drives.feedback_rate_hz
 
@@ -666,7 +667,7 @@ class Service:
         if self.brakes != brakes:  # braked meanwhile (maybe braked again)
             raise CommandError("invalid_state", f"pretension aborted: {self.machine.fault.line()}")
         self.pretension, self._pretension_cycles, self.loop_close_step = pretension, 0, None
-        self._pretension_name = name
+        self._pretension_name, self._pretension_changes = name, []
         assert self._loop is not None
         done = self._pretension_waiter = self._loop.create_future()
         self.machine.pretension()
@@ -680,7 +681,12 @@ class Service:
         self, done: asyncio.Future[None], pretension: Pretension, name: str
     ) -> dict[str, Any]:
         """Pretension after the drives enabled: once homed (or braked), close the loop,
-        wait for the first cycle in HOLD, and reply (or CommandError naming the abort)."""
+        wait for the first cycle in HOLD, and reply (or CommandError naming the abort).
+        Aborted after its homing (braked before the loop closed), the offsets it homed
+        stay in force: they were found at rest on the fixture, as `home` finds them, and
+        changing them under the brake would move the lengths it holds.  The refusal
+        carries them ("offsets", "method") for the planner to store: the next start-up
+        must read the offsets that were in force."""
         await done  # homed, and the homed lengths trusted; or braked
         if self.machine.state is SafetyState.PRETENSION:
             self._close_loop(pretension)
@@ -691,7 +697,10 @@ class Service:
         if not self.machine.moving:
             fault = self.machine.fault
             why = fault.line() if fault is not None else self.machine.state.value
-            raise CommandError("rejected", f"pretension aborted: {why}")
+            offsets = self.offsets
+            homed = bool(self._pretension_changes) and offsets.refusal() is None
+            kept = {"offsets": offsets.offsets, "method": offsets.method} if homed else {}
+            raise CommandError("rejected", f"pretension aborted: {why}", **kept)
         offsets = self.offsets
         return {
             **self.status(),
@@ -969,6 +978,26 @@ class Service:
             "frozen": estimate.frozen,
         }
 
+    def _observer(self, args: dict[str, Any]) -> dict[str, Any]:
+        """Hold the external wrench observer out of the loop, or let it back in
+        (args "held"; ParallelController.hold_observer: `cdprd calibrate` flies with it
+        held); the reply is its state."""
+        if self.controller.observer is None:
+            raise CommandError(
+                "invalid_state",
+                "the external wrench observer is off (controller.disturbance_observer.enabled)",
+            )
+        if "held" in args:
+            self.controller.hold_observer(args["held"])
+        return self._observer_state()
+
+    def _observer_state(self) -> dict[str, Any] | None:
+        """The external wrench observer as published (None when it is off)."""
+        observer = self.controller.observer
+        if observer is None:
+            return None
+        return {"held": self.controller.observer_held, "estimate": observer.estimate.tolist()}
+
     def status(self) -> dict[str, Any]:
         """Safety state, fault and active conditions (the reply to most commands)."""
         fault = self.machine.fault
@@ -1028,8 +1057,10 @@ class Service:
         # the platform's mass and centre of mass as estimated (cdpr.payload)
         state["payload"] = self._payload_state()
         # the external wrench the model does not explain (cdpr.wrench_observer)
-        observer = self.controller.observer
-        state["external_wrench"] = None if observer is None else observer.estimate.tolist()
+        observer = self._observer_state()
+        state["external_wrench"] = None if observer is None else observer["estimate"]
+        # whether that observer is held out of the loop (ParallelController.hold_observer)
+        state["observer_held"] = None if observer is None else observer["held"]
         return state
 
 
@@ -1044,4 +1075,5 @@ _COMMANDS: dict[str, Callable[[Service, dict[str, Any]], Any]] = {
     "payload": Service._payload,
     "home": Service._home,
     "pretension": Service._pretension,
+    "observer": Service._observer,
 }

@@ -289,3 +289,33 @@ def test_command_lead_auto_allows_for_latency_lag_and_half_a_period(reference8: 
     assert fixed.lead == 0.004
     with pytest.raises(ValueError, match="latency must be finite and >= 0 s"):
         auto.set_latency(-1e-4)
+
+
+class HeldAt(ParallelController):
+    """Holds its external wrench observer out of the loop from time `at` on."""
+
+    at = 2.0
+
+    def step(self, t, lengths, length_rates):
+        if t >= self.at and not self.observer_held:
+            self.hold_observer(True)
+        return super().step(t, lengths, length_rates)
+
+
+def test_holding_the_observer_hands_its_estimate_to_the_integral_action(
+    reference8: Robot,
+) -> None:
+    """A 20 N push taken in by the observer; held, its estimate leaves the command and
+    the integral action takes it on in the same cycle: the commands do not step (the
+    push spread over the cables, several N each, if nothing took it on), the platform
+    stays put, and the estimate stays zero while held."""
+    plant = parse_plant_config({"disturbance": {"wrench": [20.0, 0.0, 0.0, 0.0, 0.0, 0.0]}})
+    controller = HeldAt(reference8)
+    rec, outputs = hold_run(reference8, controller, reference8.home, 3.0, plant_config=plant)
+    assert all(o.feasible for o in outputs)
+    k = int(np.searchsorted(rec.t, HeldAt.at))
+    before, held = outputs[k - 1].commands, outputs[k].commands
+    assert np.abs(held - before).max() < 0.05  # 4.6 N without the integral taking it on
+    assert controller.observer.estimate.tolist() == [0.0] * 6
+    pos, _ = pose_errors(rec, reference8.home)
+    assert pos[k:].max() < pos[k - 1] + 1e-5  # 8 mm further without

@@ -1,16 +1,22 @@
 """`cdprd home` and `cdprd calibrate` through the command line against a daemon process
-(`cdprd run --sim`) over zenoh on loopback (issue 16 items 2 and 4)."""
+(`cdprd run --sim`) over zenoh on loopback (issue 16 items 2 and 4), and the external
+wrench observer held out of the loop while calibrating (the `observer` command)."""
 
 from __future__ import annotations
 
 import json
+import signal
 import subprocess
 import sys
+import threading
+import time
 from pathlib import Path
+from typing import Any
 
 import pytest
 import yaml
 
+from daemon.interface.client import RequestError
 from daemon.service.calibration_state import state_path
 from tests.loopback import free_port
 from tests.processes import CONFIG, ROOT, connect, finish, start_daemon, wait_status
@@ -22,8 +28,11 @@ def cdprd(*args: str, timeout: float = 120.0) -> subprocess.CompletedProcess[str
     return subprocess.run(command, cwd=ROOT, capture_output=True, text=True, timeout=timeout)
 
 
-def config_file(tmp_path: Path, port: int) -> Path:
+def config_file(tmp_path: Path, port: int, push: float = 0.0) -> Path:
+    """The reference8 CiA 402 config with zenoh on `port`, a state directory, and a
+    constant push of `push` N along x on the simulated platform."""
     data = yaml.safe_load(CONFIG.read_text())
+    data["sim"]["plant"]["disturbance"] = {"wrench": [push, 0.0, 0.0, 0.0, 0.0, 0.0]}
     data["robot"] = str(ROOT / "config" / "robots" / "reference8.yaml")
     data["zenoh"]["listen"] = [f"tcp/127.0.0.1:{port}"]
     data["state_dir"] = str(tmp_path / "state")
@@ -90,3 +99,116 @@ def test_calibrate_averages_within_the_dwell(tmp_path: Path, average: str) -> No
     run = cdprd("calibrate", "--config", str(path), "--dwell", "1.0", "--average", average)
     assert run.returncode == 2
     assert "usage error: --average: more than 0 s, at most --dwell (1 s)" in run.stderr
+
+
+def _until(condition: Any, timeout: float, what: str) -> None:
+    end = time.monotonic() + timeout
+    while not condition():
+        assert time.monotonic() < end, f"never {what}"
+        time.sleep(0.05)
+
+
+@pytest.mark.timeout(120)
+def test_the_observer_is_held_out_of_the_loop_through_zenoh(tmp_path: Path) -> None:
+    """A 30 N push on the simulated platform: the observer takes it in.  Held through
+    zenoh, the state says so and its estimate reads zero and takes nothing in while the
+    integral action holds the push (the robot holding, no brake); let back in (`cdprd
+    observer --release`), it takes the push in again.  Bad input is refused naming the key."""
+    port = free_port()
+    daemon = start_daemon(config_file(tmp_path, port, push=30.0), "--sim")
+    try:
+        client = connect(port, daemon)
+        wait_status(client, "idle", 30.0)
+        client.enable()
+        states: list[dict[str, Any]] = []
+        lock = threading.Lock()
+
+        def on_state(state: dict[str, Any]) -> None:
+            with lock:
+                states.append(state)
+
+        def last() -> dict[str, Any]:
+            with lock:
+                return states[-1] if states else {"observer_held": None}
+
+        subscriber = client.subscribe_state(on_state)
+        _until(lambda: (last().get("external_wrench") or [0.0])[0] > 25.0, 20.0, "pushed")
+        assert last()["observer_held"] is False
+        reply = client.observer(True)
+        assert reply == {"held": True, "estimate": [0.0] * 6}
+        _until(lambda: last()["observer_held"] is True, 5.0, "held in the state")
+        with lock:
+            start = len(states) - 1
+        time.sleep(1.5)
+        with lock:
+            held = states[start:]
+        assert len(held) >= 20  # 50 Hz for 1.5 s, on a loaded machine
+        assert all(s["observer_held"] is True for s in held)
+        assert all(s["external_wrench"] == [0.0] * 6 for s in held), held[-1]["external_wrench"]
+        assert all(s["state"] == "hold" for s in held), held[-1]["fault"]
+        assert client.observer() == {"held": True, "estimate": [0.0] * 6}
+        released = cdprd("observer", "--release", "--connect", f"tcp/127.0.0.1:{port}")
+        assert released.returncode == 0 and json.loads(released.stdout)["held"] is False
+        _until(lambda: last()["observer_held"] is False, 5.0, "let back in")
+        _until(lambda: last()["external_wrench"][0] > 25.0, 20.0, "the push taken in again")
+        assert last()["state"] == "hold"
+        subscriber.undeclare()
+        for body, field, words in (
+            ({"held": "yes"}, "held", "observer.held: expected true or false"),
+            ({"hold": True}, "observer", "unknown key(s) 'hold' (allowed: version, held)"),
+        ):
+            with pytest.raises(RequestError) as refused:
+                client.request("observer", body)
+            assert refused.value.code == "bad_request" and words in refused.value.reason
+            assert refused.value.reply["error"].get("field") == field
+        assert client.observer()["held"] is False
+        client.close()
+    finally:
+        finish(daemon)
+
+
+@pytest.mark.timeout(180)
+@pytest.mark.parametrize("ending", ["brake", "sigterm"])
+def test_calibrate_lets_the_observer_and_the_payload_go_however_it_ends(
+    tmp_path: Path, ending: str
+) -> None:
+    """`cdprd calibrate` holds the observer out of the loop and freezes the payload
+    estimate while it flies; the daemon braking under it, or SIGTERM to it, ends it
+    with exit code 1, and both are let go."""
+    port = free_port()
+    path = config_file(tmp_path, port)
+    daemon = start_daemon(path, "--sim")
+    try:
+        client = connect(port, daemon)
+        wait_status(client, "idle", 30.0)
+        client.enable()
+        assert client.observer()["held"] is False
+        command = [
+            sys.executable, "-m", "daemon.cli", "calibrate", "--config", str(path),
+            "--poses", "8", "--dwell", "0.6", "--output", str(tmp_path / "robot.yaml"),
+            "--connect", f"tcp/127.0.0.1:{port}",
+        ]  # fmt: skip
+        calibrate = subprocess.Popen(
+            command, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+        )
+        try:
+            _until(lambda: client.observer()["held"], 60.0, "held by calibrate")
+            assert client.payload()["frozen"] is True
+            if ending == "brake":
+                client.brake("the test")
+            else:
+                calibrate.send_signal(signal.SIGTERM)
+            _, stderr = calibrate.communicate(timeout=60)
+        finally:
+            if calibrate.poll() is None:
+                calibrate.kill()
+        assert calibrate.returncode == 1, stderr
+        assert "error: " in stderr
+        if ending == "sigterm":
+            assert "error: terminated (SIGTERM)" in stderr
+        assert client.observer()["held"] is False
+        assert client.payload()["frozen"] is False
+        assert not (tmp_path / "robot.yaml").exists()
+        client.close()
+    finally:
+        finish(daemon)

@@ -32,10 +32,15 @@ def run(coro):
 
 
 def slack_config(
-    protocol: str, pretension: dict | None = None, mismatch: dict | None = None
+    protocol: str,
+    pretension: dict | None = None,
+    mismatch: dict | None = None,
+    state_dir: Path | None = None,
 ) -> DaemonConfig:
     def edit(data: dict) -> None:
         patient_watchdogs(data)
+        if state_dir is not None:
+            data["state_dir"] = str(state_dir)
         plant = data.setdefault("sim", {}).setdefault("plant", {})
         plant["fixture"] = {"slack_m": SLACK}
         plant["mismatch"] = mismatch or {}
@@ -128,6 +133,39 @@ def test_a_pretension_whose_caller_went_away_still_closes_the_loop() -> None:
                 await command
             await stack.until(lambda: service.machine.state is SafetyState.HOLD, 30.0)
             assert service.offsets.method == "pretension at pose home"
+
+    run(main())
+
+
+def test_an_abort_after_homing_stores_the_offsets_it_left_in_force(tmp_path: Path) -> None:
+    """Braked after the pretension homed, before the loop closed: the offsets it homed
+    (at rest on the fixture) stay in force, and the state directory holds them, so that
+    the next start-up reads what was in force; the refusal says so."""
+    config = slack_config("cia402", state_dir=tmp_path)
+    path = state_path(tmp_path, config.robot.name)
+
+    async def main() -> None:
+        async with Stack(config) as stack:
+            service = stack.service
+            await started(stack)
+            loop = asyncio.get_running_loop()
+
+            def on_event(event: dict) -> None:
+                if event.get("event") == "homed":  # in the cycle: brake right after it
+                    loop.call_soon(service.command, "brake", {"reason": "stop after homing"})
+
+            service.subscribe(on_event)
+            with pytest.raises(CommandError, match="pretension aborted: BRAKE") as refused:
+                await stack.planner.command("pretension", {})
+            assert service.machine.state is SafetyState.BRAKED
+            assert service.status()["pretension"]["phase"] == "aborted"
+            assert service.offsets.method == "pretension at pose home"
+            in_force = service.offsets.offsets
+            assert refused.value.details["offsets"] == in_force
+            assert refused.value.details["stored"] == str(path)
+            stored = json.loads(path.read_text())
+            assert stored["offsets"] == in_force
+            assert stored["method"] == "pretension at pose home"
 
     run(main())
 

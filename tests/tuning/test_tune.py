@@ -106,6 +106,28 @@ def tune_config(tmp_path: Path) -> Path:
     return config
 
 
+def test_tune_lockstep_identifies_the_true_robots_winch(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """sim.robot names the true robot file, its winches 30 % off the daemon's robot file
+    (no plant mismatch): `cdprd tune --sim --lockstep` identifies the true winch, as the
+    rest of the simulator has it, not the file's."""
+    data = yaml.safe_load(Path("config/robots/reference8.yaml").read_text())
+    data["actuator"].update(m0=TRUE["m0"], k0=TRUE["k0"])
+    (tmp_path / "true.yaml").write_text(yaml.safe_dump(data))
+    config = tmp_path / "tune.yaml"
+    data = yaml.safe_load(Path("config/reference8-odrive.yaml").read_text())
+    data["robot"] = str(Path("config/robots/reference8.yaml").resolve())
+    data["sim"]["robot"] = "true.yaml"
+    data["sim"]["plant"].update(actuator={"c": [TRUE["lag"]]})
+    config.write_text(yaml.safe_dump(data))
+    args = ["tune", "--config", str(config), "--sim", "--lockstep", "--drive", "3"]
+    assert main([*args, "--duration", "8", "--json"]) == 0
+    model = json.loads(capsys.readouterr().out)["model"]
+    for name, true in TRUE.items():
+        assert model[name] == pytest.approx(true, rel=0.05), name
+
+
 def test_tune_plots_the_data_the_fit_and_the_poles(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
