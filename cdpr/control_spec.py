@@ -93,7 +93,7 @@ class AdaptationSpec(StrictModel):
     mass_min: PositiveFloat | None = None
     mass_max: PositiveFloat | None = None
     com_max: PositiveFloat = 0.1
-    inertia: bool = False
+    inertia: bool = True
     inertia_scale_max: Annotated[float, Field(gt=1.0)] = 2.0
     time_constant: Annotated[float, Field(ge=MIN_ADAPTATION_TIME, le=60.0)] = 0.5
 
