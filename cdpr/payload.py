@@ -65,7 +65,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.linalg.lapack import dpotrs
 
-from cdpr.control_spec import MAX_COMMAND_LEAD, AdaptationSpec
+from cdpr.control_spec import AdaptationSpec
 from cdpr.dynamics import PlatformInertia
 from cdpr.forward_kinematics import FKResult
 from cdpr.pose import Pose, retract
@@ -86,7 +86,7 @@ SAMPLE_EVERY = 4  # cycles between two samples taken in (~50 us each: not every 
 SOLVE_EVERY = 20  # cycles between two solutions (eigh ~20 us), between two samples
 SPAN = 6  # cycles each side of a sample over which the drums' acceleration is taken
 GAP = 0.5  # of a period: two cycles apart by a period +- more than this are not adjacent
-SETTLED = 10  # cycles of commands before the drives' force is known (5 lags at 500 Hz)
+FORGOTTEN = 1e-6  # of a command: what is left of it in the drive's force is neglected
 UNSEEN = 1e-9  # an excited direction's inertia components, at most, when rotation is absent
 DEAD_ZONE = 0.005  # of the file's mass: a smaller difference is left to the integral action
 DEFAULT_MASS_RANGE = (0.8, 1.5)  # mass_min, mass_max as multiples of the file's mass
@@ -241,10 +241,8 @@ class PayloadEstimate:
         self._stretch = stretch
         self.period = period
         self._lag = drive_lag
-        self._decay = math.exp(-period / drive_lag) if drive_lag > 0.0 else 0.0
-        self._latency = 0.0
-        self._commands: deque[Array] = deque(maxlen=round(MAX_COMMAND_LEAD / period) + 2)
-        self._recent: deque[tuple] = deque(maxlen=2 * SPAN + 1)
+        self._recent: deque[tuple] = deque()
+        self.set_latency(0.0)
         self._forget = math.exp(-SAMPLE_EVERY * period / WINDOW)
         self._gain = SOLVE_EVERY * period / (spec.time_constant + SOLVE_EVERY * period)
         self._dead_zone = DEAD_ZONE * self.file.mass
@@ -269,8 +267,7 @@ class PayloadEstimate:
         self._sums = np.zeros((PARAMETERS + 1, PARAMETERS + 1))
         self._weight = 0.0
         self._cycles = 0
-        self._commands.clear()  # the drives' force restarts from the next command
-        self._recent.clear()  # the last 2 SPAN cycles, with the drives' force
+        self._recent.clear()  # the last cycles, as many as a sample needs
         platform = self.platform
         self._x = parameters(platform.mass, platform.center_of_mass, platform.inertia)
         self.fault = ""
@@ -300,7 +297,9 @@ class PayloadEstimate:
 
     def set_latency(self, latency: float) -> None:
         """The time (s) from a measurement to its command reaching the drives."""
-        self._latency = latency
+        self._weights = drive_force_weights(self.period, self._lag, latency)
+        # a sample: its commands (weights), itself and SPAN cycles either side
+        self._recent = deque(self._recent, maxlen=len(self._weights) + 2 * SPAN + 1)
 
     def update(self) -> bool:
         """Once a cycle: take in the last observed cycle (the drives' force follows its
@@ -316,32 +315,13 @@ class PayloadEstimate:
             recent and abs(observed[0] - recent[-1][0] - self.period) > GAP * self.period
         ):
             recent.clear()  # a cycle without a command, or a restart: start over
-            self._commands.clear()
         if observed is not None:
-            recent.append(self._drive_force(observed))
+            recent.append(observed)
         if phase == SAMPLE_EVERY // 2:
             return self._solve()
-        if len(recent) > 2 * SPAN and phase % SAMPLE_EVERY == 0 and self._forced >= SETTLED:
+        if len(recent) == recent.maxlen and phase % SAMPLE_EVERY == 0:
             self._take_in(recent)
         return False
-
-    def _drive_force(self, observed: tuple) -> tuple:
-        """`observed` with the drives' force at its measurement instant: the commands held
-        from `latency` after their own measurement, through the first-order lag."""
-        commands, history = observed[6], self._commands
-        if not history:
-            self._force = commands.copy()
-            self._forced = 0
-        else:
-            whole, part = divmod(self._latency, self.period)
-            old = history[min(int(whole) + 1, len(history) - 1)]
-            new = history[min(int(whole), len(history) - 1)]
-            decay = math.exp(-(self.period - part) / self._lag) if self._lag > 0.0 else 0.0
-            self._force = self._decay * self._force + (decay - self._decay) * old
-            self._force += (1.0 - decay) * new
-            self._forced += 1
-        history.appendleft(commands)
-        return (*observed, self._force.copy())
 
     def _take_in(self, recent: deque[tuple]) -> None:
         """The regression's row of the middle cycle of `recent` (module docstring)."""
@@ -355,13 +335,16 @@ class PayloadEstimate:
         self._weight = self._weight * self._forget + 1.0
 
     def sample(self, recent: deque[tuple]) -> tuple[Pose, Array, Reference]:
-        """The middle cycle of `recent` (2 SPAN + 1 cycles): the platform's pose, minus
-        the cables' tensions and the reference at its measurement instant."""
-        _, pose, fk, lengths, stretched_by, rates, _, reference, force = recent[SPAN]
+        """The cycle SPAN cycles before the last of `recent` (full): the platform's pose,
+        minus the cables' tensions and the reference at its measurement instant."""
+        _, pose, fk, lengths, stretched_by, rates, _, reference = recent[-1 - SPAN]
+        # the drive's force: the commands before it (the newest first), weighted
+        before = [recent[-2 - SPAN - j][6] for j in range(len(self._weights))]
+        force = self._weights.dot(before)
         # the drives' rates are means over the period before their measurement
-        rate = 0.5 * (rates + recent[SPAN + 1][5])
+        rate = 0.5 * (rates + recent[-SPAN][5])
         span = SPAN * self.period
-        accel = (recent[-1][3] - 2.0 * lengths + recent[0][3]) / (span * span)
+        accel = (recent[-1][3] - 2.0 * lengths + recent[-1 - 2 * SPAN][3]) / (span * span)
         # minus the cables' tensions (the commands' sign): the force less the back-EMF
         # (through the drive's lag too: k0 (l' - lag l'')) and the drum's inertia
         tension = force - self._k0 * rate - (self._m0 - self._k0 * self._lag) * accel
@@ -444,6 +427,22 @@ class PayloadEstimate:
 
     def _inertia(self, mass: float, com: Sequence[float], inertia: Array) -> PlatformInertia:
         return PlatformInertia(mass, com, inertia, self.file.gravity)
+
+
+def drive_force_weights(period: float, lag: float, latency: float) -> Array:
+    """w: a drive's force at a measurement instant is w . (c_1, c_2, ...), c_j the command
+    of the cycle j periods before, for commands that reach the drive `latency` s after
+    their measurement and are held there, followed by the force through a first-order
+    lag (s); the commands whose share is below FORGOTTEN are left out, and w sums to 1."""
+    whole, part = divmod(latency, period)
+    decay = math.exp(-period / lag) if lag > 0.0 else 0.0
+    late = math.exp(-(period - part) / lag) if lag > 0.0 else 0.0  # over the newer command
+    terms = math.ceil(math.log(FORGOTTEN) / math.log(decay)) if decay > 0.0 else 1
+    w = np.zeros(int(whole) + terms + 1)
+    for i in range(terms):  # the period i + 1 before: the newer command, then the older
+        w[int(whole) + i] += (1.0 - late) * decay**i
+        w[int(whole) + i + 1] += (late - decay) * decay**i
+    return w / w.sum()
 
 
 class StaticFit(NamedTuple):
