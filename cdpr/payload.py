@@ -30,7 +30,7 @@ the reference's at t_k: the true acceleration differs by the tracking error's, w
 averages out over the window.  From the planned forces instead (the force lag, the
 back-EMF of the reference's rates, the stretch of the planned tensions) the ~0.2 N m of
 difference on reference8's EA 1e5 cables, under ~300 N of internal force, was taken for
-inertia: the x and z diagonal off by up to a third.
+inertia: the x and z diagonal off by up to a half (z +47 % at 0.7x the file's inertia).
 
 Least squares with exponential forgetting (WINDOW) accumulates Y^T Y and Y^T y of every
 SAMPLE_EVERY-th cycle; every SOLVE_EVERY cycles the estimate moves, with time constant
@@ -324,7 +324,8 @@ class PayloadEstimate:
         return False
 
     def _take_in(self, recent: deque[tuple]) -> None:
-        """The regression's row of the middle cycle of `recent` (module docstring)."""
+        """The regression's row of the cycle SPAN cycles before the last of `recent`
+        (module docstring)."""
         pose, tension, reference = self.sample(recent)
         platform = self._robot.jacobian(pose).T.dot(tension)
         row = regressor(pose, reference.accel.tolist(), reference.twist.tolist(),
@@ -348,7 +349,7 @@ class PayloadEstimate:
         # minus the cables' tensions (the commands' sign): the force less the back-EMF
         # (through the drive's lag too: k0 (l' - lag l'')) and the drum's inertia
         tension = force - self._k0 * rate - (self._m0 - self._k0 * self._lag) * accel
-        if self._elastic:  # stretched by these tensions, not the planned ones
+        if self._elastic and fk.normal_factor is not None:  # by these tensions' stretch
             stretch = lengths * self._robot.compliance * self._stretch.scale
             change = stretch * (-tension - stretched_by)
             moved, _ = dpotrs(fk.normal_factor, change.dot(fk.jacobian))
