@@ -14,6 +14,7 @@ from cdpr import Robot
 from cdpr.control_spec import ControllerSpec, parse_controller
 from cdpr.controller import ParallelController
 from cdpr.description import ConfigError
+from cdpr.payload import drive_force_weights
 from cdpr.single_actuator import pid
 from cdpr.trajectory import Trajectory, Waypoint
 from sim_bus.plant.config import parse_plant_config
@@ -261,3 +262,22 @@ def test_pure_translation_leaves_the_inertia_the_files(reference8: Robot) -> Non
     np.testing.assert_allclose(controller.payload.platform.inertia, reference8.platform.inertia,
                                atol=1e-12)  # fmt: skip
     assert controller.payload.mass == pytest.approx(11.0, rel=0.01)
+
+
+@pytest.mark.parametrize("latency", [0.0, 0.0013, 0.0047])
+def test_the_drives_force_follows_the_commands_through_latency_and_lag(latency: float) -> None:
+    """drive_force_weights against the first-order lag stepped exactly over 0.1 ms: the
+    commands held from `latency` after their cycle's instant; the force at each instant
+    within 0.01 N (the neglected tail: 1e-6 of a command)."""
+    period, lag, fine = 0.002, 0.002, 1e-4
+    commands = np.random.default_rng(1).uniform(-300.0, 300.0, 60)
+    weights = drive_force_weights(period, lag, latency)
+    force, steps = 0.0, round(period / fine)
+    for k in range(1, len(commands)):
+        for i in range(steps):  # from instant k - 1 to k, in steps of `fine`
+            t = (k - 1) * period + (i + 0.5) * fine
+            held = commands[math.floor((t - latency) / period)] if t >= latency else 0.0
+            force = held + (force - held) * math.exp(-fine / lag)
+        if k > len(weights) + 2:
+            before = commands[k - 1 :: -1][: len(weights)]  # the newest first
+            assert weights.dot(before) == pytest.approx(force, abs=0.01), k
