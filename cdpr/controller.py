@@ -151,11 +151,7 @@ class ParallelController:
         self.payload: PayloadEstimate | None = None
         if spec.adaptation.enabled:
             robot = copy.copy(robot)
-        self.stretch = ComplianceScale(robot)  # the cables' EA as identified (cdpr.stretch)
-        if spec.adaptation.enabled:
-            self.payload = PayloadEstimate(
-                robot, spec.adaptation, self.period, drive_lag, self.stretch
-            )
+            self.payload = PayloadEstimate(robot, spec.adaptation, self.period, drive_lag)
         self.robot = robot
         # the external wrench the model does not explain (cdpr.wrench_observer)
         self.observer: WrenchObserver | None = None
@@ -173,6 +169,7 @@ class ParallelController:
         self._differentiate = spec.velocity == "differentiate"
         self._smoothing = self.period / (spec.velocity_filter + self.period)
         self._stretch_corrected = bool(np.any(robot.compliance > 0.0))
+        self.stretch = ComplianceScale(robot)  # the cables' EA as identified (cdpr.stretch)
         self._error = np.zeros((self.loop.Dd.shape[1], 6))
         self.reset(robot.home)
 
@@ -346,8 +343,8 @@ class ParallelController:
             self._tensions = result.tensions
             if self.payload is not None:
                 self.payload.observe(
-                    t, pose, fk, lengths, stretched_by, np.asarray(length_rates, dtype=float),
-                    commands, ref,
+                    t, pose, fk, lengths, stretched_by, self.stretch.scale,
+                    np.asarray(length_rates, dtype=float), commands, ref,
                 )  # fmt: skip
         else:
             commands = np.full(robot.n_cables, np.nan)

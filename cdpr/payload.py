@@ -71,7 +71,6 @@ from cdpr.forward_kinematics import FKResult
 from cdpr.pose import Pose, retract
 from cdpr.robot import Robot
 from cdpr.so3 import quat_to_r9
-from cdpr.stretch import ComplianceScale
 from cdpr.trajectory import Reference
 
 Array = NDArray[np.float64]
@@ -223,14 +222,12 @@ def inertia_about_com(x: ArrayLike) -> Array:
 class PayloadEstimate:
     """The online estimate of `robot`'s platform mass, centre of mass and inertia (module
     docstring), for cycles `period` s apart and drives whose force follows their commands
-    with a first-order lag `drive_lag` (s; the drums' m0 and k0 are the robot file's),
-    the cables' compliance scaled by `stretch`.  `platform` is the model to use: the
-    robot file's until the estimate moves it."""
+    with a first-order lag `drive_lag` (s; the drums' m0 and k0 are the robot file's).
+    `platform` is the model to use: the robot file's until the estimate moves it."""
 
     def __init__(
-        self, robot: Robot, spec: AdaptationSpec, period: float, drive_lag: float,
-        stretch: ComplianceScale,
-    ) -> None:  # fmt: skip
+        self, robot: Robot, spec: AdaptationSpec, period: float, drive_lag: float
+    ) -> None:
         self.file = robot.platform
         self.limits = payload_limits(robot, spec)
         self.frozen = spec.frozen
@@ -238,7 +235,6 @@ class PayloadEstimate:
         self._robot = robot
         self._m0, self._k0 = robot.m0, robot.k0
         self._elastic = bool(np.any(robot.compliance > 0.0))
-        self._stretch = stretch
         self.period = period
         self._lag = drive_lag
         self._recent: deque[tuple] = deque()
@@ -283,16 +279,17 @@ class PayloadEstimate:
 
     def observe(
         self, t: float, pose: Pose, fk: FKResult, lengths: Array, stretched_by: Array,
-        rates: Array, commands: Array, reference: Reference,
+        compliance_scale: float, rates: Array, commands: Array, reference: Reference,
     ) -> None:  # fmt: skip
         """A cycle at time t: the platform measured at `pose` (forward kinematics `fk` from
-        the drums' `lengths` stretched by the tensions `stretched_by`), the drums' `rates`,
+        the drums' `lengths` stretched by the tensions `stretched_by`, with the robot
+        file's compliance times `compliance_scale`: cdpr.stretch), the drums' `rates`,
         the `commands` the cycle sent and the `reference` at t: kept for `update` (the
         cycle's slack)."""
         if not self.frozen:  # copies: the caller's arrays may be reused
             self._observed = (
-                t, pose, fk, lengths.copy(), stretched_by.copy(), rates.copy(), commands,
-                reference,
+                t, pose, fk, lengths.copy(), stretched_by * compliance_scale, rates.copy(),
+                commands, reference, compliance_scale,
             )  # fmt: skip
 
     def set_latency(self, latency: float) -> None:
@@ -338,7 +335,7 @@ class PayloadEstimate:
     def sample(self, recent: deque[tuple]) -> tuple[Pose, Array, Reference]:
         """The cycle SPAN cycles before the last of `recent` (full): the platform's pose,
         minus the cables' tensions and the reference at its measurement instant."""
-        _, pose, fk, lengths, stretched_by, rates, _, reference = recent[-1 - SPAN]
+        _, pose, fk, lengths, stretched_by, rates, _, reference, scale = recent[-1 - SPAN]
         # the drive's force: the commands before it (the newest first), weighted
         before = [recent[-2 - SPAN - j][6] for j in range(len(self._weights))]
         force = self._weights.dot(before)
@@ -350,8 +347,8 @@ class PayloadEstimate:
         # (through the drive's lag too: k0 (l' - lag l'')) and the drum's inertia
         tension = force - self._k0 * rate - (self._m0 - self._k0 * self._lag) * accel
         if self._elastic and fk.normal_factor is not None:  # by these tensions' stretch
-            stretch = lengths * self._robot.compliance * self._stretch.scale
-            change = stretch * (-tension - stretched_by)
+            stretch = lengths * self._robot.compliance  # stretched_by: scaled already
+            change = stretch * (-tension * scale - stretched_by)
             moved, _ = dpotrs(fk.normal_factor, change.dot(fk.jacobian))
             pose = retract(pose, moved)
         return pose, tension, reference
