@@ -11,7 +11,12 @@ um encoder noise), and without the command lead (`no_lead`, and `lead_ratio`: RM
 the lead / without; `command_lead_s` the lead used), and with a payload (`payload10`:
 +10 % mass, `payload30`: +30 % and the centre of mass 5 cm off; flight RMS and holding
 RMS with the payload estimate on, `adaptation_off` beside); the step without the
-payload estimate (`step_adaptation_off`, `step_ratio`); and the holding robot's response
+payload estimate (`step_adaptation_off`, `step_ratio`); the inertia estimate on the
+elastic cables (`inertia`: the platform's inertia 1.5x the file's and 2 kg hung off its
+centre, holding 2 s and then turning about all three axes: the errors of the inertia's
+diagonal in %, of its products in kg m^2 and of the mass, the flight's and the hold's
+RMS with the inertia estimated and, under `inertia_off`, without); and the holding
+robot's response
 to a 50 N horizontal push (`disturbance`: peak error, 2 % settling time, the error left
 after 20 s, whether the peak exceeds the daemon's default tracking-error bound, and
 `braked`: that, or a controller fault; with the external wrench observer as configured,
@@ -33,7 +38,7 @@ from cdpr import Robot
 from cdpr.control_spec import ControllerSpec
 from cdpr.controller import ParallelController
 from daemon.config import SafetyConfig
-from tuning.comparison import payload_figures
+from tuning.comparison import inertia_figures, payload_figures
 from tuning.comparison import standard_set_figures as tracking
 from tuning.disturbance import step_response
 from tuning.scenarios import STANDARD_SET
@@ -122,6 +127,7 @@ def main(argv: list[str] | None = None) -> int:
         results["tracking"] = tracking_with_payload(robot, spec)
         results["command_lead_s"] = ParallelController(robot, spec).lead
         results["disturbance"] = disturbance(robot, spec)
+        results["inertia"] = inertia_figures(robot, spec)
     if args.json:
         print(json.dumps(results))
         return 0
@@ -143,6 +149,14 @@ def main(argv: list[str] | None = None) -> int:
                 f"{'':14s} {payload}: rms {p['rms_mm']:.3f} mm hold {p['hold_mm']:.3f} mm  "
                 f"(adaptation off: rms {off['rms_mm']:.3f} mm hold {off['hold_mm']:.3f} mm)"
             )
+    if "inertia" in results:
+        i = results["inertia"]
+        print(
+            f"inertia estimate: diagonal error {i['diagonal_error_pct']} %  products "
+            f"{i['products_error']:.4f} kg m^2  mass {i['mass_error_pct']:.2f} %  rms "
+            f"{i['rms_mm']:.3f} mm hold {i['hold_mm']:.3f} mm (inertia off: rms "
+            f"{i['inertia_off']['rms_mm']:.3f} mm hold {i['inertia_off']['hold_mm']:.3f} mm)"
+        )
     if "disturbance" in results:
         d = results["disturbance"]
         for name, p in (("observer", d), ("observer off", d["observer_off"])):

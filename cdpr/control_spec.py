@@ -82,9 +82,8 @@ class AdaptationSpec(StrictModel):
     total mass (kg) the estimate may take (default 0.8x and 1.5x the robot file's); com_max:
     how far (m) the centre of mass may move from the file's; a payload beyond these is a
     fault (the daemon brakes), not an update.  inertia: estimate the inertia too, where
-    rotation excites it (off by default: on reference8's elastic cables the estimate is
-    biased, cdpr.payload); beyond inertia_scale_max times the file's, or below 1 / it, a
-    fault.
+    rotation excites it (else it stays the file's); beyond inertia_scale_max times the
+    file's, or below 1 / it, a fault.
     time_constant (s): how slowly the model follows the estimate.  frozen: keep the model
     as it is (as set, or the file's)."""
 
@@ -93,7 +92,7 @@ class AdaptationSpec(StrictModel):
     mass_min: PositiveFloat | None = None
     mass_max: PositiveFloat | None = None
     com_max: PositiveFloat = 0.1
-    inertia: bool = False
+    inertia: bool = True
     inertia_scale_max: Annotated[float, Field(gt=1.0)] = 2.0
     time_constant: Annotated[float, Field(ge=MIN_ADAPTATION_TIME, le=60.0)] = 0.5
 

@@ -151,7 +151,7 @@ class ParallelController:
         self.payload: PayloadEstimate | None = None
         if spec.adaptation.enabled:
             robot = copy.copy(robot)
-            self.payload = PayloadEstimate(robot, spec.adaptation, self.period)
+            self.payload = PayloadEstimate(robot, spec.adaptation, self.period, drive_lag)
         self.robot = robot
         # the external wrench the model does not explain (cdpr.wrench_observer)
         self.observer: WrenchObserver | None = None
@@ -208,6 +208,8 @@ class ParallelController:
         if not 0.0 <= latency < math.inf:
             raise ValueError(f"latency must be finite and >= 0 s, got {latency!r}")
         self.lead = self.spec.lead(self.drive_lag, latency)
+        if self.payload is not None:
+            self.payload.set_latency(latency)
         self._prepared = None  # evaluated for the old lead
 
     def prepare(self, t: float) -> None:
@@ -337,7 +339,8 @@ class ParallelController:
             return self._fault(ref, self._pose, 0.0, self.observer.fault)
         # the encoders measure the drums; the last planned tensions stretch the cables
         lengths = np.asarray(lengths, dtype=float)
-        fk = robot.forward_kinematics(self.stretch.stretched(lengths, self._tensions), guess)
+        stretched_by = self._tensions
+        fk = robot.forward_kinematics(self.stretch.stretched(lengths, stretched_by), guess)
         if not fk.converged:
             return self._fault(ref, fk.pose, fk.residual, f"forward kinematics: {fk.reason}")
         self.stretch.observe(lengths, self._tensions, fk)
@@ -371,8 +374,9 @@ class ParallelController:
             self._tensions = result.tensions
             if self.payload is not None:
                 self.payload.observe(
-                    pose, twist, self.lead, result.forces, prepared.ahead, Lam, c
-                )
+                    t, pose, fk, lengths, stretched_by, self.stretch.scale,
+                    np.asarray(length_rates, dtype=float), commands, ref,
+                )  # fmt: skip
         else:
             commands = np.full(robot.n_cables, np.nan)
         return ControlOutput(

@@ -15,12 +15,22 @@ entry of Y an acceleration, and with L_I^2 = L x 1 m (INERTIA_LENGTH) an angular
 acceleration of 1 rad/s^2 is an entry of 1 m/s^2: the inertia is identified in the
 directions an angular acceleration of about 1 rad/s^2 RMS excites (EXCITED), and stays
 the robot file's (about the centre of mass) under pure translation.  The wrench y is
-what the cables exert on the platform: the planned forces f_p (which the drives realise)
-along the cables where the measured platform will be when they act, Lambda(eta ahead)^T
-f_p, less the drums' share m0 Lambda^T (Lambda alpha + c).  (Along the reference's cables
-the geometric stiffness of a sagging or lagging platform would be taken for mass.)
-alpha is the reference's: the true acceleration differs by the tracking error's, which
-averages out over the window.
+what the cables exert on the platform at a measurement instant t_k, from what the drives
+did then, not what the cycle planned: per cable the tension t = f - k0 l' - m0 l'', with f
+the drive's force (the commands, held from `latency` after their measurement, through
+the drive's first-order lag drive_lag; Assumption 1's back-EMF lags as well, so it is
+k0 (l' - drive_lag l'')), l' the drums' rates (the drives report means over the period
+before the measurement: l'(t_k) is the mean of this and the next cycle's) and l'' the
+second difference of the drums' lengths over SPAN cycles either side (a shorter span is
+noisier with quantised lengths; the drums carry about three times the platform's
+rotational inertia, so their share must be right), and y = Lambda(eta)^T t at the
+measured pose moved by the stretch these tensions cause beyond the planned ones (which
+forward kinematics applied).  The sample waits SPAN cycles for its data.  The motion is
+the reference's at t_k: the true acceleration differs by the tracking error's, which
+averages out over the window.  From the planned forces instead (the force lag, the
+back-EMF of the reference's rates, the stretch of the planned tensions) the ~0.2 N m of
+difference on reference8's EA 1e5 cables, under ~300 N of internal force, was taken for
+inertia: the x and z diagonal off by up to a half (z +47 % at 0.7x the file's inertia).
 
 Least squares with exponential forgetting (WINDOW) accumulates Y^T Y and Y^T y of every
 SAMPLE_EVERY-th cycle; every SOLVE_EVERY cycles the estimate moves, with time constant
@@ -47,14 +57,17 @@ mass and centre of mass with their standard deviations (at rest the inertia show
 from __future__ import annotations
 
 import math
+from collections import deque
 from collections.abc import Sequence
 from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.linalg.lapack import dpotrs
 
 from cdpr.control_spec import AdaptationSpec
 from cdpr.dynamics import PlatformInertia
+from cdpr.forward_kinematics import FKResult
 from cdpr.pose import Pose, retract
 from cdpr.robot import Robot
 from cdpr.so3 import quat_to_r9
@@ -68,8 +81,12 @@ PARAMETERS = 10  # m, h (3), I_pb (6)
 _INERTIA_ENTRIES = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))  # of I_pb, in x
 WINDOW = 1.0  # s: forgetting time of the least-squares data
 EXCITED = 1.0  # (m/s^2)^2: the least mean eigenvalue of Y^T Y of a direction identified
-SAMPLE_EVERY = 4  # cycles between two samples taken in (~30 us each: not every cycle)
+SAMPLE_EVERY = 4  # cycles between two samples taken in (~50 us each: not every cycle)
 SOLVE_EVERY = 20  # cycles between two solutions (eigh ~20 us), between two samples
+SPAN = 6  # cycles each side of a sample over which the drums' acceleration is taken
+GAP = 0.5  # of a period: two cycles apart by a period +- more than this are not adjacent
+FORGOTTEN = 1e-6  # of a command: what is left of it in the drive's force is neglected
+UNSEEN = 1e-9  # an excited direction's inertia components, at most, when rotation is absent
 DEAD_ZONE = 0.005  # of the file's mass: a smaller difference is left to the integral action
 DEFAULT_MASS_RANGE = (0.8, 1.5)  # mass_min, mass_max as multiples of the file's mass
 
@@ -203,24 +220,32 @@ def inertia_about_com(x: ArrayLike) -> Array:
 
 
 class PayloadEstimate:
-    """The online estimate of `robot`'s platform mass and centre of mass (module
-    docstring), for cycles `period` s apart (the drums' m0 are the robot file's).
+    """The online estimate of `robot`'s platform mass, centre of mass and inertia (module
+    docstring), for cycles `period` s apart and drives whose force follows their commands
+    with a first-order lag `drive_lag` (s; the drums' m0 and k0 are the robot file's).
     `platform` is the model to use: the robot file's until the estimate moves it."""
 
-    def __init__(self, robot: Robot, spec: AdaptationSpec, period: float) -> None:
+    def __init__(
+        self, robot: Robot, spec: AdaptationSpec, period: float, drive_lag: float
+    ) -> None:
         self.file = robot.platform
         self.limits = payload_limits(robot, spec)
         self.frozen = spec.frozen
         self.inertia = spec.inertia  # estimate the inertia too (where rotation excites it)
         self._robot = robot
-        self._m0 = robot.m0
+        self._m0, self._k0 = robot.m0, robot.k0
+        self._elastic = bool(np.any(robot.compliance > 0.0))
+        self.period = period
+        self._lag = drive_lag
+        self._recent: deque[tuple] = deque()
+        self.set_latency(0.0)
         self._forget = math.exp(-SAMPLE_EVERY * period / WINDOW)
         self._gain = SOLVE_EVERY * period / (spec.time_constant + SOLVE_EVERY * period)
         self._dead_zone = DEAD_ZONE * self.file.mass
         self.platform = self.file
         # the estimate, unbounded (the fault check)
         self._x = parameters(self.file.mass, self.file.center_of_mass, self.file.inertia)
-        self._observed: tuple[Pose, Array, float, Array, Reference, Array, Array] | None = None
+        self._observed: tuple | None = None  # the last cycle (observe)
         self.fault = ""
         self.clear()
 
@@ -238,6 +263,7 @@ class PayloadEstimate:
         self._sums = np.zeros((PARAMETERS + 1, PARAMETERS + 1))
         self._weight = 0.0
         self._cycles = 0
+        self._recent.clear()  # the last cycles, as many as a sample needs
         platform = self.platform
         self._x = parameters(platform.mass, platform.center_of_mass, platform.inertia)
         self.fault = ""
@@ -252,40 +278,80 @@ class PayloadEstimate:
         self.clear()
 
     def observe(
-        self, pose: Pose, twist: Array, lead: float, forces: Array, reference: Reference,
-        Lam: Array, c: Array,
+        self, t: float, pose: Pose, fk: FKResult, lengths: Array, stretched_by: Array,
+        compliance_scale: float, rates: Array, commands: Array, reference: Reference,
     ) -> None:  # fmt: skip
-        """A cycle's planned forces f_p (less f_b: what the drives exert on the cables),
-        for `lead` s after the platform was measured at (pose, twist), following
-        `reference` (at t + lead) with the model's Lambda, c there: kept for the next
-        `update` (the cycle's slack)."""
-        if not self.frozen:
-            self._observed = (pose, twist, lead, forces, reference, Lam, c)
+        """A cycle at time t: the platform measured at `pose` (forward kinematics `fk` from
+        the drums' `lengths` stretched by the tensions `stretched_by`, with the robot
+        file's compliance times `compliance_scale`: cdpr.stretch), the drums' `rates`,
+        the `commands` the cycle sent and the `reference` at t: kept for `update` (the
+        cycle's slack)."""
+        if not self.frozen:  # copies: the caller's arrays may be reused
+            self._observed = (
+                t, pose, fk, lengths.copy(), stretched_by * compliance_scale, rates.copy(),
+                commands, reference, compliance_scale,
+            )  # fmt: skip
+
+    def set_latency(self, latency: float) -> None:
+        """The time (s) from a measurement to its command reaching the drives."""
+        self._weights = drive_force_weights(self.period, self._lag, latency)
+        # a sample: its commands (weights), itself and SPAN cycles either side
+        self._recent = deque(self._recent, maxlen=len(self._weights) + 2 * SPAN + 1)
 
     def update(self) -> bool:
-        """Once a cycle: every SAMPLE_EVERY cycles take in the last observed cycle, every
+        """Once a cycle: take in the last observed cycle (the drives' force follows its
+        commands), every SAMPLE_EVERY cycles the one SPAN cycles before it into the
+        regression (its drums' acceleration needs the cycles around it), every
         SOLVE_EVERY cycles (on another cycle) move the estimate.  True when the model
         (`platform`) changed."""
         observed, self._observed = self._observed, None
         self._cycles += 1
         phase = self._cycles % SOLVE_EVERY
+        recent = self._recent
+        if observed is None or (
+            recent and abs(observed[0] - recent[-1][0] - self.period) > GAP * self.period
+        ):
+            recent.clear()  # a cycle without a command, or a restart: start over
+        if observed is not None:
+            recent.append(observed)
         if phase == SAMPLE_EVERY // 2:
             return self._solve()
-        if observed is None or phase % SAMPLE_EVERY:
-            return False
-        pose, twist, lead, forces, reference, Lam, c = observed
-        accel = reference.accel
-        # the cables' wrench on the platform (module docstring)
-        pose = retract(pose, twist * lead)
-        jacobian = self._robot.jacobian(pose)
-        platform = jacobian.T.dot(forces) - Lam.T.dot(self._m0 * (Lam.dot(accel) + c))
-        row = regressor(pose, accel.tolist(), reference.twist.tolist(), self.file.gravity,
-                        platform.tolist())  # fmt: skip
+        if len(recent) == recent.maxlen and phase % SAMPLE_EVERY == 0:
+            self._take_in(recent)
+        return False
+
+    def _take_in(self, recent: deque[tuple]) -> None:
+        """The regression's row of the cycle SPAN cycles before the last of `recent`
+        (module docstring)."""
+        pose, tension, reference = self.sample(recent)
+        platform = self._robot.jacobian(pose).T.dot(tension)
+        row = regressor(pose, reference.accel.tolist(), reference.twist.tolist(),
+                        self.file.gravity, platform.tolist())  # fmt: skip
         Z = np.array(row).reshape(6, PARAMETERS + 1)
         self._sums *= self._forget
         self._sums += Z.T.dot(Z)
         self._weight = self._weight * self._forget + 1.0
-        return False
+
+    def sample(self, recent: deque[tuple]) -> tuple[Pose, Array, Reference]:
+        """The cycle SPAN cycles before the last of `recent` (full): the platform's pose,
+        minus the cables' tensions and the reference at its measurement instant."""
+        _, pose, fk, lengths, stretched_by, rates, _, reference, scale = recent[-1 - SPAN]
+        # the drive's force: the commands before it (the newest first), weighted
+        before = [recent[-2 - SPAN - j][6] for j in range(len(self._weights))]
+        force = self._weights.dot(before)
+        # the drives' rates are means over the period before their measurement
+        rate = 0.5 * (rates + recent[-SPAN][5])
+        span = SPAN * self.period
+        accel = (recent[-1][3] - 2.0 * lengths + recent[-1 - 2 * SPAN][3]) / (span * span)
+        # minus the cables' tensions (the commands' sign): the force less the back-EMF
+        # (through the drive's lag too: k0 (l' - lag l'')) and the drum's inertia
+        tension = force - self._k0 * rate - (self._m0 - self._k0 * self._lag) * accel
+        if self._elastic and fk.normal_factor is not None:  # by these tensions' stretch
+            stretch = lengths * self._robot.compliance  # stretched_by: scaled already
+            change = stretch * (-tension * scale - stretched_by)
+            moved, _ = dpotrs(fk.normal_factor, change.dot(fk.jacobian))
+            pose = retract(pose, moved)
+        return pose, tension, reference
 
     def _solve(self) -> bool:
         if self._weight == 0.0:
@@ -316,7 +382,8 @@ class PayloadEstimate:
         if others.shape[1]:
             kept = parameters(float(x[0]), mass_and_com(self._x)[1], inertia)[:n]
             x = x + others.dot(others.T.dot(kept - x))
-        if n < PARAMETERS:  # the same inertia about the new centre of mass
+        # the same inertia about the new centre of mass where no rotation excites it
+        if n < PARAMETERS or not np.any(np.abs(excited[4:]) > UNSEEN):
             mass, com = mass_and_com(x)
             x = parameters(mass, com, inertia)
         self._x = x
@@ -358,6 +425,22 @@ class PayloadEstimate:
 
     def _inertia(self, mass: float, com: Sequence[float], inertia: Array) -> PlatformInertia:
         return PlatformInertia(mass, com, inertia, self.file.gravity)
+
+
+def drive_force_weights(period: float, lag: float, latency: float) -> Array:
+    """w: a drive's force at a measurement instant is w . (c_1, c_2, ...), c_j the command
+    of the cycle j periods before, for commands that reach the drive `latency` s after
+    their measurement and are held there, followed by the force through a first-order
+    lag (s); the commands whose share is below FORGOTTEN are left out, and w sums to 1."""
+    whole, part = divmod(latency, period)
+    decay = math.exp(-period / lag) if lag > 0.0 else 0.0
+    late = math.exp(-(period - part) / lag) if lag > 0.0 else 0.0  # over the newer command
+    terms = math.ceil(math.log(FORGOTTEN) / math.log(decay)) if decay > 0.0 else 1
+    w = np.zeros(int(whole) + terms + 1)
+    for i in range(terms):  # the period i + 1 before: the newer command, then the older
+        w[int(whole) + i] += (1.0 - late) * decay**i
+        w[int(whole) + i + 1] += (late - decay) * decay**i
+    return w / w.sum()
 
 
 class StaticFit(NamedTuple):
