@@ -67,6 +67,8 @@ SPEED = 0.2  # m/s (and rad/s) of the moves between poses
 MOVE_MIN = 1.5  # s: the shortest move
 MIN_POSES = 8  # below this the command refuses before flying
 DITHER = 2e-4  # m: the loop flown about each pose while its state is averaged
+LEASE = 5.0  # s: the lease on the payload freeze and the observer hold (daemon.service.lease)
+RENEW_PERIOD = 1.0  # s between its renewals while flying
 
 
 class CalibrationError(Exception):
@@ -231,23 +233,35 @@ def _file_model(client: CdprClient, robot: Robot) -> Iterator[None]:
     drift to its limit (adaptation.com_max) and brake, and like an external wrench to the
     observer, which would compensate it while the poses are flown (anchors twice as far
     off); the forces recorded are whatever holds the platform either way.  SIGTERM
-    meanwhile is an error (`_terminated`), so that they are let go then too."""
+    meanwhile is an error (`_terminated`), so that they are let go then too; both are
+    held on a LEASE renewed meanwhile (`_renewing`), so that the daemon lets go of them
+    itself when this process dies unable to (kill -9, its machine or network gone)."""
     platform = robot.platform
     com = [float(c) for c in platform.center_of_mass]
     with contextlib.ExitStack() as held:
         previous = signal.signal(signal.SIGTERM, _terminated)
         held.callback(signal.signal, signal.SIGTERM, previous)
-        held.enter_context(
-            _held(lambda: client.payload(True, platform.mass, com), lambda: client.payload(False))
-        )
-        held.enter_context(_held(lambda: client.observer(True), lambda: client.observer(False)))
+        renewals = []
+        if held.enter_context(
+            _held(
+                lambda: client.payload(True, platform.mass, com, lease=LEASE),
+                lambda: client.payload(False),
+            )
+        ):
+            renewals.append(lambda: client.payload(True, lease=LEASE))
+        if held.enter_context(
+            _held(lambda: client.observer(True, lease=LEASE), lambda: client.observer(False))
+        ):
+            renewals.append(lambda: client.observer(True, lease=LEASE))
+        held.enter_context(_renewing(renewals))
         yield
 
 
 @contextlib.contextmanager
-def _held(hold: Callable[[], object], release: Callable[[], object]) -> Iterator[None]:
+def _held(hold: Callable[[], object], release: Callable[[], object]) -> Iterator[bool]:
     """`hold()` a part of the daemon's model, `release()` it on the way out, however;
-    nothing to do when the daemon has it off (the request refused with invalid_state)."""
+    whether it holds: nothing to do when the daemon has it off (the request refused with
+    invalid_state)."""
     from daemon.interface.client import RequestError
 
     try:
@@ -255,12 +269,52 @@ def _held(hold: Callable[[], object], release: Callable[[], object]) -> Iterator
     except RequestError as exc:
         if exc.code != "invalid_state":
             raise
-        yield
+        yield False
         return
+    try:
+        yield True
+    finally:
+        release()
+
+
+@contextlib.contextmanager
+def _renewing(renewals: list[Callable[[], object]]) -> Iterator[None]:
+    """Call every renewal each RENEW_PERIOD s on a thread of its own while the flight
+    sleeps and waits on the daemon; stopped before the flight lets go.  A renewal that
+    fails, or none getting through within the LEASE, fails the calibration when the
+    flight ends (the daemon may have let go meanwhile: the poses flown then are suspect)."""
+    from daemon.interface.client import ClientError
+
+    stop = threading.Event()
+    failures: list[str] = []
+
+    def renew() -> None:
+        renewed = time.monotonic()
+        while not stop.wait(RENEW_PERIOD):
+            try:
+                for renewal in renewals:
+                    renewal()
+            except ClientError as exc:
+                failures.append(f"the daemon's lease was not renewed: {exc}")
+                return
+            now = time.monotonic()
+            if now - renewed > LEASE:
+                failures.append(
+                    f"the daemon's lease was renewed {now - renewed:.1f} s after the last time, "
+                    f"beyond its {LEASE:g} s: the daemon may have let go meanwhile"
+                )
+                return
+            renewed = now
+
+    thread = threading.Thread(target=renew, name="cdprd-calibrate-lease", daemon=True)
+    thread.start()
     try:
         yield
     finally:
-        release()
+        stop.set()
+        thread.join()
+    if failures:
+        raise CalibrationError(failures[0] + ": fly again")
 
 
 def _terminated(signum: int, frame: object) -> None:

@@ -143,19 +143,27 @@ class CdprClient:
         frozen: bool | None = None,
         mass: float | None = None,
         center_of_mass: Sequence[float] | None = None,
+        lease: float | None = None,
     ) -> dict[str, Any]:
-        """The payload estimate; freeze or unfreeze it, or set mass and centre of mass."""
+        """The payload estimate; freeze or unfreeze it, or set mass and centre of mass.
+        A freeze with a `lease` (s) lapses unless renewed (frozen again) within it."""
         body: dict[str, Any] = {}
         if frozen is not None:
             body["frozen"] = frozen
         if mass is not None:
             body["mass"] = float(mass)
             body["center_of_mass"] = [float(c) for c in center_of_mass or ()]
+        if lease is not None:
+            body["lease"] = float(lease)
         return self.request("payload", body)
 
-    def observer(self, held: bool | None = None) -> dict[str, Any]:
-        """The external wrench observer; hold it out of the loop, or let it back in."""
-        return self.request("observer", {} if held is None else {"held": held})
+    def observer(self, held: bool | None = None, lease: float | None = None) -> dict[str, Any]:
+        """The external wrench observer; hold it out of the loop, or let it back in.  A
+        hold with a `lease` (s) lapses unless renewed (held again) within it."""
+        body: dict[str, Any] = {} if held is None else {"held": held}
+        if lease is not None:
+            body["lease"] = float(lease)
+        return self.request("observer", body)
 
     def send_trajectory(
         self,

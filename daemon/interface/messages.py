@@ -17,13 +17,15 @@ Inputs (objects; unknown keys, wrong types, NaN/Infinity tokens are refused):
                (quaternion optional: identity)
         brake: {"reason": "operator stop"}  (optional)
         payload: {"frozen": true} and/or {"mass": 11.0, "center_of_mass": [x, y, z]}
-               (the payload estimate: freeze/unfreeze it, or set it; {} reports it)
+               (the payload estimate: freeze/unfreeze it, or set it; {} reports it);
+               with {"frozen": true, "lease": 5.0} the freeze lapses unless renewed
+               (the same again) within the lease (s): daemon.service.lease
         identify_payload: {"apply": false}  (hold a few poses, estimate the payload
                statically, apply it if asked)
         home:  {"pose": "dock"}  (optional: a pose named in the robot file, default home)
         pretension: {"pose": "dock"}  (as home: the fixture's pose the platform rests at)
         observer: {"held": true}  (the external wrench observer out of the loop, or back
-               in with false; {} reports it)
+               in with false; {} reports it); "lease" as payload's
 
 Outputs:
 
@@ -67,14 +69,15 @@ EVENT_KEY = "event"  # the name of an event: trajectory_accepted / _rejected (in
 # state, fault, ... (service)
 MAX_BRAKE_REASON = 200
 MAX_POSE_NAME = 64  # the robot file's pose names
+LEASE_MAX = 60.0  # s: the longest lease on a payload freeze or an observer hold
 _ARGS = {
     "goto": ("position", "quaternion"),
     "brake": ("reason",),
-    "payload": ("frozen", "mass", "center_of_mass"),
+    "payload": ("frozen", "mass", "center_of_mass", "lease"),
     "identify_payload": ("apply",),
     "home": ("pose",),
     "pretension": ("pose",),
-    "observer": ("held",),
+    "observer": ("held", "lease"),
 }
 _IDENTITY = {"w": 1.0, "x": 0.0, "y": 0.0, "z": 0.0}
 _XYZ = ("x", "y", "z")
@@ -324,7 +327,8 @@ def decode_command(
     if name == "identify_payload":
         return {"apply": True} if _flag(data, "apply", "identify_payload") else {}
     if name == "observer":
-        return {"held": _flag(data, "held", "observer")} if "held" in data else {}
+        args = {"held": _flag(data, "held", "observer")} if "held" in data else {}
+        return _leased(data, args, "held", "observer")
     if name in ("home", "pretension"):
         pose = data.get("pose")
         if pose is None:
@@ -364,7 +368,26 @@ def _payload_args(data: dict[str, Any]) -> dict[str, Any]:
             )
         args["mass"] = float(mass)
         args["center_of_mass"] = _vec3(data["center_of_mass"], "center_of_mass")
-    return args
+    return _leased(data, args, "frozen", "payload")
+
+
+def _leased(data: dict[str, Any], args: dict[str, Any], key: str, where: str) -> dict[str, Any]:
+    """`args` with data's "lease" (s) if it has one: only with `key` true (what it lapses),
+    a finite number of seconds above 0 and at most LEASE_MAX."""
+    if "lease" not in data:
+        return args
+    lease = data["lease"]
+    if not args.get(key):
+        problem = f"only with {key}: true (the lease ends that)"
+    elif type(lease) not in (int, float) or not math.isfinite(lease):
+        problem = "expected a number of seconds"
+    elif lease <= 0.0:
+        problem = f"{lease!r} s: must be more than 0"
+    elif lease > LEASE_MAX:
+        problem = f"{lease!r} s: at most {LEASE_MAX:g}"
+    else:
+        return {**args, "lease": float(lease)}
+    raise CommandError("bad_request", f"{where}.lease: {problem}", field="lease")
 
 
 def _flag(data: dict[str, Any], key: str, where: str) -> bool:

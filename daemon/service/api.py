@@ -84,12 +84,13 @@ class DaemonHandler(Protocol):
             goto:  {"pose": cdpr.pose.Pose}  (unit quaternion, normalised)
             brake: {"reason": str} or {}     (the sender's reason, <= 200 characters)
             payload: any of {"frozen": bool, "mass": float (kg),
-                             "center_of_mass": [x, y, z] (m, platform frame)}
+                             "center_of_mass": [x, y, z] (m, platform frame)}, and
+                   "lease": float (s, with frozen true: daemon.service.lease)
             identify_payload: {"apply": bool}
             home:  {"pose_name": str} or {}  (a pose of the robot file; default home)
             pretension: as home (the fixture's pose the platform rests at)
             observer: {"held": bool} or {}  (the external wrench observer held out of
-                   the loop, or let back in)
+                   the loop, or let back in), and "lease" as payload's
         Raise CommandError to refuse (e.g. "invalid_state" for enable while BRAKED).
         """
         ...

@@ -37,6 +37,7 @@ from daemon.config import DaemonConfig
 from daemon.service.api import CommandError, rejection
 from daemon.service.calibration_state import OffsetStore
 from daemon.service.identify_payload import identify_payload
+from daemon.service.lease import HELD_BY, Leases
 from daemon.service.safety import SafetyState
 
 PLANNING_LEAD = 0.05  # s ahead of now a planned transition begins (planning takes time)
@@ -111,6 +112,9 @@ class Planner:
         # homing's offsets and the drives that lost theirs, kept in the state directory
         self.store = OffsetStore(config.state_dir, config.robot.name, config.robot.n_cables)
         link.subscribe(self.store.on_event)
+        # the payload freeze's and the observer hold's leases, timed here, not in the cycle
+        self._sinks: list[EventSink] = []
+        self.leases = Leases(link.command, self._emit)
 
     # -- DaemonHandler --------------------------------------------------------------------
 
@@ -124,16 +128,28 @@ class Planner:
             return identify_payload(self, args)
         if name in ("home", "pretension"):
             return self._home(name, args)
+        if name in HELD_BY:
+            return self.leases.command(name, args)
         return self.link.command(name, args)
 
     async def slack(self) -> None:
         await self.link.slack()
 
     def state(self) -> dict[str, Any]:
-        return self.link.state()
+        # the core's snapshot (shared: not modified) and the leases' time left
+        return {**self.link.state(), "leases": self.leases.remaining()}
 
     def subscribe(self, sink: EventSink) -> None:
+        self._sinks.append(sink)
         self.link.subscribe(sink)
+
+    def _emit(self, event: dict[str, Any]) -> None:
+        """An event of the planner's own, with the core's time and safety state as the
+        core's events have them."""
+        event.setdefault("t", self.link.now())
+        event.setdefault("state", self.link.safety_state)
+        for sink in self._sinks:
+            sink(event)
 
     async def submit_trajectory(
         self, trajectory: Trajectory, start: float | None

@@ -4,19 +4,21 @@ wrench observer held out of the loop while calibrating (the `observer` command).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import signal
 import subprocess
 import sys
 import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
 import yaml
 
-from daemon.interface.client import RequestError
+from daemon.interface.client import CdprClient, RequestError
 from daemon.service.calibration_state import state_path
 from tests.loopback import free_port
 from tests.processes import CONFIG, ROOT, connect, finish, start_daemon, wait_status
@@ -155,7 +157,7 @@ def test_the_observer_is_held_out_of_the_loop_through_zenoh(tmp_path: Path) -> N
         subscriber.undeclare()
         for body, field, words in (
             ({"held": "yes"}, "held", "observer.held: expected true or false"),
-            ({"hold": True}, "observer", "unknown key(s) 'hold' (allowed: version, held)"),
+            ({"hold": True}, "observer", "unknown key(s) 'hold' (allowed: version, held, lease)"),
         ):
             with pytest.raises(RequestError) as refused:
                 client.request("observer", body)
@@ -167,6 +169,43 @@ def test_the_observer_is_held_out_of_the_loop_through_zenoh(tmp_path: Path) -> N
         finish(daemon)
 
 
+@contextlib.contextmanager
+def _enabled_daemon(tmp_path: Path) -> Iterator[tuple[CdprClient, Path, int]]:
+    """`cdprd run --sim` on `config_file`'s config, enabled: a client, the config, the
+    port; the daemon stopped after."""
+    port = free_port()
+    path = config_file(tmp_path, port)
+    daemon = start_daemon(path, "--sim")
+    try:
+        with connect(port, daemon) as client:
+            wait_status(client, "idle", 30.0)
+            client.enable()
+            yield client, path, port
+    finally:
+        finish(daemon)
+
+
+def _calibrating(
+    client: CdprClient, tmp_path: Path, config: Path, port: int, output: int
+) -> subprocess.Popen:
+    """`cdprd calibrate` flying 8 poses against the daemon on `port` (stdout and stderr to
+    `output`), once `client` sees the observer held out of the loop (AssertionError and
+    calibrate killed if never)."""
+    command = [
+        sys.executable, "-m", "daemon.cli", "calibrate", "--config", str(config),
+        "--poses", "8", "--dwell", "0.6", "--output", str(tmp_path / "robot.yaml"),
+        "--connect", f"tcp/127.0.0.1:{port}",
+    ]  # fmt: skip
+    calibrate = subprocess.Popen(command, cwd=ROOT, stdout=output, stderr=output, text=True)
+    try:
+        _until(lambda: client.observer()["held"], 60.0, "held by calibrate")
+    except BaseException:
+        calibrate.kill()
+        calibrate.communicate(timeout=30)
+        raise
+    return calibrate
+
+
 @pytest.mark.timeout(180)
 @pytest.mark.parametrize("ending", ["brake", "sigterm"])
 def test_calibrate_lets_the_observer_and_the_payload_go_however_it_ends(
@@ -175,25 +214,11 @@ def test_calibrate_lets_the_observer_and_the_payload_go_however_it_ends(
     """`cdprd calibrate` holds the observer out of the loop and freezes the payload
     estimate while it flies; the daemon braking under it, or SIGTERM to it, ends it
     with exit code 1, and both are let go."""
-    port = free_port()
-    path = config_file(tmp_path, port)
-    daemon = start_daemon(path, "--sim")
-    try:
-        client = connect(port, daemon)
-        wait_status(client, "idle", 30.0)
-        client.enable()
+    with _enabled_daemon(tmp_path) as (client, path, port):
         assert client.observer()["held"] is False
-        command = [
-            sys.executable, "-m", "daemon.cli", "calibrate", "--config", str(path),
-            "--poses", "8", "--dwell", "0.6", "--output", str(tmp_path / "robot.yaml"),
-            "--connect", f"tcp/127.0.0.1:{port}",
-        ]  # fmt: skip
-        calibrate = subprocess.Popen(
-            command, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
-        )
+        calibrate = _calibrating(client, tmp_path, path, port, subprocess.PIPE)
         try:
-            _until(lambda: client.observer()["held"], 60.0, "held by calibrate")
-            assert client.payload()["frozen"] is True
+            assert client.observer()["held"] is True and client.payload()["frozen"] is True
             if ending == "brake":
                 client.brake("the test")
             else:
@@ -209,6 +234,67 @@ def test_calibrate_lets_the_observer_and_the_payload_go_however_it_ends(
         assert client.observer()["held"] is False
         assert client.payload()["frozen"] is False
         assert not (tmp_path / "robot.yaml").exists()
-        client.close()
-    finally:
-        finish(daemon)
+
+
+@pytest.mark.timeout(180)
+def test_a_killed_calibrate_leaves_the_daemon_letting_go_within_its_lease(
+    tmp_path: Path,
+) -> None:
+    """`kill -9` of a flying `cdprd calibrate`: nothing of it runs to let go, and the
+    daemon does on its own when the lease calibrate renewed lapses: the payload unfrozen
+    and the observer back in, one `lease_lapsed` event for each naming calibrate's lease,
+    the state's leases counted down to none; the robot keeps holding.  A bad lease is
+    refused through zenoh naming the key."""
+    from daemon.cli.calibrate_cmd import LEASE
+
+    with _enabled_daemon(tmp_path) as (client, path, port):
+        events: list[dict[str, Any]] = []
+        states: list[dict[str, Any]] = []
+        lock = threading.Lock()
+
+        def keep(into: list[dict[str, Any]]) -> Any:
+            def append(message: dict[str, Any]) -> None:
+                with lock:
+                    into.append(message)
+
+            return append
+
+        subscribers = [client.subscribe_events(keep(events)), client.subscribe_state(keep(states))]
+
+        def lapsed() -> dict[str, dict[str, Any]]:
+            with lock:
+                return {e["what"]: e for e in events if e["event"] == "lease_lapsed"}
+
+        def last() -> dict[str, Any]:
+            with lock:
+                return states[-1]
+
+        calibrate = _calibrating(client, tmp_path, path, port, subprocess.DEVNULL)
+        try:
+            assert client.observer()["held"] is True and client.payload()["frozen"] is True
+            calibrate.kill()
+            assert calibrate.wait(timeout=30) == -signal.SIGKILL
+            with lock:
+                held = [s["leases"] for s in states if s["observer_held"]]
+            assert held and all(0.0 < h["observer"] <= LEASE for h in held[-5:]), held[-5:]
+            assert all(0.0 < h["payload"] <= LEASE for h in held[-5:]), held[-5:]
+            _until(lambda: len(lapsed()) == 2, 10.0 * LEASE, "let go by the lease")
+        finally:
+            if calibrate.poll() is None:
+                calibrate.kill()
+        assert client.observer()["held"] is False
+        assert client.payload()["frozen"] is False
+        assert {what: e["lease"] for what, e in lapsed().items()} == {
+            "payload": LEASE,
+            "observer": LEASE,
+        }
+        _until(lambda: last()["leases"] == {"payload": None, "observer": None}, 10.0, "none left")
+        assert last()["state"] == "hold" and last()["observer_held"] is False
+        for subscriber in subscribers:
+            subscriber.undeclare()
+        with pytest.raises(RequestError) as refused:
+            client.request("observer", {"held": True, "lease": 0})
+        assert refused.value.code == "bad_request"
+        assert refused.value.reply["error"].get("field") == "lease"
+        assert "observer.lease: 0 s: must be more than 0" in refused.value.reason
+        assert client.observer()["held"] is False
