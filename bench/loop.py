@@ -11,7 +11,8 @@ controller's work done ahead while the feedback is on its way (prepare), latency
 the last feedback frame of a cycle (or its tick, when streamed ODrive feedback was
 complete before it) to the last command frame sent, deadline misses + overruns per 10^4
 cycles, the core process's CPU share (daemon and simulator together: they share the
-loop), and `braked` (1 if the robot braked during the measurement).
+loop), and `braked` (1 if the robot braked during the measurement) with `fault`, its
+trigger and message.
 `timer_floor_misses_per_1e4` is the host's share, measured in the same conditions:
 overruns of a bare timerfd loop at the same priority and load that does nothing else
 (a vCPU not run for a few ms misses periods whatever runs on it).
@@ -147,6 +148,7 @@ def figures(service: Service, rate_hz: float, cpu: float) -> dict[str, float]:
     compute, latency = stats.compute.summary_us(), stats.latency.summary_us()
     prepare = stats.prepare.summary_us()
     misses = stats.deadline_misses + stats.overruns
+    fault = service.machine.fault  # what braked the robot, if it did
     return {
         "rate_hz": rate_hz,
         "cycles": stats.cycles,
@@ -158,7 +160,8 @@ def figures(service: Service, rate_hz: float, cpu: float) -> dict[str, float]:
         "latency_max_us": latency["max_us"],
         "misses_per_1e4": round(1e4 * misses / max(stats.cycles, 1), 2),
         "cpu_fraction": round(cpu, 3),
-        "braked": int(service.machine.fault is not None),
+        "braked": int(fault is not None),
+        "fault": "" if fault is None else f"{fault.trigger.value}: {fault.message}",
     }
 
 
