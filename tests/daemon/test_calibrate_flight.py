@@ -209,6 +209,6 @@ def test_a_calibration_through_the_daemon_in_one_round(tmp_path: Path) -> None:
     """The same path, shorter: anchors 5 mm off (encoder zeros and EA as the issue's
     case), one round of 30 poses; a round this short leaves anchors and offsets within
     1.5 mm and 0.6 mm (the issue's bounds need the slow test's two rounds).  With the
-    wrench observer held while flying, the anchors came out 0.85-1.10 mm off in CI runs
-    (0.57 mm with it taking in cycles; the two-round case improved, 0.074 -> 0.112 mm)."""
+    wrench observer held while flying, one CI run left the 8 anchors 0.85-1.10 mm off
+    (0.57 mm at most with it taking in cycles; the two-round case 0.112 mm, 0.074 before)."""
     fly_calibration(tmp_path, 0.005, [("--poses", "30",)], 1.5e-3, 0.6e-3)
