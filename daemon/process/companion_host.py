@@ -57,7 +57,12 @@ CALL_SLACK = 4e-4  # s a call may still start before the next tick (one takes <~
 STATE_SLACK = 5e-4  # s the state snapshot needs before the next tick (~0.15-0.3 ms)
 START_TIMEOUT = 30.0  # s for a new companion's first message (its imports, on a busy host)
 RESTART_PAUSES = (0.2, 0.5, 1.0, 2.0, 5.0)  # s before restarting, after each death in a row
-MAX_BATCH = 200  # cycle records held between batches (16 x as many CAN frames)
+MAX_BATCH = 200  # cycle records held between batches
+# CAN frames held between batches: as many cycles' worth as MAX_BATCH, each with a SYNC, a
+# heartbeat and up to 4 TPDOs and 4 RPDOs per drive (CiA 301); the records and the frames
+# of a hold-up are then dropped together, and a recording's two files agree
+FRAMES_PER_DRIVE = 8
+FRAMES_PER_MESSAGE = 4096  # CAN frames per datagram (~34 bytes each: < wire.MAX_MESSAGE)
 STOP_WAIT = 3.0  # s the companion gets to finish its recordings after the core stops
 
 
@@ -83,6 +88,8 @@ class CompanionHost:
         self._serving: asyncio.Task | None = None  # the calls of the current companion
         self._cycles = CycleRows(service.n, MAX_BATCH)  # recorded, not yet sent
         self._frames: list[tuple] = []  # recorded CAN frames not yet sent
+        self._frame_room = MAX_BATCH * (FRAMES_PER_DRIVE * service.n + 2)
+        self.unrecorded = 0  # cycle records and CAN frames dropped here (no slack)
         self.ready = asyncio.Event()  # a companion is up (zenoh listening)
         # made now, before the memory is locked and the drives start: mapping it later
         # would hold the cycle up
@@ -133,6 +140,12 @@ class CompanionHost:
             task.cancel()
         self._flush_batches()
         self._disconnect()
+        if self.unrecorded:
+            log.warning(
+                "recording incomplete: %d cycle records and CAN frames dropped in the core "
+                "(no slack to hand them to the companion)",
+                self.unrecorded,
+            )
         # the ring stays mapped while the service may still sample a curve in it; the
         # process's exit unmaps it
         process = self._process
@@ -352,6 +365,7 @@ class CompanionHost:
         rows = self._cycles
         if rows.full:  # no slack for a while: drop, never grow
             self.dropped += 1
+            self.unrecorded += 1
             return
         service = self.service
         rows.add(t, out, [fb.length for fb in service.driver.feedback], service.machine.state)
@@ -361,8 +375,9 @@ class CompanionHost:
             self._record_cycle(t, out)
 
     def _record_frame(self, msg: can.Message, rx: bool) -> None:
-        if len(self._frames) >= 16 * MAX_BATCH:
+        if len(self._frames) >= self._frame_room:
             self.dropped += 1
+            self.unrecorded += 1
             return
         self._frames.append(frame_fields(msg, rx))
 
@@ -375,9 +390,9 @@ class CompanionHost:
     def _flush_batches(self) -> None:
         if self._cycles.filled:
             self._send(("cycles", self._cycles.take()))
-        if self._frames:
-            batch, self._frames = self._frames, []
-            self._send(("frames", batch))
+        frames, self._frames = self._frames, []
+        for start in range(0, len(frames), FRAMES_PER_MESSAGE):
+            self._send(("frames", frames[start : start + FRAMES_PER_MESSAGE]))
 
 
 def _set_once(future: asyncio.Future) -> None:

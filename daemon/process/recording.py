@@ -134,6 +134,8 @@ class _Spool(ABC, Generic[Item]):
             self._finish()
         except Exception as exc:
             self._fail(exc)
+        if self.dropped:
+            log.warning("%s incomplete: %d records dropped", self._what, self.dropped)
 
     def _fail(self, exc: Exception) -> None:
         if self.failed is None:

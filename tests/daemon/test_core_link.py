@@ -9,12 +9,13 @@ import time
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
+import can
 import numpy as np
 import pytest
 
 from cdpr import Pose
 from daemon.process import wire
-from daemon.process.companion_host import CompanionHost
+from daemon.process.companion_host import MAX_BATCH, CompanionHost
 from daemon.process.companion_link import RemoteLink, greeted
 from daemon.process.curve_ring import CurveRing
 from daemon.service.api import CommandError
@@ -103,5 +104,37 @@ def test_core_refusals_reach_the_planner_with_their_code() -> None:
             with pytest.raises(CommandError) as refused:
                 await planner.command("goto", {"pose": _target(stack, 0.05)})
             assert refused.value.code == "invalid_state"
+
+    asyncio.run(scenario())
+
+
+def test_a_held_up_batch_of_can_frames_reaches_the_companion_whole() -> None:
+    """Between two hand-overs the core holds MAX_BATCH cycles' records; the CAN frames
+    of as many cycles (a SYNC and 3 PDOs per drive: 25 frames a cycle with 8 drives)
+    must fit beside them and reach the companion whole, in datagrams within the size
+    limit.  The core used to hold 16 x MAX_BATCH frames: 128 such cycles, so a hand-over
+    held up 130 cycles lost the last frames of a recording whose cycles were all kept."""
+
+    async def scenario() -> None:
+        config = config_for("cia402", recording={"can_log": "bus.log"})
+        async with Stack(config) as stack:
+            host = CompanionHost(stack.service, stack.config)
+            core_end, companion_end = wire.socket_pair()
+            host.connect(core_end)
+            cycles, per_cycle = MAX_BATCH - 1, 1 + 3 * stack.service.n
+            frames = [
+                can.Message(arbitration_id=0x180 + k % 8, data=bytes(8), is_extended_id=False)
+                for k in range(per_cycle)
+            ]
+            for _ in range(cycles):
+                for frame in frames:
+                    host._record_frame(frame, True)
+            host._flush_batches()
+            got, _ = wire.receive(companion_end, 1000)
+            batches = [m[1] for m in got if m[0] == "frames"]
+            assert sum(map(len, batches)) == cycles * per_cycle
+            assert len(batches) > 1 and host.dropped == host.unrecorded == 0
+            companion_end.close()
+            host._disconnect()
 
     asyncio.run(scenario())

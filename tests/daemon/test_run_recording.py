@@ -120,6 +120,7 @@ def test_a_flight_is_recorded_to_mcap_and_a_can_log(tmp_path: Path) -> None:
     stopped = time.monotonic()
     assert proc.returncode == 0, out
     assert "Traceback" not in out, out
+    assert "incomplete" not in out, out  # nothing dropped in the core or the companion
 
     # -- MCAP cycle telemetry ------------------------------------------------------------
     with _only(recordings, "cycle-*.mcap").open("rb") as stream:
