@@ -16,7 +16,7 @@ from typing import Any
 
 from cdpr.trajectory import Trajectory, parse_trajectory
 from daemon.interface.client import CdprClient
-from daemon.process.realtime import drop_inherited_realtime
+from daemon.process.ordinary import drop_inherited_realtime
 
 
 def fly(endpoint: str, trajectory: Trajectory) -> dict[str, Any]:

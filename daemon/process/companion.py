@@ -32,7 +32,7 @@ from daemon.process.app import ignore_stop_signals
 from daemon.process.companion_link import RemoteLink, greeted
 from daemon.process.cycle_rows import Throttle, records
 from daemon.process.logsetup import configure_logging
-from daemon.process.realtime import drop_inherited_realtime
+from daemon.process.ordinary import drop_inherited_realtime
 from daemon.process.recording import CanRecorder, TelemetryRecorder, session_path
 from daemon.process.systemd import Notifier, Progress, run_watchdog
 from daemon.service.planner import Planner

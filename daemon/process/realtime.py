@@ -36,12 +36,14 @@ import logging
 import os
 import resource
 import signal
+import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from daemon.config import RealtimeConfig
+from daemon.process import ordinary
 
 log = logging.getLogger("cdprd")
 
@@ -50,6 +52,8 @@ CAP_IPC_LOCK = 14  # <linux/capability.h>
 PROC_SYS_KERNEL = Path("/proc/sys/kernel")
 CPUS_ONLINE = Path("/sys/devices/system/cpu/online")
 UNIT = "config/cdprd.service"
+ORDINARY = ordinary.__file__  # the trampoline spawn_ordinary runs first
+SPAWN_PRIORITY = 1  # SCHED_FIFO priority of a child until it has dropped to normal
 
 
 @dataclass
@@ -119,16 +123,6 @@ def leave_realtime(state: RealtimeState) -> None:
         _libc().munlockall()
 
 
-def drop_inherited_realtime() -> None:
-    """Normal scheduling on every CPU for a process the core spawned (the companion, the
-    demo's client): they inherit SCHED_FIFO and the core's CPUs, and must never compete
-    with the cycle at its priority.  Lowering one's own priority needs no permission."""
-    if os.sched_getscheduler(0) != os.SCHED_OTHER:
-        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
-    with contextlib.suppress(OSError):  # CPUs it may not use (a cpuset): keep what it has
-        os.sched_setaffinity(0, range(os.cpu_count() or 1))
-
-
 class Child:
     """A process started by `spawn_ordinary`, polled without blocking."""
 
@@ -156,22 +150,25 @@ def spawn_ordinary(
     pass_fds: tuple[int, ...] = (),
     stdout: int | None = None,
 ) -> Child:
-    """Start `argv` from a real-time process at normal priority from its first
-    instruction: posix_spawn (vfork: nothing of the caller's locked memory is copied)
-    with SCHED_OTHER set before the exec, so that its start-up (imports take seconds of
-    CPU) never competes with the cycle at the cycle's priority.  `pass_fds` stay open
-    in the child under the same numbers; `stdout`, if given, becomes its stdout."""
+    """Start `argv` (argv[0] a path) at normal priority on every CPU, without holding up
+    the caller for long: posix_spawn (vfork: nothing of the caller's locked memory is
+    copied, the caller waits until the child execs).  From a real-time caller the child
+    starts at SCHED_FIFO priority 1 and execs the daemon.process.ordinary trampoline at
+    once, which drops to normal scheduling and runs `argv` (its docstring says why);
+    else it starts at SCHED_OTHER and runs `argv` directly.  Either way its start-up
+    (imports take seconds of CPU) never competes with the cycle at the cycle's priority.
+    `pass_fds` stay open in the child under the same numbers; `stdout`, if given,
+    becomes its stdout."""
+    if os.sched_getscheduler(0) in (os.SCHED_FIFO, os.SCHED_RR):
+        argv = [sys.executable, "-I", "-S", ORDINARY, *argv]
+        scheduler = (os.SCHED_FIFO, os.sched_param(SPAWN_PRIORITY))
+    else:
+        scheduler = (os.SCHED_OTHER, os.sched_param(0))
     for fd in pass_fds:
         os.set_inheritable(fd, True)
     try:
         actions = [] if stdout is None else [(os.POSIX_SPAWN_DUP2, stdout, 1)]
-        pid = os.posix_spawn(
-            argv[0],
-            argv,
-            env,
-            file_actions=actions,
-            scheduler=(os.SCHED_OTHER, os.sched_param(0)),
-        )
+        pid = os.posix_spawn(argv[0], argv, env, file_actions=actions, scheduler=scheduler)
     finally:
         for fd in pass_fds:
             os.set_inheritable(fd, False)

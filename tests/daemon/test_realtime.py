@@ -3,6 +3,8 @@ where not, normal service and a warning that names what failed and what to allow
 
 from __future__ import annotations
 
+import ast
+import contextlib
 import errno
 import json
 import logging
@@ -82,6 +84,76 @@ def test_a_thread_started_afterwards_inherits_priority_and_cpus() -> None:
         thread.start()
         thread.join(timeout=30)
     assert seen == [(FIFO, 10, {last})]
+
+
+REPORT = (
+    "import os, sys; fd = int(sys.argv[1]); "
+    "os.write(fd, repr((os.sched_getscheduler(0), os.sched_getparam(0).sched_priority, "
+    "sorted(os.sched_getaffinity(0)), sys.argv[2], os.environ['MARK'])).encode())"
+)
+
+
+def _spawned_sees(cpus: tuple[int, ...] | None) -> tuple:
+    """What a child of spawn_ordinary sees (policy, priority, CPUs, argument, env),
+    spawned from here under realtime(priority 10, `cpus`)."""
+    read, write = os.pipe()
+    try:
+        with realtime(RealtimeConfig(priority=10, cpus=cpus, lock_memory=False)):
+            argv = [sys.executable, "-c", REPORT, str(write), "an argument"]
+            child = rt.spawn_ordinary(argv, {**os.environ, "MARK": "env"}, (write,))
+        os.close(write)
+        with os.fdopen(read) as report:
+            seen = report.read()  # until the child exits
+        os.waitpid(child.pid, 0)
+        return ast.literal_eval(seen)
+    finally:
+        with contextlib.suppress(OSError):
+            os.close(write)
+
+
+@pytest.mark.skipif(not _privileged(), reason="needs root or RLIMIT_RTPRIO >= 10")
+def test_a_process_the_core_starts_runs_at_normal_priority_on_every_cpu() -> None:
+    """The companion and the demo's client must never compete with the cycle: spawned
+    from a core pinned to one CPU, the child runs at SCHED_OTHER on every CPU, with its
+    arguments, environment and passed descriptor."""
+    every = sorted(os.sched_getaffinity(0))
+    seen = _spawned_sees((max(every),))
+    assert seen == (os.SCHED_OTHER, 0, every, "an argument", "env")
+
+
+@pytest.mark.skipif(not _privileged(), reason="needs root or RLIMIT_RTPRIO >= 10")
+def test_a_real_time_caller_spawns_above_normal_processes_until_the_exec(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """posix_spawn holds the caller until the child execs: from the core, the child
+    starts at SCHED_FIFO 1 (ahead of every normal process, behind the cycle) and execs
+    the trampoline that drops it to normal (daemon.process.ordinary); a caller at
+    normal priority spawns at SCHED_OTHER directly."""
+    calls: list[tuple[list[str], tuple]] = []
+
+    def spawn(path: str, argv: list[str], env: dict, **options: object) -> int:
+        calls.append((argv, options["scheduler"]))
+        return os.getpid()
+
+    monkeypatch.setattr(os, "posix_spawn", spawn)
+    with realtime(RealtimeConfig(priority=10, cpus=None, lock_memory=False)):
+        rt.spawn_ordinary(["/bin/true", "x"], {})
+    rt.spawn_ordinary(["/bin/true", "y"], {})
+    (fifo_argv, fifo), (other_argv, other) = calls
+    assert fifo == (FIFO, os.sched_param(1))
+    assert fifo_argv == [sys.executable, "-I", "-S", rt.ORDINARY, "/bin/true", "x"]
+    assert other == (os.SCHED_OTHER, os.sched_param(0)) and other_argv == ["/bin/true", "y"]
+
+
+def test_the_trampoline_names_a_program_it_cannot_run() -> None:
+    done = subprocess.run(
+        [sys.executable, "-I", "-S", rt.ORDINARY, "/nonexistent/program", "arg"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert done.returncode == 127
+    assert done.stderr == "error: cannot run /nonexistent/program: No such file or directory\n"
 
 
 def test_refused_priority_keeps_normal_scheduling_and_says_what_to_allow(
