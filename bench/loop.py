@@ -123,10 +123,15 @@ def measure(
     config = rate_config(protocol, rate_hz, view)
     out: dict[str, float] = {}
     viewed: list[int] = []
+    # the load is stopped once the daemon has: stopping it waits for its processes,
+    # which must not hold up the daemon's loop (the drives' heartbeat consumers)
+    with contextlib.ExitStack() as load_running:
 
-    async def hold_and_measure(service: Service) -> None:
-        await service.command("enable", {})
-        with busy_host(config, load, flood, seconds + SETTLE + 5.0, viewed):
+        async def hold_and_measure(service: Service) -> None:
+            await service.command("enable", {})
+            load_running.enter_context(
+                busy_host(config, load, flood, seconds + SETTLE + 5.0, viewed)
+            )
             # made before the measurement: allocating its sample buffers (resident at
             # once in locked memory) holds the loop up for a few periods
             fresh = type(service.stats)(rate_hz)
@@ -135,9 +140,9 @@ def measure(
             cpu0, wall0 = time.process_time(), time.monotonic()
             await asyncio.sleep(seconds)
             cpu = (time.process_time() - cpu0) / (time.monotonic() - wall0)
-            out.update(figures(service, rate_hz, cpu))  # before the load is stopped
+            out.update(figures(service, rate_hz, cpu))
 
-    asyncio.run(InProcessSimulator(config).serve(after_start=hold_and_measure))
+        asyncio.run(InProcessSimulator(config).serve(after_start=hold_and_measure))
     if view:
         out["view_messages"] = viewed[0] if viewed else 0
     return out
