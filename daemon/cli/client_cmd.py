@@ -5,8 +5,8 @@
     cdprd brake [--reason TEXT]
     cdprd goto x y z [qw qx qy qz]
     cdprd identify-payload [--apply]
-    cdprd payload [--freeze | --unfreeze]
-    cdprd observer [--hold | --release]  (the external wrench observer out of the loop)
+    cdprd payload [--freeze [--lease S] | --unfreeze]
+    cdprd observer [--hold [--lease S] | --release]  (the wrench observer out of the loop)
     cdprd home [--pose NAME]      (the platform resting at the robot file's pose NAME)
     cdprd pretension [--pose NAME]  (from slack cables, the platform on a fixture there)
     common options: --prefix cdpr/<robot>  --connect tcp/127.0.0.1:7447  --timeout S
@@ -37,6 +37,10 @@ from daemon.interface.client import (
 )
 
 EXIT_OK, EXIT_REFUSED, EXIT_USAGE, EXIT_UNREACHABLE = 0, 1, 2, 3
+LEASE_HELP = (
+    "with --freeze/--hold: let go after S seconds unless the same command comes again "
+    "(docs/zenoh.md, leases)"
+)
 IDENTIFY_TIMEOUT = 120.0  # s: identify-payload moves through five poses
 PRETENSION_TIMEOUT = 120.0  # s: winding in (up to pretension.taut_timeout), ramp, settle
 REQUEST_FILE_MAX_BYTES = 64 << 20  # a trajectory file (the daemon limits what it takes)
@@ -119,7 +123,10 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     frozen = payload.add_mutually_exclusive_group()
     frozen.add_argument("--freeze", dest="frozen", action="store_const", const=True)
     frozen.add_argument("--unfreeze", dest="frozen", action="store_const", const=False)
-    payload.set_defaults(run=_runner("payload", lambda a: lambda c: c.payload(a.frozen)))
+    payload.add_argument("--lease", type=float, metavar="S", help=LEASE_HELP)
+    payload.set_defaults(
+        run=_runner("payload", lambda a: lambda c: c.payload(a.frozen, lease=a.lease))
+    )
     observer = subparsers.add_parser(
         "observer", parents=[common],
         help="print the external wrench observer, hold it out of the loop or let it back in",
@@ -127,7 +134,10 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     held = observer.add_mutually_exclusive_group()
     held.add_argument("--hold", dest="held", action="store_const", const=True)
     held.add_argument("--release", dest="held", action="store_const", const=False)
-    observer.set_defaults(run=_runner("observer", lambda a: lambda c: c.observer(a.held)))
+    observer.add_argument("--lease", type=float, metavar="S", help=LEASE_HELP)
+    observer.set_defaults(
+        run=_runner("observer", lambda a: lambda c: c.observer(a.held, lease=a.lease))
+    )
     home = subparsers.add_parser(
         "home",
         parents=[common],

@@ -49,8 +49,9 @@ def test_identify_payload_from_the_command_line(tmp_path: Path) -> None:
             time.sleep(2.0)  # the online estimate takes the payload in
             result = _cdprd(zenoh_port, "identify-payload", "--apply")
             payload = client.request("payload")
-            frozen = _cdprd(zenoh_port, "payload", "--freeze")
+            frozen = _cdprd(zenoh_port, "payload", "--freeze", "--lease", "30")
             status = client.status()
+            unleased = _cdprd_fails(zenoh_port, "observer", "--release", "--lease", "5")
         finish(daemon)
     finally:
         if daemon is not None and daemon.poll() is None:
@@ -64,16 +65,29 @@ def test_identify_payload_from_the_command_line(tmp_path: Path) -> None:
     # applied, and the online estimate since agrees with it
     assert payload["mass"] == pytest.approx(TRUE_MASS, rel=0.01) and payload["frozen"] is False
     assert frozen["frozen"] is True and frozen["mass"] == pytest.approx(TRUE_MASS, rel=0.01)
+    assert 0.0 < status["leases"]["payload"] <= 30.0, status  # --lease: on a lease
+    assert "lease" in unleased  # a lease without a hold: refused, naming the key
 
 
 def _cdprd(port: int, *command: str) -> dict:
     """What `cdprd COMMAND` prints, run against the daemon on zenoh `port`."""
-    cli = subprocess.run(
+    cli = _run(port, *command)
+    assert cli.returncode == 0, cli.stderr
+    return json.loads(cli.stdout)
+
+
+def _cdprd_fails(port: int, *command: str) -> str:
+    """What `cdprd COMMAND` says on stderr when the daemon refuses it (exit code 1)."""
+    cli = _run(port, *command)
+    assert cli.returncode == 1, (cli.stdout, cli.stderr)
+    return cli.stderr
+
+
+def _run(port: int, *command: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
         [
             sys.executable, "-m", "daemon.cli", *command,
             "--prefix", PREFIX, "--connect", f"tcp/127.0.0.1:{port}",
         ],
         cwd=ROOT, capture_output=True, text=True, timeout=120,
     )  # fmt: skip
-    assert cli.returncode == 0, cli.stderr
-    return json.loads(cli.stdout)
