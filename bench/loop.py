@@ -38,7 +38,7 @@ import json
 import os
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 from timing import free_endpoint
@@ -77,10 +77,11 @@ def rate_config(protocol: str, rate_hz: float, view: bool = False) -> DaemonConf
 @contextlib.contextmanager
 def busy_host(
     config: DaemonConfig, load: int, flood: bool, seconds: float, viewed: list | None = None
-) -> Iterator[None]:
+) -> Iterator[Callable[[], None]]:
     """`load` CPU hogs and, with `flood`, bench/flood.py's mixed flood on the config's
     zenoh endpoint, at normal priority (spawned so even from the real-time core), for at
-    most `seconds`; stopped on exit.  With the config's view on, a Foxglove client too;
+    most `seconds`; stopped on exit, when they are also waited for.  Yields a function
+    that stops them without waiting.  With the config's view on, a Foxglove client too;
     the number of messages it decoded is appended to `viewed`."""
     env = dict(os.environ)
     hog = f"import time\nend = time.monotonic() + {seconds}\nwhile time.monotonic() < end: pass"
@@ -100,17 +101,21 @@ def busy_host(
         read, write = os.pipe()
         viewer = spawn_ordinary(argv, {**env, "PYTHONPATH": str(ROOT)}, stdout=write)
         os.close(write)
+
+    def stop() -> None:
+        for child in [*children, *([] if viewer is None else [viewer])]:
+            child.kill()
+
     try:
-        yield
+        yield stop
     finally:
+        stop()
         if viewer is not None:
             viewer.kill()
             with os.fdopen(read) as counted:
                 lines = counted.read().split()
             if viewed is not None:
                 viewed.append(int(lines[-1]) if lines else 0)
-        for child in children:
-            child.kill()
         for child in children:
             while child.poll() is None:
                 time.sleep(0.01)
@@ -123,13 +128,14 @@ def measure(
     config = rate_config(protocol, rate_hz, view)
     out: dict[str, float] = {}
     viewed: list[int] = []
-    # the load is stopped once the daemon has: stopping it waits for its processes,
-    # which must not hold up the daemon's loop (the drives' heartbeat consumers)
+    # the load is killed after the measurement and waited for once the daemon has
+    # stopped: waiting in the daemon's loop would hold it up (the drives' heartbeat
+    # consumers brake)
     with contextlib.ExitStack() as load_running:
 
         async def hold_and_measure(service: Service) -> None:
             await service.command("enable", {})
-            load_running.enter_context(
+            stop_load = load_running.enter_context(
                 busy_host(config, load, flood, seconds + SETTLE + 5.0, viewed)
             )
             # made before the measurement: allocating its sample buffers (resident at
@@ -141,6 +147,7 @@ def measure(
             await asyncio.sleep(seconds)
             cpu = (time.process_time() - cpu0) / (time.monotonic() - wall0)
             out.update(figures(service, rate_hz, cpu))
+            stop_load()
 
         asyncio.run(InProcessSimulator(config).serve(after_start=hold_and_measure))
     if view:

@@ -116,16 +116,19 @@ async def run(config: DaemonConfig, link: RemoteLink) -> int:
         return 0
     finally:
         watchdog.cancel()
+        # the recordings first: the core handed its last records over before it closed
+        # the link, and closing zenoh under a flood of queries on a busy host may outlast
+        # the core's wait for this process (companion_host.STOP_WAIT)
+        for writer in writers:
+            writer.cancel()
+        for recorder in recorders:
+            recorder.close()
         if ros2 is not None:
             await ros2.close()
         if interface is not None:
             await interface.close()
         if view is not None:
             view.close()
-        for writer in writers:
-            writer.cancel()
-        for recorder in recorders:
-            recorder.close()
         link.close()
         ignore_stop_signals(loop)  # systemd signals the whole service: us too
 
