@@ -9,8 +9,9 @@ forces f0 = m0 (Lambda alpha_c + c), the tension distribution f_p = F(tau_c, f_b
 (not in W: infeasible, the daemon brakes), and the commands f_c = f_p + f_b.
 
 Part of a cycle needs no measurement: the reference sample, the forward-kinematics
-guess, f_b and, with model_at = "reference", Lambda, c, M and mu.  `prepare(t)` does that
-part ahead (a daemon calls it while the drives' feedback is on its way), so that
+guess and its linearisation, f_b and, with model_at = "reference", Lambda, c, M, mu and
+the factor of Lambda^T Lambda the tension distribution solves with.  `prepare(t)` does
+that part ahead (a daemon calls it while the drives' feedback is on its way), so that
 `step(t, ...)` is left with what the measurement decides.
 
 A command computed from the measurement at t acts later: it reaches the drive after the
@@ -32,13 +33,13 @@ from scipy.linalg.lapack import dpotrs
 
 from cdpr.control_spec import DEFAULT_FORCE_LAG, MAX_COMMAND_LEAD, ControllerSpec
 from cdpr.dynamics import PlatformInertia
-from cdpr.forward_kinematics import FKResult
+from cdpr.forward_kinematics import FKResult, Linearisation
 from cdpr.payload import PayloadEstimate
 from cdpr.pose import Pose, liediff, liediff6, retract
 from cdpr.robot import Robot
 from cdpr.so3 import quat_to_r9
 from cdpr.stretch import ComplianceScale
-from cdpr.tension import TensionLimits, TensionSolver, make_tension_solver
+from cdpr.tension import FactoredJacobian, TensionLimits, TensionSolver, make_tension_solver
 from cdpr.trajectory import Reference, WrenchCheck
 from cdpr.wrench_observer import WrenchObserver
 
@@ -129,9 +130,10 @@ class _Prepared(NamedTuple):
     t: float
     reference: Reference  # at t: what the measurement is compared with
     ahead: Reference  # at t + lead: what the command is for
-    guess: Pose
+    guess: Linearisation  # forward kinematics' first linearisation, at the guess
     f_b: Array
     model: tuple[Array, Array, Array, Array] | None  # (Lambda, c, M, mu) at `ahead`
+    factored: FactoredJacobian | None  # model's Lambda for the tension distribution
 
 
 class ParallelController:
@@ -215,7 +217,8 @@ class ParallelController:
     def prepare(self, t: float) -> None:
         """Compute the measurement-free part of the step at time t ahead of it: the
         reference samples (at t, and at t + lead for the command), the forward-kinematics
-        guess, f_b and, with model_at = "reference", the model terms; and the last
+        guess and its linearisation, f_b and, with model_at = "reference", the model terms
+        and the tension distribution's factor of Lambda; and the last
         cycle's step of the cables' stiffness estimate (cdpr.stretch), of the payload
         estimate (cdpr.payload, whose model the terms then use) and of the external
         wrench observer (cdpr.wrench_observer, whose estimate the command cancels).
@@ -230,11 +233,12 @@ class ParallelController:
             self._observed = None
         ref = self.source.sample(t)
         ahead = self.source.sample(t + self.lead) if self.lead else ref
-        guess = retract(self._pose, self._twist * self.period)
+        guess = robot.linearise_at(retract(self._pose, self._twist * self.period))
         model = robot.model_terms(ahead.pose, ahead.twist) if self._at_reference else None
         Lam_r = model[0] if model is not None else robot.jacobian(ahead.pose)
         f_b = robot.k0 * Lam_r.dot(ahead.twist)  # ndarray.dot: see the cdpr.kinematics docstring
-        self._prepared = _Prepared(t, ref, ahead, guess, f_b, model)
+        factored = self.tension.factored(Lam_r) if model is not None else None
+        self._prepared = _Prepared(t, ref, ahead, guess, f_b, model, factored)
         self.stretch.update(self.period)
 
     def set_payload(self, mass: float, center_of_mass: tuple[float, ...]) -> None:
@@ -368,7 +372,8 @@ class ParallelController:
             if self._observing:
                 self._observed = (twist, M, tau_c - mu)
         f0 = robot.m0 * (Lam.dot(alpha_c) + c)
-        result = self.tension.solve(Lam, tau_c, f_b, f0)
+        jacobian = Lam if prepared.factored is None else prepared.factored
+        result = self.tension.solve(jacobian, tau_c, f_b, f0)
         if result.feasible:
             commands = result.forces + f_b
             self._tensions = result.tensions

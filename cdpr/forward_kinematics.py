@@ -45,6 +45,31 @@ class FKResult(NamedTuple):
     normal_factor: np.ndarray | None = None
 
 
+class Linearisation(NamedTuple):
+    """What forward kinematics' first evaluation at `guess` needs of the guess alone
+    (linearise): L(guess), Lambda(guess) (contiguous), its Gram matrix and that matrix's
+    Cholesky factor (upper triangle; None where singular).  A control cycle computes it
+    while the measured lengths are on their way; they then enter only through
+    Lambda^T (L - l)."""
+
+    guess: Pose
+    lengths: np.ndarray
+    jacobian: np.ndarray
+    gram: np.ndarray
+    factor: np.ndarray | None
+
+
+def linearise(geometry: CableGeometry, guess: Pose) -> Linearisation:
+    """The measurement-free part of Y(l)'s first evaluation at `guess` (Linearisation)."""
+    q = guess.quaternion_tuple
+    table = to_array(geometry.evaluate(guess.position_tuple, quat_to_r9(*q)))
+    table = table.reshape(geometry.n, 7)
+    J = np.ascontiguousarray(table[:, :6])
+    gram = J.T.dot(J)  # ndarray.dot: see the cdpr.kinematics docstring
+    factor, info = dpotrf(gram)
+    return Linearisation(guess, table[:, 6].copy(), J, gram, None if info else factor)
+
+
 @dataclass(frozen=True)
 class FKSettings:
     max_iterations: int = 50
@@ -53,9 +78,13 @@ class FKSettings:
 
 
 def solve_forward_kinematics(
-    geometry: CableGeometry, lengths: ArrayLike, guess: Pose, settings: FKSettings
+    geometry: CableGeometry,
+    lengths: ArrayLike,
+    guess: Pose | Linearisation,
+    settings: FKSettings,
 ) -> FKResult:
-    """Pose whose cable lengths best match `lengths` (least squares), started at `guess`.
+    """Pose whose cable lengths best match `lengths` (least squares), started at `guess`
+    (a pose, or linearise()'s linearisation at one, which saves the first evaluation).
 
     Gauss-Newton while it reduces the cost, Levenberg-Marquardt damping when a step
     does not.  A Gauss-Newton step shorter than step_tolerance (m, or rad) ends the
@@ -64,8 +93,12 @@ def solve_forward_kinematics(
     n x 7 table [Lambda | L - l] and its Gram matrix, which holds Lambda^T Lambda,
     Lambda^T e and |e|^2 at once.
     """
+    start = None
+    if type(guess) is Linearisation:
+        start, guess = guess, guess.guess
     n = geometry.n
-    m = np.asarray(lengths, dtype=float).ravel().tolist()
+    measured = np.asarray(lengths, dtype=float).ravel()
+    m = measured.tolist()
     if len(m) != n:
         raise ValueError(f"expected {n} cable lengths, got {len(m)}")
     # a NaN or inf among them; finite lengths sum to inf only when absurdly large, and
@@ -79,23 +112,34 @@ def solve_forward_kinematics(
     tolerance2 = settings.step_tolerance**2
     p = guess.position_tuple
     q = guess.quaternion_tuple
-    table = to_array(evaluate(p, quat_to_r9(*q), measured=m)).reshape(n, 7)
-    S = table.T.dot(table)  # ndarray.dot: see the cdpr.kinematics docstring
-    cost = float(S[6, 6])
+    # the linearisation at (p, q): Lambda, Lambda^T Lambda, Lambda^T e and |e|^2
+    if start is None:
+        table = to_array(evaluate(p, quat_to_r9(*q), measured=m)).reshape(n, 7)
+        S = table.T.dot(table)  # ndarray.dot: see the cdpr.kinematics docstring
+        J, gram, g, cost = table[:, :6], S[:6, :6], S[:6, 6], float(S[6, 6])
+        factor = None
+    else:
+        e = start.lengths - measured
+        J, gram, factor = start.jacobian, start.gram, start.factor
+        g, cost = e.dot(J), float(e.dot(e))
     lam = 0.0
     for it in range(1, settings.max_iterations + 1):
-        if lam:
-            A = S[:6, :6].copy()
-            A[_DIAG] *= 1.0 + lam
+        if factor is not None:  # the prepared linearisation's, undamped
+            chol = factor
+            x, info = dpotrs(chol, g)
+            factor = None
         else:
-            A = S[:6, :6]
-        g = S[:6, 6]
-        chol, x, info = dposv(A, g)
+            if lam:
+                A = gram.copy()
+                A[_DIAG] *= 1.0 + lam
+            else:
+                A = gram
+            chol, x, info = dposv(A, g)
         if info != 0:  # singular normal equations: damp harder
             lam = max(lam * 10.0, _LM_START)
             if lam > _LM_GIVE_UP:
                 reason = "singular Jacobian"
-                return _result(p, q, cost, it, n, reason, settings, guess, table[:, :6])
+                return _result(p, q, cost, it, n, reason, settings, guess, J)
             continue
         dx, dy, dz, wx, wy, wz = x.tolist()
         step2 = _longer2(dx * dx + dy * dy + dz * dz, wx * wx + wy * wy + wz * wz)
@@ -104,32 +148,31 @@ def solve_forward_kinematics(
         if not lam and step2 < tolerance2:
             # linearised cost after the step: |e|^2 - g . A^-1 g
             cost_new = cost - float(g.dot(x))
-            J = table[:, :6]
             return _result(p_new, q_new, cost_new, it, n, "", settings, guess, J, chol)
         if not lam and step2 < _CHORD_BELOW2:
             # quadratic regime: one more step with this factorisation and Jacobian needs
             # only the lengths; its error is ~ step x next step, far below tolerance
-            done = _chord_finish(geometry, m, p_new, q_new, table, chol, tolerance2)
+            done = _chord_finish(geometry, m, p_new, q_new, J, chol, tolerance2)
             if done is not None:
                 p_new, q_new, chord_cost = done
-                J = table[:, :6]
                 return _result(p_new, q_new, chord_cost, it + 1, n, "", settings, guess, J, chol)
         table = to_array(evaluate(p_new, quat_to_r9(*q_new), measured=m)).reshape(n, 7)
         S_new = table.T.dot(table)
         cost_new = float(S_new[6, 6])
         if cost_new <= cost or not math.isfinite(cost):
-            p, q, S, cost = p_new, q_new, S_new, cost_new
+            p, q, cost = p_new, q_new, cost_new
+            J, gram, g = table[:, :6], S_new[:6, :6], S_new[:6, 6]
             lam = lam * 0.1 if lam > _LM_START else 0.0
             if step2 < tolerance2:
-                return _result(p, q, cost, it, n, "", settings, guess, table[:, :6])
+                return _result(p, q, cost, it, n, "", settings, guess, J)
         else:
             lam = max(lam * 10.0, _LM_START)
             if lam > _LM_GIVE_UP:
                 reason = "no descent direction"
-                return _result(p, q, cost, it, n, reason, settings, guess, table[:, :6])
+                return _result(p, q, cost, it, n, reason, settings, guess, J)
     reason = f"no convergence in {settings.max_iterations} iterations"
     iterations = settings.max_iterations
-    return _result(p, q, cost, iterations, n, reason, settings, guess, table[:, :6])
+    return _result(p, q, cost, iterations, n, reason, settings, guess, J)
 
 
 def _chord_finish(
@@ -137,16 +180,16 @@ def _chord_finish(
     meas: list[float],
     p: list[float],
     q: tuple[float, float, float, float],
-    table: np.ndarray,
+    jacobian: np.ndarray,
     chol: np.ndarray,
     tolerance2: float,
 ) -> tuple[list[float], tuple[float, float, float, float], float] | None:
-    """A simplified-Newton step reusing the last Jacobian (the table [Lambda | L - l] of
-    the last evaluation) and its Cholesky factor.  Returns the final (p, q, linearised
+    """A simplified-Newton step reusing the last Jacobian (Lambda of the last
+    linearisation) and its Cholesky factor.  Returns the final (p, q, linearised
     cost), or None if the step is not yet short (tolerance2 is the squared step
     tolerance)."""
     residuals = geometry.evaluate(p, quat_to_r9(*q), jacobian=False, measured=meas)
-    g = np.array(residuals).dot(table)[:6]  # Lambda^T e (the table is contiguous)
+    g = np.array(residuals).dot(jacobian)  # Lambda^T e
     x, info = dpotrs(chol, g)
     if info != 0:
         return None

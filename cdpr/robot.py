@@ -17,7 +17,13 @@ from cdpr.description import (
     show_path,
 )
 from cdpr.dynamics import PlatformInertia, modal_masses
-from cdpr.forward_kinematics import FKResult, FKSettings, solve_forward_kinematics
+from cdpr.forward_kinematics import (
+    FKResult,
+    FKSettings,
+    Linearisation,
+    linearise,
+    solve_forward_kinematics,
+)
 from cdpr.kinematics import CableGeometry, to_array
 from cdpr.pose import Pose
 from cdpr.so3 import quat_to_r9
@@ -149,14 +155,22 @@ class Robot:
         flat = self.geometry.evaluate(pose.position_tuple, R)
         return to_array(flat).reshape(self.geometry.n, 7)
 
-    def forward_kinematics(self, lengths: ArrayLike, guess: Pose | None = None) -> FKResult:
-        """Y(l): warm-start from `guess` (e.g. the last pose), else cold-start from home.
+    def forward_kinematics(
+        self, lengths: ArrayLike, guess: Pose | Linearisation | None = None
+    ) -> FKResult:
+        """Y(l): warm-start from `guess` (e.g. the last pose, or linearise_at()'s
+        linearisation at it), else cold-start from home.
 
         Never raises on a bad measurement; see FKResult.converged and .reason.
         """
         return solve_forward_kinematics(
             self.geometry, lengths, self.home if guess is None else guess, self.fk_settings
         )
+
+    def linearise_at(self, guess: Pose) -> Linearisation:
+        """What forward_kinematics(lengths, guess) computes of the guess alone, ahead of
+        the lengths (cdpr.forward_kinematics.Linearisation): pass it as the guess."""
+        return linearise(self.geometry, guess)
 
     # -- dynamics -------------------------------------------------------------------
 

@@ -40,7 +40,7 @@ import numpy as np
 import osqp
 import scipy.sparse as sp
 from numpy.typing import ArrayLike, NDArray
-from scipy.linalg.lapack import dposv
+from scipy.linalg.lapack import dposv, dpotrf, dpotrs
 
 if TYPE_CHECKING:
     from cdpr.robot import Robot
@@ -142,6 +142,16 @@ class TensionLimits:
         return cls(t_min, force_max, ref)
 
 
+class FactoredJacobian(NamedTuple):
+    """A Jacobian Λ (contiguous, n × 6) with what the least-norm tensions need of it
+    alone: the Cholesky factor of ΛᵀΛ (upper triangle; None where singular) and t_refᵀΛ.
+    From a solver's ``factored``; its ``solve`` takes it in place of Λ."""
+
+    jacobian: Array
+    factor: Array | None
+    t_ref_dot: Array
+
+
 class TensionSolver(Protocol):
     """What the controller needs of a tension distribution method."""
 
@@ -149,8 +159,14 @@ class TensionSolver(Protocol):
     limits: TensionLimits
 
     def solve(
-        self, jacobian: ArrayLike, wrench: ArrayLike, f_b: ArrayLike, f0: ArrayLike
+        self,
+        jacobian: ArrayLike | FactoredJacobian,
+        wrench: ArrayLike,
+        f_b: ArrayLike,
+        f0: ArrayLike,
     ) -> TensionResult: ...
+
+    def factored(self, jacobian: ArrayLike) -> FactoredJacobian: ...
 
 
 def make_tension_solver(method: str, limits: TensionLimits, **options: Any) -> TensionSolver:
@@ -175,6 +191,7 @@ class _Problem(NamedTuple):
     lo: Array  # t_lo
     hi: Array  # t_hi
     tol: float
+    factored: FactoredJacobian | None  # L's, when solve was given them
 
 
 class _TensionSolverBase:
@@ -199,9 +216,14 @@ class _TensionSolverBase:
         self._nan.setflags(write=False)
 
     def solve(
-        self, jacobian: ArrayLike, wrench: ArrayLike, f_b: ArrayLike, f0: ArrayLike
+        self,
+        jacobian: ArrayLike | FactoredJacobian,
+        wrench: ArrayLike,
+        f_b: ArrayLike,
+        f0: ArrayLike,
     ) -> TensionResult:
-        """F(τ, f_b, f0) at Jacobian Λ (n × 6); feasible only after the constraint check.
+        """F(τ, f_b, f0) at Jacobian Λ (n × 6, or factored(Λ)); feasible only after the
+        constraint check.
 
         Raises ValueError only for wrong shapes; NaN/inf give an infeasible result, and
         numpy's floating-point warnings are silenced so they cannot turn into exceptions.
@@ -209,14 +231,26 @@ class _TensionSolverBase:
         with np.errstate(all="ignore"):
             return self._solve(jacobian, wrench, f_b, f0)
 
+    def factored(self, jacobian: ArrayLike) -> FactoredJacobian:
+        """Λ with what the least-norm tensions need of it alone (FactoredJacobian), for
+        solve() in Λ's place: a control cycle computes it before the measurement."""
+        L = np.ascontiguousarray(_checked(jacobian, (self.n, 6), "jacobian"))
+        with np.errstate(all="ignore"):
+            factor, info = dpotrf(L.T.dot(L))
+            return FactoredJacobian(L, None if info else factor, self._t_ref.dot(L))
+
     def _solve(
-        self, jacobian: ArrayLike, wrench: ArrayLike, f_b: ArrayLike, f0: ArrayLike
+        self,
+        jacobian: ArrayLike | FactoredJacobian,
+        wrench: ArrayLike,
+        f_b: ArrayLike,
+        f0: ArrayLike,
     ) -> TensionResult:
         raise NotImplementedError
 
     def _prepare(
         self,
-        jacobian: ArrayLike,
+        jacobian: ArrayLike | FactoredJacobian,
         wrench: ArrayLike,
         f_b: ArrayLike,
         f0: ArrayLike,
@@ -227,8 +261,12 @@ class _TensionSolverBase:
         ``out`` = (w, t_lo, t_hi) buffers to compute into (OSQP's l and u), else new arrays.
         """
         n = self.n
-        # contiguous, and products with ndarray.dot: see the cdpr.kinematics docstring
-        L = np.ascontiguousarray(_checked(jacobian, (n, 6), "jacobian"))
+        factored = None
+        if type(jacobian) is FactoredJacobian:
+            factored, L = jacobian, jacobian.jacobian
+        else:
+            # contiguous, and products with ndarray.dot: see the cdpr.kinematics docstring
+            L = np.ascontiguousarray(_checked(jacobian, (n, 6), "jacobian"))
         tau = _checked(wrench, (6,), "wrench")
         fb = _checked(f_b, (n,), "f_b")
         f0 = _checked(f0, (n,), "f0")
@@ -248,10 +286,10 @@ class _TensionSolverBase:
                 f"cable {k}: t_min {self._t_min_list[k]:.4g} N unreachable, the actuator holds "
                 f"at most f0 + f_b + force_max = {hi_list[k]:.4g} N"
             )
-            t = self._least_norm(L, w)
+            t = self._least_norm(L, w, factored)
             return TensionResult(f0 - t, t, False, reason, 0)
         tol = self.rtol * max(self._f_scale, *hi_list)
-        return _Problem(L, f0, w, g, lo, hi, tol)
+        return _Problem(L, f0, w, g, lo, hi, tol, factored)
 
     def _non_finite(self, L: Array, tau: Array, fb: Array, f0: Array) -> TensionResult:
         for name, value in (("jacobian", L), ("wrench", tau), ("f_b", fb), ("f0", f0)):
@@ -291,12 +329,18 @@ class _TensionSolverBase:
             f"{f_max:.4g} N (tension {t:.4g} N)"
         )
 
-    def _least_norm(self, L: Array, w: Array) -> Array:
+    def _least_norm(self, L: Array, w: Array, factored: FactoredJacobian | None) -> Array:
         """Tensions nearest t_ref that satisfy Λᵀ t = w, bounds ignored: the QP's optimum
-        when they meet every bound, else a finite attempt.  One 6 × 6 Cholesky; a
-        least-squares fallback where Λ is rank deficient."""
-        rhs = w - self._t_ref.dot(L)
-        _, x, info = dposv(L.T.dot(L), rhs)
+        when they meet every bound, else a finite attempt.  One 6 × 6 Cholesky (done
+        already in `factored`, L's); a least-squares fallback where Λ is rank deficient."""
+        if factored is None:
+            rhs = w - self._t_ref.dot(L)
+            _, x, info = dposv(L.T.dot(L), rhs)
+        elif factored.factor is None:
+            rhs, info = w - factored.t_ref_dot, 1
+        else:
+            rhs = w - factored.t_ref_dot
+            x, info = dpotrs(factored.factor, rhs)
         if info:
             return self._t_ref + np.linalg.lstsq(L.T, rhs, rcond=None)[0]
         return self._t_ref + L.dot(x)
@@ -424,14 +468,18 @@ class OsqpTensionSolver(_TensionSolverBase):
         self._start: Array | None = None  # tensions to warm-start the next OSQP run from
 
     def _solve(
-        self, jacobian: ArrayLike, wrench: ArrayLike, f_b: ArrayLike, f0: ArrayLike
+        self,
+        jacobian: ArrayLike | FactoredJacobian,
+        wrench: ArrayLike,
+        f_b: ArrayLike,
+        f0: ArrayLike,
     ) -> TensionResult:
         p = self._prepare(jacobian, wrench, f_b, f0, self._out)
         if type(p) is TensionResult:
             return p
         assert isinstance(p, _Problem)
         if self.interior_shortcut:
-            t = self._least_norm(p.L, p.w)
+            t = self._least_norm(p.L, p.w, p.factored)
             if not self._check(p, t):
                 # no bound active: the equality-constrained optimum is the QP's optimum
                 self._warm_start(t)
@@ -454,14 +502,14 @@ class OsqpTensionSolver(_TensionSolverBase):
                 return self._result(p, x, self._check(p, x), iterations)
         if status in _PRIMAL_INFEASIBLE:
             reason = self._infeasibility_reason(p)
-            x = self._least_norm(p.L, p.w)
+            x = self._least_norm(p.L, p.w, p.factored)
         elif status == _UPDATE_REJECTED:
             reason = "osqp rejected the data update"
-            x = self._least_norm(p.L, p.w)
+            x = self._least_norm(p.L, p.w, p.factored)
         else:
             reason = f"solver status: {self._info.status} after {iterations} iterations"
             if not np.all(np.isfinite(x)):
-                x = self._least_norm(p.L, p.w)
+                x = self._least_norm(p.L, p.w, p.factored)
         self._warm_start(self._t_ref)  # not from a diverged iterate
         return TensionResult(p.f0 - x, x, False, reason, iterations)
 
@@ -566,7 +614,11 @@ class ClosedFormTensionSolver(_TensionSolverBase):
         self._exact = OsqpTensionSolver(limits, rtol=rtol)
 
     def _solve(
-        self, jacobian: ArrayLike, wrench: ArrayLike, f_b: ArrayLike, f0: ArrayLike
+        self,
+        jacobian: ArrayLike | FactoredJacobian,
+        wrench: ArrayLike,
+        f_b: ArrayLike,
+        f0: ArrayLike,
     ) -> TensionResult:
         p = self._prepare(jacobian, wrench, f_b, f0)
         if type(p) is TensionResult:
@@ -617,7 +669,7 @@ class ClosedFormTensionSolver(_TensionSolverBase):
         """Infeasible: the (reduced) Jacobian cannot carry the wrench."""
         if t is None:
             reason = "Jacobian is rank deficient (singular pose)"
-            t = self._least_norm(p.L, p.w)
+            t = self._least_norm(p.L, p.w, p.factored)
         else:
             k, t_k = fixed[-1]
             reason = (

@@ -319,3 +319,47 @@ def test_holding_the_observer_hands_its_estimate_to_the_integral_action(
     assert controller.observer.estimate.tolist() == [0.0] * 6
     pos, _ = pose_errors(rec, reference8.home)
     assert pos[k:].max() < pos[k - 1] + 1e-5  # 8 mm further without
+
+
+def _tracking_pair(robot: Robot, spec: ControllerSpec, cycles: int):
+    """Two controllers with the same history of `cycles` steps of the figure eight, and
+    the recording to continue it from."""
+    trajectory = STANDARD_SET["figure_eight"](robot)
+    rec = run_tracking(robot, trajectory, ParallelController(robot, spec)).recording
+    pair = ParallelController(robot, spec), ParallelController(robot, spec)
+    for controller in pair:
+        controller.reset(rec.pose(0))
+        controller.follow(trajectory)
+        for k in range(cycles):
+            controller.step(float(rec.t[k]), rec.measured_lengths[k], rec.measured_rates[k])
+    return pair, rec
+
+
+INVALIDATING = {
+    "reset": lambda c, t: c.reset(retract(c.pose, np.r_[0.002, 0.0, 0.0, 0.0, 0.01, 0.0])),
+    "follow": lambda c, t: c.follow(Hold(c.pose)),
+    "set_latency": lambda c, t: c.set_latency(0.004),
+    "set_payload": lambda c, t: c.set_payload(c.robot.platform.mass * 1.1, (0.0, 0.0, 0.0)),
+}
+
+
+@pytest.mark.parametrize("action", [*INVALIDATING, "another time"])
+def test_a_preparation_is_not_used_after_what_changes_it(reference8: Robot, action: str) -> None:
+    """A cycle prepared (reference, model, forward kinematics' linearisation at the guess,
+    the tension distribution's factor) and then reset, given a new source, a new latency
+    or payload, or stepped at another time, steps as if prepared again after that."""
+    (stale, fresh), rec = _tracking_pair(reference8, ControllerSpec(), 200)
+    t = float(rec.t[200])
+    for controller in (stale, fresh):
+        if action == "another time":
+            controller.prepare(float(rec.t[199]))  # a cycle that was not stepped
+        else:
+            controller.prepare(t)
+            INVALIDATING[action](controller, t)
+    fresh.prepare(t)
+    a = stale.step(t, rec.measured_lengths[200], rec.measured_rates[200])
+    b = fresh.step(t, rec.measured_lengths[200], rec.measured_rates[200])
+    assert a.feasible and b.feasible
+    np.testing.assert_array_equal(a.commands, b.commands)
+    np.testing.assert_array_equal(a.tensions, b.tensions)
+    assert a.pose == b.pose

@@ -132,3 +132,34 @@ def test_result_carries_the_jacobian_of_its_last_linearisation(reference8: Robot
     np.testing.assert_allclose(result.jacobian, reference8.jacobian(result.pose), atol=1e-4)
     bad = reference8.forward_kinematics(np.full(8, np.nan))
     assert not bad.converged and bad.jacobian is None
+
+
+def test_a_prepared_linearisation_gives_what_the_guess_gives(robot: Robot) -> None:
+    """linearise_at(guess) computes the guess's part of the first evaluation before the
+    lengths are known; Y(l) from it equals Y(l) from the guess itself (within 1e-9): the
+    same iterations, and the Jacobian and normal factor the twist uses.  Guesses within
+    the step tolerance, the chord finish's range, Gauss-Newton's and far off, and bad
+    lengths."""
+    rng = np.random.default_rng(3)
+    for k in range(40):
+        truth = retract(robot.home, np.r_[rng.uniform(-0.2, 0.2, 3), rng.uniform(-0.1, 0.1, 3)])
+        distance = (1e-10, 1e-5, 1e-3, 0.1)[k % 4]
+        guess = retract(truth, distance * rng.standard_normal(6))
+        noise = 1e-5 * rng.standard_normal(robot.n_cables) if k % 4 else 0.0
+        lengths = robot.cable_lengths(truth) + noise
+        if k % 10 == 9:
+            lengths = [np.r_[np.nan, lengths[1:]], 3 * lengths, -lengths, 0 * lengths][k // 10]
+        cold = robot.forward_kinematics(lengths, guess)
+        warm = robot.forward_kinematics(lengths, robot.linearise_at(guess))
+        assert (warm.converged, warm.reason, warm.iterations) == (
+            cold.converged, cold.reason, cold.iterations
+        )  # fmt: skip
+        dp, dw = pose_error(cold.pose, warm.pose)
+        assert dp < 1e-9 and dw < 1e-9
+        assert abs(warm.residual - cold.residual) < 1e-9 or warm.residual == cold.residual
+        if cold.converged:
+            np.testing.assert_allclose(warm.jacobian, cold.jacobian, rtol=0, atol=1e-9)
+            factors = np.triu(warm.normal_factor), np.triu(cold.normal_factor)  # the upper
+            np.testing.assert_allclose(*factors, rtol=0, atol=1e-9)
+        else:
+            assert warm.jacobian is None and warm.normal_factor is None

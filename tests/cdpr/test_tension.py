@@ -584,3 +584,31 @@ def test_both_methods_call_a_wrench_feasible_exactly_when_an_lp_does(reference8,
     assert verdicts["inside"] >= 50 and verdicts["outside"] >= 50, verdicts
     if t_ref == 25.0:
         assert verdicts["fallback"] >= 1, verdicts
+
+
+@pytest.mark.parametrize("solver_cls", SOLVERS)
+def test_a_factored_jacobian_gives_the_plain_solve(robot, solver_cls):
+    """solve(factored(Λ), ...) (Λᵀ Λ factored ahead, as the controller does before the
+    measurement) gives what solve(Λ, ...) gives: in the interior, with bounds active,
+    beyond W, with t_min unreachable and for a rank-deficient Λ.  Two solvers fed the
+    same sequence, since OSQP's warm start carries over."""
+    limits = TensionLimits.from_robot(robot)
+    plain, factored = solver_cls(limits), solver_cls(limits)
+    rng = np.random.default_rng(5)
+    outcomes = set()
+    for k in range(60):
+        pose = pose_near_home(robot, (rng.uniform(-0.2, 0.2, 3), rng.uniform(-0.1, 0.1, 3)))
+        alpha = rng.standard_normal(6) * (0.5, 5.0, 15.0, 40.0)[k % 4]
+        L, tau, f_b, f0 = model_inputs(robot, pose, 0.2 * rng.standard_normal(6), alpha)
+        if k % 20 == 18:
+            L[:, 5] = 0.0  # rank deficient
+        if k % 20 == 9:
+            f_b = f_b - 2 * limits.force_max  # t_min unreachable
+        a = plain.solve(L, tau, f_b, f0)
+        b = factored.solve(factored.factored(L), tau, f_b, f0)
+        assert (a.feasible, a.reason, a.iterations) == (b.feasible, b.reason, b.iterations)
+        np.testing.assert_array_equal(a.tensions, b.tensions)
+        np.testing.assert_array_equal(a.forces, b.forces)
+        outcomes.add((a.feasible, a.iterations > 0, a.reason[:12]))
+    feasible = {f for f, _, _ in outcomes}
+    assert feasible == {True, False} and len(outcomes) >= 4, outcomes
