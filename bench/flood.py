@@ -193,6 +193,7 @@ def flooder(endpoint: str, prefix: str, seconds: float, rate: float, mix: str) -
         deadline = time.monotonic() + 10.0
         while not replies[0] and time.monotonic() < deadline:
             time.sleep(0.01)
+        print("flooding", flush=True)  # for a parent that waits for the flood (loop.py)
         n = 0
         start = time.monotonic()
         while (now := time.monotonic() - start) < seconds:

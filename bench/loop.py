@@ -38,7 +38,7 @@ import json
 import os
 import sys
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 
 from timing import free_endpoint
@@ -53,6 +53,7 @@ ROOT = Path(__file__).resolve().parent.parent
 CONFIGS = ROOT / "config"
 SETTLE = 0.5  # s enabled before measuring
 FLOOD_RATE = 2000.0  # puts per second
+LOAD_START = 60.0  # s the flood may take to connect (its imports, on the busy host)
 VIEW_RATE_HZ = 200.0  # the view: section's largest rate_hz
 
 
@@ -74,26 +75,57 @@ def rate_config(protocol: str, rate_hz: float, view: bool = False) -> DaemonConf
     return load_config(CONFIGS / f"reference8-{protocol}.yaml", edit)
 
 
+class Load:
+    """The busy host's processes (busy_host): `started` once the flood (if any) is on,
+    `stop` kills them without waiting."""
+
+    def __init__(self, children: list[Child], flood_out: int | None) -> None:
+        self.children = children
+        self._flood_out = flood_out  # the flooder's stdout: a line once it floods
+
+    def started(self) -> bool:
+        if self._flood_out is None:
+            return True
+        try:
+            said = os.read(self._flood_out, 64)
+        except BlockingIOError:
+            return False
+        os.close(self._flood_out)
+        self._flood_out = None
+        return bool(said)
+
+    def stop(self) -> None:
+        for child in self.children:
+            child.kill()
+        if self._flood_out is not None:
+            os.close(self._flood_out)
+            self._flood_out = None
+
+
 @contextlib.contextmanager
 def busy_host(
     config: DaemonConfig, load: int, flood: bool, seconds: float, viewed: list | None = None
-) -> Iterator[Callable[[], None]]:
+) -> Iterator[Load]:
     """`load` CPU hogs and, with `flood`, bench/flood.py's mixed flood on the config's
     zenoh endpoint, at normal priority (spawned so even from the real-time core), for at
-    most `seconds`; stopped on exit, when they are also waited for.  Yields a function
-    that stops them without waiting.  With the config's view on, a Foxglove client too;
-    the number of messages it decoded is appended to `viewed`."""
+    most `seconds` (the flood from when it has connected: its imports take seconds on a
+    busy host); stopped on exit, when they are also waited for.  With the config's view
+    on, a Foxglove client too; the number of messages it decoded is appended to
+    `viewed`."""
     env = dict(os.environ)
     hog = f"import time\nend = time.monotonic() + {seconds}\nwhile time.monotonic() < end: pass"
     children: list[Child] = [spawn_ordinary([sys.executable, "-c", hog], env) for _ in range(load)]
+    flood_out = None
     if flood:
         endpoint = config.zenoh.listen_endpoints[0]
         prefix = config.zenoh.key_prefix(config.robot.name)
         argv = [sys.executable, str(ROOT / "bench" / "flood.py"), "--flooder", endpoint]
         argv += ["--prefix", prefix, "--seconds", str(seconds), "--rate", str(FLOOD_RATE)]
         argv += ["--mix", "all"]
-        with open(os.devnull, "w") as devnull:
-            children.append(spawn_ordinary(argv, env, stdout=devnull.fileno()))
+        flood_out, flood_in = os.pipe()
+        os.set_blocking(flood_out, False)
+        children.append(spawn_ordinary(argv, env, stdout=flood_in))
+        os.close(flood_in)
     viewer = None
     if config.view.enabled:
         url = f"ws://{config.view.host}:{config.view.port}"
@@ -101,22 +133,17 @@ def busy_host(
         read, write = os.pipe()
         viewer = spawn_ordinary(argv, {**env, "PYTHONPATH": str(ROOT)}, stdout=write)
         os.close(write)
-
-    def stop() -> None:
-        for child in [*children, *([] if viewer is None else [viewer])]:
-            child.kill()
-
+    busy = Load(children + ([] if viewer is None else [viewer]), flood_out)
     try:
-        yield stop
+        yield busy
     finally:
-        stop()
+        busy.stop()
         if viewer is not None:
-            viewer.kill()
             with os.fdopen(read) as counted:
                 lines = counted.read().split()
             if viewed is not None:
                 viewed.append(int(lines[-1]) if lines else 0)
-        for child in children:
+        for child in busy.children:
             while child.poll() is None:
                 time.sleep(0.01)
 
@@ -135,9 +162,14 @@ def measure(
 
         async def hold_and_measure(service: Service) -> None:
             await service.command("enable", {})
-            stop_load = load_running.enter_context(
+            busy = load_running.enter_context(
                 busy_host(config, load, flood, seconds + SETTLE + 5.0, viewed)
             )
+            waited = time.monotonic() + LOAD_START
+            while not busy.started():
+                if time.monotonic() > waited:
+                    raise SystemExit(f"the flood did not start within {LOAD_START:g} s")
+                await asyncio.sleep(0.05)
             # made before the measurement: allocating its sample buffers (resident at
             # once in locked memory) holds the loop up for a few periods
             fresh = type(service.stats)(rate_hz)
@@ -147,7 +179,7 @@ def measure(
             await asyncio.sleep(seconds)
             cpu = (time.process_time() - cpu0) / (time.monotonic() - wall0)
             out.update(figures(service, rate_hz, cpu))
-            stop_load()
+            busy.stop()
 
         asyncio.run(InProcessSimulator(config).serve(after_start=hold_and_measure))
     if view:

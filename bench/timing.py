@@ -61,7 +61,8 @@ def free_endpoint() -> str:
 
 async def ordinary_child(*args: str) -> dict[str, Any]:
     """`python ARGS` at normal priority (spawned from the daemon's real-time core, a
-    child would inherit SCHED_FIFO), its stdout read as one JSON object once it exits."""
+    child would inherit SCHED_FIFO), the last line of its stdout read as one JSON object
+    once it exits."""
     from daemon.process.realtime import spawn_ordinary
 
     with tempfile.TemporaryFile() as out:
@@ -72,4 +73,4 @@ async def ordinary_child(*args: str) -> dict[str, Any]:
         text = out.read().decode()
     if child.returncode != 0:
         raise SystemExit(f"{' '.join(args[:2])} failed ({child.returncode}): {text[-500:]}")
-    return json.loads(text)
+    return json.loads(text.splitlines()[-1])  # the last line: a flooder says it floods

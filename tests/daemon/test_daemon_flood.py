@@ -154,7 +154,7 @@ def test_a_flood_leaves_the_running_daemon_in_control(tmp_path: Path) -> None:
                  "--seconds", str(SECONDS), "--rate", str(RATE), "--mix", "all"],
                 capture_output=True, text=True, timeout=90, check=True,
             )  # fmt: skip
-            flood = json.loads(done.stdout)
+            flood = json.loads(done.stdout.splitlines()[-1])  # after its "flooding" line
             try:
                 wait_for(lambda: balanced(states[-1]["interface"]), 40.0, "every decision")
             except AssertionError:
