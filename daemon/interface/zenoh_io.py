@@ -186,8 +186,14 @@ class _Inbox(Generic[_Item]):
             self._drain()
 
 
+class _ParseStopped(BaseException):
+    """The interface is closing: the parse thread drops its message (a BaseException, so
+    that no decoder's `except Exception` takes it for a bug)."""
+
+
 class _Yielding:
-    """A profile hook for the parse thread: every PARSE_SLICE it sleeps PARSE_PAUSE.
+    """A profile hook for the parse thread: every PARSE_SLICE it sleeps PARSE_PAUSE, and
+    stops the parse (_ParseStopped) once `stop` is set.
 
     CPython makes a thread that wants the GIL wait up to the switch interval (5 ms) for a
     busy one, and on a loaded host the kernel may not run the loop at once while the
@@ -196,11 +202,14 @@ class _Yielding:
     PARSE_SLICE of work, sleeps: the loop, if it waits, gets the GIL and a CPU meanwhile.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, stop: threading.Event) -> None:
         self._since = time.perf_counter()
+        self._stop = stop
 
     def __call__(self, _frame: object, _event: str, _arg: object) -> None:
         if time.perf_counter() - self._since > PARSE_SLICE:
+            if self._stop.is_set():
+                raise _ParseStopped
             time.sleep(PARSE_PAUSE)
             self._since = time.perf_counter()
 
@@ -248,6 +257,9 @@ class ZenohInterface:
         self._loop: asyncio.AbstractEventLoop | None = None
         self._parser: ThreadPoolExecutor | None = None
         self._parse_credit = PARSE_BURST  # s of CPU time the parse thread may use now
+        # set by close(): the parse thread drops what it parses, or waits for, at once (a
+        # process exits only once it is done: in debt after a 2 MB message, seconds)
+        self._stop_parsing = threading.Event()
         self._credit_time = 0.0  # (monotonic) when the credit was reckoned
         self._submission: asyncio.Future[Any] | None = None  # the verdict awaited
         self._commands: _Inbox[tuple[str, dict[str, Any], zenoh.Query]] | None = None
@@ -314,6 +326,7 @@ class ZenohInterface:
         if session is None:
             return
         self._closing = True
+        self._stop_parsing.set()
         if self._state_task is not None:
             self._state_task.cancel()
         for entity in self._entities:
@@ -524,16 +537,21 @@ class ZenohInterface:
         that a flood of long trajectories leaves CPU time to the loop (and the host)."""
         now = time.monotonic()
         credit = min(PARSE_BURST, self._parse_credit + (now - self._credit_time) * PARSE_SHARE)
+        ident = item.id if isinstance(item, TrajectoryMessage) else None
+        stopped = ident, CommandError("busy", "the daemon is shutting down")
         if credit < 0.0:
-            time.sleep(-credit / PARSE_SHARE)
+            if self._stop_parsing.wait(-credit / PARSE_SHARE):
+                return stopped
             credit = 0.0
         began = time.thread_time()
-        sys.setprofile(_Yielding())
+        sys.setprofile(_Yielding(self._stop_parsing))
         try:
             if isinstance(item, bytes):
                 parsed = self._parse_payload(item)
             else:
                 parsed = self._parse_waypoints(item)
+        except _ParseStopped:
+            return stopped
         finally:
             sys.setprofile(None)
         self._parse_credit = credit - (time.thread_time() - began)

@@ -39,7 +39,7 @@ from daemon.config.zenoh_config import (
 )
 from daemon.interface.client import CdprClient, ClientError, RequestError, UnreachableError
 from daemon.interface.messages import decode_trajectory
-from daemon.interface.zenoh_io import ZenohInterface
+from daemon.interface.zenoh_io import PARSE_SHARE, ZenohInterface
 from daemon.service.api import CommandError
 from tests.loopback import free_port
 
@@ -496,6 +496,33 @@ def test_generated_json_is_refused_exactly_when_decoding_fails(
 
 
 # -- (3) bounded queues and floods -----------------------------------------------------------
+
+
+def _parse_threads() -> list[threading.Thread]:
+    return [t for t in threading.enumerate() if t.name.startswith("cdprd-trajectory-parse")]
+
+
+def test_closing_stops_a_parse_thread_waiting_for_budget() -> None:
+    """After a 2 MB message the parse thread owes seconds of CPU budget and waits them
+    out before the next message; a process exits only once that thread is done, so
+    close() must stop it at once (the companion was killed for not exiting in 3 s)."""
+    before = set(_parse_threads())  # other tests' interfaces
+    served = Running(StandIn())
+    try:
+        with served.session() as session:
+            assert ask(session, "cmd/status")["ok"]
+            served.interface._parse_credit = -60.0 * PARSE_SHARE  # a minute to wait
+            served.interface._credit_time = time.monotonic()
+            first = TRAJECTORY["waypoints"][0]
+            waypoints = [first, *(waypoint_at(1.0 + k) for k in range(4))]  # not inline
+            session.put(f"{PREFIX}/trajectory", json.dumps({**TRAJECTORY, "waypoints": waypoints}))
+            wait_until(lambda: bool(set(_parse_threads()) - before), "the parse thread")
+            time.sleep(0.3)  # the idle thread takes the message at once, and waits
+    finally:
+        served.stop()
+    for thread in set(_parse_threads()) - before:
+        thread.join(WAIT)
+        assert not thread.is_alive(), "the parse thread outlived close()"
 
 
 def test_a_stalled_loop_keeps_queues_bounded_and_busy_replies_immediate() -> None:
