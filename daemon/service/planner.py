@@ -130,6 +130,8 @@ class Planner:
             return self._home(name, args)
         if name in HELD_BY:
             return self.leases.command(name, args)
+        if name == "status":
+            return self._status()
         return self.link.command(name, args)
 
     async def slack(self) -> None:
@@ -220,6 +222,10 @@ class Planner:
             stop, "hold", lead=HOLD_LEAD, validate="none", attempts=HOLD_ATTEMPTS
         )
         return await self.link.command("status", {})
+
+    async def _status(self) -> dict[str, Any]:
+        """The core's status and the leases' time left (the published state has both)."""
+        return {**await self.link.command("status", {}), "leases": self.leases.remaining()}
 
     async def _home(self, name: str, args: dict[str, Any]) -> dict[str, Any]:
         """The core homes (home, or pretension at its end) and applies the offsets;
