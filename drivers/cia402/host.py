@@ -153,6 +153,8 @@ def _packer(layout: PdoLayout, target: int) -> Callable[[int, int, int], bytes]:
     order = (CONTROLWORD, target, MODE_OF_OPERATION)
     slots = [order.index(e.index) if e.index in order else 3 for e in layout.entries]
     pack = layout.struct.pack
+    if slots == [0, 1, 2]:  # mapped in pack's own order (codec.RPDO1, RPDO2): as it is
+        return pack
     if len(slots) == 1:  # itemgetter of one item gives the item, not a tuple
         (slot,) = slots
         return lambda controlword, value, mode: pack((controlword, value, mode, 0)[slot])
