@@ -165,6 +165,10 @@ class SafetyMonitor:
         self.heartbeat_timeout = config.drives.heartbeat_timeout
         self.pose_limits = config.pose_limits
         self.stale = [0] * config.robot.n_cables
+        # the length limits as plain floats, for the per-cycle test (`_length_violations`)
+        self._length_bounds = list(
+            zip(self.robot.length_min.tolist(), self.robot.length_max.tolist(), strict=True)
+        )
         self._error_stamps: deque[float] = deque()  # of the bus errors, oldest first
         self._last_error = ""
         self._bus_off: tuple[float, str] = (-math.inf, "")  # when, what
@@ -177,6 +181,8 @@ class SafetyMonitor:
     ) -> list[Fault]:
         """Drive faults, heartbeat loss, NaN feedback and length limits."""
         faults = []
+        timeout, isfinite = self.heartbeat_timeout, math.isfinite
+        lengths = []  # the finite lengths of the drives that reported any
         for k, (fb, st) in enumerate(zip(feedback, status, strict=True)):
             if st.state is DriveState.FAULT:
                 faults.append(
@@ -186,26 +192,39 @@ class SafetyMonitor:
                     )
                 )
             age = now - st.heartbeat_stamp
-            if age > self.heartbeat_timeout:
+            if age > timeout:
                 heard = (
                     "never heard" if math.isinf(age) else f"last heartbeat {age * 1e3:.0f} ms ago"
                 )
                 faults.append(
                     Fault(
                         Trigger.HEARTBEAT_LOST,
-                        f"drive {k}: {heard} (timeout {self.heartbeat_timeout * 1e3:.0f} ms)",
+                        f"drive {k}: {heard} (timeout {timeout * 1e3:.0f} ms)",
                     )
                 )
-            if fb.count and not (math.isfinite(fb.length) and math.isfinite(fb.rate)):
+            if not fb.count:
+                continue
+            length = fb.length
+            if not (isfinite(length) and isfinite(fb.rate)):
                 faults.append(
-                    Fault(Trigger.NAN, f"drive {k} feedback length {fb.length}, rate {fb.rate}")
+                    Fault(Trigger.NAN, f"drive {k} feedback length {length}, rate {fb.rate}")
                 )
-        lengths = [fb.length for fb in feedback if fb.count and math.isfinite(fb.length)]
+            if isfinite(length):
+                lengths.append(length)
         if len(lengths) == len(feedback):  # NaN is reported above, not as a length
-            problems = self.robot.length_violations(lengths)
+            problems = self._length_violations(lengths)
             if problems:
                 faults.append(Fault(Trigger.LENGTH_LIMIT, "; ".join(problems)))
         return faults
+
+    def _length_violations(self, lengths: list[float]) -> list[str]:
+        """Robot.length_violations (its messages), asked only when a length is outside
+        its limits: the test every cycle needs, on plain floats, costs a fraction of the
+        robot's (which builds an array and reads numpy scalars)."""
+        for length, (low, high) in zip(lengths, self._length_bounds, strict=True):
+            if not low <= length <= high:
+                return self.robot.length_violations(lengths)
+        return []
 
     def check_freshness(self, fresh: Sequence[bool]) -> Fault | None:
         """Count consecutive cycles without feedback per actuator."""

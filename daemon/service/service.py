@@ -281,27 +281,16 @@ class Service:
             self._run_cycle(now, deadline=False)
 
     def _run_cycle(self, now: float, deadline: bool) -> None:
+        """One cycle on the feedback in (or, at the `deadline`, what has arrived): the
+        checks that may brake, then the commands; then the bookkeeping that no brake
+        decision of this cycle waits for (`_after_commands`)."""
         started = time.monotonic()
         self._waiting = False
-        if self._deadline is not None:
-            self._deadline.cancel()
-            self._deadline = None
         feedback = self.driver.feedback
-        fresh = [fb.count > c for fb, c in zip(feedback, self._counts, strict=True)]
-        self._counts = [fb.count for fb in feedback]
+        fresh, lengths, rates = self._take_feedback(feedback)
         self.stats.cycles += 1
         instant = self._opened
-        if self.driver.timing is Timing.CYCLIC:
-            # Streamed feedback: each cable was sampled at its own time; carried to the
-            # cycle's instant with its rate, the lengths describe one pose (DESIGN §8).
-            # Never forward by more than two intervals: older samples are late, and their
-            # rate noise would grow with age.
-            reach = self._extrapolation_limit
-            lengths = [fb.length + fb.rate * min(instant - fb.stamp, reach) for fb in feedback]
-        else:
-            lengths = [fb.length for fb in feedback]
         lengths = self.offsets.read(lengths)
-        rates = [fb.rate for fb in feedback]
         for drive, why in self.offsets.watch(self.driver.status, feedback, fresh):
             node = self.offsets.nodes[drive]
             log.error("drive %d (node %d): length offset lost: %s", drive, node, why)
@@ -319,22 +308,55 @@ class Service:
             faults.append(bus)
         self.faults = faults
         state = self.machine.state
+        output = None
         if faults and state in _WATCHED:
             self.brake(faults[0])
         elif self.machine.moving and not self._busy:
-            self._control(lengths, rates)
+            output = self._control(lengths, rates)
         elif state is SafetyState.PRETENSION:
             self._pretension_cycle(lengths, rates)
         elif state is not SafetyState.INIT:
             self._send(self.driver.keepalive())
-        done = time.monotonic()
-        self.stats.compute.add(done - started)
+        sent = time.monotonic()  # the cycle's frames are out
         if not deadline and self._last_rx:
             # streamed feedback may be complete before the tick: then from the tick
-            self.stats.latency.add(done - max(self._last_rx, self._opened))
+            self.stats.latency.add(sent - max(self._last_rx, self._opened))
+        self._after_commands(output, sent)
+        self.stats.compute.add(time.monotonic() - started)
         self.collector.after_cycle()  # the commands are out: now
         if self._slack_waiters:
             self._wake_slack_waiters()
+
+    def _take_feedback(
+        self, feedback: list[Feedback]
+    ) -> tuple[list[bool], list[float], list[float]]:
+        """Per drive: whether its feedback is fresh (new since the cycle opened), its
+        length and its rate; the counts are kept to judge the next cycle's freshness."""
+        counts = [fb.count for fb in feedback]
+        fresh = [c > seen for c, seen in zip(counts, self._counts, strict=True)]
+        self._counts = counts
+        rates = [fb.rate for fb in feedback]
+        if self.driver.timing is not Timing.CYCLIC:
+            return fresh, [fb.length for fb in feedback], rates
+        # Streamed feedback: each cable was sampled at its own time; carried to the
+        # cycle's instant with its rate, the lengths describe one pose (DESIGN §8).
+        # Never forward by more than two intervals: older samples are late, and their
+        # rate noise would grow with age.
+        instant, reach = self._opened, self._extrapolation_limit
+        lengths = [fb.length + fb.rate * min(instant - fb.stamp, reach) for fb in feedback]
+        return fresh, lengths, rates
+
+    def _after_commands(self, output: ControlOutput | None, sent: float) -> None:
+        """The cycle's work that waits until its frames are out, since no brake decision
+        of this cycle depends on it: cancelling the feedback deadline (its callback
+        cannot run before this returns, and finds no cycle waiting), and, after commands
+        (`output`), the measured command latency, the consistency check's pose and the
+        trajectory schedule (for the next cycles)."""
+        if self._deadline is not None:
+            self._deadline.cancel()
+            self._deadline = None
+        if output is not None:
+            self._follow_up(output, sent)
 
     def _second_answers(
         self, feedback: list[Feedback], flagged: list[Implausible]
@@ -354,10 +376,11 @@ class Service:
                 flagged = [*flagged, problem]  # a new list: `judge` may return a kept one
         return flagged
 
-    def _control(self, lengths: list[float], rates: list[float]) -> None:
+    def _control(self, lengths: list[float], rates: list[float]) -> ControlOutput | None:
         """Controller step, checks and commands for the cycle opened at `self._opened`:
         the cycle's instant, when SYNC latched the drives' positions.  `lengths` and
-        `rates` passed the plausibility checks (an implausible one brakes instead)."""
+        `rates` passed the plausibility checks (an implausible one brakes instead).
+        The output whose commands went out, None if it braked instead."""
         t = self._opened - self.t0
         pretension = self.pretension
         if pretension is not None and pretension.phase == "unload":
@@ -369,28 +392,35 @@ class Service:
         except Exception as exc:
             log.exception("controller step raised")
             self.brake(Fault(Trigger.CONTROLLER_EXCEPTION, f"{type(exc).__name__}: {exc}"))
-            return
+            return None
         self.last_output = output
         for listener in self.cycle_listeners:
             listener(t, output)
         fault = self.monitor.check_output(output)
         if fault is not None:
             self.brake(fault)
-            return
+            return None
         if self._close_forces is not None:  # the first command after pretension
             self.loop_close_step = float(np.abs(output.commands - self._close_forces).max())
             self._close_forces = None
         try:
-            frames = self.driver.commands(output.commands)
+            # plain floats: numpy scalars make the driver's per-drive arithmetic slow
+            frames = self.driver.commands(output.commands.tolist())
         except FrameError as exc:
             self.brake(Fault(Trigger.NAN, str(exc)))
-            return
+            return None
         self._send(frames)
+        return output
+
+    def _follow_up(self, output: ControlOutput, sent: float) -> None:
+        """After a cycle's commands went out at `sent`: the command lead's latency, the
+        consistency check's pose, and the trajectory that starts or ends now."""
         if self._latency is not None:
-            latency = self._latency.add(time.monotonic() - self._opened)
+            latency = self._latency.add(sent - self._opened)
             if latency is not None:
                 self.controller.set_latency(latency)
         self.trust.follow_pose(output.pose)
+        t = self._opened - self.t0
         while self._scheduled and t >= self._scheduled[0].start_time:
             self._trajectory = self._scheduled.pop(0)
             if self.machine.state is SafetyState.HOLD:

@@ -159,6 +159,11 @@ class TrustedLengths:
             if all(f.cable != worst for f in flagged):
                 flagged.append(self._disagrees(worst, lengths[worst], residuals))
             return flagged
+        if not flagged:  # the usual cycle: the whole set is trusted
+            held[:] = lengths
+            self._rates[:] = rates
+            self._times[:] = [instant] * self.n
+            return flagged
         rejected = {f.cable for f in flagged}
         for k in range(self.n):
             if k not in rejected:

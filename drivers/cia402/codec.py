@@ -46,7 +46,7 @@ import can
 from canopen.objectdictionary import ObjectDictionary, ODArray, ODRecord, ODVariable, import_od
 from canopen.sdo.exceptions import SdoAbortedError
 
-from drivers.base import FrameError
+from drivers.base import FrameError, data_frame
 from drivers.cia402.statemachine import COMMANDED_MODES, decode_statusword
 
 EDS_PATH = Path(__file__).resolve().parents[2] / "config" / "can" / "cia402_cst.eds"
@@ -289,7 +289,7 @@ _U32 = struct.Struct("<L")
 
 def message(can_id: int, data: bytes | bytearray = b"") -> can.Message:
     """A standard-id data frame."""
-    return can.Message(arbitration_id=can_id, data=data, is_extended_id=False)
+    return data_frame(can_id, data)
 
 
 def _length(can_id: int, data: bytes | bytearray, size: int, what: str) -> None:

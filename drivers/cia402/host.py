@@ -82,6 +82,7 @@ from drivers.base import (
     Link,
     Scaling,
     Timing,
+    data_frame,
 )
 from drivers.cia402.codec import (
     CONTROLWORD,
@@ -143,7 +144,6 @@ _FAULTED = (State.FAULT, State.FAULT_REACTION_ACTIVE)
 _ENABLE = Command.ENABLE_OPERATION.value
 _HOLDING = (State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE)
 _FEEDBACK = (STATUSWORD, POSITION_ACTUAL, VELOCITY_ACTUAL, MODE_DISPLAY)
-_Message = can.Message
 _isfinite = math.isfinite
 
 
@@ -153,6 +153,8 @@ def _packer(layout: PdoLayout, target: int) -> Callable[[int, int, int], bytes]:
     order = (CONTROLWORD, target, MODE_OF_OPERATION)
     slots = [order.index(e.index) if e.index in order else 3 for e in layout.entries]
     pack = layout.struct.pack
+    if slots == [0, 1, 2]:  # mapped in pack's own order (codec.RPDO1, RPDO2): as it is
+        return pack
     if len(slots) == 1:  # itemgetter of one item gives the item, not a tuple
         (slot,) = slots
         return lambda controlword, value, mode: pack((controlword, value, mode, 0)[slot])
@@ -165,12 +167,10 @@ def _torque_frames(layout: PdoLayout, nodes: Sequence[int]) -> Callable[[list[in
     one frame per drive with "enable operation" and mode 10."""
     if layout.slots > 1:
         cob, pack = layout.cob_id(nodes[0]), layout.struct.pack
-        return lambda torques: [
-            _Message(arbitration_id=cob, data=pack(*torques), is_extended_id=False)
-        ]
+        return lambda torques: [data_frame(cob, pack(*torques))]
     ids, pack = [layout.cob_id(node) for node in nodes], _packer(layout, TARGET_TORQUE)
     return lambda torques: [
-        _Message(arbitration_id=can_id, data=pack(_ENABLE, torque, MODE_CST), is_extended_id=False)
+        data_frame(can_id, pack(_ENABLE, torque, MODE_CST))
         for can_id, torque in zip(ids, torques, strict=True)
     ]
 
@@ -302,10 +302,7 @@ class Cia402Driver(ActuatorDriver):
             for i in range(self.n):
                 if not self._in_torque[i]:
                     self._in_torque[i] = True
-                    data = self._cw_pack(_ENABLE, 0, MODE_CST)
-                    frames.append(
-                        _Message(arbitration_id=self._cw_ids[i], data=data, is_extended_id=False)
-                    )
+                    frames.append(data_frame(self._cw_ids[i], self._cw_pack(_ENABLE, 0, MODE_CST)))
         self._standing = []
         return frames
 
@@ -338,10 +335,7 @@ class Cia402Driver(ActuatorDriver):
     def keepalive(self) -> list[can.Message]:
         """The latest brake/disable/enable frames again (none after torque commands: a
         torque command is never repeated)."""
-        return [
-            _Message(arbitration_id=can_id, data=data, is_extended_id=False)
-            for can_id, data in self._standing
-        ]
+        return [data_frame(can_id, data) for can_id, data in self._standing]
 
     def _hold_target(self, i: int, length: float) -> int | None:
         """Position (increments) holding cable i at `length`; None if it has none."""
@@ -382,9 +376,13 @@ class Cia402Driver(ActuatorDriver):
             )
         values = layout.unpack(data)
         status_at, position_at, velocity_at, mode_at = slots
-        if status_at >= 0 and decode_statusword(values[status_at]) is None:
+        if status_at >= 0:
             word = values[status_at]
-            raise Cia402FrameError(can_id, "statusword pattern", f"0x{word:04X} is no 402 state")
+            state402 = decode_statusword(word)
+            if state402 is None:
+                raise Cia402FrameError(
+                    can_id, "statusword pattern", f"0x{word:04X} is no 402 state"
+                )
         if bit:
             if self._got_epoch[i] != self._epoch:
                 self._got_epoch[i], self._got[i] = self._epoch, 0
@@ -398,8 +396,8 @@ class Cia402Driver(ActuatorDriver):
         if mode_at >= 0:
             self.mode_display[i] = values[mode_at]
         if status_at >= 0:
-            self._statusword[i] = values[status_at]
-            self._update_state(i, values[status_at], self.mode_display[i])
+            self._statusword[i] = word
+            self._update_state(i, word, self.mode_display[i], state402)
         if position_at >= 0:
             self.position[i] = values[position_at]
         if velocity_at >= 0:
@@ -441,9 +439,9 @@ class Cia402Driver(ActuatorDriver):
         if not abs(feedback.second - feedback.first) >= abs(length - other):  # or none yet
             feedback.first, feedback.second = other, length
 
-    def _update_state(self, i: int, statusword: int, mode: int) -> None:
+    def _update_state(self, i: int, statusword: int, mode: int, state402: State | None) -> None:
+        """Drive i's status from its statusword (decoded: `state402`) and mode display."""
         status = self.status[i]
-        state402 = decode_statusword(statusword)
         state = drive_state(state402, mode, bool(statusword & STATUS_HOLD))
         if state402 is State.OPERATION_ENABLED and mode not in MODES:
             # the drive runs a mode the host never commands: it does not do what it is told
@@ -576,7 +574,7 @@ class Cia402Driver(ActuatorDriver):
         else:
             frame = (self._rpdo2[i], self._hold_pack(_ENABLE, position, MODE_CSP))
         self._standing.append(frame)
-        link.send(_Message(arbitration_id=frame[0], data=frame[1], is_extended_id=False))
+        link.send(data_frame(*frame))
 
     async def _read_held_torques(self, link: Link) -> None:
         """The target torque of every drive found applying one (OPERATION ENABLED in mode
@@ -874,7 +872,7 @@ class Cia402Driver(ActuatorDriver):
         status.fault, status.fault_code = None, 0
         statusword = await self._read(link, i, STATUSWORD)
         mode = self.mode_display[i] = await self._read(link, i, MODE_DISPLAY)
-        self._update_state(i, statusword, mode)
+        self._update_state(i, statusword, mode, decode_statusword(statusword))
         if status.state is DriveState.FAULT:
             code = await self._read(link, i, ERROR_CODE)
             status.fault, status.fault_code = emcy_text(code), code

@@ -28,7 +28,7 @@ from typing import NamedTuple
 
 import can
 
-from drivers.base import FrameError
+from drivers.base import FrameError, data_frame
 
 NODE_ID_MAX = 63  # 6-bit node id
 CMD_MASK = 0x1F
@@ -205,7 +205,7 @@ U8 = struct.Struct("<B")  # Clear_Errors identify
 
 
 def _message(node_id: int, cmd: int, data: bytes) -> can.Message:
-    return can.Message(arbitration_id=frame_id(node_id, cmd), data=data, is_extended_id=False)
+    return data_frame(frame_id(node_id, cmd), data)
 
 
 def _float32(value: float, what: str) -> float:

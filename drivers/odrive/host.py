@@ -76,6 +76,7 @@ from drivers.base import (
     Link,
     Scaling,
     Timing,
+    data_frame,
 )
 from drivers.config import DrivesConfig
 from drivers.odrive.codec import (
@@ -328,11 +329,7 @@ class OdriveDriver(ActuatorDriver):
                     f"is no finite float32 torque"
                 )
             self._torque[i] = torque
-            out.append(
-                can.Message(
-                    arbitration_id=self._torque_ids[i], data=pack(torque), is_extended_id=False
-                )
-            )
+            out.append(data_frame(self._torque_ids[i], pack(torque)))
         return out
 
     def brake(self, lengths: Sequence[float], mode: BrakeMode) -> list[can.Message]:
@@ -381,9 +378,7 @@ class OdriveDriver(ActuatorDriver):
             if hold is None:
                 out.append(self._position_mode(i))
             else:
-                out.append(
-                    can.Message(arbitration_id=self._pos_ids[i], data=hold, is_extended_id=False)
-                )
+                out.append(data_frame(self._pos_ids[i], hold))
         return out
 
     def request_errors(self) -> list[can.Message]:
@@ -404,9 +399,7 @@ class OdriveDriver(ActuatorDriver):
     def _hold_frames(self, i: int, hold: bytes | None) -> list[can.Message]:
         frames = [self._position_mode(i), *self._state_change(i, AxisState.CLOSED_LOOP_CONTROL)]
         if hold is not None:
-            frames.append(
-                can.Message(arbitration_id=self._pos_ids[i], data=hold, is_extended_id=False)
-            )
+            frames.append(data_frame(self._pos_ids[i], hold))
         return frames
 
     def _braked_idle(self, i: int) -> bool:
