@@ -236,8 +236,12 @@ class _TensionSolverBase:
         solve() in Λ's place: a control cycle computes it before the measurement."""
         L = np.ascontiguousarray(_checked(jacobian, (self.n, 6), "jacobian"))
         with np.errstate(all="ignore"):
-            factor, info = dpotrf(L.T.dot(L))
-            return FactoredJacobian(L, None if info else factor, self._t_ref.dot(L))
+            return self._factor(L)
+
+    def _factor(self, L: Array) -> FactoredJacobian:
+        """factored() of a checked, contiguous Λ."""
+        factor, info = dpotrf(L.T.dot(L))
+        return FactoredJacobian(L, None if info else factor, self._t_ref.dot(L))
 
     def _solve(
         self,
@@ -332,18 +336,16 @@ class _TensionSolverBase:
     def _least_norm(self, L: Array, w: Array, factored: FactoredJacobian | None) -> Array:
         """Tensions nearest t_ref that satisfy Λᵀ t = w, bounds ignored: the QP's optimum
         when they meet every bound, else a finite attempt.  One 6 × 6 Cholesky (done
-        already in `factored`, L's); a least-squares fallback where Λ is rank deficient."""
+        already in `factored`, L's, if given); a least-squares fallback where Λ is rank
+        deficient."""
         if factored is None:
-            rhs = w - self._t_ref.dot(L)
-            _, x, info = dposv(L.T.dot(L), rhs)
-        elif factored.factor is None:
-            rhs, info = w - factored.t_ref_dot, 1
-        else:
-            rhs = w - factored.t_ref_dot
+            factored = self._factor(L)
+        rhs = w - factored.t_ref_dot
+        if factored.factor is not None:
             x, info = dpotrs(factored.factor, rhs)
-        if info:
-            return self._t_ref + np.linalg.lstsq(L.T, rhs, rcond=None)[0]
-        return self._t_ref + L.dot(x)
+            if not info:
+                return self._t_ref + L.dot(x)
+        return self._t_ref + np.linalg.lstsq(L.T, rhs, rcond=None)[0]
 
     def _result(self, p: _Problem, t: Array, reason: str, iterations: int) -> TensionResult:
         return TensionResult(p.f0 - t, t, not reason, reason, iterations)
