@@ -214,6 +214,12 @@ class _Yielding:
             self._since = time.perf_counter()
 
 
+def _shutting_down(item: bytes | TrajectoryMessage) -> tuple[str | None, CommandError]:
+    """The parse thread's answer to `item` once the interface closes (_ParseStopped)."""
+    ident = item.id if isinstance(item, TrajectoryMessage) else None
+    return ident, CommandError("busy", "the daemon is shutting down")
+
+
 def _lower_priority() -> None:
     """Run the calling thread at nice PARSE_NICE (Linux: the nice value is per thread), so
     that the kernel favours the loop (3:1 at nice 5) whenever both want a CPU.  Not the
@@ -540,11 +546,9 @@ class ZenohInterface:
         that a flood of long trajectories leaves CPU time to the loop (and the host)."""
         now = time.monotonic()
         credit = min(PARSE_BURST, self._parse_credit + (now - self._credit_time) * PARSE_SHARE)
-        ident = item.id if isinstance(item, TrajectoryMessage) else None
-        stopped = ident, CommandError("busy", "the daemon is shutting down")
         if credit < 0.0:
             if self._stop_parsing.wait(-credit / PARSE_SHARE):
-                return stopped
+                return _shutting_down(item)
             credit = 0.0
         began = time.thread_time()
         sys.setprofile(_Yielding(self._stop_parsing))
@@ -554,7 +558,7 @@ class ZenohInterface:
             else:
                 parsed = self._parse_waypoints(item)
         except _ParseStopped:
-            return stopped
+            return _shutting_down(item)
         finally:
             sys.setprofile(None)
         self._parse_credit = credit - (time.thread_time() - began)

@@ -287,9 +287,7 @@ _SDO_HEAD = struct.Struct("<BHB")
 _U32 = struct.Struct("<L")
 
 
-def message(can_id: int, data: bytes | bytearray = b"") -> can.Message:
-    """A standard-id data frame."""
-    return data_frame(can_id, data)
+message = data_frame  # a standard-id data frame (drivers.base)
 
 
 def _length(can_id: int, data: bytes | bytearray, size: int, what: str) -> None:
