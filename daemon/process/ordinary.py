@@ -7,12 +7,13 @@ PROGRAM (a path) with its arguments and the same environment.
 Why a trampoline (daemon.process.realtime.spawn_ordinary): posix_spawn is a vfork, which
 holds the calling thread, and with it the GIL and so the whole core, until the child
 execs.  A child demoted to SCHED_OTHER before that exec queues behind every normal
-process for a CPU to get there: 2 ms median and 17 ms at worst with two CPU hogs on
-this 2-CPU host (`python bench/spawn_stall.py`), long enough on a busier host for the
-drives' heartbeat consumers to stop the robot.  Started at SCHED_FIFO priority 1 (above
-every normal process, below the cycle), the child reaches its exec at once; this file,
-run without site or imports beyond os and sys (~40 ms of CPU at priority 1, never
-competing with the cycle), then drops to normal scheduling before PROGRAM starts.
+process for a CPU to get there: 5 ms median and up to 8.6 ms with two CPU hogs on this
+2-CPU host (`python bench/spawn_stall.py`, three runs; 17 ms once in a scratch run),
+long enough on a busier host for the drives' heartbeat consumers to stop the robot.
+Started at SCHED_FIFO priority 1 (above every normal process, below the cycle), the
+child reaches its exec at once; this file, run without site or imports beyond os and
+sys (~40 ms of CPU at priority 1, never competing with the cycle), then drops to normal
+scheduling before PROGRAM starts.
 Standard library only, so that it runs by path before any package is importable.
 """
 
