@@ -70,12 +70,17 @@ class Stack:
 
     async def watch(self, duration: float) -> tuple[np.ndarray, float]:
         """Sample the true platform position and the lowest cable tension for `duration`
-        seconds: (positions, lowest tension seen)."""
+        seconds of simulated time (a simulator slowed by a busy host shows the same
+        physics): (positions, lowest tension seen)."""
+        plant = self.plant
         positions, lowest = [], np.inf
-        end = time.monotonic() + duration
-        while time.monotonic() < end:
-            positions.append(self.plant.pose.position.copy())
-            lowest = min(lowest, float(self.plant.tensions.min()))
+        end = plant.time + duration
+        give_up = time.monotonic() + 10.0 * duration + 5.0
+        while plant.time < end:
+            if time.monotonic() > give_up:
+                raise AssertionError(f"the simulator did not run {duration} s in time")
+            positions.append(plant.pose.position.copy())
+            lowest = min(lowest, float(plant.tensions.min()))
             await asyncio.sleep(0.005)
         return np.array(positions), lowest
 

@@ -149,12 +149,15 @@ def test_stuck_encoder_during_a_move_brakes(protocol: str) -> None:
                 Trigger.FK_RESIDUAL,
                 Trigger.TRACKING_ERROR,
             )
-            # the stuck drive cannot hold its own cable exactly (its encoder lies), so the
-            # platform coasts a little before the other seven stop it
-            positions, lowest = await stack.watch(0.8)
+            # the stuck drive cannot hold its own cable (its encoder lies: its position loop
+            # pulls with a constant force), so the platform coasts a few millimetres until
+            # the other seven drives' position loops have taken up the load, which takes
+            # about a second (their integrators' time constant is 0.25 s): the motion from
+            # 0.6 s to 0.8 s measured 0.3-0.7 mm, from 1.0 s to 1.2 s 0.1 mm
+            positions, lowest = await stack.watch(1.2)
             excursion = np.linalg.norm(positions - positions[0], axis=1).max() * 1e3
             assert excursion < 20.0, f"{excursion:.1f} mm after braking"
-            _assert_no_fall(positions[3 * len(positions) // 4 :], lowest, allowed_mm=0.5)
+            _assert_no_fall(positions[5 * len(positions) // 6 :], lowest, allowed_mm=0.5)
 
     run(scenario())
 
