@@ -101,6 +101,8 @@ async def run(config: DaemonConfig, link: RemoteLink) -> int:
             print(f"error: {config.source}: {exc}", file=sys.stderr)
             return 1
         planner.subscribe(interface.publish_event)
+        # the leases the core kept from the last companion: a lapse now reaches zenoh
+        planner.leases.resume(link.kept_leases)
         if config.ros2.enabled:  # ROS 2 over rmw_zenoh on the same session
             from daemon.interface.ros2_bridge import Ros2Bridge
 

@@ -7,7 +7,8 @@ This module, in the core:
 - spawns the companion (`python -m daemon.process.companion FD RING`) with one end of a
   SOCK_SEQPACKET pair (daemon.process.wire) and the shared curve ring
   (daemon.process.curve_ring), and says hello (the config, the core's clock origin,
-  the ring's ranges still in use);
+  the ring's ranges still in use, the leases the last companion had it keep:
+  daemon.service.lease);
 - serves its calls in the cycle's slack: core commands, the reference at a time, and
   planned trajectories (a curve in the ring, sampled in place; its range is handed
   back when the core drops the curve);
@@ -46,6 +47,7 @@ from daemon.process.cycle_rows import CycleRows, Throttle
 from daemon.process.realtime import Child, spawn_ordinary
 from daemon.process.recording import frame_fields
 from daemon.service.api import CommandError
+from daemon.service.lease import Kept
 from daemon.service.safety import Fault, Trigger
 from daemon.service.service import Service
 
@@ -95,6 +97,7 @@ class CompanionHost:
         # would hold the cycle up
         self.ring = CurveRing.create()
         self._in_ring: dict[int, int] = {}  # offset -> bytes of the curves the core holds
+        self._leases: Kept = {}  # the companion's, kept for the next one (plain data)
         recording = config.recording
         if recording.telemetry:
             service.cycle_listeners.append(self._record_cycle)
@@ -175,14 +178,16 @@ class CompanionHost:
 
     def connect(self, sock: socket.socket) -> None:
         """Serve a companion on `sock` (the core's end of wire.socket_pair), from its
-        hello on: the config, the core's clock origin, the ring's ranges in use."""
+        hello on: the config, the core's clock origin, the ring's ranges in use, the
+        leases the last companion had the core keep."""
         self._sock = sock
         self._serving = asyncio.get_running_loop().create_task(self._serve(sock))
         self._last_heard = time.monotonic()
         self._allowed_silence = START_TIMEOUT  # until it first speaks: imports take seconds
         level = logging.getLevelName(logging.getLogger().getEffectiveLevel()).lower()
         in_use = list(self._in_ring.items())
-        hello = ("hello", self.config, self.service.t0, self.service.state(), level, in_use)
+        state = self.service.state()
+        hello = ("hello", self.config, self.service.t0, state, level, in_use, self._leases)
         if not wire.send(sock, hello):
             log.error("the companion did not take its hello")
 
@@ -292,6 +297,10 @@ class CompanionHost:
         try:
             if method == "command":
                 result: Any = service.command(*args)
+            elif method == "command_keeping":  # payload, observer: answered at once
+                name, body, leases = args
+                result = service.command(name, body)
+                self._leases = leases  # taken: kept for the next companion, timed by none
             elif method == "reference_at":
                 result = service.reference_at(*args)
             elif method == "follow":

@@ -23,6 +23,7 @@ from daemon.config import DaemonConfig
 from daemon.process import wire
 from daemon.process.curve_ring import CurveRing, RingFullError
 from daemon.service.api import CommandError
+from daemon.service.lease import Kept
 
 log = logging.getLogger("cdprd")
 
@@ -39,26 +40,33 @@ def greeted(
 ) -> tuple[DaemonConfig, str, RemoteLink]:
     """Wait (blocking, at most `timeout` s) for the core's hello on `sock`: the config,
     the log level and the link (the shared ring on `ring_fd`, the ranges the core still
-    uses reserved).  OSError if none comes."""
+    uses reserved; the leases it kept from the last companion).  OSError if none comes."""
     sock.settimeout(timeout)
-    kind, config, t0, state, level, in_use = pickle.loads(sock.recv(wire.MAX_MESSAGE))
+    hello = pickle.loads(sock.recv(wire.MAX_MESSAGE))
+    kind, config, t0, state, level, in_use, leases = hello
     if kind != "hello":
         raise OSError(f"the core's first message is {kind!r}, not its hello")
     ring = CurveRing.attach(ring_fd)
     ring.reserve(in_use)
-    return config, level, RemoteLink(sock, ring, t0, state)
+    return config, level, RemoteLink(sock, ring, t0, state, leases)
 
 
 class RemoteLink:
     """The core, as the planner and the interfaces of the companion see it."""
 
     def __init__(
-        self, sock: socket.socket, ring: CurveRing, t0: float, state: dict[str, Any]
+        self,
+        sock: socket.socket,
+        ring: CurveRing,
+        t0: float,
+        state: dict[str, Any],
+        leases: Kept,
     ) -> None:
         self._sock = sock
         self._ring = ring
         self._t0 = t0
         self._state = state
+        self.kept_leases = leases  # the last companion's, as the core kept them
         self._ids = itertools.count()
         self._waiting: dict[int, asyncio.Future] = {}
         self._sinks: list[EventSink] = []
@@ -106,6 +114,11 @@ class RemoteLink:
 
     async def command(self, name: str, args: dict[str, Any]) -> dict[str, Any]:
         return await self._call("command", (name, args))
+
+    async def command_keeping(
+        self, name: str, args: dict[str, Any], leases: Kept
+    ) -> dict[str, Any]:
+        return await self._call("command_keeping", (name, args, leases))
 
     async def reference_at(self, t: float) -> tuple[Reference, int]:
         reference, version = await self._call("reference_at", (t,))

@@ -10,14 +10,20 @@ the daemon does it for them: unless the same command comes again within `lease` 
 a hold without a lease, ends a running lease.
 
 The timing runs here, beside the planner in the companion process (DESIGN §16), never in
-the control cycle: the core only ever sees the commands.
+the control cycle.  What survives this process is kept in the core as plain data: with
+every payload or observer command the core takes, it keeps the leases as they stand then,
+{name: (lease s, deadline on the core's clock)}, and hands them to the next companion in
+its hello (daemon.process.companion_host), which re-arms each with the time it has left
+(`Leases.resume`; one that ran out meanwhile lapses at once).  Kept with the command, in
+the same call, the record never disagrees with what the core holds, whenever a companion
+dies; in the hello rather than the published state, as nobody but the next companion
+needs it, before it serves anything.  The core runs no timer for them.
 """
 
 from __future__ import annotations
 
 import asyncio
 import logging
-import time
 from collections.abc import Awaitable, Callable
 from typing import Any
 
@@ -29,19 +35,23 @@ HELD_BY = {"payload": "frozen", "observer": "held"}
 """The commands that take a lease, and the key of theirs that holds (true) or lets go."""
 WHAT = {"payload": "payload estimate's freeze", "observer": "external wrench observer's hold"}
 
-Command = Callable[[str, dict[str, Any]], Awaitable[dict[str, Any]]]
+Kept = dict[str, tuple[float, float]]
+"""The running leases as the core keeps them: name -> (lease s, deadline on its clock)."""
+Command = Callable[[str, dict[str, Any], Kept], Awaitable[dict[str, Any]]]
 EventSink = Callable[[dict[str, Any]], None]
 
 
 class Leases:
     """The running leases, by command name; `command` runs a payload or observer command
-    through `send` (the core's), starting, renewing or ending its lease; `emit` gets the
-    event of a lapse."""
+    through `send` (the core's, which keeps the leases it is given if it takes the
+    command), starting, renewing or ending its lease; `emit` gets the event of a lapse;
+    `now` is the core's clock (s)."""
 
-    def __init__(self, send: Command, emit: EventSink) -> None:
+    def __init__(self, send: Command, emit: EventSink, now: Callable[[], float]) -> None:
         self._send = send
         self._emit = emit
-        self._deadlines: dict[str, float] = {}  # name -> time.monotonic() it lapses at
+        self._now = now
+        self._leases: Kept = {}
         self._timers: dict[str, asyncio.TimerHandle] = {}
         self._lapses: set[asyncio.Task] = set()
         self._lock = asyncio.Lock()  # a lapse waits for a renewal under way, and rechecks
@@ -51,28 +61,44 @@ class Leases:
         key = HELD_BY[name]
         lease = args.get("lease")
         async with self._lock:
-            reply = await self._send(name, {k: v for k, v in args.items() if k != "lease"})
+            after = dict(self._leases)
+            if key in args:
+                after.pop(name, None)
+                if args[key] and lease is not None:
+                    after[name] = (lease, self._now() + lease)
+            body = {k: v for k, v in args.items() if k != "lease"}
+            reply = await self._send(name, body, after)
             if key in args:
                 self._end(name)
-                if args[key] and lease is not None:
-                    self._start(name, lease)
+                if name in after:
+                    self._arm(name, *after[name])
             return reply
+
+    def resume(self, kept: Kept) -> None:
+        """Re-arm the leases the core kept from the previous companion (its hello's), each
+        with the time it has left; one that ran out meanwhile lapses at once."""
+        now = self._now()
+        for name, (lease, deadline) in kept.items():
+            left = max(deadline - now, 0.0)
+            log.info("the %s runs on: %.3g s left of its lease of %g s", WHAT[name], left, lease)
+            self._arm(name, lease, deadline)
 
     def remaining(self) -> dict[str, float | None]:
         """Each lease's time left (s), None where none runs: for the state."""
-        now = time.monotonic()
+        now = self._now()
         return {
-            name: max(self._deadlines[name] - now, 0.0) if name in self._deadlines else None
+            name: max(self._leases[name][1] - now, 0.0) if name in self._leases else None
             for name in HELD_BY
         }
 
-    def _start(self, name: str, lease: float) -> None:
-        self._deadlines[name] = time.monotonic() + lease
+    def _arm(self, name: str, lease: float, deadline: float) -> None:
+        self._leases[name] = (lease, deadline)
         loop = asyncio.get_running_loop()
-        self._timers[name] = loop.call_later(lease, self._lapsed, name, lease)
+        delay = max(deadline - self._now(), 0.0)
+        self._timers[name] = loop.call_later(delay, self._lapsed, name, lease)
 
     def _end(self, name: str) -> None:
-        self._deadlines.pop(name, None)
+        self._leases.pop(name, None)
         timer = self._timers.pop(name, None)
         if timer is not None:
             timer.cancel()
@@ -94,7 +120,7 @@ class Leases:
             )
             event: dict[str, Any] = {"event": "lease_lapsed", "what": name, "lease": lease}
             try:
-                reply = await self._send(name, {HELD_BY[name]: False})
+                reply = await self._send(name, {HELD_BY[name]: False}, dict(self._leases))
             except CommandError as exc:
                 log.error("letting go of the lapsed %s failed: %s", WHAT[name], exc)
                 event["error"] = {"code": exc.code, "reason": exc.reason}

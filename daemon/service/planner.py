@@ -37,7 +37,7 @@ from daemon.config import DaemonConfig
 from daemon.service.api import CommandError, rejection
 from daemon.service.calibration_state import OffsetStore
 from daemon.service.identify_payload import identify_payload
-from daemon.service.lease import HELD_BY, Leases
+from daemon.service.lease import HELD_BY, Kept, Leases
 from daemon.service.safety import SafetyState
 
 PLANNING_LEAD = 0.05  # s ahead of now a planned transition begins (planning takes time)
@@ -66,6 +66,13 @@ class CoreLink(Protocol):
     def command(self, name: str, args: dict[str, Any]) -> Awaitable[dict[str, Any]]:
         """Run a core command (enable, disable, brake, reset, status): its reply body,
         or CommandError."""
+        ...
+
+    def command_keeping(
+        self, name: str, args: dict[str, Any], leases: Kept
+    ) -> Awaitable[dict[str, Any]]:
+        """Run the core command `name` (payload, observer) and, if the core takes it, have
+        it keep `leases` for a companion that starts later (daemon.service.lease)."""
         ...
 
     async def reference_at(self, t: float) -> tuple[Reference, int]:
@@ -114,7 +121,7 @@ class Planner:
         link.subscribe(self.store.on_event)
         # the payload freeze's and the observer hold's leases, timed here, not in the cycle
         self._sinks: list[EventSink] = []
-        self.leases = Leases(link.command, self._emit)
+        self.leases = Leases(link.command_keeping, self._emit, link.now)
 
     # -- DaemonHandler --------------------------------------------------------------------
 
@@ -205,7 +212,8 @@ class Planner:
 
     async def _hold(self) -> dict[str, Any]:
         """To rest about where the current motion would stop under full deceleration;
-        never refused for want of time (it tries again with longer leads)."""
+        never refused for want of time (it tries again with longer leads).  The reply is
+        the status, as `status` has it (with the leases)."""
         self._require_moving("hold")
         limits = self.config.trajectory
 
@@ -221,7 +229,7 @@ class Planner:
         await self._plan_and_follow(
             stop, "hold", lead=HOLD_LEAD, validate="none", attempts=HOLD_ATTEMPTS
         )
-        return await self.link.command("status", {})
+        return await self._status()
 
     async def _status(self) -> dict[str, Any]:
         """The core's status and the leases' time left (the published state has both)."""
@@ -345,6 +353,11 @@ class LocalLink:
     async def command(self, name: str, args: dict[str, Any]) -> dict[str, Any]:
         result = self.service.command(name, args)
         return (await result) if isinstance(result, Awaitable) else result
+
+    async def command_keeping(
+        self, name: str, args: dict[str, Any], leases: Kept
+    ) -> dict[str, Any]:
+        return await self.command(name, args)  # one process: no later companion to keep them for
 
     async def reference_at(self, t: float) -> tuple[Reference, int]:
         return self.service.reference_at(t)

@@ -8,11 +8,14 @@ logging the platform's TRUE pose (--truth-log), and `cdprd run` driving it.
   starts a new one, which reports the brake;
 - the core killed: the drives' watchdogs hold the platform, the companion exits on its
   own, and a new daemon (what systemd would restart) comes up held, naming the drives'
-  watchdog faults, and a reset makes it IDLE, all without moving the platform.
+  watchdog faults, and a reset makes it IDLE, all without moving the platform;
+- the companion killed while the observer is held on a lease: the new one lets go
+  when the time the lease had left runs out, or at once if it ran out meanwhile.
 """
 
 from __future__ import annotations
 
+import contextlib
 import signal
 import subprocess
 import time
@@ -24,6 +27,7 @@ import numpy as np
 import psutil
 import pytest
 
+from daemon.interface.client import CdprClient
 from tests.loopback import free_port
 from tests.processes import (
     connect,
@@ -179,3 +183,74 @@ def test_a_killed_core_leaves_the_drives_holding_and_a_restart_comes_up_held(
     assert status["fault"] is None, status
     assert [d["state"] for d in status["drives"]] == ["holding"] * 8, status
     assert moved_restart < ALLOWED, f"the platform moved {moved_restart * 1e3:.2f} mm"
+
+
+RESTART_LEASE = 20.0  # s: outlasts a companion's restart (seconds) on a loaded host
+
+
+def _let_go(client: CdprClient, bound: float) -> dict:
+    """The status once the observer is back in the loop (AssertionError after `bound` s)."""
+    end = time.monotonic() + bound
+    while client.observer()["held"]:
+        assert time.monotonic() < end, f"still held: {client.status()['leases']}"
+        time.sleep(0.1)
+    return client.status()
+
+
+def test_a_restarted_companion_lets_go_within_the_lease_left(tmp_path: Path) -> None:
+    """The observer held on a lease, the companion killed (kill -9): the new one shows the
+    lease again with less time left than before the kill, and lets go when it runs out
+    (warning); the robot keeps holding."""
+    with rig(tmp_path) as r:
+        daemon = r.start_daemon("daemon")
+        try:
+            r.holding(daemon)
+            with connect(r.zenoh, daemon) as client:
+                assert client.observer(True, lease=RESTART_LEASE)["held"] is True
+                before = client.status()["leases"]["observer"]
+            first = companion_of(daemon)
+            psutil.Process(first).kill()
+            companion_of(daemon, not_pid=first)
+            with connect(r.zenoh, daemon) as client:
+                held = client.observer()["held"]
+                restarted = client.status()  # the new companion's
+                released = _let_go(client, 3 * RESTART_LEASE)
+        finally:
+            finish(daemon)
+    assert held is True
+    assert 0.0 < restarted["leases"]["observer"] < before <= RESTART_LEASE, (before, restarted)
+    assert restarted["leases"]["payload"] is None
+    assert released["leases"] == {"payload": None, "observer": None}, released
+    assert released["state"] == "hold" and released["fault"] is None, released
+    log = r.log("daemon")
+    assert "the companion exited with code -9: restarting it" in log, log
+    assert "the external wrench observer's hold runs on" in log, log
+    assert "hold lapsed: not renewed within its lease of 20 s" in log, log
+
+
+def test_a_lease_that_ran_out_while_the_companion_was_down_lapses_at_once(
+    tmp_path: Path,
+) -> None:
+    """The observer held on a 0.5 s lease, the companion stopped (SIGSTOP: it cannot let
+    go) for longer than that, then killed: the new one lets go as it starts."""
+    with rig(tmp_path) as r:
+        daemon = r.start_daemon("daemon")
+        try:
+            r.holding(daemon)
+            with connect(r.zenoh, daemon) as client:
+                assert client.observer(True, lease=0.5)["held"] is True
+            first = psutil.Process(companion_of(daemon))
+            first.send_signal(signal.SIGSTOP)
+            time.sleep(1.0)  # the lease runs out with no companion to time it
+            with contextlib.suppress(psutil.NoSuchProcess):  # the core killed it (silent)
+                first.kill()
+            companion_of(daemon, not_pid=first.pid)
+            with connect(r.zenoh, daemon) as client:
+                released = _let_go(client, 10.0)
+        finally:
+            finish(daemon)
+    assert released["leases"] == {"payload": None, "observer": None}, released
+    assert released["state"] == "hold" and released["fault"] is None, released
+    log = r.log("daemon")
+    assert "hold runs on: 0 s left of its lease of 0.5 s" in log, log
+    assert "hold lapsed: not renewed within its lease of 0.5 s" in log, log

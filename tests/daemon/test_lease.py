@@ -93,6 +93,23 @@ def test_renewals_keep_the_hold_and_a_hold_without_a_lease_stays() -> None:
     asyncio.run(asyncio.wait_for(scenario(), 60))
 
 
+def test_the_hold_reply_carries_the_leases_as_the_status_does() -> None:
+    """`hold` replies with the status: the leases' time left included, as `status` has it."""
+
+    async def scenario() -> None:
+        async with Stack(config_for("cia402")) as stack:
+            planner = stack.planner
+            await _enabled(stack)
+            await planner.command("observer", {"held": True, "lease": 30.0})
+            reply = await planner.command("hold", {})
+            status = await planner.command("status", {})
+            assert reply.keys() == status.keys()
+            assert reply["leases"]["payload"] is None
+            assert 0.0 < status["leases"]["observer"] <= reply["leases"]["observer"] <= 30.0
+
+    asyncio.run(asyncio.wait_for(scenario(), 60))
+
+
 @pytest.mark.parametrize(
     ("name", "body", "message"),
     [
