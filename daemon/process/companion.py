@@ -28,8 +28,9 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
 
 from daemon.config import DaemonConfig
+from daemon.process import wire
 from daemon.process.app import ignore_stop_signals
-from daemon.process.companion_link import RemoteLink, greeted
+from daemon.process.companion_link import OtherCodeError, RemoteLink, greeted
 from daemon.process.cycle_rows import Throttle, records
 from daemon.process.logsetup import configure_logging
 from daemon.process.ordinary import drop_inherited_realtime
@@ -62,6 +63,9 @@ def main(argv: list[str] | None = None) -> int:
     except OSError as exc:
         print(f"error: companion: no hello from the core: {exc}", file=sys.stderr)
         return 1
+    except OtherCodeError as exc:
+        print(f"error: companion: {exc}", file=sys.stderr)
+        return wire.OTHER_CODE
     configure_logging(level)
     return asyncio.run(run(config, link))
 

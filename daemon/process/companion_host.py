@@ -6,7 +6,8 @@ This module, in the core:
 
 - spawns the companion (`python -m daemon.process.companion FD RING`) with one end of a
   SOCK_SEQPACKET pair (daemon.process.wire) and the shared curve ring
-  (daemon.process.curve_ring), and says hello (the config, the core's clock origin,
+  (daemon.process.curve_ring), and says hello (after its code's fingerprint: a companion
+  of other code stops the daemon; then the config, the core's clock origin,
   the ring's ranges still in use, the leases the last companion had it keep:
   daemon.service.lease);
 - serves its calls in the cycle's slack: core commands, the reference at a time, and
@@ -98,6 +99,7 @@ class CompanionHost:
         self.ring = CurveRing.create()
         self._in_ring: dict[int, int] = {}  # offset -> bytes of the curves the core holds
         self._leases: Kept = {}  # the companion's, kept for the next one (plain data)
+        self._code = wire.code_fingerprint()  # read now, while the installation is this one
         recording = config.recording
         if recording.telemetry:
             service.cycle_listeners.append(self._record_cycle)
@@ -188,7 +190,7 @@ class CompanionHost:
         in_use = list(self._in_ring.items())
         state = self.service.state()
         hello = ("hello", self.config, self.service.t0, state, level, in_use, self._leases)
-        if not wire.send(sock, hello):
+        if not (wire.send(sock, ("code", self._code)) and wire.send(sock, hello)):
             log.error("the companion did not take its hello")
 
     def _disconnect(self) -> None:
@@ -239,13 +241,19 @@ class CompanionHost:
         self._disconnect()
         self._process = None
         self.ready.clear()
-        if not self._ever_ready and code not in (0, -9):
-            # it never came up: the same error again on restart (a port in use, ...);
-            # it said why on stderr (one line), and the daemon stops with its exit code
+        other_code = code == wire.OTHER_CODE
+        if other_code or (not self._ever_ready and code not in (0, -9)):
+            # it never came up, or runs other code than this process (an upgrade under the
+            # running service): the same again on restart; it said why on stderr (one
+            # line), and the daemon stops with its exit code (systemd starts it again,
+            # on the installed code, in IDLE)
+            if other_code:
+                log.error("the installed cdprd changed under the running service: stopping")
             log.debug("the companion could not start (exit code %d): stopping", code)
             self.exit_code = code if code > 0 else 1
             if self.service.running:
-                self.service.stop(Trigger.SIGTERM, exit_code=self.exit_code)
+                trigger = Trigger.COMPANION_LOST if other_code else Trigger.SIGTERM
+                self.service.stop(trigger, exit_code=self.exit_code)
             return
         pause = RESTART_PAUSES[min(self._deaths, len(RESTART_PAUSES) - 1)]
         self._deaths += 1

@@ -40,8 +40,15 @@ def greeted(
 ) -> tuple[DaemonConfig, str, RemoteLink]:
     """Wait (blocking, at most `timeout` s) for the core's hello on `sock`: the config,
     the log level and the link (the shared ring on `ring_fd`, the ranges the core still
-    uses reserved; the leases it kept from the last companion).  OSError if none comes."""
+    uses reserved; the leases it kept from the last companion).  OSError if none comes,
+    OtherCodeError if the core's code is not this process's (checked first)."""
     sock.settimeout(timeout)
+    kind, code = pickle.loads(sock.recv(wire.MAX_MESSAGE))
+    if kind != "code" or code != wire.code_fingerprint():
+        raise OtherCodeError(
+            f"this companion's code ({wire.code_fingerprint()}) is not the core's ({code}): "
+            "the installed cdprd changed after the service started; restart it"
+        )
     hello = pickle.loads(sock.recv(wire.MAX_MESSAGE))
     kind, config, t0, state, level, in_use, leases = hello
     if kind != "hello":
@@ -49,6 +56,10 @@ def greeted(
     ring = CurveRing.attach(ring_fd)
     ring.reserve(in_use)
     return config, level, RemoteLink(sock, ring, t0, state, leases)
+
+
+class OtherCodeError(Exception):
+    """The core runs other code than this companion (wire.code_fingerprint)."""
 
 
 class RemoteLink:

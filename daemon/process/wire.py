@@ -5,17 +5,46 @@ two processes of one daemon, never from the network).  A planned trajectory's cu
 does not travel here: it lies in the shared ring (daemon.process.curve_ring) and the
 message names where.  The core's end is non-blocking and the core never waits on it: a
 message that does not fit in the socket's buffer is dropped and counted.
+
+Both ends must run the same code: the messages carry its classes (the config, references,
+curves' headers).  A package upgraded under a running service breaks that for the next
+companion the core starts, which imports the new code: so the core's first message is its
+`code_fingerprint()` (builtins only, readable by any version), checked before the hello.
 """
 
 from __future__ import annotations
 
+import functools
+import hashlib
+import importlib.util
 import pickle
 import socket
+from pathlib import Path
 
 from daemon.service.api import CommandError
 
 BUFFER_BYTES = 1 << 20  # each direction's socket buffer
 MAX_MESSAGE = 256 * 1024  # a datagram larger than this is a bug (trajectories go by the ring)
+PACKAGES = ("cdpr", "daemon", "drivers", "sim_bus", "tuning")  # the project's (pyproject)
+OTHER_CODE = 3  # the companion's exit code when its code is not the core's
+
+
+@functools.cache
+def code_fingerprint() -> str:
+    """A digest of the project's Python sources as installed now (each package's files,
+    by their paths inside it, and contents): equal in the core and its companion unless
+    the installation changed between their starts.  A few milliseconds, once."""
+    digest = hashlib.blake2b(digest_size=12)
+    for name in PACKAGES:
+        spec = importlib.util.find_spec(name)
+        digest.update(name.encode())
+        if spec is None or not spec.submodule_search_locations:
+            continue
+        root = Path(next(iter(spec.submodule_search_locations)))
+        for path in sorted(root.rglob("*.py")):
+            digest.update(path.relative_to(root).as_posix().encode())
+            digest.update(path.read_bytes())
+    return digest.hexdigest()
 
 
 def socket_pair() -> tuple[socket.socket, socket.socket]:

@@ -10,14 +10,19 @@ logging the platform's TRUE pose (--truth-log), and `cdprd run` driving it.
   own, and a new daemon (what systemd would restart) comes up held, naming the drives'
   watchdog faults, and a reset makes it IDLE, all without moving the platform;
 - the companion killed while the observer is held on a lease: the new one lets go
-  when the time the lease had left runs out, or at once if it ran out meanwhile.
+  when the time the lease had left runs out, or at once if it ran out meanwhile;
+- the installed code changed under the running daemon (an upgrade): the companion the
+  core starts next runs other code, says so, and the daemon brakes and exits (3) for
+  systemd to start it again on the new code.
 """
 
 from __future__ import annotations
 
 import contextlib
+import shutil
 import signal
 import subprocess
+import sys
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -28,8 +33,10 @@ import psutil
 import pytest
 
 from daemon.interface.client import CdprClient
+from daemon.process import wire
 from tests.loopback import free_port
 from tests.processes import (
+    ROOT,
     connect,
     daemon_config,
     finish,
@@ -254,3 +261,37 @@ def test_a_lease_that_ran_out_while_the_companion_was_down_lapses_at_once(
     log = r.log("daemon")
     assert "hold runs on: 0 s left of its lease of 0.5 s" in log, log
     assert "hold lapsed: not renewed within its lease of 0.5 s" in log, log
+
+
+def test_code_upgraded_under_the_running_daemon_stops_it_when_the_companion_restarts(
+    tmp_path: Path,
+) -> None:
+    """`cdprd run --sim` from a copy of the packages; while it holds, a source file of
+    the copy changes (as `pip install -U` would) and the companion is killed: the new
+    companion imports the changed code, refuses the core's hello naming both
+    fingerprints, and the core brakes and exits with wire.OTHER_CODE."""
+    tree = tmp_path / "installed"
+    for name in (*wire.PACKAGES, "config"):  # config/can: the drives' EDS
+        shutil.copytree(ROOT / name, tree / name, ignore=shutil.ignore_patterns("__pycache__"))
+    zenoh = free_port()
+    config, _data = simulator_configs(tmp_path, zenoh)
+    log = tmp_path / "daemon.log"
+    argv = [sys.executable, "-m", "daemon.cli", "run", "--sim", "--config", str(config)]
+    with log.open("w") as out:
+        daemon = subprocess.Popen(argv, cwd=tree, stdout=out, stderr=subprocess.STDOUT)
+    try:
+        with connect(zenoh, daemon) as client:
+            wait_status(client, "idle", 10.0)
+            client.enable()
+            wait_status(client, "hold", 5.0)
+        first = companion_of(daemon)
+        with (tree / "daemon" / "process" / "wire.py").open("a") as source:
+            source.write("# upgraded\n")
+        psutil.Process(first).kill()
+        assert daemon.wait(timeout=60) == wire.OTHER_CODE
+    finally:
+        finish(daemon)
+    text = log.read_text()
+    assert "is not the core's" in text and "restart it" in text
+    assert "the installed cdprd changed under the running service: stopping" in text
+    assert "BRAKE [companion_lost]" in text

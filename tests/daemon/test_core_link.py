@@ -16,7 +16,7 @@ import pytest
 from cdpr import Pose
 from daemon.process import wire
 from daemon.process.companion_host import MAX_BATCH, CompanionHost
-from daemon.process.companion_link import RemoteLink, greeted
+from daemon.process.companion_link import OtherCodeError, RemoteLink, greeted
 from daemon.process.curve_ring import CurveRing
 from daemon.service.api import CommandError
 from daemon.service.planner import Planner
@@ -42,6 +42,19 @@ async def linked(
         finally:
             link.close()
             await host.close()
+
+
+def test_a_companion_of_other_code_refuses_the_hello_before_reading_it() -> None:
+    """The core's code fingerprint comes first, in builtins any version reads: a
+    different one is refused naming both, and what follows (a hello this code might not
+    unpickle: here, bytes that are no pickle) is never read."""
+    core_end, companion_end = wire.socket_pair()
+    with core_end, companion_end:
+        assert wire.send(core_end, ("code", "0" * 24))
+        core_end.send(b"not a pickle")
+        named = rf"code \({wire.code_fingerprint()}\) is not the core's \(0{{24}}\)"
+        with pytest.raises(OtherCodeError, match=named):
+            greeted(companion_end, -1, 1.0)
 
 
 def _target(stack: Stack, dx: float) -> Pose:
