@@ -121,16 +121,25 @@ def predicted_mode(loop: LoopModes) -> PredictedMode:
     )
 
 
-def rig_for(robot: Robot, spec: ControllerSpec, config: PlantConfig | None = None) -> Rig:
+def rig_for(
+    robot: Robot,
+    spec: ControllerSpec,
+    config: PlantConfig | None = None,
+    force_lag: float | None = None,
+) -> Rig:
     """The rig for `robot` under `spec`'s gains and period; `config` (default: the
     simulator's, with the robot's cable stiffness when it declares one) sets the
-    actuator model, cable and encoders."""
+    actuator model, cable and encoders; `force_lag` (s: a daemon's drives.force_lag)
+    replaces the actuator model's first-order lag."""
     actuator = robot.actuators[0]
     if config is None:
         config = PlantConfig()
         if actuator.cable_stiffness is not None:
             cable = CableConfig(stiffness=actuator.cable_stiffness, damping=config.cable.damping)
             config = config.model_copy(update={"cable": cable})
+    if force_lag is not None:
+        model = config.actuator.model_copy(update={"c": [force_lag]})
+        config = config.model_copy(update={"actuator": model})
     tensions = static_tensions(robot, tension_solver(robot, spec), robot.home)
     return Rig(
         actuator,
@@ -270,16 +279,30 @@ def robustness(rig: Rig, sweep_end: float = SWEEP_END, points: int = 60) -> Robu
     """Sweep the rig's effective mass from m0 to `sweep_end`; bisect the first loss of
     stability to 0.1 %."""
     sweep = rig.sweep(sweep_end, points)
-    first_unstable = next((k for k, loop in enumerate(sweep) if not loop.stable), None)
+    edge, to_end = stable_range(rig, sweep_end, points, [loop.stable for loop in sweep])
+    return Robustness(tuple(sweep), edge, to_end)
+
+
+def stable_range(
+    rig: Rig, sweep_end: float = SWEEP_END, points: int = 60, verdicts: list[bool] | None = None
+) -> tuple[float | None, bool]:
+    """Robustness's edge without its sweep's step responses (the daemon's check): the
+    largest mass m such that the rig is stable at every log-spaced mass from m0 up to m
+    (the first loss bisected to 0.1 %; None: m0 is not), and whether that is the sweep's
+    end.  `verdicts`: the sweep's stability when known, else rig.stable up to the first
+    unstable mass."""
+    masses = np.geomspace(rig.actuator.m0, sweep_end, points)
+    stable = iter(verdicts) if verdicts is not None else (rig.stable(float(m)) for m in masses)
+    first_unstable = next((k for k, ok in enumerate(stable) if not ok), None)
     if first_unstable is None:
-        return Robustness(tuple(sweep), sweep[-1].mass, True)
+        return float(masses[-1]), True
     if first_unstable == 0:
-        return Robustness(tuple(sweep), None, False)
-    lo, hi = sweep[first_unstable - 1].mass, sweep[first_unstable].mass
+        return None, False
+    lo, hi = float(masses[first_unstable - 1]), float(masses[first_unstable])
     while hi / lo > 1.001:
         mid = math.sqrt(lo * hi)
         lo, hi = (mid, hi) if rig.stable(mid) else (lo, mid)
-    return Robustness(tuple(sweep), lo, False)
+    return lo, False
 
 
 class LatencyTolerance(NamedTuple):

@@ -17,18 +17,18 @@ from sim_bus.bus.cycle_frames import bus_cycles
 def check_config(path: str) -> int:
     """Validate a daemon config (or a bare robot description) and print a readable
     summary; 0 if it is sound, 1 with each problem named (`error: FILE: KEY: problem`)
-    if not.  A daemon config passes only if `run` would take it and the simulator of
-    `run --sim` can be built from it."""
+    if not.  A daemon config passes only if `run` would take it (its gains stable:
+    gain_check) and the simulator of `run --sim` can be built from it."""
     try:
         data = load_yaml(path)
         if isinstance(data, dict) and "drives" in data:
             from daemon.cli.simulated import sim_section, simulated_robot
 
-            config = run_cmd.load_checked(path)
+            config, gains = run_cmd.load_for_run(path)
             simulated_robot(config, sim_section(config))
             robot = config.robot
         else:
-            config, robot = None, Robot.from_yaml(path)
+            config, gains, robot = None, None, Robot.from_yaml(path)
     except ConfigError as exc:
         run_cmd.report(exc)
         return 1
@@ -79,6 +79,8 @@ def check_config(path: str) -> int:
             f"controller: {config.controller.rate_hz:g} Hz, model at {config.controller.model_at}; "
             f"home pose in W: yes"
         )
+        if gains is not None:
+            print(gains.summary())
         prefix = config.zenoh.key_prefix(robot.name)
         listen = ", ".join(config.zenoh.listen_endpoints)
         print(f"zenoh: prefix {prefix}, listening on {listen}")

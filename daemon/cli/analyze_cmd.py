@@ -40,6 +40,7 @@ from cdpr import ConfigError, Robot
 from cdpr.control_spec import DEFAULT_PID, ControllerSpec, parse_controller
 from cdpr.controller import static_tensions, tension_solver
 from cdpr.description import load_yaml
+from daemon.cli.gain_check import law
 from daemon.cli.run_cmd import report
 
 if TYPE_CHECKING:
@@ -108,7 +109,7 @@ def _text_lines(a: Analysis, plots: list[str]) -> list[str]:
     spec, rig, grid, rob = a.spec, a.rig, a.grid, a.robustness
     act = rig.actuator
     lines = [
-        f"robot {a.robot}: controller {_law(spec)} at {spec.rate_hz:g} Hz "
+        f"robot {a.robot}: controller {law(spec)} at {spec.rate_hz:g} Hz "
         f"(model_at {spec.model_at})",
         f"rig: m0 {act.m0:g} kg, k0 {act.k0:g} N s/m, cable {rig.cable_length:.3f} m "
         f"(EA {rig.config.cable.stiffness:g} N), preload {rig.preload:.0f} N",
@@ -197,15 +198,6 @@ def _mode_table(p: PoseAnalysis) -> list[str]:
             f"{100 * m.overshoot:11.1f}  {k:13.4g}{'' if m.stable else '  UNSTABLE'}"
         )
     return rows
-
-
-def _law(spec: ControllerSpec) -> str:
-    if spec.state_space is not None:
-        return f"state-space ({len(spec.state_space.A)} states)"
-    gains = spec.pid or DEFAULT_PID
-    return f"pid kp {gains.kp:g} ki {gains.ki:g} kd {gains.kd:g}" + (
-        f" filter {gains.derivative_filter:g} s" if gains.derivative_filter else ""
-    )
 
 
 def _masses(masses: np.ndarray) -> str:

@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from cdpr import ConfigError
+from daemon.cli.gain_check import GainCheck, stable_gains
 from daemon.config import DaemonConfig, load_config
 from daemon.process.app import close_bus, open_bus, serve
 from daemon.process.logsetup import configure_logging
@@ -106,9 +107,19 @@ def load_checked(path: str, edit: Callable[[dict], None] | None = None) -> Daemo
     return config
 
 
+def load_for_run(
+    path: str, edit: Callable[[dict], None] | None = None
+) -> tuple[DaemonConfig, GainCheck]:
+    """load_checked, and the controller's gains stable for the home modal masses at the
+    configured rate (gain_check): what `run` and `check-config` refuse.  `tune` and
+    `calibrate` take any gains (tune is how one finds stable ones)."""
+    config = load_checked(path, edit)
+    return config, stable_gains(config)
+
+
 def load_or_exit(path: str, edit: Callable[[dict], None] | None = None) -> DaemonConfig:
     try:
-        return load_checked(path, edit)
+        return load_for_run(path, edit)[0]
     except ConfigError as exc:
         report(exc)
         raise SystemExit(1) from None

@@ -143,6 +143,18 @@ NAMED = {  # case: (file content, the problem each error line names after 'error
         "robot: /dev/zero: cannot read: a device, pipe or socket, not a regular file",
     ),
     "a file over 1 MiB": (example() + "#" * (1 << 20) + "\n", "cannot read: longer than"),
+    "a kd too high for a home mode": (  # unstable with no command delay at all
+        example(("kd: 20.0", "kd: 200.0")),
+        "controller: mode 4 at home (modal mass 5.88 kg) is unstable at 500 Hz with pid kp 100 "
+        "ki 50 kd 200 and drives.force_lag 2 ms: the single-actuator loop is stable for "
+        "masses up to 5.47 kg only; change the gains",
+    ),
+    "the 500 Hz gains at 100 Hz": (  # stable only while commands act within 3.96 ms
+        example(("rate_hz: 500", "rate_hz: 100"), ("timeout: 0.05", "timeout: 0.02")),
+        "controller: mode 6 at home (modal mass 9.49 kg) goes unstable at 100 Hz with pid kp "
+        "100 ki 50 kd 20 and drives.force_lag 2 ms when commands act 3.96 ms after their "
+        "sample; the daemon's commands act up to 5 ms after it",
+    ),
 }
 
 
@@ -194,7 +206,7 @@ def test_run_refuses_what_check_config_refuses_with_the_same_lines(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     cases = ["not UTF-8", "an unknown sim key", "rate_hz: 8:20", "an ODrive robot without brakes"]
-    cases.append("a plant mismatch of the wrong size")
+    cases += ["a plant mismatch of the wrong size", "the 500 Hz gains at 100 Hz"]
     runs = []
     for i, case in enumerate(cases):
         content = NAMED[case][0]
