@@ -40,6 +40,7 @@ from daemon.service.identify_payload import identify_payload
 from daemon.service.lease import HELD_BY, Kept, Leases
 from daemon.service.safety import SafetyState
 
+STATUS_REPLIES = ("status", "enable", "disable", "brake", "reset")  # the core replies its status
 PLANNING_LEAD = 0.05  # s ahead of now a planned transition begins (planning takes time)
 HOLD_LEAD = 0.01  # the same for a hold: a stop plans in a few ms and should not wait
 MIN_LEAD = 0.005  # s: the least lead tried again after a plan came too late
@@ -137,8 +138,8 @@ class Planner:
             return self._home(name, args)
         if name in HELD_BY:
             return self.leases.command(name, args)
-        if name == "status":
-            return self._status()
+        if name in STATUS_REPLIES:
+            return self._status(name, args)
         return self.link.command(name, args)
 
     async def slack(self) -> None:
@@ -231,9 +232,13 @@ class Planner:
         )
         return await self._status()
 
-    async def _status(self) -> dict[str, Any]:
-        """The core's status and the leases' time left (the published state has both)."""
-        return {**await self.link.command("status", {}), "leases": self.leases.remaining()}
+    async def _status(
+        self, name: str = "status", args: dict[str, Any] | None = None
+    ) -> dict[str, Any]:
+        """The core's reply to `name` (one of STATUS_REPLIES: its status after the
+        command) and the leases' time left (the published state has both)."""
+        reply = await self.link.command(name, {} if args is None else args)
+        return {**reply, "leases": self.leases.remaining()}
 
     async def _home(self, name: str, args: dict[str, Any]) -> dict[str, Any]:
         """The core homes (home, or pretension at its end) and applies the offsets;

@@ -93,19 +93,27 @@ def test_renewals_keep_the_hold_and_a_hold_without_a_lease_stays() -> None:
     asyncio.run(asyncio.wait_for(scenario(), 60))
 
 
-def test_the_hold_reply_carries_the_leases_as_the_status_does() -> None:
-    """`hold` replies with the status: the leases' time left included, as `status` has it."""
+def test_every_status_reply_carries_the_leases_as_the_status_does() -> None:
+    """`hold`, `disable`, `reset` and `enable` reply with the status: the leases' time
+    left included, as `status` has it."""
 
     async def scenario() -> None:
         async with Stack(config_for("cia402")) as stack:
             planner = stack.planner
             await _enabled(stack)
             await planner.command("observer", {"held": True, "lease": 30.0})
-            reply = await planner.command("hold", {})
+            replies = [await planner.command("hold", {})]
+            replies.append(await planner.command("disable", {}))
+            replies.append(await planner.command("brake", {}))
+            replies.append(await planner.command("reset", {}))
+            replies.append(await planner.command("enable", {}))
             status = await planner.command("status", {})
-            assert reply.keys() == status.keys()
-            assert reply["leases"]["payload"] is None
-            assert 0.0 < status["leases"]["observer"] <= reply["leases"]["observer"] <= 30.0
+            left = [reply["leases"]["observer"] for reply in replies]
+            for reply in replies:
+                assert reply.keys() == status.keys()
+                assert reply["leases"]["payload"] is None
+            assert 0.0 < status["leases"]["observer"] <= min(left) <= max(left) <= 30.0
+            assert left == sorted(left, reverse=True)
 
     asyncio.run(asyncio.wait_for(scenario(), 60))
 
