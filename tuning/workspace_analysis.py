@@ -383,9 +383,11 @@ def analyse(
     shrink: float = 0.5,
     config: PlantConfig | None = None,
     progress: Progress | None = None,
+    force_lag: float | None = None,
 ) -> Analysis:
-    """The whole analysis (see module docstring); `progress(done, total)` follows the grid."""
-    rig = rig_for(robot, spec, config)
+    """The whole analysis (see module docstring); `progress(done, total)` follows the grid;
+    `force_lag`: rig_for's (a daemon config's drives.force_lag)."""
+    rig = rig_for(robot, spec, config, force_lag)
     tension = tension_solver(robot, spec)
     home = analyse_pose(robot, rig, tension, robot.home)
     grid = workspace_grid(robot, rig, tension, points_per_axis, shrink, progress)

@@ -69,12 +69,14 @@ def run(args: argparse.Namespace) -> int:
     from tuning.workspace_analysis import analyse
 
     try:
-        robot, spec = load_config(args.config)
+        robot, spec, force_lag = load_config(args.config)
     except ConfigError as exc:
         report(exc)
         return 1
     show = args.progress or sys.stderr.isatty()
-    analysis = analyse(robot, spec, args.grid, args.shrink, progress=_bar() if show else None)
+    analysis = analyse(
+        robot, spec, args.grid, args.shrink, progress=_bar() if show else None, force_lag=force_lag
+    )
     try:
         plots = write_plots(analysis, Path(args.plot), robot, spec) if args.plot else []
     except OSError as exc:
@@ -87,14 +89,21 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def load_config(path: str | Path) -> tuple[Robot, ControllerSpec]:
-    """The robot and controller settings of a robot file or a daemon config."""
+def load_config(path: str | Path) -> tuple[Robot, ControllerSpec, float | None]:
+    """The robot and controller settings of a robot file or a daemon config, and the
+    drives' force lag (s) of a daemon config with a `drives:` section (then checked whole,
+    as `run` reads it; None: the simulator's actuator model's lag)."""
     path = Path(path)
     data = load_yaml(path)
     if not (isinstance(data, dict) and "robot" in data):
-        return Robot.from_dict(data, source=str(path)), ControllerSpec()
+        return Robot.from_dict(data, source=str(path)), ControllerSpec(), None
+    if "drives" in data:
+        from daemon.config import load_config as load_daemon_config
+
+        config = load_daemon_config(path)
+        return config.robot, config.controller, config.drives.force_lag
     loaded = Robot.from_reference(data["robot"], path.parent, source=str(path))
-    return loaded, parse_controller(data.get("controller"), source=str(path))
+    return loaded, parse_controller(data.get("controller"), source=str(path)), None
 
 
 # -- text ---------------------------------------------------------------------------
