@@ -249,7 +249,8 @@ class CompanionHost:
             # on the installed code, in IDLE)
             if other_code:
                 log.error("the installed cdprd changed under the running service: stopping")
-            log.debug("the companion could not start (exit code %d): stopping", code)
+            else:
+                log.debug("the companion could not start (exit code %d): stopping", code)
             self.exit_code = code if code > 0 else 1
             if self.service.running:
                 trigger = Trigger.COMPANION_LOST if other_code else Trigger.SIGTERM

@@ -22,7 +22,6 @@ import contextlib
 import shutil
 import signal
 import subprocess
-import sys
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -276,9 +275,7 @@ def test_code_upgraded_under_the_running_daemon_stops_it_when_the_companion_rest
     zenoh = free_port()
     config, _data = simulator_configs(tmp_path, zenoh)
     log = tmp_path / "daemon.log"
-    argv = [sys.executable, "-m", "daemon.cli", "run", "--sim", "--config", str(config)]
-    with log.open("w") as out:
-        daemon = subprocess.Popen(argv, cwd=tree, stdout=out, stderr=subprocess.STDOUT)
+    daemon = start_daemon(config, "--sim", log=log, cwd=tree)
     try:
         with connect(zenoh, daemon) as client:
             wait_status(client, "idle", 10.0)

@@ -94,8 +94,8 @@ def test_renewals_keep_the_hold_and_a_hold_without_a_lease_stays() -> None:
 
 
 def test_every_status_reply_carries_the_leases_as_the_status_does() -> None:
-    """`hold`, `disable`, `reset` and `enable` reply with the status: the leases' time
-    left included, as `status` has it."""
+    """`hold`, `disable`, `brake`, `reset` and `enable` reply with the status: the
+    leases' time left included, as `status` has it."""
 
     async def scenario() -> None:
         async with Stack(config_for("cia402")) as stack:
