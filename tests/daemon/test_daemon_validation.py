@@ -281,7 +281,10 @@ def test_a_trajectory_with_free_interior_velocities_is_flown_from_a_hold(start: 
             )
             assert np.any(trajectory.knot(1).twist)  # the free interior velocity
             reply = await stack.planner.submit_trajectory(trajectory, None)
-            assert reply["accepted"] and service.machine.state is SafetyState.TRACKING
+            assert reply["accepted"]
+            # TRACKING once the approach begins, PLANNING_LEAD after the submission (a reply
+            # may come before that)
+            await stack.until(lambda: service.machine.state is SafetyState.TRACKING, 1.0)
             await stack.until(lambda: service.machine.state is SafetyState.HOLD, 6.0)
             assert service.machine.fault is None
             assert [e["event"] for e in stack.events][-1] == "trajectory_done"
