@@ -20,7 +20,9 @@ robot's response
 to a 50 N horizontal push (`disturbance`: peak error, 2 % settling time, the error left
 after 20 s, whether the peak exceeds the daemon's default tracking-error bound, and
 `braked`: that, or a controller fault; with the external wrench observer as configured,
-and under `observer_off` without it).
+and under `observer_off` without it), and to the same push ending after 0.5 s
+(`disturbance_release`: the push's peak, the rebound the other way once it ends, and
+the 2 % settling time from the release; tuning.disturbance.release_response).
 
     python bench/controller.py [--json] [--calls N] [--skip-tracking]
 """
@@ -40,7 +42,7 @@ from cdpr.controller import ParallelController
 from daemon.config import SafetyConfig
 from tuning.comparison import inertia_figures, payload_figures
 from tuning.comparison import standard_set_figures as tracking
-from tuning.disturbance import step_response
+from tuning.disturbance import release_response, step_response
 from tuning.scenarios import STANDARD_SET
 from tuning.tracking import run_tracking
 
@@ -103,6 +105,19 @@ def push_figures(robot: Robot, spec: ControllerSpec) -> dict[str, float | bool |
     }
 
 
+def release_figures(robot: Robot, spec: ControllerSpec) -> dict[str, float | str]:
+    """The 50 N push from 0.5 s to 1.0 s, then let go (tuning.disturbance)."""
+    f = release_response(robot, spec, wrench=(50.0, 0.0, 0.0, 0.0, 0.0, 0.0), end=1.0)
+    return {
+        "push_n": 50.0,
+        "push_s": 0.5,
+        "peak_mm": round(f.peak_mm, 3),
+        "rebound_mm": round(f.rebound_mm, 3),
+        "settle_s": round(f.settle_s, 3),
+        "fault": f.fault,
+    }
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--json", action="store_true", help="print one JSON object")
@@ -127,6 +142,7 @@ def main(argv: list[str] | None = None) -> int:
         results["tracking"] = tracking_with_payload(robot, spec)
         results["command_lead_s"] = ParallelController(robot, spec).lead
         results["disturbance"] = disturbance(robot, spec)
+        results["disturbance_release"] = release_figures(robot, spec)
         results["inertia"] = inertia_figures(robot, spec)
     if args.json:
         print(json.dumps(results))
@@ -164,6 +180,11 @@ def main(argv: list[str] | None = None) -> int:
                 f"50 N push, {name}: peak {p['peak_mm']:.2f} mm  settle {p['settle_s']:.2f} s  "
                 f"exceeds bound {p['exceeds_tracking_bound']}  braked {p['braked']}"
             )
+        r = results["disturbance_release"]
+        print(
+            f"50 N push for 0.5 s, then let go: peak {r['peak_mm']:.2f} mm  rebound "
+            f"{r['rebound_mm']:.2f} mm  settle {r['settle_s']:.2f} s from the release"
+        )
     return 0
 
 

@@ -29,7 +29,7 @@ counters; and what the flooder sent and got back.  Mixes (what the puts are):
     python bench/flood.py [--json] [--seconds 5] [--rate 2000] [--mix refused] [--limit HZ]
 
 --limit sets zenoh.ingress_limits_hz to HZ for `trajectory` and `cmd/*`: zenoh then
-drops what comes faster before the daemon sees it (docs/zenoh.md, "Flow control").
+drops what comes faster before the daemon sees it (docs/reference/zenoh-api.md, "Flow control").
 
 The default mix, "refused", measures the interface's own costs.  With "valid", "large"
 or "all" the service also accepts trajectories while the robot moves: their validation

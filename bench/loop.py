@@ -10,9 +10,14 @@ Per rate: compute time of a cycle (controller + safety + encode + send), the
 controller's work done ahead while the feedback is on its way (prepare), latency from
 the last feedback frame of a cycle (or its tick, when streamed ODrive feedback was
 complete before it) to the last command frame sent, deadline misses + overruns per 10^4
-cycles, the core process's CPU share (daemon and simulator together: they share the
-loop), and `braked` (1 if the robot braked during the measurement) with `fault`, its
-trigger and message.
+cycles, and `braked` (1 if the robot braked during the measurement) with `fault`, its
+trigger and message.  The in-process simulator shares the core's loop: its callbacks
+(plant steps, its drives' frames) are timed in CPU time and kept apart, so
+`core_cpu_fraction` is the core's share of a CPU alone (what a robot's computer pays;
+the loop's dispatch of the simulator's wake-ups stays in it),
+`simulator_cpu_fraction` the simulator's and `cpu_fraction` the process's, both
+together.  The compute and latency figures are the core's alone (no simulator callback
+runs inside a cycle).
 `timer_floor_misses_per_1e4` is the host's share, measured in the same conditions:
 overruns of a bare timerfd loop at the same priority and load that does nothing else
 (a vCPU not run for a few ms misses periods whatever runs on it).
@@ -41,7 +46,7 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
-from timing import free_endpoint
+from timing import SimulatorTime, free_endpoint
 
 from daemon.cli.simulated import InProcessSimulator
 from daemon.config import DaemonConfig, load_config
@@ -175,19 +180,25 @@ def measure(
             fresh = type(service.stats)(rate_hz)
             await asyncio.sleep(SETTLE)  # the robot settles, the load gets going
             service.stats = fresh
+            simulator.reset()
             cpu0, wall0 = time.process_time(), time.monotonic()
             await asyncio.sleep(seconds)
-            cpu = (time.process_time() - cpu0) / (time.monotonic() - wall0)
-            out.update(figures(service, rate_hz, cpu))
+            wall = time.monotonic() - wall0
+            cpu = (time.process_time() - cpu0) / wall
+            out.update(figures(service, rate_hz, cpu, simulator.seconds() / wall))
             busy.stop()
 
-        asyncio.run(InProcessSimulator(config).serve(after_start=hold_and_measure))
+        sim = InProcessSimulator(config)
+        simulator = SimulatorTime(sim.runner)
+        asyncio.run(sim.serve(after_start=hold_and_measure))
     if view:
         out["view_messages"] = viewed[0] if viewed else 0
     return out
 
 
-def figures(service: Service, rate_hz: float, cpu: float) -> dict[str, float]:
+def figures(service: Service, rate_hz: float, cpu: float, simulator: float) -> dict[str, float]:
+    """The service's cycle figures; `cpu` the process's share of a CPU, `simulator`
+    the in-process simulator's part of it."""
     stats = service.stats
     compute, latency = stats.compute.summary_us(), stats.latency.summary_us()
     prepare = stats.prepare.summary_us()
@@ -203,6 +214,8 @@ def figures(service: Service, rate_hz: float, cpu: float) -> dict[str, float]:
         "latency_p99_us": latency["p99_us"],
         "latency_max_us": latency["max_us"],
         "misses_per_1e4": round(1e4 * misses / max(stats.cycles, 1), 2),
+        "core_cpu_fraction": round(cpu - simulator, 3),
+        "simulator_cpu_fraction": round(simulator, 3),
         "cpu_fraction": round(cpu, 3),
         "braked": int(fault is not None),
         "fault": "" if fault is None else f"{fault.trigger.value}: {fault.message}",

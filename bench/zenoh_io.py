@@ -8,16 +8,23 @@ a planner with a plain zenoh client session on tcp/127.0.0.1.  It measures:
 - accept_latency: a 100-waypoint trajectory put on <prefix>/trajectory until its
   trajectory_accepted event arrives: the size check and copy in the child's zenoh
   thread, the hand-over to the loop, JSON decoding, schema check and spline build in the
-  interface's parse thread (which pauses every 0.2 ms for the loop: ~3x the bare ~7 ms),
+  interface's parse thread (which pauses every 0.2 ms for the loop),
   the handler on the loop, the event back.  Trials are --gap seconds apart, a planner's
   pace: back to back they would exceed the parse thread's CPU budget in a flood (a
   quarter of a core after half a second of parsing) and measure that limit instead;
 - accept_latency_query: the same trajectory sent as a get, until the reply;
+- large_accept: a --large-waypoint trajectory (10,000 by default, the default
+  max_waypoints) put until its trajectory_accepted event, --large-trials times 1 s apart
+  (median and max, s); and what it costs the child's loop meanwhile: a 1 kHz ticker on
+  the interface's loop, as a control cycle on that loop would run, counts the ticks
+  that came a whole period late or more ("missed_cycles", with "idle_missed_cycles" over
+  as long a time with nothing to parse: the host's own floor) and the longest lag;
 - state_jitter: |interval - period| between successive state publications, from the
   publication times the state messages carry (the child's clock: loop timing only);
 - state_arrival_jitter: the same from the times the parent receives them.
 
     python bench/zenoh_io.py [--json] [--trials N] [--gap S] [--seconds S] [--rate HZ]
+                             [--large N] [--large-trials N]
 """
 
 from __future__ import annotations
@@ -42,13 +49,46 @@ from daemon.interface.zenoh_io import ZenohInterface
 PREFIX = "cdpr/bench"
 
 
+TICK = 1e-3  # s: the loop ticker's period (a 1 kHz control cycle)
+
+
+class Ticker:
+    """A 1 kHz timer on the child's loop: how late each tick runs."""
+
+    def __init__(self) -> None:
+        self.missed = 0  # ticks a whole period late or more, since the last read
+        self.longest = 0.0  # s, the same
+
+    async def run(self) -> None:
+        loop = asyncio.get_running_loop()
+        due = loop.time()
+        while True:
+            due += TICK
+            await asyncio.sleep(max(0.0, due - loop.time()))
+            late = loop.time() - due
+            if late >= TICK:
+                self.missed += int(late / TICK)
+                due += TICK * int(late / TICK)  # as a cycle would: skip, do not catch up
+            self.longest = max(self.longest, late)
+
+    def read(self) -> dict[str, float]:
+        """The counts since the last read, and start again."""
+        out = {"missed_cycles": self.missed, "longest_lag_ms": round(self.longest * 1e3, 2)}
+        self.missed, self.longest = 0, 0.0
+        return out
+
+
 class StandIn:
-    """Accepts everything at once; a state snapshot the size of an 8-cable robot's."""
+    """Accepts everything at once; a state snapshot the size of an 8-cable robot's; the
+    status command reads the loop ticker."""
+
+    def __init__(self, ticker: Ticker) -> None:
+        self.ticker = ticker
 
     def command(self, name: str, args: dict[str, Any]) -> dict[str, Any]:
-        return {"state": "IDLE"}
+        return {"state": "IDLE", **self.ticker.read()}
 
-    def submit_trajectory(self, trajectory: Any, start: float | None) -> dict[str, Any]:
+    def submit_trajectory(self, trajectory: Any, start: float | None, claim: Any) -> dict[str, Any]:
         return {"accepted": True, "duration": trajectory.duration}
 
     async def slack(self) -> None:
@@ -77,8 +117,11 @@ def serve(endpoint: str, rate_hz: float) -> None:
 
     async def run() -> None:
         settings = ZenohSettings(listen=[endpoint], state_rate_hz=rate_hz)
-        async with ZenohInterface(settings, StandIn(), PREFIX):
+        ticker = Ticker()
+        ticking = asyncio.ensure_future(ticker.run())
+        async with ZenohInterface(settings, StandIn(ticker), PREFIX):
             await asyncio.get_running_loop().run_in_executor(None, sys.stdin.read)
+        ticking.cancel()
 
     asyncio.run(run())
 
@@ -123,8 +166,22 @@ def jitter(times: list[float], period: float) -> np.ndarray:
     return np.abs(np.diff(np.array(times)) - period) * 1e9
 
 
+def status(session: zenoh.Session) -> dict[str, Any]:
+    """The stand-in's status: the loop ticker's counts since the last status."""
+    replies = list(session.get(f"{PREFIX}/cmd/status", timeout=5.0))
+    if not (replies and replies[0].ok is not None):
+        raise SystemExit("no status reply")
+    return json.loads(replies[0].ok.payload.to_bytes())["result"]
+
+
 def measure(
-    endpoint: str, trials: int, gap: float, seconds: float, rate_hz: float
+    endpoint: str,
+    trials: int,
+    gap: float,
+    seconds: float,
+    rate_hz: float,
+    large: int,
+    large_trials: int,
 ) -> dict[str, Any]:
     body = trajectory_json()
     accepted: dict[str, float] = {}
@@ -165,6 +222,23 @@ def measure(
             if not (replies and replies[0].ok is not None):
                 raise SystemExit("a trajectory query was not accepted")
             time.sleep(gap)
+        large_s, missed, idle_missed, longest = [], 0, 0, 0.0
+        payload = json.dumps({**trajectory_json(large), "id": "large"})
+        for i in range(large_trials):
+            status(session)
+            time.sleep(1.0)
+            idle_missed += status(session)["missed_cycles"]  # the host's own floor
+            ident = f"large-{i}"
+            t0 = time.perf_counter()
+            publisher.put(payload.replace('"id": "large"', f'"id": "{ident}"'))
+            with arrived:
+                if not arrived.wait_for(lambda ident=ident: ident in accepted, timeout=60.0):
+                    raise SystemExit(f"no trajectory_accepted event for {ident}")
+            large_s.append(accepted[ident] - t0)
+            time.sleep(max(0.0, 1.0 - large_s[-1]))  # as long a window as the idle one
+            ticks = status(session)
+            missed += ticks["missed_cycles"]
+            longest = max(longest, ticks["longest_lag_ms"])
         events.undeclare()
         state = session.declare_subscriber(f"{PREFIX}/state", on_state)
         time.sleep(seconds)
@@ -173,6 +247,16 @@ def measure(
     return {
         "accept_latency": summary_us(put_ns),
         "accept_latency_query": summary_us(query_ns),
+        "large_accept": {
+            "waypoints": large,
+            "payload_bytes": len(payload),
+            "median_s": round(float(np.median(large_s)), 3),
+            "max_s": round(max(large_s), 3),
+            "missed_cycles": missed,
+            "idle_missed_cycles": idle_missed,
+            "longest_lag_ms": longest,
+            "trials": large_trials,
+        },
         "state_jitter": summary_us(jitter([s[0] for s in stamps], period)),
         "state_arrival_jitter": summary_us(jitter([s[1] for s in stamps], period)),
         "setup": {
@@ -194,6 +278,8 @@ def main() -> None:
     parser.add_argument("--gap", type=float, default=0.1, help="s between trajectories")
     parser.add_argument("--seconds", type=float, default=5.0, help="state sampling time")
     parser.add_argument("--rate", type=float, default=50.0, help="state rate (Hz)")
+    parser.add_argument("--large", type=int, default=10_000, help="waypoints of the long one")
+    parser.add_argument("--large-trials", type=int, default=3, help="long trajectories sent")
     parser.add_argument("--serve", metavar="ENDPOINT", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.serve:
@@ -205,7 +291,9 @@ def main() -> None:
         stdin=subprocess.PIPE,
     )
     try:
-        results = measure(endpoint, args.trials, args.gap, args.seconds, args.rate)
+        results = measure(
+            endpoint, args.trials, args.gap, args.seconds, args.rate, args.large, args.large_trials
+        )
     finally:
         child.stdin.close()
         child.wait(timeout=20)
@@ -213,6 +301,7 @@ def main() -> None:
         print(json.dumps(results))
     else:
         print(f"stand-in handler; setup: {results.pop('setup')}")
+        print(f"large_accept: {results.pop('large_accept')}")
         print_timings(results)
 
 

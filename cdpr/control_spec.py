@@ -104,18 +104,41 @@ class AdaptationSpec(StrictModel):
         return self
 
 
+DEFAULT_RELEASE_HZ = 16.0  # cdpr.wrench_observer: the release; 30 Hz rings up a wrong model
+
+
 class DisturbanceObserverSpec(StrictModel):
     """The external wrench observer (cdpr.wrench_observer): the wrench on the platform
     that the model does not explain, estimated from its motion, enters the model's bias
     wrench so the command cancels it; the gains never change.  bandwidth_hz: the
-    observer's first-order filter; force_max (N) / torque_max (N·m, about p): an estimate
-    beyond either is a fault (the daemon brakes: a collision, a stuck platform or a push
-    harder than a person leaning on it), never compensated."""
+    observer's first-order filter; release_hz: how fast an ending wrench is let go (the
+    estimate would otherwise outlive a push and the platform rebound: at least
+    bandwidth_hz; default 16 Hz, or bandwidth_hz if higher); force_max (N) / torque_max
+    (N·m, about p): an estimate beyond either is a fault (the daemon brakes: a
+    collision, a stuck platform or a push harder than a person leaning on it), never
+    compensated."""
 
     enabled: bool = True
     bandwidth_hz: Annotated[float, Field(gt=0.0, le=50.0)] = 4.0
+    release_hz: Annotated[float, Field(gt=0.0, le=50.0)] | None = None
     force_max: PositiveFloat = 100.0
     torque_max: PositiveFloat = 20.0
+
+    @property
+    def release(self) -> float:
+        """release_hz, by default DEFAULT_RELEASE_HZ or bandwidth_hz if that is higher."""
+        if self.release_hz is None:
+            return max(DEFAULT_RELEASE_HZ, self.bandwidth_hz)
+        return self.release_hz
+
+    @model_validator(mode="after")
+    def _release_not_slower(self) -> DisturbanceObserverSpec:
+        if self.release_hz is not None and self.release_hz < self.bandwidth_hz:
+            raise ValueError(
+                f"release_hz ({self.release_hz:g}) must be at least bandwidth_hz "
+                f"({self.bandwidth_hz:g})"
+            )
+        return self
 
 
 class ControllerSpec(StrictModel):

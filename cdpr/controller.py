@@ -161,7 +161,7 @@ class ParallelController:
             o = spec.disturbance_observer
             self.observer = WrenchObserver(
                 self.period, o.bandwidth_hz, o.force_max, o.torque_max,
-                max_delay=MAX_COMMAND_LEAD + self.period,
+                max_delay=MAX_COMMAND_LEAD + self.period, release_hz=o.release,
             )  # fmt: skip
         self.drive_lag = drive_lag
         self.lead = spec.lead(drive_lag)  # s: see set_latency
@@ -185,7 +185,7 @@ class ParallelController:
             self.payload.clear()
         if self.observer is not None:
             self.observer.clear()
-        self._observed: tuple[Array, Array, Array] | None = None  # for the observer
+        self._observed: tuple[Array, Array, Array, float] | None = None  # for the observer
         self._observing = True  # the external wrench observer takes in cycles
         self._pose = pose
         self._twist = _ZERO6.copy()
@@ -194,6 +194,8 @@ class ParallelController:
         self._drive_twist = [0.0] * 6  # the last twist from the drives' rates (at rest)
         self._prepared: _Prepared | None = None
         self._last_t = -math.inf  # the time of the last step
+        # the last reference terms, with the Reference and the platform model they are for
+        self._terms: tuple[Reference, PlatformInertia, tuple] | None = None
 
     def follow(self, source: ReferenceSource, at: float | None = None) -> None:
         """Track `source` (a validated trajectory) from the next cycle, or from time `at`
@@ -229,17 +231,36 @@ class ParallelController:
             self._take_over(self.payload.platform)
         if self._observed is not None:
             assert self.observer is not None
-            self.observer.update(*self._observed, self.lead)
+            twist, M, net, interval = self._observed
+            self.observer.update(twist, M, net, self.lead, type(self.source) is Hold, interval)
             self._observed = None
         ref = self.source.sample(t)
         ahead = self.source.sample(t + self.lead) if self.lead else ref
-        guess = robot.linearise_at(retract(self._pose, self._twist * self.period))
+        guess = robot.linearise_at(retract(self._pose, self._twist * self._interval(t)))
+        # a reference at rest (a Hold, a trajectory after its end) is one Reference
+        # sample after sample: its terms stand while the platform model does
+        terms = self._terms
+        if terms is None or terms[0] is not ahead or terms[1] is not robot.platform:
+            terms = self._terms = (ahead, robot.platform, self._reference_terms(ahead))
+        f_b, model, factored = terms[2]
+        self._prepared = _Prepared(t, ref, ahead, guess, f_b, model, factored)
+        self.stretch.update(self.period)
+
+    def _reference_terms(
+        self, ahead: Reference
+    ) -> tuple[Array, tuple[Array, Array, Array, Array] | None, FactoredJacobian | None]:
+        """What the command for reference `ahead` needs of it alone: f_b and, with
+        model_at = "reference", the model terms and the tension distribution's factor of
+        their Lambda.  Read-only arrays: a reference at rest reuses them every cycle."""
+        robot = self.robot
         model = robot.model_terms(ahead.pose, ahead.twist) if self._at_reference else None
         Lam_r = model[0] if model is not None else robot.jacobian(ahead.pose)
         f_b = robot.k0 * Lam_r.dot(ahead.twist)  # ndarray.dot: see the cdpr.kinematics docstring
         factored = self.tension.factored(Lam_r) if model is not None else None
-        self._prepared = _Prepared(t, ref, ahead, guess, f_b, model, factored)
-        self.stretch.update(self.period)
+        for array in (f_b, *(model or ()), *(factored or ())):
+            if array is not None:
+                array.setflags(write=False)
+        return f_b, model, factored
 
     def set_payload(self, mass: float, center_of_mass: tuple[float, ...]) -> None:
         """Use this platform mass (kg) and centre of mass (m, platform frame) from now on
@@ -332,6 +353,7 @@ class ParallelController:
         prepared = self._prepared
         assert prepared is not None
         self._prepared = None
+        interval = self._interval(t)
         self._last_t = t
         if type(self.source) is Switch and self.source.at <= t:
             # what came before the switch is over: let it go (its memory with it)
@@ -349,7 +371,7 @@ class ParallelController:
             return self._fault(ref, fk.pose, fk.residual, f"forward kinematics: {fk.reason}")
         self.stretch.observe(lengths, self._tensions, fk)
         pose = fk.pose
-        twist = self._measure_twist(pose, fk, length_rates)
+        twist = self._measure_twist(pose, fk, length_rates, interval)
         if not math.isfinite(sum(twist.tolist())):  # NaN or inf in it
             return self._fault(ref, pose, fk.residual, "non-finite twist from the drives' rates")
         self._pose, self._twist = pose, twist
@@ -370,7 +392,7 @@ class ParallelController:
             # the push the model does not explain, cancelled
             tau_c -= self.observer.estimate
             if self._observing:
-                self._observed = (twist, M, tau_c - mu)
+                self._observed = (twist, M, tau_c - mu, interval)
         f0 = robot.m0 * (Lam.dot(alpha_c) + c)
         jacobian = Lam if prepared.factored is None else prepared.factored
         result = self.tension.solve(jacobian, tau_c, f_b, f0)
@@ -401,7 +423,16 @@ class ParallelController:
             result.tensions,
         )
 
-    def _measure_twist(self, pose: Pose, fk: FKResult, length_rates: ArrayLike) -> Array:
+    def _interval(self, t: float) -> float:
+        """Seconds from the last step to one at `t`: the period, unless a cycle came late
+        or was skipped (a host held up: the drives latched their positions that much
+        apart, and differences over it are not a period's); the period before the first."""
+        elapsed = t - self._last_t
+        return elapsed if 0.0 < elapsed < math.inf else self.period
+
+    def _measure_twist(
+        self, pose: Pose, fk: FKResult, length_rates: ArrayLike, interval: float
+    ) -> Array:
         """phi = Lambda^+ l' (least squares, with forward kinematics' Lambda and its
         normal-equations factor) corrected for cable stretch, or filtered differences of
         forward-kinematics poses.
@@ -414,9 +445,9 @@ class ParallelController:
         frequency and consistent with the poses at low frequency.  The poses' difference
         over a period is the mean twist over it, so it is compared with the mean of this
         and the last cycle's drive twists (against this one alone the estimate would lag
-        half a period: a bias of -alpha T/2)."""
+        half a period: a bias of -alpha T/2).  `interval`: seconds since the last pose."""
         if self._differentiate:
-            raw = liediff(self._pose, pose) / self.period
+            raw = liediff(self._pose, pose) / interval
             return self._twist + self._smoothing * (raw - self._twist)
         rates = np.asarray(length_rates, dtype=float).reshape(-1)
         if fk.normal_factor is None:  # singular normal equations
@@ -425,7 +456,7 @@ class ParallelController:
         if not self._stretch_corrected:
             return drive
         # the filter on 6 floats: per-call numpy overhead dominates at this size
-        s, period = self._smoothing, self.period
+        s, period = self._smoothing, interval
         now, last = drive.tolist(), self._drive_twist
         self._rate_bias = bias = [
             b + s * (r / period - 0.5 * (d + d_last) - b)

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import json
 import math
-import stat
 from pathlib import Path
 from typing import Annotated, Any, TypeVar
 
@@ -26,6 +25,7 @@ from pydantic import (
 )
 
 from cdpr import strict_yaml
+from cdpr.trusted_file import UnreadableFileError, read_trusted, show_path
 
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
 PositiveFloat = Annotated[float, Field(gt=0.0, allow_inf_nan=False)]
@@ -192,13 +192,55 @@ class CableSpec(StrictModel):
     actuator: ActuatorOverrides = ActuatorOverrides()
 
 
+class BodyBoxSpec(StrictModel):
+    """A box in the platform frame (m): its lowest and highest corner."""
+
+    min: Vec3
+    max: Vec3
+
+    @model_validator(mode="after")
+    def _ordered(self) -> BodyBoxSpec:
+        if not all(lo < hi for lo, hi in zip(self.min, self.max, strict=True)):
+            raise ValueError(f"min {list(self.min)} must lie below max {list(self.max)}")
+        return self
+
+    def corners(self) -> list[Vec3]:
+        return [
+            (x, y, z)
+            for x in (self.min[0], self.max[0])
+            for y in (self.min[1], self.max[1])
+            for z in (self.min[2], self.max[2])
+        ]
+
+
+class BodySpec(StrictModel):
+    """The platform's bounding geometry (cdpr.body): a `box`, or the `vertices` of its
+    convex hull (platform frame, m), one of the two.  The cables' attachment points
+    belong to the body as well."""
+
+    box: BodyBoxSpec | None = None
+    vertices: Annotated[list[Vec3], Field(min_length=1, max_length=256)] | None = None
+
+    @model_validator(mode="after")
+    def _one_shape(self) -> BodySpec:
+        if (self.box is None) == (self.vertices is None):
+            raise ValueError("give either box or vertices (one of them)")
+        return self
+
+    def corners(self) -> list[Vec3]:
+        return self.box.corners() if self.box is not None else list(self.vertices or ())
+
+
 class PlatformSpec(StrictModel):
-    """Rigid platform: mass (kg), centre of mass from p in the platform frame (m), and the
-    3x3 inertia about the centre of mass in the platform frame (kg m^2)."""
+    """Rigid platform: mass (kg), centre of mass from p in the platform frame (m), the
+    3x3 inertia about the centre of mass in the platform frame (kg m^2), and its `body`
+    (BodySpec; default: the convex hull of the cables' attachment points), which the
+    pose limits keep inside the workspace and clear of the environment."""
 
     mass: PositiveFloat
     center_of_mass: Vec3 = (0.0, 0.0, 0.0)
     inertia: tuple[Vec3, Vec3, Vec3]
+    body: BodySpec | None = None
 
     @field_validator("inertia")
     @classmethod
@@ -353,36 +395,18 @@ def load_yaml(path: str | Path, max_bytes: int = CONFIG_MAX_BYTES) -> Any:
 
 
 def read_text(path: Path, max_bytes: int) -> str:
-    """The UTF-8 text of the regular file at `path`, at most `max_bytes` long; ConfigError
-    otherwise (a directory, a device such as /dev/zero, a pipe, too long, not UTF-8)."""
-    shown = show_path(path)
+    """The UTF-8 text of the regular file at `path`, at most `max_bytes` long, read
+    without blocking (cdpr.trusted_file); ConfigError otherwise (a directory, a device
+    such as /dev/zero, a FIFO, too long, not UTF-8)."""
     try:
-        mode = path.stat().st_mode
-        regular = stat.S_ISREG(mode)
-        if regular:
-            with path.open("rb") as file:
-                data = file.read(max_bytes + 1)
-    except OSError as exc:
-        raise ConfigError(f"{shown}: cannot read: {exc.strerror or exc}") from None
-    except ValueError as exc:  # e.g. a NUL character in the path
-        raise ConfigError(f"{shown}: cannot read: {exc}") from None
-    if not regular:
-        kind = "a directory" if stat.S_ISDIR(mode) else "a device, pipe or socket"
-        raise ConfigError(f"{shown}: cannot read: {kind}, not a regular file")
-    if len(data) > max_bytes:
-        raise ConfigError(f"{shown}: cannot read: longer than {max_bytes} bytes")
+        data = read_trusted(path, max_bytes)
+    except UnreadableFileError as exc:
+        raise ConfigError(str(exc)) from None
     try:
         return data.decode("utf-8")
     except UnicodeDecodeError as exc:
         line = data.count(b"\n", 0, exc.start) + 1
         raise ConfigError(
-            f"{shown}: line {line}: not UTF-8 text (byte 0x{data[exc.start]:02x} at offset "
-            f"{exc.start})"
+            f"{show_path(path)}: line {line}: not UTF-8 text (byte 0x{data[exc.start]:02x} "
+            f"at offset {exc.start})"
         ) from None
-
-
-def show_path(path: str | Path) -> str:
-    """A path as error messages print it: as is, or quoted if it holds a line break or
-    another character that is not printable, shortened if very long."""
-    text = str(path)
-    return text if text.isprintable() and len(text) <= 200 else _clip(text, 200)

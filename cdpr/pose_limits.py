@@ -1,17 +1,22 @@
-"""Pose limits: a box for the platform reference point and a largest rotation from home.
+"""Pose limits: a box for the platform reference point and for every corner of its body,
+a largest rotation from home, and the environment the body and the cables must not cross.
 
-One implementation for both uses (DESIGN §9, §7): the daemon's runtime check brakes when
-the MEASURED pose leaves them, and trajectory validation keeps every sampled REFERENCE
-inside the same limits shrunk by a margin (`shrunk`), so that an accepted trajectory,
-followed within the tracking-error bounds, never trips the runtime check.
+One implementation for both uses (DESIGN §9, §7, §18): the daemon's runtime check brakes
+when the MEASURED pose leaves them, and trajectory validation keeps every sampled
+REFERENCE inside the same limits shrunk by a margin (`shrunk`), so that an accepted
+trajectory, followed within the tracking-error bounds, never trips the runtime check.
+The body and the environment are cdpr.body's.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import NamedTuple
 
+import numpy as np
+
+from cdpr.body import Environment, PlatformBody, crossed
 from cdpr.pose import Pose
 
 ROUNDING = 1e-9  # m or rad kept in addition to any margin: rounding of the checks themselves
@@ -19,8 +24,9 @@ ROUNDING = 1e-9  # m or rad kept in addition to any margin: rounding of the chec
 
 class PoseViolation(NamedTuple):
     """Which limit a pose breaks: `limit` is "workspace_min", "workspace_max" or
-    "tilt_max" (the config key), `value` the coordinate (m) or the rotation angle (rad),
-    `detail` one readable line with the value and the bound."""
+    "tilt_max" (the config key), or "environment" (a plane or box of the config crossed);
+    `value` the coordinate (m), the rotation angle (rad) or a corner's distance from a
+    plane (m), `detail` one readable line with the part, the value and the bound."""
 
     limit: str
     value: float
@@ -38,17 +44,23 @@ def tilt(pose: Pose, home: tuple[float, float, float, float]) -> float:
 @dataclass(frozen=True)
 class PoseLimits:
     """lower <= position <= upper per axis (m, world frame) and tilt from `home` <=
-    tilt_max (rad).  `margin` (m, rad) says how far inside the configured limits these
-    are, for the messages."""
+    tilt_max (rad); with a `body`, every corner of it inside the same box, `turn` x its
+    distance from the reference point further in, and clear of the `environment` (its
+    obstacles grown by margin[0], plus `turn` x that distance: cdpr.body).  `margin` (m,
+    rad) says how far inside the configured limits these are, for the messages."""
 
     lower: tuple[float, float, float]
     upper: tuple[float, float, float]
     home: tuple[float, float, float, float]
     tilt_max: float
     margin: tuple[float, float] = (0.0, 0.0)
+    body: PlatformBody | None = None
+    environment: Environment = field(default_factory=Environment)
+    turn: float = 0.0
 
     def violation(self, pose: Pose) -> PoseViolation | None:
-        """The first limit `pose` breaks (the box, axis by axis, then the tilt), else None."""
+        """The first limit `pose` breaks (the box, axis by axis, then the tilt, then the
+        body's corners in the box, then the environment), else None."""
         for axis, (p, lo, hi) in enumerate(
             zip(pose.position_tuple, self.lower, self.upper, strict=True)
         ):
@@ -63,35 +75,92 @@ class PoseLimits:
                 f"{math.degrees(self.tilt_max):.2f} deg"
             )
             return PoseViolation("tilt_max", angle, detail + self._within(1, "rad"))
-        return None
+        body = self.body
+        if body is None:
+            return None
+        # every corner lies within reach of p: only near a face need they be placed
+        reach = body.reach * (1.0 + self.turn)
+        px, py, pz = pose.position_tuple
+        (lx, ly, lz), (hx, hy, hz) = self.lower, self.upper
+        inside = (
+            lx + reach <= px <= hx - reach
+            and ly + reach <= py <= hy - reach
+            and lz + reach <= pz <= hz - reach
+        )
+        if self.environment.empty or not self.environment.near(
+            pose.position_tuple, self.margin[0] + reach
+        ):
+            return None if inside else self._body_violation(pose, body, False)
+        return self._body_violation(pose, body, True)
 
-    def _within(self, which: int, unit: str) -> str:
+    def _body_violation(
+        self, pose: Pose, body: PlatformBody, environment: bool
+    ) -> PoseViolation | None:
+        corners = body.placed(pose)  # scalar: the common case is a few corners near a face
+        turn = self.turn
+        for k, (point, radius) in enumerate(zip(corners, body.radius_list, strict=True)):
+            for axis in range(3):
+                v = point[axis]
+                lo, hi = self.lower[axis] + turn * radius, self.upper[axis] - turn * radius
+                if not lo <= v <= hi:
+                    side = "workspace_min" if not lo <= v else "workspace_max"
+                    detail = (
+                        f"{body.name(k)} at {'xyz'[axis]} = {v:.4f} m outside "
+                        f"[{lo:.4f}, {hi:.4f}] m"
+                    )
+                    return PoseViolation(side, v, detail + self._within(0, "m", body))
+        if not environment:
+            return None
+        hit = crossed(body, self.environment, pose, corners, self.margin[0], turn)
+        if hit is None:
+            return None
+        return PoseViolation("environment", hit.value, hit.detail + self._within(0, "m", body))
+
+    def _within(self, which: int, unit: str, body: PlatformBody | None = None) -> str:
         margin = self.margin[which]
-        return f" (the configured limit less a margin of {margin:.4g} {unit})" if margin else ""
+        turn = ""
+        if body is not None and self.turn:
+            turn = f" + {self.turn:.4g} rad x the corner's distance from p"
+        return (
+            f" (the configured limit less a margin of {margin:.4g} {unit}{turn})" if margin else ""
+        )
 
-    def shrunk(self, position: float, orientation: float) -> PoseLimits:
-        """These limits moved inwards by `position` (m, every face of the box) and
-        `orientation` (rad, off tilt_max), plus ROUNDING.  A pose within `position` and
-        `orientation` of one inside the result is inside these limits (box: per axis;
-        tilt: the triangle inequality of the rotation angle).  The result may be empty
-        (lower > upper or tilt_max < 0): check that a known pose lies inside it."""
+    def shrunk(self, position: float, orientation: float, turn: float | None = None) -> PoseLimits:
+        """These limits moved inwards by `position` (m, every face of the box, every
+        obstacle grown by it) and `orientation` (rad, off tilt_max), plus ROUNDING; the
+        body's corners by `turn` (rad, default `orientation`) x their distance from the
+        reference point further.  A pose within `position` and `orientation` of one
+        inside the result is inside these limits (box: per axis; tilt: the triangle
+        inequality of the rotation angle; a corner: moved by at most position + turn x
+        its radius).  The result may be empty (lower > upper or tilt_max < 0): check
+        that a known pose lies inside it."""
         dp, dr = position + ROUNDING, orientation + ROUNDING
-        return PoseLimits(
-            (self.lower[0] + dp, self.lower[1] + dp, self.lower[2] + dp),
-            (self.upper[0] - dp, self.upper[1] - dp, self.upper[2] - dp),
-            self.home,
-            self.tilt_max - dr,
-            (self.margin[0] + dp, self.margin[1] + dr),
+        dt = (orientation if turn is None else turn) + ROUNDING
+        return replace(
+            self,
+            lower=(self.lower[0] + dp, self.lower[1] + dp, self.lower[2] + dp),
+            upper=(self.upper[0] - dp, self.upper[1] - dp, self.upper[2] - dp),
+            tilt_max=self.tilt_max - dr,
+            margin=(self.margin[0] + dp, self.margin[1] + dr),
+            turn=self.turn + dt,
         )
 
     def widened_to(self, pose: Pose) -> PoseLimits:
-        """The smallest limits holding both these and `pose`: for a transition from the
-        current reference, which may not go further out than where it starts (enabled
-        next to a wall, say) but must not be refused for starting there."""
-        p = pose.position_tuple
+        """The smallest limits holding both these and `pose` (its reference point and,
+        with a body, its corners): for a transition from the current reference, which may
+        not go further out than where it starts (enabled next to a wall, say) but must
+        not be refused for starting there.  The environment is not widened: a start
+        across an obstacle is refused."""
+        p = np.array(pose.position_tuple)
+        lower, upper = np.minimum(self.lower, p), np.maximum(self.upper, p)
+        if self.body is not None:
+            slack = self.turn * self.body.radii[:, None]
+            world = self.body.world(pose.rotation, pose.position)
+            lower = np.minimum(lower, (world - slack).min(axis=0))
+            upper = np.maximum(upper, (world + slack).max(axis=0))
         return replace(
             self,
-            lower=(min(self.lower[0], p[0]), min(self.lower[1], p[1]), min(self.lower[2], p[2])),
-            upper=(max(self.upper[0], p[0]), max(self.upper[1], p[1]), max(self.upper[2], p[2])),
+            lower=tuple(lower.tolist()),
+            upper=tuple(upper.tolist()),
             tilt_max=max(self.tilt_max, tilt(pose, self.home)),
         )

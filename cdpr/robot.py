@@ -8,6 +8,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from cdpr.body import PlatformBody
 from cdpr.description import (
     ActuatorSpec,
     ConfigError,
@@ -47,6 +48,9 @@ class Robot:
             np.array([c.attachment for c in spec.cables]),
             [None if c.pulley is None else (c.pulley.radius, c.pulley.axis) for c in spec.cables],
         )
+        body = spec.platform.body
+        # the corners the pose limits keep in the workspace and clear of the environment
+        self.body = PlatformBody(body.corners() if body else (), self.geometry.attachments)
         self.platform = PlatformInertia(
             spec.platform.mass,
             spec.platform.center_of_mass,

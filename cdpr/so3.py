@@ -79,6 +79,20 @@ def quat4_to_rotvec(w: float, x: float, y: float, z: float) -> tuple[float, floa
     return (k * x, k * y, k * z)
 
 
+def quats_to_rotvecs(q: ArrayLike) -> Vec:
+    """quat4_to_rotvec for each row of an (m, 4) array of unit quaternions: (m, 3)."""
+    q = np.asarray(q, dtype=float)
+    q = np.where(q[:, :1] < 0.0, -q, q)
+    w, v = q[:, 0], q[:, 1:]
+    s = np.sqrt(np.einsum("ij,ij->i", v, v))
+    small = s < _SMALL_ANGLE
+    with np.errstate(divide="ignore", invalid="ignore"):  # each branch where it is not used
+        k = np.where(
+            small, (2.0 / w) * (1.0 - s * s / (3.0 * w * w)), 2.0 * np.arctan2(s, w) / s
+        )
+    return k[:, None] * v
+
+
 def log_so3(R: ArrayLike) -> Vec:
     """Rotation vector of R, accurate near 0 and near pi."""
     return rotvec_from_quat(quat_from_matrix(R))

@@ -368,13 +368,16 @@ def _checked(x: ArrayLike, shape: tuple[int, ...], name: str) -> Array:
 _SOLVED = int(osqp.SolverStatus.OSQP_SOLVED)
 # worth one tighter re-solve: not polished, failed the check, or inaccurate.  Not
 # "maximum iterations reached": that happens near the boundary of W, where a re-solve
-# mostly burns another max_iter iterations.
+# mostly burns another max_iter iterations; such a run gets one cold start instead (a
+# warm start from a far-off problem can stall ADMM inside W: 1 of 300 random problems
+# of tests/cdpr/test_tension.py, 33 N inside W, on an AMD EPYC host).
 _RETRYABLE = {_SOLVED, int(osqp.SolverStatus.OSQP_SOLVED_INACCURATE)}
 _PRIMAL_INFEASIBLE = {
     int(osqp.SolverStatus.OSQP_PRIMAL_INFEASIBLE),
     int(osqp.SolverStatus.OSQP_PRIMAL_INFEASIBLE_INACCURATE),
 }
 _POLISH_OK = 1
+_MAX_ITER = int(osqp.SolverStatus.OSQP_MAX_ITER_REACHED)
 _UPDATE_REJECTED = -1000  # our own status: osqp refused the data update
 
 
@@ -497,6 +500,12 @@ class OsqpTensionSolver(_TensionSolverBase):
 
     def _retry(self, p: _Problem, x: Array, status: int, iterations: int) -> TensionResult:
         """Slow path: refine a solution that was not polished or not checked, or report why."""
+        if status == _MAX_ITER:  # once more from the reference tensions (cold start)
+            self._warm_start(self._t_ref)
+            x, status, polish, more = self._run(self._eps[0])
+            iterations += more
+            if status == _SOLVED and polish == _POLISH_OK and not self._check(p, x):
+                return TensionResult(p.f0 - x, x, True, "", iterations)
         if status in _RETRYABLE:
             x, status, _, more = self._run(self._refine_eps)
             iterations += more

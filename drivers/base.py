@@ -204,6 +204,10 @@ class NodeStatus:
     fault_code: int = 0  # the protocol's code (402: EMCY error code; ODrive: axis error)
     heartbeat_stamp: float = -math.inf  # monotonic time of the last heartbeat
     restarts: int = 0  # restarts seen since start (402 boot-up): position from a new zero
+    # whether the drive's own answer shows that the standing brake holds it: None while
+    # unknown (or no brake stands), True confirmed, False with `hold_problem` saying why
+    held: bool | None = None
+    hold_problem: str | None = None
 
 
 @dataclass
@@ -272,6 +276,18 @@ class ActuatorDriver(ABC):
     @abstractmethod
     async def reset_faults(self, link: Link) -> None:
         """Clear latched drive faults; the drives end READY or HOLDING, never moving."""
+
+    @property
+    def measures_force(self) -> bool:
+        """Whether `measured_forces` can read the drives' own force measurement."""
+        return False
+
+    async def measured_forces(self, link: Link) -> list[float]:
+        """Each drive's force now (N along +l) as the drive itself measures it (its
+        current sensing), read while it holds a position: at rest, the cables' tensions
+        (f = -t) and the drums' friction.  DriverError naming the node if a drive does
+        not answer, or if the drives offer no such reading (`measures_force`)."""
+        raise DriverError("the drives offer no force measurement")
 
     # -- immediate frames (safe to call from the cycle and from fault handlers) -------
 
@@ -345,6 +361,9 @@ class VirtualDrive(ABC):
         self.force = 0.0  # N along +l: with TORQUE the force, with POSITION a feed-forward
         self.target_length = math.nan  # m, with Actuation.POSITION
         self.brake_engaged = True  # holding brakes are fail-safe: on while unpowered
+        # N along +l: what the power stage produced in the last step, as the drive's own
+        # current measurement reports it (CiA 402 torque actual 0x6077); 0 while off
+        self.produced = 0.0
         self.length = 0.0  # m, the encoder's view, set by measure()
         self.rate = 0.0
         self.glitch = 0.0  # m added to the reported length (a fault the simulator injects)

@@ -104,6 +104,21 @@ class MultiBusDriver(ActuatorDriver):
     async def reset_faults(self, link: Link) -> None:
         await self._on_every_bus(link, lambda part, bus: part.driver.reset_faults(bus))
 
+    @property
+    def measures_force(self) -> bool:
+        return all(part.driver.measures_force for part in self.parts)
+
+    async def measured_forces(self, link: Link) -> list[float]:
+        forces: list[float] = [0.0] * self.n
+
+        async def read(part: BusDrives, bus: BusLink) -> None:
+            measured = await part.driver.measured_forces(bus)
+            for i, force in zip(part.cables, measured, strict=True):
+                forces[i] = force
+
+        await self._on_every_bus(link, read)
+        return forces
+
     async def _on_every_bus(
         self, link: Link, step: Callable[[BusDrives, BusLink], Awaitable[None]]
     ) -> None:

@@ -1,10 +1,12 @@
 """Run a VirtualRobot on a python-can bus in real time, as a task of an asyncio loop.
 
 The plant advances (in whole plant steps) on its own timerfd, every `wake_period`
-(default: one plant step), and whenever a frame arrives, so a SYNC is answered with the
-state at the moment it was seen.  Buses with a file descriptor are drained by the loop
-itself; others through a Notifier thread.  Frames the drives send pass through optional
-frame faults and a bus-load meter.
+(default: one plant step), and to each frame's stamp before the drives take it, so a
+SYNC is answered with the state at the moment it was sent, as on a real bus, also when
+this process was held up before reading it (a busy host then delays the daemon's
+frames, as on a robot, but does not move the drives' clock).  Buses with a file
+descriptor are drained by the loop itself; others through a Notifier thread.  Frames
+the drives send pass through optional frame faults and a bus-load meter.
 
 On several buses (given by name, one meter each): frames read from a bus are tagged with
 its name (`channel`) before the drives see them, and each frame sent goes on the bus its
@@ -66,7 +68,6 @@ class SimulatorRunner:
         self._loop: asyncio.AbstractEventLoop | None = None
         self.send_errors = 0
         self.receive_errors = 0
-        self._delays = any(hasattr(lane.bus, "tick") for lane in self.lanes.values())
 
     @property
     def t(self) -> float:
@@ -101,11 +102,11 @@ class SimulatorRunner:
         if self._timer is None or not self._timer.expirations():
             return
         t = self.t
+        # frames sent before now acted when they were sent: first, at their times
+        self._drain()
         self._send(self.robot.advance_to(t))
         while self._schedule and self._schedule[0][0] <= t:
             self._send(self._schedule.pop(0)[1]())
-        if self._delays:  # a FaultyBus releases delayed frames when drained
-            self._drain()
 
     def _drain(self) -> None:
         """Take what every bus has queued to the drives."""
@@ -137,9 +138,15 @@ class SimulatorRunner:
         if self._only is None:  # several buses: the drives hear the frames of theirs
             for msg in frames:
                 msg.channel = lane.name
-        out, t = [], self.t
+        out, now = [], self.t
+        # a frame's stamp (wall clock, as SocketCAN's) on the simulated clock
+        offset = time.time() - time.monotonic() + self._t0
         for msg in frames:
-            out.extend(self.robot.handle(msg, t))
+            # what a drive latches on a SYNC is the state when the SYNC was on the bus,
+            # also when this process was held up before reading it; a stamp from the
+            # future (a stepped clock) or none at all: now
+            at = msg.timestamp - offset if msg.timestamp else now
+            out.extend(self.robot.handle(msg, min(at, now)))
         self._send(out)
 
     def _send(self, frames: list[can.Message]) -> None:

@@ -3,7 +3,8 @@
 Time is the simulator's own: `advance_to(t)` steps the plant in whole plant steps up to
 t, applying each drive's actuation before every step and letting each drive's clock run
 after it (heartbeats, cyclic feedback, watchdogs).  `handle(frame, t)` first brings the
-plant up to t, so a SYNC at t is answered with the state at t.  Nothing here touches a
+plant up to t, so a SYNC at t is answered with the state at t (the drums' readings
+carried from the last whole step to t).  Nothing here touches a
 bus or a wall clock: the asyncio runner (sim_bus.runner) and the tests drive it.
 
 With drives on several buses (`drives.bus`), each drive hears only frames whose
@@ -26,6 +27,7 @@ import numpy as np
 
 from cdpr import ConfigError, Robot
 from drivers.base import Actuation, Scaling, VirtualDrive
+from drivers.cia402.codec import SYNC_ID
 from drivers.config import DrivesConfig
 from sim_bus.config import RigConfig
 from sim_bus.plant import Plant, PlantConfig
@@ -163,6 +165,8 @@ class VirtualRobot:
         answer."""
         out = self.advance_to(t)
         now = self.plant.time
+        if t > now and message.arbitration_id == SYNC_ID and not message.is_extended_id:
+            self._measure(t - now)  # the drives latch at the SYNC's instant, between steps
         buses = self.buses
         for k, drive in enumerate(self.drives):
             if self.silent[k] or (buses is not None and buses[k] != message.channel):
@@ -214,8 +218,9 @@ class VirtualRobot:
 
     # -- coupling -------------------------------------------------------------------
 
-    def _measure(self) -> None:
-        lengths, rates = self.plant.measure()
+    def _measure(self, ahead: float = 0.0) -> None:
+        """Each drive's encoder reading: after the last step, or `ahead` s later."""
+        lengths, rates = self.plant.measure(ahead)
         for k, drive in enumerate(self.drives):
             stuck = self.stuck[k]
             if stuck is None:
@@ -253,4 +258,5 @@ class VirtualRobot:
                 forces[k] = 0.0
             if not math.isfinite(forces[k]):
                 forces[k] = 0.0
+            drive.produced = forces[k]
         plant.set_commands(forces)

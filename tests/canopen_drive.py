@@ -132,7 +132,11 @@ class CanopenDrive:
 
     def _on_rpdo(self, pdo) -> None:
         """Mapped objects written in frame order (mode before the torque it is for), as
-        one (`rpdo_guard`); a dummy entry (0x0002-0x0007) skips another drive's bytes."""
+        one (`rpdo_guard`); a dummy entry (0x0002-0x0007) skips another drive's bytes.
+        Only in OPERATIONAL (CiA 301: no PDO in STOPPED or PRE-OPERATIONAL), which
+        canopen's PDO callbacks do not check."""
+        if self.node.nmt.state != "OPERATIONAL":
+            return
         with self.rpdo_guard():
             for var in sorted(pdo.map, key=lambda v: v.index != 0x6060):
                 if var.index >= 0x1000:
@@ -147,4 +151,3 @@ class CanopenDrive:
                 for var in pdo.map:
                     var.set_data(self.node.get_data(var.index, var.subindex))
                 pdo.transmit()
-

@@ -73,6 +73,9 @@ class CanopenActuator(VirtualDrive):
         """After a plant step: the consumer heartbeat, then what the power stage does."""
         drive = self.drive
         drive.check_heartbeat(time.monotonic())
+        # torque actual 0x6077: what the power stage produced, as its current sensing says
+        permille = self.scaling.motor_torque(self.produced, self.length) * 1e6 / drive.value(0x6076)
+        drive.store(0x6077, "<h", max(-0x8000, min(0x7FFF, round(permille))))
         statusword, mode = drive.value(0x6041), drive.value(0x6061)
         if statusword == ENABLED and mode == 10:
             torque = drive.value(0x6071) * drive.value(0x6076) / 1e6  # N·m

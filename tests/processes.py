@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 import re
 import signal
@@ -15,6 +16,7 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
 import yaml
 
 from daemon.interface.client import CdprClient, UnreachableError
@@ -119,13 +121,16 @@ def patient_watchdogs(data: dict, timeout: float = 0.2) -> None:
     data.setdefault("safety", {})["max_watchdog_drift"] = 10.0
 
 
-def simulator_configs(tmp_path: Path, zenoh_port: int) -> tuple[Path, dict]:
-    """The reference8 CiA 402 config for `python -m sim_bus` (its file, and its data for
-    daemon_config), zenoh on `zenoh_port`."""
-    data = yaml.safe_load(CONFIG.read_text())
+def simulator_configs(
+    tmp_path: Path, zenoh_port: int, config: Path = CONFIG, watchdog: float = 0.2
+) -> tuple[Path, dict]:
+    """The reference8 CiA 402 config (or another example `config`) for `python -m
+    sim_bus` (its file, and its data for daemon_config), zenoh on `zenoh_port`, drive
+    watchdogs `watchdog` (patient_watchdogs)."""
+    data = yaml.safe_load(config.read_text())
     data["robot"] = str(ROOT / "config" / "robots" / "reference8.yaml")
     data["zenoh"]["listen"] = [f"tcp/127.0.0.1:{zenoh_port}"]
-    patient_watchdogs(data)  # three processes and TCP relays on a busy 2-CPU host
+    patient_watchdogs(data, watchdog)  # three processes and TCP relays on a busy 2-CPU host
     sim = tmp_path / "sim.yaml"
     sim.write_text(yaml.safe_dump(data))
     return sim, data
@@ -151,6 +156,22 @@ def truth(path: Path) -> list[dict]:
     """The simulator's --truth-log records so far."""
     lines = path.read_text().splitlines()
     return [json.loads(line) for line in lines[:-1]]  # the last may be half written
+
+
+def assert_still(
+    records: list[dict], start: dict, moved_max: float = 2e-3, turned_max: float = 5e-3
+) -> None:
+    """The true platform in the --truth-log `records` moved at most `moved_max` (m) and
+    turned at most `turned_max` (rad) from the record `start`."""
+    p0 = np.array(start["position"])
+    q0 = np.array(list(start["quaternion"].values()))
+    moved = max(np.linalg.norm(np.array(t["position"]) - p0) for t in records)
+    turned = max(
+        2 * math.acos(min(1.0, abs(float(np.array(list(t["quaternion"].values())) @ q0))))
+        for t in records
+    )
+    assert moved < moved_max, f"the platform moved {moved * 1e3:.2f} mm"
+    assert turned < turned_max, f"the platform turned {math.degrees(turned):.3f} deg"
 
 
 def connect(port: int, proc: subprocess.Popen, timeout: float = 30.0) -> CdprClient:

@@ -210,12 +210,11 @@ def test_a_circle_is_found(tmp_path: Path) -> None:
     ]
 
 
-def test_readme_folder_map_matches_the_tree() -> None:
-    """Every package folder appears in README's architecture map, and every folder the
+def test_the_documented_folder_map_matches_the_tree() -> None:
+    """Every package folder appears in the architecture page's map, and every folder the
     map names exists."""
-    text = (ROOT / "README.md").read_text()
-    section = text[text.index("## Architecture") :]
-    block = section[section.index("```") + 3 :]
+    text = (ROOT / "docs" / "explanation" / "architecture.md").read_text()
+    block = text[text.index("```") + 3 :]
     block = block[: block.index("```")]
     named, parents = set(), []
     for line in block.splitlines():
@@ -230,7 +229,7 @@ def test_readme_folder_map_matches_the_tree() -> None:
         for top in PROJECT
         for p in (ROOT / top).glob("**/__init__.py")
     }
-    assert packages <= named, f"missing from README: {sorted(packages - named)}"
+    assert packages <= named, f"missing from the map: {sorted(packages - named)}"
     assert all((ROOT / folder).is_dir() for folder in named), sorted(
         f for f in named if not (ROOT / f).is_dir()
     )

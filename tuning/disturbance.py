@@ -7,10 +7,16 @@ wrench begins to act on the platform and stays.  Reported: the largest position 
 of the TRUE platform from home, the 2 % settling time (from the step until the error
 stays within 2 % of that peak, or 0.1 mm, whichever is larger: the integral action
 brings it back), the error left at the end, and whether the controller faulted.
+
+A push that ends (`release_response`: a person letting go): the push's peak, the
+rebound (how far the platform then goes the other way, along the direction of the
+push's peak: the external wrench observer's estimate outliving the push moves it
+there, cdpr.wrench_observer), and the settling time from the release.
 """
 
 from __future__ import annotations
 
+import math
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -34,6 +40,13 @@ class DisturbanceFigures(NamedTuple):
     fault: str  # the controller's first fault, "" if none
 
 
+class ReleaseFigures(NamedTuple):
+    peak_mm: float  # while the push acts
+    rebound_mm: float  # after it ends, against the direction of the peak (0: none)
+    settle_s: float  # from the release, as DisturbanceFigures.settle_s; inf: never
+    fault: str
+
+
 def step_response(
     robot: Robot,
     spec: ControllerSpec,
@@ -44,8 +57,63 @@ def step_response(
     config: PlantConfig | None = None,
 ) -> DisturbanceFigures:
     """The holding robot's response to `wrench` (N, N·m; world frame) from `start` on."""
+    times, offsets, fault = _run(robot, spec, wrench, start, math.inf, duration, rate_hz, config)
+    errors = np.linalg.norm(offsets, axis=1)
+    after = times >= start
+    worst = int(np.argmax(np.where(after, errors, -1.0)))
+    peak = float(errors[worst])
+    settle = _settle(times, errors, start, max(SETTLE_BAND * peak, SETTLE_FLOOR))
+    offset = tuple(float(v) * 1e3 for v in offsets[worst])
+    return DisturbanceFigures(peak * 1e3, offset, settle, float(errors[-1]) * 1e3, fault)
+
+
+def release_response(
+    robot: Robot,
+    spec: ControllerSpec,
+    wrench: tuple[float, ...] = (50.0, 0.0, 0.0, 0.0, 0.0, 0.0),
+    start: float = 0.5,
+    end: float = 1.0,
+    duration: float = 6.0,
+    rate_hz: float = 500.0,
+    config: PlantConfig | None = None,
+) -> ReleaseFigures:
+    """The holding robot pushed by `wrench` from `start` to `end` (s), then let go."""
+    times, offsets, fault = _run(robot, spec, wrench, start, end, duration, rate_hz, config)
+    errors = np.linalg.norm(offsets, axis=1)
+    pushed = (times >= start) & (times < end)
+    worst = int(np.argmax(np.where(pushed, errors, -1.0)))
+    peak = float(errors[worst])
+    direction = offsets[worst] / peak if peak > 0.0 else np.zeros(3)
+    back = -offsets[times >= end].dot(direction)
+    rebound = max(0.0, float(back.max()))
+    settle = _settle(times, errors, end, max(SETTLE_BAND * peak, SETTLE_FLOOR))
+    return ReleaseFigures(peak * 1e3, rebound * 1e3, settle, fault)
+
+
+def _settle(times: np.ndarray, errors: np.ndarray, since: float, band: float) -> float:
+    """Seconds from `since` until the error stays within `band` (inf: not within the run)."""
+    outside = np.flatnonzero((times >= since) & (errors > band))
+    if len(outside) == 0:
+        return 0.0
+    if outside[-1] == len(times) - 1:
+        return math.inf
+    return float(times[outside[-1] + 1] - since)
+
+
+def _run(
+    robot: Robot,
+    spec: ControllerSpec,
+    wrench: tuple[float, ...],
+    start: float,
+    end: float,
+    duration: float,
+    rate_hz: float,
+    config: PlantConfig | None,
+) -> tuple[np.ndarray, np.ndarray, str]:
+    """Hold home under `wrench` acting for start <= t < end, lock-step: the sample times,
+    the TRUE platform's offsets from home (m, one row each), the controller's first fault."""
     config = (config or PlantConfig()).model_copy(
-        update={"disturbance": DisturbanceConfig(wrench=wrench, start=start)}
+        update={"disturbance": DisturbanceConfig(wrench=wrench, start=start, end=end)}
     )
     plant = Plant(robot, config)
     home = robot.home
@@ -61,20 +129,5 @@ def step_response(
         return out.commands if not faults else np.zeros(robot.n_cables)
 
     rec = run_lockstep(plant, control, duration, rate_hz)
-    times = rec.t
     offsets = rec.series["position"] - home.position
-    errors = np.linalg.norm(offsets, axis=1)
-    after = times >= start
-    worst = int(np.argmax(np.where(after, errors, -1.0)))
-    peak = float(errors[worst])
-    band = max(SETTLE_BAND * peak, SETTLE_FLOOR)
-    outside = np.flatnonzero(after & (errors > band))
-    if len(outside) == 0:
-        settle = 0.0
-    elif outside[-1] == len(times) - 1:
-        settle = float("inf")
-    else:
-        settle = float(times[outside[-1] + 1] - start)
-    fault = faults[0] if faults else ""
-    offset = tuple(float(v) * 1e3 for v in offsets[worst])
-    return DisturbanceFigures(peak * 1e3, offset, settle, float(errors[-1]) * 1e3, fault)
+    return rec.t, offsets, faults[0] if faults else ""

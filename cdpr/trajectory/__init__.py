@@ -19,7 +19,14 @@ from cdpr.trajectory.limits import (
     validation_steps,
 )
 from cdpr.trajectory.parse import parse_trajectory
-from cdpr.trajectory.transitions import approach, approach_steps, goto, goto_steps, run_steps
+from cdpr.trajectory.transitions import (
+    approach,
+    approach_steps,
+    goto,
+    goto_steps,
+    run_steps,
+    stop_steps,
+)
 
 __all__ = [
     "SCHEMA_VERSION",
@@ -39,6 +46,7 @@ __all__ = [
     "parse_trajectory",
     "run_steps",
     "sampled_pose_limits",
+    "stop_steps",
     "tracked_length_limits",
     "validate",
     "validation_steps",

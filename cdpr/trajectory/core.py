@@ -24,17 +24,15 @@ import math
 from bisect import bisect_right
 from collections.abc import Sequence
 from dataclasses import dataclass
-from itertools import pairwise
 from typing import NamedTuple
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
-from scipy.sparse import coo_matrix, csr_matrix, diags
-from scipy.sparse.linalg import spsolve
+from numpy.typing import NDArray
+from scipy.linalg import solveh_banded
 
 from cdpr.pose import Pose, liediff
-from cdpr.so3 import rotate_quat_by_rotvec
-from cdpr.trajectory.rotation import angular_rates, left_jacobian
+from cdpr.so3 import quat_mul4, quats_to_rotvecs, rotate_quat_by_rotvec
+from cdpr.trajectory.rotation import angular_rates, left_jacobians
 
 Array = NDArray[np.float64]
 
@@ -286,28 +284,17 @@ class Trajectory:
 
     def __init__(self, waypoints: Sequence[Waypoint]) -> None:
         wps = tuple(waypoints)
-        _check_waypoints(wps)
-        times = np.array([w.t for w in wps])
-        poses = [w.pose for w in wps]
+        knots = _Knots(wps)
+        times, positions, quats = knots.times, knots.positions, knots.quats
         with np.errstate(all="ignore"):
-            steps = np.array([liediff(a, b) for a, b in pairwise(poses)])
+            steps = _steps(positions, quats)
             values = np.zeros((len(wps), 6))
-            values[:, :3] = [p.position for p in poses]
+            values[:, :3] = positions
             values[1:, 3:] = np.cumsum(steps[:, 3:], axis=0)
-            twists, accels = _knot_rates(times, values, wps)
-            tables = np.array(
-                [
-                    segment_table(
-                        poses[k],
-                        twists[k],
-                        accels[k],
-                        twists[k + 1],
-                        accels[k + 1],
-                        steps[k],
-                        times[k + 1] - times[k],
-                    )
-                    for k in range(len(wps) - 1)
-                ]
+            twists, accels = _knot_rates(times, values, knots)
+            h = np.diff(times)
+            tables = segment_tables(
+                positions[:-1], twists[:-1], accels[:-1], twists[1:], accels[1:], steps, h
             )
         if not (np.all(np.isfinite(tables)) and np.all(np.isfinite(twists))):
             raise TrajectoryError(
@@ -320,9 +307,9 @@ class Trajectory:
         self._curve = Curve(
             times.tolist(),
             list(tables),  # per segment; a list indexes faster than a 3-d array
-            [p.quaternion_tuple for p in poses],
-            poses[0],
-            poses[-1],
+            [w.pose.quaternion_tuple for w in wps],
+            wps[0].pose,
+            wps[-1].pose,
         )
         self._listed: tuple[Waypoint, ...] | None = None  # `waypoints`, made when asked
 
@@ -452,50 +439,80 @@ class Trajectory:
         )
 
 
-def _check_waypoints(wps: tuple[Waypoint, ...]) -> None:
-    """Count, types, finite and increasing times, sane magnitudes, rest at the end.
+class _Knots:
+    """The waypoints as arrays, checked: count, types, finite and increasing times, sane
+    magnitudes, rest at the end.
 
     The bounds on |t| and on the magnitudes keep every spline coefficient and every
-    sample of an accepted trajectory finite.
+    sample of an accepted trajectory finite.  The checks run on whole arrays; a waypoint
+    they flag is checked alone (_check_waypoint), which names its problem.
     """
-    if len(wps) < 2:
-        raise TrajectoryError(
-            "min_waypoints", f"a trajectory needs at least 2 waypoints, got {len(wps)}"
-        )
-    previous = -math.inf
-    for i, w in enumerate(wps):
-        if not isinstance(w, Waypoint):
+
+    def __init__(self, wps: tuple[Waypoint, ...]) -> None:
+        if len(wps) < 2:
             raise TrajectoryError(
-                "schema", f"expected a Waypoint, got {type(w).__name__}", waypoint=i
+                "min_waypoints", f"a trajectory needs at least 2 waypoints, got {len(wps)}"
             )
-        if not abs(w.t) <= MAX_TIME:
+        for i, w in enumerate(wps):
+            if not isinstance(w, Waypoint):
+                raise TrajectoryError(
+                    "schema", f"expected a Waypoint, got {type(w).__name__}", waypoint=i
+                )
+        n = len(wps)
+        self.times = np.array([w.t for w in wps])
+        self.positions = np.array([w.pose.position_tuple for w in wps])
+        self.quats = np.array([w.pose.quaternion_tuple for w in wps])
+        # the given twists and accels (zero where not given), and where they are given
+        self.twists, self.accels = np.zeros((n, 6)), np.zeros((n, 6))
+        self.twist_given = np.array([w.twist is not None for w in wps])
+        self.accel_given = np.array([w.accel is not None for w in wps])
+        if self.twist_given.any():
+            self.twists[self.twist_given] = [w.twist for w in wps if w.twist is not None]
+        if self.accel_given.any():
+            self.accels[self.accel_given] = [w.accel for w in wps if w.accel is not None]
+        t = self.times
+        with np.errstate(invalid="ignore"):
+            good = np.abs(t) <= MAX_TIME
+            good[1:] &= t[1:] >= t[:-1] + MIN_SEGMENT
+            for vec in (self.positions, self.twists, self.accels):
+                good &= np.all(np.abs(vec) <= MAX_MAGNITUDE, axis=1)
+        for i in np.flatnonzero(~good).tolist():
+            _check_waypoint(wps[i], i, wps[i - 1].t if i > 0 else -math.inf)
+        _check_at_rest(wps[-1], n - 1)
+
+
+def _check_waypoint(w: Waypoint, i: int, previous: float) -> None:
+    """Waypoint i's time (finite, bounded, after `previous`) and magnitudes."""
+    if not abs(w.t) <= MAX_TIME:
+        raise TrajectoryError(
+            "finite",
+            f"t = {w.t!r} s is not a finite time within ±{MAX_TIME:g} s",
+            waypoint=i,
+            value=w.t,
+            field=f"waypoints[{i}].t",
+        )
+    if not w.t >= previous + MIN_SEGMENT:
+        raise TrajectoryError(
+            "times_increasing",
+            f"t = {w.t:.9g} s must exceed the previous waypoint's {previous:.9g} s "
+            f"by at least {MIN_SEGMENT:g} s",
+            waypoint=i,
+            value=w.t,
+            field=f"waypoints[{i}].t",
+        )
+    for name, vec in (("position", w.pose.position), ("twist", w.twist), ("accel", w.accel)):
+        if vec is not None and not np.all(np.abs(vec) <= MAX_MAGNITUDE):
             raise TrajectoryError(
                 "finite",
-                f"t = {w.t!r} s is not a finite time within ±{MAX_TIME:g} s",
+                f"{name} {vec.tolist()} is not finite within ±{MAX_MAGNITUDE:g}",
                 waypoint=i,
-                value=w.t,
-                field=f"waypoints[{i}].t",
+                value=float(np.max(np.abs(vec))),
+                field=f"waypoints[{i}].{name}",
             )
-        if not w.t >= previous + MIN_SEGMENT:
-            raise TrajectoryError(
-                "times_increasing",
-                f"t = {w.t:.9g} s must exceed the previous waypoint's {previous:.9g} s "
-                f"by at least {MIN_SEGMENT:g} s",
-                waypoint=i,
-                value=w.t,
-                field=f"waypoints[{i}].t",
-            )
-        previous = w.t
-        for name, vec in (("position", w.pose.position), ("twist", w.twist), ("accel", w.accel)):
-            if vec is not None and not np.all(np.abs(vec) <= MAX_MAGNITUDE):
-                raise TrajectoryError(
-                    "finite",
-                    f"{name} {vec.tolist()} is not finite within ±{MAX_MAGNITUDE:g}",
-                    waypoint=i,
-                    value=float(np.max(np.abs(vec))),
-                    field=f"waypoints[{i}].{name}",
-                )
-    last = wps[-1]
+
+
+def _check_at_rest(last: Waypoint, i: int) -> None:
+    """The last waypoint's twist and accel, where given, are zero."""
     for name in ("twist", "accel"):
         vec = getattr(last, name)
         if vec is not None and not np.all(np.abs(vec) <= _REST_TOLERANCE):
@@ -504,13 +521,20 @@ def _check_waypoints(wps: tuple[Waypoint, ...]) -> None:
                 "end_at_rest",
                 f"the last waypoint's {name} has norm {size:.6g}; a trajectory must end at "
                 "rest (it then holds the last pose)",
-                waypoint=len(wps) - 1,
+                waypoint=i,
                 value=size,
-                field=f"waypoints[{len(wps) - 1}].{name}",
+                field=f"waypoints[{i}].{name}",
             )
 
 
-def _knot_rates(times: Array, values: Array, wps: tuple[Waypoint, ...]) -> tuple[Array, Array]:
+def _steps(positions: Array, quats: Array) -> Array:
+    """liediff from each pose to the next, (n - 1, 6), of n positions and quaternions."""
+    (w1, x1, y1, z1), (w2, x2, y2, z2) = quats[:-1].T, quats[1:].T
+    rotations = np.stack(quat_mul4(w2, x2, y2, z2, w1, -x1, -y1, -z1), axis=1)
+    return np.concatenate([positions[1:] - positions[:-1], quats_to_rotvecs(rotations)], axis=1)
+
+
+def _knot_rates(times: Array, values: Array, knots: _Knots) -> tuple[Array, Array]:
     """Knot rates (n, 6) and accelerations (n, 6) of minimum integrated squared jerk.
 
     `values` holds positions and cumulative rotation vectors at the knots.  Given rates
@@ -520,37 +544,40 @@ def _knot_rates(times: Array, values: Array, wps: tuple[Waypoint, ...]) -> tuple
     """
     n = len(times)
     known = np.zeros((2 * n, 6))
+    known[0::2], known[1::2] = knots.twists, knots.accels
     free = np.zeros(2 * n, dtype=bool)
-    for k, w in enumerate(wps):
-        for j, vec in enumerate((w.twist, w.accel)):
-            if vec is not None:
-                known[2 * k + j] = vec
-            elif 0 < k < n - 1:
-                free[2 * k + j] = True
+    free[2:-2:2], free[3:-2:2] = ~knots.twist_given[1:-1], ~knots.accel_given[1:-1]
     if free.any():
         h = np.diff(times)
-        m = n - 1
-        one = np.ones(m)
+        one = np.ones(n - 1)
         scale = np.stack([one, h, h * h, one, h, h * h], axis=1)
         cost = _JERK_COST * scale[:, :, None] * scale[:, None, :] / (h**5)[:, None, None]
-        seg = np.arange(m)[:, None]
-        u_idx = 2 * seg + np.arange(4)  # (v_k, a_k, v_k+1, a_k+1)
-        p_idx = seg + np.arange(2)  # (y_k, y_k+1)
-        slots, pslots = [1, 2, 4, 5], [0, 3]
-
-        def assemble(col_idx: Array, col_slots: list[int], shape: tuple[int, int]) -> csr_matrix:
-            block = cost[:, slots][:, :, col_slots]
-            rows = np.broadcast_to(u_idx[:, :, None], block.shape).ravel()
-            cols = np.broadcast_to(col_idx[:, None, :], block.shape).ravel()
-            return coo_matrix((block.ravel(), (rows, cols)), shape=shape).tocsr()
-
-        H = assemble(u_idx, slots, (2 * n, 2 * n))
-        rhs = -(assemble(p_idx, pslots, (2 * n, n)) @ values)
-        rhs = rhs[free] - H[free][:, ~free] @ known[~free]
-        H_ff = H[free][:, free]
-        d = 1.0 / np.sqrt(H_ff.diagonal())  # Jacobi scaling: segment lengths may differ a lot
-        D = diags(d)
-        known[free] = d[:, None] * spsolve((D @ H_ff @ D).tocsc(), d[:, None] * rhs).reshape(-1, 6)
+        # per segment k: its unknowns (v_k, a_k, v_k+1, a_k+1) and its two knots' values
+        u_idx = 2 * np.arange(n - 1)[:, None] + np.arange(4)
+        block = cost[:, 1:][:, [0, 1, 3, 4]][:, :, [1, 2, 4, 5]]  # unknown x unknown
+        by_values = cost[:, [1, 2, 4, 5]][:, :, [0, 3]]  # unknown x (y_k, y_k+1)
+        # the right-hand side: the values' and the given rates' part, moved over
+        ends = np.stack([values[:-1], values[1:]], axis=1)
+        rhs = np.zeros((2 * n, 6))
+        np.add.at(rhs, u_idx, -(by_values @ ends) - block @ known[u_idx])
+        # the free unknowns' matrix, symmetric and banded (3 above the diagonal): each
+        # segment's entries between free unknowns, at the free unknowns' own indices
+        col = np.cumsum(free) - 1
+        rows = np.broadcast_to(u_idx[:, :, None], block.shape)
+        cols = np.broadcast_to(u_idx[:, None, :], block.shape)
+        upper = free[rows] & free[cols] & (rows <= cols)
+        r, c = col[rows[upper]], col[cols[upper]]
+        banded = np.zeros((4, int(free.sum())))
+        np.add.at(banded, (3 + r - c, c), block[upper])
+        d = 1.0 / np.sqrt(banded[3])  # Jacobi scaling: segment lengths may differ a lot
+        for shift in range(1, 4):
+            banded[3 - shift, shift:] *= d[:-shift] * d[shift:]
+        banded[3] *= d * d
+        try:
+            solved = solveh_banded(banded, d[:, None] * rhs[free], check_finite=False)
+        except np.linalg.LinAlgError:  # not positive definite in floating point
+            solved = np.full((len(d), 6), np.nan)
+        known[free] = d[:, None] * solved
     return known[0::2], known[1::2]
 
 
@@ -566,46 +593,44 @@ def segment_table(
     """Coefficients of one segment between two knot states: 6 powers of τ (rows) x
     [p, θ | their rates | their accels] (18 columns), see evaluate_segment.
 
-    `step` = liediff(pose0, pose1).  θ̇ and θ̈ at the end follow from ω = J_l(θ) θ̇ and
-    ω̇ = J_l θ̈ + J̇_l θ̇ at θ = step; at the start θ = 0, so θ̇ = ω and θ̈ = ω̇ there.
+    `step` = liediff(pose0, pose1); segment_tables for one segment.
     """
-    delta = step[3:]
-    J = left_jacobian(delta)
-    theta_dot1 = np.linalg.solve(J, twist1[3:])
-    _, jdot_thetadot = angular_rates(delta.tolist(), theta_dot1.tolist(), [0.0, 0.0, 0.0])
-    theta_ddot1 = np.linalg.solve(J, accel1[3:] - np.array(jdot_thetadot))
-    p0 = pose0.position
-    y0 = np.concatenate([p0, np.zeros(3)])
-    y1 = np.concatenate([p0 + step[:3], delta])
-    v1 = np.concatenate([twist1[:3], theta_dot1])
-    a1 = np.concatenate([accel1[:3], theta_ddot1])
+    rows = (pose0.position, twist0, accel0, twist1, accel1, step)
+    return segment_tables(*(np.asarray(r, dtype=float)[None] for r in rows), np.array([h]))[0]
+
+
+def segment_tables(
+    p0: Array, twist0: Array, accel0: Array, twist1: Array, accel1: Array, step: Array, h: Array
+) -> Array:
+    """segment_table of m segments at once (m, 6, 18): start positions p0 (m, 3), knot
+    rates (m, 6) at both ends, steps (m, 6) and durations h (m,).
+
+    θ̇ and θ̈ at the end follow from ω = J_l(θ) θ̇ and ω̇ = J_l θ̈ + J̇_l θ̇ at θ = step;
+    at the start θ = 0, so θ̇ = ω and θ̈ = ω̇ there.
+    """
+    delta = step[:, 3:]
+    J = left_jacobians(delta)
+    theta_dot1 = np.linalg.solve(J, twist1[:, 3:, None])[..., 0]
+    _, jdot_thetadot = angular_rates(delta.T, theta_dot1.T, np.zeros((3, len(h))))
+    theta_ddot1 = np.linalg.solve(J, (accel1[:, 3:] - np.stack(jdot_thetadot, 1))[..., None])
+    y0 = np.concatenate([p0, np.zeros_like(p0)], axis=1)
+    y1 = np.concatenate([p0 + step[:, :3], delta], axis=1)
+    v1 = np.concatenate([twist1[:, :3], theta_dot1], axis=1)
+    a1 = np.concatenate([accel1[:, :3], theta_ddot1[..., 0]], axis=1)
     return _hermite_coefficients(y0, twist0, accel0, y1, v1, a1, h)
 
 
 def _hermite_coefficients(
-    y0: ArrayLike,
-    v0: ArrayLike,
-    a0: ArrayLike,
-    y1: ArrayLike,
-    v1: ArrayLike,
-    a1: ArrayLike,
-    h: float,
+    y0: Array, v0: Array, a0: Array, y1: Array, v1: Array, a1: Array, h: Array
 ) -> Array:
-    """Coefficients of τ^j (rows) of the quintic with value, rate, accel at τ = 0, h,
-    followed by those of its first and second derivatives (6 + 6 + 6 columns)."""
-    data = np.array(
-        [
-            y0,
-            np.multiply(v0, h),
-            np.multiply(a0, h * h),
-            y1,
-            np.multiply(v1, h),
-            np.multiply(a1, h * h),
-        ]
-    )
-    c = (_HERMITE @ data) / (h ** np.arange(6.0))[:, None]
+    """Per segment (m of them), the coefficients of τ^j (rows) of the quintic with value,
+    rate, accel at τ = 0, h, followed by those of its first and second derivatives
+    (6 + 6 + 6 columns): (m, 6, 18)."""
+    hh = (h * h)[:, None]
+    data = np.stack([y0, v0 * h[:, None], a0 * hh, y1, v1 * h[:, None], a1 * hh], axis=1)
+    c = (_HERMITE @ data) / (h[:, None] ** np.arange(6.0))[:, :, None]
     rate = _DERIVATIVE @ c
-    return np.hstack([c, rate, _DERIVATIVE @ rate])
+    return np.concatenate([c, rate, _DERIVATIVE @ rate], axis=2)
 
 
 def segment_rates(table: Array, taus: Array) -> tuple[Array, Array]:

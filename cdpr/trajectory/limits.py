@@ -96,15 +96,18 @@ def sampled_pose_limits(path: PoseLimits, limits: TrajectoryLimits) -> PoseLimit
     |c̈| <= |q̈| <= angular_accel/2 + angular_speed²/4, so c drops at most
     δ = (angular_accel/2 + angular_speed²/4)·h²/8 below the smaller sampled value:
     samples with tilt <= 2 acos(cos(tilt_max/2) + δ) keep the path's tilt <= tilt_max.
+    A corner of the body at r from p has |d²(R r)/dt²| <= |r|·(angular_accel +
+    angular_speed²), so it strays |r|·(angular_accel + angular_speed²)·h²/8 further.
     """
     h2 = limits.sample_period**2
     position = limits.linear_accel * h2 / 8.0
     delta = (limits.angular_accel / 2.0 + limits.angular_speed**2 / 4.0) * h2 / 8.0
+    turn = (limits.angular_accel + limits.angular_speed**2) * h2 / 8.0
     orientation = 0.0
     if path.tilt_max > 0.0:  # else it is empty already
         sampled = 2.0 * math.acos(min(1.0, math.cos(path.tilt_max / 2.0) + delta))
         orientation = path.tilt_max - sampled
-    return path.shrunk(position, orientation)
+    return path.shrunk(position, orientation, turn)
 
 
 @dataclass(frozen=True)
@@ -170,8 +173,9 @@ def tracked_length_limits(
         lower.append((lo + margin) * stretch)
         upper.append(hi - margin)
     return LengthLimits(
-        tuple(lower), tuple(upper), "length_min/length_max less the tracking, sampling and "
-        "stretch margins"
+        tuple(lower),
+        tuple(upper),
+        "length_min/length_max less the tracking, sampling and stretch margins",
     )
 
 

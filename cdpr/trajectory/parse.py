@@ -23,7 +23,10 @@ field, never another exception.
 from __future__ import annotations
 
 import math
+import sys
 from typing import Any
+
+import numpy as np
 
 from cdpr.pose import Pose
 from cdpr.trajectory.core import SCHEMA_VERSION, Trajectory, TrajectoryError, Waypoint
@@ -31,6 +34,9 @@ from cdpr.trajectory.limits import TrajectoryLimits
 
 _XYZ = ("x", "y", "z")
 _WXYZ = ("w", "x", "y", "z")
+_PLAIN = {"t", "position", "quaternion"}  # the keys of a waypoint read in bulk
+_QUATERNION = set(_WXYZ)
+_LARGEST_INT = int(sys.float_info.max)  # larger ones overflow float()
 
 
 def parse_trajectory(data: Any, limits: TrajectoryLimits | None = None) -> Trajectory:
@@ -58,7 +64,65 @@ def parse_trajectory(data: Any, limits: TrajectoryLimits | None = None) -> Traje
             value=float(len(raw)),
             field="waypoints",
         )
-    return Trajectory([_waypoint(item, i, limits.unit_tolerance) for i, item in enumerate(raw)])
+    return Trajectory(_waypoints(raw, limits.unit_tolerance))
+
+
+def _waypoints(raw: list[Any] | tuple[Any, ...], unit_tolerance: float) -> list[Waypoint]:
+    """The waypoints: read in bulk where they have the plain form (t, a position list
+    and a quaternion object, nothing else), one by one by _waypoint otherwise.
+
+    The plain waypoints' numbers are checked as one array.  Every waypoint of another
+    form, and every plain one whose numbers that check doubts (not a number, not finite,
+    a norm not clearly within the tolerance), goes to _waypoint in order: so the first
+    problem is named exactly as _waypoint names it, and _waypoint decides every doubt.
+    The bulk read costs a tenth of _waypoint's (~2 µs a waypoint).
+    """
+    plain: list[int] = []
+    numbers: list[Any] = []  # t, x, y, z, w, qx, qy, qz of each plain waypoint
+    out: list[Waypoint | None] = [None] * len(raw)
+    for i, item in enumerate(raw):
+        if type(item) is dict and item.keys() == _PLAIN:
+            p, q = item["position"], item["quaternion"]
+            if type(p) is list and len(p) == 3 and type(q) is dict and q.keys() == _QUATERNION:
+                plain.append(i)
+                numbers += (item["t"], *p, q["w"], q["x"], q["y"], q["z"])
+    values, clear = _plain_values(numbers, len(plain), unit_tolerance)
+    t, positions, quaternions = values[:, 0].tolist(), values[:, 1:4], values[:, 4:]
+    for k in np.flatnonzero(clear).tolist():
+        pose = Pose._from_unit(positions[k].tolist(), quaternions[k].tolist())
+        out[plain[k]] = Waypoint(t[k], pose)
+    for i, item in enumerate(out):
+        if item is None:
+            out[i] = _waypoint(raw[i], i, unit_tolerance)
+    return out  # type: ignore[return-value]  # each one set
+
+
+def _plain_values(numbers: list[Any], n: int, unit_tolerance: float) -> tuple[Any, Any]:
+    """The plain waypoints' numbers (n, 8), each quaternion normalised with its sign as
+    Pose chooses it, and which of the n are clear of doubt (the others go to _waypoint)."""
+    try:
+        if not set(map(type, numbers)) <= {float, int}:  # bool, str, None, ...
+            raise OverflowError
+        values = np.array(numbers, dtype=float).reshape(n, 8)
+    except OverflowError:  # or an int beyond the float range: each such number as NaN
+        values = np.array([_float_or_nan(x) for x in numbers], dtype=float).reshape(n, 8)
+    q = values[:, 4:]
+    with np.errstate(invalid="ignore", over="ignore"):
+        norm = np.sqrt(np.einsum("ij,ij->i", q, q))
+        clear = np.all(np.isfinite(values), axis=1) & (np.abs(norm - 1.0) <= 0.5 * unit_tolerance)
+    q /= np.where(clear, norm, 1.0)[:, None]
+    first = q[np.arange(n), np.argmax(q != 0.0, axis=1)]  # w, or the first non-zero one
+    q[first < 0.0] *= -1.0
+    return values, clear
+
+
+def _float_or_nan(x: Any) -> float:
+    """x as a float if it is a number (bool is not) within the float range, else NaN."""
+    if type(x) is float:
+        return x
+    if type(x) is int and abs(x) <= _LARGEST_INT:
+        return float(x)
+    return math.nan
 
 
 def _waypoint(item: Any, i: int, unit_tolerance: float) -> Waypoint:

@@ -13,8 +13,6 @@ from collections.abc import Callable, Sequence
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from cdpr.so3 import hat
-
 _SERIES_BELOW = 0.25  # |θ|² below which the coefficients use their Taylor series
 _TERMS = 7  # enough for 1e-17 relative truncation error up to |θ| = 0.5
 
@@ -74,12 +72,16 @@ def _closed_coefficients(
     )
 
 
-def left_jacobian(theta: ArrayLike) -> NDArray[np.float64]:
-    """J_l(θ), with d/dt exp(θ) = [J_l(θ) θ̇]× exp(θ) (world-frame rate of exp(θ) R0)."""
-    th = np.asarray(theta, dtype=float).reshape(3)
-    b, c, _, _ = _jl_coefficients(float(th @ th))
-    W = hat(th)
-    return np.eye(3) + b * W + c * (W @ W)
+def left_jacobians(theta: ArrayLike) -> NDArray[np.float64]:
+    """J_l(θ) (m, 3, 3) for each row of θ (m, 3), with d/dt exp(θ) = [J_l(θ) θ̇]× exp(θ)
+    (the world-frame rate of exp(θ) R0)."""
+    th = np.asarray(theta, dtype=float)
+    b, c, _, _ = _jl_coefficients(np.einsum("ij,ij->i", th, th))
+    x, y, z = th.T
+    W = np.zeros((len(th), 3, 3))
+    W[:, 0, 1], W[:, 0, 2], W[:, 1, 2] = -z, y, -x  # [θ]×, row by row
+    W[:, 1, 0], W[:, 2, 0], W[:, 2, 1] = z, -y, x
+    return np.eye(3) + b[:, None, None] * W + c[:, None, None] * (W @ W)
 
 
 def angular_rates(

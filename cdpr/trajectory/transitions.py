@@ -15,12 +15,12 @@ the same event loop can return to the loop between candidates.
 from __future__ import annotations
 
 import math
-from collections.abc import Generator
+from collections.abc import Callable, Generator
 from typing import TypeVar
 
 import numpy as np
 
-from cdpr.pose import Pose, liediff
+from cdpr.pose import Pose, liediff, retract
 from cdpr.trajectory.core import (
     Reference,
     Trajectory,
@@ -96,19 +96,54 @@ def approach_steps(
     return trajectory.after_blend(first, t0 + T - trajectory.start_time)
 
 
+def stop_steps(
+    current: Reference, limits: TrajectoryLimits, start: float = 0.0
+) -> Steps[Trajectory]:
+    """From the current reference state at `start` to rest, as soon as the limits allow,
+    without turning back (a step after each candidate duration checked).
+
+    The rest pose is where the velocity, as the cubic Hermite from the current (twist,
+    accel) to zero, carries it: twist T/2 + accel T²/12 in the chart of the segment.  The
+    segment is then that cubic's integral (its fifth-power term is zero), so each
+    coordinate's speed keeps its sign unless the reference is already braking hard; a
+    fixed rest pose nearer than that makes the shortest segment overshoot and come back."""
+    _check_rates(current, "current reference", limits)
+
+    def rest(T: float) -> tuple[Reference, np.ndarray]:
+        step = current.twist * (T / 2.0) + current.accel * (T * T / 12.0)
+        return Reference(retract(current.pose, step), np.zeros(6), np.zeros(6)), step
+
+    def violation(T: float) -> tuple[str, float, str] | None:
+        end, step = rest(T)
+        return _violation(current, end, step, T, limits)
+
+    # with no acceleration the peak deceleration is 1.5 speed / T: a lower bound on T
+    speed = float(np.linalg.norm(current.twist[:3]))
+    spin = float(np.linalg.norm(current.twist[3:]))
+    lower = max(MIN_BLEND, 1.5 * speed / limits.linear_accel, 1.5 * spin / limits.angular_accel)
+    T = yield from _shortest(violation, lower, limits)
+    first = Waypoint(start, current.pose, current.twist, current.accel)
+    return Trajectory([first, Waypoint(start + T, rest(T)[0].pose)])
+
+
+def _check_rates(state: Reference, name: str, limits: TrajectoryLimits) -> None:
+    """TrajectoryError if `state` itself is above a rate limit (no segment from or to it
+    can keep them)."""
+    bad = rate_violation(state, limits)
+    if bad is not None:
+        limit, value, unit = bad
+        raise TrajectoryError(
+            limit,
+            f"the {name} has {value:.6g} {unit}, above the limit {getattr(limits, limit):g} {unit}",
+            value=value,
+        )
+
+
 def _blend_duration(s0: Reference, s1: Reference, limits: TrajectoryLimits) -> Steps[float]:
     """The shortest duration of the s0 -> s1 segment that keeps the rate limits (a step
     after each candidate checked)."""
-    for name, state in (("current reference", s0), ("target state", s1)):
-        bad = rate_violation(state, limits)
-        if bad is not None:
-            limit, value, unit = bad
-            raise TrajectoryError(
-                limit,
-                f"the {name} has {value:.6g} {unit}, above the limit "
-                f"{getattr(limits, limit):g} {unit}",
-                value=value,
-            )
+    _check_rates(s0, "current reference", limits)
+    _check_rates(s1, "target state", limits)
     step = liediff(s0.pose, s1.pose)
     if not (np.any(s0.twist) or np.any(s0.accel) or np.any(s1.twist) or np.any(s1.accel)):
         dist, angle = float(np.linalg.norm(step[:3])), float(np.linalg.norm(step[3:]))
@@ -126,8 +161,19 @@ def _blend_duration(s0: Reference, s1: Reference, limits: TrajectoryLimits) -> S
         float(np.linalg.norm(s1.twist[:3] - s0.twist[:3])) / limits.linear_accel,
         float(np.linalg.norm(s1.twist[3:] - s0.twist[3:])) / limits.angular_accel,
     )
+    return (yield from _shortest(lambda T: _violation(s0, s1, step, T, limits), span, limits))
+
+
+def _shortest(
+    violation: Callable[[float], tuple[str, float, str] | None],
+    span: float,
+    limits: TrajectoryLimits,
+) -> Steps[float]:
+    """The shortest duration from `span` up that `violation` accepts: grown geometrically
+    to the first feasible one, then bisected, then stretched by _MARGIN where that stays
+    feasible (a step after each candidate checked)."""
     infeasible = None
-    while (bad := _violation(s0, s1, step, span, limits)) is not None:
+    while (bad := violation(span)) is not None:
         yield
         if span > limits.max_duration:
             limit, value, unit = bad
@@ -144,11 +190,11 @@ def _blend_duration(s0: Reference, s1: Reference, limits: TrajectoryLimits) -> S
         for _ in range(_BISECTIONS):
             yield
             mid = 0.5 * (lo + span)
-            if _violation(s0, s1, step, mid, limits) is None:
+            if violation(mid) is None:
                 span = mid
             else:
                 lo = mid
-    return span * _MARGIN if _violation(s0, s1, step, span * _MARGIN, limits) is None else span
+    return span * _MARGIN if violation(span * _MARGIN) is None else span
 
 
 def _violation(

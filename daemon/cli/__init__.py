@@ -87,7 +87,9 @@ def check_config(path: str) -> int:
     return 0
 
 
-def main(argv: list[str] | None = None) -> int:
+def command_parser() -> argparse.ArgumentParser:
+    """The `cdprd` command line, every subcommand (also the source of the CLI reference,
+    daemon.cli.reference)."""
     parser = argparse.ArgumentParser(
         prog="cdprd", description="Hardware-interface daemon for cable-driven parallel robots."
     )
@@ -100,6 +102,11 @@ def main(argv: list[str] | None = None) -> int:
     demo_cmd.add_parser(sub)
     tune_cmd.add_parser(sub)
     calibrate_cmd.add_parser(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = command_parser()
     args = parser.parse_args(argv)
     if hasattr(args, "handler"):
         return args.handler(args)

@@ -274,7 +274,12 @@ def _held(hold: Callable[[], object], release: Callable[[], object]) -> Iterator
     try:
         yield True
     finally:
-        release()
+        try:
+            release()
+        except RequestError as exc:
+            if exc.code != "not_owner":
+                raise
+            _say(f"nothing to let go: {exc.reason}")  # the lease lapsed: it was let go
 
 
 @contextlib.contextmanager
@@ -466,13 +471,23 @@ def _write_new(path: Path, robot: dict[str, Any], calibration: Calibration) -> N
 
 def _store_offsets(config: DaemonConfig, calibration: Calibration, robot_file: Path) -> str | None:
     """The calibrated offsets as the stored state (None: no state_dir)."""
-    from daemon.service.calibration_state import new_state, save_state, state_path
+    from daemon.service.calibration_state import (
+        new_state,
+        robot_identity,
+        save_state,
+        state_path,
+    )
 
     if config.state_dir is None:
         return None
     path = state_path(config.state_dir, config.robot.name)
+    # the offsets belong to the corrected robot file, as the daemon will read it
+    identity = robot_identity(Robot.from_yaml(robot_file), config.drives)
     state = new_state(
-        config.robot.name, calibration.offsets.tolist(), f"calibrate (robot file {robot_file})"
+        config.robot.name,
+        identity,
+        calibration.offsets.tolist(),
+        f"calibrate (robot file {robot_file})",
     )
     try:
         save_state(path, state)

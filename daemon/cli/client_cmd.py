@@ -1,16 +1,20 @@
 """The `cdprd` client commands: send a trajectory, run a command, print the daemon's reply.
 
-    cdprd send FILE [--start now|UNIX_TIME] [--id ID]    (FILE: YAML or JSON trajectory)
+    cdprd send FILE [--start now|UNIX_TIME] [--id ID] [--preempt]  (YAML or JSON)
     cdprd status | enable | disable | hold | reset
     cdprd brake [--reason TEXT]
-    cdprd goto x y z [qw qx qy qz]
-    cdprd identify-payload [--apply]
-    cdprd payload [--freeze [--lease S] | --unfreeze]
-    cdprd observer [--hold [--lease S] | --release]  (the wrench observer out of the loop)
-    cdprd home [--pose NAME]      (the platform resting at the robot file's pose NAME)
-    cdprd pretension [--pose NAME]  (from slack cables, the platform on a fixture there)
+    cdprd goto x y z [qw qx qy qz] [--preempt]
+    cdprd identify-payload [--apply] [--preempt]
+    cdprd payload [--freeze [--lease S] | --unfreeze] [--lease-id ID]
+    cdprd observer [--hold [--lease S] | --release] [--lease-id ID]  (the wrench observer)
+    cdprd home [--pose NAME] [--preempt]  (the platform resting at the robot file's pose)
+    cdprd pretension [--pose NAME] [--preempt]  (from slack cables, on a fixture there)
     common options: --prefix cdpr/<robot>  --connect tcp/127.0.0.1:7447  --timeout S
                     --zenoh-config FILE (raw zenoh keys, e.g. TLS certificates)
+                    --client NAME (who asks, in the daemon's events; default user@host:pid)
+
+--preempt replaces a motion another client runs (refused otherwise, naming it); a lease
+taken with --lease prints its lease_id, which --lease-id gives to renew or release it.
 
 Exit codes: 0 accepted / done, 1 the daemon refused (the reason is printed), 2 usage
 (bad arguments, unreadable file, several daemons and no --prefix), 3 no daemon reachable.
@@ -39,8 +43,10 @@ from daemon.interface.client import (
 EXIT_OK, EXIT_REFUSED, EXIT_USAGE, EXIT_UNREACHABLE = 0, 1, 2, 3
 LEASE_HELP = (
     "with --freeze/--hold: let go after S seconds unless the same command comes again "
-    "(docs/zenoh.md, leases)"
+    "(docs/reference/zenoh-api.md, leases); the reply's lease_id renews or ends it"
 )
+LEASE_ID_HELP = "the lease_id the hold on a lease replied: needed to renew or release it"
+PREEMPT_HELP = "replace a motion another client runs (refused otherwise, naming it)"
 IDENTIFY_TIMEOUT = 120.0  # s: identify-payload moves through five poses
 PRETENSION_TIMEOUT = 120.0  # s: winding in (up to pretension.taut_timeout), ramp, settle
 REQUEST_FILE_MAX_BYTES = 64 << 20  # a trajectory file (the daemon limits what it takes)
@@ -77,7 +83,7 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
         "--zenoh-config",
         metavar="FILE",
         help="YAML or JSON file of raw zenoh keys for the session, e.g. transport.link.tls "
-        "for a TLS endpoint (docs/zenoh.md)",
+        "for a TLS endpoint (docs/reference/zenoh-api.md)",
     )
     common.add_argument(
         "--timeout",
@@ -85,12 +91,18 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
         default=DEFAULT_TIMEOUT,
         help=f"seconds to wait for the reply (default {DEFAULT_TIMEOUT:g})",
     )
+    common.add_argument(
+        "--client",
+        metavar="NAME",
+        help="who asks, as the daemon records it in its events (default user@host:pid)",
+    )
     send = subparsers.add_parser(
         "send", parents=[common], help="send a trajectory file (YAML or JSON) and await the verdict"
     )
-    send.add_argument("file", help="trajectory in the form of docs/zenoh.md")
+    send.add_argument("file", help="trajectory in the form of docs/reference/zenoh-api.md")
     send.add_argument("--start", default="now", help='"now" (default) or a unix time in seconds')
     send.add_argument("--id", help="request id echoed in the reply and the events")
+    send.add_argument("--preempt", action="store_true", help=PREEMPT_HELP)
     send.set_defaults(run=_runner("send", _prepare_send))
     for name, text in _SIMPLE.items():
         sub = subparsers.add_parser(name, parents=[common], help=text)
@@ -104,6 +116,7 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     goto.add_argument(
         "pose", nargs="+", metavar="x y z [qw qx qy qz]", help="position (m), quaternion"
     )
+    goto.add_argument("--preempt", action="store_true", help=PREEMPT_HELP)
     goto.set_defaults(run=_runner("goto", _prepare_goto))
     identify = subparsers.add_parser(
         "identify-payload",
@@ -113,8 +126,9 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     identify.add_argument(
         "--apply", action="store_true", help="use the estimate in the controller's model"
     )
+    identify.add_argument("--preempt", action="store_true", help=PREEMPT_HELP)
     identify.set_defaults(
-        run=_runner("identify_payload", lambda a: lambda c: c.identify_payload(a.apply)),
+        run=_runner("identify_payload", lambda a: lambda c: c.identify_payload(a.apply, a.preempt)),
         timeout=IDENTIFY_TIMEOUT,
     )
     payload = subparsers.add_parser(
@@ -124,8 +138,12 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     frozen.add_argument("--freeze", dest="frozen", action="store_const", const=True)
     frozen.add_argument("--unfreeze", dest="frozen", action="store_const", const=False)
     payload.add_argument("--lease", type=float, metavar="S", help=LEASE_HELP)
+    payload.add_argument("--lease-id", metavar="ID", help=LEASE_ID_HELP)
     payload.set_defaults(
-        run=_runner("payload", lambda a: lambda c: c.payload(a.frozen, lease=a.lease))
+        run=_runner(
+            "payload",
+            lambda a: lambda c: c.payload(a.frozen, lease=a.lease, lease_id=a.lease_id),
+        )
     )
     observer = subparsers.add_parser(
         "observer", parents=[common],
@@ -135,8 +153,9 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     held.add_argument("--hold", dest="held", action="store_const", const=True)
     held.add_argument("--release", dest="held", action="store_const", const=False)
     observer.add_argument("--lease", type=float, metavar="S", help=LEASE_HELP)
+    observer.add_argument("--lease-id", metavar="ID", help=LEASE_ID_HELP)
     observer.set_defaults(
-        run=_runner("observer", lambda a: lambda c: c.observer(a.held, lease=a.lease))
+        run=_runner("observer", lambda a: lambda c: c.observer(a.held, a.lease, a.lease_id))
     )
     home = subparsers.add_parser(
         "home",
@@ -146,7 +165,8 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     home.add_argument(
         "--pose", help="the robot file's pose (poses:) it rests at (default: the home pose)"
     )
-    home.set_defaults(run=_runner("home", lambda args: lambda c: c.home(args.pose)))
+    home.add_argument("--preempt", action="store_true", help=PREEMPT_HELP)
+    home.set_defaults(run=_runner("home", lambda a: lambda c: c.home(a.pose, a.preempt)))
     pretension = subparsers.add_parser(
         "pretension",
         parents=[common],
@@ -155,8 +175,9 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     pretension.add_argument(
         "--pose", help="the robot file's pose (poses:) of the fixture it rests on (default home)"
     )
+    pretension.add_argument("--preempt", action="store_true", help=PREEMPT_HELP)
     pretension.set_defaults(
-        run=_runner("pretension", lambda args: lambda c: c.pretension(args.pose)),
+        run=_runner("pretension", lambda a: lambda c: c.pretension(a.pose, a.preempt)),
         timeout=PRETENSION_TIMEOUT,
     )
 
@@ -174,7 +195,7 @@ def _runner(
             action = prepare(args)
             raw = None if args.zenoh_config is None else _read_mapping(args.zenoh_config)
             with CdprClient(
-                args.prefix, args.connect, timeout=args.timeout, zenoh_config=raw
+                args.prefix, args.connect, timeout=args.timeout, zenoh_config=raw, name=args.client
             ) as client:
                 result = action(client)
         except _UsageError as exc:
@@ -201,7 +222,9 @@ def _runner(
 
 def _prepare_send(args: argparse.Namespace) -> Action:
     body, start = _read_mapping(args.file), _start(args.start)
-    return lambda client: client.send_trajectory(body, start=start, request_id=args.id)
+    return lambda client: client.send_trajectory(
+        body, start=start, request_id=args.id, preempt=args.preempt
+    )
 
 
 def _prepare_request(name: str) -> Callable[[argparse.Namespace], Action]:
@@ -210,7 +233,7 @@ def _prepare_request(name: str) -> Callable[[argparse.Namespace], Action]:
 
 def _prepare_goto(args: argparse.Namespace) -> Action:
     position, quaternion = _pose(args.pose)
-    return lambda client: client.goto(position, quaternion)
+    return lambda client: client.goto(position, quaternion, args.preempt)
 
 
 def _read_mapping(path: str) -> dict[str, Any]:

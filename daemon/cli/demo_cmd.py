@@ -27,6 +27,7 @@ from cdpr.trajectory import Trajectory
 from daemon.cli.run_cmd import add_interface_options, interface_edit, report
 from daemon.config import DaemonConfig, load_config
 from daemon.process.logsetup import configure_logging
+from daemon.process.recording_files import FileLimits, Series
 from daemon.service.service import Service
 
 if TYPE_CHECKING:
@@ -85,13 +86,17 @@ async def _demo(config: DaemonConfig, plot: str | None) -> int:
     simulator = InProcessSimulator(config)
     plant = simulator.robot.plant
     samples: list[tuple[float, Pose, Pose, list[float]]] = []
-
-    def record(t: float, out: ControlOutput) -> None:
-        samples.append((t, out.reference.pose, plant.pose, plant.tensions.tolist()))
-
     result: dict[str, Any] = {}
 
     async def fly(service: Service) -> None:
+        def record(t: float, out: ControlOutput) -> None:
+            """The platform's true pose against the reference at the same instant: the
+            plant's state is that of its last whole step, which a cycle's reference
+            (at the cycle's opening) may be up to a step or a host's hiccup apart from."""
+            at = service.now() - (simulator.runner.t - plant.time)
+            reference = service.reference_at(at)[0].pose
+            samples.append((at, reference, plant.pose, plant.tensions.tolist()))
+
         service.cycle_listeners.append(record)
         endpoint = config.zenoh.listen_endpoints[0]
         result["client"] = await _client_flight(client, endpoint, trajectory)
@@ -134,9 +139,9 @@ async def _demo(config: DaemonConfig, plot: str | None) -> int:
 
 
 def _latest_recording(path: Path) -> Path:
-    """The newest file recorded for `path` (session_path inserts the start time)."""
-    runs = path.parent.glob(f"{path.stem}-*{path.suffix}")
-    return max(runs, key=lambda p: p.stat().st_mtime, default=path)
+    """The newest file recorded for `path` (each is named after the time it began)."""
+    files = Series(path, FileLimits()).files()
+    return files[-1] if files else path
 
 
 async def _start_client() -> asyncio.subprocess.Process:
@@ -187,7 +192,7 @@ def _print(
         "trajectory accepted over zenoh"
     )
     print(
-        f"tracking error (simulated platform vs reference): RMS {f.rms_mm:.2f} mm, "
+        f"tracking error (simulated platform vs reference, same instant): RMS {f.rms_mm:.2f} mm, "
         f"max {f.max_mm:.2f} mm, orientation RMS {f.rms_deg:.3f} deg"
     )
     print(

@@ -1,11 +1,12 @@
 """The daemon's config file (DESIGN §11): one YAML per robot, validated at load.
 
 Sections: robot (a path relative to this file, or inline), controller, drives, can,
-safety, trajectory (limits), zenoh, logging, recording, realtime (what the core process
-asks of the kernel), view (the live 3-D view, daemon.config.view_config), sim (the
-simulator used by `run --sim`, `demo` and `sim`).  Every problem is a ConfigError
-naming the key; the geometry is checked for sense (Λ full rank at home, the home pose's
-static wrench in W).
+safety, environment (planes and boxes the platform and the cables must not cross,
+daemon.config.environment_config), trajectory (limits), zenoh, logging, recording,
+realtime (what the core process asks of the kernel), view (the live 3-D view,
+daemon.config.view_config), sim (the simulator used by `run --sim`, `demo` and `sim`).
+Every problem is a ConfigError naming the key; the geometry is checked for sense (Λ full
+rank at home, the home pose's static wrench in W, the platform clear of the environment).
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import Field, field_validator
+from pydantic import Field, field_validator, model_validator
 
 from cdpr import ConfigError, Robot
 from cdpr.control_spec import ControllerSpec, parse_controller
@@ -40,6 +41,7 @@ from cdpr.trajectory import (
     sampled_pose_limits,
     tracked_length_limits,
 )
+from daemon.config.environment_config import EnvironmentConfig, environment_of
 from daemon.config.ros2_config import Ros2Settings
 from daemon.config.view_config import ViewConfig
 from daemon.config.watchdog_drift import DriftBound, check_drift, drift_bounds
@@ -53,11 +55,14 @@ Fraction = Annotated[float, Field(gt=0.0, lt=1.0)]
 class SafetyConfig(StrictModel):
     """Brake triggers (DESIGN §9).  Positions in m, angles in rad, world frame.
 
-    workspace_min/max: box for the platform reference point (default: the anchors'
-    bounding box).  tilt_max: largest rotation angle from the home orientation.
-    tracking_error_*: largest |θ_d| parts while tracking or holding.  Trajectories are
-    validated inside the box and tilt less these (and a sampling margin): the measured
-    pose, within them of the reference, then stays inside the box and the tilt.
+    workspace_min/max: box for the platform reference point and every corner of its
+    body (the robot file's platform.body, default the attachment points' hull; default
+    box: the anchors' bounding box).  tilt_max: largest rotation angle from the home
+    orientation.  tracking_error_*: largest |θ_d| parts while tracking or holding.
+    Trajectories are validated inside the box, the tilt and clear of the environment
+    less these (a corner at r from p: less tracking_error_position + r x
+    tracking_error_orientation) and a sampling margin: the measured pose, within them of
+    the reference, then stays inside.
     stale_cycles: consecutive cycles an actuator may miss its feedback.
     feedback_deadline: fraction of the period to wait for feedback after the cycle opens.
     bus_errors_max: bus errors (error frames, failed sends) tolerated within one second.
@@ -78,6 +83,12 @@ class SafetyConfig(StrictModel):
     max_watchdog_drift: the most a cable may move (m) between the daemon's death and the
       moment its drive notices and holds (daemon.config.watchdog_drift); a config whose
       bound exceeds it is refused.
+    rest_force / rest_torque: the largest net force (N) and torque about the reference
+      point (N m) the tensions the drives measure at rest may leave unbalanced at the
+      pose the lengths say (enable) or the pose named (home) (daemon.service.rest_check):
+      more, and the pose is not where the platform is; the command is refused.  An
+      undeclared payload or a push leaves a net force too: 30 N (the default) allows a
+      3 kg payload on reference8 and refuses a zero 50 mm off in z (43 N).
     """
 
     workspace_min: Vec3 | None = None
@@ -94,6 +105,8 @@ class SafetyConfig(StrictModel):
     companion_hang: Annotated[float, Field(ge=0.2, le=60.0)] = 1.0
     companion_lost: Annotated[float, Field(gt=0.0, le=3600.0)] = 10.0
     max_watchdog_drift: PositiveFloat = 0.2
+    rest_force: PositiveFloat = 30.0
+    rest_torque: PositiveFloat = 5.0
 
 
 class LoggingConfig(StrictModel):
@@ -103,10 +116,44 @@ class LoggingConfig(StrictModel):
 class RecordingConfig(StrictModel):
     """Optional recordings: cycle telemetry to MCAP, raw CAN to a python-can log file
     (format by suffix: .log, .asc, .blf, .csv, .trc).  Relative paths are from the config;
-    each run writes a new file named after its start time."""
+    each file is named after the time it began (daemon.process.recording_files).
+
+    rotate_mb / rotate_minutes: a recording begins a new file once its current one is
+      this large (MB, 10^6 bytes) or this old; null: no such limit.
+    keep_mb / keep_files: the most each recording's files (this run's and earlier runs')
+      take together, the one being written counted at rotate_mb, and the most files it
+      keeps; the oldest are deleted first, as each new file begins; null: no limit.
+    min_free_mb: below this much free space on its file system a recording pauses (the
+      daemon runs on, and says so in its status, state and events) and resumes in a new
+      file once there is 10 % (at least 16 MB) more; 0: no floor.
+    The defaults hold both recordings (about 0.85 GB an hour at 500 Hz) to 8 GB for as
+    long as the service runs.
+    """
 
     telemetry: str | None = None
     can_log: str | None = None
+    rotate_mb: PositiveFloat | None = 256.0
+    rotate_minutes: PositiveFloat | None = 60.0
+    keep_mb: PositiveFloat | None = 4096.0
+    keep_files: Annotated[int, Field(ge=1)] | None = None
+    min_free_mb: Annotated[float, Field(ge=0.0)] = 1024.0
+
+    @model_validator(mode="after")
+    def _room_for_a_file(self) -> RecordingConfig:
+        keep, rotate = self.keep_mb, self.rotate_mb
+        if keep is not None and rotate is not None and keep < rotate:
+            raise ValueError(
+                f"keep_mb ({keep:g}) is less than rotate_mb ({rotate:g}): the file being "
+                "written alone may grow to rotate_mb"
+            )
+        if (keep is not None or self.keep_files is not None) and (
+            rotate is None and self.rotate_minutes is None
+        ):
+            raise ValueError(
+                "keep_mb / keep_files need rotate_mb or rotate_minutes: without either, one "
+                "file grows for the whole run and nothing can be deleted"
+            )
+        return self
 
 
 MAX_CPUS = 8192  # the kernel's largest NR_CPUS
@@ -115,7 +162,7 @@ CpuIndex = Annotated[int, Field(ge=0, lt=MAX_CPUS)]
 
 class RealtimeConfig(StrictModel):
     """What the core process (the control cycle) asks of the kernel at start-up
-    (daemon.process.realtime; README "Real-time").  Where it is not permitted the core
+    (daemon.process.realtime; docs/explanation/realtime.md).  Where it is not permitted the core
     runs on at normal service, with a warning that names what to allow.
 
     priority: SCHED_FIFO priority, 1..99; 0 or null: normal scheduling, nothing asked.
@@ -147,6 +194,7 @@ class FileConfig(StrictModel):
     drives: dict[str, Any]
     can: CanSection = CanConfig()
     safety: SafetyConfig = SafetyConfig()
+    environment: EnvironmentConfig = EnvironmentConfig()
     trajectory: TrajectoryLimits = TrajectoryLimits()
     zenoh: dict[str, Any] = Field(default_factory=dict)
     logging: LoggingConfig = LoggingConfig()
@@ -228,16 +276,27 @@ class DaemonConfig:
         self.view: ViewConfig = raw.view
         self.sim = raw.sim
         self.ros2: Ros2Settings = validate_section(Ros2Settings, raw.ros2, source, "ros2")
+        if self.ros2.ingress_limit_hz is not None and "downsampling" in self.zenoh.config:
+            raise ConfigError(
+                f"{source}: ros2.ingress_limit_hz: a raw zenoh.config downsampling is set "
+                "too and both set zenoh's downsampling: use one of them"
+            )
         self.state_dir = _state_dir(self, raw.state_dir)
         self.pretension: PretensionSpec = raw.pretension
         try:
             lo, hi = workspace_box(robot, raw.safety)
+            environment = environment_of(robot, raw.environment)
         except ConfigError as exc:
             raise exc.within(source) from None
         # the runtime check on the measured pose, and what validation holds each sampled
         # reference to: less the tracking-error bounds, then the sampling margin
         self.pose_limits = PoseLimits(
-            tuple(lo.tolist()), tuple(hi.tolist()), robot.home.quaternion_tuple, raw.safety.tilt_max
+            tuple(lo.tolist()),
+            tuple(hi.tolist()),
+            robot.home.quaternion_tuple,
+            raw.safety.tilt_max,
+            body=robot.body,
+            environment=environment,
         )
         tracked = self.pose_limits.shrunk(
             raw.safety.tracking_error_position, raw.safety.tracking_error_orientation
@@ -341,15 +400,25 @@ def check_geometry(config: DaemonConfig) -> None:
     if bad is None:
         return
     safety, where = config.safety, f"{config.source}: safety:"
+    if bad.limit == "environment":
+        raise ConfigError(
+            f"{config.source}: environment: at the home pose {bad.detail}, which trajectories "
+            "must keep clear of"
+        )
     if bad.limit == "tilt_max":
         raise ConfigError(
             f"{where} tilt_max ({safety.tilt_max:g} rad) leaves no room for a trajectory "
             f"once tracking_error_orientation ({safety.tracking_error_orientation:g} rad) "
             f"is kept from it: {bad.detail}"
         )
+    what = (
+        f"the home position {home.position.tolist()} lies"
+        if bad.detail.startswith("position")
+        else "at the home pose a corner of the platform lies"
+    )
     raise ConfigError(
-        f"{where} the home position {home.position.tolist()} lies outside the workspace "
-        "box (workspace_min/workspace_max, default the anchors' bounding box) shrunk by "
-        f"tracking_error_position ({safety.tracking_error_position:g} m), inside which "
-        f"trajectories must stay: {bad.detail}"
+        f"{where} {what} outside the workspace box (workspace_min/workspace_max, default "
+        "the anchors' bounding box) shrunk by tracking_error_position "
+        f"({safety.tracking_error_position:g} m), inside which trajectories must stay: "
+        f"{bad.detail}"
     )

@@ -1,4 +1,4 @@
-"""The `ros2:` config section: ROS 2 over rmw_zenoh's wire format (opt-in; README "ROS 2").
+"""The `ros2:` config section: ROS 2 over rmw_zenoh's wire format (opt-in; docs/guide/ros2.md).
 
 The bridge uses the daemon's own zenoh session (the `zenoh:` section decides where it
 listens or connects), so a ROS 2 graph reaches it through a zenoh router such as
@@ -41,8 +41,13 @@ class Ros2Settings(StrictModel):
     multi_dof_trajectory_topic: str = Field("multi_dof_trajectory", pattern=_TOPIC)
     status_topic: str = Field("trajectory_status", pattern=_TOPIC)
     """std_msgs/msg/String: the verdict on each trajectory received (JSON text)."""
-    max_message_bytes: int = Field(4 * 1024 * 1024, ge=1024, le=256 * 1024 * 1024)
-    """An incoming trajectory above this size is refused unread."""
+    max_message_bytes: int | None = Field(None, ge=1024, le=256 * 1024 * 1024)
+    """An incoming trajectory above this size is refused unread; None: the zenoh
+    interface's zenoh.max_message_bytes, the cap of every way a trajectory comes in."""
+    ingress_limit_hz: PositiveFloat | None = None
+    """Per trajectory topic: zenoh drops samples that come sooner than 1/limit after the
+    last one it let through, before the daemon sees them; None: the limit
+    zenoh.ingress_limits_hz puts on `trajectory` (no limit if it puts none)."""
     queue_depth: int = Field(4, ge=1, le=64)
     """Trajectories waiting to be decoded and validated; more are refused "busy"."""
 
@@ -51,4 +56,3 @@ class Ros2Settings(StrictModel):
         if name.startswith("/"):
             return name
         return f"{self.namespace.rstrip('/')}/{name}"
-

@@ -2,7 +2,7 @@
 
 Safe by default: the daemon listens on tcp/127.0.0.1:7447 only, multicast scouting and
 gossip are OFF whatever the raw zenoh config says, and any endpoint that is not on
-loopback is refused unless `expose: true` is set (see docs/zenoh.md for TLS and access
+loopback is refused unless `expose: true` is set (see docs/reference/zenoh-api.md for TLS and access
 control).  The raw `config:` dict passes everything else (transport/link/tls,
 access_control, ...) to zenoh unchanged; it is checked by zenoh at load time.
 """
@@ -12,7 +12,7 @@ from __future__ import annotations
 import ipaddress
 import json
 import re
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any, Literal
 
 import zenoh
@@ -61,7 +61,8 @@ class ZenohSettings(StrictModel):
     let through, before the daemon sees them: a flood then costs the control loop
     next to nothing, a dropped query times out at its sender.  Empty: no limits."""
     config: dict[str, Any] = Field(default_factory=dict)
-    """Raw zenoh config (json5 keys, e.g. transport, access_control); see docs/zenoh.md."""
+    """Raw zenoh config (json5 keys, e.g. transport, access_control); see
+    docs/reference/zenoh-api.md."""
 
     @field_validator("prefix")
     @classmethod
@@ -122,7 +123,7 @@ class ZenohSettings(StrictModel):
                             f"zenoh.{key} endpoint {endpoint!r} is not on loopback; exposing "
                             "the daemon on a network is an explicit choice: set "
                             "zenoh.expose: true and configure TLS and access control "
-                            "(docs/zenoh.md), or use tcp/127.0.0.1:<port>"
+                            "(docs/reference/zenoh-api.md), or use tcp/127.0.0.1:<port>"
                         )
             if self.multicast_scouting:
                 raise ValueError(
@@ -137,21 +138,33 @@ class ZenohSettings(StrictModel):
             return self.listen
         return (DEFAULT_LISTEN,) if self.mode == "peer" else ()
 
+    def ingress_limit(self, key: str) -> float | None:
+        """The lowest of the ingress_limits_hz entries whose key matches `key` (a key
+        under the prefix); None: `key` is not limited."""
+        target = zenoh.KeyExpr(key)
+        rates = [
+            hz for pattern, hz in self.ingress_limits_hz.items()
+            if zenoh.KeyExpr(pattern).intersects(target)
+        ]  # fmt: skip
+        return min(rates, default=None)
+
     def key_prefix(self, robot_name: str) -> str:
         """The configured prefix, else cdpr/<robot_name>."""
         return self.prefix if self.prefix is not None else f"cdpr/{robot_name}"
 
 
-def build_zenoh_config(settings: ZenohSettings, prefix: str) -> zenoh.Config:
+def build_zenoh_config(
+    settings: ZenohSettings, prefix: str, ingress_limits: Mapping[str, float] | None = None
+) -> zenoh.Config:
     """The daemon's zenoh.Config for keys under `prefix`: raw keys first, then the typed
-    fields on top of them."""
+    fields on top of them.  `ingress_limits` (full key -> Hz) are limited as
+    zenoh.ingress_limits_hz is: keys outside the prefix the daemon takes in (ROS 2)."""
     conf = zenoh.Config()
     _apply_raw(conf, settings.config)
-    if settings.ingress_limits_hz:
-        rules = [
-            {"key_expr": f"{prefix}/{key}", "freq": hz}
-            for key, hz in settings.ingress_limits_hz.items()
-        ]
+    limits = {f"{prefix}/{key}": hz for key, hz in settings.ingress_limits_hz.items()}
+    limits.update(ingress_limits or {})
+    if limits:
+        rules = [{"key_expr": key, "freq": hz} for key, hz in limits.items()]
         downsampling = [{"flows": ["ingress"], "messages": ["put", "query"], "rules": rules}]
         conf.insert_json5("downsampling", json.dumps(downsampling))
     if conf.get_json(_RX_LIMIT) == zenoh.Config().get_json(_RX_LIMIT):

@@ -10,11 +10,20 @@ Every call is a zenoh query: the daemon's reply says accepted or why not, so the
 always gets the reason (a refusal raises RequestError with its code and reason; no
 reply raises UnreachableError).  Planners that publish trajectories with a plain put
 instead get the same outcome on <prefix>/events, matched by the "id" they chose.
+
+Every request names the client (`client`, default user@host:pid): the daemon records it
+in its events, and keeps one client's motion from being replaced by another's unless the
+request preempts (docs/reference/zenoh-api.md, "One owner per motion").  The client keeps the id of
+each lease it took and sends it with the renewal and the release.
 """
 
 from __future__ import annotations
 
+import getpass
 import json
+import os
+import socket
+import threading
 import uuid
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
@@ -27,6 +36,15 @@ from daemon.config.zenoh_config import DEFAULT_LISTEN, client_zenoh_config
 DEFAULT_CONNECT = DEFAULT_LISTEN
 DEFAULT_TIMEOUT = 5.0  # s; a trajectory is validated along its whole path before the reply
 DISCOVERY_KEY = "cdpr/*/alive"
+
+
+def default_client_name() -> str:
+    """user@host:pid: who this process is, as the daemon records it."""
+    try:
+        user = getpass.getuser()
+    except (KeyError, OSError):  # no name for this uid (a container)
+        user = str(os.getuid())
+    return f"{user}@{socket.gethostname()}:{os.getpid()}"[:128]
 
 
 class ClientError(Exception):
@@ -53,7 +71,9 @@ class CdprClient:
 
     prefix None: the only daemon whose liveliness token answers on cdpr/*/alive.
     connect: the endpoint(s) of the daemon or of a router.  zenoh_config: raw zenoh
-    keys for the session (e.g. {"transport": {"link": {"tls": {...}}}}, docs/zenoh.md).
+    keys for the session (e.g. {"transport": {"link": {"tls": {...}}}},
+    docs/reference/zenoh-api.md).
+    name: the client's name in every request (default_client_name()).
     """
 
     def __init__(
@@ -63,9 +83,13 @@ class CdprClient:
         *,
         timeout: float = DEFAULT_TIMEOUT,
         zenoh_config: dict[str, Any] | None = None,
+        name: str | None = None,
     ) -> None:
         endpoints = [connect] if isinstance(connect, str) else list(connect)
         self.timeout = timeout
+        self.name = default_client_name() if name is None else name
+        self.lease_ids: dict[str, str] = {}  # the leases this client holds, by command
+        self._lease_lock = threading.Lock()  # renewals may come from a thread of their own
         try:
             conf = client_zenoh_config(endpoints, zenoh_config)
         except ValueError as exc:
@@ -94,8 +118,9 @@ class CdprClient:
     # -- commands ----------------------------------------------------------------------
 
     def request(self, command: str, body: Mapping[str, Any] | None = None) -> dict[str, Any]:
-        """Run `command` with the JSON `body`; its "result", or RequestError."""
-        return self._query(f"cmd/{command}", body)["result"]
+        """Run `command` with the JSON `body` (and this client's name); its "result", or
+        RequestError."""
+        return self._query(f"cmd/{command}", {"client": self.name, **(body or {})})["result"]
 
     def status(self) -> dict[str, Any]:
         return self.request("status")
@@ -115,28 +140,33 @@ class CdprClient:
     def reset(self) -> dict[str, Any]:
         return self.request("reset")
 
-    def home(self, pose: str | None = None) -> dict[str, Any]:
+    def home(self, pose: str | None = None, preempt: bool = False) -> dict[str, Any]:
         """Home at the robot file's pose `pose` (default: its home pose), where the
-        platform rests now: every cable's length offset set and stored."""
-        return self.request("home", None if pose is None else {"pose": pose})
+        platform rests now: every cable's length offset set and stored.  `preempt`:
+        replace another client's motion (else refused while one runs)."""
+        return self.request("home", _preempting({} if pose is None else {"pose": pose}, preempt))
 
-    def pretension(self, pose: str | None = None) -> dict[str, Any]:
+    def pretension(self, pose: str | None = None, preempt: bool = False) -> dict[str, Any]:
         """Wind the slack cables in, tension them and close the position loop, the
         platform resting on a fixture at the robot file's pose `pose` (default home)."""
-        return self.request("pretension", None if pose is None else {"pose": pose})
+        body = {} if pose is None else {"pose": pose}
+        return self.request("pretension", _preempting(body, preempt))
 
     def goto(
-        self, position: Sequence[float], quaternion: Mapping[str, float] | None = None
+        self,
+        position: Sequence[float],
+        quaternion: Mapping[str, float] | None = None,
+        preempt: bool = False,
     ) -> dict[str, Any]:
         """Move to `position` (m) with `quaternion` {w, x, y, z} (default: identity)."""
         body: dict[str, Any] = {"position": [float(c) for c in position]}
         if quaternion is not None:
             body["quaternion"] = dict(quaternion)
-        return self.request("goto", body)
+        return self.request("goto", _preempting(body, preempt))
 
-    def identify_payload(self, apply: bool = False) -> dict[str, Any]:
+    def identify_payload(self, apply: bool = False, preempt: bool = False) -> dict[str, Any]:
         """Hold a few poses and estimate the payload statically (applied if `apply`)."""
-        return self.request("identify_payload", {"apply": apply})
+        return self.request("identify_payload", _preempting({"apply": apply}, preempt))
 
     def payload(
         self,
@@ -144,26 +174,54 @@ class CdprClient:
         mass: float | None = None,
         center_of_mass: Sequence[float] | None = None,
         lease: float | None = None,
+        lease_id: str | None = None,
     ) -> dict[str, Any]:
         """The payload estimate; freeze or unfreeze it, or set mass and centre of mass.
-        A freeze with a `lease` (s) lapses unless renewed (frozen again) within it."""
+        A freeze with a `lease` (s) lapses unless renewed (frozen again) within it; see
+        `observer` for `lease_id`."""
         body: dict[str, Any] = {}
-        if frozen is not None:
-            body["frozen"] = frozen
         if mass is not None:
             body["mass"] = float(mass)
             body["center_of_mass"] = [float(c) for c in center_of_mass or ()]
-        if lease is not None:
-            body["lease"] = float(lease)
-        return self.request("payload", body)
+        return self._hold("payload", "frozen", frozen, lease, lease_id, body)
 
-    def observer(self, held: bool | None = None, lease: float | None = None) -> dict[str, Any]:
+    def observer(
+        self, held: bool | None = None, lease: float | None = None, lease_id: str | None = None
+    ) -> dict[str, Any]:
         """The external wrench observer; hold it out of the loop, or let it back in.  A
-        hold with a `lease` (s) lapses unless renewed (held again) within it."""
-        body: dict[str, Any] = {} if held is None else {"held": held}
+        hold with a `lease` (s) lapses unless renewed (held again) within it.  A renewal
+        and a release send the lease's id: `lease_id`, else the one this client got
+        when it took the lease (lease_ids)."""
+        return self._hold("observer", "held", held, lease, lease_id, {})
+
+    def _hold(
+        self,
+        command: str,
+        key: str,
+        hold: bool | None,
+        lease: float | None,
+        lease_id: str | None,
+        body: dict[str, Any],
+    ) -> dict[str, Any]:
+        """`command` with `key` `hold` (none: no change), on a `lease`, sending the
+        lease's id; the id of the lease the reply names is kept, a release forgets it."""
+        ident = lease_id
+        if hold is not None:
+            body[key] = hold
+            with self._lease_lock:
+                ident = self.lease_ids.get(command) if lease_id is None else lease_id
+        if ident is not None:  # an id without a change: the daemon refuses it, naming it
+            body["lease_id"] = ident
         if lease is not None:
             body["lease"] = float(lease)
-        return self.request("observer", body)
+        result = self.request(command, body)
+        if hold is not None:
+            with self._lease_lock:
+                if "lease_id" in result:
+                    self.lease_ids[command] = result["lease_id"]
+                else:
+                    self.lease_ids.pop(command, None)
+        return result
 
     def send_trajectory(
         self,
@@ -171,10 +229,13 @@ class CdprClient:
         *,
         start: float | None = None,
         request_id: str | None = None,
+        preempt: bool = False,
     ) -> dict[str, Any]:
         """Submit a trajectory (a Trajectory or its JSON form, cdpr/trajectory/parse.py).
 
         start: unix time (s) at which its first waypoint is due; None: now.
+        preempt: replace another client's motion (else refused while one runs; this
+        client's own trajectory or goto it replaces either way).
         Returns the accepted reply (with "id" and "result"); RequestError says which
         limit, waypoint and value made the daemon reject it.
         """
@@ -182,7 +243,8 @@ class CdprClient:
         body.setdefault("version", SCHEMA_VERSION)
         body["id"] = request_id or body.get("id") or uuid.uuid4().hex[:16]
         body["start"] = "now" if start is None else float(start)
-        return self._query("trajectory", body)
+        body["client"] = self.name
+        return self._query("trajectory", _preempting(body, preempt))
 
     # -- streams -----------------------------------------------------------------------
 
@@ -237,6 +299,11 @@ class CdprClient:
         if len(found) > 1:
             raise ClientError(f"several daemons answer: {', '.join(found)}; choose a prefix")
         return found[0]
+
+
+def _preempting(body: dict[str, Any], preempt: bool) -> dict[str, Any]:
+    """`body`, saying "preempt": true if `preempt` (nothing otherwise)."""
+    return {**body, "preempt": True} if preempt else body
 
 
 def _decode_reply(payload: bytes, key: str) -> dict[str, Any]:

@@ -1,37 +1,44 @@
 """ROS 2 over rmw_zenoh on the daemon's zenoh session: cdprd appears as a ROS 2 node
-(README "ROS 2"; the wire format in daemon.interface.ros2_wire, the messages in
+(docs/guide/ros2.md; the wire format in daemon.interface.ros2_wire, the messages in
 daemon.interface.ros2_convert).
 
 At `rate_hz` the state goes out as PoseStamped (measured, reference), JointState, /tf and
-diagnostics.  A Path or MultiDOFJointTrajectory received is checked on zenoh's thread for
-size only, then decoded, converted and parsed in one worker thread (a long one takes a
-second; the loop never waits for it), and submitted to the handler like a trajectory
-from the zenoh interface; its verdict, accepted or rejected with the reason, goes out on
-the status topic as JSON text.  Trajectories are handled one at a time; at most
-`queue_depth` wait, more are refused "busy".
+diagnostics.  A Path or MultiDOFJointTrajectory comes in through the same gates as a
+trajectory on the zenoh interface (DESIGN §19): zenoh's ingress limit
+(`ingress_limits`: ros2.ingress_limit_hz, by default zenoh.ingress_limits_hz's on
+`trajectory`), the same size cap (zenoh.max_message_bytes unless ros2.max_message_bytes
+says otherwise), checked on zenoh's thread with the waypoint count its first bytes
+declare (ros2_wire.sequence_length) before anything is decoded; then it is decoded,
+converted and parsed in the zenoh interface's parse thread, within its CPU budget
+(ZenohInterface.run_parser: a flood of long ones leaves the loop its time), and submitted
+to the handler like a trajectory from the zenoh interface; its verdict, accepted or
+rejected with the reason, goes out on the status topic as JSON text.  Trajectories are
+handled one at a time; at most `queue_depth` wait, more are refused "busy".
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import inspect
 import logging
 import time
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import zenoh
 
 from cdpr.trajectory import SCHEMA_VERSION, TrajectoryLimits
 from daemon.config.ros2_config import Ros2Settings
+from daemon.config.zenoh_config import ZenohSettings
 from daemon.interface import ros2_wire as wire
 from daemon.interface.messages import (
     EVENT_KEY,
     VERSION_KEY,
     TrajectoryMessage,
     TrajectoryRequest,
+    check_size,
     encode,
     error_body,
     parse_waypoints,
@@ -44,11 +51,13 @@ from daemon.interface.ros2_convert import (
     POSE,
     STATUS,
     TF,
+    check_waypoint_count,
     state_messages,
     status_message,
     trajectory_body,
 )
-from daemon.service.api import CommandError, DaemonHandler
+from daemon.interface.zenoh_io import ZenohInterface
+from daemon.service.api import UNNAMED, CommandError, DaemonHandler
 
 log = logging.getLogger(__name__)
 
@@ -62,6 +71,25 @@ PUBLISHED = {  # setting naming the topic -> its type
 }
 ACCEPTED = {"path_topic": PATH, "multi_dof_trajectory_topic": MULTI_DOF}
 Received = tuple[str, str, bytes, bytes | None]  # topic, type, payload, attachment
+
+
+def intake_keys(settings: Ros2Settings) -> dict[str, tuple[str, str]]:
+    """The zenoh key of each trajectory topic the node takes: key -> (topic, type)."""
+    out = {}
+    for name, msgtype in ACCEPTED.items():
+        topic = settings.topic(getattr(settings, name))
+        out[wire.topic_key(settings.domain_id, topic, msgtype)] = (topic, msgtype)
+    return out
+
+
+def ingress_limits(settings: Ros2Settings, zenoh_settings: ZenohSettings) -> dict[str, float]:
+    """What zenoh limits the trajectory topics to (key -> Hz), for the session's config
+    (ZenohInterface's `ingress_limits`): ros2.ingress_limit_hz, else the limit on the
+    zenoh interface's `trajectory`; none when neither is set or ROS 2 is off."""
+    hz = settings.ingress_limit_hz or zenoh_settings.ingress_limit("trajectory")
+    if not settings.enabled or hz is None:
+        return {}
+    return dict.fromkeys(intake_keys(settings), hz)
 
 
 class _Publisher:
@@ -87,22 +115,21 @@ class Ros2Bridge:
     """`await start()`, then `await close()`; the handler is called on start()'s loop."""
 
     def __init__(
-        self,
-        settings: Ros2Settings,
-        handler: DaemonHandler,
-        session: zenoh.Session,
-        limits: TrajectoryLimits,
+        self, settings: Ros2Settings, handler: DaemonHandler, interface: ZenohInterface
     ) -> None:
+        """On `interface`'s session, with its limits, size cap and parse thread (its
+        `ingress_limits` must be this bridge's: module function ingress_limits)."""
         self.settings = settings
-        self.limits = limits
+        self.limits: TrajectoryLimits = interface.limits
+        self.max_message_bytes = settings.max_message_bytes or interface.settings.max_message_bytes
+        self._interface = interface
         self._handler = handler
-        self._session = session
+        self._session = session = interface.session
         self._loop: asyncio.AbstractEventLoop | None = None
         self._publishers: dict[str, _Publisher] = {}
         self._entities: list[Any] = []
         self._tasks: list[asyncio.Task[None]] = []
         self._queue: asyncio.Queue[Received] | None = None
-        self._parser: ThreadPoolExecutor | None = None
         self.node = wire.Node(
             settings.domain_id,
             str(session.info.zid()),
@@ -116,7 +143,6 @@ class Ros2Bridge:
         token), start publishing and taking trajectories."""
         self._loop = asyncio.get_running_loop()
         self._queue = asyncio.Queue(self.settings.queue_depth)
-        self._parser = ThreadPoolExecutor(1, thread_name_prefix="cdprd-ros2-decode")
         liveliness = self._session.liveliness()
         self._entities.append(liveliness.declare_token(self.node.token()))
         entity_id = 0
@@ -127,10 +153,8 @@ class Ros2Bridge:
             key = wire.topic_key(self.settings.domain_id, topic, msgtype)
             self._publishers[name] = _Publisher(self._session, key, token)
             self._entities.append(liveliness.declare_token(token))
-        for name, msgtype in ACCEPTED.items():
+        for key, (topic, msgtype) in intake_keys(self.settings).items():
             entity_id += 1
-            topic = self.settings.topic(getattr(self.settings, name))
-            key = wire.topic_key(self.settings.domain_id, topic, msgtype)
             receive = self._receiver(topic, msgtype)
             self._entities.append(self._session.declare_subscriber(key, receive))
             token = self.node.entity_token(entity_id, wire.SUBSCRIPTION, topic, msgtype)
@@ -155,8 +179,6 @@ class Ros2Bridge:
         for entity in [*self._entities, *(p.publisher for p in self._publishers.values())]:
             with contextlib.suppress(zenoh.ZError):
                 entity.undeclare()
-        if self._parser is not None:
-            self._parser.shutdown(wait=False, cancel_futures=True)
 
     # -- out --------------------------------------------------------------------------
 
@@ -199,27 +221,24 @@ class Ros2Bridge:
     # -- in ---------------------------------------------------------------------------
 
     def _receiver(self, topic: str, msgtype: str) -> Callable[[zenoh.Sample], None]:
-        """The subscriber callback (zenoh's thread): size check and a copy, no more."""
+        """The subscriber callback (zenoh's thread): the room in the queue, the size and
+        the waypoint count the payload declares checked, a copy, no more."""
 
         def receive(sample: zenoh.Sample) -> None:
-            size = len(sample.payload)
-            if size > self.settings.max_message_bytes:
-                error = CommandError(
-                    "bad_request",
-                    f"{size} bytes exceed ros2.max_message_bytes "
-                    f"({self.settings.max_message_bytes})",
-                    limit="max_message_bytes",
-                    value=size,
-                )
+            if self._queue is not None and self._queue.full():  # a hint: do not copy
+                self._on_loop(self._status, None, topic, _busy())  # what would be dropped
+                return
+            try:
+                check_size(len(sample.payload), self.max_message_bytes)
+                payload = sample.payload.to_bytes()
+                count = wire.sequence_length(payload, msgtype)
+                if count is not None:
+                    check_waypoint_count(count, msgtype, self.limits.max_waypoints)
+            except CommandError as error:
                 self._on_loop(self._status, None, topic, error)
                 return
             extra = sample.attachment
-            item = (
-                topic,
-                msgtype,
-                sample.payload.to_bytes(),
-                None if extra is None else extra.to_bytes(),
-            )
+            item = (topic, msgtype, payload, None if extra is None else extra.to_bytes())
             self._on_loop(self._offer, item)
 
         return receive
@@ -234,22 +253,23 @@ class Ros2Bridge:
         try:
             self._queue.put_nowait(item)
         except asyncio.QueueFull:
-            busy = CommandError("busy", "too many trajectories waiting: this one was dropped")
-            self._status(None, item[0], busy)
+            self._status(None, item[0], _busy())
 
     async def _take_trajectories(self) -> None:
         assert self._queue is not None and self._loop is not None
         while True:
             item = await self._queue.get()
             topic = item[0]
-            ident, parsed = await self._loop.run_in_executor(
-                self._parser, read_trajectory, item, self.settings, self.limits
-            )
+            parse = functools.partial(read_trajectory, item, self.settings, self.limits)
+            ident, parsed = await self._interface.run_parser(parse, _shutting_down)
             if isinstance(parsed, CommandError):
                 self._status(ident, topic, parsed)
                 continue
             try:
-                result = self._handler.submit_trajectory(parsed.trajectory, parsed.start)
+                # a ROS 2 message names no client: every ROS 2 sender is the unnamed one
+                result = self._handler.submit_trajectory(
+                    parsed.trajectory, parsed.start, UNNAMED
+                )
                 if inspect.isawaitable(result):
                     result = await result
             except CommandError as exc:
@@ -260,6 +280,14 @@ class Ros2Bridge:
                 self._status(ident, topic, error)
             else:
                 self._status(ident, topic, None, result=result)
+
+
+def _busy() -> CommandError:
+    return CommandError("busy", "too many trajectories waiting: this one was dropped")
+
+
+def _shutting_down() -> tuple[None, CommandError]:
+    return None, CommandError("busy", "the daemon is shutting down")
 
 
 def read_trajectory(

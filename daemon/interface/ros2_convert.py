@@ -1,5 +1,5 @@
 """The daemon's state as ROS 2 messages, and ROS 2 trajectories as the daemon's
-(README "ROS 2").
+(docs/guide/ros2.md).
 
 Out: geometry_msgs/msg/PoseStamped (measured pose; reference pose = the measured pose
 less the tracking error, cdpr.pose.liediff's inverse), sensor_msgs/msg/JointState (one
@@ -159,22 +159,26 @@ def trajectory_body(msg: Any, settings: Ros2Settings, max_waypoints: int) -> dic
     """A received Path or MultiDOFJointTrajectory in the daemon's trajectory form;
     CommandError names what does not fit (the trajectory's own rules are checked when the
     form is parsed)."""
-    if msg.__msgtype__ == PATH:
-        items, what = msg.poses, "poses"
-    else:
-        items, what = msg.points, "points"
+    items = msg.poses if msg.__msgtype__ == PATH else msg.points
     _check_frame(msg.header.frame_id, "header.frame_id", settings)
-    if len(items) > max_waypoints:
-        raise CommandError(
-            "rejected",
-            f"{len(items)} {what} exceed the limit of {max_waypoints} waypoints",
-            limit="max_waypoints",
-            value=len(items),
-            field=what,
-        )
+    check_waypoint_count(len(items), msg.__msgtype__, max_waypoints)
     if msg.__msgtype__ == PATH:
         return {"waypoints": _path_waypoints(msg, settings)}
     return {"waypoints": _multi_dof_waypoints(msg, settings)}
+
+
+def check_waypoint_count(count: int, msgtype: str, max_waypoints: int) -> None:
+    """Refuse a Path of more poses, or a MultiDOFJointTrajectory of more points, than
+    `max_waypoints`."""
+    if count > max_waypoints:
+        what = "poses" if msgtype == PATH else "points"
+        raise CommandError(
+            "rejected",
+            f"{count} {what} exceed the limit of {max_waypoints} waypoints",
+            limit="max_waypoints",
+            value=count,
+            field=what,
+        )
 
 
 def _check_frame(frame: str, where: str, settings: Ros2Settings) -> None:

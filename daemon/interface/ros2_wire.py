@@ -1,5 +1,5 @@
 """rmw_zenoh's wire format, so that ROS 2 nodes on rmw_zenoh_cpp see cdprd as a node
-(DESIGN §17; README "ROS 2").  No ROS install: CDR and RIHS01 type hashes come from
+(DESIGN §17; docs/guide/ros2.md).  No ROS install: CDR and RIHS01 type hashes come from
 `rosbags` (message definitions shipped in the package, ROS 2 Jazzy store).
 
 Followed exactly: rmw_zenoh_cpp as released for Jazzy from 0.2.4 on (and Rolling from
@@ -136,6 +136,51 @@ def read_attachment(raw: bytes | None) -> Attachment:
     if size != GID_SIZE:
         raise WireError(f"attachment gid length {size}, expected {GID_SIZE}")
     return Attachment(sequence, stamp, source)
+
+
+_PEEKED_NAMES = 64  # joint names read past at most; more: left to the full decoding
+
+
+def sequence_length(raw: bytes, msgtype: str) -> int | None:
+    """The number of poses a nav_msgs/msg/Path, or of points a
+    trajectory_msgs/msg/MultiDOFJointTrajectory, declares, read from the first bytes of
+    its CDR without decoding it (so that too long a one is refused at the cost of a few
+    reads); None where those bytes do not read so (the full decoding names why).
+
+    Both begin with a std_msgs/msg/Header (stamp: int32 + uint32; frame_id: uint32
+    length with the NUL, the bytes); a MultiDOFJointTrajectory then has joint_names
+    (uint32 count, each a string); then the sequence's uint32 count.  CDR aligns each
+    uint32 to 4 bytes from the end of the 4-byte encapsulation header."""
+    if len(raw) < 4 or raw[0] != 0 or raw[1] not in (0, 1):
+        return None
+    u32 = struct.Struct("<I" if raw[1] == 1 else ">I")
+    at = 4 + 8  # the stamp
+    names = 0
+
+    def read() -> int | None:
+        nonlocal at
+        at += -(at - 4) % 4
+        if at + 4 > len(raw):
+            return None
+        at += 4
+        return u32.unpack_from(raw, at - 4)[0]
+
+    def skip_string() -> bool:
+        nonlocal at
+        size = read()
+        at += size if size is not None else len(raw)
+        return at <= len(raw)
+
+    if not skip_string():
+        return None
+    if msgtype == "trajectory_msgs/msg/MultiDOFJointTrajectory":
+        names = read()
+        if names is None or names > _PEEKED_NAMES:
+            return None
+        for _ in range(names):
+            if not skip_string():
+                return None
+    return read()
 
 
 def message(msgtype: str, **fields: Any) -> Any:

@@ -18,17 +18,20 @@ flood costs bounded memory, and each loop pass at most one handler call per queu
 one event publication.
 
 Trajectories run one at a time.  Parsing one (JSON, schema, the curve through the
-waypoints: ~7 ms for 100 waypoints, ~1 s for 10000) happens in a parse thread, never on
+waypoints: ~3 ms for 100 waypoints, ~0.1-0.2 s for 10000) happens in a parse thread, never on
 the loop (except a move of two waypoints, ~0.1 ms); the loop calls the handler with the
 result and awaits its validation, while the next one is parsed.  The parse thread must
 not delay the loop either: while it computes, the loop would wait for the GIL up to the
 switch interval (5 ms) and, on a loaded host, for a CPU.  So it pauses every PARSE_SLICE
 (a profile hook, _Yielding: cdpr's parser has no points to pause at), runs below the
 loop's OS priority, uses at most PARSE_SHARE of a core in a long flood, and long JSON is decoded
-in pieces (daemon.interface.messages.decode_json) so that no single C call holds the GIL long.  Of
+in pieces (daemon.interface.messages.decode_json) so that no single C call holds the GIL long.
+The ROS 2 bridge on this session parses its trajectories in the same thread, within the same
+budget (run_parser): a flood of Paths costs the loop no more than a flood of JSON.  Of
 the commands that wait for the drives or for planning (enable, reset, goto:
 _ONE_AT_A_TIME) one runs at a time; another one meanwhile is answered "busy" and never
-started.  A hold, which plans its stop for a few ms, is never turned away.
+started.  A hold, which plans its stop for a few ms, is never turned away, nor is a
+request that preempts (it replaces what runs: daemon.service.motion).
 
 One queryable serves cmd/** (rather than one per command) so that an unknown command gets
 a clear error reply, and so that a wildcard query (cmd/*) is refused instead of running
@@ -39,6 +42,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import inspect
 import logging
 import os
@@ -46,7 +50,7 @@ import sys
 import threading
 import time
 from collections import Counter, deque
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any, Generic, TypeVar
 
@@ -94,6 +98,7 @@ INLINE_WAYPOINTS = 2  # a decoded trajectory of at most 2 waypoints is parsed on
 _Parsed = TrajectoryRequest | tuple[str | None, CommandError]  # or (id, why refused)
 _TrajectoryItem = tuple[bytes | TrajectoryMessage, zenoh.Query | None]  # queued, and who asks
 _Item = TypeVar("_Item")
+_Result = TypeVar("_Result")
 
 
 class SessionError(RuntimeError):
@@ -237,6 +242,8 @@ class ZenohInterface:
     `handler` is called on the loop that ran start(); `publish_event` is thread-safe.
     `limits` bound the trajectories the interface will parse (its max_waypoints is
     lowered to zenoh.max_waypoints); the service checks the robot-specific limits.
+    `ingress_limits` (full key -> Hz) are limited like zenoh.ingress_limits_hz: the keys
+    outside the prefix that the session takes in (the ROS 2 bridge's trajectory topics).
     """
 
     def __init__(
@@ -245,9 +252,11 @@ class ZenohInterface:
         handler: DaemonHandler,
         prefix: str,
         limits: TrajectoryLimits | None = None,
+        ingress_limits: Mapping[str, float] | None = None,
     ) -> None:
         limits = TrajectoryLimits() if limits is None else limits
         self.settings = settings
+        self.ingress_limits = dict(ingress_limits or {})
         self.prefix = prefix
         self.limits = limits.model_copy(
             update={"max_waypoints": min(limits.max_waypoints, settings.max_waypoints)}
@@ -301,7 +310,7 @@ class ZenohInterface:
         self._parser = ThreadPoolExecutor(
             1, thread_name_prefix="cdprd-trajectory-parse", initializer=_lower_priority
         )
-        conf = build_zenoh_config(self.settings, self.prefix)
+        conf = build_zenoh_config(self.settings, self.prefix, self.ingress_limits)
         try:
             session = await loop.run_in_executor(None, zenoh.open, conf)
         except BaseException as exc:
@@ -401,7 +410,8 @@ class ZenohInterface:
     # -- statistics ------------------------------------------------------------------------
 
     def stats(self) -> dict[str, Any]:
-        """Counters and the queues' high-water marks (docs/zenoh.md, "Flow control")."""
+        """Counters and the queues' high-water marks (docs/reference/zenoh-api.md, "Flow
+        control")."""
         with self._count_lock:
             out: dict[str, Any] = dict(self._counts)
         for name, inbox in (
@@ -501,7 +511,7 @@ class ZenohInterface:
                     f"commands need an exact key such as {self.key('cmd/status')}, not {key}",
                 )
             payload = query.payload
-            data: Any = {}  # no payload: no arguments (docs/zenoh.md, "Commands")
+            data: Any = {}  # no payload: no arguments (docs/reference/zenoh-api.md, "Commands")
             if payload is not None and len(payload) > 0:
                 limit = min(MAX_COMMAND_BYTES, self.settings.max_message_bytes)
                 check_size(len(payload), limit, "max_command_bytes")
@@ -535,12 +545,21 @@ class ZenohInterface:
             return message.id, CommandError("internal", f"decoding failed: {type(exc).__name__}")
 
     async def _parse(self, item: bytes | TrajectoryMessage) -> _Parsed:
-        assert self._loop is not None
         if isinstance(item, TrajectoryMessage) and item.waypoints <= INLINE_WAYPOINTS:
             return self._parse_waypoints(item)
-        return await self._loop.run_in_executor(self._parser, self._parse_in_thread, item)
+        parse = self._parse_payload if isinstance(item, bytes) else self._parse_waypoints
+        return await self.run_parser(functools.partial(parse, item), lambda: _shutting_down(item))
 
-    def _parse_in_thread(self, item: bytes | TrajectoryMessage) -> _Parsed:
+    async def run_parser(
+        self, parse: Callable[[], _Result], stopped: Callable[[], _Result]
+    ) -> _Result:
+        """`parse()` in the parse thread, within its CPU budget; `stopped()` is the answer
+        once the interface closes.  Every way a trajectory comes in (this interface and
+        the ROS 2 bridge on its session) parses here: one thread, one budget."""
+        assert self._loop is not None
+        return await self._loop.run_in_executor(self._parser, self._in_budget, parse, stopped)
+
+    def _in_budget(self, parse: Callable[[], _Result], stopped: Callable[[], _Result]) -> _Result:
         """Parse in the parse thread, pausing every PARSE_SLICE (_Yielding), within its CPU
         budget: PARSE_BURST seconds at once, PARSE_SHARE of a core in the long run, so
         that a flood of long trajectories leaves CPU time to the loop (and the host)."""
@@ -548,17 +567,14 @@ class ZenohInterface:
         credit = min(PARSE_BURST, self._parse_credit + (now - self._credit_time) * PARSE_SHARE)
         if credit < 0.0:
             if self._stop_parsing.wait(-credit / PARSE_SHARE):
-                return _shutting_down(item)
+                return stopped()
             credit = 0.0
         began = time.thread_time()
         sys.setprofile(_Yielding(self._stop_parsing))
         try:
-            if isinstance(item, bytes):
-                parsed = self._parse_payload(item)
-            else:
-                parsed = self._parse_waypoints(item)
+            parsed = parse()
         except _ParseStopped:
-            return _shutting_down(item)
+            return stopped()
         finally:
             sys.setprofile(None)
         self._parse_credit = credit - (time.thread_time() - began)
@@ -577,22 +593,20 @@ class ZenohInterface:
         except Exception as exc:
             self._reply(query, reply_error(name, _failure(name, exc)), ok=False)
             return
+        one_at_a_time = name in _ONE_AT_A_TIME and not args.get("preempt")
         if not inspect.isawaitable(result):
             self._reply(query, reply_ok(name, result), ok=True)
-        elif (
-            name in _ONE_AT_A_TIME
-            and self._command_task is not None
-            and inspect.iscoroutine(result)
-        ):
+        elif one_at_a_time and self._command_task is not None and inspect.iscoroutine(result):
             result.close()  # never started: nothing happened
             self._count("commands_busy")
             busy = CommandError("busy", f"{name}: another command is still running, retry")
             self._reply(query, reply_error(name, busy), ok=False)
-        elif name in _ONE_AT_A_TIME:
+        elif one_at_a_time:
             task = self._track(self._finish_command(name, result, query))
             self._command_task = task
             task.add_done_callback(self._command_done)
-        else:  # a hold plans its stop for a few ms, and never waits for the slot
+        else:  # a hold plans its stop for a few ms, and never waits for the slot; a
+            # request that preempts replaces what holds it
             self._track(self._finish_command(name, result, query))
 
     def _command_done(self, task: asyncio.Future[Any]) -> None:
@@ -661,7 +675,7 @@ class ZenohInterface:
             self._trajectory_refused(*parsed, query)
             return
         try:
-            result = self._handler.submit_trajectory(parsed.trajectory, parsed.start)
+            result = self._handler.submit_trajectory(parsed.trajectory, parsed.start, parsed.claim)
         except CommandError as exc:
             self._trajectory_outcome(parsed.id, query, None, exc)
         except Exception as exc:

@@ -34,7 +34,8 @@ from daemon.process.companion_link import OtherCodeError, RemoteLink, greeted
 from daemon.process.cycle_rows import Throttle, records
 from daemon.process.logsetup import configure_logging
 from daemon.process.ordinary import drop_inherited_realtime
-from daemon.process.recording import CanRecorder, TelemetryRecorder, session_path
+from daemon.process.recording import CanRecorder, TelemetryRecorder
+from daemon.process.recording_files import file_limits
 from daemon.process.systemd import Notifier, Progress, run_watchdog
 from daemon.service.planner import Planner
 from daemon.service.safety import Fault, Trigger
@@ -85,7 +86,8 @@ async def run(config: DaemonConfig, link: RemoteLink) -> int:
     planner = Planner(config, link)
     interface = view = ros2 = None
     recorders = _recorders(config, link)
-    writers = [asyncio.create_task(r.run()) for r in recorders]
+    _report_recordings(planner, recorders)
+    writers = [asyncio.create_task(r.run()) for r in recorders.values()]
     try:
         if config.view.enabled:
             from daemon.process.live_view import LiveView, ViewError
@@ -95,22 +97,27 @@ async def run(config: DaemonConfig, link: RemoteLink) -> int:
             except ViewError as exc:  # e.g. the port is in use
                 print(f"error: {config.source}: {exc}", file=sys.stderr)
                 return 1
-        telemetry = next((r for r in recorders if isinstance(r, TelemetryRecorder)), None)
-        _feed(config, link, telemetry, view)
+        _feed(config, link, recorders.get("telemetry"), view)
         prefix = config.zenoh.key_prefix(config.robot.name)
-        interface = ZenohInterface(config.zenoh, planner, prefix, config.trajectory)
+        limits: dict[str, float] = {}  # the ROS 2 trajectory topics' ingress limits
+        if config.ros2.enabled:  # ROS 2 over rmw_zenoh on the same session
+            from daemon.interface.ros2_bridge import Ros2Bridge, ingress_limits
+
+            limits = ingress_limits(config.ros2, config.zenoh)
+        interface = ZenohInterface(config.zenoh, planner, prefix, config.trajectory, limits)
         try:
             await interface.start()
         except SessionError as exc:  # e.g. the port is in use
             print(f"error: {config.source}: {exc}", file=sys.stderr)
             return 1
         planner.subscribe(interface.publish_event)
+        for name, recorder in recorders.items():  # paused from the start: no room
+            if recorder.status != "recording":
+                planner.emit(_recording_event(name, recorder))
         # the leases the core kept from the last companion: a lapse now reaches zenoh
         planner.leases.resume(link.kept_leases)
-        if config.ros2.enabled:  # ROS 2 over rmw_zenoh on the same session
-            from daemon.interface.ros2_bridge import Ros2Bridge
-
-            ros2 = Ros2Bridge(config.ros2, planner, interface.session, interface.limits)
+        if config.ros2.enabled:
+            ros2 = Ros2Bridge(config.ros2, planner, interface)
             await ros2.start()
         link.ready()  # the core starts its drives now
         await link.core_started()
@@ -127,7 +134,7 @@ async def run(config: DaemonConfig, link: RemoteLink) -> int:
         # the core's wait for this process (companion_host.STOP_WAIT)
         for writer in writers:
             writer.cancel()
-        for recorder in recorders:
+        for recorder in recorders.values():
             recorder.close()
         if ros2 is not None:
             await ros2.close()
@@ -206,49 +213,70 @@ def _feed(
     link.subscribe(on_event)
 
 
-def _recorders(config: DaemonConfig, link: RemoteLink) -> list:
+def _recorders(config: DaemonConfig, link: RemoteLink) -> dict[str, Any]:
     """Telemetry (MCAP, with the scene's standard channels) and raw CAN recorders the
-    config asks for, fed by the core's batches; each file is named after the session's
-    start time.  A file that cannot be created stops the start-up with one line naming
-    the key and the file."""
-    recorders: list = []
+    config asks for, by key ("telemetry", "can_log"), fed by the core's batches; each
+    writes a series of files within the config's limits.  A file that cannot be
+    created stops the start-up with one line naming the key and the file."""
+    recorders: dict[str, Any] = {}
     rec = config.recording
+    limits = file_limits(rec)
     if rec.telemetry:
         from daemon.process.scene import standard_channels
 
         key = f"{config.source}: recording.telemetry"
         path = config.path(rec.telemetry)
         channels = standard_channels()
-        recorders.append(_open(key, TelemetryRecorder, path, recorders, channels=channels))
+        recorders["telemetry"] = _open(
+            key, TelemetryRecorder, path, recorders, limits=limits, channels=channels
+        )
     if rec.can_log:
         # names the frames sent (they carry none on SocketCAN; on several buses, the name)
         channel = config.buses[0].channel
         key = f"{config.source}: recording.can_log"
-        frames = _open(key, CanRecorder, config.path(rec.can_log), recorders, channel=channel)
+        frames = _open(
+            key, CanRecorder, config.path(rec.can_log), recorders, limits=limits, channel=channel
+        )
 
         def record_frames(batch: list) -> None:
             for fields in batch:
                 frames.record_fields(fields)
 
         link.batch_sinks["frames"] = record_frames
-        recorders.append(frames)
+        recorders["can_log"] = frames
     return recorders
 
 
 def _open(
-    key: str, make: Callable[..., Recorder], path: Path, opened: list, **options: Any
+    key: str, make: Callable[..., Recorder], path: Path, opened: dict, **options: Any
 ) -> Recorder:
-    """`make(file, **options)` for this session's file.  If the file cannot be created
-    (missing or read-only directory, bad suffix, ...): close the recorders already
-    `opened` and exit with an error naming `key` and the file, not a traceback."""
-    file = session_path(path)
+    """`make(path, **options)`.  If its file cannot be created (missing or read-only
+    directory, bad suffix, ...): close the recorders already `opened` and exit with an
+    error naming `key` and the file, not a traceback."""
     try:
-        return make(file, **options)
+        return make(path, **options)
     except (OSError, ValueError) as exc:
-        for recorder in opened:
+        for recorder in opened.values():
             recorder.close()
-        reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+        if isinstance(exc, OSError):
+            file, reason = exc.filename or path, exc.strerror or str(exc)
+        else:
+            file, reason = path, str(exc)
         raise SystemExit(f"error: {key}: cannot record to {file}: {reason}") from None
+
+
+def _report_recordings(planner: Planner, recorders: dict[str, Any]) -> None:
+    """Each recorder in every status reply and the state ("recording": {key: its
+    report}), and each change of its status (paused, resumed, stopped) as an event."""
+    planner.reports["recording"] = lambda: {k: r.report() for k, r in recorders.items()}
+    for name, recorder in recorders.items():
+        recorder.on_change = lambda changed, name=name: planner.emit(
+            _recording_event(name, changed)
+        )
+
+
+def _recording_event(name: str, recorder: Any) -> dict[str, Any]:
+    return {"event": "recording", "recording": name, **recorder.report()}
 
 
 if __name__ == "__main__":

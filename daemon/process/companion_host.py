@@ -10,9 +10,12 @@ This module, in the core:
   of other code stops the daemon; then the config, the core's clock origin,
   the ring's ranges still in use, the leases the last companion had it keep:
   daemon.service.lease);
-- serves its calls in the cycle's slack: core commands, the reference at a time, and
-  planned trajectories (a curve in the ring, sampled in place; its range is handed
-  back when the core drops the curve);
+- serves its calls in the cycle's slack, or at the turn every completed cycle gives
+  (Service.slack: however long a silent drive keeps each cycle waiting): core
+  commands, the reference at a time, and planned trajectories (a curve in the ring,
+  sampled in place; its range is handed back when the core drops the curve); its
+  "alive" messages are read the same way, so a companion is judged silent only when
+  it is;
 - pushes events as they happen, the state at zenoh.state_rate_hz and, when recording,
   cycle records (fixed-size rows, daemon.process.cycle_rows) and CAN frames in batches,
   each in the cycle's slack (for the live view alone, one row per 1/view.rate_hz of
@@ -265,8 +268,9 @@ class CompanionHost:
 
     async def _serve(self, sock: socket.socket) -> None:
         """Read the companion's messages, each in the cycle's slack: a call starts only
-        while the next tick is more than CALL_SLACK away, so that no burst of them (a
-        zenoh flood reaches the core as calls) delays a cycle."""
+        while the next tick is more than CALL_SLACK away, or at this task's turn (one
+        message), so that no burst of them (a zenoh flood reaches the core as calls)
+        delays a cycle and none waits longer than a few cycles."""
         loop = asyncio.get_running_loop()
         service = self.service
         fd = sock.fileno()  # kept: _disconnect closes the socket before this task ends

@@ -9,53 +9,54 @@ pass has used its time `budget` (at least one record per pass; an MCAP record ta
 compresses it, ≈ 0.3–1.5 ms at the default sizes; otherwise a cycle waits at most about
 one budget.  Writing happens on the loop rather than in a thread on purpose: a CPU-bound
 writer thread holds the GIL for up to the interpreter's switch interval (5 ms) before the
-loop thread gets it back, longer than a 1 kHz cycle.  A write error (disk full, …) is
-logged once and ends the recording; it never reaches the cycle.
+loop thread gets it back, longer than a 1 kHz cycle.
+
+Given FileLimits (the config's `recording:` limits, daemon.process.recording_files), a
+recorder writes a series of files: a new one at the rotation limits, the oldest deleted
+beyond the retention limits, none while free space is below the floor.  Its `status`
+says whether it records, is paused (below the floor, or the disk full: it resumes in a
+new file once there is room again) or stopped (another write error: for good), and
+`reason` why; `on_change` hears every change, so that the daemon can say so in its
+status, its state and an event.  Nothing of this ever reaches the cycle.
 
 Values are read when written, not when recorded: hand `record()` objects the cycle does
 not modify afterwards (tuples, lists from `.tolist()`, or freshly allocated arrays).
 
 A recorder never overwrites a file (the recording of the run before a watchdog restart is
-the evidence of why it stalled): name each run's file with `session_path`.
+the evidence of why it stalled): each file is named after the time it began
+(recording_files.session_path).
 """
 
 from __future__ import annotations
 
 import asyncio
 import copy
-import datetime
+import errno
 import heapq
 import itertools
 import json
 import logging
 import math
+import os
 import time
 from abc import ABC, abstractmethod
 from collections import deque
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, BinaryIO, Generic, Self, TypeVar
+from typing import Any, BinaryIO, Generic, Literal, Self, TypeVar
 
 import can
 from mcap.writer import CompressionType, Writer
 
+from daemon.process.recording_files import MB, FileLimits, Series
+
 log = logging.getLogger(__name__)
 
 Item = TypeVar("Item")
-
-
-def session_path(path: str | Path, start: datetime.datetime | None = None) -> Path:
-    """`path` with the start time inserted before the suffix ("cycle.mcap" ->
-    "cycle-20250102-030405.mcap", local time), plus "-2", "-3", … if that file exists."""
-    path = Path(path)
-    stamp = (start or datetime.datetime.now()).strftime("%Y%m%d-%H%M%S")
-    candidate = path.with_name(f"{path.stem}-{stamp}{path.suffix}")
-    n = 1
-    while candidate.exists():
-        n += 1
-        candidate = path.with_name(f"{path.stem}-{stamp}-{n}{path.suffix}")
-    return candidate
+Status = Literal["recording", "paused", "stopped"]
+CHECK_PERIOD = 1.0  # s between looks at free space and the current file's size and age
+DISK_FULL = (errno.ENOSPC, errno.EDQUOT)
 
 
 def _refuse_existing(path: Path, what: str) -> None:
@@ -64,29 +65,68 @@ def _refuse_existing(path: Path, what: str) -> None:
 
 
 class _Spool(ABC, Generic[Item]):
-    """A bounded queue filled by the cycle and written out by `flush`/`run`."""
+    """A bounded queue filled by the cycle and written out by `flush`/`run` to `path`, or
+    with `limits` to a series of files named after `path` (see the module doc).
+    Subclasses validate their options, then call `_begin`."""
 
-    def __init__(self, what: str, capacity: int, budget: float) -> None:
+    def __init__(
+        self, kind: str, path: Path, capacity: int, budget: float, limits: FileLimits | None
+    ) -> None:
         if capacity < 1:
-            raise ValueError(f"{what}: capacity must be at least 1, not {capacity}")
+            raise ValueError(f"{kind} {path}: capacity must be at least 1, not {capacity}")
         if not budget >= 0:
-            raise ValueError(f"{what}: budget must be a non-negative time (s), not {budget}")
-        self._what = what
+            raise ValueError(f"{kind} {path}: budget must be a non-negative time (s), not {budget}")
+        self.kind = kind  # "telemetry recording", "CAN recording"
         self.capacity = capacity
         self.budget = budget
+        self.series = None if limits is None else Series(path, limits)
+        self.path: Path | None = None  # the file being written
+        self.files = 0  # files begun
+        self._opened_at = 0.0
+        self._checked_at = -math.inf
         self._queue: deque[Item] = deque()
-        self.dropped = 0  # records lost: queue full, or recorder failed or closed
+        self.dropped = 0  # records lost: queue full, or recorder paused, stopped or closed
         self.written = 0
-        self.failed: str | None = None  # why writing stopped, if it did
+        self.status: Status = "recording"
+        self.reason: str | None = None  # why it is paused or stopped
+        self.on_change: Callable[[Self], None] | None = None  # hears every status change
         self.closed = False
+
+    def _begin(self, path: Path) -> None:
+        """The first file: `path` itself, or with limits the series' first, or none yet
+        while free space is below the floor.  A file that cannot be created raises."""
+        if self.series is None:
+            self._start(path)
+            return
+        first = self.series.next_path()
+        try:
+            free = self.series.free_bytes()
+        except OSError:  # no such directory, say: creating the file says so, naming it
+            free = None
+        if free is not None and free < self.series.limits.min_free_bytes:
+            self._set("paused", self._below_floor(free))
+        else:
+            self._start(first)
+            self._prune()
 
     @property
     def pending(self) -> int:
         """Records queued and not yet written."""
         return len(self._queue)
 
+    def report(self) -> dict[str, Any]:
+        """What the daemon's status and state say of this recorder."""
+        return {
+            "status": self.status,
+            "reason": self.reason,
+            "file": None if self.path is None else str(self.path),
+            "files": self.files,
+            "written": self.written,
+            "dropped": self.dropped,
+        }
+
     def _push(self, item: Item) -> None:
-        if self.closed or self.failed is not None or len(self._queue) >= self.capacity:
+        if self.closed or self.status != "recording" or len(self._queue) >= self.capacity:
             self.dropped += 1
         else:
             self._queue.append(item)
@@ -107,48 +147,151 @@ class _Spool(ABC, Generic[Item]):
             if count:
                 self._sync()
         except Exception as exc:  # a recorder must never take the daemon down
-            self._fail(exc)
+            self._write_failed(exc)
         self.written += count
         return count
 
     async def run(self, period: float = 0.05) -> None:
         """Write the queue out every `period` seconds, yielding to the loop after each
-        `budget` of writing, until the recorder is closed or fails.  Cancel the task, then
-        call `close()`."""
+        `budget` of writing, and look after the files (`maintain`) every CHECK_PERIOD,
+        until the recorder is closed or stopped.  Cancel the task, then `close()`."""
         if not period > 0:
-            raise ValueError(f"{self._what}: period must be positive, not {period}")
-        while not self.closed and self.failed is None:
+            raise ValueError(f"{self.kind}: period must be positive, not {period}")
+        while not self.closed and self.status != "stopped":
             await asyncio.sleep(period)
-            while self._queue and self.failed is None and not self.closed:
+            if time.monotonic() - self._checked_at >= CHECK_PERIOD:
+                self.maintain()
+            while self._queue and self.status == "recording" and not self.closed:
                 self.flush(self.budget)
                 await asyncio.sleep(0)
+
+    def maintain(self) -> None:
+        """With limits: pause below the free space floor, resume in a new file once
+        there is room again, begin a new file when the current one is complete."""
+        now = self._checked_at = time.monotonic()
+        series = self.series
+        if series is None or self.closed or self.status == "stopped":
+            return
+        try:
+            free = series.free_bytes()
+        except OSError as exc:  # the directory is gone, say
+            self._write_failed(exc)
+            return
+        limits = series.limits
+        if self.status == "recording" and free < limits.min_free_bytes:
+            self.flush()
+            self._end_file()
+            if self.status == "recording":
+                self._set("paused", self._below_floor(free))
+        elif self.status == "paused" and free >= limits.resume_bytes:
+            self._next_file(f"{free / MB:.0f} MB free")
+        elif self.status == "recording" and self.path is not None:
+            try:
+                size = os.stat(self.path).st_size
+            except OSError as exc:
+                self._write_failed(exc)
+                return
+            if series.rotation_due(size, now - self._opened_at):
+                self.flush()
+                self._end_file()
+                if self.status == "recording":
+                    self._next_file()
 
     def close(self) -> None:
         """Write what is queued, finish the file and stop accepting records."""
         if self.closed:
             return
-        if self.failed is None:
+        if self.status == "recording":
             self.flush()
         self.closed = True
+        self._end_file()
+        if self.dropped:
+            log.warning("%s incomplete: %d records dropped", self.kind, self.dropped)
+
+    def _start(self, path: Path) -> None:
+        self._open(path)
+        self.path = path
+        self.files += 1
+        self._opened_at = time.monotonic()
+
+    def _next_file(self, resumed: str = "") -> None:
+        """Begin the series' next file and delete the oldest beyond the retention; the
+        status says so if it cannot be created."""
+        assert self.series is not None
+        path = self.series.next_path()
+        try:
+            self._start(path)
+        except Exception as exc:
+            self._write_failed(exc)
+            return
+        self._prune()
+        if resumed:
+            self._set("recording", None, f"resumed in {path} ({resumed})")
+
+    def _prune(self) -> None:
+        """The series' oldest files beyond its retention deleted, never the current one."""
+        assert self.series is not None
+        for old in self.series.prune(self.path):
+            log.info("%s: deleted %s (recording.keep_mb / keep_files)", self.kind, old)
+
+    def _end_file(self) -> None:
+        """Complete and close the current file, if any."""
+        if self.path is None:
+            return
         try:
             self._finish()
         except Exception as exc:
-            self._fail(exc)
-        if self.dropped:
-            log.warning("%s incomplete: %d records dropped", self._what, self.dropped)
+            self._write_failed(exc)
+        self.path = None
 
-    def _fail(self, exc: Exception) -> None:
-        if self.failed is None:
-            log.error("%s stopped: %s: %s", self._what, type(exc).__name__, exc)
-            self.failed = f"{type(exc).__name__}: {exc}"
+    def _write_failed(self, exc: Exception) -> None:
+        """Drop what is queued and the file; a full disk pauses a series, anything else
+        stops the recorder."""
         self.dropped += len(self._queue)
         self._queue.clear()
+        full = isinstance(exc, OSError) and exc.errno in DISK_FULL
+        what = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+        where = f" ({self.path})" if self.path is not None else ""
+        reason = f"{'disk full' if full else 'write error'}: {type(exc).__name__}: {what}{where}"
+        if self.path is not None:
+            self.path = None
+            try:
+                self._abandon()
+            except Exception as again:  # the file is lost either way
+                log.debug("%s: closing after %s: %s", self.kind, reason, again)
+        if self.status == "stopped":
+            return
+        paused = full and self.series is not None and not self.closed
+        self._set("paused" if paused else "stopped", reason)
+
+    def _below_floor(self, free: int) -> str:
+        assert self.series is not None
+        floor = self.series.limits.min_free_bytes / MB
+        return (
+            f"floor reached: {free / MB:.1f} MB free on {self.series.base.parent}, below "
+            f"recording.min_free_mb ({floor:g})"
+        )
+
+    def _set(self, status: Status, reason: str | None, said: str = "") -> None:
+        self.status, self.reason = status, reason
+        if status == "recording":
+            log.info("%s %s", self.kind, said)
+        elif status == "paused":
+            log.error("%s paused until there is room again: %s", self.kind, reason)
+        else:
+            log.error("%s stopped: %s", self.kind, reason)
+        if self.on_change is not None:
+            self.on_change(self)
 
     def __enter__(self) -> Self:
         return self
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+    @abstractmethod
+    def _open(self, path: Path) -> None:
+        """Create the file `path` (never an existing one) and begin it."""
 
     @abstractmethod
     def _write(self, item: Item) -> None:
@@ -160,7 +303,11 @@ class _Spool(ABC, Generic[Item]):
 
     @abstractmethod
     def _finish(self) -> None:
-        """Complete and close the file."""
+        """Complete and close the current file."""
+
+    @abstractmethod
+    def _abandon(self) -> None:
+        """Close the current file after a write error, completing nothing."""
 
 
 # -- cycle telemetry (MCAP) ----------------------------------------------------------------
@@ -330,21 +477,24 @@ _COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none"
 
 
 class TelemetryRecorder(_Spool[tuple[int, CycleRecord | bytes, int, int]]):
-    """Cycle telemetry to an MCAP file: one JSON channel, CYCLE_TOPIC, with CYCLE_SCHEMA,
-    and the `channels` given (messages already encoded, `log_messages`).
+    """Cycle telemetry to an MCAP file (or with `limits` a series of them, each complete
+    in itself): one JSON channel, CYCLE_TOPIC, with CYCLE_SCHEMA, and the `channels`
+    given (messages already encoded, `log_messages`).
 
     Each message's log time is the wall-clock time of `record()` (ns) unless given; its
-    sequence number counts every call on its channel, so gaps show dropped records.
-    Messages reach the file a chunk at a time (`chunk_size` bytes before compression):
-    a crash loses at most the open chunk.  `metadata` (e.g. robot name, config file) is
-    stored as the MCAP metadata record "cdprd.session"; `close()` adds "cdprd.recording"
-    with the written and dropped counts.
+    sequence number counts every call on its channel, so gaps show dropped records (and
+    run on from one file of a series to the next).  Messages reach the file a chunk at a
+    time (`chunk_size` bytes before compression): a crash loses at most the open chunk.
+    `metadata` (e.g. robot name, config file) is stored in every file as the MCAP
+    metadata record "cdprd.session"; finishing a file adds "cdprd.recording" with the
+    written and dropped counts so far.
     """
 
     def __init__(
         self,
         path: str | Path,
         *,
+        limits: FileLimits | None = None,
         capacity: int = 4096,
         budget: float = 0.0002,
         compression: str = "zstd",
@@ -357,27 +507,30 @@ class TelemetryRecorder(_Spool[tuple[int, CycleRecord | bytes, int, int]]):
                 f"telemetry compression {compression!r} is unknown; use one of "
                 f"{', '.join(_COMPRESSION)}"
             )
-        super().__init__(f"telemetry recording {path}", capacity, budget)
-        self.path = Path(path)
-        _refuse_existing(self.path, "telemetry recording")
-        self._stream: BinaryIO = open(self.path, "xb")  # noqa: SIM115 - closed in _finish
+        path = Path(path)
+        super().__init__("telemetry recording", path, capacity, budget, limits)
+        kind = _COMPRESSION[compression]
+        self._compression = CompressionType.NONE if kind is None else kind
+        self._chunk_size = chunk_size
+        self._metadata = {str(k): str(v) for k, v in (metadata or {}).items()}
+        self._specs = tuple(channels)
+        # the ids every file gives its channels (MCAP numbers them in registration order)
+        self._channel = 1
+        self._channels = {spec.topic: 2 + i for i, spec in enumerate(self._specs)}
+        self._sequences = dict.fromkeys([self._channel, *self._channels.values()], 0)
+        self._begin(path)
+
+    def _open(self, path: Path) -> None:
+        _refuse_existing(path, self.kind)
+        self._stream: BinaryIO = open(path, "xb")  # noqa: SIM115 - closed in _finish
         try:
-            self._writer, self._channel = self._start(compression, chunk_size, metadata)
-            self._channels = {spec.topic: self._register(spec) for spec in channels}
+            self._writer = self._start_writer()
         except BaseException:
             self._stream.close()
             raise
-        self._sequences = dict.fromkeys([self._channel, *self._channels.values()], 0)
 
-    def _start(
-        self, compression: str, chunk_size: int, metadata: Mapping[str, str] | None
-    ) -> tuple[Writer, int]:
-        kind = _COMPRESSION[compression]
-        writer = Writer(
-            self._stream,
-            chunk_size=chunk_size,
-            compression=CompressionType.NONE if kind is None else kind,
-        )
+    def _start_writer(self) -> Writer:
+        writer = Writer(self._stream, chunk_size=self._chunk_size, compression=self._compression)
         writer.start(profile="", library="cdprd")
         schema_id = writer.register_schema(
             name=CYCLE_SCHEMA_NAME, encoding="jsonschema", data=json.dumps(CYCLE_SCHEMA).encode()
@@ -388,17 +541,18 @@ class TelemetryRecorder(_Spool[tuple[int, CycleRecord | bytes, int, int]]):
             schema_id=schema_id,
             metadata={"schema_version": str(CYCLE_SCHEMA_VERSION)},
         )
-        if metadata:
-            writer.add_metadata("cdprd.session", {str(k): str(v) for k, v in metadata.items()})
-        return writer, channel
-
-    def _register(self, spec: ChannelSpec) -> int:
-        schema_id = self._writer.register_schema(
-            name=spec.schema_name, encoding=spec.schema_encoding, data=spec.schema_data
-        )
-        return self._writer.register_channel(
-            topic=spec.topic, message_encoding=spec.message_encoding, schema_id=schema_id
-        )
+        assert channel == self._channel
+        if self._metadata:
+            writer.add_metadata("cdprd.session", self._metadata)
+        for spec in self._specs:
+            schema_id = writer.register_schema(
+                name=spec.schema_name, encoding=spec.schema_encoding, data=spec.schema_data
+            )
+            channel = writer.register_channel(
+                topic=spec.topic, message_encoding=spec.message_encoding, schema_id=schema_id
+            )
+            assert channel == self._channels[spec.topic]
+        return writer
 
     def record(self, record: CycleRecord, log_time_ns: int | None = None) -> None:
         """Queue one cycle's record (hot path: no I/O, no encoding; never raises)."""
@@ -436,6 +590,9 @@ class TelemetryRecorder(_Spool[tuple[int, CycleRecord | bytes, int, int]]):
         finally:
             self._stream.close()
 
+    def _abandon(self) -> None:
+        self._stream.close()
+
 
 # -- raw CAN traffic (python-can log formats) ----------------------------------------------
 
@@ -464,43 +621,48 @@ def frame_fields(message: can.Message, rx: bool) -> tuple:
 
 
 class CanRecorder(_Spool[tuple[can.Message, bool, float]]):
-    """Received and sent CAN frames to a python-can log file; the format follows the
-    suffix (CAN_LOG_SUFFIXES: Vector ASC/BLF, CSV, can-utils .log, PCAN TRC), readable
-    with `can.LogReader` and the usual tools.  .csv keeps neither direction nor channel.
+    """Received and sent CAN frames to a python-can log file (or with `limits` a series
+    of them); the format follows the suffix (CAN_LOG_SUFFIXES: Vector ASC/BLF, CSV,
+    can-utils .log, PCAN TRC), readable with `can.LogReader` and the usual tools.  .csv
+    keeps neither direction nor channel.
     `channel` names frames that carry none (frames the driver builds for sending).
 
     Frames are written in time order.  A received frame carries the time it arrived but
     reaches the recorder only when the loop drains the bus, possibly after a frame the
     daemon sent later; so each frame waits, sorted by time, until a frame stamped
-    `reorder` seconds later has been recorded or the file is closed (`written` counts
+    `reorder` seconds later has been recorded or the file is finished (`written` counts
     frames once sorted)."""
 
     def __init__(
         self,
         path: str | Path,
         *,
+        limits: FileLimits | None = None,
         channel: str | None = None,
         capacity: int = 16384,
         budget: float = 0.0002,
         reorder: float = 0.05,
     ) -> None:
-        self.path = Path(path)
-        suffix = self.path.suffix.lower()
+        path = Path(path)
+        suffix = path.suffix.lower()
         if suffix not in CAN_LOG_SUFFIXES:
             raise ValueError(
-                f"CAN recording {self.path}: suffix {suffix or '(none)'!r} is not one of "
+                f"CAN recording {path}: suffix {suffix or '(none)'!r} is not one of "
                 f"{', '.join(CAN_LOG_SUFFIXES)}"
             )
         if not reorder >= 0:
             raise ValueError(f"CAN recording {path}: reorder must be a time >= 0 s, not {reorder}")
-        super().__init__(f"CAN recording {path}", capacity, budget)
+        super().__init__("CAN recording", path, capacity, budget, limits)
         self.channel = channel
         self.reorder = reorder
         self._held: list[tuple[float, int, can.Message]] = []  # heap by (time, arrival)
         self._arrival = itertools.count()
         self._newest = -math.inf
-        _refuse_existing(self.path, "CAN recording")
-        self._logger = can.Logger(self.path)
+        self._begin(path)
+
+    def _open(self, path: Path) -> None:
+        _refuse_existing(path, self.kind)
+        self._logger = can.Logger(path)
 
     def record(self, message: can.Message, *, rx: bool, timestamp: float | None = None) -> None:
         """Queue one frame (hot path; never raises).  `rx`: received (True) or sent.
@@ -511,6 +673,9 @@ class CanRecorder(_Spool[tuple[can.Message, bool, float]]):
 
     def record_fields(self, fields: tuple) -> None:
         """Queue one frame given as frame_fields made it (in another process)."""
+        if self.status != "recording":  # paused or stopped: counted, not even built
+            self.dropped += 1
+            return
         stamp, channel, ident, extended, error, remote, dlc, data, rx = fields
         message = can.Message(
             channel=channel,
@@ -551,3 +716,7 @@ class CanRecorder(_Spool[tuple[can.Message, bool, float]]):
                 self._logger.on_message_received(heapq.heappop(self._held)[2])
         finally:
             self._logger.stop()
+
+    def _abandon(self) -> None:
+        self._held.clear()
+        self._logger.stop()

@@ -15,6 +15,7 @@ from __future__ import annotations
 import math
 import re
 from collections.abc import Awaitable
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Protocol
 
 from cdpr.trajectory import TrajectoryError
@@ -35,9 +36,36 @@ ERROR_CODES = (
     "rejected",  # a trajectory or goto the robot cannot follow (limit, workspace, ...)
     "drive_error",  # the drives did not do what the command needed
     "busy",  # the interface's queue was full or it is shutting down: retry later
+    "not_owner",  # another client owns what it would change: the motion running (unless
+    # preempt) or a lease (without its lease_id)
+    "preempted",  # a procedure stopped because another request replaced its motion
     "internal",  # the handler raised something other than CommandError (a bug)
 )
 """The documented machine codes; a new one is a lower-case snake_case word."""
+
+
+ANONYMOUS = "anonymous"
+"""The client of a request that names none (daemon.service.motion)."""
+
+
+@dataclass(frozen=True)
+class Claim:
+    """Who asks for a motion, as its request says: the `client` it names (a name the
+    client chooses; recorded in events; not a credential), whether it may replace another
+    client's motion (`preempt`), and a trajectory's `id`."""
+
+    client: str = ANONYMOUS
+    preempt: bool = False
+    id: str | None = None
+
+    @classmethod
+    def of(cls, args: dict[str, Any]) -> Claim:
+        """The claim of a command's args (the "client" and "preempt" it was sent with)."""
+        return cls(args.get("client", ANONYMOUS), bool(args.get("preempt", False)))
+
+
+UNNAMED = Claim()
+"""The claim of a request that names no client and does not preempt."""
 
 
 class CommandError(Exception):
@@ -80,26 +108,31 @@ class DaemonHandler(Protocol):
         """Run command `name` (one of COMMANDS): the JSON reply body, or an awaitable of it
         for commands that wait for the drives (the reply is sent when it completes).
 
-        args, already validated: {} for every command except
+        args, already validated: {} for every command, and "client": str where the
+        request names its client, "preempt": true where a goto, identify_payload, home
+        or pretension says so (Claim.of), except
             goto:  {"pose": cdpr.pose.Pose}  (unit quaternion, normalised)
             brake: {"reason": str} or {}     (the sender's reason, <= 200 characters)
             payload: any of {"frozen": bool, "mass": float (kg),
                              "center_of_mass": [x, y, z] (m, platform frame)}, and
-                   "lease": float (s, with frozen true: daemon.service.lease)
+                   "lease": float (s, with frozen true: daemon.service.lease),
+                   "lease_id": str (with frozen: the running lease's, to renew or end it)
             identify_payload: {"apply": bool}
             home:  {"pose_name": str} or {}  (a pose of the robot file; default home)
             pretension: as home (the fixture's pose the platform rests at)
             observer: {"held": bool} or {}  (the external wrench observer held out of
-                   the loop, or let back in), and "lease" as payload's
+                   the loop, or let back in), and "lease", "lease_id" as payload's
         Raise CommandError to refuse (e.g. "invalid_state" for enable while BRAKED).
         """
         ...
 
     def submit_trajectory(
-        self, trajectory: Trajectory, start: float | None
+        self, trajectory: Trajectory, start: float | None, claim: Claim = UNNAMED
     ) -> dict[str, Any] | Awaitable[dict[str, Any]]:
         """Accept a parsed, schema-checked trajectory to run, or raise CommandError;
         or return an awaitable of that (e.g. to validate a long path between cycles).
+        `claim`: who sends it (daemon.service.motion: refused with "not_owner" while
+        another client's motion runs, unless it preempts).
 
         start: the unix time (s) at which the trajectory's first waypoint is due, or None
         for "as soon as possible".  The service validates against the robot (limits,
@@ -117,7 +150,7 @@ class DaemonHandler(Protocol):
         ...
 
     def state(self) -> dict[str, Any]:
-        """The state snapshot to publish now (docs/zenoh.md, "State and events").
+        """The state snapshot to publish now (docs/reference/zenoh-api.md, "State and events").
 
         The interface adds version, seq, time and its own counters ("interface");
         non-finite floats are sent as null; numpy arrays and scalars are accepted.

@@ -1,4 +1,4 @@
-"""The robot's homing and calibration state on disk (DESIGN §15 step 3).
+"""The robot's homing and calibration state on disk (DESIGN §15 step 3, §19).
 
 One JSON file per robot in the state directory (`state_dir`; under systemd the unit's
 StateDirectory=, /var/lib/cdprd): each drive's length offset (m, the cable length at
@@ -8,11 +8,25 @@ it was found.  Written atomically (a temporary file in the same directory, fsync
 rename, fsync of the directory): a crash leaves the old file or the new one, never a
 torn one.  A file that cannot be read is a StateFileError naming the file and the
 problem; it is never overwritten: `set_aside` renames it before a new state is written.
+
+A state file is data from disk, not a fact about the robot, so it carries what lets the
+daemon refuse one that is not this robot's own, unchanged (schema 2):
+- `identity`: a digest of what the offsets are measured against (`robot_identity`: each
+  cable's anchor, attachment and pulley, each drive's node and length scaling).  A file
+  restored from another robot, or left from before the robot file or the drives changed,
+  is refused.
+- `checksum`: SHA-256 of the rest of the content (canonical JSON): an edited or damaged
+  file is refused.
+A schema 1 file (from before both) cannot be checked and is refused, asking for homing.
+A refused file leaves every offset invalid (enable refused until homed: the daemon
+starts, braked or idle, and `home` writes a new file, setting the refused one aside).
+Even a file that passes is checked against the robot at enable (daemon.service.rest_check).
 """
 
 from __future__ import annotations
 
 import asyncio
+import hashlib
 import json
 import logging
 import math
@@ -23,10 +37,15 @@ from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
+from cdpr.robot import Robot
+from cdpr.trusted_file import UnreadableFileError, read_trusted
+from drivers.config import DrivesConfig
+
 log = logging.getLogger("cdprd")
 
-SCHEMA = 1
+SCHEMA = 2
 MAX_BYTES = 1 << 16
+REHOME = "home again (cdprd home) to find the offsets afresh"
 
 
 class StateFileError(RuntimeError):
@@ -40,6 +59,7 @@ class CalibrationState:
     home", "calibrate ...")."""
 
     robot: str
+    identity: str  # robot_identity of the robot and drives the offsets belong to
     offsets: tuple[float, ...]
     invalid: tuple[str | None, ...]
     time: float
@@ -57,40 +77,81 @@ def state_path(state_dir: Path, robot: str) -> Path:
     return state_dir / f"{robot}.calibration.json"
 
 
-def new_state(robot: str, offsets: list[float], method: str) -> CalibrationState:
+def robot_identity(robot: Robot, drives: DrivesConfig) -> str:
+    """A digest of what stored offsets are measured against: the robot's name, each
+    cable's anchor, attachment and pulley, and each drive's node and length scaling (drum
+    radius or spool, gear ratio, encoder resolution, direction; not its configured
+    offset, which the stored one replaces).  The platform's inertia, the limits and the
+    gains do not change what an offset means, and are left out."""
+    scalings = [replace(s, length_offset=0.0) for s in drives.scalings_for(robot)]
+    facts = {
+        "robot": robot.name,
+        "cables": [c.model_dump(mode="json", include={"anchor", "attachment", "pulley"})
+                   for c in robot.spec.cables],
+        "nodes": list(drives.nodes),
+        "scalings": [repr(s) for s in scalings],
+    }
+    return "sha256:" + _digest(facts)
+
+
+def new_state(robot: str, identity: str, offsets: list[float], method: str) -> CalibrationState:
     """Every offset valid, found now by `method`."""
-    return CalibrationState(robot, tuple(offsets), (None,) * len(offsets), time.time(), method)
+    n = len(offsets)
+    return CalibrationState(robot, identity, tuple(offsets), (None,) * n, time.time(), method)
 
 
-def load_state(path: Path, robot: str, n: int) -> CalibrationState | None:
-    """The state in `path` (None: there is none), for robot `robot` with n drives;
-    StateFileError names the file and what is wrong with it."""
-    try:
-        with open(path, "rb") as f:
-            raw = f.read(MAX_BYTES + 1)
-    except FileNotFoundError:
+def _digest(data: Any) -> str:
+    canonical = json.dumps(data, sort_keys=True, separators=(",", ":"), allow_nan=False)
+    return hashlib.sha256(canonical.encode()).hexdigest()
+
+
+def load_state(path: Path, robot: str, n: int, identity: str) -> CalibrationState | None:
+    """The state in `path` (None: there is none), for robot `robot` with n drives and
+    `identity` (robot_identity); StateFileError names the file and what is wrong with it."""
+    if not os.path.lexists(path):
         return None
-    except OSError as exc:
-        raise StateFileError(f"{path}: cannot read: {exc.strerror or exc}") from None
-    if len(raw) > MAX_BYTES:
-        raise StateFileError(f"{path}: larger than {MAX_BYTES} bytes: not a state file")
+    try:
+        raw = read_trusted(path, MAX_BYTES)
+    except UnreadableFileError as exc:
+        raise StateFileError(str(exc)) from None
     try:
         data = json.loads(raw.decode("utf-8"))
     except (UnicodeDecodeError, ValueError) as exc:
         raise StateFileError(f"{path}: corrupt (not JSON: {exc})") from None
-    return _parse(data, path, robot, n)
+    return _parse(data, path, robot, n, identity)
 
 
-def _parse(data: Any, path: Path, robot: str, n: int) -> CalibrationState:
+def _parse(data: Any, path: Path, robot: str, n: int, identity: str) -> CalibrationState:
     def bad(key: str, problem: str) -> StateFileError:
         return StateFileError(f"{path}: {key}: {problem}")
 
     if not isinstance(data, dict):
         raise bad("(top)", f"expected an object, got {type(data).__name__}")
+    if data.get("schema") == 1:
+        raise bad(
+            "schema",
+            "1, written before state files carried a checksum and the robot's identity: it "
+            f"cannot be checked; {REHOME}",
+        )
     if data.get("schema") != SCHEMA:
         raise bad("schema", f"expected {SCHEMA}, got {data.get('schema')!r}")
+    checksum = data.get("checksum")
+    body = {k: v for k, v in data.items() if k != "checksum"}
+    try:
+        expected = "sha256:" + _digest(body)
+    except ValueError:  # a NaN or infinity: not what save_state writes
+        expected = None
+    if checksum != expected:
+        raise bad("checksum", f"does not match the content (edited or damaged); {REHOME}")
     if data.get("robot") != robot:
         raise bad("robot", f"the state of robot {data.get('robot')!r}, not of {robot!r}")
+    if data.get("identity") != identity:
+        raise bad(
+            "identity",
+            "the offsets of another robot, or of this one before its robot file (anchors, "
+            "attachments, pulleys, drums) or its drives (nodes, gear ratio, encoder "
+            f"resolution, direction) changed; {REHOME}",
+        )
     offsets = data.get("offsets")
     if not (
         isinstance(offsets, list)
@@ -111,7 +172,7 @@ def _parse(data: Any, path: Path, robot: str, n: int) -> CalibrationState:
     if not isinstance(method, str):
         raise bad("method", "expected a string")
     return CalibrationState(
-        robot, tuple(float(x) for x in offsets), tuple(invalid), float(stamp), method
+        robot, identity, tuple(float(x) for x in offsets), tuple(invalid), float(stamp), method
     )
 
 
@@ -119,6 +180,7 @@ def save_state(path: Path, state: CalibrationState) -> None:
     """Write `state` to `path` atomically (module docstring); OSError if it cannot."""
     body = {"schema": SCHEMA, **asdict(state)}
     body["offsets"], body["invalid"] = list(state.offsets), list(state.invalid)
+    body["checksum"] = "sha256:" + _digest(body)
     data = (json.dumps(body, indent=1) + "\n").encode()
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, temporary = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
@@ -152,16 +214,17 @@ class OffsetStore:
     Runs beside the planner (the companion), never in the control cycle: writes go to a
     worker thread."""
 
-    def __init__(self, state_dir: Path | None, robot: str, n: int) -> None:
+    def __init__(self, state_dir: Path | None, robot: str, n: int, identity: str) -> None:
         self.path = None if state_dir is None else state_path(state_dir, robot)
-        self.robot, self.n = robot, n
+        self.robot, self.n, self.identity = robot, n, identity
 
     async def store(self, offsets: list[float], method: str) -> dict[str, Any]:
         """Keep `offsets` found by `method`, every one valid: where they went (and an
         unreadable file set aside, if there was one)."""
         if self.path is None:
             return {"stored": None, "note": "no state_dir: kept until the daemon stops"}
-        return await asyncio.to_thread(self._replace, new_state(self.robot, offsets, method))
+        state = new_state(self.robot, self.identity, offsets, method)
+        return await asyncio.to_thread(self._replace, state)
 
     def on_event(self, event: dict[str, Any]) -> None:
         """A core event; an "offset_lost" one is written down (a daemon started later
@@ -175,7 +238,7 @@ class OffsetStore:
         assert self.path is not None
         reply: dict[str, Any] = {"stored": str(self.path)}
         try:
-            load_state(self.path, self.robot, self.n)
+            load_state(self.path, self.robot, self.n, self.identity)
         except StateFileError:
             reply["set_aside"] = str(set_aside(self.path))
         save_state(self.path, state)
@@ -184,7 +247,7 @@ class OffsetStore:
     def _invalidate(self, drive: int, why: str) -> None:
         assert self.path is not None
         try:
-            state = load_state(self.path, self.robot, self.n)
+            state = load_state(self.path, self.robot, self.n, self.identity)
             if state is not None:
                 save_state(self.path, state.invalidated(drive, why))
         except (StateFileError, OSError) as exc:  # the core refuses enable all the same

@@ -26,23 +26,34 @@ class Ring:
         return self._data[: min(self._count, len(self._data))]
 
     def summary_us(self) -> dict[str, float]:
-        """Median, p99 and max in microseconds (np.percentile's linear interpolation, on a
-        sorted copy: numpy's vectorised sort is about 5x faster than np.percentile here,
-        and the state is published at tens of Hz on the control loop)."""
-        v = np.sort(self.values())
+        """Median, p99 and max in microseconds (np.percentile's linear interpolation).
+        The state is published at tens of Hz on the control loop, four rings each time:
+        one np.partition puts the four order statistics the quantiles interpolate
+        between in place, 5x faster than sorting a full ring (~0.2 ms against ~1 ms for
+        10^4 samples on a small vCPU), and np.percentile is slower still."""
+        v = self.values()
         if len(v) == 0:
             return {"p50_us": 0.0, "p99_us": 0.0, "max_us": 0.0}
-        p50, p99 = (_quantile(v, q) * 1e6 for q in (0.5, 0.99))
-        return {"p50_us": round(p50, 1), "p99_us": round(p99, 1), "max_us": round(v[-1] * 1e6, 1)}
+        positions = [_neighbours(len(v), q) for q in (0.5, 0.99)]
+        ranks = sorted({rank for below, above, _ in positions for rank in (below, above)})
+        ranked = np.partition(v, ranks)
+        p50, p99 = (
+            float(ranked[below] + (ranked[above] - ranked[below]) * fraction) * 1e6
+            for below, above, fraction in positions
+        )
+        return {
+            "p50_us": round(p50, 1),
+            "p99_us": round(p99, 1),
+            "max_us": round(float(v.max()) * 1e6, 1),
+        }
 
 
-def _quantile(ordered: np.ndarray, q: float) -> float:
-    """The q-quantile of sorted values, interpolated linearly between neighbours."""
-    position = q * (len(ordered) - 1)
+def _neighbours(count: int, q: float) -> tuple[int, int, float]:
+    """Where the q-quantile of `count` ordered values lies: the ranks below and above
+    it and the fraction of the way between them."""
+    position = q * (count - 1)
     below = int(position)
-    above = min(below + 1, len(ordered) - 1)
-    fraction = position - below
-    return float(ordered[below] + (ordered[above] - ordered[below]) * fraction)
+    return below, min(below + 1, count - 1), position - below
 
 
 class CycleStats:
@@ -56,7 +67,7 @@ class CycleStats:
         self.prepare = Ring(window)  # the controller's work done ahead of the feedback
         self.latency = Ring(window)  # last feedback frame (or the tick) -> last command
         self.cycles = 0
-        self.deadline_misses = 0  # feedback incomplete at the deadline
+        self.deadline_misses = 0  # feedback incomplete at the deadline, once out of INIT
         self.overruns = 0  # whole periods skipped (timer expirations > 1)
         self.bus_errors = 0
 

@@ -9,7 +9,9 @@ ahead, else the planner plans again from what the core runs now.
 
 `Planner` implements daemon.service.api.DaemonHandler over a `CoreLink`: `LocalLink`
 calls a Service on the same loop, daemon.process.companion_link.RemoteLink reaches the
-core process.
+core process.  Each motion has one owner, the client that asked for it
+(daemon.service.motion): another client's request is refused while it runs, unless it
+preempts.
 """
 
 from __future__ import annotations
@@ -18,10 +20,8 @@ import time
 from collections.abc import Awaitable, Callable, Generator
 from typing import Any, Literal, Protocol, TypeVar
 
-import numpy as np
-
 from cdpr.controller import tension_solver, wrench_check
-from cdpr.pose import Pose, retract
+from cdpr.pose import Pose
 from cdpr.pose_limits import PoseLimits
 from cdpr.trajectory import (
     LengthLimits,
@@ -31,14 +31,15 @@ from cdpr.trajectory import (
     approach_steps,
     check_start_delay,
     goto_steps,
+    stop_steps,
     validation_steps,
 )
 from daemon.config import DaemonConfig
-from daemon.service.api import CommandError, rejection
-from daemon.service.calibration_state import OffsetStore
+from daemon.service.api import UNNAMED, Claim, CommandError, rejection
+from daemon.service.calibration_state import OffsetStore, robot_identity
 from daemon.service.identify_payload import identify_payload
 from daemon.service.lease import HELD_BY, Kept, Leases
-from daemon.service.safety import SafetyState
+from daemon.service.motion import MOVING, Motion, Motions
 
 STATUS_REPLIES = ("status", "enable", "disable", "brake", "reset")  # the core replies its status
 PLANNING_LEAD = 0.05  # s ahead of now a planned transition begins (planning takes time)
@@ -46,7 +47,6 @@ HOLD_LEAD = 0.01  # the same for a hold: a stop plans in a few ms and should not
 MIN_LEAD = 0.005  # s: the least lead tried again after a plan came too late
 SETTLE_ATTEMPTS = 3  # plans of an approach that begins later, from the state it begins at
 HOLD_ATTEMPTS = 6  # a hold is never refused for want of time: it tries with longer leads
-MOVING = (SafetyState.HOLD.value, SafetyState.TRACKING.value)  # states that follow plans
 EventSink = Callable[[dict[str, Any]], None]
 Result = TypeVar("Result")
 
@@ -118,24 +118,34 @@ class Planner:
         )
         self._holds = 0  # hold commands so far: plans under way when one came are dropped
         # homing's offsets and the drives that lost theirs, kept in the state directory
-        self.store = OffsetStore(config.state_dir, config.robot.name, config.robot.n_cables)
+        robot = config.robot
+        identity = robot_identity(robot, config.drives)
+        self.store = OffsetStore(config.state_dir, robot.name, robot.n_cables, identity)
         link.subscribe(self.store.on_event)
         # the payload freeze's and the observer hold's leases, timed here, not in the cycle
         self._sinks: list[EventSink] = []
-        self.leases = Leases(link.command_keeping, self._emit, link.now)
+        self.leases = Leases(link.command_keeping, self.emit, link.now)
+        # the motion running and the client that owns it
+        self.motions = Motions(link.now, self.emit)
+        link.subscribe(self.motions.on_event)
+        # what the companion adds of its own to every status reply and the state, by key
+        # (the recordings: daemon.process.companion)
+        self.reports: dict[str, Callable[[], Any]] = {}
 
     # -- DaemonHandler --------------------------------------------------------------------
 
     def command(self, name: str, args: dict[str, Any]) -> Awaitable[dict[str, Any]]:
         if name == "hold":
-            return self._hold()
+            return self._hold(Claim.of(args))
         if name == "goto":
             return self._goto(args)
         if name == "identify_payload":
+            self.motions.check(name, Claim.of(args))
             self._require_moving("identify the payload")
-            return identify_payload(self, args)
+            return self._procedure(name, args, lambda motion: identify_payload(self, args, motion))
         if name in ("home", "pretension"):
-            return self._home(name, args)
+            self.motions.check(name, Claim.of(args))
+            return self._procedure(name, args, lambda _motion: self._home(name, args))
         if name in HELD_BY:
             return self.leases.command(name, args)
         if name in STATUS_REPLIES:
@@ -146,30 +156,33 @@ class Planner:
         await self.link.slack()
 
     def state(self) -> dict[str, Any]:
-        # the core's snapshot (shared: not modified) and the leases' time left
-        return {**self.link.state(), "leases": self.leases.remaining()}
+        # the core's snapshot (shared: not modified), the leases' time left, the motion,
+        # the reports
+        return {**self.link.state(), **self._own()}
 
     def subscribe(self, sink: EventSink) -> None:
         self._sinks.append(sink)
         self.link.subscribe(sink)
 
-    def _emit(self, event: dict[str, Any]) -> None:
-        """An event of the planner's own, with the core's time and safety state as the
-        core's events have them."""
+    def emit(self, event: dict[str, Any]) -> None:
+        """An event of the planner's own (or the companion's), with the core's time and
+        safety state as the core's events have them."""
         event.setdefault("t", self.link.now())
         event.setdefault("state", self.link.safety_state)
         for sink in self._sinks:
             sink(event)
 
     async def submit_trajectory(
-        self, trajectory: Trajectory, start: float | None
+        self, trajectory: Trajectory, start: float | None, claim: Claim = UNNAMED
     ) -> dict[str, Any]:
         """Validate and run `trajectory`, its times relative to `start` (a unix time it
         may not begin before, at most trajectory.max_start_delay ahead) or to now, after a
         smooth approach from the current reference.  Rejected: nothing changes and
-        CommandError names the limit, the waypoint and the value.  Until a later start's
+        CommandError names the limit, the waypoint and the value; "not_owner" while
+        another client's motion runs (unless `claim` preempts).  Until a later start's
         approach begins the robot carries on (HOLD, or TRACKING what runs); it is
         TRACKING from then until the trajectory ends."""
+        self.motions.check("trajectory", claim)
         self._require_moving("run a trajectory")
         limits = self.config.trajectory
         if start is not None:
@@ -207,38 +220,55 @@ class Planner:
                 waypoint=0,
             )
 
-        return await self._plan_and_follow(plan, "trajectory", validate="blend")
+        return await self._plan_and_follow(plan, "trajectory", validate="blend", owner=claim)
 
     # -- planned commands -----------------------------------------------------------------
 
-    async def _hold(self) -> dict[str, Any]:
-        """To rest about where the current motion would stop under full deceleration;
-        never refused for want of time (it tries again with longer leads).  The reply is
-        the status, as `status` has it (with the leases)."""
+    async def _hold(self, claim: Claim) -> dict[str, Any]:
+        """To rest as soon as the limits allow, never turning back (stop_steps);
+        never refused for want of time (it tries again with longer leads), nor for whose
+        the motion is (it ends it: `claim` stopped it).  The reply is the status, as
+        `status` has it (with the leases and the motion)."""
         self._require_moving("hold")
         limits = self.config.trajectory
 
         async def stop(current: Reference, begin: float) -> Trajectory:
-            speed = float(np.linalg.norm(current.twist[:3]))
-            spin = float(np.linalg.norm(current.twist[3:]))
-            coast = 0.5 * max(speed / limits.linear_accel, spin / limits.angular_accel)
-            target = retract(current.pose, current.twist * coast)
-            return await link.run_steps(goto_steps(current, target, limits, start=begin))
+            return await link.run_steps(stop_steps(current, limits, start=begin))
 
         link = self.link
         self._holds += 1
         await self._plan_and_follow(
             stop, "hold", lead=HOLD_LEAD, validate="none", attempts=HOLD_ATTEMPTS
         )
+        self.motions.stopped(claim)
         return await self._status()
 
     async def _status(
         self, name: str = "status", args: dict[str, Any] | None = None
     ) -> dict[str, Any]:
         """The core's reply to `name` (one of STATUS_REPLIES: its status after the
-        command) and the leases' time left (the published state has both)."""
+        command) with what the planner adds (`_own`), as the published state has it."""
         reply = await self.link.command(name, {} if args is None else args)
-        return {**reply, "leases": self.leases.remaining()}
+        return {**reply, **self._own()}
+
+    def _own(self) -> dict[str, Any]:
+        """What the status and the state add to the core's: the leases' time left, the
+        motion running (what, its client) and the `reports`."""
+        running = self.motions.running()
+        motion = None if running is None else running.describe()
+        reports = {key: report() for key, report in self.reports.items()}
+        return {"leases": self.leases.remaining(), "motion": motion, **reports}
+
+    async def _procedure(
+        self, name: str, args: dict[str, Any], run: Callable[[Motion], Awaitable[Result]]
+    ) -> Result:
+        """Run the procedure `name` as the motion of its request's client (taken once it
+        starts: a command the interface never starts takes nothing), until it ends."""
+        motion = self.motions.take(name, Claim.of(args))
+        try:
+            return await run(motion)
+        finally:
+            self.motions.finish(motion)
 
     async def _home(self, name: str, args: dict[str, Any]) -> dict[str, Any]:
         """The core homes (home, or pretension at its end) and applies the offsets;
@@ -254,7 +284,16 @@ class Planner:
             raise CommandError(exc.code, exc.reason, **kept, **stored) from None
         return {**result, **await self.store.store(result["offsets"], result["method"])}
 
-    async def _goto(self, args: dict[str, Any]) -> dict[str, Any]:
+    async def fly_to(self, pose: Pose, procedure: Motion) -> dict[str, Any]:
+        """A goto to `pose` as a step of the running `procedure` (identify_payload):
+        "preempted" if another motion replaced it."""
+        return await self._goto({"pose": pose}, procedure)
+
+    async def _goto(self, args: dict[str, Any], procedure: Motion | None = None) -> dict[str, Any]:
+        """A goto of its own (its request's client's), or a step of `procedure`."""
+        owner = Claim.of(args) if procedure is None else procedure
+        if isinstance(owner, Claim):
+            self.motions.check("goto", owner)
         self._require_moving("goto")
         target = args.get("pose")
         if not isinstance(target, Pose):
@@ -265,7 +304,7 @@ class Planner:
         async def plan(current: Reference, begin: float) -> Trajectory:
             return await link.run_steps(goto_steps(current, target, limits, start=begin))
 
-        return await self._plan_and_follow(plan, "goto")
+        return await self._plan_and_follow(plan, "goto", owner=owner)
 
     async def _validate(
         self,
@@ -298,18 +337,23 @@ class Planner:
         lead: float = PLANNING_LEAD,
         validate: Literal["all", "blend", "none"] = "all",
         attempts: int = 3,
+        owner: Claim | Motion | None = None,
     ) -> dict[str, Any]:
         """A transition from the current reference, planned to begin `lead` seconds
         ahead, validated and handed to the core; planned again if the core's reference
-        changed meanwhile, or with a longer lead if the work outlasted it (`attempts` in
-        all, then CommandError "busy").  `validate`: the whole result, only its first
+        changed meanwhile, or with a longer lead if the work outlasted it (three times as
+        long, at least twice what the late attempt took; `attempts` in all, then
+        CommandError "busy").  `validate`: the whole result, only its first
         segment (the rest already was), or nothing (a hold: stopping may not be refused);
         inside the validation pose limits, or no further out than where the transition
-        starts (it may start outside them)."""
+        starts (it may start outside them).  `owner`: the claim the transition runs for
+        (a motion of its own, taken when the core takes it: daemon.service.motion), the
+        procedure it is a step of, or None (a hold)."""
         holds = self._holds
         link = self.link
         for _ in range(attempts):
-            begin = link.now() + lead
+            asked = link.now()
+            begin = asked + lead
             current, version = await link.reference_at(begin)
             try:
                 planned = await make(current, begin)
@@ -327,13 +371,36 @@ class Planner:
                     await self._validate(planned, what, inside, reach)
             if self._holds != holds and what != "hold":
                 raise CommandError("invalid_state", f"{what} dropped: a hold came meanwhile")
-            reply = await link.follow(planned, version, what)
+            reply = await self._follow(planned, version, what, owner)
             replan = reply.get("replan")
             if replan is None:
                 return reply
             if replan == "late":
-                lead = max(3 * lead, MIN_LEAD)
+                # the next lead outlasts this attempt twice over: on a host where this
+                # process went unscheduled for a while, tripling alone may never catch up
+                lead = max(3 * lead, 2.0 * (link.now() - asked), MIN_LEAD)
         raise CommandError("busy", f"{what}: planning kept outlasting its lead")
+
+    async def _follow(
+        self, planned: Trajectory, version: int, what: str, owner: Claim | Motion | None
+    ) -> dict[str, Any]:
+        """Hand `planned` to the core as `owner`'s motion (see _plan_and_follow): the
+        core's reply."""
+        if isinstance(owner, Motion):
+            self.motions.owns(owner)
+        if not isinstance(owner, Claim):
+            return await self.link.follow(planned, version, what)
+        motion = self.motions.take(what, owner)
+        try:
+            reply = await self.link.follow(planned, version, what)
+        except BaseException:
+            self.motions.restore(motion)
+            raise
+        if reply.get("replan") is None:
+            self.motions.commit(motion, reply["end"])
+        else:
+            self.motions.restore(motion)
+        return reply
 
     def _require_moving(self, action: str) -> None:
         state = self.link.safety_state

@@ -177,9 +177,15 @@ class SafetyMonitor:
     # -- inputs every cycle --------------------------------------------------------
 
     def check_drives(
-        self, feedback: Sequence[Feedback], status: Sequence[NodeStatus], now: float
+        self,
+        feedback: Sequence[Feedback],
+        status: Sequence[NodeStatus],
+        now: float,
+        powered: bool = False,
     ) -> list[Fault]:
-        """Drive faults, heartbeat loss, NaN feedback and length limits."""
+        """Drive faults, heartbeat loss, NaN feedback and length limits; with `powered`
+        (the daemon commands forces), a drive whose power stage is off: another node
+        disarmed it (an ODrive axis asked for IDLE), it no longer follows the forces."""
         faults = []
         timeout, isfinite = self.heartbeat_timeout, math.isfinite
         lengths = []  # the finite lengths of the drives that reported any
@@ -189,6 +195,14 @@ class SafetyMonitor:
                     Fault(
                         Trigger.DRIVE_FAULT,
                         f"drive {k} reports fault 0x{st.fault_code:04x}: {st.fault or 'unknown'}",
+                    )
+                )
+            elif powered and st.state in _UNPOWERED:
+                faults.append(
+                    Fault(
+                        Trigger.DRIVE_FAULT,
+                        f"drive {k} is {st.state.value} while it should follow forces "
+                        "(another node changed its state?)",
                     )
                 )
             age = now - st.heartbeat_stamp
@@ -308,3 +322,7 @@ class SafetyMonitor:
                 f"{math.degrees(self.limits.tracking_error_orientation):.3f} deg",
             )
         return None
+
+
+# drive states in which a drive produces no commanded force (its power stage is off)
+_UNPOWERED = (DriveState.READY, DriveState.DISABLED, DriveState.UNKNOWN)

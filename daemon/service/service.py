@@ -32,17 +32,24 @@ from cdpr.trajectory.core import Curve
 from daemon.config import DaemonConfig
 from daemon.service.api import CommandError
 from daemon.service.bus_port import Buses, open_port
-from daemon.service.calibration_state import StateFileError, load_state, state_path
+from daemon.service.calibration_state import (
+    StateFileError,
+    load_state,
+    robot_identity,
+    state_path,
+)
 from daemon.service.command_lead import LatencyMedian
 from daemon.service.cycle_stats import CycleStats
 from daemon.service.gc_policy import CollectorPolicy
+from daemon.service.hold_report import HoldReport, hold_summary
 from daemon.service.homing import LengthOffsets
 from daemon.service.planner import PLANNING_LEAD
+from daemon.service.rest_check import judge
 from daemon.service.safety import Fault, SafetyMonitor, SafetyState, StateMachine, Trigger
 from daemon.service.trusted_lengths import Implausible, TrustedLengths
 from drivers.base import ActuatorDriver, DriverError, Feedback, FrameError, Timing
 from drivers.bus import CAN_ERR_BUSOFF
-from drivers.clock import PeriodicTimer
+from drivers.clock import DeadlineTimer, PeriodicTimer
 from drivers.factory import make_driver
 
 log = logging.getLogger("cdprd")
@@ -53,6 +60,8 @@ RETRUST_CYCLES = 50  # cycles a reset waits for a complete set to judge afresh
 HOME_SAMPLES = 50  # cycles of feedback homing averages, each checked for rest
 REST_RATE = 2e-3  # m/s: a cable moving faster is not at rest (homing is refused)
 REST_SPREAD = 5e-4  # m: nor one whose length varies more over the samples
+REST_SETTLE = 3.0  # s the cables may take to come to rest once the drives hold them
+FORCE_READINGS = 10  # of the drives' measured forces, averaged for the rest check
 EXIT_BUS_LOST = os.EX_UNAVAILABLE  # 69, sysexits' "service unavailable": the bus is gone
 EventSink = Callable[[dict[str, Any]], None]
 Result = TypeVar("Result")
@@ -81,8 +90,9 @@ class Service:
         self.port.on_lost = self._on_bus_lost
         self.port.on_sent = self._on_sent
         self._events: list[EventSink] = []
-        # observers off the safety path: (controller time, output) after every control
-        # step, and (frame, received?) for every frame in or out
+        # observers off the safety path: (controller time, output) of every control
+        # step (once its commands are out, or before the brake that replaces them), and
+        # (frame, received?) for every frame in or out
         self.cycle_listeners: list[Callable[[float, ControlOutput], None]] = []
         self.frame_listeners: list[Callable[[can.Message, bool], None]] = []
         self.t0 = time.monotonic()
@@ -96,8 +106,9 @@ class Service:
         self._waiting = False
         self._opened = 0.0
         self._counts = [0] * self.n
-        self._deadline: asyncio.TimerHandle | None = None
-        self._slack_waiters: list[asyncio.Future[None]] = []  # background work (_in_slack)
+        self._deadline: DeadlineTimer | None = None  # ends the wait for feedback
+        # background work waiting for the cycle's slack or its turn (slack)
+        self._slack_waiters: list[tuple[asyncio.Future[bool], float]] = []
         self._source_version = 0  # changes whenever the controller's reference source does
         self._last_rx = 0.0
         # the lengths a brake or keepalive holds: the last plausible measurements
@@ -119,6 +130,7 @@ class Service:
             silent_cycles=math.ceil(config.drives.heartbeat_timeout / self.period),
             tolerance=config.safety.feedback_tolerance,
         )
+        self.identity = robot_identity(robot, config.drives)  # what stored offsets must match
         self._load_offsets()
         self._trajectory: Curve | None = None
         self._scheduled: list[Curve] = []  # accepted, beginning later, by start time
@@ -132,6 +144,7 @@ class Service:
         self.loop_close_step: float | None = None  # N, the largest force change at close
         self._close_forces: np.ndarray | None = None  # the last before it, until measured
         self.brakes = 0  # brake() calls: a sequence that waited sees whether one came
+        self.hold_report = HoldReport()  # whether the drives confirm the brake
         self._pretension_name = "home"  # its pose's name
         self._pretension_changes: list[float] = []  # mm, the offsets' changes at its homing
         # (empty until it has homed)
@@ -163,6 +176,8 @@ class Service:
         self.port.open(loop)
         self._timer = PeriodicTimer(self.period)
         loop.add_reader(self._timer.fileno(), self._on_tick)
+        self._deadline = DeadlineTimer()
+        loop.add_reader(self._deadline.fileno(), self._on_deadline)
         try:
             await asyncio.wait_for(self.driver.start(self.port, time.monotonic), STARTUP_TIMEOUT)
         except (TimeoutError, DriverError) as exc:
@@ -193,8 +208,10 @@ class Service:
             self._loop.remove_reader(self._timer.fileno())
             self._timer.close()
             self._timer = None
-        if self._deadline is not None:
-            self._deadline.cancel()
+        if self._deadline is not None and self._loop is not None:
+            self._loop.remove_reader(self._deadline.fileno())
+            self._deadline.close()
+            self._deadline = None
         if self._exit_timer is not None:
             self._exit_timer.cancel()
         self._wake_slack_waiters()
@@ -223,10 +240,8 @@ class Service:
         if self._all_fresh():
             self._run_cycle(now, deadline=False)
             return
-        loop = self._loop
-        assert loop is not None
-        deadline = self.config.safety.feedback_deadline * self.period
-        self._deadline = loop.call_at(loop.time() + deadline, self._on_deadline)
+        assert self._deadline is not None
+        self._deadline.arm(now + self.config.safety.feedback_deadline * self.period)
         if self.machine.moving and not self._busy:
             self._prepare(now)
 
@@ -242,8 +257,8 @@ class Service:
         self.stats.prepare.add(time.monotonic() - started)
 
     def _on_deadline(self) -> None:
-        self._deadline = None
-        if self._waiting:
+        deadline = self._deadline
+        if deadline is not None and deadline.expired() and self._waiting:
             self._close_waiting_cycle()
 
     def _close_waiting_cycle(self) -> None:
@@ -253,7 +268,8 @@ class Service:
         still missing after that is a miss."""
         self.port.poll()  # completes the cycle if the missing frames are queued
         if self._waiting:
-            self.stats.deadline_misses += 1
+            if self.machine.state is not SafetyState.INIT:  # drives still starting: none due
+                self.stats.deadline_misses += 1
             self._run_cycle(time.monotonic(), deadline=True)
 
     def _all_fresh(self) -> bool:
@@ -299,7 +315,8 @@ class Service:
         judge = self.trust.track if winding else self.trust.check
         implausible = self._second_answers(feedback, judge(lengths, rates, fresh, instant))
         faults = [Fault(Trigger.IMPLAUSIBLE_FEEDBACK, f.message()) for f in implausible]
-        faults += self.monitor.check_drives(feedback, self.driver.status, now)
+        powered = self.machine.moving
+        faults += self.monitor.check_drives(feedback, self.driver.status, now, powered)
         stale = self.monitor.check_freshness(fresh)
         if stale is not None and self.machine.state is not SafetyState.INIT:
             faults.append(stale)
@@ -317,6 +334,8 @@ class Service:
             self._pretension_cycle(lengths, rates)
         elif state is not SafetyState.INIT:
             self._send(self.driver.keepalive())
+            if state is SafetyState.BRAKED:
+                self._report_hold()
         sent = time.monotonic()  # the cycle's frames are out
         if not deadline and self._last_rx:
             # streamed feedback may be complete before the tick: then from the tick
@@ -348,13 +367,12 @@ class Service:
 
     def _after_commands(self, output: ControlOutput | None, sent: float) -> None:
         """The cycle's work that waits until its frames are out, since no brake decision
-        of this cycle depends on it: cancelling the feedback deadline (its callback
-        cannot run before this returns, and finds no cycle waiting), and, after commands
+        of this cycle depends on it: disarming the feedback deadline (an expiry its reader
+        has not taken yet is forgotten with it), and, after commands
         (`output`), the measured command latency, the consistency check's pose and the
         trajectory schedule (for the next cycles)."""
         if self._deadline is not None:
-            self._deadline.cancel()
-            self._deadline = None
+            self._deadline.disarm()
         if output is not None:
             self._follow_up(output, sent)
 
@@ -394,10 +412,9 @@ class Service:
             self.brake(Fault(Trigger.CONTROLLER_EXCEPTION, f"{type(exc).__name__}: {exc}"))
             return None
         self.last_output = output
-        for listener in self.cycle_listeners:
-            listener(t, output)
         fault = self.monitor.check_output(output)
         if fault is not None:
+            self._tell_listeners(output)  # before the brake, which changes the state
             self.brake(fault)
             return None
         if self._close_forces is not None:  # the first command after pretension
@@ -407,14 +424,17 @@ class Service:
             # plain floats: numpy scalars make the driver's per-drive arithmetic slow
             frames = self.driver.commands(output.commands.tolist())
         except FrameError as exc:
+            self._tell_listeners(output)
             self.brake(Fault(Trigger.NAN, str(exc)))
             return None
         self._send(frames)
         return output
 
     def _follow_up(self, output: ControlOutput, sent: float) -> None:
-        """After a cycle's commands went out at `sent`: the command lead's latency, the
-        consistency check's pose, and the trajectory that starts or ends now."""
+        """After a cycle's commands went out at `sent`: the cycle listeners, the command
+        lead's latency, the consistency check's pose, and the trajectory that starts or
+        ends now."""
+        self._tell_listeners(output)
         if self._latency is not None:
             latency = self._latency.add(sent - self._opened)
             if latency is not None:
@@ -436,6 +456,12 @@ class Service:
             self.machine.go("finish")
             self._emit({"event": "trajectory_done", "t": t})
 
+    def _tell_listeners(self, output: ControlOutput) -> None:
+        """The cycle listeners' (time, output) of the cycle opened at `self._opened`."""
+        t = self._opened - self.t0
+        for listener in self.cycle_listeners:
+            listener(t, output)
+
     # -- faults --------------------------------------------------------------------------
 
     def brake(self, fault: Fault, supersede: bool = False) -> None:
@@ -444,6 +470,7 @@ class Service:
         to send reports a bus error, which must not brake all over again."""
         braked = self.machine.brake(fault, supersede)
         self.brakes += 1
+        self.hold_report.forget()
         self._send(self.driver.brake(self._hold_lengths(), self.config.drives.brake))
         self._trajectory = None
         self._scheduled.clear()
@@ -452,6 +479,18 @@ class Service:
             deliberate = fault.trigger in (Trigger.SIGTERM, Trigger.COMMAND)
             log.log(logging.WARNING if deliberate else logging.ERROR, fault.line())
             self._emit({"event": "brake", "trigger": fault.trigger.value, "message": fault.message})
+
+    def _report_hold(self) -> None:
+        """An event when the drives' answers to the brake change the verdict (whether
+        every drive confirmed its hold); a drive that cannot be confirmed is logged."""
+        event = self.hold_report.update(self.driver.status)
+        if event is None:
+            return
+        if event["event"] == "brake_unconfirmed":
+            log.error("brake not confirmed: %s", "; ".join(event["unconfirmed"]))
+        else:
+            log.info("brake confirmed by every drive")
+        self._emit(event)
 
     def _hold_lengths(self) -> list[float]:
         """The last trusted lengths (NaN for a cable never trusted: no drive was
@@ -515,18 +554,33 @@ class Service:
         unhomed = self.offsets.refusal()
         if unhomed is not None:
             raise CommandError("invalid_state", f"cannot enable: {unhomed}")
-        pose = self._measured_pose()
+        pose = self._measured_pose()  # refused where the FK residual is too large
         holding = -static_tensions(self.robot, self.controller.tension, pose)
         self._busy = True
         try:
             await self.driver.enable(self.port, self._hold_lengths(), holding.tolist())
+            # the drives hold their positions until the first torque command: the
+            # tensions they measure must hold the platform at the pose the offsets say
+            refusal = await self._rest_refusal(pose, "enable")
         except DriverError as exc:
             self.brake(Fault(Trigger.DRIVE_FAULT, f"enable failed: {exc}"))
             raise CommandError("drive_error", f"enable failed: {exc}") from None
+        except CommandError:  # never at rest
+            self._send(self.driver.brake(self._hold_lengths(), self.config.drives.brake))
+            raise
         finally:
             self._busy = False
         if self.machine.state is not SafetyState.IDLE:  # braked meanwhile
             raise CommandError("invalid_state", f"enable aborted: {self.machine.fault.line()}")
+        if refusal is not None:
+            self._send(self.driver.brake(self._hold_lengths(), self.config.drives.brake))
+            why = f"the stored length offsets put the platform at {_position(pose)}, but {refusal}"
+            log.error("enable refused: %s", why)
+            raise CommandError(
+                "invalid_state",
+                f"cannot enable: {why}: the length offsets are wrong (home again: cdprd "
+                "home), or an undeclared payload or a push acts on the platform",
+            )
         self.controller.reset(pose)
         self._source_version += 1
         self.machine.go("enable")
@@ -592,7 +646,7 @@ class Service:
             return
         path = state_path(self.config.state_dir, self.robot.name)
         try:
-            state = load_state(path, self.robot.name, self.n)
+            state = load_state(path, self.robot.name, self.n, self.identity)
         except StateFileError as exc:
             log.error("calibration state: %s: every offset invalid until homed again", exc)
             self.offsets.invalidate_all(f"state file unreadable: {exc}")
@@ -615,6 +669,9 @@ class Service:
         self._busy = True
         try:
             samples = await self._rest_samples()
+            if self.driver.measures_force:
+                await self._home_rest_check(name, pose, np.mean(samples, axis=0).tolist())
+                samples = await self._rest_samples()  # where the brake holds it now
         finally:
             self._busy = False
         lengths = np.mean(samples, axis=0)
@@ -636,6 +693,61 @@ class Service:
             "time": self.offsets.time,
             "pose": name,
         }
+
+    async def _home_rest_check(self, name: str, pose: Pose, lengths: list[float]) -> None:
+        """CommandError unless the platform can be resting at `pose`: the drives hold
+        `lengths` (driver lengths, where they are at rest) while they measure the
+        tensions, which must hold the platform at `pose` (daemon.service.rest_check);
+        then the brake, at the trusted lengths or, for a cable with none (braked on
+        implausible feedback), where its drive holds it now: a drive without a length
+        would be switched off, and without a holding brake its drum would free-wheel."""
+        brakes = self.brakes
+        trusted = self._hold_lengths()
+        held = [h if math.isfinite(h) else x for h, x in zip(trusted, lengths, strict=True)]
+        try:
+            await self.driver.enable(self.port, lengths, [0.0] * self.n)
+            refusal = await self._rest_refusal(pose, "home")
+        except DriverError as exc:
+            raise CommandError(
+                "drive_error", f"home: the drives cannot hold to measure the tensions: {exc}"
+            ) from None
+        finally:
+            if self.brakes == brakes:  # a brake meanwhile sent its own frames
+                self._send(self.driver.brake(held, self.config.drives.brake))
+        if self.brakes != brakes:
+            raise CommandError("invalid_state", f"home aborted: {self.machine.fault.line()}")
+        if refusal is not None:
+            log.error("home at pose %s refused: %s", name, refusal)
+            raise CommandError(
+                "rejected", f"home: the platform is not resting at pose {name!r}: {refusal}"
+            )
+
+    async def _rest_refusal(self, pose: Pose, what: str) -> str | None:
+        """With every drive holding its position: once the cables are at rest, why the
+        tensions the drives measure cannot hold the platform at `pose`
+        (daemon.service.rest_check); None if they can, or if the drives measure no force
+        (the FK residual is then the only check, as the log says)."""
+        if not self.driver.measures_force:
+            log.warning("%s: the drives measure no force: the pose is not checked by the "
+                        "tensions at rest, only by the FK residual", what)
+            return None
+        end = self.now() + REST_SETTLE
+        while True:  # the hold takes the load from the brake: the cables settle first
+            try:
+                await self._rest_samples(what)
+                break
+            except CommandError:
+                if self.now() > end:
+                    raise
+        forces = []  # averaged: one reading catches the hold's servo mid-correction
+        for _ in range(FORCE_READINGS):
+            forces.append(await self.driver.measured_forces(self.port))
+            await asyncio.sleep(self.period)
+        forces = np.mean(forces, axis=0).tolist()
+        safety = self.config.safety
+        residual, refusal = judge(self.robot, pose, forces, safety.rest_force, safety.rest_torque)
+        log.info("%s: rest check at %s: %s", what, _position(pose), residual.text())
+        return refusal
 
     def _named_pose(self, what: str, args: dict[str, Any]) -> tuple[str, Pose]:
         """The robot file's pose args["pose_name"] (default home) and its name;
@@ -818,7 +930,7 @@ class Service:
         if why:
             self._close_forces = None
 
-    async def _rest_samples(self) -> list[list[float]]:
+    async def _rest_samples(self, what: str = "home") -> list[list[float]]:
         """HOME_SAMPLES cycles of driver lengths; CommandError naming the drive if any
         moves (its mean rate above REST_RATE, or its length spread above REST_SPREAD:
         one cycle's rate is too noisy to judge) or reports nothing."""
@@ -831,7 +943,7 @@ class Service:
         finite = np.isfinite(lengths).all(axis=0) & np.isfinite(rates).all(axis=0)
         if not finite.all():
             raise CommandError(
-                "invalid_state", f"home: no feedback from drive {int(np.argmin(finite))}"
+                "invalid_state", f"{what}: no feedback from drive {int(np.argmin(finite))}"
             )
         mean = np.abs(np.mean(rates, axis=0))
         spread = np.ptp(lengths, axis=0)
@@ -840,7 +952,7 @@ class Service:
         if mean[k] > REST_RATE:
             raise CommandError(
                 "invalid_state",
-                f"home: the platform is not at rest: drive {k} (node {node[k]}) moves at "
+                f"{what}: the platform is not at rest: drive {k} (node {node[k]}) moves at "
                 f"{mean[k] * 1e3:.2f} mm/s over {HOME_SAMPLES} cycles (at rest: below "
                 f"{REST_RATE * 1e3:g} mm/s)",
             )
@@ -848,7 +960,7 @@ class Service:
         if spread[k] > REST_SPREAD:
             raise CommandError(
                 "invalid_state",
-                f"home: the platform is not at rest: drive {k} (node {node[k]}) length varied "
+                f"{what}: the platform is not at rest: drive {k} (node {node[k]}) length varied "
                 f"by {spread[k] * 1e3:.2f} mm over {HOME_SAMPLES} cycles (at rest: below "
                 f"{REST_SPREAD * 1e3:g} mm)",
             )
@@ -873,14 +985,26 @@ class Service:
 
     async def slack(self, margin: float = SLACK_MARGIN) -> None:
         """Return when no cycle is open and the next tick is more than `margin` seconds
-        away (at once if so; daemon.service.api.DaemonHandler)."""
+        away (at once if so; daemon.service.api.DaemonHandler), or when this caller's
+        turn has come: every completed cycle lets the first waiter in line go, however
+        short its slack, and the next cycle the next one.  A cycle whose feedback does
+        not come waits for it until safety.feedback_deadline, and a long deadline leaves
+        less slack than any margin: without turns, the companion's calls (status,
+        reset) and its "alive" messages would wait as long as a drive stays silent.  A
+        turn is one step of background work (a call, a state snapshot: a few hundred
+        microseconds), so the next tick is late by at most that.  A turn never runs in
+        an open cycle: one that finds the next cycle opened meanwhile (its tick came
+        with the last feedback) stays first in line for the end of that cycle."""
+        first = False
         while self._slack_left() <= margin:
             loop = self._loop
             if loop is None:
                 return
-            done = loop.create_future()
-            self._slack_waiters.append(done)
-            await done  # the coming cycle has run
+            waiter = (loop.create_future(), margin)
+            self._slack_waiters.insert(0 if first else len(self._slack_waiters), waiter)
+            first = await waiter[0]  # True: this caller's turn
+            if first and not self._waiting:
+                return
 
     def _slack_left(self) -> float:
         """Seconds until the next tick, 0 while a cycle is open (inf when stopped)."""
@@ -890,10 +1014,19 @@ class Service:
         return 0.0 if self._waiting else timer.next_expiry() - time.monotonic()
 
     def _wake_slack_waiters(self) -> None:
-        waiters, self._slack_waiters = self._slack_waiters, []
-        for waiter in waiters:
-            if not waiter.done():
-                waiter.set_result(None)
+        """After a cycle: the first waiter of `slack` in line for its turn, and every
+        other whose margin the slack now exceeds; the rest keep their places."""
+        left = self._slack_left()
+        waiting, turn = [], True
+        for future, margin in self._slack_waiters:
+            if future.done():  # its task was cancelled
+                continue
+            if turn or left > margin:
+                future.set_result(turn)
+                turn = False
+            else:
+                waiting.append((future, margin))
+        self._slack_waiters = waiting
 
     def reference_at(self, t: float) -> tuple[Reference, int]:
         """The reference the controller follows at time t, and the version of its
@@ -1037,7 +1170,14 @@ class Service:
             if fault is None
             else {"trigger": fault.trigger.value, "message": fault.message},
             "conditions": [f.message for f in self.faults],
-            "drives": [{"state": s.state.value, "fault": s.fault} for s in self.driver.status],
+            "drives": [
+                {"state": s.state.value, "fault": s.fault, "held": s.held}
+                for s in self.driver.status
+            ],
+            # braked: whether every drive's own answer shows its hold (None otherwise)
+            "brake": hold_summary(self.driver.status)
+            if self.machine.state is SafetyState.BRAKED
+            else None,
             "offsets": {
                 "values": self.offsets.offsets,
                 "method": self.offsets.method,
@@ -1107,3 +1247,9 @@ _COMMANDS: dict[str, Callable[[Service, dict[str, Any]], Any]] = {
     "pretension": Service._pretension,
     "observer": Service._observer,
 }
+
+
+def _position(pose: Pose) -> str:
+    """A pose's reference point as messages print it."""
+    x, y, z = pose.position_tuple
+    return f"({x:.3f}, {y:.3f}, {z:.3f}) m"

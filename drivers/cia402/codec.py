@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import enum
 import functools
+import io
 import struct
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -46,10 +47,12 @@ import can
 from canopen.objectdictionary import ObjectDictionary, ODArray, ODRecord, ODVariable, import_od
 from canopen.sdo.exceptions import SdoAbortedError
 
+from cdpr.trusted_file import read_trusted
 from drivers.base import FrameError, data_frame
 from drivers.cia402.statemachine import COMMANDED_MODES, decode_statusword
 
 EDS_PATH = Path(__file__).resolve().parents[2] / "config" / "can" / "cia402_cst.eds"
+EDS_MAX_BYTES = 1 << 22  # an EDS longer than this is refused unread (vendors' run to ~1 MB)
 
 NMT_ID = 0x000
 SYNC_ID = 0x080
@@ -508,7 +511,9 @@ class Sdo:
     """One decoded SDO frame (request or response).  An initiate frame of a segmented
     transfer has `size` (bytes to come, None if not indicated) and no data; a segment has
     `toggle` and `last`.  Segments name no object: index and subindex are 0.  `size` is
-    -1 for a segmented transfer that does not indicate its size."""
+    -1 for a segmented transfer that does not indicate its size.  An expedited frame
+    without its size (CiA 301: e=1, s=0) has `sized` False and all 4 data bytes: the
+    object's own size says how many of them count."""
 
     kind: SdoKind
     index: int
@@ -518,6 +523,7 @@ class Sdo:
     size: int | None = None
     toggle: int = 0
     last: bool = False
+    sized: bool = True
 
     @property
     def segmented(self) -> bool:
@@ -607,8 +613,9 @@ def _initiate(kind: SdoKind, data: bytes | bytearray) -> Sdo:
     """An initiate frame (upload response or download request): expedited or sized."""
     command, index, subindex = _SDO_HEAD.unpack_from(data)
     if command & 0x02:  # expedited
-        size = 4 - (command >> 2 & 3) if command & 0x01 else 4
-        return Sdo(kind, index, subindex, bytes(data[4 : 4 + size]))
+        sized = bool(command & 0x01)
+        size = 4 - (command >> 2 & 3) if sized else 4
+        return Sdo(kind, index, subindex, bytes(data[4 : 4 + size]), sized=sized)
     size = _U32.unpack_from(data, 4)[0] if command & 0x01 else None
     return Sdo(kind, index, subindex, size=size if size is not None else -1)
 
@@ -674,8 +681,14 @@ def decode_sdo_response(can_id: int, data: bytes | bytearray) -> Sdo:
 @functools.lru_cache(maxsize=256)
 def load_eds(path: str | Path, node_id: int) -> ObjectDictionary:
     """The object dictionary of `path` for `node_id` (parsed by canopen; cached, so
-    treat it as read-only: the simulated drive keeps its values elsewhere)."""
-    return import_od(str(path), node_id)
+    treat it as read-only: the simulated drive keeps its values elsewhere).  The file is
+    read as every file the daemon is given (cdpr.trusted_file): a regular file of at
+    most EDS_MAX_BYTES, never a FIFO canopen would wait on; UnreadableFileError (a
+    ValueError) otherwise."""
+    text = read_trusted(path, EDS_MAX_BYTES).decode("utf-8", errors="replace")
+    source = io.StringIO(text)
+    source.name = str(path)  # canopen tells the format by the name's suffix
+    return import_od(source, node_id)
 
 
 def od_variable(od: ObjectDictionary, index: int, subindex: int = 0) -> ODVariable:

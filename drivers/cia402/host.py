@@ -68,7 +68,7 @@ import contextlib
 import math
 import struct
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from operator import itemgetter
 
 import can
@@ -103,6 +103,7 @@ from drivers.cia402.codec import (
     STATUSWORD,
     TARGET_POSITION,
     TARGET_TORQUE,
+    TORQUE_ACTUAL,
     VELOCITY_ACTUAL,
     Cia402FrameError,
     NmtCommand,
@@ -125,6 +126,7 @@ from drivers.cia402.codec import (
     od_value,
     od_variable,
 )
+from drivers.cia402.hold_check import HoldCheck
 from drivers.cia402.profile import DrivePlan, SdoStep, plan
 from drivers.cia402.statemachine import (
     CONTROL_RELEASE_HOLD,
@@ -179,7 +181,10 @@ class Cia402Driver(ActuatorDriver):
     """All CiA 402 drives of one bus, in cable order (`config.nodes[i]` drives cable i)."""
 
     timing = Timing.SYNC
-    sdo_timeout = 0.1  # s to wait for each SDO answer
+    sdo_timeout = 0.3  # s to wait for each SDO answer: the canopen package's default
+    # ... but after a brake, a drive that does not answer may be STOPPED in torque: the
+    # hold check moves on to bring it back after this, not the sequences' patience
+    hold_check_timeout = 0.1
     state_polls = 100  # statusword reads while waiting for one 402 transition
     enable_timeout = 1.0  # s for every drive to report OPERATION ENABLED after enable()
 
@@ -257,7 +262,14 @@ class Cia402Driver(ActuatorDriver):
         self._statusword = [0] * self.n
         self.mode_display = [0] * self.n
         self._standing: list[tuple[int, bytes]] = []  # frames keepalive() repeats
+        # after a brake: each drive asked by SDO whether it holds, in any NMT state
+        self.hold_check = HoldCheck(
+            self.nodes, self.status, config.has_holding_brake, timeout=self.hold_check_timeout
+        )
+        for i, node in enumerate(self.nodes):
+            self._routes[SDO_RESPONSE_BASE + node] = (self._on_sdo_answer, i)
         self._feeding = False  # start() repeats them with each SDO request
+        self._in_sequence = False  # a sequence's SDO exchanges run (no hold check then)
 
     # -- cycle ----------------------------------------------------------------------------
 
@@ -304,6 +316,8 @@ class Cia402Driver(ActuatorDriver):
                     self._in_torque[i] = True
                     frames.append(data_frame(self._cw_ids[i], self._cw_pack(_ENABLE, 0, MODE_CST)))
         self._standing = []
+        if self.hold_check.armed:
+            self.hold_check.disarm()
         return frames
 
     def brake(self, lengths: Sequence[float], mode: BrakeMode) -> list[can.Message]:
@@ -322,7 +336,8 @@ class Cia402Driver(ActuatorDriver):
                 standing.append((self._cw_ids[i], off))
         self._standing = standing
         self._in_torque = [False] * self.n
-        return self.keepalive()
+        self.hold_check.arm(mode)  # asked from the next keepalive, the hold acted on by then
+        return self._standing_frames()
 
     def disable(self) -> list[can.Message]:
         """Disable voltage with the release-hold bit: every power stage off, also a
@@ -330,11 +345,19 @@ class Cia402Driver(ActuatorDriver):
         word = Command.DISABLE_VOLTAGE.value | CONTROL_RELEASE_HOLD
         self._standing = [(can_id, self._cw_pack(word, 0, MODE_CST)) for can_id in self._cw_ids]
         self._in_torque = [False] * self.n
-        return self.keepalive()
+        self.hold_check.disarm()  # no hold is asked for: nothing to confirm
+        return self._standing_frames()
 
     def keepalive(self) -> list[can.Message]:
         """The latest brake/disable/enable frames again (none after torque commands: a
-        torque command is never repeated)."""
+        torque command is never repeated), and after a brake the requests that confirm
+        it reached every drive (drivers.cia402.hold_check)."""
+        frames = self._standing_frames()
+        if self.hold_check.armed and not self._in_sequence:
+            frames += self.hold_check.frames(self.clock())
+        return frames
+
+    def _standing_frames(self) -> list[can.Message]:
         return [data_frame(can_id, data) for can_id, data in self._standing]
 
     def _hold_target(self, i: int, length: float) -> int | None:
@@ -461,6 +484,12 @@ class Cia402Driver(ActuatorDriver):
         if state is DriveState.FAULT and status.fault is None:
             status.fault = "statusword reports FAULT (no EMCY received)"
 
+    def _on_sdo_answer(self, i: int, can_id: int, data: bytearray, now: float) -> None:
+        """An SDO answer outside a sequence: the brake's confirmation may wait for it
+        (a sequence's own answers reach its Link; the check is disarmed meanwhile)."""
+        if self.hold_check.armed and not self._in_sequence:
+            self.hold_check.receive(i, can_id, data)
+
     def _on_emcy(self, i: int, can_id: int, data: bytearray, now: float) -> None:
         code, register, _ = decode_emcy(can_id, data)
         self.counters.accepted += 1
@@ -493,12 +522,24 @@ class Cia402Driver(ActuatorDriver):
 
     # -- sequences ------------------------------------------------------------------------
 
+    @contextlib.contextmanager
+    def _sequence(self) -> Iterator[None]:
+        """A sequence's SDO exchanges run: the brake's hold check waits (a request of
+        its in flight is forgotten; the drives it had not confirmed are asked afresh)."""
+        self.hold_check.pause()
+        self._in_sequence = True
+        try:
+            yield
+        finally:
+            self._in_sequence = False
+
     async def start(self, link: Link, now: Callable[[], float]) -> None:
         self.clock = now  # the link's time (simulated time in lock-step runs)
         found: list[State] = []
         self._standing, self._feeding = [], True
         try:
-            await self._start(link, now, found)
+            with self._sequence():
+                await self._start(link, now, found)
         finally:
             self._feeding = False
 
@@ -611,6 +652,11 @@ class Cia402Driver(ActuatorDriver):
                 await self._write(link, i, comm, 1, cob | PDO_INVALID)
 
     async def enable(self, link: Link, lengths: Sequence[float], forces: Sequence[float]) -> None:
+        with self._sequence():
+            await self._enable(link, lengths, forces)
+        self.hold_check.disarm()  # every drive holds by the enable's own confirmation
+
+    async def _enable(self, link: Link, lengths: Sequence[float], forces: Sequence[float]) -> None:
         """Every drive to OPERATION ENABLED in position hold (mode 8) at `lengths`, so the
         cables stay put until the first torque command switches a drive to mode 10.
         `forces` are not needed: the hold carries the load until that command."""
@@ -665,7 +711,31 @@ class Cia402Driver(ActuatorDriver):
             f"position hold within {self.enable_timeout} s ({last})"
         )
 
+    @property
+    def measures_force(self) -> bool:
+        """The EDS has torque actual 0x6077."""
+        return TORQUE_ACTUAL in self.od
+
+    async def measured_forces(self, link: Link) -> list[float]:
+        """Torque actual 0x6077 of every drive by SDO (per mille of rated torque), as
+        forces along +l at each cable's latest length."""
+        if not self.measures_force:
+            return await super().measured_forces(link)
+        rated = self.config.rated_torque
+        assert rated is not None  # DrivesConfig requires it for cia402
+        forces = []
+        with self._sequence():  # one SDO request per drive at a time: the hold check waits
+            for i, scaling in enumerate(self.scalings):
+                permille = await self._read(link, i, TORQUE_ACTUAL)
+                forces.append(scaling.force(permille * rated / 1000.0, self.feedback[i].length))
+        return forces
+
     async def reset_faults(self, link: Link) -> None:
+        with self._sequence():
+            await self._reset_faults(link)
+        self.hold_check.disarm()  # no longer braked
+
+    async def _reset_faults(self, link: Link) -> None:
         for i, node in enumerate(self.nodes):
             self._require_started(i)
             state = await self._read_state(link, i)

@@ -32,6 +32,7 @@ from pathlib import Path
 
 from canopen.objectdictionary import ObjectDictionary, ODVariable, datatypes
 
+from cdpr.trusted_file import UnreadableFileError
 from drivers.base import BrakeMode
 from drivers.cia402.codec import (
     ABORT_CONNECTION_OPTION,
@@ -171,6 +172,8 @@ def plan(config: DrivesConfig) -> DrivePlan:
     path = eds_path(config)
     try:
         od = load_eds(path, config.nodes[0] if config.nodes else 1)
+    except UnreadableFileError as exc:
+        raise ProfileError("profile.eds", f"cannot read EDS {path}: {exc.problem}") from None
     except (OSError, ValueError, KeyError) as exc:
         raise ProfileError("profile.eds", f"cannot read EDS {path}: {exc}") from None
     profile = config.profile

@@ -370,14 +370,22 @@ class OdriveDriver(ActuatorDriver):
         if feed_idle and now is not None:
             self._next_idle_feed = now + self.feed_period
         for i, intent in enumerate(self.intent):
+            if intent is Intent.HOLD_POSITION and self._braked_idle(i):
+                self._set_intent(i, Intent.HOLD_BRAKE, None)  # its brake holds: keep it so
+                intent = Intent.HOLD_BRAKE
+            if intent is Intent.HOLD_BRAKE:  # disarmed again if another node armed it
+                out.extend(self._state_change(i, AxisState.IDLE))
             if intent is not Intent.HOLD_POSITION:
                 if feed_idle and intent is not Intent.TORQUE:
                     out.append(self._feeds[i])
                 continue
+            # re-armed if another node disarmed it; the control mode, which no frame of
+            # firmware 0.6 reports, asked for again every feed period
+            out.extend(self._state_change(i, AxisState.CLOSED_LOOP_CONTROL))
             hold = self._hold[i]
-            if hold is None:
+            if hold is None or feed_idle:
                 out.append(self._position_mode(i))
-            else:
+            if hold is not None:
                 out.append(data_frame(self._pos_ids[i], hold))
         return out
 
@@ -426,6 +434,8 @@ class OdriveDriver(ActuatorDriver):
     def _set_intent(self, i: int, intent: Intent, hold: bytes | None) -> None:
         if intent in (Intent.NONE, Intent.HOLD_BRAKE):
             self._torque[i] = 0.0  # disarmed: nothing to feed forward
+        if intent is not self.intent[i]:  # a hold is confirmed by the heartbeats to come
+            self.status[i].held, self.status[i].hold_problem = None, None
         self.intent[i] = intent
         self._hold[i] = hold
         self._refresh(i)
@@ -494,6 +504,24 @@ class OdriveDriver(ActuatorDriver):
         else:
             status.fault = None
         self._refresh(i)
+        if self.intent[i] in (Intent.HOLD_POSITION, Intent.HOLD_BRAKE):
+            status.held, status.hold_problem = self._holds(i, state, error)
+
+    def _holds(self, i: int, state: AxisState | int, error: int) -> tuple[bool, str | None]:
+        """Whether axis i holds its cable as its heartbeat shows it (state, error): in
+        closed loop for a position hold (its control mode no CANSimple frame reports:
+        keepalive asks for position control again every feed period), IDLE with the
+        holding brake engaged; the reason where it does not."""
+        node = self.nodes[i]
+        if state is AxisState.IDLE and self.has_holding_brake:
+            return True, None
+        if error:
+            return False, f"ODrive node {node}: axis error 0x{error:08X} disarmed it, no brake"
+        if self.intent[i] is Intent.HOLD_POSITION and state is AxisState.CLOSED_LOOP_CONTROL:
+            return True, None
+        return False, (
+            f"ODrive node {node}: {_state_name(state)}, not its hold (asked for it again)"
+        )
 
     def _refresh(self, i: int) -> None:
         """status[i].state from the last heartbeat and what the host asked for."""

@@ -372,7 +372,10 @@ class FaultyBus(can.BusABC):
         now = self._clock()
         for msg in self.injector.due(now, "tx"):
             self.inner.send(msg)
-        self._rx_ready.extend(self.injector.due(now, "rx"))
+        arrived = time.time()  # a delayed frame is received now: stamped so, as SocketCAN does
+        for msg in self.injector.due(now, "rx"):
+            msg.timestamp = arrived
+            self._rx_ready.append(msg)
 
     def drain(self) -> list[can.Message]:
         """Everything receivable now: released frames, then the inner bus's frames."""

@@ -4,21 +4,27 @@ A strict drive, as bought: the object dictionary comes from config/can/cia402_cs
 (parsed by canopen; only standard objects), every object starts at its EDS value, and
 the SDO server (expedited and segmented upload/download) reads and writes it with the
 EDS's types, access rights and limits, answering unknown objects, read-only writes,
-wrong sizes and out-of-range values with the CiA 301 abort codes.  Rated torque 0x6076
-is preset from the `drives:` config (the drive's stored parameter); everything else
-keeps its EDS default until the host writes it: the CiA 402 default mapping (RPDO1 =
-controlword, TPDO1 = statusword, the other PDOs invalid), heartbeat 0x1017 and consumer
-heartbeat 0x1016 off, no RPDO deadline, abort connection option 0x6007 = 1 (fault),
-quick stop option 0x605A = 2 (ramp, then power stage off).
+wrong sizes and out-of-range values with the CiA 301 abort codes (an expedited download
+that does not indicate its size, e=1 s=0, carries the object's own size in its 4
+bytes).  Rated torque 0x6076 is preset from the `drives:` config (the drive's stored
+parameter); everything else keeps its EDS default until the host writes it: the CiA 402
+default mapping (RPDO1 = controlword, TPDO1 = statusword, the other PDOs invalid),
+heartbeat 0x1017 and consumer heartbeat 0x1016 off, no RPDO deadline, abort connection
+option 0x6007 = 1 (fault), quick stop option 0x605A = 2 (ramp, then power stage off).
 
 PDOs follow the mapping in the object dictionary: the master changes it by the CiA 301
 procedure (COB-ID bit 31 set, sub0 = 0, entries, sub0, valid again); a mapping written
 otherwise, or naming an object that cannot be mapped, is refused with the abort code.
 An RPDO may map dummy entries (0x0002-0x0007) where the EDS's [DummyUsage] allows them:
 their bytes are skipped, so drives sharing one RPDO COB-ID each take their own bytes.
-RPDO fields are written into the dictionary (a mode of operation 0 means "no change");
-TPDOs of transmission type 1..240 go out on every n-th SYNC, those of type 254/255 when
-their data changes (and on entering OPERATIONAL), at most once per inhibit time 0x18xx:03.
+RPDO fields are written into the dictionary (a mode of operation 0 means "no change"):
+on reception for transmission type 254/255, at the next SYNC for type 0..240 (CiA 301
+synchronous RPDO: the latest frame before that SYNC; dropped on leaving OPERATIONAL).
+TPDOs (CiA 301 transmission types): type 1..240 go out on every n-th SYNC; type 0 on the
+first SYNC after their data changed; type 254/255 when their data changes and when their
+event timer 0x18xx:05 runs out (restarted by each transmission), at most once per
+inhibit time 0x18xx:03; types 0, 254 and 255 also once on entering OPERATIONAL (on the
+first SYNC for type 0).
 
 NMT: boot-up message at the first tick (then PRE-OPERATIONAL), start / stop / enter
 pre-operational / reset node / reset communication; SDO in pre-operational and
@@ -69,6 +75,7 @@ import math
 import struct
 from collections.abc import Callable
 from pathlib import Path
+from typing import NamedTuple
 
 import can
 from canopen.objectdictionary import ODArray, ODRecord, ODVariable
@@ -160,6 +167,33 @@ _FAULTED = (State.FAULT, State.FAULT_REACTION_ACTIVE)
 _SDO_STATES = (NmtState.PRE_OPERATIONAL, NmtState.OPERATIONAL)
 
 
+class Rpdo(NamedTuple):
+    """A valid RPDO (CiA 301, 0x14xx / 0x16xx): where the EDS describes it, the objects
+    it maps, its deadline 0x14xx:05 (s, 0: none), and whether it is synchronous
+    (transmission type 0..240: its data take effect at the next SYNC; 254/255 at once)."""
+
+    layout: PdoLayout
+    keys: list[tuple[int, int]]
+    deadline: float
+    synchronous: bool
+
+
+class Tpdo(NamedTuple):
+    """A valid TPDO (CiA 301, 0x18xx / 0x1Axx): COB-ID, the struct of its frame, the
+    objects it maps, transmission type `kind` (0: on the SYNC after its data changed;
+    1..240: on every kind-th SYNC; 254/255: on change, and every `event_timer` where
+    0x18xx:05 sets one), and `inhibit` (0x18xx:03), the least time between two frames of
+    a type 254/255 TPDO.  Times in whole microseconds, the unit both objects count in
+    (100 us, 1 ms): a period then ends on the tick it should, whatever float rounding."""
+
+    cob: int
+    layout: struct.Struct
+    keys: list[tuple[int, int]]
+    kind: int
+    inhibit: int  # us
+    event_timer: int  # us
+
+
 def _i32(value: float) -> int:
     """An encoder reading saturated to the i32 range of 0x6064 / 0x606C."""
     if value >= I32_MAX:
@@ -217,11 +251,16 @@ class Cia402Drive(VirtualDrive):
         self.fault_persistent = False
         self._powered = False
         self._expiry: dict[int, float] = {}  # RPDO COB-ID -> its deadline's expiry (armed)
+        # synchronous RPDO COB-ID -> the fields of its latest frame, for the next SYNC
+        self._pending: dict[int, dict[tuple[int, int], int]] = {}
         self._next_heartbeat = math.inf
         self._consumed: dict[int, float] = {}  # node -> its heartbeat's expiry
+        # no deadline of _expiry or _consumed comes before this (a lower bound, exact
+        # after each look): the watchdog, run on every frame, looks only once it is due
+        self._soonest = math.inf
         self._transfer: tuple[str, tuple[int, int], bytes, int] | None = None  # segmented
         self._syncs = 0
-        self._sent: dict[int, tuple[bytes, float]] = {}  # event-driven TPDO -> data, time sent
+        self._sent: dict[int, tuple[bytes, float]] = {}  # TPDO COB-ID -> data, time last sent
         self._reset_values(communication_only=False)
         self._live: dict[tuple[int, int], Callable[[], int]] = {
             (STATUSWORD, 0): lambda: encode_statusword(self.state, self.hold is not None),
@@ -229,9 +268,7 @@ class Cia402Drive(VirtualDrive):
             (MODE_DISPLAY, 0): lambda: self.mode,
             (POSITION_ACTUAL, 0): self._reported_position,
             (VELOCITY_ACTUAL, 0): self._velocity,
-            (TORQUE_ACTUAL, 0): lambda: (
-                self.target_torque if self.actuation is Actuation.TORQUE else 0
-            ),
+            (TORQUE_ACTUAL, 0): self._torque_actual,
             (ERROR_CODE, 0): lambda: self.fault_code,
             (ERROR_REGISTER, 0): lambda: error_register(self.fault_code),
         }
@@ -286,10 +323,8 @@ class Cia402Drive(VirtualDrive):
             NMT_ID: self._on_nmt,
             SDO_REQUEST_BASE + self.node_id: self._on_sdo,
         }
-        # RPDO COB-ID -> layout, mapped objects, deadline 0x14xx:05 (s, 0: none)
-        self._rpdos: dict[int, tuple[PdoLayout, list[tuple[int, int]], float]] = {}
-        self.tpdos: list[tuple[int, struct.Struct, list[tuple[int, int]], int]] = []
-        self._inhibit: dict[int, float] = {}  # event-driven TPDO COB-ID -> inhibit time (s)
+        self._rpdos: dict[int, Rpdo] = {}  # by COB-ID
+        self.tpdos: list[Tpdo] = []
         for comm in (*range(0x1400, 0x1600), *range(0x1800, 0x1A00)):
             cob = self.values.get((comm, 1))
             if cob is None or cob & PDO_INVALID:
@@ -302,22 +337,32 @@ class Cia402Drive(VirtualDrive):
             layout = pdo_layout(self.od, comm < 0x1800, (comm & 0x1FF) + 1, keys, 0)
             if comm < 0x1800:
                 deadline = self.values.get((comm, RPDO_DEADLINE_SUB), 0) / 1000.0
-                self._rpdos[cob & 0x7FF] = (layout, keys, deadline)
+                synchronous = self.values.get((comm, 2), 255) <= 240
+                self._rpdos[cob & 0x7FF] = Rpdo(layout, keys, deadline, synchronous)
                 routes[cob & 0x7FF] = self._on_rpdo
             else:
-                kind = self.values.get((comm, 2), 0)
-                self.tpdos.append((cob & 0x7FF, layout.struct, keys, kind))
-                if kind in (254, 255):
-                    self._inhibit[cob & 0x7FF] = self.values.get((comm, 3), 0) / 10_000
+                self.tpdos.append(
+                    Tpdo(
+                        cob & 0x7FF,
+                        layout.struct,
+                        keys,
+                        self.values.get((comm, 2), 0),
+                        self.values.get((comm, 3), 0) * 100,
+                        self.values.get((comm, 5), 0) * 1000,
+                    )
+                )
+        self._event_driven = [tpdo for tpdo in self.tpdos if tpdo.kind in (254, 255)]
         self._routes = routes
-        self._expiry = {
-            cob: t for cob, t in self._expiry.items() if cob in self._rpdos and self._rpdos[cob][2]
+        rpdos = self._rpdos
+        self._expiry = {c: t for c, t in self._expiry.items() if c in rpdos and rpdos[c].deadline}
+        self._pending = {
+            c: fields for c, fields in self._pending.items() if c in rpdos and rpdos[c].synchronous
         }
 
     @property
     def rpdo_deadlines(self) -> dict[str, float]:
         """The deadline (s) of each valid RPDO that has one, by name (RPDO1, ...)."""
-        return {layout.name: t for layout, _, t in self._rpdos.values() if t}
+        return {rpdo.layout.name: rpdo.deadline for rpdo in self._rpdos.values() if rpdo.deadline}
 
     def _variable(self, index: int, subindex: int) -> ODVariable | int:
         """The OD variable, or the SDO abort code for a missing one."""
@@ -356,9 +401,9 @@ class Cia402Drive(VirtualDrive):
         if can_id - HEARTBEAT_BASE in self.consumers and not message.is_remote_frame:
             with contextlib.suppress(Cia402FrameError):
                 decode_heartbeat(can_id, message.data)
-                self._consumed[can_id - HEARTBEAT_BASE] = (
-                    now + self.consumers[can_id - HEARTBEAT_BASE]
-                )
+                expiry = now + self.consumers[can_id - HEARTBEAT_BASE]
+                self._consumed[can_id - HEARTBEAT_BASE] = expiry
+                self._soonest = min(self._soonest, expiry)
             return out
         handler = self._on_sync if can_id == self.sync_id else self._routes.get(can_id)
         if handler is None:
@@ -406,7 +451,7 @@ class Cia402Drive(VirtualDrive):
             if not self.fault_persistent:
                 self.fault_code, self.fault_text = 0, None
         self.nmt_state = NmtState.PRE_OPERATIONAL
-        self._expiry = {}
+        self._expiry, self._pending = {}, {}
         self._next_heartbeat = now + self.heartbeat_period if self.heartbeat_period else math.inf
         out = [encode_heartbeat(self.node_id, NmtState.BOOT_UP)]
         if self.fault_persistent and not communication_only:
@@ -429,8 +474,9 @@ class Cia402Drive(VirtualDrive):
             NmtCommand.ENTER_PRE_OPERATIONAL: NmtState.PRE_OPERATIONAL,
         }[command]
         if self.nmt_state is not NmtState.OPERATIONAL:
-            self._expiry = {}  # no PDOs outside OPERATIONAL: the deadlines stop
-        self._sent = {}  # event-driven TPDOs go out once on entering OPERATIONAL
+            # no PDOs outside OPERATIONAL: the deadlines stop, received data is dropped
+            self._expiry, self._pending = {}, {}
+        self._sent = {}  # TPDOs of type 0, 254, 255 go out once on entering OPERATIONAL
         return []
 
     def _on_sync(self, message: can.Message, now: float) -> list[can.Message]:
@@ -440,28 +486,43 @@ class Cia402Drive(VirtualDrive):
             return []
         self._syncs += 1
         out = []
-        for cob, layout, keys, kind in self.tpdos:
-            if 1 <= kind <= 240 and self._syncs % kind == 0:
-                data = layout.pack(*(self._value(key) for key in keys))
-                out.append(can.Message(arbitration_id=cob, data=data, is_extended_id=False))
+        pending, self._pending = self._pending, {}
+        for fields in pending.values():
+            out += self._act(fields)
+        for tpdo in self.tpdos:
+            if tpdo.kind == 0:  # synchronous acyclic: the first SYNC after a change
+                data = self._data(tpdo)
+                if data != self._sent.get(tpdo.cob, (None,))[0]:
+                    out.append(self._transmit(tpdo, data, now))
+            elif tpdo.kind <= 240 and self._syncs % tpdo.kind == 0:
+                out.append(self._transmit(tpdo, self._data(tpdo), now))
         return out
 
     def _events(self, now: float) -> list[can.Message]:
-        """The event-driven TPDOs whose data changed since they were last sent (all of
-        them after NMT start), where their inhibit time allows."""
-        if not self._inhibit or self.nmt_state is not NmtState.OPERATIONAL:
+        """The event-driven TPDOs (types 254/255) that are due, where their inhibit time
+        allows: their data changed since they were last sent, or their event timer ran
+        out (CiA 301: it restarts with every transmission); each one once on entering
+        OPERATIONAL."""
+        if not self._event_driven or self.nmt_state is not NmtState.OPERATIONAL:
             return []
         out = []
-        for cob, layout, keys, _ in self.tpdos:
-            inhibit = self._inhibit.get(cob)
-            if inhibit is None:
-                continue
-            data = layout.pack(*(self._value(key) for key in keys))
-            last = self._sent.get(cob)
-            if last is None or (data != last[0] and now - last[1] >= inhibit):
-                self._sent[cob] = (data, now)
-                out.append(can.Message(arbitration_id=cob, data=data, is_extended_id=False))
+        for tpdo in self._event_driven:
+            data = self._data(tpdo)
+            last = self._sent.get(tpdo.cob)
+            if last is not None:
+                elapsed = round((now - last[1]) * 1e6)
+                timed_out = 0 < tpdo.event_timer <= elapsed
+                if elapsed < tpdo.inhibit or (data == last[0] and not timed_out):
+                    continue
+            out.append(self._transmit(tpdo, data, now))
         return out
+
+    def _data(self, tpdo: Tpdo) -> bytes:
+        return tpdo.layout.pack(*(self._value(key) for key in tpdo.keys))
+
+    def _transmit(self, tpdo: Tpdo, data: bytes, now: float) -> can.Message:
+        self._sent[tpdo.cob] = (data, now)
+        return can.Message(arbitration_id=tpdo.cob, data=data, is_extended_id=False)
 
     def _value(self, key: tuple[int, int]) -> int:
         live = self._live.get(key)
@@ -470,10 +531,12 @@ class Cia402Drive(VirtualDrive):
     # -- RPDOs ------------------------------------------------------------------------------
 
     def _on_rpdo(self, message: can.Message, now: float) -> list[can.Message]:
-        """An RPDO: its fields into the dictionary, then the controlword (if mapped)."""
+        """An RPDO, checked and feeding its deadline on reception; an event-driven one
+        acts at once, a synchronous one at the next SYNC (CiA 301: the latest frame
+        received before that SYNC is the one that acts)."""
         can_id = message.arbitration_id
-        pdo, keys, deadline = self._rpdos[can_id]
-        name, layout = pdo.name, pdo.struct
+        rpdo = self._rpdos[can_id]
+        name, layout = rpdo.layout.name, rpdo.layout.struct
         if len(message.data) != layout.size:
             raise Cia402FrameError(
                 can_id,
@@ -482,18 +545,28 @@ class Cia402Drive(VirtualDrive):
             )
         fields = {
             key: value
-            for key, value in zip(keys, layout.unpack(message.data), strict=True)
+            for key, value in zip(rpdo.keys, layout.unpack(message.data), strict=True)
             if key[0] not in DUMMIES  # another drive's bytes
         }
-        mode = fields.pop((MODE_OF_OPERATION, 0), MODE_NO_CHANGE)
+        mode = fields.get((MODE_OF_OPERATION, 0), MODE_NO_CHANGE)
         if mode != MODE_NO_CHANGE and mode not in MODES:
             raise Cia402FrameError(can_id, "mode of operation", f"{mode} is not 0, 8 or 10")
         if self.nmt_state is not NmtState.OPERATIONAL:
             self.counters.reject("RPDO outside OPERATIONAL")
             return []
         self.counters.accepted += 1
-        if deadline:
-            self._expiry[can_id] = now + deadline
+        if rpdo.deadline:
+            self._expiry[can_id] = expiry = now + rpdo.deadline
+            self._soonest = min(self._soonest, expiry)
+        if rpdo.synchronous:
+            self._pending[can_id] = fields
+            return []
+        return self._act(fields)
+
+    def _act(self, fields: dict[tuple[int, int], int]) -> list[can.Message]:
+        """An RPDO's fields (consumed) into the dictionary, then the controlword (if
+        mapped)."""
+        mode = fields.pop((MODE_OF_OPERATION, 0), MODE_NO_CHANGE)
         controlword = fields.pop((CONTROLWORD, 0), None)
         if mode != MODE_NO_CHANGE:
             self._set_mode(mode)
@@ -564,12 +637,14 @@ class Cia402Drive(VirtualDrive):
         return [encode_emcy(self.node_id, 0, 0)]
 
     def _watchdog(self, now: float) -> list[can.Message]:
+        if now < self._soonest:
+            return []
         out = []
         expired = [cob for cob, expiry in self._expiry.items() if now >= expiry]
         for cob in expired:
             del self._expiry[cob]  # off until that RPDO comes again
         if expired and self.state not in _FAULTED:
-            pdo = self._rpdos[expired[0]][0]
+            pdo = self._rpdos[expired[0]].layout
             text = f"no {pdo.name} within its deadline 0x{pdo.comm_index:04X}:05"
             out = self._fault(RPDO_TIMEOUT, text, False)
         lost = [node for node, expiry in self._consumed.items() if now >= expiry]
@@ -577,6 +652,7 @@ class Cia402Drive(VirtualDrive):
             for node in lost:
                 del self._consumed[node]
             out += self._connection_lost(f"no heartbeat from node {lost[0]} (0x1016)")
+        self._soonest = min((*self._expiry.values(), *self._consumed.values()), default=math.inf)
         return out
 
     def _connection_lost(self, text: str) -> list[can.Message]:
@@ -591,6 +667,12 @@ class Cia402Drive(VirtualDrive):
             self.hold = BrakeMode.HOLDING_BRAKE if self.has_holding_brake else None
             out += self._control(Command.DISABLE_VOLTAGE.value)
         return out
+
+    def _torque_actual(self) -> int:
+        """0x6077: the torque the power stage produces (per mille of rated torque), in
+        torque control and in a position hold alike, as a drive's current sensing reports."""
+        torque = self.scaling.motor_torque(self.produced, self.length)
+        return max(-0x8000, min(0x7FFF, round(torque * 1000.0 / self.rated_torque)))
 
     def _apply(self) -> None:
         """The power stage and brake for the state, mode and latched reaction."""
@@ -654,7 +736,10 @@ class Cia402Drive(VirtualDrive):
                 return [self._abort(index, sub, ABORT_WRITE_READ_ONLY)]
             self._transfer = ("download", (index, sub), b"", 0)
             return [encode_sdo_download_response(self.node_id, index, sub)]
-        return self._store(var, request.data, now)
+        data = request.data
+        if not request.sized and (index, sub) not in self.strings:
+            data = data[: len(var) // 8]  # CiA 301 expedited download, e=1 s=0
+        return self._store(var, data, now)
 
     def _on_segment(
         self, kind: SdoKind, toggle: int, data: bytes, last: bool, now: float

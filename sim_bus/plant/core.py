@@ -264,9 +264,10 @@ class Plant:
 
     # -- measurement and true state ---------------------------------------------------
 
-    def measure(self) -> tuple[Array, Array]:
-        """(lengths in m, rates in m/s) as the drives report them (config.encoder)."""
-        return self.encoders.read()
+    def measure(self, ahead: float = 0.0) -> tuple[Array, Array]:
+        """(lengths in m, rates in m/s) as the drives report them (config.encoder), or
+        `ahead` s after the last step (Encoders.read)."""
+        return self.encoders.read(ahead)
 
     @property
     def pose(self) -> Pose:

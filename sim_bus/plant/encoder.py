@@ -45,10 +45,18 @@ class Encoders:
         """Record the drum lengths at the end of a plant step."""
         self._history.append(tuple(lengths))
 
-    def read(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """(lengths in m, rates in m/s) as the drives report them now."""
-        now = np.array(self._history[-1 - self._latency])
-        before = np.array(self._history[-1 - self._latency - self._window])
+    def read(self, ahead: float = 0.0) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """(lengths in m, rates in m/s) as the drives report them now, or `ahead` s
+        after the last step (less than a step: a drive latching on a SYNC between two
+        steps reads its drum then, carried on at the last step's rate, as a real drive
+        latches at the SYNC's instant, not at the simulator's step)."""
+        history, latency = self._history, self._latency
+        now = np.array(history[-1 - latency])
+        before = np.array(history[-1 - latency - self._window])
+        if ahead > 0.0:
+            # the history holds latency + window + 1 >= latency + 2 steps (reset)
+            shift = (now - np.array(history[-2 - latency])) * (ahead / self.step)
+            now, before = now + shift, before + shift
         if self._noise > 0.0:
             noise = self._rng.normal(0.0, self._noise, (2, self.n))
             now = now + noise[0]

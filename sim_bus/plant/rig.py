@@ -127,9 +127,10 @@ class SingleActuatorRig:
         row = (1.0, 0.0, 0.0, 0.0, 0.0, 0.0, self.load_position)
         return self.winches.pull(row, (self.load_velocity, 0.0, 0.0, 0.0, 0.0, 0.0))
 
-    def measure(self) -> tuple[Array, Array]:
-        """(length, rate) as the drive reports them, arrays of one element."""
-        return self.encoders.read()
+    def measure(self, ahead: float = 0.0) -> tuple[Array, Array]:
+        """(length, rate) as the drive reports them, arrays of one element; `ahead`:
+        Encoders.read."""
+        return self.encoders.read(ahead)
 
     @property
     def commands(self) -> Array:

@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Generator
+from collections.abc import Callable, Generator
+from itertools import pairwise
 
 import numpy as np
 import pytest
@@ -12,7 +13,7 @@ from hypothesis import strategies as st
 from scipy.interpolate import make_interp_spline
 
 from cdpr import Pose, Robot, liediff
-from cdpr.so3 import exp_so3, vee
+from cdpr.so3 import exp_so3, hat, quat4_to_rotvec, quats_to_rotvecs, vee
 from cdpr.trajectory import (
     Reference,
     Trajectory,
@@ -21,14 +22,19 @@ from cdpr.trajectory import (
     Waypoint,
     approach,
     approach_steps,
+    core,
     goto,
     parse_trajectory,
+    rotation,
+    run_steps,
+    stop_steps,
     validate,
     validation_steps,
 )
 from cdpr.trajectory.core import MIN_SEGMENT, Curve
 from cdpr.trajectory.limits import MAX_WAYPOINTS
-from cdpr.trajectory.rotation import angular_rates, left_jacobian
+from cdpr.trajectory.parse import _waypoint
+from cdpr.trajectory.rotation import angular_rates, left_jacobians
 from cdpr.trajectory.transitions import MIN_BLEND
 
 LIMITS = TrajectoryLimits()
@@ -261,11 +267,12 @@ def test_left_jacobian_is_the_derivative_of_exp() -> None:
         delta = rng.normal(size=3)
         eps = 1e-6
         R_dot = (exp_so3(theta + eps * delta) - exp_so3(theta - eps * delta)) / (2 * eps)
-        J = left_jacobian(theta)
+        J = left_jacobians([theta])[0]
         np.testing.assert_allclose(vee(R_dot @ exp_so3(theta).T), J @ delta, atol=1e-8)
         # ω̇ = J θ̈ + J̇ θ̇: J̇ θ̇ against a difference of J along θ + t θ̇
         dot = rng.normal(size=3)
-        J_dot = (left_jacobian(theta + eps * dot) - left_jacobian(theta - eps * dot)) / (2 * eps)
+        ahead, behind = left_jacobians([theta + eps * dot, theta - eps * dot])
+        J_dot = (ahead - behind) / (2 * eps)
         _, omega_dot = angular_rates(theta, dot, [0.0, 0.0, 0.0])
         np.testing.assert_allclose(omega_dot, J_dot @ dot, atol=1e-8)
 
@@ -515,6 +522,176 @@ def test_hostile_input_raises_only_trajectory_error(data: object) -> None:
         assert np.all(np.isfinite(ref.accel))
 
 
+def one_by_one(data: object) -> Trajectory:
+    """parse_trajectory as it read every waypoint before the bulk read (parse._waypoint)."""
+    assert isinstance(data, dict) and isinstance(data.get("waypoints"), list | tuple)
+    raw = data["waypoints"]
+    return Trajectory([_waypoint(item, i, LIMITS.unit_tolerance) for i, item in enumerate(raw)])
+
+
+def outcome(read: Callable[[object], Trajectory], data: object) -> object:
+    """The waypoints read (t, position, quaternion, twist, accel), or the error's text."""
+    try:
+        tr = read(data)
+    except TrajectoryError as err:
+        return str(err), err.limit, err.waypoint, err.field
+    return [
+        (w.t, *w.pose.position_tuple, *w.pose.quaternion_tuple, w.twist, w.accel)
+        for w in tr.waypoints
+    ]
+
+
+def same_outcome(a: object, b: object) -> bool:
+    if isinstance(a, tuple) or isinstance(b, tuple):
+        return a == b
+    assert isinstance(a, list) and isinstance(b, list) and len(a) == len(b)
+    for x, y in zip(a, b, strict=True):
+        np.testing.assert_allclose(x[:8], y[:8], rtol=1e-15, atol=1e-15)
+        for u, v in zip(x[8:], y[8:], strict=True):
+            assert (u is None and v is None) or np.array_equal(u, v)
+    return True
+
+
+@settings(max_examples=400)
+@given(
+    st.fixed_dictionaries({"waypoints": st.lists(GOOD_WAYPOINT | NEAR_VALID_WAYPOINT, max_size=6)})
+    | st.fixed_dictionaries({"waypoints": st.lists(GOOD_WAYPOINT, min_size=2, max_size=6)})
+    | WELL_FORMED
+)
+def test_the_bulk_read_decides_as_the_one_by_one_read(data: dict) -> None:
+    """Same waypoints, or the same first problem named the same way."""
+    assert same_outcome(outcome(parse_trajectory, data), outcome(one_by_one, data))
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [True, None, "1", 10**400, math.nan, math.inf, -math.inf, [0.0]],
+    ids=["bool", "null", "str", "huge-int", "nan", "inf", "-inf", "list"],
+)
+@pytest.mark.parametrize("where", ["t", "position", "quaternion"])
+def test_a_bad_number_among_plain_waypoints_is_named_by_waypoint_and_field(
+    bad: object, where: str
+) -> None:
+    """A long plain trajectory with one bad number, after a waypoint of another form
+    (position as an object): the error names the bad one."""
+    waypoints = [wp(0.1 * k, 0.01 * k) for k in range(50)]
+    waypoints[3]["position"] = {"x": 0.03, "y": 0.0, "z": 1.25}
+    if where == "t":
+        waypoints[20]["t"] = bad
+    elif where == "position":
+        waypoints[20]["position"][1] = bad
+    else:
+        waypoints[20]["quaternion"]["y"] = bad
+    data = doc(*waypoints)
+    err = rejected(data)
+    assert err.waypoint == 20 and err.field is not None and where in err.field
+    assert same_outcome(outcome(parse_trajectory, data), outcome(one_by_one, data))
+
+
+def test_the_bulk_read_normalises_and_signs_quaternions_as_pose_does() -> None:
+    waypoints = [wp(0.0), wp(1.0), wp(2.0)]
+    waypoints[1]["quaternion"] = {"w": 0.0, "x": -0.6, "y": 0.8 + 4e-7, "z": 0.0}
+    waypoints[2]["quaternion"] = {"w": -1.0 - 3e-7, "x": 0.0, "y": 0.0, "z": 0.0}
+    tr = parse_trajectory(doc(*waypoints))
+    assert same_outcome(outcome(parse_trajectory, tr.as_dict()), outcome(one_by_one, tr.as_dict()))
+    assert same_outcome(outcome(lambda _: tr, None), outcome(one_by_one, doc(*waypoints)))
+    assert tr.waypoints[1].pose.quaternion_tuple[1] > 0.0  # w = 0: the first non-zero one
+    assert tr.waypoints[2].pose.quaternion_tuple[0] == 1.0
+
+
+def reference_build(wps: list[Waypoint]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(twists, accels, tables) as the build computed them segment by segment: the jerk
+    normal equations assembled and solved densely, each table from liediff, the scalar
+    J_l and one Hermite solve."""
+    n = len(wps)
+    times = np.array([w.t for w in wps])
+    steps = [liediff(a.pose, b.pose) for a, b in pairwise(wps)]
+    values = np.zeros((n, 6))
+    values[:, :3] = [w.pose.position for w in wps]
+    values[1:, 3:] = np.cumsum([s[3:] for s in steps], axis=0)
+    known = np.zeros((2 * n, 6))
+    free = np.zeros(2 * n, dtype=bool)
+    for k, w in enumerate(wps):
+        for j, vec in enumerate((w.twist, w.accel)):
+            if vec is not None:
+                known[2 * k + j] = vec
+            elif 0 < k < n - 1:
+                free[2 * k + j] = True
+    H, P = np.zeros((2 * n, 2 * n)), np.zeros((2 * n, n))
+    for k in range(n - 1):
+        h = times[k + 1] - times[k]
+        scale = np.array([1.0, h, h * h, 1.0, h, h * h])
+        cost = core._JERK_COST * np.outer(scale, scale) / h**5
+        u, y = [2 * k, 2 * k + 1, 2 * k + 2, 2 * k + 3], [k, k + 1]
+        H[np.ix_(u, u)] += cost[np.ix_([1, 2, 4, 5], [1, 2, 4, 5])]
+        P[np.ix_(u, y)] += cost[np.ix_([1, 2, 4, 5], [0, 3])]
+    rhs = -(P @ values)[free] - H[np.ix_(free, ~free)] @ known[~free]
+    known[free] = np.linalg.solve(H[np.ix_(free, free)], rhs)
+    twists, accels = known[0::2], known[1::2]
+    tables = []
+    for k in range(n - 1):
+        delta = steps[k][3:]
+        b, c, _, _ = rotation._jl_coefficients(float(delta @ delta))
+        W = hat(delta)
+        J = np.eye(3) + b * W + c * (W @ W)
+        theta_dot1 = np.linalg.solve(J, twists[k + 1][3:])
+        _, jdot = angular_rates(delta.tolist(), theta_dot1.tolist(), [0.0, 0.0, 0.0])
+        theta_ddot1 = np.linalg.solve(J, accels[k + 1][3:] - np.array(jdot))
+        p0 = wps[k].pose.position
+        h = times[k + 1] - times[k]
+        data = np.array(
+            [
+                np.concatenate([p0, np.zeros(3)]),
+                twists[k] * h,
+                accels[k] * h * h,
+                np.concatenate([p0 + steps[k][:3], delta]),
+                np.concatenate([twists[k + 1][:3], theta_dot1]) * h,
+                np.concatenate([accels[k + 1][:3], theta_ddot1]) * h * h,
+            ]
+        )
+        coefficients = (core._HERMITE @ data) / (h ** np.arange(6.0))[:, None]
+        rate = core._DERIVATIVE @ coefficients
+        tables.append(np.hstack([coefficients, rate, core._DERIVATIVE @ rate]))
+    return twists, accels, np.array(tables)
+
+
+@pytest.mark.parametrize("seed", range(40))
+def test_the_vectorised_build_equals_the_segment_by_segment_one(seed: int) -> None:
+    """Random trajectories (2-40 waypoints, some interior and first twists and accels
+    given): the knot rates and every segment table to 1e-12 of their scale."""
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(2, 41))
+    times = np.cumsum(rng.uniform(0.1, 1.0, n))
+    quaternion = rng.normal(size=4)
+    wps = []
+    for k in range(n):
+        quaternion = quaternion / np.linalg.norm(quaternion)
+        interior = 0 < k < n - 1 or (k == 0 and seed % 2 == 0)
+        twist = 0.5 * rng.normal(size=6) if interior and rng.random() < 0.3 else None
+        accel = 0.5 * rng.normal(size=6) if interior and rng.random() < 0.3 else None
+        wps.append(Waypoint(times[k], Pose(rng.uniform(-1, 1, 3), quaternion), twist, accel))
+        quaternion = quaternion + 0.3 * rng.normal(size=4)
+    tr = Trajectory(wps)
+    twists, accels, tables = reference_build(wps)
+    for mine, theirs in (
+        (np.array([tr.knot(k).twist for k in range(n)]), twists),
+        (np.array([tr.knot(k).accel for k in range(n)]), accels),
+        (np.array(tr.curve._tables), tables),
+    ):
+        scale = max(float(np.max(np.abs(theirs))), 1.0)
+        np.testing.assert_allclose(mine, theirs, rtol=0.0, atol=1e-12 * scale)
+
+
+def test_quats_to_rotvecs_is_quat4_to_rotvec_row_by_row() -> None:
+    rng = np.random.default_rng(3)
+    q = rng.normal(size=(200, 4))
+    q[:50, 1:] *= 1e-6  # around the small-angle switch
+    q[50:60, 0] = 0.0  # half a turn
+    q /= np.linalg.norm(q, axis=1)[:, None]
+    expected = np.array([quat4_to_rotvec(*row) for row in q.tolist()])
+    np.testing.assert_allclose(quats_to_rotvecs(q), expected, rtol=1e-14, atol=1e-15)
+
+
 # -- validation against limits, cable lengths and the wrench set --------------------------
 
 
@@ -706,6 +883,31 @@ def test_approach_from_a_moving_reference_is_c2_and_within_limits(seed: int, spe
     for t in inner_times(target, 10):
         assert_same_state(tr.sample(t + offset), target.sample(t), 1e-9)
     assert_within(peak_rates(tr), LIMITS)
+
+
+@settings(max_examples=15)
+@given(st.integers(0, 10**6), st.floats(0.05, 0.9), st.floats(-1.0, 1.0))
+def test_a_stop_comes_to_rest_within_limits_without_turning_back(
+    seed: int, speed: float, push: float
+) -> None:
+    """stop_steps from a moving reference (accelerating along its motion, push > 0, or
+    braking, push < 0): C2 at its start, at rest at its end, within the rate limits, and
+    the speed along the current direction never reverses (a fixed rest pose at the
+    constant-deceleration distance made the shortest quintic overshoot it and return)."""
+    moving = moving_state(seed, speed)
+    accel = np.concatenate([moving.twist[:3], moving.twist[3:]]) * push * 2.0
+    current = moving._replace(accel=accel)
+    tr = run_steps(stop_steps(current, LIMITS, start=3.0))
+    assert_same_state(tr.sample(3.0), current, 1e-12)
+    end = tr.sample(tr.end_time)
+    assert not end.twist.any() and not end.accel.any()
+    assert_within(peak_rates(tr), LIMITS)
+    times = np.linspace(tr.start_time, tr.end_time, 400)
+    along = [tr.sample(t).twist[:3] @ current.twist[:3] for t in times]
+    assert min(along) >= -1e-9 * speed**2
+    # and it stops promptly: the cubic velocity profile at the limit takes 1.5 speed / accel
+    prompt = 1.5 * max(speed / LIMITS.linear_accel, speed / LIMITS.angular_accel)
+    assert tr.end_time - 3.0 <= 2.0 * prompt + 0.05
 
 
 def test_approach_result_passes_validation(reference8: Robot) -> None:

@@ -23,6 +23,8 @@ from daemon.service.calibration_state import state_path
 from tests.loopback import free_port
 from tests.processes import CONFIG, ROOT, connect, finish, start_daemon, wait_status
 
+pytestmark = pytest.mark.slow  # the daemon as processes: the slow suites (CI runs them)
+
 
 def cdprd(*args: str, timeout: float = 120.0) -> subprocess.CompletedProcess[str]:
     """`python -m daemon.cli ARGS` from this checkout, to its end."""
@@ -35,6 +37,8 @@ def config_file(tmp_path: Path, port: int, push: float = 0.0) -> Path:
     constant push of `push` N along x on the simulated platform."""
     data = yaml.safe_load(CONFIG.read_text())
     data["sim"]["plant"]["disturbance"] = {"wrench": [push, 0.0, 0.0, 0.0, 0.0, 0.0]}
+    # the push acts from the start: the rest check at enable must allow for it
+    data["safety"]["rest_force"] = 30.0 + abs(push)
     data["robot"] = str(ROOT / "config" / "robots" / "reference8.yaml")
     data["zenoh"]["listen"] = [f"tcp/127.0.0.1:{port}"]
     data["state_dir"] = str(tmp_path / "state")
@@ -157,7 +161,11 @@ def test_the_observer_is_held_out_of_the_loop_through_zenoh(tmp_path: Path) -> N
         subscriber.undeclare()
         for body, field, words in (
             ({"held": "yes"}, "held", "observer.held: expected true or false"),
-            ({"hold": True}, "observer", "unknown key(s) 'hold' (allowed: version, held, lease)"),
+            (
+                {"hold": True},
+                "observer",
+                "unknown key(s) 'hold' (allowed: version, client, held, lease, lease_id)",
+            ),
         ):
             with pytest.raises(RequestError) as refused:
                 client.request("observer", body)
@@ -290,8 +298,10 @@ def test_a_killed_calibrate_leaves_the_daemon_letting_go_within_its_lease(
         }
         # the leases are the companion's, observer_held the core's (a cycle or more later)
         _until(
-            lambda: last()["leases"] == {"payload": None, "observer": None}
-            and last()["observer_held"] is False,
+            lambda: (
+                last()["leases"] == {"payload": None, "observer": None}
+                and last()["observer_held"] is False
+            ),
             10.0,
             "none left",
         )

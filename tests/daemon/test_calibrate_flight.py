@@ -23,6 +23,8 @@ from tests.daemon.test_calibrate_cli import cdprd
 from tests.loopback import free_port
 from tuning.calibration_flight import best_fit, model_frame
 
+pytestmark = pytest.mark.slow  # the daemon as processes: the slow suites (CI runs them)
+
 EA_FACTOR = 0.6  # the true cables' EA / the file's
 
 
@@ -200,7 +202,15 @@ def test_calibration_through_the_daemon_finds_the_true_robot(tmp_path: Path) -> 
     calibrate over the workspace (80 poses); anchors within 1 mm, offsets within 0.2 mm,
     EA within 10 %, and the true platform goes where the calibrated daemon sends it."""
     fly_calibration(
-        tmp_path, 0.02, [("--poses", "30", "--reach", "0.3", "0.3", "0.22"), ("--poses", "80",)]
+        tmp_path,
+        0.02,
+        [
+            ("--poses", "30", "--reach", "0.3", "0.3", "0.22"),
+            (
+                "--poses",
+                "80",
+            ),
+        ],
     )
 
 
@@ -215,4 +225,15 @@ def test_a_calibration_through_the_daemon_in_one_round(tmp_path: Path) -> None:
     (its pose fitted), held or not (largely the 15 um counts' rounding left); so the
     same run gave 0.34-0.76 mm held (4 runs), 0.39-0.55 mm not (3), 1.10 mm in CI, and
     random length errors of that size alone give 0.26-0.74 mm (10-90 % of 16 fits)."""
-    fly_calibration(tmp_path, 0.005, [("--poses", "30",)], 1.5e-3, 0.6e-3)
+    fly_calibration(
+        tmp_path,
+        0.005,
+        [
+            (
+                "--poses",
+                "30",
+            )
+        ],
+        1.5e-3,
+        0.6e-3,
+    )

@@ -56,7 +56,7 @@ from tests.processes import (
 from tuning.lockstep import run_lockstep
 from tuning.scenarios import STANDARD_SET, start_pose
 
-pytestmark = pytest.mark.timeout(90)
+pytestmark = [pytest.mark.timeout(90), pytest.mark.slow]
 CHANNELS = itertools.count()
 # s: the drives' consumer heartbeat time (0x1016).  Longer than the daemon's default
 # (watchdog_timeout + a heartbeat period + a cycle) because canopen consumes it in a
@@ -214,7 +214,12 @@ def check_hold(
 
 @pytest.mark.parametrize(
     ("end", "flights"),
-    [("stop", FLIGHTS), pytest.param("vanish", ("figure_eight",), marks=pytest.mark.slow)],
+    [
+        ("stop", FLIGHTS),
+        pytest.param("vanish", ("figure_eight",), marks=pytest.mark.slow),
+        pytest.param("nmt-stop", ("figure_eight",), marks=pytest.mark.slow),
+        pytest.param("nmt-reset-communication", ("figure_eight",), marks=pytest.mark.slow),
+    ],
 )
 def test_eight_canopen_drives_fly_the_standard_trajectories_and_end_holding(
     end: str, flights: tuple[str, ...]
@@ -243,6 +248,7 @@ async def _fly_and_end(
     drives = robot.drives
     service = Service(config, bus)
     service.driver.sdo_timeout = 2.0  # canopen answers from its one thread, maybe late
+    service.driver.hold_check.timeout = 2.0  # so may the brake's confirmation
     planner = Planner(config, LocalLink(service))
     events: list[dict] = []
     service.subscribe(events.append)
@@ -263,8 +269,10 @@ async def _fly_and_end(
             done, missed = len(events), service.stats.deadline_misses
             await planner.submit_trajectory(STANDARD_SET[name](config.robot), None)
             await _until(
-                lambda done=done: service.machine.fault is not None
-                or any(e.get("event") == "trajectory_done" for e in events[done:]),
+                lambda done=done: (
+                    service.machine.fault is not None
+                    or any(e.get("event") == "trajectory_done" for e in events[done:])
+                ),
                 f"{name} flown",
                 30,
             )
@@ -283,6 +291,9 @@ async def _fly_and_end(
             await asyncio.sleep(SETTLE)
             check_hold("stop", robot.truth(ended))
             return
+        if end.startswith("nmt"):
+            await _foreign_nmt(service, robot, NMT_ENDS[end], ended)
+            return
         bus.shutdown()  # the daemon is gone: no frame, no heartbeat from now on
         await _until(
             lambda: all(d.value(0x6041) == QUICK_STOP for d in drives),
@@ -296,6 +307,30 @@ async def _fly_and_end(
         check_hold(what, robot.truth(ended), late + SETTLE, None)
     finally:
         service.close()
+
+
+NMT_ENDS = {"nmt-stop": 0x02, "nmt-reset-communication": 0x82}  # NMT command specifiers
+
+
+async def _foreign_nmt(service: Service, robot: CanopenRobot, command: int, ended: float) -> None:
+    """Another node on the bus broadcasts the NMT `command`: canopen's NMT slaves stop
+    processing PDOs (the daemon's hold RPDO cannot reach them), the daemon brakes and
+    its hold check quick-stops each drive by SDO, which canopen's SDO servers answer;
+    every hold confirmed, each drive in QUICK STOP ACTIVE, the platform within
+    HOLD_DRIFT."""
+    channel = service.port.bus.channel_id  # python-can's virtual bus
+    intruder = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
+    try:
+        intruder.send(can.Message(arbitration_id=0x000, data=[command, 0], is_extended_id=False))
+    finally:
+        intruder.shutdown()
+    await _until(lambda: service.machine.state is SafetyState.BRAKED, "braked", 5)
+    await _until(lambda: all(s.held for s in service.driver.status), "holds confirmed", 15)
+    states = [(d.value(0x6041), d.value(0x6061)) for d in robot.drives]
+    assert all(s[0] == QUICK_STOP for s in states), states  # the SDO stop, not the RPDO
+    braked = time.monotonic()
+    await asyncio.sleep(SETTLE)
+    check_hold("nmt", robot.truth(braked))
 
 
 def check_reactions(gone: float, consumer: float, lost: list, words: list[int]) -> float:

@@ -140,7 +140,7 @@ NAMED = {  # case: (file content, the problem each error line names after 'error
     ),
     "a robot file that is /dev/zero": (
         example((f"robot: {ROBOTS / 'reference8.yaml'}", "robot: /dev/zero")),
-        "robot: /dev/zero: cannot read: a device, pipe or socket, not a regular file",
+        "robot: /dev/zero: cannot read: a device, not a regular file",
     ),
     "a file over 1 MiB": (example() + "#" * (1 << 20) + "\n", "cannot read: longer than"),
     "a kd too high for a home mode": (  # unstable with no command delay at all
@@ -415,3 +415,20 @@ def test_the_profile_is_checked_when_the_config_loads(
     assert main(["check-config", str(path)]) == 1
     (line,) = capsys.readouterr().err.splitlines()
     assert line.startswith(f"error: {path}: {problem}"), line
+
+
+@pytest.mark.timeout(30)
+def test_an_eds_that_is_a_fifo_is_refused_in_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """canopen opened the EDS itself: a FIFO there blocked the check (and start-up)."""
+    os.mkfifo(tmp_path / "x.eds")
+    path = tmp_path / "cdprd.yaml"
+    eds = "  heartbeat_timeout: 0.35\n  profile: {eds: x.eds}\n"
+    path.write_text(example(("  heartbeat_timeout: 0.35\n", eds)))
+    assert main(["check-config", str(path)]) == 1
+    (line,) = capsys.readouterr().err.splitlines()
+    assert line == (
+        f"error: {path}: drives.profile.eds: cannot read EDS {tmp_path / 'x.eds'}: "
+        "a FIFO (named pipe), not a regular file"
+    )

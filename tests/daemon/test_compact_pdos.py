@@ -81,7 +81,7 @@ def test_the_compact_layout_flies_on_two_buses_as_the_default_does_within_the_go
     assert max(v for (compact, _), v in loads.items() if compact) <= GOALS[2]
     assert min(v for (compact, _), v in loads.items() if not compact) > 1.0  # overloaded
     # it tracks as the default layout does (both settle within a fraction of a mm)
-    assert errors[True] < max(0.2, 2.0 * errors[False]), errors
+    assert errors[True] < max(0.5, 2.0 * errors[False]), errors
 
 
 def test_the_model_meets_the_load_goals_with_two_and_four_buses() -> None:

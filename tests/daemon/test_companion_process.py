@@ -31,7 +31,7 @@ import numpy as np
 import psutil
 import pytest
 
-from daemon.interface.client import CdprClient
+from daemon.interface.client import CdprClient, RequestError
 from daemon.process import wire
 from tests.loopback import free_port
 from tests.processes import (
@@ -51,7 +51,7 @@ ALLOWED = 2e-3  # m the true platform may move
 # in simulator_configs, patient for the TCP relays), then hold: a little more drift
 ALLOWED_DEAD = 5e-3
 
-pytestmark = pytest.mark.timeout(120)
+pytestmark = [pytest.mark.timeout(120), pytest.mark.slow]
 
 
 class Rig:
@@ -205,25 +205,35 @@ def _let_go(client: CdprClient, bound: float) -> dict:
 
 def test_a_restarted_companion_lets_go_within_the_lease_left(tmp_path: Path) -> None:
     """The observer held on a lease, the companion killed (kill -9): the new one shows the
-    lease again with less time left than before the kill, and lets go when it runs out
-    (warning); the robot keeps holding."""
+    lease again with less time left than before the kill, still its holder's (a release
+    without its id, or with another, is refused naming the holder), and lets go when it
+    runs out (warning); the robot keeps holding."""
     with rig(tmp_path) as r:
         daemon = r.start_daemon("daemon")
         try:
             r.holding(daemon)
             with connect(r.zenoh, daemon) as client:
-                assert client.observer(True, lease=RESTART_LEASE)["held"] is True
+                taken = client.observer(True, lease=RESTART_LEASE)
+                assert taken["held"] is True
                 before = client.status()["leases"]["observer"]
+                holder = client.name
             first = companion_of(daemon)
             psutil.Process(first).kill()
             companion_of(daemon, not_pid=first)
             with connect(r.zenoh, daemon) as client:
                 held = client.observer()["held"]
                 restarted = client.status()  # the new companion's
+                refusals = []
+                for lease_id in (None, "0" * 24):
+                    with pytest.raises(RequestError) as refused:
+                        client.observer(False, lease_id=lease_id)
+                    refusals.append(refused.value)
                 released = _let_go(client, 3 * RESTART_LEASE)
         finally:
             finish(daemon)
     assert held is True
+    assert all(r.code == "not_owner" and f"{holder}'s" in r.reason for r in refusals), refusals
+    assert "is not that lease's" in refusals[1].reason, refusals  # the id is the same one
     assert 0.0 < restarted["leases"]["observer"] < before <= RESTART_LEASE, (before, restarted)
     assert restarted["leases"]["payload"] is None
     assert released["leases"] == {"payload": None, "observer": None}, released
@@ -232,6 +242,7 @@ def test_a_restarted_companion_lets_go_within_the_lease_left(tmp_path: Path) -> 
     assert "the companion exited with code -9: restarting it" in log, log
     assert "the external wrench observer's hold runs on" in log, log
     assert "hold lapsed: not renewed within its lease of 20 s" in log, log
+    assert f"(held by {holder})" in log and taken["lease_id"] not in log, log
 
 
 def test_a_lease_that_ran_out_while_the_companion_was_down_lapses_at_once(

@@ -26,3 +26,32 @@ def test_summary_is_numpys_percentile_of_the_last_window(count: int) -> None:
 
 def test_an_empty_ring_summarises_to_zeros() -> None:
     assert Ring(4).summary_us() == {"p50_us": 0.0, "p99_us": 0.0, "max_us": 0.0}
+
+
+def _sorted_summary_us(values: np.ndarray) -> dict[str, float]:
+    """The summary as a full sort gives it (what Ring.summary_us did before it ranked
+    with np.partition)."""
+    ordered = np.sort(values)
+
+    def quantile(q: float) -> float:
+        position = q * (len(ordered) - 1)
+        below = int(position)
+        above = min(below + 1, len(ordered) - 1)
+        return float(ordered[below] + (ordered[above] - ordered[below]) * (position - below))
+
+    return {
+        "p50_us": round(quantile(0.5) * 1e6, 1),
+        "p99_us": round(quantile(0.99) * 1e6, 1),
+        "max_us": round(float(ordered[-1]) * 1e6, 1),
+    }
+
+
+@pytest.mark.parametrize("count", [1, 2, 3, 99, 101, 10_000, 12_345])
+def test_summary_equals_the_full_sorts_and_leaves_the_ring_in_order(count: int) -> None:
+    rng = np.random.default_rng(count)
+    ring = Ring(10_000)
+    for value in rng.exponential(1e-4, count):
+        ring.add(float(value))
+    before = ring.values().copy()
+    assert ring.summary_us() == _sorted_summary_us(before)
+    np.testing.assert_array_equal(ring.values(), before)

@@ -187,6 +187,19 @@ def test_check_config_fails_with_the_problem(tmp_path: Path, capsys) -> None:
         ({"host": "ws://x:1"}, r"^test.yaml: view.host: 'ws://x:1' is not a host name or address"),
         ({"enabled": "yes"}, r"^test.yaml: view.enabled: Input should be a valid boolean"),
         ({"colour": "red"}, r"^test.yaml: view.colour: Extra inputs are not permitted"),
+        (
+            {"allowed_origins": ["https://app.foxglove.dev/"]},
+            r"^test.yaml: view.allowed_origins: 'https://app.foxglove.dev/' is not a web "
+            r"origin: scheme://host\[:port\] in lower case, no path",
+        ),
+        (
+            {"allowed_origins": ["*"]},
+            r"^test.yaml: view.allowed_origins: '\*' is not a web origin",
+        ),
+        (
+            {"allowed_hosts": ["robot.lab:8765"]},
+            r"^test.yaml: view.allowed_hosts: 'robot.lab:8765' is not a host name or address",
+        ),
     ],
 )
 def test_view_problems_name_the_key(view: dict, message: str) -> None:
@@ -199,7 +212,22 @@ def test_view_problems_name_the_key(view: dict, message: str) -> None:
 def test_the_view_is_off_and_on_loopback_unless_asked() -> None:
     view = parse_config(_data(), CONFIG, "test.yaml").view
     assert (view.enabled, view.host, view.port, view.rate_hz) == (False, "127.0.0.1", 8765, 30.0)
+    assert view.allowed_origins == ("https://app.foxglove.dev",)  # Foxglove's web app only
+    assert view.gate_hosts == ("127.0.0.1", "localhost")
     data = _data()
     data["view"] = {"enabled": True, "host": "0.0.0.0", "expose": True, "port": 0}
     view = parse_config(data, CONFIG, "test.yaml").view
     assert (view.enabled, view.host, view.port) == (True, "0.0.0.0", 0)
+
+
+def test_a_ros2_ingress_limit_and_raw_downsampling_are_exclusive() -> None:
+    data = _data()
+    rule = {"key_expr": "a", "freq": 1.0}
+    data["zenoh"] = {
+        "config": {"downsampling": [{"flows": ["ingress"], "messages": ["put"], "rules": [rule]}]}
+    }
+    data["ros2"] = {"enabled": True, "ingress_limit_hz": 5}
+    with pytest.raises(ConfigError, match=r"^test.yaml: ros2.ingress_limit_hz: .*use one of them$"):
+        parse_config(data, CONFIG, "test.yaml")
+    del data["ros2"]["ingress_limit_hz"]
+    assert parse_config(data, CONFIG, "test.yaml").ros2.ingress_limit_hz is None

@@ -337,7 +337,7 @@ class Handler:
             return self._plan()
         return self._wait("command") if name in ("enable", "goto") else {"state": "hold"}
 
-    def submit_trajectory(self, trajectory: Any, start: float | None) -> Any:
+    def submit_trajectory(self, trajectory: Any, start: float | None, claim: Any) -> Any:
         self.calls.append(f"trajectory {len(trajectory.waypoints)}")
         return self._wait("trajectory")
 
@@ -404,6 +404,36 @@ def test_trajectories_one_at_a_time_parsed_off_the_loop_and_long_commands_singly
         assert codes == {"goto": "busy", "status": None, "hold": None, "enable": None}
         assert handler.calls.count("goto") == 1  # called, but its coroutine never started
         assert stats["commands_busy"] == 1 and stats["replies"] == 4
+
+    asyncio.run(scenario())
+
+
+def test_a_request_that_preempts_is_never_turned_away_busy() -> None:
+    """While enable holds the slot of the commands that wait, a goto is answered busy and
+    never started; the same goto saying preempt runs (it replaces what runs:
+    daemon.service.motion decides)."""
+    handler = Handler()
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    replies: list[dict] = []
+
+    def on_reply(reply: zenoh.Reply) -> None:
+        sample = reply.ok if reply.ok is not None else reply.err
+        replies.append(json.loads(sample.payload.to_bytes()))
+
+    async def scenario() -> None:
+        settings = ZenohSettings(listen=[endpoint])
+        async with zenoh_io.ZenohInterface(settings, handler, "cdpr/t"):
+            with zenoh.open(client_zenoh_config([endpoint])) as session:
+                session.get("cdpr/t/cmd/enable", on_reply, timeout=10.0)
+                await until(lambda: handler.running["command"] == 1)
+                for preempt in (False, True):
+                    body = {"position": [0, 0, 1], "client": "B", "preempt": preempt}
+                    session.get("cdpr/t/cmd/goto", on_reply, payload=json.dumps(body))
+                await until(lambda: len(replies) == 1 and handler.running["command"] == 2)
+                handler.release.set()
+                await until(lambda: len(replies) == 3)
+        assert replies[0]["command"] == "goto" and replies[0]["error"]["code"] == "busy"
+        assert [r["ok"] for r in replies[1:]] == [True, True]
 
     asyncio.run(scenario())
 

@@ -15,20 +15,26 @@ from tests.daemon_stack import Stack, config_for
 pytestmark = pytest.mark.timeout(90)
 
 
-def _config(push: float, observer: dict | None = None) -> DaemonConfig:
-    wrench = [push, 0.0, 0.0, 0.0, 0.0, 0.0]
+def _config(observer: dict | None = None) -> DaemonConfig:
     return config_for(
         "cia402",
-        sim={"plant": {"step": 0.001, "disturbance": {"wrench": wrench}}},
+        sim={"plant": {"step": 0.001}},
         controller={"disturbance_observer": observer or {}},
     )
 
 
+async def _enable_then_push(stack: Stack, push: float) -> None:
+    """Enable, then lean on the platform with `push` N along x (pushed before, the
+    platform would not be at rest where the tensions say: enable refuses that)."""
+    await stack.enable()
+    stack.plant._disturbance = lambda t: (push, 0.0, 0.0, 0.0, 0.0, 0.0)
+
+
 def test_a_50_n_push_is_held_and_published() -> None:
     async def scenario() -> None:
-        async with Stack(_config(50.0)) as stack:
+        async with Stack(_config()) as stack:
             service = stack.service
-            await stack.enable()
+            await _enable_then_push(stack, 50.0)
             await stack.until(lambda: service.state()["external_wrench"][0] > 45.0, 10.0)
             await asyncio.sleep(1.0)
             assert service.machine.state is SafetyState.HOLD, service.machine.fault
@@ -43,9 +49,9 @@ def test_a_push_beyond_the_bound_brakes_naming_the_trigger() -> None:
     tracking error would brake."""
 
     async def scenario() -> None:
-        async with Stack(_config(50.0, {"force_max": 30.0})) as stack:
+        async with Stack(_config({"force_max": 30.0})) as stack:
             service = stack.service
-            await stack.enable()
+            await _enable_then_push(stack, 50.0)
             await stack.until(lambda: service.machine.state is SafetyState.BRAKED, 10.0)
             fault = service.machine.fault
             assert fault.trigger is Trigger.EXTERNAL_WRENCH, fault

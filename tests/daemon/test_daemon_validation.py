@@ -91,8 +91,9 @@ def test_a_goto_through_the_fence_is_rejected() -> None:
             err = await _refused(stack, stack.planner.command("goto", {"pose": target}))
             assert err.details == {"limit": "workspace_max", "waypoint": 1, "value": 1.75}
             assert "goto rejected: waypoint 1: workspace_max: position z = 1.7500 m" in err.reason
-            # below the fence less the tracking margin it goes
-            reply = await stack.planner.command("goto", {"pose": _home(stack.config, dz=0.3)})
+            # with the platform's top below the fence less the tracking margin it goes
+            # (its top corners 0.3 m above p, the margin 20 mm + 0.41 m x 0.05 rad)
+            reply = await stack.planner.command("goto", {"pose": _home(stack.config, dz=0.005)})
             assert reply["accepted"]
 
     run(scenario())
@@ -295,19 +296,19 @@ def test_a_trajectory_with_free_interior_velocities_is_flown_from_a_hold(start: 
 
 
 def test_enabled_outside_the_margin_it_may_move_back_in_but_not_further_out() -> None:
-    """Enabled 1 cm above a floor fence at z = 1.0 (inside the box, within its tracking
-    margin): a goto inwards is accepted, one further out and a trajectory that starts
-    out there are not."""
+    """Enabled with the platform's lower corners 1 cm above a floor fence at z = 0.7 (inside
+    the box, within its tracking margin): a goto inwards is accepted, one further out and
+    a trajectory that starts out there are not."""
 
     async def scenario() -> None:
-        config = config_for("cia402", safety={"workspace_min": [-1.5, -1.5, 1.0]})
+        config = config_for("cia402", safety={"workspace_min": [-1.5, -1.5, 0.7]})
         stack = Stack(config)
-        stack.plant.reset(_home(config, dz=-0.24))  # z = 1.01
+        stack.plant.reset(_home(config, dz=-0.24))  # z = 1.01, the lower corners at 0.71
         async with stack:
             await stack.enable()
             await _settled(stack)  # from the placed start (~1 mm, 0.3 s time constant)
             service = stack.service
-            lower = _home(config, dz=-0.245)  # z = 1.005
+            lower = _home(config, dz=-0.245)  # the lower corners at 0.705
             err = await _refused(stack, stack.planner.command("goto", {"pose": lower}))
             assert (err.details["limit"], err.details["waypoint"]) == ("workspace_min", 1)
             here = service.controller.source.sample(service.now()).pose

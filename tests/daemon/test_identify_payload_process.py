@@ -30,7 +30,8 @@ from tests.processes import (
     wait_status,
 )
 
-pytestmark = pytest.mark.timeout(150)
+pytestmark = [pytest.mark.timeout(150), pytest.mark.slow]
+
 
 def test_identify_payload_from_the_command_line(tmp_path: Path) -> None:
     zenoh_port = free_port()
@@ -52,6 +53,10 @@ def test_identify_payload_from_the_command_line(tmp_path: Path) -> None:
             frozen = _cdprd(zenoh_port, "payload", "--freeze", "--lease", "30")
             status = client.status()
             unleased = _cdprd_fails(zenoh_port, "observer", "--release", "--lease", "5")
+            # the lease is the freezing command's: another releases it only with its id
+            kept = _cdprd_fails(zenoh_port, "payload", "--unfreeze")
+            ident = frozen["lease_id"]
+            released = _cdprd(zenoh_port, "payload", "--unfreeze", "--lease-id", ident)
         finish(daemon)
     finally:
         if daemon is not None and daemon.poll() is None:
@@ -67,6 +72,8 @@ def test_identify_payload_from_the_command_line(tmp_path: Path) -> None:
     assert frozen["frozen"] is True and frozen["mass"] == pytest.approx(TRUE_MASS, rel=0.01)
     assert 0.0 < status["leases"]["payload"] <= 30.0, status  # --lease: on a lease
     assert "lease" in unleased  # a lease without a hold: refused, naming the key
+    assert "payload: refused (not_owner)" in kept and "with its lease_id" in kept, kept
+    assert released["frozen"] is False and "lease_id" not in released, released
 
 
 def _cdprd(port: int, *command: str) -> dict:

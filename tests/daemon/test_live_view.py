@@ -7,6 +7,7 @@ the cycle records.  A view port in use stops the start-up with one line."""
 
 from __future__ import annotations
 
+import json
 import socket
 import subprocess
 import sys
@@ -19,9 +20,12 @@ import pytest
 import yaml
 from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
+from websockets.exceptions import InvalidStatus
+from websockets.sync.client import connect as ws_connect
 
 from daemon.process.recording import CYCLE_SCHEMA_NAME, CYCLE_TOPIC
-from tests.foxglove_client import collect
+from daemon.process.view_gate import refusal
+from tests.foxglove_client import SUBPROTOCOLS, collect
 from tests.loopback import free_port
 from tests.processes import ROOT, connect, finish, stop_impatiently, wait_status
 
@@ -62,6 +66,7 @@ def _xyz(v) -> list[float]:
     return [v.x, v.y, v.z]
 
 
+@pytest.mark.slow  # the daemon as a process
 @pytest.mark.timeout(120)
 def test_a_foxglove_client_sees_the_robot_as_zenoh_does_and_the_mcap_matches(
     tmp_path: Path,
@@ -151,6 +156,69 @@ def _zenoh_state(client) -> dict:
     return got[0]
 
 
+def _upgrade(port: int, host: str = "127.0.0.1", origin: str | None = None) -> int | str:
+    """One WebSocket upgrade to the view at 127.0.0.1:`port`, with `host` in the Host
+    header (as a page at http://`host`:`port` that resolves to 127.0.0.1 sends it) and
+    `origin`: the first message's op if the server let it in, else the HTTP status."""
+    headers = None if origin is None else {"Origin": origin}
+    end = time.monotonic() + 30.0
+    while True:
+        try:
+            sock = socket.create_connection(("127.0.0.1", port), timeout=5.0)
+            break
+        except OSError:  # the companion is still starting
+            assert time.monotonic() < end, f"no view on port {port}"
+            time.sleep(0.1)
+    try:
+        with ws_connect(
+            f"ws://{host}:{port}",
+            sock=sock,
+            subprotocols=SUBPROTOCOLS,
+            additional_headers=headers,
+            open_timeout=10.0,
+        ) as ws:
+            return json.loads(ws.recv(timeout=10.0))["op"]
+    except InvalidStatus as exc:
+        return exc.response.status_code
+
+
+@pytest.mark.slow  # the daemon as a process
+@pytest.mark.timeout(120)
+def test_the_view_lets_in_no_origin_and_foxglove_but_not_other_pages_or_rebound_hosts(
+    tmp_path: Path,
+) -> None:
+    """Browsers send Origin on every WebSocket: a page of another site (evil.example), or
+    one whose name was rebound to 127.0.0.1 (Host and Origin evil.example), is refused
+    with 403 before any protocol message; Foxglove's web app and clients that send no
+    Origin get the server's serverInfo."""
+    view = free_port()
+    proc = _run(_config(tmp_path, free_port()), f"127.0.0.1:{view}")
+    rebound = f"evil.example:{view}"
+    try:
+        outcomes = {
+            "no origin": _upgrade(view),
+            "localhost": _upgrade(view, host="localhost"),
+            "foxglove": _upgrade(view, origin="https://app.foxglove.dev"),
+            "evil origin": _upgrade(view, origin="http://evil.example"),
+            "rebound": _upgrade(view, host="evil.example", origin=f"http://{rebound}"),
+            "rebound host": _upgrade(view, host="evil.example"),
+            "null origin": _upgrade(view, origin="null"),
+        }
+    finally:
+        out = finish(proc)
+    assert outcomes == {
+        "no origin": "serverInfo",
+        "localhost": "serverInfo",
+        "foxglove": "serverInfo",
+        "evil origin": 403,
+        "rebound": 403,
+        "rebound host": 403,
+        "null origin": 403,
+    }, out
+    assert "live view: refused a connection: Origin 'http://evil.example' is not in" in out
+    assert f"live view: refused a connection: Host '{rebound}' is not this view's" in out
+
+
 @pytest.mark.timeout(120)
 def test_run_with_its_view_port_taken_exits_with_one_line(tmp_path: Path) -> None:
     with socket.socket() as taken:
@@ -165,3 +233,30 @@ def test_run_with_its_view_port_taken_exits_with_one_line(tmp_path: Path) -> Non
     assert len(lines) == 1, out
     assert lines[0].startswith(f"error: {config}: view: cannot serve on 127.0.0.1:{port}: ")
     assert "Address already in use" in lines[0]
+
+
+@pytest.mark.parametrize(
+    ("fields", "refused"),
+    [
+        ([("host", "127.0.0.1:8765")], None),
+        ([("host", "LOCALHOST.:8765"), ("origin", "https://app.foxglove.dev")], None),
+        ([("host", "[::1]:8765")], "Host '[::1]:8765' is not this view's address"),
+        ([("host", "evil.example")], "Host 'evil.example' is not this view's address"),
+        ([("host", "127.0.0.1.evil.example:8765")], "is not this view's address"),
+        ([("origin", "https://app.foxglove.dev")], "0 Host and 1 Origin headers"),
+        ([("host", "127.0.0.1"), ("host", "evil.example")], "2 Host and 0 Origin headers"),
+        (
+            [("host", "127.0.0.1"), ("origin", "https://app.foxglove.dev"), ("origin", "null")],
+            "1 Host and 2 Origin headers",
+        ),
+        (
+            [("host", "127.0.0.1"), ("origin", "https://app.foxglove.dev.evil.example")],
+            "Origin 'https://app.foxglove.dev.evil.example' is not in view.allowed_origins",
+        ),
+    ],
+)
+def test_the_gate_reads_host_and_origin_strictly(
+    fields: list[tuple[str, str]], refused: str | None
+) -> None:
+    why = refusal(fields, ("https://app.foxglove.dev",), ("127.0.0.1", "localhost"))
+    assert why == refused if refused is None else refused in (why or "")

@@ -13,7 +13,9 @@ from hypothesis import strategies as st
 
 from cdpr import Pose
 from cdpr.trajectory import SCHEMA_VERSION, TrajectoryLimits
+from daemon.interface import messages
 from daemon.interface.messages import (
+    ONE_PIECE_JSON_BYTES,
     VERSION_KEY,
     decode_command,
     decode_json,
@@ -75,6 +77,125 @@ def test_bad_json_is_refused_naming_the_problem(payload: bytes, words: str) -> N
     error = refusal(decode_json, payload, 1024 if len(payload) == 2048 else 1 << 20)
     assert error.code == "bad_request"
     assert words in error.reason
+
+
+def standard_outcome(payload: bytes) -> object:
+    """What the standard library's decoder alone makes of a payload (decode_json before
+    orjson): the value, or the refusal's code and reason."""
+    try:
+        return messages._DECODER.decode(payload.decode("utf-8"))
+    except RecursionError:
+        return "bad_request", "JSON nested too deeply"
+    except UnicodeDecodeError as exc:
+        return "bad_request", f"payload is not UTF-8 text: {exc.reason}"
+    except ValueError as exc:
+        return "bad_request", f"invalid JSON: {exc}"
+
+
+def fast_outcome(payload: bytes) -> object:
+    try:
+        return decode_json(payload, 1 << 20)
+    except CommandError as exc:
+        return exc.code, exc.reason
+
+
+def same_json(a: object, b: object) -> bool:
+    """Equal values of equal types all the way down (1 == 1.0 == True would hide a
+    change); iterative, for deeply nested values."""
+    pairs = [(a, b)]
+    while pairs:
+        x, y = pairs.pop()
+        if type(x) is not type(y):
+            return False
+        if isinstance(x, dict):
+            if list(x) != list(y):  # type: ignore[arg-type]
+                return False
+            pairs += [(x[k], y[k]) for k in x]  # type: ignore[index]
+        elif isinstance(x, list | tuple):
+            if len(x) != len(y):  # type: ignore[arg-type]
+                return False
+            pairs += zip(x, y, strict=True)  # type: ignore[arg-type]
+        elif not (x == y or (x != x and y != y)):
+            return False
+    return True
+
+
+JSON_TEXT = st.recursive(
+    st.none()
+    | st.booleans()
+    | st.integers(min_value=-(10**30), max_value=10**30)
+    | st.floats(allow_nan=False, allow_infinity=False)
+    | st.text(max_size=8),
+    lambda inner: (
+        st.lists(inner, max_size=5) | st.dictionaries(st.text(max_size=6), inner, max_size=5)
+    ),
+    max_leaves=20,
+).map(json.dumps)
+SPLICES = st.sampled_from(
+    ["", ",", "]", "}", '"', "NaN", "Infinity", "-Infinity", "1e400", "-1e999",
+     "12345678901234567890123", "-9223372036854775809", '"\\ud800"', '"\\udc00x"',
+     "\ufeff", "\x01", "0123", "[1,]", "tru", "\\", "\u00e9", " ", "\n"]
+)  # fmt: skip
+
+
+@given(JSON_TEXT, st.integers(min_value=0), SPLICES, st.booleans())
+def test_the_fast_decoder_decides_as_the_standard_one(
+    text: str, at: int, splice: str, replace: bool
+) -> None:
+    """Same value (types included) or the same refusal, for valid JSON and for copies
+    with a token spliced in: big integers, lone surrogates, NaN, broken syntax, ..."""
+    k = at % (len(text) + 1)
+    for candidate in (text, text[:k] + splice + text[k + int(replace) :]):
+        payload = candidate.encode("utf-8", "surrogatepass")
+        assert same_json(fast_outcome(payload), standard_outcome(payload)), candidate
+
+
+@pytest.mark.parametrize(
+    "payload",
+    [b"[" + b"12345678901234567890123" + b"]", b'{"a": -9223372036854775809}'],
+)
+def test_integers_beyond_64_bits_stay_exact(payload: bytes) -> None:
+    """orjson would read them as floats; decode_json gives json.loads's exact int."""
+    assert same_json(decode_json(payload, 1024), json.loads(payload))
+
+
+def nested(depth: int, inner: str = "1") -> str:
+    return "[" * depth + inner + "]" * depth
+
+
+@pytest.mark.parametrize(
+    "text",
+    [
+        nested(899),
+        nested(900),
+        nested(20_000),
+        json.dumps({"a": "[" * 5000, "b": [[1]] * 400}),  # brackets in strings do not nest
+        json.dumps({"a": "]" * 5000, "b": json.loads(nested(950))}),
+        json.dumps({"a": '\\"[' * 1000, "b": "x\\", "c": [[[1]]]}),  # escapes in strings
+        json.dumps({"a": "\\" * 3 + '"' + "{" * 1000}),
+    ],
+    ids=["899", "900", "20000", "in-strings", "after-closers", "escaped-quotes", "backslashes"],
+)
+def test_deep_nesting_is_decided_as_the_json_module_decides(text: str) -> None:
+    """orjson nests without limit; from FAST_JSON_DEPTH on the json module decides
+    (refusing nesting near Python's recursion limit), brackets in strings aside."""
+    payload = text.encode()
+    assert same_json(fast_outcome(payload), standard_outcome(payload))
+
+
+def test_small_payloads_go_to_orjson(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Up to ONE_PIECE_JSON_BYTES a valid payload is one orjson call, never the standard
+    decoder; above that the standard decoder works piece by piece."""
+    calls: list[int] = []
+    real = messages.orjson.loads
+    monkeypatch.setattr(messages.orjson, "loads", lambda b: calls.append(len(b)) or real(b))
+    body = {"id": "x", "waypoints": [waypoint(0.1 * k) for k in range(200)]}
+    payload = json.dumps(body).encode()
+    assert 16 * 1024 < len(payload) <= ONE_PIECE_JSON_BYTES
+    assert decode_json(payload, 1 << 20) == body and calls == [len(payload)]
+    large = json.dumps({"waypoints": [waypoint(0.1 * k) for k in range(500)]}).encode()
+    assert len(large) > ONE_PIECE_JSON_BYTES
+    assert decode_json(large, 1 << 22) == json.loads(large) and calls == [len(payload)]
 
 
 @pytest.mark.parametrize(

@@ -235,6 +235,7 @@ def test_pretension_takes_a_pose_name_over_zenoh() -> None:
         decode_command("pretension", {"pose": 3})
 
 
+@pytest.mark.slow  # the daemon as a process
 @pytest.mark.timeout(240)
 def test_cdprd_pretension_through_the_cli_against_a_daemon_process(tmp_path: Path) -> None:
     """`cdprd run --sim` with slack cables on the fixture starts braked (the lengths fit

@@ -68,6 +68,17 @@ def test_takes_effect_and_is_restored() -> None:
     assert _locked_kb() == 0
 
 
+def test_the_gil_is_handed_back_within_a_fraction_of_a_period() -> None:
+    """Unprivileged too: the switch interval is the core's whatever the scheduling (a
+    thread holding the GIL kept a cycle waiting for up to Python's 5 ms), and is
+    Python's again after."""
+    before = sys.getswitchinterval()
+    with realtime(RealtimeConfig()):
+        assert sys.getswitchinterval() == pytest.approx(rt.GIL_SWITCH_INTERVAL)
+        assert rt.GIL_SWITCH_INTERVAL <= 0.25 * (1.0 / 1000.0)  # a quarter period at 1 kHz
+    assert sys.getswitchinterval() == before
+
+
 @pytest.mark.skipif(not _privileged(), reason="needs root or RLIMIT_RTPRIO >= 10")
 def test_a_thread_started_afterwards_inherits_priority_and_cpus() -> None:
     """A thread the cycle waits on (a python-can Notifier) must run at the core's

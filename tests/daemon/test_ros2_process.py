@@ -16,6 +16,7 @@ rmw_zenoh's design document (tests/data/rmw_zenoh_reference.md):
 from __future__ import annotations
 
 import json
+import socket
 import threading
 import time
 from pathlib import Path
@@ -28,6 +29,7 @@ import zenoh
 import zenoh.ext as ze
 from rosbags.typesys import Stores, get_typestore
 
+from daemon.config.zenoh_config import client_zenoh_config
 from tests.loopback import free_port, zenoh_peer
 from tests.processes import CONFIG, ROOT, finish, start_daemon
 
@@ -42,7 +44,7 @@ POSE = "geometry_msgs/msg/PoseStamped"
 JOINTS = "sensor_msgs/msg/JointState"
 STATUS = "std_msgs/msg/String"
 
-pytestmark = pytest.mark.timeout(120)
+pytestmark = [pytest.mark.timeout(120), pytest.mark.slow]
 
 
 def dds(msgtype: str) -> str:
@@ -53,7 +55,6 @@ def dds(msgtype: str) -> str:
 def key(topic: str, msgtype: str) -> str:
     """<domain_id>/<fully_qualified_name>/<type_name>/<type_hash> (design.md)."""
     return f"{DOMAIN}/{topic.strip('/')}/{dds(msgtype)}/{STORE.hash_rihs01(msgtype)}"
-
 
 
 class Inbox:
@@ -154,7 +155,7 @@ def test_a_ros2_node_on_rmw_zenoh_sees_the_daemon_and_flies_it(tmp_path: Path) -
     config.write_text(yaml.safe_dump(data))
     proc = start_daemon(config, "--sim")
     try:
-        time.sleep(1.0)
+        wait(lambda: _listening(port), 60.0, "the daemon to listen")  # a loaded host: slow
         s = zenoh_peer(port)
         try:
             _exercise(s)
@@ -275,3 +276,90 @@ def _exercise(s: zenoh.Session) -> None:
     wait(lambda: states[-1]["state"] == "tracking", 5.0, "tracking back")
     wait(lambda: states[-1]["state"] == "hold", 15.0, "home again")
     assert states[-1]["pose"]["position"] == pytest.approx(home, abs=2e-3)
+
+
+FORGED = b"forged"
+
+
+@pytest.mark.timeout(150)
+def test_under_the_templates_zenoh_section_the_ros2_keys_are_guarded(tmp_path: Path) -> None:
+    """`cdprd run --sim` with config/hardware-template.yaml's zenoh section (access
+    control, trajectory at 20 Hz) and ROS 2 on, two local zenoh clients of the daemon
+    (the daemon routes between them): the one's puts on the node's pose, diagnostics and
+    trajectory_status topics and its token of a second node `cdprd` reach not the other;
+    a burst of ten Paths gets at most two verdicts (the 20 Hz limit); a 4 MB Path is
+    refused by its size."""
+    port = free_port()
+    data = yaml.safe_load(CONFIG.read_text())
+    data["robot"] = str(ROOT / "config" / "robots" / "reference8.yaml")
+    data["zenoh"] = yaml.safe_load((ROOT / "config" / "hardware-template.yaml").read_text())[
+        "zenoh"
+    ]
+    endpoint = f"tcp/127.0.0.1:{port}"
+    data["zenoh"]["listen"] = [endpoint]
+    data["ros2"] = {"enabled": True, "domain_id": DOMAIN, "namespace": NAMESPACE, "rate_hz": 20}
+    config = tmp_path / "cdprd.yaml"
+    config.write_text(yaml.safe_dump(data))
+    outputs = {
+        key(f"{NAMESPACE}/pose", POSE),
+        key("/diagnostics", "diagnostic_msgs/msg/DiagnosticArray"),
+        key(f"{NAMESPACE}/trajectory_status", STATUS),
+    }
+    proc = start_daemon(config, "--sim")
+    try:
+        wait(lambda: _listening(port), 60.0, "the daemon to listen")
+        listener = zenoh.open(client_zenoh_config([endpoint]))  # routed by the daemon
+        seen: list[tuple[str, bytes]] = []
+        kept = [
+            listener.declare_subscriber(
+                f"{DOMAIN}/**", lambda s: seen.append((str(s.key_expr), s.payload.to_bytes()))
+            ),
+        ]
+        status = Inbox(listener, f"{NAMESPACE}/trajectory_status", STATUS)
+        joints = key(f"{NAMESPACE}/joint_states", JOINTS)
+        wait(lambda: sum(k == joints for k, _ in seen) > 2, 60.0, "the daemon's joints")
+        forger = zenoh.open(client_zenoh_config([endpoint]))
+        try:
+            forged_node = f"@ros2_lv/{DOMAIN}/{forger.info.zid()}/0/0/NN/%/%lab/cdprd"
+            kept.append(forger.liveliness().declare_token(forged_node))
+            gid_out = bytes(range(16))
+            for _ in range(20):
+                for key_expr in outputs:
+                    extra = ze.z_serialize((ze.Int64(1), ze.Int64(time.time_ns()), gid_out))
+                    forger.put(key_expr, FORGED, attachment=extra)
+            assert get_json(forger, f"{PREFIX}/cmd/status")["ok"]  # after the puts, one link
+            before = sum(k == joints for k, _ in seen)
+            wait(lambda: sum(k == joints for k, _ in seen) > before + 3, 10.0, "more joints")
+            replies = listener.liveliness().get(f"@ros2_lv/{DOMAIN}/*/*/*/NN/**", timeout=5.0)
+            nodes = [str(r.ok.key_expr) for r in replies if r.ok is not None]
+
+            path_key = key(f"{NAMESPACE}/path", PATH)
+            for _ in range(10):
+                forger.put(path_key, b"not cdr")  # no attachment: refused once let in
+            wait(lambda: status.count() >= 1, 10.0, "a verdict")
+            time.sleep(0.5)
+            burst = status.count()
+            time.sleep(0.1)  # the 20 Hz limit's period, twice over
+            header = msg("std_msgs/msg/Header", stamp=time_msg(0), frame_id="w" * 4_000_000)
+            large = bytes(STORE.serialize_cdr(msg(PATH, header=header, poses=[]), PATH))
+            forger.put(path_key, large)
+            wait(lambda: status.count() > burst, 10.0, "the large Path's verdict")
+            with status.lock:
+                refused = json.loads(status.items[-1][0].data)
+        finally:
+            kept.clear()
+            listener.close()
+            forger.close()
+    finally:
+        out = finish(proc)
+    assert proc.returncode == 0, out
+    assert [k for k, p in seen if p == FORGED] == []
+    assert len(nodes) == 1 and forged_node not in nodes, nodes
+    assert 1 <= burst <= 2
+    assert refused["event"] == "trajectory_rejected", refused
+    assert refused["error"]["limit"] == "max_message_bytes", refused
+
+
+def _listening(port: int) -> bool:
+    with socket.socket() as probe:
+        return probe.connect_ex(("127.0.0.1", port)) == 0

@@ -24,6 +24,8 @@ from daemon.process.recording import CYCLE_SCHEMA, CYCLE_SCHEMA_NAME, CYCLE_TOPI
 from tests.loopback import free_port
 from tests.processes import connect, finish, stop_impatiently, wait_status
 
+pytestmark = pytest.mark.slow  # the daemon as processes: the slow suites (CI runs them)
+
 ROOT = Path(__file__).resolve().parents[2]
 CONFIG = ROOT / "config" / "reference8-cia402.yaml"
 PREFIX = "cdpr/reference8"

@@ -25,6 +25,8 @@ from tests.loopback import free_port
 from tests.processes import finish, stop_impatiently
 from tests.systemd_notify import NotifySocket
 
+pytestmark = pytest.mark.slow  # the daemon as processes: the slow suites (CI runs them)
+
 ROOT = Path(__file__).resolve().parents[2]
 CONFIG = ROOT / "config" / "reference8-cia402.yaml"
 PREFIX = "cdpr/reference8"

@@ -200,8 +200,9 @@ def test_output_checks(config) -> None:
     assert monitor.check_output(lost).trigger is Trigger.FK_RESIDUAL
 
 
-# a box tight enough that random trajectories run along its faces, and the tilt limit
-FENCED = {"workspace_min": [-0.3, -0.3, 1.0], "workspace_max": [0.3, 0.3, 1.6], "tilt_max": 0.4}
+# a box tight enough that random trajectories run the platform's corners along its
+# faces (the body is 0.4 x 0.4 x 0.6 m), and the tilt limit
+FENCED = {"workspace_min": [-0.5, -0.5, 0.6], "workspace_max": [0.5, 0.5, 1.9], "tilt_max": 0.4}
 
 
 @pytest.fixture(scope="module")
@@ -243,13 +244,15 @@ def test_an_accepted_trajectory_never_trips_the_pose_limits(
     """Validated against the config's reference limits, a trajectory followed exactly, or
     by a measured pose as far out as the tracking-error bounds allow, passes every
     runtime output check, sampled at every control cycle.  With `stops` the waypoints are
-    at rest (straight segments along the faces), else the spline may overshoot them."""
+    at rest (straight segments along the faces), else the spline may overshoot them.
+    The waypoints' reference points lie where the unturned body touches the box."""
     from cdpr import Pose, liediff
     from cdpr.trajectory import Trajectory, TrajectoryError, Waypoint, validate
 
     config = fenced
     limits = config.reference_limits
-    lo, hi = np.array(limits.lower), np.array(limits.upper)
+    extent = np.abs(config.robot.body.points).max(axis=0)
+    lo, hi = np.array(limits.lower) + extent, np.array(limits.upper) - extent
     home = config.robot.home
     times = np.cumsum([0.0, *gaps])
     waypoints = []
@@ -287,16 +290,26 @@ def test_an_accepted_trajectory_never_trips_the_pose_limits(
 
 
 def test_the_runtime_check_brakes_just_outside_what_validation_allows(fenced) -> None:
-    """The margins are not more than needed: beyond the tracking bounds, the same worst
-    case trips the runtime pose check at the edge of what validation accepts."""
+    """The margins are not more than needed: a corner at the edge of what validation
+    accepts, moved out by its whole margin (tracking_error_position + its distance from
+    p x tracking_error_orientation, the most a tracking error may move it) and a little
+    more, trips the runtime pose check, naming the corner."""
     from cdpr import Pose, liediff
 
     config = fenced
     limits = config.reference_limits
+    body = config.robot.body
     monitor = SafetyMonitor(config)
     base = _output_at(config, config.robot.home)
-    edge = Pose((*limits.lower[:2], 1.3), (1.0, 0.0, 0.0, 0.0))
+    corner = int(np.argmin(body.points[:, 0]))  # a corner on the -x side
+    margin = limits.margin[0] + limits.turn * float(body.radii[corner])
+    x = limits.lower[0] + limits.turn * float(body.radii[corner]) - body.points[corner, 0]
+    edge = Pose((x, 0.0, 1.3), (1.0, 0.0, 0.0, 0.0))
     assert limits.violation(edge) is None
-    over = Pose(edge.position - np.array([0.0201, 0.0, 0.0]), edge.quaternion)
+    over = Pose(edge.position - np.array([margin + 1e-4, 0.0, 0.0]), edge.quaternion)
     fault = monitor.check_output(base._replace(pose=over, theta_d=liediff(edge, over)))
-    assert fault.trigger is Trigger.POSE_LIMIT and "position x = -0.3000 m" in fault.message
+    assert fault.trigger is Trigger.POSE_LIMIT and f"platform corner {corner} (" in fault.message
+    assert "at x = -0.5001 m outside [-0.5000, 0.5000] m" in fault.message
+    within = Pose(edge.position - np.array([margin - 1e-4, 0.0, 0.0]), edge.quaternion)
+    output = base._replace(pose=within, theta_d=liediff(edge, within))
+    assert monitor.pose_limits.violation(within) is None and output.feasible

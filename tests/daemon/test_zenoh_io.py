@@ -11,6 +11,7 @@ import asyncio
 import itertools
 import json
 import math
+import os
 import shutil
 import subprocess
 import sys
@@ -31,6 +32,7 @@ from cdpr import Pose
 from cdpr.description import ConfigError, load_yaml, validate_section
 from cdpr.trajectory import Trajectory, TrajectoryError, parse_trajectory
 from daemon.cli import main
+from daemon.config.ros2_config import Ros2Settings
 from daemon.config.zenoh_config import (
     ZenohSettings,
     build_zenoh_config,
@@ -39,8 +41,9 @@ from daemon.config.zenoh_config import (
 )
 from daemon.interface.client import CdprClient, ClientError, RequestError, UnreachableError
 from daemon.interface.messages import decode_trajectory
+from daemon.interface.ros2_bridge import Ros2Bridge, ingress_limits
 from daemon.interface.zenoh_io import PARSE_SHARE, ZenohInterface
-from daemon.service.api import CommandError
+from daemon.service.api import Claim, CommandError
 from tests.loopback import free_port
 
 PREFIX = "cdpr/standin"
@@ -87,8 +90,8 @@ class StandIn:
             return wait_for_drives()
         return {"state": "IDLE", "command": name}
 
-    def submit_trajectory(self, trajectory: Trajectory, start: float | None) -> Any:
-        self._record("trajectory", trajectory, start)
+    def submit_trajectory(self, trajectory: Trajectory, start: float | None, claim: Any) -> Any:
+        self._record("trajectory", trajectory, start, claim)
         if trajectory.duration > 100.0:
             raise CommandError("rejected", "too long for the stand-in", limit="max_duration")
         if trajectory.duration > 10.0:  # validated "between control cycles"
@@ -109,19 +112,22 @@ class StandIn:
         return {
             "state": "IDLE",
             "pose": Pose((0.0, 0.0, 1.25)).as_dict(),
+            "tracking_error": [0.0] * 6,
             "tensions": [float("nan")] * 8,
         }
 
 
 class Running:
     """A ZenohInterface serving `handler` on its own event loop in a thread: with
-    `settings`, or listening on a free loopback port with the `overrides`."""
+    `settings`, or listening on a free loopback port with the `overrides`; with `ros2`,
+    the ROS 2 bridge on its session too, as the companion runs them."""
 
     def __init__(
         self,
         handler: StandIn,
         settings: ZenohSettings | None = None,
         prefix: str = PREFIX,
+        ros2: Ros2Settings | None = None,
         **overrides: Any,
     ) -> None:
         if settings is None:
@@ -130,6 +136,7 @@ class Running:
         self.endpoint = next(iter(settings.listen_endpoints), None)
         self.settings = settings
         self.prefix = prefix
+        self.ros2 = ros2
         self.handler = handler
         self.loop = asyncio.new_event_loop()
         self._ready = threading.Event()
@@ -139,11 +146,18 @@ class Running:
 
     async def _run(self) -> None:
         self.loop_thread = threading.get_ident()
-        self.interface = ZenohInterface(self.settings, self.handler, self.prefix)
+        limits = {} if self.ros2 is None else ingress_limits(self.ros2, self.settings)
+        self.interface = ZenohInterface(self.settings, self.handler, self.prefix, None, limits)
         self._stop = asyncio.Event()
         await self.interface.start()
+        bridge = None
+        if self.ros2 is not None:
+            bridge = Ros2Bridge(self.ros2, self.handler, self.interface)
+            await bridge.start()
         self._ready.set()
         await self._stop.wait()
+        if bridge is not None:
+            await bridge.close()
         await self.interface.close()
 
     def stop(self) -> None:
@@ -297,6 +311,19 @@ def test_a_plain_zenoh_process_commands_and_sees_replies_state_and_events(
     assert running.handler.threads == {running.loop_thread}  # only ever on the loop thread
     # every state snapshot was taken after waiting for the control cycle's slack
     assert 0 < running.handler.state_calls <= running.handler.slack_waits
+
+
+def test_a_trajectory_reaches_the_handler_with_its_senders_claim(running: Running) -> None:
+    """A trajectory's "client" and "preempt" (and its id) reach the handler as its claim
+    (daemon.service.motion), not the trajectory's body; without them, anonymous."""
+    with running.session() as session:
+        named = {**TRAJECTORY, "id": "p-1", "client": "alice@bench:1", "preempt": True}
+        assert ask(session, "trajectory", json.dumps(named))["ok"]
+        assert ask(session, "trajectory", json.dumps(TRAJECTORY))["ok"]
+        bad = {**TRAJECTORY, "client": ""}
+        assert ask(session, "trajectory", json.dumps(bad))["error"]["field"] == "client"
+    claims = [c[3] for c in running.handler.calls if c[0] == "trajectory"]
+    assert claims == [Claim("alice@bench:1", True, "p-1"), Claim()]
 
 
 def test_awaitable_replies_and_events_from_any_thread(running: Running) -> None:
@@ -883,13 +910,16 @@ def test_cli_exit_codes_against_a_stand_in_daemon(
     assert "enable: refused (invalid_state): cannot enable while BRAKED" in capsys.readouterr().err
     handler.refuse_enable = False
     assert cli(running, "enable") == 0
-    assert cli(running, "brake", "--reason", "operator stop") == 0
+    assert cli(running, "brake", "--reason", "operator stop", "--client", "ops desk") == 0
     assert cli(running, "goto", "0.1", "-0.2", "1.2") == 0
     c = math.sqrt(0.5)
-    assert cli(running, "goto", "0", "0", "1", str(c), "0", "0", str(c)) == 0
+    assert cli(running, "goto", "0", "0", "1", str(c), "0", "0", str(c), "--preempt") == 0
     assert [call[0] for call in handler.calls[-5:]] == ["enable", "enable", "brake", "goto", "goto"]
-    assert handler.calls[-3][1] == {"reason": "operator stop"}
+    assert handler.calls[-3][1] == {"reason": "operator stop", "client": "ops desk"}
     assert handler.calls[-2][1]["pose"] == Pose((0.1, -0.2, 1.2))
+    # who asks: user@host:pid unless --client says otherwise; --preempt only if given
+    assert handler.calls[-2][1]["client"].endswith(f":{os.getpid()}")
+    assert "preempt" not in handler.calls[-2][1] and handler.calls[-1][1]["preempt"] is True
     for argv in (["goto", "1", "2"], ["goto", "1", "2", "x"], ["goto", "0", "0", "nan"]):
         calls = len(handler.calls)
         assert cli(running, *argv) == 2, argv
@@ -967,7 +997,7 @@ class Escaping(StandIn):
             return plan()
         return super().command(name, args)
 
-    def submit_trajectory(self, trajectory: Trajectory, start: float | None) -> Any:
+    def submit_trajectory(self, trajectory: Trajectory, start: float | None, claim: Any) -> Any:
         async def validate() -> dict[str, Any]:
             raise TrajectoryError("cable_length", "cable 3 at 4.5 m", waypoint=1, value=4.5)
 
@@ -1028,14 +1058,14 @@ def test_local_senders_of_large_messages_do_not_grow_memory(
     assert sum(growth) < 16 * 2**20
 
 
-# -- exposing the daemon: the configurations of docs/zenoh.md, on loopback -------------------
+# -- exposing the daemon: the configurations of docs/reference/zenoh-api.md, on loopback ----
 
-DOCS = Path(__file__).resolve().parents[2] / "docs" / "zenoh.md"
+DOCS = Path(__file__).resolve().parents[2] / "docs" / "reference" / "zenoh-api.md"
 IDENTITIES = ("cdprd", "router", "planner", "monitor", "intruder")
 
 
 def docs_block(name: str) -> str:
-    """The fenced code block after `<!-- tested: name -->` in docs/zenoh.md."""
+    """The fenced code block after `<!-- tested: name -->` in docs/reference/zenoh-api.md."""
     after = DOCS.read_text(encoding="utf-8").split(f"<!-- tested: {name} -->", 1)[1]
     return after.split("```", 2)[1].split("\n", 1)[1]
 
@@ -1164,7 +1194,7 @@ def test_several_daemons_behind_a_router_with_access_control(
 
 # -- on one host: only the daemon speaks for the robot (config/hardware-template.yaml) ---
 
-TEMPLATE = DOCS.parent.parent / "config" / "hardware-template.yaml"
+TEMPLATE = Path(__file__).resolve().parents[2] / "config" / "hardware-template.yaml"
 FORGED = b'{"version": 1, "forged": true}'
 
 

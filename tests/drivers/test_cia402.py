@@ -756,7 +756,12 @@ def test_brake_frames_position_hold() -> None:
     assert decoded == [(0x0F, expected_1, MODE_CSP), (0x0F, 0, MODE_CSP)]
     # no trusted length for cable 2: power stage off, never a hold at a reported position
     assert codec.decode_rpdo1(0x203, frames[2].data) == (0x07, 0, MODE_CST)
-    assert [bytes(f.data) for f in driver.keepalive()] == [bytes(f.data) for f in frames]
+    again = driver.keepalive()
+    assert [bytes(f.data) for f in again[:3]] == [bytes(f.data) for f in frames]
+    # then each drive is asked by SDO whether it holds (drivers.cia402.hold_check)
+    asked = [codec.decode_sdo_request(f.arbitration_id, f.data) for f in again[3:]]
+    assert [f.arbitration_id for f in again[3:]] == [0x601, 0x602, 0x603]
+    assert {(sdo.kind, sdo.index) for sdo in asked} == {(codec.SdoKind.UPLOAD, 0x6041)}
     driver.commands([0.0] * 3)
     assert driver.keepalive() == []
 

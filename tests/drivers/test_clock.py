@@ -1,4 +1,4 @@
-"""drivers.clock.PeriodicTimer: the timerfd that opens every control cycle."""
+"""drivers.clock: the timerfds that open every control cycle and end its wait for feedback."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import time
 
 import pytest
 
-from drivers.clock import PeriodicTimer
+from drivers.clock import DeadlineTimer, PeriodicTimer
 
 
 def test_expiries_lie_on_the_grid_from_start() -> None:
@@ -39,3 +39,24 @@ def test_the_last_expiry_is_the_grid_point_at_or_before_now() -> None:
         assert timer.last_expiry(100.0) == start
         assert timer.last_expiry(100.0349) == pytest.approx(100.03)
         assert timer.last_expiry(100.03) == pytest.approx(100.03)  # on a tick: that one
+
+
+def test_a_deadline_fires_once_and_rearming_or_disarming_forgets_an_unread_expiry() -> None:
+    with DeadlineTimer() as deadline:
+        assert not deadline.expired()  # never armed
+        deadline.arm(time.monotonic() + 0.005)
+        assert not deadline.expired()  # not yet
+        time.sleep(0.02)
+        assert deadline.expired()
+        assert not deadline.expired()  # once
+        deadline.arm(time.monotonic() - 1.0)  # already past: fires at once
+        time.sleep(0.002)
+        deadline.arm(time.monotonic() + 60.0)  # re-armed before the expiry was read
+        assert not deadline.expired()
+        deadline.arm(time.monotonic())
+        time.sleep(0.002)
+        deadline.disarm()
+        assert not deadline.expired()
+        time.sleep(0.01)
+        assert not deadline.expired()
+

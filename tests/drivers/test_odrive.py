@@ -509,6 +509,14 @@ def test_position_hold_brake_servoes_every_cable_at_its_length() -> None:
         assert pos[:2] == (node, Cmd.SET_INPUT_POS)
         assert pos[2] == pytest.approx((turns, 0.0, 0.0), rel=1e-6)
     assert driver.intent == [Intent.HOLD_POSITION] * 8
+    clock = [0.0]
+    driver._now = lambda: clock[0]  # as start() leaves it
+    # once per feed period the position mode again (firmware 0.6 reports no control
+    # mode: another node may have changed it), then the hold
+    keep = driver.keepalive()
+    no_state = [m.data for m in frames if m.arbitration_id & 0x1F != Cmd.SET_AXIS_STATE]
+    assert [m.data for m in keep] == no_state
+    clock[0] += driver.feed_period / 2
     keep = driver.keepalive()
     assert [m.data for m in keep] == [m.data for m in frames[2::3]]
     assert all(m.arbitration_id & 0x1F == Cmd.SET_INPUT_POS for m in keep)
@@ -638,8 +646,9 @@ def test_position_hold_feeds_the_last_torque_forward() -> None:
     ]
     for i, (_pos, _vel_ff, torque_ff) in enumerate(holds):
         assert torque_ff == pytest.approx(driver.scalings[i].motor_torque(forces[i]), abs=6e-4)
+    # a keepalive due to feed (no clock: always) asks for position control again too
     assert [m.data for m in driver.keepalive()] == [
-        m.data for m in driver.brake([1.0] * 8, BrakeMode.POSITION_HOLD)[1::2]
+        m.data for m in driver.brake([1.0] * 8, BrakeMode.POSITION_HOLD)
     ]
     driver.disable()
     heartbeats(driver, AxisState.IDLE)
@@ -754,3 +763,31 @@ def test_flood_of_malformed_frames() -> None:
             driver.receive(message, 0.0)
     assert driver.counters.rejected["Get_Encoder_Estimates.non_finite"] == 16000
     assert all(f.count == 0 and math.isnan(f.length) for f in driver.feedback)
+
+
+def test_a_hold_is_confirmed_by_heartbeat_and_an_axis_moved_by_another_node_is_asked_back() -> None:
+    """Position hold: confirmed by a heartbeat in closed loop; another node's IDLE makes it
+    unconfirmed (no brake) and the host asks for closed loop again.  Holding brake: IDLE
+    confirms; another node's closed loop is undone by asking for IDLE again."""
+    driver = make_driver()
+    heartbeats(driver, AxisState.CLOSED_LOOP_CONTROL)
+    driver.brake([1.0] * 8, BrakeMode.POSITION_HOLD)
+    assert [s.held for s in driver.status] == [None] * 8  # asked, not yet seen
+    heartbeats(driver, AxisState.CLOSED_LOOP_CONTROL)
+    assert [s.held for s in driver.status] == [True] * 8
+    driver.receive(codec.encode_heartbeat(NODES[3], 0, AxisState.IDLE), 1.0)
+    assert driver.status[3].held is False
+    assert f"ODrive node {NODES[3]}: IDLE, not its hold" in driver.status[3].hold_problem
+    asked = decoded(driver.keepalive())
+    assert (NODES[3], Cmd.SET_AXIS_STATE, AxisState.CLOSED_LOOP_CONTROL) in asked
+    assert sum(cmd is Cmd.SET_AXIS_STATE for _, cmd, _ in asked) == 1
+
+    braked = make_driver(has_holding_brake=True, brake="holding_brake")
+    heartbeats(braked, AxisState.IDLE)
+    braked.brake([1.0] * 8, BrakeMode.HOLDING_BRAKE)
+    heartbeats(braked, AxisState.IDLE)
+    assert [s.held for s in braked.status] == [True] * 8
+    braked.receive(codec.encode_heartbeat(NODES[5], 0, AxisState.CLOSED_LOOP_CONTROL), 1.0)
+    assert braked.status[5].held is False
+    asked = [m for m in braked.keepalive() if not m.is_remote_frame]  # watchdog feeds aside
+    assert decoded(asked) == [(NODES[5], Cmd.SET_AXIS_STATE, AxisState.IDLE)]

@@ -20,6 +20,8 @@ from drivers.cia402 import codec
 from drivers.config import parse_drives
 from tests.processes import serve_simulator
 
+pytestmark = pytest.mark.slow  # the daemon as processes: the slow suites (CI runs them)
+
 ROOT = Path(__file__).resolve().parents[2]
 CONFIG = ROOT / "config" / "reference8-cia402.yaml"
 

@@ -52,15 +52,28 @@ def configs(tmp_path: Path, load_mass: float) -> tuple[Path, dict]:
         mismatch={"m0_scale": 1.3, "k0_scale": 0.7},
     )
     sim = tmp_path / "sim.yaml"
-    sim.write_text(yaml.safe_dump({**data, "sim": {**data["sim"], "rig": {
-        "drive": DRIVE, "load_mass": load_mass}}}))
+    sim.write_text(
+        yaml.safe_dump(
+            {**data, "sim": {**data["sim"], "rig": {"drive": DRIVE, "load_mass": load_mass}}}
+        )
+    )
     return sim, data
 
 
 def tune(config: Path, *options: str) -> subprocess.Popen:
     return subprocess.Popen(
-        [sys.executable, "-m", "daemon.cli", "tune", "--config", str(config),
-         "--drive", str(DRIVE), "--json", *options],
+        [
+            sys.executable,
+            "-m",
+            "daemon.cli",
+            "tune",
+            "--config",
+            str(config),
+            "--drive",
+            str(DRIVE),
+            "--json",
+            *options,
+        ],
         cwd=ROOT,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
@@ -91,6 +104,7 @@ def listening(port: int, channel: str) -> Iterator[list[can.Message]]:
         bus.shutdown()
 
 
+@pytest.mark.slow  # real-time experiments, 10-20 s each
 def test_tune_identifies_a_winch_over_the_bus_in_real_time(tmp_path: Path) -> None:
     sim_config, data = configs(tmp_path, 0.0)
     sim, port, channel = serve_simulator(sim_config)
@@ -138,6 +152,7 @@ def test_a_slack_cable_over_the_bus_brakes_and_says_why(tmp_path: Path) -> None:
     assert hold in ids[last_torque:], "no position hold after the last torque command"
 
 
+@pytest.mark.slow  # real-time experiments, 10-20 s each
 def test_tune_sim_runs_in_real_time_on_the_in_process_simulator(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

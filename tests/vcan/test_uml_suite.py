@@ -9,7 +9,7 @@ import guest_suite
 import pytest
 import uml
 
-pytestmark = pytest.mark.vcan
+pytestmark = [pytest.mark.vcan, pytest.mark.slow]
 
 
 @pytest.mark.timeout(uml.DEFAULT_TIMEOUT + 60)  # the guest run has its own, shorter, bound

@@ -15,10 +15,11 @@ Settings are for the UML guest (tests/vcan/README.md), which runs every process 
 emulated CPU where each system call traps, whose timers fire late (by up to 7 ms, more
 when little else keeps its kernel busy) and which stalls for up to 150 ms when its host
 is busy: the loop runs at 100 Hz with gains tuned for that rate, feedback may be late by
-90 % of a period and missing for 10 cycles before it counts as stale, the drive
-watchdogs wait 500 ms, ODrives stream at 200 Hz, the simulator wakes every 2 ms (5 ms
-with ODrives; its plant still steps every 1 ms), and the daemon and simulator run at
-real-time priority when the host allows it, as on a real controller.
+90 % of a period and missing for 20 cycles (200 ms, over the longest stall) before it
+counts as stale, the drive watchdogs wait 500 ms, ODrives stream at 200 Hz, the
+simulator wakes every 2 ms (5 ms with ODrives; its plant still steps every 1 ms), and
+the daemon and simulator run at real-time priority when the host allows it, as on a real
+controller.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ import contextlib
 import json
 import os
 import re
+import shlex
 import signal
 import subprocess
 import sys
@@ -46,15 +48,16 @@ import yaml
 from daemon.interface.client import CdprClient, ClientError
 from drivers.cia402 import codec as cia402
 from tests.loopback import free_port
-from tests.processes import patient_watchdogs, realtime_child
+from tests.processes import assert_still, patient_watchdogs, realtime_child, truth
 
-pytestmark = [pytest.mark.vcan, pytest.mark.timeout(240)]
+pytestmark = [pytest.mark.vcan, pytest.mark.timeout(240), pytest.mark.slow]
 
 ROOT = Path(__file__).resolve().parents[2]
 CHANNEL = "vcan0"
 CHANNELS = ("vcan0", "vcan1")  # the guest's interfaces (tests/vcan/uml.py)
 PREFIX = "cdpr/reference8"
 RATE_HZ = 100
+CAPTURE_BUFFER = 8 << 20  # bytes of candump's socket receive buffer
 # candump -L: "(1700000000.123456) vcan0 123#DEADBEEF"; a remote frame "123#R" or "123#R8"
 CANDUMP_LINE = re.compile(r"^\((\d+\.\d+)\) (\S+) ([0-9A-F]{3}|[0-9A-F]{8})#(R\d?|[0-9A-F]*)$")
 HOME = np.array([0.0, 0.0, 1.25])
@@ -110,7 +113,7 @@ def _write_config(
     data["zenoh"]["listen"] = [f"tcp/127.0.0.1:{port}"]
     # UML's timers are coarse and its processes stall for tens of milliseconds (see the
     # module docstring): wider feedback deadlines and drive watchdogs than on hardware
-    data["safety"].update(stale_cycles=10, feedback_deadline=0.9)
+    data["safety"].update(stale_cycles=20, feedback_deadline=0.9)
     # ... and a stall of 100+ ms leaves the plausibility checks two samples a long gap
     # apart, over which noisy rates (and streamed estimates carried forward) predict the
     # motion to a few mm, not the 1 mm of a steady host
@@ -121,7 +124,9 @@ def _write_config(
     patient_watchdogs(data, 0.5)
     if protocol is ODRIVE:  # 8 x 500 streamed estimates a second saturate the guest
         data["drives"]["feedback_rate_hz"] = 2 * RATE_HZ
-    data["sim"]["wake_period"] = 0.005 if protocol is ODRIVE else 0.002
+    # the drives answer frames as they come, latched at their stamps (sim_bus.runner):
+    # wakes only time heartbeats, watchdogs and streams, and each costs the guest dearly
+    data["sim"]["wake_period"] = 0.005
     # the daemon's core below the simulator (_realtime): the drives answer SYNC at once,
     # as real ones do on their own processors, whatever the core does meanwhile
     data["realtime"] = {"priority": 30}
@@ -132,8 +137,12 @@ def _write_config(
     return path
 
 
-def _cansend(frame: str, channel: str = CHANNEL) -> None:
-    subprocess.run(["cansend", channel, frame], check=True, timeout=10)
+def _cansend(*frames: str, channel: str = CHANNEL) -> None:
+    """`cansend` each of `frames` in turn, from one shell: in a UML guest forking this
+    Python process takes a good part of a second, which a goto being flown does not
+    wait for."""
+    script = "; ".join(f"cansend {channel} {shlex.quote(frame)}" for frame in frames)
+    subprocess.run(["sh", "-ec", script], check=True, timeout=10)
 
 
 @dataclass
@@ -212,7 +221,11 @@ class Watch:
 
     def _last_words(self) -> str:
         last = self.latest() if self.states else {}
-        return f"last state {last.get('state')!r}, fault {last.get('fault')!r}"
+        drives = [(d.get("state"), d.get("fault")) for d in last.get("drives", [])]
+        return (
+            f"last state {last.get('state')!r}, fault {last.get('fault')!r}, drives {drives}, "
+            f"frames {last.get('frames')}"
+        )
 
     def wait_event(self, name: str, timeout: float, since: int = 0) -> dict[str, Any]:
         end = time.monotonic() + timeout
@@ -279,6 +292,22 @@ def _stop(proc: subprocess.Popen, sig: int = signal.SIGTERM, timeout: float = 20
         raise AssertionError(f"{proc.args[:4]} did not stop within {timeout} s") from None
 
 
+def _stop_capture(candump: subprocess.Popen, capture: Path, timeout: float = 20.0) -> None:
+    """Stop `candump` once it has written what it still had queued: a candump kept from
+    the CPU by the real-time processes falls seconds behind, and SIGINT ends it without
+    reading its socket's backlog (an EMCY sent a second before the end was missing).
+    Called after the daemon and the simulator stopped: the capture grows until candump
+    has caught up, then its size stands still."""
+    end, size = time.monotonic() + timeout, -1
+    while time.monotonic() < end and candump.poll() is None:
+        now = capture.stat().st_size
+        if now == size:
+            break
+        size = now
+        time.sleep(1.0)
+    _stop(candump, signal.SIGINT)
+
+
 @contextlib.contextmanager
 def running_stack(
     protocol: Protocol,
@@ -298,8 +327,12 @@ def running_stack(
     python = sys.executable
     with contextlib.ExitStack() as stack:
         dump_out = stack.enter_context(capture.open("w"))
-        candump = subprocess.Popen(["candump", "-L", *channels], stdout=dump_out)
-        stack.callback(_stop, candump, signal.SIGINT)
+        # an 8 MiB socket buffer (SO_RCVBUFFORCE as root): with the default, candump fell
+        # behind in a loaded guest and lost frames, among them a garbage frame under test
+        candump = subprocess.Popen(
+            ["candump", "-L", "-r", str(CAPTURE_BUFFER), *channels], stdout=dump_out
+        )
+        stack.callback(_stop_capture, candump, capture)
         sim_log = stack.enter_context((logs / "sim.log").open("w"))
         simulator = subprocess.Popen(
             [python, "-m", "sim_bus", "--config", str(config), "--fault-input", *sim_args],
@@ -384,7 +417,10 @@ def _garbage_is_refused(stack: Stack) -> None:
         "the malformed frames counted as rejected",
     )
     assert after["state"] == "hold" and after["fault"] is None
-    assert np.linalg.norm(_position(after) - _position(before)) < 0.001
+    # a malformed estimate taken for a length would move it by centimetres; a guest on
+    # a busy host holds within a millimetre or two
+    moved = np.linalg.norm(_position(after) - _position(before))
+    assert moved < 0.003, f"the platform moved {moved * 1e3:.1f} mm"
 
 
 def _brake_event(
@@ -427,13 +463,15 @@ def _emergency_brakes(stack: Stack) -> None:
     """A stranger's emergency frame for cable 2 brakes the robot.  A CiA 402 EMCY is a
     drive fault at once.  An ODrive obeys Estop by disarming: its drum turns free (the
     documented limit of brake-less ODrives) and the daemon brakes on whichever comes
-    first, the sagging platform or the heartbeat's error; every other cable is held."""
+    first, the sagging platform (its error, its FK residual, or the wrench the free drum
+    no longer balances, seen by the observer) or the heartbeat's error; every other
+    cable is held."""
     if stack.protocol is CIA402:
         brake = _brake_event(stack, lambda: _cansend(CIA402.emergency))
         assert "drive 2" in brake["message"] and "0x2310" in brake["message"], brake
         _lengths_stay_frozen(stack.watch, list(range(8)))
         return
-    triggers = ("drive_fault", "fk_residual", "tracking_error")
+    triggers = ("drive_fault", "fk_residual", "tracking_error", "external_wrench")
     _brake_event(stack, lambda: _cansend(ODRIVE.emergency), triggers)
     stack.watch.wait_state(
         lambda s: "ESTOP_REQUESTED" in (s["drives"][2]["fault"] or ""), 5, "node 2's Estop"
@@ -489,9 +527,11 @@ def _check_cia402_capture(capture: Path) -> None:
         pdo.data = bytearray(data)  # canopen decodes every mapped object from these bytes
         for entry in pdo.map:
             values.get(entry.index, []).append(entry.raw)
-    assert sorted(odd) == [0x183, 0x283], "only the garbage PDOs have the wrong size"
+    assert sorted(odd) == [0x183, 0x283], (
+        f"only the garbage PDOs have the wrong size: {[hex(i) for i in odd]}"
+    )
     assert syncs > 3 * RATE_HZ, f"{syncs} SYNC frames"
-    assert emcy == 1, "the cansend EMCY is in the capture"
+    assert emcy == 1, f"the cansend EMCY is in the capture once: {emcy} times"
     assert len(values[0x6064]) > 8 * 3 * RATE_HZ, "positions of every drive, every cycle"
     assert any(word & 0x6F == 0x27 for word in values[0x6041]), "operation enabled was seen"
     assert sum(1 for t in values[0x6071] if t != 0) > 8 * RATE_HZ, "torque was commanded"
@@ -518,7 +558,9 @@ def _check_odrive_capture(capture: Path) -> None:
         counts[name] = counts.get(name, 0) + 1
         if name == "Set_Input_Torque":
             torques.append(decoded["Input_Torque"])
-    assert sorted(odd) == [0x041, 0x049], "only the garbage frames have the wrong size"
+    assert sorted(odd) == [0x041, 0x049], (
+        f"only the garbage frames have the wrong size: {[hex(i) for i in odd]}"
+    )
     assert counts.get("Heartbeat", 0) > 8 * 3, counts
     assert counts.get("Get_Encoder_Estimates", 0) > 8 * 3 * RATE_HZ, counts
     assert counts.get("Estop", 0) == 1, counts
@@ -580,3 +622,58 @@ def test_the_daemon_brakes_and_exits_when_vcan0_goes_down(tmp_path: Path) -> Non
     # the start-up's lines (both processes: ~6), the failures, the brake, the exit
     assert len(lines) <= 15 and "Traceback" not in "\n".join(lines), lines
     assert any("exiting with code 69" in line for line in lines), lines
+
+
+# a UML guest takes ~90 s per case: each command once here, the whole matrix in-process
+# and over socketcand (tests/daemon/test_foreign_nmt*.py)
+FOREIGN = [
+    (CIA402, "0200", True),
+    (CIA402, "8000", False),
+    (CIA402, "8200", False),
+    (ODRIVE, "idle", True),
+]
+
+
+@pytest.mark.parametrize(
+    ("protocol", "command", "tracking"),
+    FOREIGN,
+    ids=[f"{p.name}-{c}-{'tracking' if t else 'holding'}" for p, c, t in FOREIGN],
+)
+def test_another_node_s_command_on_vcan0_ends_in_a_confirmed_hold(
+    protocol: Protocol, command: str, tracking: bool, tmp_path: Path
+) -> None:
+    """`cansend vcan0 000#0200` (NMT stop; 8000 pre-operational, 8200 reset communication)
+    to CiA 402 drives that hold or fly a goto: the drives then process no PDO (the
+    daemon's hold RPDO cannot reach them), so the daemon brakes, reaches each drive by SDO
+    (drivers.cia402.hold_check) and says every hold is confirmed.  ODrive: Set_Axis_State
+    (IDLE) to every axis: the daemon brakes on a drive no longer powered and confirms each
+    hold by heartbeat.  The simulator's TRUE platform (--truth-log) stays within 2 mm for
+    3 s after the brake."""
+    truth_log = tmp_path / "truth.jsonl"
+    stack: Stack | None = None
+    try:
+        with running_stack(protocol, tmp_path, sim_args=("--truth-log", str(truth_log))) as stack:
+            client, watch = stack.client, stack.watch
+            assert client.enable()["state"] == "hold"
+            watch.wait_state(lambda s: s["state"] == "hold" and "pose" in s, 10, "holding")
+            if tracking:
+                assert client.goto(GOAL.tolist())["accepted"]
+                watch.wait_state(lambda s: s["state"] == "tracking", 10, "tracking")
+            if protocol is CIA402:
+                _cansend(f"000#{command}")
+            else:  # Set_Axis_State(IDLE) to every axis, 8 bytes as ODrive's DBC has it
+                _cansend(*(f"{node << 5 | 0x07:03X}#0100000000000000" for node in range(8)))
+            watch.wait_state(lambda s: s["state"] == "braked", 10, "braked")
+            time.sleep(0.5)  # a brake at speed comes to rest
+            start = truth(truth_log)[-1]
+            watch.wait_state(lambda s: (s["brake"] or {}).get("confirmed"), 10, "confirmed")
+            time.sleep(3.0)
+            assert watch.latest()["brake"]["confirmed"], watch.latest()["brake"]
+            after = [t for t in truth(truth_log) if t["t"] >= start["t"]]
+            assert _stop(stack.daemon) == 0
+    except BaseException:
+        for log in sorted((tmp_path / "logs").glob("*.log")):
+            print(f"----- {log.name} -----\n{log.read_text()[-4000:]}")
+        raise
+    assert len(after) > 10
+    assert_still(after, start)

@@ -14,7 +14,7 @@ import pytest
 from daemon.service.bus_port import BusPort
 from drivers.bus import FRAMES_PER_PASS
 
-pytestmark = [pytest.mark.vcan, pytest.mark.timeout(120)]
+pytestmark = [pytest.mark.vcan, pytest.mark.timeout(120), pytest.mark.slow]
 
 CHANNEL = "vcan0"
 FLOOD = 20_000

@@ -15,7 +15,7 @@ from collections.abc import Iterator
 import can
 import pytest
 
-pytestmark = pytest.mark.vcan
+pytestmark = [pytest.mark.vcan, pytest.mark.slow]
 
 CHANNEL = "vcan0"
 RECV_TIMEOUT = 2.0

@@ -23,7 +23,7 @@ from test_vcan_end_to_end import (
 
 from drivers.cia402 import codec as cia402
 
-pytestmark = [pytest.mark.vcan, pytest.mark.timeout(240)]
+pytestmark = [pytest.mark.vcan, pytest.mark.timeout(240), pytest.mark.slow]
 
 # node 3 is on both buses: cable 2 on vcan0, cable 4 on vcan1
 NODES = [1, 2, 3, 4, 3, 5, 6, 7]
@@ -54,8 +54,8 @@ def test_cia402_drives_on_vcan0_and_vcan1(tmp_path: Path) -> None:
             _check_flight(stack, flight)
             before = stack.watch.wait_settled(15)
             for _ in range(10):  # node 1 (cable 0, on vcan0) forged on vcan1, 1 m off
-                _cansend(f"181#3712{(10**7).to_bytes(4, 'little').hex()}0A", "vcan1")
-                _cansend("281#00000000", "vcan1")
+                forged = f"181#3712{(10**7).to_bytes(4, 'little').hex()}0A"
+                _cansend(forged, "281#00000000", channel="vcan1")
             after = stack.watch.wait_state(lambda s: True, 5, "a state after the forgery")
             assert after["state"] == "hold" and after["fault"] is None, after
             assert abs(after["lengths"][0] - before["lengths"][0]) < 0.002

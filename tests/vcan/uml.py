@@ -42,7 +42,7 @@ CHANNEL = "vcan0"
 CHANNELS = ("vcan0", "vcan1")  # the guest's interfaces (drives on two buses need both)
 GUEST_ENV = "CDPR_IN_UML"
 """Set to ``1`` in the guest's environment."""
-DEFAULT_TIMEOUT = 600.0
+DEFAULT_TIMEOUT = 1200.0  # the whole vcan suite in one guest: ~6-10 min on a 2-CPU host
 INSTALL_HINT = "apt-get install user-mode-linux busybox-static can-utils gcc"
 
 KERNEL = "linux.uml"

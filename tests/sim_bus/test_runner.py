@@ -1,0 +1,61 @@
+"""The simulator's clock against the frames: a drive latches on a SYNC at the instant the
+SYNC was sent (its stamp), between plant steps and also when this process was held up
+before the simulator read it, as a real drive on its own processor does."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+
+import can
+import numpy as np
+import pytest
+
+from daemon.cli.simulated import InProcessSimulator
+from drivers.cia402.codec import SYNC_ID
+from sim_bus.plant.config import EncoderConfig
+from sim_bus.plant.encoder import Encoders
+from tests.daemon_stack import config_for
+
+
+def test_a_reading_between_steps_is_carried_on_at_the_last_steps_rate() -> None:
+    encoders = Encoders(
+        EncoderConfig(counts_per_metre=None), 2, step=1e-3, rng=np.random.default_rng(0)
+    )
+    encoders.reset([1.0, 2.0], [0.5, -1.0])
+    lengths, rates = encoders.read()
+    assert lengths.tolist() == [1.0, 2.0]
+    ahead, ahead_rates = encoders.read(0.4e-3)
+    assert ahead == pytest.approx([1.0 + 0.5 * 0.4e-3, 2.0 - 1.0 * 0.4e-3], abs=1e-12)
+    assert ahead_rates == pytest.approx(rates, abs=1e-9)
+
+
+def test_a_sync_read_late_is_taken_at_the_moment_it_was_sent() -> None:
+    """The loop is held up 50 ms between the SYNC's send and the simulator's read: the
+    drives take it at its stamp, not 50 ms later."""
+
+    async def scenario() -> tuple[float, list[float]]:
+        sim = InProcessSimulator(config_for("cia402"))
+        taken: list[float] = []
+        handle = sim.robot.handle
+
+        def spy(message: can.Message, t: float) -> list[can.Message]:
+            if message.arbitration_id == SYNC_ID:
+                taken.append(t)
+            return handle(message, t)
+
+        sim.robot.handle = spy  # type: ignore[method-assign]
+        sim.start()
+        try:
+            await asyncio.sleep(0.02)
+            sent = sim.runner.t
+            sim.daemon_bus.send(can.Message(arbitration_id=SYNC_ID, is_extended_id=False))
+            time.sleep(0.05)  # this process held up: the simulator reads the SYNC late
+            await asyncio.sleep(0.02)
+            return sent, taken
+        finally:
+            sim.close()
+
+    sent, taken = asyncio.run(scenario())
+    assert len(taken) == 1
+    assert taken[0] == pytest.approx(sent, abs=0.01)  # read at sent + 0.05 or later
