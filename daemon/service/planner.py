@@ -201,7 +201,10 @@ class Planner:
         async def plan(current: Reference, begin: float) -> Trajectory:
             not_before = begin if start is None else max(begin, link.now() + start - time.time())
             shifted = trajectory.shifted(not_before - trajectory.start_time)
-            state = current
+            # first from where the current motion is at the start (at rest if it ends by
+            # then): an approach that begins after the motion's end is found at once, not
+            # after plans from states of the motion that may not reach it in the attempts
+            state, _ = await link.reference_at(shifted.start_time)
             for _ in range(SETTLE_ATTEMPTS):
                 planned = await link.run_steps(approach_steps(state, shifted, limits))
                 if planned.start_time < begin:  # the blend would start in the past

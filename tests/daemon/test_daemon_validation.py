@@ -209,23 +209,33 @@ def test_a_start_ahead_while_moving_waits_for_the_motion_and_never_jumps() -> No
     whose approach would begin while the goto still moves is refused."""
 
     async def scenario() -> None:
-        config = config_for("cia402")
+        # slow motions (a 0.3 m goto takes 2.25 s): the refusal below needs the goto still
+        # under way when the submission is planned, however slow the host
+        limits = {"linear_speed": 0.25, "angular_speed": 2.0, "linear_accel": 5.0}
+        config = config_for("cia402", trajectory={**limits, "angular_accel": 10.0})
         async with Stack(config) as stack:
             service = stack.service
             refs = record_references(service)
             await stack.enable()
-            await stack.planner.command("goto", {"pose": _home(config, dx=0.3)})  # ~0.9 s
-            # its approach (~0.6 s from the goto's end) would begin 0.4 s from now
+            goto = await stack.planner.command("goto", {"pose": _home(config, dx=0.3)})  # 2.25 s
+            goto_end = time.time() + goto["end"] - service.now()  # on the wall clock
+            # a short approach (~0.2 s) from the goto's target: to start just after the
+            # goto's end, it would begin while the goto still moves
             trajectory = Trajectory(
-                [Waypoint(0.0, _home(config, dy=0.1)), Waypoint(1.0, _home(config, dy=0.2))]
+                [
+                    Waypoint(0.0, _home(config, dx=0.3, dy=0.02)),
+                    Waypoint(1.0, _home(config, dx=0.3, dy=0.12)),
+                ]
             )
             with pytest.raises(CommandError) as info:
-                await stack.planner.submit_trajectory(trajectory, time.time() + 1.0)
+                await stack.planner.submit_trajectory(trajectory, goto_end + 0.05)
             assert info.value.details["limit"] == "start"
             assert "still under way" in info.value.reason
-            reply = await stack.planner.submit_trajectory(trajectory, time.time() + 2.0)
-            assert reply["accepted"] and service.machine.state is SafetyState.TRACKING
-            await stack.until(lambda: service.machine.state is SafetyState.HOLD, 2.0)
+            reply = await stack.planner.submit_trajectory(trajectory, goto_end + 1.0)
+            assert reply["accepted"]
+            # the goto (which begins PLANNING_LEAD after its command) runs, ends, and so on
+            await stack.until(lambda: service.machine.state is SafetyState.TRACKING, 1.0)
+            await stack.until(lambda: service.machine.state is SafetyState.HOLD, 4.0)
             await stack.until(lambda: service.machine.state is SafetyState.TRACKING, 3.0)
             await stack.until(lambda: service.machine.state is SafetyState.HOLD, 4.0)
             await asyncio.sleep(0.05)  # a few cycles in HOLD
