@@ -150,6 +150,8 @@ class Service:
         # (empty until it has homed)
         self.collector = CollectorPolicy()
         self._extrapolation_limit = 2.0 / config.drives.feedback_rate_hz
+        self._silence_limit = config.safety.stale_cycles * self.period
+        self._latched = [-math.inf] * self.n  # the SYNC instant of each drive's last answer
 
     # -- lifecycle --------------------------------------------------------------------
 
@@ -350,19 +352,34 @@ class Service:
         self, feedback: list[Feedback]
     ) -> tuple[list[bool], list[float], list[float]]:
         """Per drive: whether its feedback is fresh (new since the cycle opened), its
-        length and its rate; the counts are kept to judge the next cycle's freshness."""
+        length carried to the cycle's instant, and its rate; the counts are kept to judge
+        the next cycle's freshness.
+
+        Each length describes the cable at the cycle's instant, so that together they
+        describe one pose (DESIGN §8): a sample taken earlier is carried forward at its
+        rate.  Streamed feedback (Timing.CYCLIC) is sampled at each drive's own time, at
+        most two intervals back (older samples are late, and their rate noise would grow
+        with age).  A SYNC drive's fresh answer was latched at this cycle's SYNC; a stale
+        one at the SYNC of its last answer, carried at most the cycles a drive may stay
+        silent: left a period old while the platform moves, it would put FK a period's
+        motion off (a millimetre at 0.1 m/s and 100 Hz) and fail its own-rate check."""
         counts = [fb.count for fb in feedback]
         fresh = [c > seen for c, seen in zip(counts, self._counts, strict=True)]
         self._counts = counts
         rates = [fb.rate for fb in feedback]
-        if self.driver.timing is not Timing.CYCLIC:
-            return fresh, [fb.length for fb in feedback], rates
-        # Streamed feedback: each cable was sampled at its own time; carried to the
-        # cycle's instant with its rate, the lengths describe one pose (DESIGN §8).
-        # Never forward by more than two intervals: older samples are late, and their
-        # rate noise would grow with age.
-        instant, reach = self._opened, self._extrapolation_limit
-        lengths = [fb.length + fb.rate * min(instant - fb.stamp, reach) for fb in feedback]
+        instant = self._opened
+        if self.driver.timing is Timing.CYCLIC:
+            reach = self._extrapolation_limit
+            lengths = [fb.length + fb.rate * min(instant - fb.stamp, reach) for fb in feedback]
+            return fresh, lengths, rates
+        latched, reach = self._latched, self._silence_limit
+        lengths = []
+        for k, fb in enumerate(feedback):
+            if fresh[k]:
+                latched[k] = instant
+                lengths.append(fb.length)
+            else:
+                lengths.append(fb.length + fb.rate * min(instant - latched[k], reach))
         return fresh, lengths, rates
 
     def _after_commands(self, output: ControlOutput | None, sent: float) -> None:
