@@ -50,6 +50,18 @@ class CanopenActuator(VirtualDrive):
         self.actuation = Actuation.POSITION
         self.latched = True  # holding the length it latched (here: the first measured)
         self.readings: deque[tuple[int, int]] = deque(maxlen=HISTORY)  # one per plant step
+        drive.node.add_read_callback(self._torque_actual)
+
+    def _torque_actual(self, index: int, subindex: int, od: object) -> int | None:
+        """Torque actual 0x6077 when read (by SDO or into a TPDO): what the power stage
+        produces, as its current sensing says.  Worked out on reading rather than after
+        every plant step: eight drives' stores at the plant's rate held the lock and the
+        GIL long enough to make canopen's answers to SYNC miss the cycle's deadline."""
+        if index != 0x6077:
+            return None  # the object's stored value
+        rated = self.drive.value(0x6076)
+        permille = self.scaling.motor_torque(self.produced, self.length) * 1e6 / rated
+        return max(-0x8000, min(0x7FFF, round(permille)))
 
     def measure(self, length: float, rate: float) -> None:
         super().measure(length, rate)
@@ -73,9 +85,6 @@ class CanopenActuator(VirtualDrive):
         """After a plant step: the consumer heartbeat, then what the power stage does."""
         drive = self.drive
         drive.check_heartbeat(time.monotonic())
-        # torque actual 0x6077: what the power stage produced, as its current sensing says
-        permille = self.scaling.motor_torque(self.produced, self.length) * 1e6 / drive.value(0x6076)
-        drive.store(0x6077, "<h", max(-0x8000, min(0x7FFF, round(permille))))
         statusword, mode = drive.value(0x6041), drive.value(0x6061)
         if statusword == ENABLED and mode == 10:
             torque = drive.value(0x6071) * drive.value(0x6076) / 1e6  # N·m
@@ -121,6 +130,8 @@ class CanopenRobot:
         network.subscribe(0x080, self._on_sync)
         self._truth: list[tuple[float, float, float, float]] = []
         self._synced = math.nan  # wall-clock stamp of the latest SYNC
+        self._period = 1.0 / config.controller.rate_hz  # s between two SYNCs
+        self.unanswered = 0  # SYNCs seen too late to answer (`_on_sync`)
         self._delays: deque[float] = deque(maxlen=100_000)  # s, SYNC to each command
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="canopen-plant", daemon=True)
@@ -163,7 +174,13 @@ class CanopenRobot:
     def _on_sync(self, can_id: int, data: bytearray, timestamp: float) -> None:
         """Every drive answers a SYNC with the encoder readings of the moment the SYNC
         was sent (its frame's stamp), however late canopen's thread sees it, as a drive
-        latches its inputs at the SYNC (the plant waits until they all have)."""
+        latches its inputs at the SYNC (the plant waits until they all have).  A SYNC
+        seen a period or more after it was sent (canopen's thread held up) goes
+        unanswered: the next one is on the bus by then, and a host takes an answer as the
+        newest SYNC's (a real drive answers within microseconds, or not at all)."""
+        if time.time() - timestamp >= self._period:
+            self.unanswered += 1
+            return
         with self._lock:
             self._synced = timestamp
             self._advance()

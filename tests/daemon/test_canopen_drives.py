@@ -65,6 +65,13 @@ CHANNELS = itertools.count()
 CONSUMER = 0.5
 PROCESS_CONSUMER = 1.0  # s: the same with three processes and TCP relays on a busy host
 CANOPEN_DRIFT = 50.0  # m: safety.max_watchdog_drift for these consumer times (27 m at 1 s)
+# canopen answers every SYNC from its one thread, sharing the GIL with the plant's thread
+# and (here) the daemon: measured in this process at 100 Hz while flying, the eight
+# drives' answers were complete 2.3 ms after the SYNC (median), 4-5 ms (p99), up to 8 ms,
+# and the default deadline (half the period) missed them often enough to brake on stale
+# feedback (CI: 2 of 4 flights).  A real drive answers within microseconds; this is the
+# test host's limit, not the daemon's default.
+SAFETY = {"max_watchdog_drift": CANOPEN_DRIFT, "feedback_deadline": 0.8}
 # Truth against reference, measured on a loaded 2-CPU host: RMS 0.2-0.8 mm, worst
 # 0.5-2.4 mm in this process (one run of 11 beside two CPU hogs: 5.9 mm); against `cdprd
 # run` RMS 0.7-1.6 mm, worst 2-4.9 mm, most of it the reference's time: a published
@@ -108,7 +115,7 @@ def canopen_config(channel: str) -> DaemonConfig:
         data["can"] = {"interface": "virtual", "channel": channel}
         data["controller"].update(rate_hz=RATE_HZ, pid=PID_AT_RATE)
         data["drives"].update(DRIVES)
-        data.setdefault("safety", {})["max_watchdog_drift"] = CANOPEN_DRIFT
+        data.setdefault("safety", {}).update(SAFETY)
 
     return load_config(DRIVER_CONFIGS["cia402"], edit)
 
@@ -281,6 +288,7 @@ async def _fly_and_end(
             print(f"{name}: {len(references) - first} cycles, {missed} feedback deadlines missed")
             check_tracking(name, tracking_errors(np.array(references[first:]), robot.truth(since)))
         print_delays(robot.command_delays())
+        print(f"{robot.unanswered} SYNCs seen too late to answer")
         assert all(d.value(0x6041) == ENABLED and d.value(0x6061) == 10 for d in drives)
         assert all(any(t != 0 for t in d.torques) for d in drives), "torque commanded"
         ended = time.monotonic()
@@ -455,7 +463,7 @@ def test_cdprd_run_flies_canopen_drives_in_another_process(
     data["drives"].update(
         DRIVES, heartbeat_timeout=PROCESS_CONSUMER, consumer_heartbeat_time=PROCESS_CONSUMER
     )
-    data["safety"]["max_watchdog_drift"] = CANOPEN_DRIFT
+    data["safety"].update(SAFETY)
     data["controller"].update(rate_hz=RATE_HZ, pid=PID_AT_RATE)
     (tmp_path / "drives.yaml").write_text(yaml.safe_dump(data))
     drives, port = _drives_process(tmp_path / "drives.yaml")
