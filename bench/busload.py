@@ -44,7 +44,7 @@ COMPACT = CONFIGS / "reference8-cia402-2bus.yaml"  # its drives.profile: the com
 LAYOUTS = ("compact", "default")
 BUSES = (1, 2, 4)  # buses the 8 drives are spread over, evenly
 RATES = (500, 1000)
-GOALS = {2: 0.70, 4: 0.40}  # issue 18: most loaded bus at 1 kHz, 2 and 4 buses
+GOALS = {2: 0.70, 4: 0.40}  # most loaded bus at 1 kHz, 2 and 4 buses
 
 
 def spread(buses: int, bitrate: int, layout: str) -> DaemonConfig:

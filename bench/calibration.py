@@ -1,5 +1,5 @@
 """Homing and geometric self-calibration of reference8 on a simulated robot that is not
-the robot file (issue 16 items 2 and 4), in lock-step (simulated time: the same
+the robot file, in lock-step (simulated time: the same
 controller, homing and solver as the daemon, without the CAN bus and zenoh).
 
 Truth: every anchor moved 20 mm in a random direction from the file, every drive's

@@ -128,7 +128,7 @@ def main(argv: list[str] | None = None) -> int:
     robot = Robot.from_yaml(REFERENCE8)
     spec = ControllerSpec()
     results: dict[str, dict] = {"step": step_us(robot, spec, args.calls)}
-    # the same replay without the payload estimate, in the same run (issue 19: the
+    # the same replay without the payload estimate, in the same run (the
     # estimate's work must leave the step's median within 1.15x)
     fixed = spec.model_copy(
         update={"adaptation": spec.adaptation.model_copy(update={"enabled": False})}

@@ -1,4 +1,4 @@
-"""The control cycle of a running daemon, quiet and under a zenoh flood (issue 7).
+"""The control cycle of a running daemon, quiet and under a zenoh flood.
 
 This process runs the daemon as `cdprd run --sim` does: it is the real-time core (the
 cycle and the in-process simulator), and its companion process serves zenoh on a free

@@ -1,4 +1,4 @@
-"""What one big input costs the control loop of a holding robot (issue 22, item 4).
+"""What one big input costs the control loop of a holding robot.
 
 The daemon runs as `cdprd run` runs it: this process is its real-time core (the cycle,
 SCHED_FIFO where permitted), its companion process serves zenoh on a free
@@ -171,7 +171,7 @@ def send_flood(port: int, channel: str, n: int, rate: float) -> dict[str, Any]:
 def daemon_config(endpoint: str, bus: dict[str, Any] | None = None) -> DaemonConfig:
     """The example config on `endpoint`; on another bus (socketcand) feedback may be
     stale for as long as the drives' watchdog allows (50 ms = 25 cycles), since the
-    example's 3 cycles brake at start-up over socketcand (issue 22, item 5)."""
+    example's 3 cycles brake at start-up over socketcand."""
 
     def edit(data: dict) -> None:
         data["robot"] = str(ROOT / "config" / "robots" / "reference8.yaml")

@@ -1,4 +1,4 @@
-"""Flying reference8 when the robot file's cable stiffness is wrong (issue 16 item 5).
+"""Flying reference8 when the robot file's cable stiffness is wrong.
 
 For a true EA of 0.5, 0.6, 1, 1.5 and 2 times the robot file's, each standard trajectory
 in lock-step, enabled at rest as the daemon does (tuning.stiffness): whether it flew or

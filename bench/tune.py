@@ -1,4 +1,4 @@
-"""Benchmark of `cdprd tune` (issue 17) on the simulator: a winch whose true m0, k0 and
+"""Benchmark of `cdprd tune` on the simulator: a winch whose true m0, k0 and
 force lag are 30 % off the robot file (m0 x1.3, k0 x0.7, lag 2.6 ms for 2 ms), free drum,
 odrive reference8 config, 20 s PRBS through the drive's CAN frames in simulated time.
 

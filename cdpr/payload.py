@@ -1,5 +1,5 @@
 """The platform's mass, centre of mass and, where rotation excites it, inertia,
-identified from the wrench the cables exert and the motion (issue 19: payload
+identified from the wrench the cables exert and the motion (payload
 adaptation; DESIGN §15 step 6).
 
 The platform's dynamics are linear in its ten inertial parameters.  With h = m c_b (the

@@ -1,5 +1,5 @@
 """The external wrench on a body that its model does not explain, estimated from its
-motion (issue 19: a person pushing the platform, a tool touching something).
+motion (a person pushing the platform, a tool touching something).
 
 A momentum observer: over each period the body's momentum changes by
 M (phi_k - phi_{k-1}); the model accounts for the net wrench the cycle commanded beyond

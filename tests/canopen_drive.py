@@ -1,5 +1,5 @@
-"""CiA 402 drives made of code the project did not write, for the conformance tests
-(issue 15 item 4): canopen's LocalNode with the vendor-style
+"""CiA 402 drives made of code the project did not write, for the conformance tests:
+canopen's LocalNode with the vendor-style
 tests/data/generic_servo_cia402.eds (its default mapping RPDO1 = controlword, TPDO1 =
 statusword, no 0x2000/0x2001) is the SDO server (object dictionary, access and size
 checks), the NMT slave, the heartbeat producer and the PDO codec.  `CanopenDrive` adds

@@ -1,5 +1,5 @@
 """Physics for the canopen drives of tests/canopen_drive.py: the project's plant, stepped
-in real time by a thread, under eight CanopenDrives (issue 15).  canopen still does all
+in real time by a thread, under eight CanopenDrives.  canopen still does all
 the protocol (SDO, PDO, NMT, heartbeat); `CanopenActuator` is only each drive's power
 stage and encoder, coupled to its winch by sim_bus.virtual_robot.VirtualRobot as the
 project's own virtual drives are: OPERATION ENABLED in mode 10 pulls with the target

@@ -29,7 +29,7 @@ class Stack:
     While it runs, this process has the real-time priority of the config's `realtime:`
     section where permitted (memory not locked: that costs each test a tenth of a
     second), as the daemon's core would: the timing-sensitive tests then pass on a busy
-    host too (issue 18)."""
+    host too."""
 
     def __init__(self, config: DaemonConfig) -> None:
         self.config = config

@@ -1,4 +1,4 @@
-"""Geometric self-calibration from redundant cable lengths (issue 16 item 4; DESIGN §15
+"""Geometric self-calibration from redundant cable lengths (DESIGN §15
 step 5).
 
 Data: the platform at rest at m poses (unknown: the model is what is being found), at

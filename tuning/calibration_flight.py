@@ -1,5 +1,5 @@
 """Homing and calibration flown in lock-step on a simulated robot that is not the robot
-file (issue 16 items 2 and 4; bench/calibration.py).
+file (bench/calibration.py).
 
 `Encoders` reads the simulated drums as the drives would: each drive's zero lies where
 sim.plant.mismatch.encoder_offsets puts it, scaled by the true drum radius, and the

@@ -52,7 +52,7 @@ def standard_set_figures(robot: Robot, spec: ControllerSpec) -> dict[str, dict[s
     return out
 
 
-# issue 19: a payload of +10 % of the platform's mass, and +30 % with the centre of mass
+# a payload of +10 % of the platform's mass, and +30 % with the centre of mass
 # moved 5 cm (3 cm sideways, 4 cm down: the vertical part only tilts and sideways
 # accelerations reveal)
 PAYLOADS = {
@@ -113,7 +113,7 @@ def _rounded(figures: dict[str, Any]) -> dict[str, Any]:
     return {k: round(v, 4) if isinstance(v, float) else v for k, v in figures.items()}
 
 
-# issue 19: the inertia estimate on reference8's elastic cables, the platform's inertia
+# the inertia estimate on reference8's elastic cables, the platform's inertia
 # 1.5x the file's and 2 kg hung 5 cm aside and 10 cm down (the centre of mass 15 mm off)
 INERTIA_PAYLOAD = {"mass": 2.0, "position": [0.05, 0.0, -0.1]}
 INERTIA_PLANT = {"mismatch": {"inertia_scale": 1.5, "payload": INERTIA_PAYLOAD}}

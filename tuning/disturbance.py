@@ -1,5 +1,5 @@
 """Disturbance rejection: the holding robot pushed by an external wrench step (a person
-leaning on the platform, a tool touching something), in simulated time (issue 19).
+leaning on the platform, a tool touching something), in simulated time.
 
 The plant (sim_bus.plant, elastic cables, drive lag, encoder quantisation as in the
 standard set) holds the home pose under the paper's controller; at `start` a constant

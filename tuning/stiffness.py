@@ -1,4 +1,4 @@
-"""Flying with a cable stiffness the robot file has wrong (issue 16 item 5).
+"""Flying with a cable stiffness the robot file has wrong.
 
 `EnabledAtRest` wraps the controller so that a lock-step run enables as the daemon does
 (Service._measured_pose): the first cycle's lengths, measured at rest, give the pose and

@@ -1,4 +1,4 @@
-"""How far a cable may move before its drive notices that the daemon died (issue 15).
+"""How far a cable may move before its drive notices that the daemon died.
 
 A CiA 402 drive applies the last torque the daemon sent until its own watchdog fires: the
 consumer heartbeat 0x1016 (the host's heartbeat stopped; the host sets no RPDO deadline,

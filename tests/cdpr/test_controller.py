@@ -266,9 +266,9 @@ def test_a_source_followed_from_a_time_takes_over_then(reference8: Robot) -> Non
     assert controller.source.before.before is lift
 
 
-# -- command timing (issue 19) ---------------------------------------------------------
+# -- command timing ---------------------------------------------------------
 
-GOAL_MM = {"figure_eight": 0.10, "vertical_lift": 0.08, "edge_move": 0.15}  # issue 19
+GOAL_MM = {"figure_eight": 0.10, "vertical_lift": 0.08, "edge_move": 0.15}
 
 
 @pytest.mark.parametrize("scenario", sorted(STANDARD_SET))
@@ -276,7 +276,7 @@ def test_the_command_lead_cuts_the_tracking_error(reference8: Robot, scenario: s
     """Evaluated for the middle of the interval it acts over (auto: half a period plus
     the drive's 2 ms lag; lock-step applies commands at once), each command tracks the
     standard set at least three times better than evaluated for its measurement's
-    instant (measured: 5-8 times), and within issue 19's goals.  The external wrench
+    instant (measured: 5-8 times), and within the goals.  The external wrench
     observer is off: it takes part of a late command's error too (edge move without the
     lead: 0.13 mm with it, 0.49 mm without)."""
     trajectory = STANDARD_SET[scenario](reference8)

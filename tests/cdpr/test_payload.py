@@ -1,4 +1,4 @@
-"""The payload estimate (cdpr.payload, issue 19 item 2): lock-step runs of reference8
+"""The payload estimate (cdpr.payload): lock-step runs of reference8
 carrying a payload the robot file does not know, the controller holding the start pose
 for WARM_UP s and then flying a standard trajectory (tuning.comparison)."""
 
@@ -26,7 +26,7 @@ from tuning.tracking import run_tracking
 ON = ControllerSpec()
 OFF = ControllerSpec(adaptation={"enabled": False})
 INERTIA = ControllerSpec(adaptation={"inertia": True})  # the default, and explicit
-GOAL_MM = {"payload10": 0.5, "payload30": 1.0}  # issue 19: flight RMS after <= 2 s
+GOAL_MM = {"payload10": 0.5, "payload30": 1.0}  # flight RMS after <= 2 s
 HOLD_GOAL_MM = 0.2
 
 
@@ -77,7 +77,7 @@ def test_the_estimate_converges_to_the_payload(reference8: Robot) -> None:
 def test_the_estimate_cuts_the_tracking_error(
     figures: dict[str, dict], scenario: str, payload: str
 ) -> None:
-    """Issue 19's goals after 2 s with the payload: flight RMS <= 0.5 mm (+10 %) and
+    """The goals after 2 s with the payload: flight RMS <= 0.5 mm (+10 %) and
     <= 1.0 mm (+30 %), holding <= 0.2 mm; and at least twice better in flight than
     without the estimate (measured: 0.03-0.05 mm flight, 0.01-0.04 mm holding, 2.3-13
     times; the external wrench observer takes most of a payload's wrench on its own,

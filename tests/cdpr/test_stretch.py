@@ -1,4 +1,4 @@
-"""Forward kinematics robust to a wrong cable stiffness (issue 16 item 5): the robot
+"""Forward kinematics robust to a wrong cable stiffness: the robot
 file's EA is 1e5 N, the simulated cables' 0.5x..2x that.  Lock-step runs of the standard
 trajectories, enabled at rest as the daemon does (tuning.stiffness)."""
 

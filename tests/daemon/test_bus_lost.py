@@ -1,4 +1,4 @@
-"""A lost bus (issue 22 item 3): the daemon brakes with the bus_lost trigger, reports it
+"""A lost bus: the daemon brakes with the bus_lost trigger, reports it
 (event, state, systemd STATUS=), logs a bounded number of lines and exits with code 69
 after safety.bus_lost_exit seconds, for the service manager to restart it into IDLE.
 For the in-process loop bus (its link taken down), socketcand (the simulator process

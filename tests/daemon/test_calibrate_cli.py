@@ -1,5 +1,5 @@
 """`cdprd home` and `cdprd calibrate` through the command line against a daemon process
-(`cdprd run --sim`) over zenoh on loopback (issue 16 items 2 and 4), and the external
+(`cdprd run --sim`) over zenoh on loopback, and the external
 wrench observer held out of the loop while calibrating (the `observer` command)."""
 
 from __future__ import annotations

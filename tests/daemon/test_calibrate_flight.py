@@ -1,5 +1,5 @@
-"""A successful calibration flown through the daemon as separate processes (issue 16
-items 2 and 4): the simulator (`python -m sim_bus`, the true robot from sim.robot, a file
+"""A successful calibration flown through the daemon as separate processes:
+the simulator (`python -m sim_bus`, the true robot from sim.robot, a file
 of its own) keeps running while the daemon (`cdprd run`) is homed, calibrates, and is
 restarted on each corrected robot file, as a user would; then the true platform (the
 simulator's --truth-log) is where the calibrated daemon flies it."""

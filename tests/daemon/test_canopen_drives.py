@@ -1,4 +1,4 @@
-"""The daemon with eight drives our code did not write (issue 15): canopen LocalNode
+"""The daemon with eight drives our code did not write: canopen LocalNode
 slaves with a vendor-style EDS and default mapping (tests/canopen_drive.py) on the
 project's plant (tests/canopen_robot.py: the true platform moves with the torques they
 get and their TPDOs carry the real motion).  In this process (the service on a python-can

@@ -31,7 +31,7 @@ def test_check_config_fails_naming_the_key(
     assert "platform.mass: Input should be greater than 0 (got -10.0)" in capsys.readouterr().err
 
 
-# -- hostile and careless configs: one line each, never a traceback (issue 22, item 6) ---
+# -- hostile and careless configs: one line each, never a traceback ---
 
 CONFIG = ROBOTS.parent
 EXAMPLE = (CONFIG / "reference8-cia402.yaml").read_text()
@@ -238,7 +238,7 @@ def test_run_with_its_zenoh_port_taken_exits_with_one_line(tmp_path: Path) -> No
     assert "Address already in use" in line
 
 
-# -- the CiA 402 drive profile at config load (issue 15) ----------------------------------
+# -- the CiA 402 drive profile at config load ----------------------------------
 
 DEFAULT_EDS = CONFIG / "can" / "cia402_cst.eds"
 

@@ -1,4 +1,4 @@
-"""The daemon's side of the command lead (issue 19): the drive's force lag from the
+"""The daemon's side of the command lead: the drive's force lag from the
 drive profile, the measured sample-to-command latency fed to the controller as a
 bounded median, and the fixed lead left alone."""
 

@@ -1,4 +1,4 @@
-"""The compact CiA 402 PDO layout on two buses (issue 18's bus-load goal):
+"""The compact CiA 402 PDO layout on two buses (the bus-load goal):
 config/reference8-cia402-2bus.yaml flies in-process against the simulated drives as the
 default layout does, what it puts on each bus is what the bus-load model computes for
 it (sim_bus.bus.cycle_frames, which `check-config` prints), and that load meets the goal."""
@@ -23,7 +23,7 @@ from tests.daemon_stack import Stack
 pytestmark = pytest.mark.timeout(120)
 
 TWO_BUS = Path(__file__).resolve().parents[2] / "config" / "reference8-cia402-2bus.yaml"
-GOALS = {2: 0.70, 4: 0.40}  # issue 18: the most loaded bus at 1 kHz, with 2 and 4 buses
+GOALS = {2: 0.70, 4: 0.40}  # the most loaded bus at 1 kHz, with 2 and 4 buses
 
 
 def two_bus(compact: bool = True, **drives: object) -> DaemonConfig:

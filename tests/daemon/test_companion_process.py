@@ -1,5 +1,5 @@
-"""Failure semantics between the real-time core and its companion process (issue 18
-item 2), as separate processes: the simulator serving its bus over socketcand and
+"""Failure semantics between the real-time core and its companion process, as
+separate processes: the simulator serving its bus over socketcand and
 logging the platform's TRUE pose (--truth-log), and `cdprd run` driving it.
 
 - the companion killed: the core restarts it, the robot stays held, zenoh answers again;

@@ -1,5 +1,5 @@
 """A zenoh flood against a RUNNING daemon (`cdprd run --sim`, its own process) while the
-robot tracks a trajectory (issue 7, DESIGN §9-§10).
+robot tracks a trajectory (DESIGN §9-§10).
 
 Another process (bench/flood.py --flooder, mix "all") puts ~2000 messages a second on
 <prefix>/trajectory for a few seconds — valid trajectories (short moves near home, and

@@ -1,4 +1,4 @@
-"""The payload through the daemon (issue 19 item 2): identify_payload against a simulated
+"""The payload through the daemon: identify_payload against a simulated
 robot carrying a payload its robot file does not know, the payload command, the
 payload_limit brake and the config's errors."""
 

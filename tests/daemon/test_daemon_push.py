@@ -1,4 +1,4 @@
-"""A push on the simulated platform through the daemon (issue 19 item 4): a person
+"""A push on the simulated platform through the daemon: a person
 leaning on it is held and published as the external wrench; a push beyond the
 observer's bound brakes with external_wrench."""
 

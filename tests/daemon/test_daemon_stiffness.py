@@ -1,5 +1,5 @@
 """The daemon enables, holds and moves on a robot whose cables are 0.5x or 2x as stiff as
-its robot file says (issue 16 item 5), reports the estimate in its state, and still
+its robot file says, reports the estimate in its state, and still
 brakes, naming the drive, on a cable 5 mm off."""
 
 from __future__ import annotations

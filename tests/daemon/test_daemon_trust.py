@@ -1,4 +1,4 @@
-"""The brake holds trusted lengths, never a forged or glitching one (issue 22 item 1).
+"""The brake holds trusted lengths, never a forged or glitching one.
 
 Daemon + simulator in one process, both drivers: a forged feedback frame for cable 0
 (4.1 m; really ~2.33 m), delivered right after the drive's real position frame (402: its

@@ -1,5 +1,5 @@
-"""Trajectories and gotos are validated against the runtime pose limits (issue 22 item 2,
-DESIGN §7): in-process daemon + simulator, and over zenoh.  A trajectory into the floor,
+"""Trajectories and gotos are validated against the runtime pose limits
+(DESIGN §7): in-process daemon + simulator, and over zenoh.  A trajectory into the floor,
 a goto through a z <= 1.6 fence, a turn beyond tilt_max and a start days ahead are each
 rejected with the waypoint and the limit named; the robot stays where it was, in HOLD.
 A start ahead within the bound leaves the robot in HOLD until its approach begins.

@@ -1,6 +1,6 @@
 """`cdprd demo`, the README's main command: simulator + daemon + zenoh client in one
 process; the run must end holding, with sub-millimetre tracking of the simulated
-platform and no slack cable.  With --view and --record (issue 20's interface) it serves
+platform and no slack cable.  With --view and --record (the interface) it serves
 the live view and writes the run's MCAP in Foxglove's standard schemas."""
 
 from __future__ import annotations

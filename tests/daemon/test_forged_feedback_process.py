@@ -1,5 +1,5 @@
 """A forged length synchronised to the SYNC, and a glitching encoder, with the daemon,
-the simulator and the attacker as separate processes (issue 22 item 1).  The simulator
+the simulator and the attacker as separate processes.  The simulator
 serves its bus over socketcand on 127.0.0.1 and logs the platform's TRUE pose
 (--truth-log); the daemon (`cdprd run`, no --sim) drives it over socketcand and holds.
 Forged: this test, a third client on the same bus, answers every SYNC it sees with a

@@ -1,4 +1,4 @@
-"""Homing and the stored calibration state (issue 16 item 2), daemon + simulator in one
+"""Homing and the stored calibration state, daemon + simulator in one
 process: the simulated drives' encoders count from wherever they powered up
 (sim.plant.mismatch.encoder_offsets), so the daemon's configured offsets are wrong until
 it is homed at a known resting pose.  Bounds are on the simulated truth and in cycles."""

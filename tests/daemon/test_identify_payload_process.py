@@ -1,5 +1,5 @@
-"""`cdprd identify-payload --apply` against a running daemon over zenoh (issue 19 item
-2): the simulator (a separate process, serving socketcand on 127.0.0.1) carries 2 kg the
+"""`cdprd identify-payload --apply` against a running daemon over zenoh:
+the simulator (a separate process, serving socketcand on 127.0.0.1) carries 2 kg the
 robot file does not know; the daemon (`cdprd run`, its core and companion processes)
 drives it, its online estimate learning the payload while it holds; the command line asks
 for the static estimate, which the companion makes by holding five poses, and the core

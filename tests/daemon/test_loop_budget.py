@@ -1,4 +1,4 @@
-"""One big input must not stall the control loop (issue 22, item 4): a 10,000-waypoint
+"""One big input must not stall the control loop: a 10,000-waypoint
 trajectory, and a flood of CAN frames on ids no drive uses, each reaching a holding
 robot in-process (daemon + simulator over the loop bus); and the bus port's part of
 it: other ids dropped first and counted, frames handed over in bounded batches.  A loop

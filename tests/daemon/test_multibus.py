@@ -1,4 +1,4 @@
-"""Drives spread over several CAN buses (issue 18 item 4): the `can:` list and each drive's
+"""Drives spread over several CAN buses: the `can:` list and each drive's
 `drives.bus` in the config, and the daemon with the simulator on two in-process buses:
 one SYNC per bus, each drive's frames on its bus only, frames routed by the bus they came
 on (a frame for a node on the other bus is not that drive's)."""

@@ -1,4 +1,4 @@
-"""Pretension through the daemon (issue 16 item 3), daemon + simulator in one process:
+"""Pretension through the daemon, daemon + simulator in one process:
 the platform rests on the simulator's docking fixture (sim.plant.fixture) with slack
 cables; `pretension` winds them in, tensions them and closes the position loop in the
 core's cycle.  Bounds are on the simulated truth; nothing is timed."""

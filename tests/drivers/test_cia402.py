@@ -1204,7 +1204,7 @@ def test_heartbeats_keep_arriving_after_start() -> None:
     assert driver.counters.rejected_total == 0
 
 
-# -- a dead daemon (issue 15: the consumer heartbeat is the drives' watchdog) -----------------
+# -- a dead daemon (the consumer heartbeat is the drives' watchdog) -----------------
 
 VENDOR_EDS = Path(__file__).resolve().parents[1] / "data" / "generic_servo_cia402.eds"
 
@@ -1298,7 +1298,7 @@ def test_host_heartbeat_defaults_follow_the_control_rate() -> None:
         slow.host_heartbeat(0.01)  # the heartbeat goes out at most once per 10 ms cycle
 
 
-# -- the compact layout (issue 18): one shared torque RPDO per bus -------------------------
+# -- the compact layout: one shared torque RPDO per bus -------------------------
 
 TWO_BUS = Path(__file__).resolve().parents[2] / "config" / "reference8-cia402-2bus.yaml"
 NODES = [1, 2, 3]  # drives_config's

@@ -1,4 +1,4 @@
-"""Conformance against code the project did not write (issue 15 item 4): the `canopen`
+"""Conformance against code the project did not write: the `canopen`
 package plays the drives for our host, and the master for our simulated drive.
 
 Slaves: tests/canopen_drive.py (canopen's LocalNode with a vendor-style EDS and its

@@ -1,5 +1,5 @@
 """The simulated CiA 402 drive against the `canopen` package as CiA 301 master, in
-simulated time (issue 35 item 4): expedited SDO download without size, the TPDO event
+simulated time: expedited SDO download without size, the TPDO event
 timer, synchronous acyclic TPDOs (type 0) and synchronous RPDOs (taking effect at the next
 SYNC).
 

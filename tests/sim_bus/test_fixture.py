@@ -1,4 +1,4 @@
-"""The docking fixture of the simulated plant (sim.plant.fixture, issue 16 item 3): the
+"""The docking fixture of the simulated plant (sim.plant.fixture): the
 platform starts resting on it with slack cables, the fixture carries its weight, and it
 lets go of a platform lifted off it."""
 

@@ -1,4 +1,4 @@
-"""Spool buildup on the bus (issue 16 item 4): the simulated drives wind the true drum
+"""Spool buildup on the bus: the simulated drives wind the true drum
 (cdpr.spool), the host's driver converts with the robot file's; flown in lock-step over
 CAN frames (tuning.can_lockstep) with the controller, in simulated time."""
 

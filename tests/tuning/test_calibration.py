@@ -1,4 +1,4 @@
-"""Geometric self-calibration (issue 16 item 4): tuning.calibration on lengths and forces
+"""Geometric self-calibration: tuning.calibration on lengths and forces
 computed from a true robot that is not the robot file (anchors 20 mm off, attachments
 2 mm off, drum radii and EA wrong, encoders counting from an unknown zero)."""
 

@@ -115,7 +115,7 @@ def test_unchanged_gains_settle_the_robot_across_the_workspace(
 # the rig has no part for (the heaviest modes' fastest pole 25-33 % off; settling within
 # 10 %).
 
-# The paper's loop with its model fixed: the payload estimate (cdpr.payload, issue 19) is
+# The paper's loop with its model fixed: the payload estimate (cdpr.payload) is
 # off here.  It leaves the model as it is within its dead zone, but this 2 mm release
 # moves it by about a gram and 0.06 mm in the heaviest mode, and the fit of that mode's
 # fastest pole, 15 % off the rig's with the model fixed, then comes out 21 % off.  The
@@ -281,7 +281,7 @@ def test_the_left_out_mode_matches_once_the_internal_tension_is_low() -> None:
     assert c.pole_error <= MATCH and c.settling_error <= MATCH
 
 
-# -- claim 2 from IDENTIFIED parameters (issue 17, goal 3) -----------------------------
+# -- claim 2 from IDENTIFIED parameters -----------------------------
 #
 # `cdprd tune`'s experiment identifies one winch whose true m0, k0 and force lag are
 # 30 % off the robot file (through the drive's CAN frames, in simulated time) and the

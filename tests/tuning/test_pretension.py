@@ -1,4 +1,4 @@
-"""Pretension in lock-step (cdpr.pretension through tuning.pretension, issue 16 item 3):
+"""Pretension in lock-step (cdpr.pretension through tuning.pretension):
 from slack cables on a docking fixture to the position loop, on a simulated robot that
 is not the robot file; each abort names its reason.  Simulated time: deterministic."""
 

@@ -592,7 +592,7 @@ def test_daemon_and_simulator_processes_on_vcan0(protocol: Protocol, tmp_path: P
 
 
 def test_the_daemon_brakes_and_exits_when_vcan0_goes_down(tmp_path: Path) -> None:
-    """`ip link set vcan0 down` under the moving daemon (issue 22 item 3): its sends and
+    """`ip link set vcan0 down` under the moving daemon: its sends and
     its receive fail with ENETDOWN; it brakes with the bus_lost trigger, says so on
     zenoh, logs a few lines and exits with code 69 for systemd to restart it into IDLE.
     vcan0 comes back up afterwards."""

@@ -1,5 +1,5 @@
-"""A flood on a real SocketCAN ``vcan0`` of frames on ids no driver reads (issue 22,
-item 4): the daemon's bus port installs the kernel's receive filter for the drivers'
+"""A flood on a real SocketCAN ``vcan0`` of frames on ids no driver reads:
+the daemon's bus port installs the kernel's receive filter for the drivers'
 ids, so the kernel drops the flood before the daemon reads a single frame of it, and
 the frames it does read reach it in batches of at most FRAMES_PER_PASS."""
 

@@ -1,5 +1,5 @@
 """The daemon and the simulator as separate processes with eight CiA 402 drives on two
-real SocketCAN buses, ``vcan0`` and ``vcan1`` (issue 18 item 4): each process opens both,
+real SocketCAN buses, ``vcan0`` and ``vcan1``: each process opens both,
 the daemon sends one SYNC per bus, each drive's frames travel on its bus only, a frame
 for a node of ``vcan0`` forged on ``vcan1`` is not that drive's, and the simulator
 reports the load of each bus.  Settings for the UML guest as in test_vcan_end_to_end."""
