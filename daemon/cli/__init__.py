@@ -8,7 +8,15 @@ import numpy as np
 
 from cdpr import ConfigError, Robot
 from cdpr.description import load_yaml
-from daemon.cli import analyze_cmd, calibrate_cmd, client_cmd, demo_cmd, run_cmd, tune_cmd
+from daemon.cli import (
+    analyze_cmd,
+    calibrate_cmd,
+    client_cmd,
+    completion,
+    demo_cmd,
+    run_cmd,
+    tune_cmd,
+)
 from daemon.config.watchdog_drift import FORMULA
 from drivers.cia402.profile import plans as drive_plans
 from sim_bus.bus.cycle_frames import bus_cycles
@@ -102,6 +110,7 @@ def command_parser() -> argparse.ArgumentParser:
     demo_cmd.add_parser(sub)
     tune_cmd.add_parser(sub)
     calibrate_cmd.add_parser(sub)
+    completion.add_parser(sub)
     return parser
 
 

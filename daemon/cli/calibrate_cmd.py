@@ -1,5 +1,5 @@
-"""`cdprd calibrate`: identify the robot's geometry from redundant cable lengths (issue 16
-item 4; DESIGN §15 step 5).
+"""`cdprd calibrate`: identify the robot's geometry from redundant cable lengths
+(DESIGN §15 step 5).
 
     cdprd calibrate --config FILE [--poses N] [--reach X Y Z] [--tilt RAD] [--dwell S]
                     [--average S]
@@ -55,6 +55,7 @@ import numpy as np
 import yaml
 
 from cdpr import ConfigError, Pose, Robot, liediff
+from daemon.cli.exit_codes import EXIT_FAILED, EXIT_OK, EXIT_UNREACHABLE, EXIT_USAGE
 from daemon.cli.run_cmd import load_checked
 
 if TYPE_CHECKING:
@@ -62,7 +63,6 @@ if TYPE_CHECKING:
     from daemon.interface.client import CdprClient
     from tuning.calibration import Calibration, Sample
 
-EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_UNREACHABLE = 0, 1, 2, 3
 SPEED = 0.2  # m/s (and rad/s) of the moves between poses
 MOVE_MIN = 1.5  # s: the shortest move
 MIN_POSES = 8  # below this the command refuses before flying

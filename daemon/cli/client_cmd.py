@@ -31,6 +31,7 @@ from pathlib import Path
 from typing import Any
 
 from cdpr.description import ConfigError, load_yaml, read_text
+from daemon.cli.exit_codes import EXIT_FAILED, EXIT_OK, EXIT_UNREACHABLE, EXIT_USAGE
 from daemon.interface.client import (
     DEFAULT_CONNECT,
     DEFAULT_TIMEOUT,
@@ -40,7 +41,6 @@ from daemon.interface.client import (
     UnreachableError,
 )
 
-EXIT_OK, EXIT_REFUSED, EXIT_USAGE, EXIT_UNREACHABLE = 0, 1, 2, 3
 LEASE_HELP = (
     "with --freeze/--hold: let go after S seconds unless the same command comes again "
     "(docs/reference/zenoh-api.md, leases); the reply's lease_id renews or ends it"
@@ -210,7 +210,7 @@ def _runner(
             details = {k: v for k, v in error.items() if k not in ("code", "reason")}
             if details:
                 print(f"  {json.dumps(details)}", file=sys.stderr)
-            return EXIT_REFUSED
+            return EXIT_FAILED
         except ClientError as exc:  # several daemons and no --prefix, a foreign reply
             print(f"usage error: {exc}", file=sys.stderr)
             return EXIT_USAGE

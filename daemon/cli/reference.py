@@ -4,20 +4,14 @@ drift from the code: `python -m daemon.cli.reference > docs/reference/cli.md`
 
 from __future__ import annotations
 
-import argparse
 import os
 from unittest import mock
 
 from daemon.cli import command_parser
+from daemon.cli.completion import subcommands
+from daemon.cli.exit_codes import EXIT_CODES
 
 WIDTH = "100"  # columns of the help texts, whatever the terminal
-
-
-def _subcommands(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentParser]:
-    for action in parser._actions:
-        if isinstance(action, argparse._SubParsersAction):
-            return dict(action.choices)
-    return {}
 
 
 def cli_reference() -> str:
@@ -34,8 +28,10 @@ def cli_reference() -> str:
             parser.format_help().rstrip(),
             "```",
         ]
-        for name, sub in _subcommands(parser).items():
+        for name, sub in subcommands(parser).items():
             parts += ["", f"## cdprd {name}", "", "```text", sub.format_help().rstrip(), "```"]
+    parts += ["", "## Exit codes", "", "| code | meaning |", "|---|---|"]
+    parts += [f"| {code} | {meaning} |" for code, meaning in EXIT_CODES.items()]
     return "\n".join(parts) + "\n"
 
 

@@ -55,6 +55,7 @@ import yaml
 
 from cdpr import ConfigError
 from daemon.cli.analyze_cmd import _clean
+from daemon.cli.exit_codes import EXIT_ABORTED
 from daemon.cli.run_cmd import load_checked, report
 from daemon.config import DaemonConfig
 from daemon.process.app import close_bus, open_bus
@@ -68,8 +69,6 @@ if TYPE_CHECKING:
     from tuning.identify import Identified
     from tuning.load_check import CheckResult
     from tuning.winch_tune import Request, Run
-
-ABORTED = 3
 
 
 def add_parser(subparsers: Any) -> None:
@@ -151,7 +150,7 @@ def run(args: argparse.Namespace) -> int:
         if args.json:
             abort = {"drive": args.drive, "abort": result.abort.kind, "reason": str(result.abort)}
             print(json.dumps(abort))
-        return ABORTED
+        return EXIT_ABORTED
     model = result.model
     assert model is not None
     say(f"fit: m0 {model.m0:.4g} kg, k0 {model.k0:.4g} N s/m, lag {model.lag * 1e3:.4g} ms")
@@ -187,7 +186,7 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(_clean(out)))
     else:
         _print(out)
-    return ABORTED if aborted else 0
+    return EXIT_ABORTED if aborted else 0
 
 
 def _loads(text: str) -> list[float]:
