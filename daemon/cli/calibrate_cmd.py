@@ -76,7 +76,7 @@ class CalibrationError(Exception):
 
 
 def add_parser(subparsers: Any) -> None:
-    from daemon.interface.client import DEFAULT_CONNECT
+    from daemon.interface.client import CONNECT_ENV, DEFAULT_CONNECT
 
     p = subparsers.add_parser(
         "calibrate",
@@ -98,7 +98,10 @@ def add_parser(subparsers: Any) -> None:
     p.add_argument("--output", help="the corrected robot file (default: beside the old one)")
     p.add_argument("--json", action="store_true", help="print the report as one JSON object")
     p.add_argument("--prefix", help="key prefix of the daemon (default: the only one)")
-    p.add_argument("--connect", default=DEFAULT_CONNECT, help="zenoh endpoint of the daemon")
+    p.add_argument(
+        "--connect",
+        help=f"zenoh endpoint of the daemon (default ${CONNECT_ENV}, else {DEFAULT_CONNECT})",
+    )
     p.add_argument("--timeout", type=float, default=10.0, help="seconds per daemon request")
     p.set_defaults(handler=run)
 
@@ -195,7 +198,7 @@ def _solve(robot: Robot, offsets: np.ndarray, samples: list[Sample]) -> Calibrat
 
 
 def _fly(config: DaemonConfig, args: argparse.Namespace) -> tuple[np.ndarray, list[Sample]]:
-    from daemon.interface.client import CdprClient
+    from daemon.interface.client import CdprClient, default_connect
     from tuning.calibration import candidate_poses, select_poses
 
     robot = config.robot
@@ -213,7 +216,7 @@ def _fly(config: DaemonConfig, args: argparse.Namespace) -> tuple[np.ndarray, li
         )
     poses = select_poses(robot, args.poses, candidates)
     _say(f"flying {len(poses)} poses (greedy D-optimal of {len(candidates)} candidates)")
-    with CdprClient(args.prefix, args.connect, timeout=args.timeout) as client:
+    with CdprClient(args.prefix, args.connect or default_connect(), timeout=args.timeout) as client:
         status = client.status()
         if status["state"] != "hold":
             raise CalibrationError(

@@ -33,12 +33,14 @@ from typing import Any
 from cdpr.description import ConfigError, load_yaml, read_text
 from daemon.cli.exit_codes import EXIT_FAILED, EXIT_OK, EXIT_UNREACHABLE, EXIT_USAGE
 from daemon.interface.client import (
+    CONNECT_ENV,
     DEFAULT_CONNECT,
     DEFAULT_TIMEOUT,
     CdprClient,
     ClientError,
     RequestError,
     UnreachableError,
+    default_connect,
 )
 
 LEASE_HELP = (
@@ -76,8 +78,8 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     )
     common.add_argument(
         "--connect",
-        default=DEFAULT_CONNECT,
-        help=f"zenoh endpoint of the daemon or router (default {DEFAULT_CONNECT})",
+        help="zenoh endpoint of the daemon or router "
+        f"(default ${CONNECT_ENV}, else {DEFAULT_CONNECT})",
     )
     common.add_argument(
         "--zenoh-config",
@@ -195,7 +197,11 @@ def _runner(
             action = prepare(args)
             raw = None if args.zenoh_config is None else _read_mapping(args.zenoh_config)
             with CdprClient(
-                args.prefix, args.connect, timeout=args.timeout, zenoh_config=raw, name=args.client
+                args.prefix,
+                args.connect or default_connect(),
+                timeout=args.timeout,
+                zenoh_config=raw,
+                name=args.client,
             ) as client:
                 result = action(client)
         except _UsageError as exc:

@@ -34,8 +34,16 @@ from cdpr.trajectory import SCHEMA_VERSION, Trajectory
 from daemon.config.zenoh_config import DEFAULT_LISTEN, client_zenoh_config
 
 DEFAULT_CONNECT = DEFAULT_LISTEN
+CONNECT_ENV = "CDPRD_CONNECT"  # the command-line clients' endpoint when --connect is not given
 DEFAULT_TIMEOUT = 5.0  # s; a trajectory is validated along its whole path before the reply
 DISCOVERY_KEY = "cdpr/*/alive"
+
+
+def default_connect() -> str:
+    """The endpoint a command-line client connects to without --connect: $CDPRD_CONNECT
+    if set (a daemon on another port or host, for every command of a shell), else
+    DEFAULT_CONNECT."""
+    return os.environ.get(CONNECT_ENV) or DEFAULT_CONNECT
 
 
 def default_client_name() -> str:
