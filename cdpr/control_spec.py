@@ -30,19 +30,21 @@ DEFAULT_FORCE_LAG = 2e-3
 class PidSpec(StrictModel):
     """a = -(ki int e + kp e + kd e'), e' low-passed with time constant derivative_filter."""
 
-    kp: NonNegativeFloat
-    ki: NonNegativeFloat = 0.0
-    kd: NonNegativeFloat = 0.0
-    derivative_filter: NonNegativeFloat = 0.0
+    kp: NonNegativeFloat  # 1/s^2, proportional gain per unit mass
+    ki: NonNegativeFloat = 0.0  # 1/s^3, integral gain per unit mass
+    kd: NonNegativeFloat = 0.0  # 1/s, derivative gain per unit mass
+    derivative_filter: NonNegativeFloat = 0.0  # s, low-pass time constant of e'; 0: unfiltered
 
 
 class StateSpaceSpec(StrictModel):
     """x' = A x + B [e, e', ...], a = C x + D [e, e', ...]  (DESIGN §5)."""
 
-    A: list[list[FiniteFloat]] = Field(default_factory=list)
-    B: list[list[FiniteFloat]] = Field(default_factory=list)
-    C: list[FiniteFloat] = Field(default_factory=list)
+    A: list[list[FiniteFloat]] = Field(default_factory=list)  # n x n state matrix; empty: no states
+    B: list[list[FiniteFloat]] = Field(default_factory=list)  # n x l input matrix
+    C: list[FiniteFloat] = Field(default_factory=list)  # output row, n entries
     D: Annotated[list[FiniteFloat], Field(min_length=1, max_length=2)]
+    """Feedthrough on [e] or [e, e']: its length l (1 or 2) is how many error derivatives
+    the law reads."""
 
     @model_validator(mode="after")
     def _shapes(self) -> StateSpaceSpec:
@@ -70,7 +72,9 @@ class TensionSpec(StrictModel):
     mid-range between t_min and force_max of each cable)."""
 
     method: Literal["osqp", "closed_form"] = "osqp"
-    reference: PositiveFloat | None = None
+    """osqp: the tensions closest to the reference (a QP solved by OSQP); closed_form:
+    Pott's closed-form method, cheaper but not optimal while a bound is active."""
+    reference: PositiveFloat | None = None  # N, every cable; null: (t_min + force_max) / 2
 
 
 MIN_ADAPTATION_TIME = 0.1  # s: a faster estimate would reach into the loop's own dynamics
@@ -87,14 +91,16 @@ class AdaptationSpec(StrictModel):
     time_constant (s): how slowly the model follows the estimate.  frozen: keep the model
     as it is (as set, or the file's)."""
 
-    enabled: bool = True
-    frozen: bool = False
-    mass_min: PositiveFloat | None = None
-    mass_max: PositiveFloat | None = None
-    com_max: PositiveFloat = 0.1
-    inertia: bool = True
+    enabled: bool = True  # estimate the payload online; false: the model is the robot file's
+    frozen: bool = False  # the model stays as it is (as set, or the file's)
+    mass_min: PositiveFloat | None = None  # kg, total platform mass; null: 0.8 x the file's
+    mass_max: PositiveFloat | None = None  # kg, total platform mass; null: 1.5 x the file's
+    com_max: PositiveFloat = 0.1  # m, how far the centre of mass may move from the file's
+    inertia: bool = True  # estimate the inertia too; false: it stays the file's
     inertia_scale_max: Annotated[float, Field(gt=1.0)] = 2.0
+    """The inertia may lie within this factor of the file's, either way."""
     time_constant: Annotated[float, Field(ge=MIN_ADAPTATION_TIME, le=60.0)] = 0.5
+    """s: how slowly the model follows the estimate."""
 
     @model_validator(mode="after")
     def _mass_range(self) -> AdaptationSpec:
@@ -118,11 +124,14 @@ class DisturbanceObserverSpec(StrictModel):
     collision, a stuck platform or a push harder than a person leaning on it), never
     compensated."""
 
-    enabled: bool = True
+    enabled: bool = True  # estimate and cancel external wrenches; false: no observer
     bandwidth_hz: Annotated[float, Field(gt=0.0, le=50.0)] = 4.0
+    """Hz, of the observer's first-order filter."""
     release_hz: Annotated[float, Field(gt=0.0, le=50.0)] | None = None
-    force_max: PositiveFloat = 100.0
-    torque_max: PositiveFloat = 20.0
+    """Hz: how fast an ending wrench is let go, at least bandwidth_hz; null: 16 Hz, or
+    bandwidth_hz if higher."""
+    force_max: PositiveFloat = 100.0  # N: an estimated force beyond it is a fault (brake)
+    torque_max: PositiveFloat = 20.0  # N m about p: an estimated torque beyond it is a fault
 
     @property
     def release(self) -> float:
@@ -145,31 +154,33 @@ class ControllerSpec(StrictModel):
     """The parallel-actuator controller (paper §5).
 
     model_at: evaluate M, mu, Lambda, W, F at the measured (eta, phi) or at the
-    reference (eta_r, phi_r) — the paper allows both.  "reference" is the default: on
-    the standard trajectory set it tracks better (the cables' geometric stiffness
-    stays in the loop instead of being cancelled) and it needs one kinematics pass less.
+      reference (eta_r, phi_r) — the paper allows both.  "reference" is the default: on
+      the standard trajectory set it tracks better (the cables' geometric stiffness
+      stays in the loop instead of being cancelled) and it needs one kinematics pass less.
     velocity: twist from the drives' reported rates by least squares, corrected for
-    cable stretch by a complementary filter of time constant velocity_filter (s)
-    ("drive"), or by differentiating successive forward-kinematics poses, low-passed
-    with velocity_filter ("differentiate"), for drives that report no rate.
+      cable stretch by a complementary filter of time constant velocity_filter (s)
+      ("drive"), or by differentiating successive forward-kinematics poses, low-passed
+      with velocity_filter ("differentiate"), for drives that report no rate.
     command_lead: how far ahead of its measurement instant a cycle's command is
-    evaluated (s): the reference, the feed-forward and the model are taken for the
-    middle of the interval over which the command acts (the pose error stays at the
-    measurement's instant).  "auto": the measured sample-to-command latency, plus the
-    drive's force lag, plus half a period (the command is held for one); 0: the
-    command is evaluated for the measurement's instant (the paper's literal timing).
+      evaluated (s): the reference, the feed-forward and the model are taken for the
+      middle of the interval over which the command acts (the pose error stays at the
+      measurement's instant).  "auto": the measured sample-to-command latency, plus the
+      drive's force lag, plus half a period (the command is held for one); 0: the
+      command is evaluated for the measurement's instant (the paper's literal timing).
     adaptation: the payload estimate (AdaptationSpec, cdpr.payload).
     disturbance_observer: the external wrench observer (DisturbanceObserverSpec).
     """
 
-    rate_hz: Annotated[float, Field(gt=0.0, le=10000.0)] = 500.0
-    pid: PidSpec | None = None
-    state_space: StateSpaceSpec | None = None
+    rate_hz: Annotated[float, Field(gt=0.0, le=10000.0)] = 500.0  # Hz of the control cycle
+    pid: PidSpec | None = None  # the PID law (below); null: state_space, else kp 100, ki 50, kd 20
+    state_space: StateSpaceSpec | None = None  # a general linear law (below) instead of pid
     discretisation: Literal["zoh", "bilinear", "euler", "backward_diff"] = "zoh"
+    """How the continuous-time law is discretised at the cycle period (scipy's
+    cont2discrete): zero-order hold, Tustin, forward or backward Euler."""
     model_at: Literal["measured", "reference"] = "reference"
     velocity: Literal["drive", "differentiate"] = "drive"
-    velocity_filter: PositiveFloat = 0.05
-    tension: TensionSpec = TensionSpec()
+    velocity_filter: PositiveFloat = 0.05  # s, the velocity estimate's filter (see velocity)
+    tension: TensionSpec = TensionSpec()  # the tension distribution (below)
     command_lead: float | Literal["auto"] = "auto"
     adaptation: AdaptationSpec = AdaptationSpec()
     disturbance_observer: DisturbanceObserverSpec = DisturbanceObserverSpec()

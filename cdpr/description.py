@@ -57,10 +57,10 @@ class StrictModel(BaseModel):
 class QuaternionSpec(StrictModel):
     """Quaternion as an object with named keys (never a bare array at interfaces)."""
 
-    w: FiniteFloat = 1.0
-    x: FiniteFloat = 0.0
-    y: FiniteFloat = 0.0
-    z: FiniteFloat = 0.0
+    w: FiniteFloat = 1.0  # scalar part of the unit quaternion (w, x, y, z)
+    x: FiniteFloat = 0.0  # x component of the vector part
+    y: FiniteFloat = 0.0  # y component of the vector part
+    z: FiniteFloat = 0.0  # z component of the vector part
 
     @model_validator(mode="after")
     def _unit(self) -> QuaternionSpec:
@@ -74,8 +74,8 @@ class QuaternionSpec(StrictModel):
 
 
 class PoseSpec(StrictModel):
-    position: Vec3
-    quaternion: QuaternionSpec = QuaternionSpec()
+    position: Vec3  # m, world frame: where the platform's reference point p is
+    quaternion: QuaternionSpec = QuaternionSpec()  # orientation: platform frame to world frame
 
 
 class PulleySpec(StrictModel):
@@ -84,8 +84,8 @@ class PulleySpec(StrictModel):
     `axis` is a unit vector: normalised within AXIS_TOLERANCE, refused beyond it (as a
     quaternion is), so that the file holds the direction that is used."""
 
-    radius: PositiveFloat
-    axis: Vec3 = (0.0, 0.0, 1.0)
+    radius: PositiveFloat  # m, the pulley's radius
+    axis: Vec3 = (0.0, 0.0, 1.0)  # unit vector, world frame: the swivel axis through the anchor
 
     @field_validator("axis")
     @classmethod
@@ -103,10 +103,12 @@ class SpoolSpec(StrictModel):
     at cable length 0, so wound_at_zero - l at length l (at least length_max: the drum
     never runs empty)."""
 
-    cable_diameter: PositiveFloat
+    cable_diameter: PositiveFloat  # m; each layer adds it to the radius
     turns_per_layer: PositiveFloat | None = None
+    """Turns of cable per layer; null: drum_width / cable_diameter (give one of the two)."""
     drum_width: PositiveFloat | None = None
-    wound_at_zero: PositiveFloat
+    """m, for drum_width / cable_diameter turns per layer; null: turns_per_layer is given."""
+    wound_at_zero: PositiveFloat  # m of cable on the drum at cable length 0 (>= length_max)
 
     @model_validator(mode="after")
     def _one_width(self) -> SpoolSpec:
@@ -131,25 +133,30 @@ class SpoolSpec(StrictModel):
 class ActuatorOverrides(StrictModel):
     """Per-cable overrides of the actuator defaults (every field optional)."""
 
-    m0: PositiveFloat | None = None
-    k0: NonNegativeFloat | None = None
-    drum_radius: PositiveFloat | None = None
-    force_max: PositiveFloat | None = None
-    length_min: NonNegativeFloat | None = None
-    length_max: PositiveFloat | None = None
-    t_min: NonNegativeFloat | None = None
-    cable_stiffness: PositiveFloat | None = None
-    spool: SpoolSpec | None = None
+    m0: PositiveFloat | None = None  # kg, this cable's m0; null: actuator.m0
+    k0: NonNegativeFloat | None = None  # N s/m, this cable's k0; null: actuator.k0
+    drum_radius: PositiveFloat | None = None  # m, this cable's; null: actuator.drum_radius
+    force_max: PositiveFloat | None = None  # N, this cable's; null: actuator.force_max
+    length_min: NonNegativeFloat | None = None  # m, this cable's; null: actuator.length_min
+    length_max: PositiveFloat | None = None  # m, this cable's; null: actuator.length_max
+    t_min: NonNegativeFloat | None = None  # N, this cable's; null: actuator.t_min
+    cable_stiffness: PositiveFloat | None = None  # N, this cable's EA; null: actuator's
+    spool: SpoolSpec | None = None  # this cable's drum buildup; null: actuator.spool
 
 
 class ActuatorSpec(StrictModel):
     """One winch in cable-length coordinates.
 
     m0: effective no-load mass (drum + gear + rotor inertia / r^2), kg.
-    k0: back-EMF / viscous coefficient, N s/m.  force_max: |command force| limit, N.
+    k0: back-EMF / viscous coefficient, N s/m.
+    drum_radius: the drum's radius (m; with a spool, the first layer's, to the cable's
+      centre line): the drives' torque and position convert to cable force and length by it.
+    force_max: |command force| limit, N.
+    length_min / length_max: the range (m) a cable's measured length must keep (outside
+      it the daemon brakes); trajectories are validated inside it, less margins.
     t_min: minimum cable tension kept by the tension distribution, N.
     cable_stiffness: EA of the cable (N per unit strain) for the stretch correction of
-    the encoder lengths, l_geometric = l_drum (1 + t / EA); None: inextensible.
+      the encoder lengths, l_geometric = l_drum (1 + t / EA); None: inextensible.
     spool: the drum's radius growing with the cable wound on (SpoolSpec); None: constant.
     """
 
@@ -186,17 +193,17 @@ class ActuatorSpec(StrictModel):
 
 
 class CableSpec(StrictModel):
-    anchor: Vec3
-    attachment: Vec3
-    pulley: PulleySpec | None = None
-    actuator: ActuatorOverrides = ActuatorOverrides()
+    anchor: Vec3  # m, world frame: where the cable leaves the frame (with a pulley: on its axis)
+    attachment: Vec3  # m, platform frame, from p: where the cable meets the platform
+    pulley: PulleySpec | None = None  # a pulley at the anchor (below); null: a point anchor
+    actuator: ActuatorOverrides = ActuatorOverrides()  # overrides of the actuator defaults (below)
 
 
 class BodyBoxSpec(StrictModel):
     """A box in the platform frame (m): its lowest and highest corner."""
 
-    min: Vec3
-    max: Vec3
+    min: Vec3  # m, platform frame: the lowest corner
+    max: Vec3  # m, platform frame: the highest corner
 
     @model_validator(mode="after")
     def _ordered(self) -> BodyBoxSpec:
@@ -218,8 +225,9 @@ class BodySpec(StrictModel):
     convex hull (platform frame, m), one of the two.  The cables' attachment points
     belong to the body as well."""
 
-    box: BodyBoxSpec | None = None
+    box: BodyBoxSpec | None = None  # a box (below); null: give vertices
     vertices: Annotated[list[Vec3], Field(min_length=1, max_length=256)] | None = None
+    """Points (m, platform frame) whose convex hull is the body; null: give box."""
 
     @model_validator(mode="after")
     def _one_shape(self) -> BodySpec:
@@ -237,10 +245,10 @@ class PlatformSpec(StrictModel):
     (BodySpec; default: the convex hull of the cables' attachment points), which the
     pose limits keep inside the workspace and clear of the environment."""
 
-    mass: PositiveFloat
-    center_of_mass: Vec3 = (0.0, 0.0, 0.0)
-    inertia: tuple[Vec3, Vec3, Vec3]
-    body: BodySpec | None = None
+    mass: PositiveFloat  # kg
+    center_of_mass: Vec3 = (0.0, 0.0, 0.0)  # m, platform frame, from the reference point p
+    inertia: tuple[Vec3, Vec3, Vec3]  # kg m^2, 3x3 about the centre of mass, platform frame
+    body: BodySpec | None = None  # its geometry (below); null: the attachments' convex hull
 
     @field_validator("inertia")
     @classmethod
@@ -261,19 +269,25 @@ class PlatformSpec(StrictModel):
 class ForwardKinematicsSpec(StrictModel):
     """Gauss-Newton / Levenberg-Marquardt settings for Y(l)."""
 
-    max_iterations: Annotated[int, Field(ge=1, le=1000)] = 50
-    step_tolerance: PositiveFloat = 1e-8
-    max_residual: PositiveFloat = 2e-3
+    max_iterations: Annotated[int, Field(ge=1, le=1000)] = 50  # iterations before it fails
+    step_tolerance: PositiveFloat = 1e-8  # m or rad: a shorter Gauss-Newton step ends it
+    max_residual: PositiveFloat = 2e-3  # m: an RMS length error above it fails (no rigid pose)
 
 
 class RobotSpec(StrictModel):
     name: Annotated[str, Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_\-]+$")]
-    gravity: Vec3 = (0.0, 0.0, -9.81)
-    platform: PlatformSpec
-    actuator: ActuatorSpec
+    """The robot's name; the zenoh key prefix defaults to cdpr/<name>."""
+    gravity: Vec3 = (0.0, 0.0, -9.81)  # m/s^2, world frame: the gravitational acceleration
+    platform: PlatformSpec  # the platform's mass properties and body (below)
+    actuator: ActuatorSpec  # every cable's winch parameters (below); a cable may override them
     cables: Annotated[list[CableSpec], Field(min_length=6, max_length=64)]
+    """The cables (6 to 64), in cable order: the order of the drives' lists."""
     home: PoseSpec
+    """The platform's resting pose (a docking fixture): where `cdprd home` and pretension
+    work by default, the orientation safety.tilt_max is measured from, and the first guess
+    of forward kinematics."""
     forward_kinematics: ForwardKinematicsSpec = ForwardKinematicsSpec()
+    """Settings of the solver that finds the pose from the cable lengths (below)."""
     # named resting poses (docking fixtures) for `cdprd home --pose NAME`; "home" is `home`
     poses: dict[Annotated[str, Field(pattern=r"^[A-Za-z0-9_\-]{1,64}$")], PoseSpec] = {}
 

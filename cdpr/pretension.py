@@ -62,18 +62,20 @@ class PretensionSpec(StrictModel):
     Forces in N, speeds in m/s, times in s, lengths in m, angles in rad.  wind_force must
     exceed the drums' friction (a drum that cannot turn looks taut)."""
 
-    wind_force: PositiveFloat = 15.0
-    wind_speed: PositiveFloat = 0.05
-    taut_band: PositiveFloat = 5e-4
-    taut_time: PositiveFloat = 0.2
-    taut_timeout: PositiveFloat = 20.0
-    max_wind_in: PositiveFloat = 0.5
-    ramp_rate: PositiveFloat = 200.0
-    settle_time: PositiveFloat = 0.3
-    max_motion: PositiveFloat = 2e-3
-    max_rotation: PositiveFloat = 5e-3
+    wind_force: PositiveFloat = 15.0  # N: the most the wind-in pulls; a taut cable pulls this
+    wind_speed: PositiveFloat = 0.05  # m/s at which a slack cable is wound in
+    taut_band: PositiveFloat = 5e-4  # m: a cable pulling wind_force within it for taut_time is taut
+    taut_time: PositiveFloat = 0.2  # s a pulling cable must stay within taut_band to be taut
+    taut_timeout: PositiveFloat = 20.0  # s: a cable not taut by then aborts the pretension
+    max_wind_in: PositiveFloat = 0.5  # m: winding a cable in further before it is taut aborts
+    ramp_rate: PositiveFloat = 200.0  # N/s: how fast the largest tension change of the ramp goes
+    settle_time: PositiveFloat = 0.3  # s the planned tensions are held and the lengths averaged
+    max_motion: PositiveFloat = 2e-3  # m: a platform displacement beyond it aborts (ramp, settle)
+    max_rotation: PositiveFloat = 5e-3  # rad: a platform rotation beyond it aborts (ramp, settle)
     carry: Annotated[float, Field(gt=0.0, le=1.0)] = 0.8
-    unload_time: PositiveFloat = 1.0
+    """The share of the static wrench holding the platform (its weight) that the ramp puts
+    on the cables; the position loop takes over the rest in unload_time."""
+    unload_time: PositiveFloat = 1.0  # s over which the position loop takes the rest of the weight
 
 
 def ramp_target(robot: Robot, solver: TensionSolver, pose: Pose, carry: float) -> Array:

@@ -74,16 +74,19 @@ class PdoSpec(StrictModel):
     its transmission type (RPDO: 254/255 event-driven; TPDO: 1 = every SYNC, 254/255 = on
     change, at most once per inhibit_time).
 
-    shared (RPDO only): one frame for all the drives of a bus: each drive's objects in
+    shared: (RPDO only) one frame for all the drives of a bus: each drive's objects in
       turn, in cable order, every drive mapping dummy entries over the others' bytes.
     cob_id: the COB-ID every drive of the bus takes for this RPDO (default: the
       predefined one of each drive; a shared RPDO: that of the bus's lowest node id).
-    inhibit_time (TPDO): 0x18xx:03, least time between two event-driven TPDOs (100 us).
+    inhibit_time: (TPDO) 0x18xx:03, least time between two event-driven TPDOs (100 us).
     """
 
-    number: Annotated[int, Field(ge=1, le=4)]
+    number: Annotated[int, Field(ge=1, le=4)]  # RPDOn or TPDOn, with its predefined COB-ID
     objects: Annotated[list[ObjectRef], Field(min_length=1, max_length=8)]
+    """The objects mapped, in frame order: an index (sub 0) or "0xIIII:SS"."""
     transmission_type: Annotated[int, Field(ge=0, le=255)]
+    """CiA 301 transmission type (0x14xx/0x18xx:02): RPDO 254/255 event-driven; TPDO 1
+    every SYNC, 254/255 on change."""
     shared: bool = False
     cob_id: Annotated[int, Field(ge=1, le=0x7FF)] | None = None
     inhibit_time: Annotated[int, Field(ge=0, le=0xFFFF)] = 0
@@ -92,8 +95,8 @@ class PdoSpec(StrictModel):
 class SdoWrite(StrictModel):
     """An extra SDO write at start-up (vendor specifics, 0x60C2, current limits)."""
 
-    object: ObjectRef
-    value: int | str
+    object: ObjectRef  # the object written: an index (sub 0) or "0xIIII:SS"
+    value: int | str  # an integer, or a string for a string object; checked against the EDS
 
 
 def _default_rpdos() -> list[PdoSpec]:
@@ -165,7 +168,7 @@ class DrivesConfig(StrictModel):
       estimates); SYNC-driven drives answer every SYNC instead.
     bus: the `can:` bus (by name) each drive is on; one name for every drive; needed
       only when `can:` lists several buses.  Node ids are distinct on each bus.
-    accept_fall_on_axis_error (odrive only): the user accepts that, without holding
+    accept_fall_on_axis_error: (odrive only) the user accepts that, without holding
       brakes, an axis error (a dead daemon's watchdog expiry included) drops the platform:
       ODrive firmware 0.6 disarms the axis on every error.  `check_fall_on_axis_error`.
     force_lag: time constant (s) with which a drive's force follows its command (first
@@ -173,7 +176,7 @@ class DrivesConfig(StrictModel):
       "auto" allows for it.  Default: the simulator's actuator (2 ms).
     profile: CiA 402 only: the drive's EDS, the PDO mapping and extra SDO writes the host
       configures at start-up (Cia402Profile).
-    host_heartbeat_period / consumer_heartbeat_time (CiA 402): how often the host sends
+    host_heartbeat_period / consumer_heartbeat_time: (CiA 402) how often the host sends
       its own heartbeat, and the time after its last one at which each drive's consumer
       (0x1016) declares the daemon dead and reacts (0x6007/0x605A): the drives' detection
       time of a dead daemon.  Whole ms; default (null): `host_heartbeat`
@@ -189,7 +192,7 @@ class DrivesConfig(StrictModel):
     length_offset: FiniteFloat | list[FiniteFloat] = 0.0
     rated_torque: PositiveFloat | None = None
     brake: BrakeMode = BrakeMode.POSITION_HOLD
-    has_holding_brake: bool = False
+    has_holding_brake: bool = False  # the winches have mechanical holding brakes
     watchdog_timeout: PositiveSeconds = 0.05
     heartbeat_period: PositiveSeconds = 0.1
     heartbeat_timeout: PositiveSeconds = 0.35
@@ -198,7 +201,6 @@ class DrivesConfig(StrictModel):
     accept_fall_on_axis_error: bool = False
     force_lag: Annotated[float, Field(ge=0.0, le=0.05, allow_inf_nan=False)] = DEFAULT_FORCE_LAG
     profile: Cia402Profile = Field(default_factory=Cia402Profile)
-    # the host's heartbeat and the drives' consumer of it (host_heartbeat)
     host_heartbeat_period: WholeMs | None = None
     consumer_heartbeat_time: WholeMs | None = None
 
@@ -345,11 +347,13 @@ class CanConfig(StrictModel):
     `options` go to can.Bus unchanged.  `name` is what `drives.bus` calls the bus
     (default: its channel)."""
 
-    name: BusName | None = None
-    interface: str = "socketcan"
-    channel: str = "can0"
+    name: BusName | None = None  # what drives.bus calls this bus; null: its channel
+    interface: str = "socketcan"  # the python-can interface (socketcan, socketcand, ...)
+    channel: str = "can0"  # the python-can channel (for SocketCAN: the network interface)
     bitrate: Annotated[int, Field(gt=0, le=8_000_000)] = 1_000_000
-    options: dict[str, Any] = Field(default_factory=dict)
+    """bit/s, passed to python-can (SocketCAN takes the interface's own, set with ip link)
+    and the base of the simulator's bus-load figures."""
+    options: dict[str, Any] = Field(default_factory=dict)  # further keyword arguments of can.Bus
 
     @property
     def bus_name(self) -> str:

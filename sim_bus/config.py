@@ -33,11 +33,11 @@ class RigConfig(StrictModel):
     or clamped at its end (`clamped`, pretensioned to `preload` N).  The rig is
     sim_bus.plant.rig.SingleActuatorRig behind the same virtual drive as on the robot."""
 
-    drive: Annotated[int, Field(ge=0)] = 0
-    load_mass: NonNegativeFloat = 0.0
-    clamped: bool = False
-    cable_length: PositiveFloat = 2.0
-    preload: PositiveFloat = 100.0
+    drive: Annotated[int, Field(ge=0)] = 0  # the cable whose actuator and drive are simulated
+    load_mass: NonNegativeFloat = 0.0  # kg hanging from the cable; 0: the free drum
+    clamped: bool = False  # the cable's end is clamped instead of loaded
+    cable_length: PositiveFloat = 2.0  # m, from the drum to the load or the clamp
+    preload: PositiveFloat = 100.0  # N, the clamped cable's pretension
 
     @model_validator(mode="after")
     def _one_load(self) -> RigConfig:
@@ -47,11 +47,16 @@ class RigConfig(StrictModel):
 
 
 class SimConfig(StrictModel):
-    """`sim:` section.  plant: sim_bus.plant.PlantConfig keys; frame_faults:
-    sim_bus.bus.frame_faults keys; serve_socketcand: "127.0.0.1:PORT" to serve the bus to
-    other processes in the socketcand protocol; wake_period: seconds between the
-    simulator's own wake-ups (default: the plant step), see `wake`; rig: one winch on
-    the bench instead of the robot (RigConfig)."""
+    """`sim:` section: the simulated robot, its drives and its bus.
+
+    plant: the simulated robot's physics (sim_bus.plant.PlantConfig).
+    frame_faults: faults injected into the bus's frames (sim_bus.bus.frame_faults).
+    serve_socketcand: "127.0.0.1:PORT" to serve the bus to other processes in the
+      socketcand protocol (`python -m sim_bus`); null: not served.
+    wake_period: seconds between the simulator's own wake-ups; null: the plant step
+      (see `wake`).
+    rig: one winch on the bench instead of the robot (RigConfig); null: the robot.
+    """
 
     plant: PlantConfig = PlantConfig()
     frame_faults: FrameFaultConfig = FrameFaultConfig()

@@ -1,6 +1,7 @@
 """The documentation: the site builds with `mkdocs build --strict` (a broken link or
-anchor, a page missing from the navigation fail it), the CLI reference is the one the
-parser writes, and README, the front door, stays short and links only to what exists."""
+anchor, a page missing from the navigation fail it), the generated references (CLI,
+config, faults) are the ones their code writes, and README, the front door, stays short
+and links only to what exists."""
 
 from __future__ import annotations
 
@@ -10,7 +11,13 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from daemon.cli.reference import cli_reference
+from daemon.config import FileConfig
+from daemon.config.reference import VALIDATED_LATER, _nested, config_reference, key_descriptions
+from daemon.service.fault_guide import GUIDE, fault_reference
+from daemon.service.safety import Trigger
 
 ROOT = Path(__file__).resolve().parent.parent
 README_LINES = 200
@@ -45,3 +52,48 @@ def test_the_cli_reference_is_the_one_the_parser_writes() -> None:
         "docs/reference/cli.md is stale: python -m daemon.cli.reference > docs/reference/cli.md"
     )
     assert "## cdprd demo" in page and "## cdprd send" in page
+
+
+@pytest.mark.parametrize(
+    ("page", "writer", "command"),
+    [
+        ("config.md", config_reference, "python -m daemon.config.reference"),
+        ("faults.md", fault_reference, "python -m daemon.service.fault_guide"),
+    ],
+)
+def test_a_generated_reference_is_the_one_its_code_writes(page, writer, command) -> None:
+    text = (ROOT / "docs" / "reference" / page).read_text()
+    assert text == writer(), f"docs/reference/{page} is stale: {command} > docs/reference/{page}"
+
+
+def test_every_config_key_is_described() -> None:
+    """Each key of every section has a description (its attribute docstring, comment or
+    docstring line): the config reference leaves no key unexplained."""
+    missing: list[str] = []
+    seen: set[type] = set()
+
+    def walk(path: str, model: type) -> None:
+        if model in seen:
+            return
+        seen.add(model)
+        described = key_descriptions(model)
+        for name, info in model.model_fields.items():
+            key = f"{path}.{name}" if path else name
+            if name not in described:
+                missing.append(f"{key} ({model.__name__})")
+            nested = (VALIDATED_LATER.get(name) if model is FileConfig else None) or _nested(
+                info.annotation
+            )
+            if nested is not None:
+                walk(key, nested)
+
+    walk("", FileConfig)
+    assert not missing, f"config keys without a description: {', '.join(missing)}"
+
+
+def test_every_brake_trigger_has_a_meaning_and_an_action() -> None:
+    assert set(GUIDE) == set(Trigger)
+    page = fault_reference()
+    for trigger in Trigger:
+        assert f"## `{trigger.value}`" in page
+        assert GUIDE[trigger].meaning and GUIDE[trigger].action

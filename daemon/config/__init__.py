@@ -55,10 +55,12 @@ Fraction = Annotated[float, Field(gt=0.0, lt=1.0)]
 class SafetyConfig(StrictModel):
     """Brake triggers (DESIGN §9).  Positions in m, angles in rad, world frame.
 
-    workspace_min/max: box for the platform reference point and every corner of its
-    body (the robot file's platform.body, default the attachment points' hull; default
-    box: the anchors' bounding box).  tilt_max: largest rotation angle from the home
-    orientation.  tracking_error_*: largest |θ_d| parts while tracking or holding.
+    workspace_min / workspace_max: lowest and highest corner of the box for the platform
+      reference point and every corner of its body (the robot file's platform.body,
+      default the attachment points' hull); null: the anchors' bounding box.
+    tilt_max: largest rotation angle from the home orientation.
+    tracking_error_position / tracking_error_orientation: largest |θ_d| parts (m, rad) while
+      tracking or holding.
     Trajectories are validated inside the box, the tilt and clear of the environment
     less these (a corner at r from p: less tracking_error_position + r x
     tracking_error_orientation) and a sampling margin: the measured pose, within them of
@@ -110,7 +112,7 @@ class SafetyConfig(StrictModel):
 
 
 class LoggingConfig(StrictModel):
-    level: Literal["debug", "info", "warning", "error"] = "info"
+    level: Literal["debug", "info", "warning", "error"] = "info"  # the least severe level logged
 
 
 class RecordingConfig(StrictModel):
@@ -130,8 +132,8 @@ class RecordingConfig(StrictModel):
     long as the service runs.
     """
 
-    telemetry: str | None = None
-    can_log: str | None = None
+    telemetry: str | None = None  # MCAP file of the cycle telemetry; null: not recorded
+    can_log: str | None = None  # python-can log file of the raw CAN frames; null: not recorded
     rotate_mb: PositiveFloat | None = 256.0
     rotate_minutes: PositiveFloat | None = 60.0
     keep_mb: PositiveFloat | None = 4096.0
@@ -187,24 +189,27 @@ class RealtimeConfig(StrictModel):
 
 
 class FileConfig(StrictModel):
-    """The raw file, before the robot is built."""
+    """The config file as read, before the robot is built: one YAML mapping per robot,
+    these keys at its top level, each section's keys in the tables that follow.  Paths
+    are relative to the config file."""
 
-    robot: str | dict[str, Any]
-    controller: dict[str, Any] = Field(default_factory=dict)
-    drives: dict[str, Any]
-    can: CanSection = CanConfig()
-    safety: SafetyConfig = SafetyConfig()
-    environment: EnvironmentConfig = EnvironmentConfig()
-    trajectory: TrajectoryLimits = TrajectoryLimits()
-    zenoh: dict[str, Any] = Field(default_factory=dict)
-    logging: LoggingConfig = LoggingConfig()
-    recording: RecordingConfig = RecordingConfig()
-    realtime: RealtimeConfig = RealtimeConfig()
-    view: ViewConfig = ViewConfig()
-    sim: dict[str, Any] = Field(default_factory=dict)  # sim_bus.config validates it
-    ros2: dict[str, Any] = Field(default_factory=dict)  # Ros2Settings validates it
-    # homing and calibration state (daemon.service.calibration_state); default: systemd's
-    # $STATE_DIRECTORY (the unit's StateDirectory=cdprd, /var/lib/cdprd), else none
+    robot: str | dict[str, Any]  # a robot file (relative to this file) or the description inline
+    controller: dict[str, Any] = Field(default_factory=dict)  # the control law (below)
+    drives: dict[str, Any]  # the motor drives: protocol, node ids, scaling, braking (below)
+    can: CanSection = CanConfig()  # the CAN bus (python-can arguments), or a list of buses
+    safety: SafetyConfig = SafetyConfig()  # brake triggers and the workspace (below)
+    environment: EnvironmentConfig = EnvironmentConfig()  # obstacles: planes and boxes (below)
+    trajectory: TrajectoryLimits = TrajectoryLimits()  # limits every trajectory keeps (below)
+    zenoh: dict[str, Any] = Field(default_factory=dict)  # the zenoh session (below)
+    logging: LoggingConfig = LoggingConfig()  # the daemon's log output (below)
+    recording: RecordingConfig = RecordingConfig()  # telemetry and raw CAN recordings (below)
+    realtime: RealtimeConfig = RealtimeConfig()  # what the control cycle asks of the kernel (below)
+    view: ViewConfig = ViewConfig()  # the live 3-D view (below)
+    sim: dict[str, Any] = Field(default_factory=dict)  # the simulator; sim_bus.config validates it
+    ros2: dict[str, Any] = Field(default_factory=dict)  # ROS 2 bridge; Ros2Settings validates it
+    # directory of the homing and calibration state (daemon.service.calibration_state),
+    # relative to this file; null: systemd's $STATE_DIRECTORY (the unit's
+    # StateDirectory=cdprd, /var/lib/cdprd), else none (the state is kept in memory only)
     state_dir: Annotated[str, Field(min_length=1)] | None = None
     # bring-up from slack cables on a docking fixture (cdpr.pretension, `cdprd pretension`)
     pretension: PretensionSpec = PretensionSpec()

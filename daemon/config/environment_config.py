@@ -30,9 +30,9 @@ ON_PLANE = 1e-9  # m: an anchor this far behind a plane is on it (a floor-mounte
 class PlaneSpec(StrictModel):
     """A plane through `point` (m) whose free side is the one `normal` points to."""
 
-    name: Name | None = None
-    point: Vec3
-    normal: Vec3
+    name: Name | None = None  # what messages call it; null: "plane <index>"
+    point: Vec3  # m, world frame: a point on the plane
+    normal: Vec3  # points to the free side (normalised when loaded)
 
     @field_validator("normal")
     @classmethod
@@ -46,9 +46,9 @@ class PlaneSpec(StrictModel):
 class BoxSpec(StrictModel):
     """An axis-aligned obstacle from `min` to `max` (m, world frame)."""
 
-    name: Name | None = None
-    min: Vec3
-    max: Vec3
+    name: Name | None = None  # what messages call it; null: "box <index>"
+    min: Vec3  # m, world frame: the lowest corner
+    max: Vec3  # m, world frame: the highest corner
 
     @model_validator(mode="after")
     def _ordered(self) -> BoxSpec:
@@ -60,8 +60,8 @@ class BoxSpec(StrictModel):
 class EnvironmentConfig(StrictModel):
     """The `environment:` section (every key optional)."""
 
-    planes: tuple[PlaneSpec, ...] = Field((), max_length=32)
-    boxes: tuple[BoxSpec, ...] = Field((), max_length=32)
+    planes: tuple[PlaneSpec, ...] = Field((), max_length=32)  # floors and walls (below)
+    boxes: tuple[BoxSpec, ...] = Field((), max_length=32)  # axis-aligned obstacles (below)
 
 
 def environment_of(robot: Robot, section: EnvironmentConfig) -> Environment:

@@ -22,23 +22,37 @@ class Ros2Settings(StrictModel):
     """Every key optional; nothing is published or accepted unless `enabled`."""
 
     enabled: bool = False
-    domain_id: int = Field(0, ge=0, le=232)  # ROS_DOMAIN_ID's range
+    """Run the ROS 2 bridge on the daemon's zenoh session."""
+    domain_id: int = Field(0, ge=0, le=232)  # the ROS 2 domain (ROS_DOMAIN_ID) of its topics
     node_name: str = Field("cdprd", pattern=rf"^{_NAME}$", max_length=100)
+    """The ROS 2 node's name; the diagnostics status is named after it too."""
     namespace: str = Field("/", pattern=_NAMESPACE, max_length=200)
+    """The node's namespace ("/" or "/a/b"); a topic name without a leading "/" is under it."""
     rate_hz: PositiveFloat = Field(30.0, le=1000.0)
     """Publication rate of the pose, joint, tf and diagnostic topics."""
     world_frame: str = Field("world", pattern=rf"^{_NAME}$")
     """The frame of every pose sent and the frame_id an incoming trajectory must name
     (or leave empty)."""
     platform_frame: str = Field("platform", pattern=rf"^{_NAME}$")
+    """The tf frame of the measured platform pose (child of world_frame)."""
     reference_frame: str = Field("platform_reference", pattern=rf"^{_NAME}$")
+    """The tf frame of the reference pose, where the platform should be (child of
+    world_frame)."""
     pose_topic: str = Field("pose", pattern=_TOPIC)
+    """geometry_msgs/msg/PoseStamped out: the measured platform pose."""
     reference_pose_topic: str = Field("reference_pose", pattern=_TOPIC)
+    """geometry_msgs/msg/PoseStamped out: the reference pose."""
     joint_states_topic: str = Field("joint_states", pattern=_TOPIC)
+    """sensor_msgs/msg/JointState out: per cable its length (m), rate (m/s) and commanded
+    force (N)."""
     tf_topic: str = Field("/tf", pattern=_TOPIC)
+    """tf2_msgs/msg/TFMessage out: platform_frame and reference_frame in world_frame."""
     diagnostics_topic: str = Field("/diagnostics", pattern=_TOPIC)
+    """diagnostic_msgs/msg/DiagnosticArray out: the safety state and fault."""
     path_topic: str = Field("path", pattern=_TOPIC)
+    """nav_msgs/msg/Path in: a trajectory to fly."""
     multi_dof_trajectory_topic: str = Field("multi_dof_trajectory", pattern=_TOPIC)
+    """trajectory_msgs/msg/MultiDOFJointTrajectory in: a trajectory to fly."""
     status_topic: str = Field("trajectory_status", pattern=_TOPIC)
     """std_msgs/msg/String: the verdict on each trajectory received (JSON text)."""
     max_message_bytes: int | None = Field(None, ge=1024, le=256 * 1024 * 1024)

@@ -30,12 +30,15 @@ class ViewConfig(StrictModel):
     """The `view:` section of a daemon config (every key optional)."""
 
     enabled: bool = False
+    """Serve the live view (the telemetry recording's scene does not need it)."""
     host: str = Field("127.0.0.1", min_length=1, max_length=253)
+    """The address the view listens on; off loopback only with expose."""
     port: Annotated[int, Field(ge=0, le=65535)] = DEFAULT_VIEW_PORT
     """0: any free port (the companion logs the one it got)."""
     expose: bool = False
     """Allow a host off loopback: an explicit network choice."""
     rate_hz: PositiveFloat = Field(30.0, le=200.0)
+    """Hz: how often the scene is drawn, live and in the telemetry recording."""
     allowed_origins: tuple[str, ...] = Field(FOXGLOVE_ORIGINS, max_length=64)
     """The web origins (scheme://host[:port]) whose pages may connect; a client that
     sends no Origin (not a web page: Foxglove's desktop app, scripts) always may."""

@@ -45,14 +45,20 @@ class ZenohSettings(StrictModel):
     expose: bool = False
     """Allow endpoints off loopback (and multicast scouting): an explicit network choice."""
     multicast_scouting: bool = False
+    """zenoh's multicast scouting: announce the daemon and find peers on the local
+    network; needs expose."""
     gossip: bool = False
+    """zenoh's gossip scouting: peers tell each other of the peers they know."""
     shared_memory: bool = False
     """zenoh's shared-memory transport maps a 16 MiB pool per local peer that sends
     payloads over 3 KiB, and keeps it: off, since the messages here are small."""
     state_rate_hz: PositiveFloat = Field(50.0, le=1000.0)
+    """Hz: how often the daemon publishes its state (key <prefix>/state)."""
     max_message_bytes: int = Field(2 * 1024 * 1024, ge=1024, le=256 * 1024 * 1024)
     """Trajectory and command payloads above this size are refused unread."""
     max_waypoints: int = Field(10000, ge=2)
+    """The most waypoints a trajectory from zenoh or ROS 2 may have; the lower of this and
+    trajectory.max_waypoints applies."""
     queue_depth: int = Field(16, ge=1, le=4096)
     """Per inbound queue (trajectories, commands) and for outgoing events; overflow drops."""
     ingress_limits_hz: dict[str, PositiveFloat] = Field(default_factory=dict)

@@ -50,9 +50,9 @@ RULE_KINDS = ("drop", "corrupt", "delay", "error_bursts")
 class FrameMatch(StrictModel):
     """Matches when (frame id ^ can_id) & can_mask == 0 (and the id type, if given)."""
 
-    can_id: CanId
-    can_mask: CanId = 0x1FFFFFFF
-    extended: bool | None = None
+    can_id: CanId  # the id to match, under can_mask
+    can_mask: CanId = 0x1FFFFFFF  # the id bits compared
+    extended: bool | None = None  # true: 29-bit ids only; false: 11-bit only; null: either
 
     def matches(self, msg: can.Message) -> bool:
         if self.extended is not None and msg.is_extended_id != self.extended:
@@ -62,16 +62,18 @@ class FrameMatch(StrictModel):
 
 class _Rule(StrictModel):
     name: str | None = None  # unique; defaults to "<kind>[<index>]"
-    enabled: bool = True
+    enabled: bool = True  # false: off from the start (FrameFaultInjector.set_enabled switches it)
     direction: RuleDirection = "both"
+    """rx: the frames the simulated drives receive, tx: those they send, or both."""
     match: tuple[FrameMatch, ...] = ()  # empty: every frame
 
 
 class _Selective(_Rule):
     """Acts on every `every_nth` matching frame, and on others with `probability`."""
 
-    probability: Probability = 0.0
+    probability: Probability = 0.0  # chance of acting on a matching frame every_nth leaves
     every_nth: Annotated[int, Field(ge=1)] | None = None
+    """Act on every Nth matching frame (1: every one); null: by probability alone."""
 
     @model_validator(mode="after")
     def _selects_something(self) -> _Selective:
@@ -85,8 +87,8 @@ class DropRule(_Selective):
 
 
 class CorruptRule(_Selective):
-    flip_bits: Annotated[int, Field(ge=0, le=64)] = 1
-    change_dlc: bool = False
+    flip_bits: Annotated[int, Field(ge=0, le=64)] = 1  # distinct data bits flipped per frame
+    change_dlc: bool = False  # give the frame another DLC, its data cut or zero-padded to it
 
     @model_validator(mode="after")
     def _changes_something(self) -> CorruptRule:
@@ -101,16 +103,18 @@ class DelayRule(_Selective):
 
 class ErrorBurstRule(_Rule):
     period: PositiveFloat  # seconds between bursts
-    count: Annotated[int, Field(ge=1, le=10_000)] = 1
+    count: Annotated[int, Field(ge=1, le=10_000)] = 1  # error frames per burst
     error_class: Annotated[int, Field(ge=0, le=0x1FFFFFFF)] = CAN_ERR_PROT_BUSERROR
+    """The error frames' id: SocketCAN error class bits (default: protocol violation and
+    bus error)."""
 
 
 class FrameFaultConfig(StrictModel):
-    seed: int = 0
-    drop: tuple[DropRule, ...] = ()
-    corrupt: tuple[CorruptRule, ...] = ()
-    delay: tuple[DelayRule, ...] = ()
-    error_bursts: tuple[ErrorBurstRule, ...] = ()
+    seed: int = 0  # with each rule's name, seeds the rule's random draws
+    drop: tuple[DropRule, ...] = ()  # rules that drop frames
+    corrupt: tuple[CorruptRule, ...] = ()  # rules that corrupt frames
+    delay: tuple[DelayRule, ...] = ()  # rules that hold frames back
+    error_bursts: tuple[ErrorBurstRule, ...] = ()  # rules that send error frames periodically
 
     @model_validator(mode="after")
     def _unique_names(self) -> FrameFaultConfig:

@@ -48,8 +48,11 @@ class ActuatorModelConfig(StrictModel):
     """
 
     c: Coefficients = Field(default_factory=lambda: [2e-3])
+    """Coefficients of f', f'', ... (s, s^2, ...); the default is a 2 ms first-order lag."""
     k: Coefficients | None = None
+    """Coefficients of l', l'', ... (N s/m, N s^2/m, ...); null: [k0] of each actuator."""
     c_tilde: Coefficients = Field(default_factory=list)
+    """Coefficients of f_c', f_c'', ... (s, s^2, ...); empty: none."""
 
     @field_validator("c")
     @classmethod
@@ -114,17 +117,18 @@ class EncoderConfig(StrictModel):
     Gaussian noise, quantised to counts (None: ideal); velocity as the drive computes
     it, the difference of two such samples `velocity_window_steps` steps apart."""
 
-    counts_per_metre: PositiveFloat | None = 1e5
+    counts_per_metre: PositiveFloat | None = 1e5  # quantisation; null: none (ideal)
     noise_std: NonNegativeFloat = 0.0  # m
-    latency_steps: Annotated[int, Field(ge=0, le=10_000)] = 0
+    latency_steps: Annotated[int, Field(ge=0, le=10_000)] = 0  # plant steps a report lags
     velocity_window_steps: Annotated[int, Field(ge=1, le=10_000)] = 2
+    """Plant steps between the two length samples whose difference gives the rate."""
 
 
 class PayloadConfig(StrictModel):
     """A point mass carried by the platform (kg, at `position`: m, platform frame from p)."""
 
-    mass: PositiveFloat
-    position: Vec3 = (0.0, 0.0, 0.0)
+    mass: PositiveFloat  # kg
+    position: Vec3 = (0.0, 0.0, 0.0)  # m, platform frame, from p
 
 
 class MismatchConfig(StrictModel):
@@ -147,17 +151,18 @@ class MismatchConfig(StrictModel):
     belief).
     """
 
-    mass_scale: PositiveFloat = 1.0
-    inertia_scale: PositiveFloat = 1.0
+    mass_scale: PositiveFloat = 1.0  # true platform mass / the file's
+    inertia_scale: PositiveFloat = 1.0  # true platform inertia / the file's
     center_of_mass_offset: Vec3 = (0.0, 0.0, 0.0)  # m, platform frame
-    m0_scale: PositiveFloat = 1.0
-    k0_scale: NonNegativeFloat = 1.0
+    m0_scale: PositiveFloat = 1.0  # true m0 / the file's, every actuator
+    k0_scale: NonNegativeFloat = 1.0  # true k0 / the file's, every actuator
     anchor_offsets: list[Vec3] | None = None  # m, one per cable, world frame
     anchor_error_std: NonNegativeFloat = 0.0  # m, random per anchor coordinate (seeded)
     attachment_offsets: list[Vec3] | None = None  # m, one per cable, platform frame
     drum_radius_scale: PositiveFloat | list[PositiveFloat] = 1.0
+    """True drum radius / the file's: one for every cable, or one per cable."""
     encoder_offsets: list[FiniteFloat] | None = None  # m, one per drive
-    payload: PayloadConfig | None = None
+    payload: PayloadConfig | None = None  # a point mass added to the platform; null: none
 
     def apply(self, robot: Robot, rng: np.random.Generator) -> Robot:
         """The true robot: `robot`'s description with these errors, built by cdpr."""
@@ -219,9 +224,9 @@ class DisturbanceConfig(StrictModel):
     """External wrench (force, torque about p; world frame) acting for start <= t < end:
     constant with the defaults, a step with start > 0."""
 
-    wrench: Wrench = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-    start: NonNegativeFloat = 0.0
-    end: Annotated[float, Field(gt=0.0)] = math.inf
+    wrench: Wrench = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)  # N, N m: force, torque about p
+    start: NonNegativeFloat = 0.0  # s of simulated time: when it begins
+    end: Annotated[float, Field(gt=0.0)] = math.inf  # s of simulated time: when it ends
 
 
 class PlantConfig(StrictModel):
@@ -229,14 +234,15 @@ class PlantConfig(StrictModel):
     it is integrated in `substeps` equal semi-implicit Euler substeps."""
 
     step: Annotated[float, Field(gt=0.0, le=0.1, allow_inf_nan=False)] = 1e-3
-    substeps: Annotated[int, Field(ge=1, le=1000)] = 1
-    seed: int = 0
-    cable: CableConfig = CableConfig()
-    actuator: ActuatorModelConfig = ActuatorModelConfig()
-    friction: FrictionConfig = FrictionConfig()
-    encoder: EncoderConfig = EncoderConfig()
-    mismatch: MismatchConfig = MismatchConfig()
-    disturbance: DisturbanceConfig = DisturbanceConfig()
+    """s: the plant step, the unit of the encoder's latency and velocity window."""
+    substeps: Annotated[int, Field(ge=1, le=1000)] = 1  # semi-implicit Euler substeps per step
+    seed: int = 0  # seeds the plant's random draws (anchor errors, encoder noise, force noise)
+    cable: CableConfig = CableConfig()  # the cables' elasticity (below)
+    actuator: ActuatorModelConfig = ActuatorModelConfig()  # the drives' force dynamics (below)
+    friction: FrictionConfig = FrictionConfig()  # drum friction (below)
+    encoder: EncoderConfig = EncoderConfig()  # what the drives report (below)
+    mismatch: MismatchConfig = MismatchConfig()  # how the true robot differs from the file (below)
+    disturbance: DisturbanceConfig = DisturbanceConfig()  # an external wrench (below)
     # relative standard deviation of the force a drive produces against its command,
     # drawn anew for every held command (drive current noise; `cdprd tune`'s noisy case)
     force_noise: Annotated[float, Field(ge=0.0, le=0.5)] = 0.0

@@ -30,12 +30,12 @@ class FixtureConfig(StrictModel):
     zero.  stiffness / damping: N/m and N s/m of the contact; rotational_*: N m/rad and
     N m s/rad."""
 
-    pose: str = "home"
-    slack_m: NonNegativeFloat | list[NonNegativeFloat] = 0.05
-    stiffness: PositiveFloat = 1.0e6
-    damping: NonNegativeFloat = 5.0e3
-    rotational_stiffness: PositiveFloat = 1.0e4
-    rotational_damping: NonNegativeFloat = 100.0
+    pose: str = "home"  # the robot file's pose it rests at: "home" or a name under poses
+    slack_m: NonNegativeFloat | list[NonNegativeFloat] = 0.05  # m: one, or one per cable
+    stiffness: PositiveFloat = 1.0e6  # N/m, of the contact
+    damping: NonNegativeFloat = 5.0e3  # N s/m, of the contact
+    rotational_stiffness: PositiveFloat = 1.0e4  # N m/rad, against turning off the pose
+    rotational_damping: NonNegativeFloat = 100.0  # N m s/rad, against turning
 
     def resting_pose(self, robot: Robot) -> Pose:
         """The fixture's pose in `robot` (ConfigError naming the key for an unknown one)."""
