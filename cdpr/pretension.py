@@ -1,5 +1,5 @@
 """Pretension: from slack cables to the planned tensions without moving the platform
-(DESIGN §15 step 4, issue 16 item 3).  Pure: lengths and rates in, forces out.
+(DESIGN §15 step 4).  Pure: lengths and rates in, forces out.
 
 The platform rests on a docking fixture at a known pose; its cables are slack or at an
 unknown tension.  Cycle by cycle (`Pretension.step`):

@@ -1,4 +1,4 @@
-"""A docking fixture: the platform starts resting on it, its cables slack (issue 16 item 3).
+"""A docking fixture: the platform starts resting on it, its cables slack.
 
 A real robot is built, or parked, with the platform on a support and its cables slack or
 at unknown tension; pretension must wind them in and take the load over without moving
