@@ -183,13 +183,16 @@ class Scaling:
 class Feedback:
     """The newest feedback of one actuator.  `stamp` is the host's monotonic receive
     time (s), `count` increments with every accepted feedback frame, so a cycle can
-    tell fresh feedback from stale.  `first` and `second` (Timing.SYNC drivers): the
-    lengths of the first answer to one SYNC and of a second one, dropped (the pair that
-    disagrees most); the cycle that judges them sets them back to NaN (none)."""
+    tell fresh feedback from stale.  Timing.SYNC drivers: `latched` is the host's
+    monotonic time of the SYNC the sample answers (when the drive latched it); `first`
+    and `second` the lengths of the first answer to one SYNC and of a second one,
+    dropped (the pair that disagrees most); the cycle that judges them sets them back to
+    NaN (none)."""
 
     length: float = math.nan
     rate: float = math.nan
     stamp: float = -math.inf
+    latched: float = -math.inf
     count: int = 0
     first: float = math.nan
     second: float = math.nan

@@ -151,7 +151,6 @@ class Service:
         self.collector = CollectorPolicy()
         self._extrapolation_limit = 2.0 / config.drives.feedback_rate_hz
         self._silence_limit = config.safety.stale_cycles * self.period
-        self._latched = [-math.inf] * self.n  # the SYNC instant of each drive's last answer
 
     # -- lifecycle --------------------------------------------------------------------
 
@@ -360,9 +359,11 @@ class Service:
         rate.  Streamed feedback (Timing.CYCLIC) is sampled at each drive's own time, at
         most two intervals back (older samples are late, and their rate noise would grow
         with age).  A SYNC drive's fresh answer was latched at this cycle's SYNC; a stale
-        one at the SYNC of its last answer, carried at most the cycles a drive may stay
-        silent: left a period old while the platform moves, it would put FK a period's
-        motion off (a millimetre at 0.1 m/s and 100 Hz) and fail its own-rate check."""
+        one at the SYNC its last answer was to (Feedback.latched: an answer that came after
+        its cycle's deadline is a period old, however long ago the drive was last fresh),
+        carried at most the cycles a drive may stay silent: left a period old while the
+        platform moves, it would put FK a period's motion off (a millimetre at 0.1 m/s and
+        100 Hz) and fail its own-rate check."""
         counts = [fb.count for fb in feedback]
         fresh = [c > seen for c, seen in zip(counts, self._counts, strict=True)]
         self._counts = counts
@@ -372,14 +373,11 @@ class Service:
             reach = self._extrapolation_limit
             lengths = [fb.length + fb.rate * min(instant - fb.stamp, reach) for fb in feedback]
             return fresh, lengths, rates
-        latched, reach = self._latched, self._silence_limit
-        lengths = []
-        for k, fb in enumerate(feedback):
-            if fresh[k]:
-                latched[k] = instant
-                lengths.append(fb.length)
-            else:
-                lengths.append(fb.length + fb.rate * min(instant - latched[k], reach))
+        reach = self._silence_limit
+        lengths = [
+            fb.length if new else fb.length + fb.rate * min(instant - fb.latched, reach)
+            for fb, new in zip(feedback, fresh, strict=True)
+        ]
         return fresh, lengths, rates
 
     def _after_commands(self, output: ControlOutput | None, sent: float) -> None:

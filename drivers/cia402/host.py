@@ -447,6 +447,7 @@ class Cia402Driver(ActuatorDriver):
             rated = self.config.rated_torque or 1.0
             self._permille[i] = scaling.motor_torque(1.0, length) / rated * 1000.0
         feedback.stamp = now
+        feedback.latched = self._sync_at
         feedback.count += 1
         return i
 

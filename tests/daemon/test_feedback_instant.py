@@ -31,12 +31,13 @@ def service():
 
 def _cycle(service: Service, instant: float, answered: dict[int, float], rate: float):
     """Open a cycle at `instant` in which the drives in `answered` (drive: length) answered
-    its SYNC, each at `rate`; the others stay silent.  Its lengths as the cycle takes them."""
+    its SYNC, each at `rate`; the others stay silent.  Its feedback as the cycle takes it."""
     service._opened = instant
     service._counts = [fb.count for fb in service.driver.feedback]
     for k, length in answered.items():
         fb = service.driver.feedback[k]
-        fb.length, fb.rate, fb.stamp, fb.count = length, rate, instant + 1e-3, fb.count + 1
+        fb.length, fb.rate, fb.count = length, rate, fb.count + 1
+        fb.stamp, fb.latched = instant + 1e-3, instant  # the driver's: this cycle's SYNC
     return service._take_feedback(service.driver.feedback)
 
 
@@ -71,3 +72,22 @@ def test_a_drive_never_heard_from_carries_nothing(service) -> None:
     fresh, lengths, _ = _cycle(service, 10.0, {0: 1.0}, 0.0)
     assert fresh == [True] + [False] * (n - 1)
     assert lengths[0] == 1.0 and all(x != x for x in lengths[1:])  # NaN: no length yet
+
+
+def test_an_answer_after_its_deadline_is_carried_from_its_own_sync(service) -> None:
+    """A drive whose answer to the last SYNC came after that cycle's deadline (so it is
+    not fresh in this one) was latched a period ago, not when it was last fresh: it is
+    carried one period, however many cycles it has been late."""
+    n, period, rate = service.n, service.period, 0.5
+    _cycle(service, 10.0, dict.fromkeys(range(n), 1.0), rate)
+    for k in range(1, 6):  # drive 0 answers each SYNC after the cycle ran
+        instant = 10.0 + k * period
+        fresh, lengths, _ = _cycle(service, instant, dict.fromkeys(range(1, n), 1.0), rate)
+        late = service.driver.feedback[0]
+        late.length, late.latched = 1.0 + rate * (k - 1) * period, instant - period
+        late.count += 1  # in before the next tick: not fresh there either
+        service._counts[0] = late.count
+        assert not fresh[0]
+    fresh, lengths, _ = _cycle(service, 10.0 + 6 * period, dict.fromkeys(range(1, n), 1.0), rate)
+    assert not fresh[0]
+    assert lengths[0] == pytest.approx(1.0 + rate * 5 * period + rate * period)
