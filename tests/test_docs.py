@@ -13,9 +13,9 @@ from pathlib import Path
 
 import pytest
 
+from daemon.cli.config_reference import VALIDATED_LATER, _nested, config_reference, key_descriptions
 from daemon.cli.reference import cli_reference
 from daemon.config import FileConfig
-from daemon.config.reference import VALIDATED_LATER, _nested, config_reference, key_descriptions
 from daemon.service.fault_guide import GUIDE, fault_reference
 from daemon.service.safety import Trigger
 
@@ -57,7 +57,7 @@ def test_the_cli_reference_is_the_one_the_parser_writes() -> None:
 @pytest.mark.parametrize(
     ("page", "writer", "command"),
     [
-        ("config.md", config_reference, "python -m daemon.config.reference"),
+        ("config.md", config_reference, "python -m daemon.cli.config_reference"),
         ("faults.md", fault_reference, "python -m daemon.service.fault_guide"),
     ],
 )

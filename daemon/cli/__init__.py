@@ -110,7 +110,7 @@ def command_parser() -> argparse.ArgumentParser:
     demo_cmd.add_parser(sub)
     tune_cmd.add_parser(sub)
     calibrate_cmd.add_parser(sub)
-    completion.add_parser(sub)
+    completion.add_parser(sub, parser)
     return parser
 
 

@@ -57,7 +57,8 @@ def bash_completion(parser: argparse.ArgumentParser) -> str:
     return "\n".join(lines) + "\n"
 
 
-def add_parser(sub: argparse._SubParsersAction) -> None:
+def add_parser(sub: argparse._SubParsersAction, root: argparse.ArgumentParser) -> None:
+    """`cdprd completion SHELL`, completing what `root` (the whole command line) takes."""
     p = sub.add_parser(
         "completion",
         help="print a shell completion script",
@@ -65,11 +66,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "or save it as /etc/bash_completion.d/cdprd.",
     )
     p.add_argument("shell", choices=SHELLS)
-    p.set_defaults(handler=_print)
 
+    def handler(args: argparse.Namespace) -> int:
+        print(bash_completion(root), end="")
+        return 0
 
-def _print(args: argparse.Namespace) -> int:
-    from daemon.cli import command_parser  # the whole command line, this command included
-
-    print(bash_completion(command_parser()), end="")
-    return 0
+    p.set_defaults(handler=handler)

@@ -1,5 +1,5 @@
 """The config reference page, written from the config models themselves so that it cannot
-drift from the code: `python -m daemon.config.reference > docs/reference/config.md`
+drift from the code: `python -m daemon.cli.config_reference > docs/reference/config.md`
 (tests/test_docs.py fails while the committed page differs).
 
 Each section is a pydantic model (cdpr.description.StrictModel): its docstring is the
@@ -265,7 +265,7 @@ def config_reference() -> str:
     parts = [
         "# Config reference",
         "",
-        "Written from the config models by `python -m daemon.config.reference`; every key, "
+        "Written from the config models by `python -m daemon.cli.config_reference`; every key, "
         "its type, default and limits as the daemon checks them (`cdprd check-config FILE` "
         "runs the same checks).",
         "",
