@@ -27,10 +27,11 @@ def _get(session: zenoh.Session, key: str, body: dict | None = None) -> dict:
     raise AssertionError(f"no reply on {key}")
 
 
-def _wait(condition, timeout: float) -> None:
+def _wait(condition, timeout: float, seen=lambda: "") -> None:
+    """Poll `condition` for at most `timeout` s; the failure says what `seen` returns."""
     end = time.monotonic() + timeout
     while not condition():
-        assert time.monotonic() < end, "timed out"
+        assert time.monotonic() < end, f"timed out; {seen()}"
         time.sleep(0.05)
 
 
@@ -82,8 +83,9 @@ def test_plain_zenoh_client_drives_a_simulated_daemon(tmp_path: Path) -> None:
             }
             reply = _get(session, f"{PREFIX}/trajectory", trajectory)
             assert reply["ok"] is True, reply
-            _wait(lambda: states[-1]["state"] == "tracking", 5.0)
-            _wait(lambda: states[-1]["state"] == "hold", 10.0)
+            last = lambda: f"last state {states[-1:]}, events {events[-5:]}"  # noqa: E731
+            _wait(lambda: states[-1]["state"] == "tracking", 5.0, last)
+            _wait(lambda: states[-1]["state"] == "hold", 10.0, last)
             assert states[-1]["pose"]["position"][0] == pytest.approx(0.1, abs=2e-3)
             kinds = [e.get("event") for e in events]
             assert "trajectory_accepted" in kinds and "trajectory_done" in kinds
