@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from daemon.cli.config_reference import VALIDATED_LATER, _nested, config_reference, key_descriptions
+from daemon.cli.config_reference import config_reference, key_descriptions, section_of
 from daemon.cli.reference import cli_reference
 from daemon.config import FileConfig
 from daemon.service.fault_guide import GUIDE, fault_reference
@@ -77,13 +77,11 @@ def test_every_config_key_is_described() -> None:
             return
         seen.add(model)
         described = key_descriptions(model)
-        for name, info in model.model_fields.items():
+        for name in model.model_fields:
             key = f"{path}.{name}" if path else name
             if name not in described:
                 missing.append(f"{key} ({model.__name__})")
-            nested = (VALIDATED_LATER.get(name) if model is FileConfig else None) or _nested(
-                info.annotation
-            )
+            nested = section_of(model, name)
             if nested is not None:
                 walk(key, nested)
 

@@ -59,7 +59,7 @@ _LIMITS = (
 def key_descriptions(model: type[BaseModel]) -> dict[str, str]:
     """Each key's description (module docstring): from the source of the model and of
     the models it derives from, else from its docstring."""
-    found = _docstring_descriptions(model)
+    found = _split_docstring(model)[1]
     for cls in reversed(model.__mro__):
         if issubclass(cls, BaseModel) and cls.__module__.split(".")[0] != "pydantic":
             found.update(_source_descriptions(cls))
@@ -104,14 +104,6 @@ def _source_descriptions(cls: type) -> dict[str, str]:
         if above:
             found[node.target.id] = " ".join(above)
     return found
-
-
-def _docstring_descriptions(model: type[BaseModel]) -> dict[str, str]:
-    return _split_docstring(model)[1]
-
-
-def _prose(model: type[BaseModel]) -> str:
-    return _split_docstring(model)[0]
 
 
 def _split_docstring(model: type[BaseModel]) -> tuple[str, dict[str, str]]:
@@ -222,6 +214,14 @@ def _cell(text: str) -> str:
     return text.replace("|", "\\|").replace("\n", " ")
 
 
+def section_of(model: type[BaseModel], name: str) -> type[BaseModel] | None:
+    """The section model key `name` of `model` holds, if any: for the file's top level
+    also the sections it keeps as raw data (VALIDATED_LATER)."""
+    if model is FileConfig and name in VALIDATED_LATER:
+        return VALIDATED_LATER[name]
+    return _nested(model.model_fields[name].annotation)
+
+
 def _nested(annotation: Any) -> type[BaseModel] | None:
     """The section model a key holds (alone, optional, or as a list of them), if any."""
     if isinstance(annotation, type) and issubclass(annotation, BaseModel):
@@ -237,15 +237,14 @@ def section(key: str, model: type[BaseModel], depth: int = 2) -> list[str]:
     """Markdown for the section `key` (model `model`) and the sections inside it."""
     described = key_descriptions(model)
     lines = [f"{'#' * depth} " + (key if model is FileConfig else f"`{key}`"), ""]
-    prose = _prose(model)
+    prose = _split_docstring(model)[0]
     if prose:
         lines += [prose, ""]
     lines += ["| key | type | default | limits | description |", "|---|---|---|---|---|"]
     inner: list[tuple[str, type[BaseModel]]] = []
     for name, info in model.model_fields.items():
         kind = _type_name(info.annotation)
-        nested = VALIDATED_LATER.get(name) if model is FileConfig else None
-        nested = nested or _nested(info.annotation)
+        nested = section_of(model, name)
         if nested is not None:
             inner.append((f"{key}.{name}" if model is not FileConfig else name, nested))
             kind = kind.replace("mapping", "section")
