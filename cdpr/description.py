@@ -199,6 +199,12 @@ class CableSpec(StrictModel):
     actuator: ActuatorOverrides = ActuatorOverrides()  # overrides of the actuator defaults (below)
 
 
+def check_box(low: Vec3, high: Vec3) -> None:
+    """ValueError unless `low` lies below `high` on every axis (a box's min and max)."""
+    if not all(lo < hi for lo, hi in zip(low, high, strict=True)):
+        raise ValueError(f"min {list(low)} must lie below max {list(high)}")
+
+
 class BodyBoxSpec(StrictModel):
     """A box in the platform frame (m): its lowest and highest corner."""
 
@@ -207,8 +213,7 @@ class BodyBoxSpec(StrictModel):
 
     @model_validator(mode="after")
     def _ordered(self) -> BodyBoxSpec:
-        if not all(lo < hi for lo, hi in zip(self.min, self.max, strict=True)):
-            raise ValueError(f"min {list(self.min)} must lie below max {list(self.max)}")
+        check_box(self.min, self.max)
         return self
 
     def corners(self) -> list[Vec3]:

@@ -21,7 +21,7 @@ from pydantic import Field, field_validator, model_validator
 
 from cdpr import ConfigError, Robot
 from cdpr.body import Box, Environment, Plane
-from cdpr.description import StrictModel, Vec3
+from cdpr.description import StrictModel, Vec3, check_box
 
 Name = Annotated[str, Field(min_length=1, max_length=64)]
 ON_PLANE = 1e-9  # m: an anchor this far behind a plane is on it (a floor-mounted winch)
@@ -52,8 +52,7 @@ class BoxSpec(StrictModel):
 
     @model_validator(mode="after")
     def _ordered(self) -> BoxSpec:
-        if not all(lo < hi for lo, hi in zip(self.min, self.max, strict=True)):
-            raise ValueError(f"min {list(self.min)} must lie below max {list(self.max)}")
+        check_box(self.min, self.max)
         return self
 
 
