@@ -68,7 +68,8 @@ HOME = (0.0, 0.0, 1.25)
 MIXES = ("parse", "valid", "large", "hostile", "all", "refused")
 
 
-# A query waits in the daemon's queue (16 deep) behind the trajectories before it: each
+# A query waits in the daemon's queue (16 deep, and undecoded ones weighing at most two of
+# the largest: zenoh_io.QUEUED_LARGEST_MESSAGES) behind the trajectories before it: each
 # parsed within the parse thread's CPU budget (a ~2 MB one can leave it seconds in debt)
 # and validated in the control cycle's slack, so seconds under a flood; the client waits.
 REPLY_TIMEOUT = 30.0  # s

@@ -93,6 +93,10 @@ PARSE_SHARE = 0.25  # of one core: what the parse thread may use in a long flood
 PARSE_BURST = 0.5  # s of CPU time it may use at once (a planner never notices the limit)
 DECODE_ON_ARRIVAL_BYTES = 8 * 1024  # a trajectory this small is decoded (<= ~0.1 ms) and
 # its head checked on the zenoh thread; bad ones are answered at once and never queued
+QUEUED_LARGEST_MESSAGES = 2  # undecoded trajectories waiting weigh at most this many of
+# the largest allowed (zenoh.max_message_bytes): each is parsed within PARSE_SHARE, a ~2 MB
+# one in seconds, so sixteen of them (the queue's depth) kept the last waiting 30 s and
+# more on a slow host; the depth still bounds how many small ones wait
 INLINE_WAYPOINTS = 2  # a decoded trajectory of at most 2 waypoints is parsed on the loop
 # (a move from A to B: no spline system to solve, ~0.1 ms), longer ones in the parse thread
 _Parsed = TrajectoryRequest | tuple[str | None, CommandError]  # or (id, why refused)
@@ -110,7 +114,10 @@ class _Inbox(Generic[_Item]):
     """A bounded hand-over of items from any thread to `process` on the event loop.
 
     When `process` returns a future, the next item waits until that future is done (one
-    job at a time); the running item does not count against the depth.
+    job at a time); the running item does not count against the depth.  With `weigh`,
+    the items waiting also weigh at most `max_weight` together (an item that alone weighs
+    more is taken when none waits): what bounds the wait of the last one when items cost
+    work in proportion to their weight.
     """
 
     def __init__(
@@ -118,11 +125,16 @@ class _Inbox(Generic[_Item]):
         loop: asyncio.AbstractEventLoop,
         depth: int,
         process: Callable[[_Item], asyncio.Future[Any] | None],
+        weigh: Callable[[_Item], int] | None = None,
+        max_weight: int = 0,
     ) -> None:
         self._loop = loop
         self._loop_thread = threading.get_ident()  # built on the loop thread
         self._depth = depth
         self._process = process
+        self._weigh = weigh
+        self._max_weight = max_weight
+        self._weight = 0  # of the items waiting
         self._items: deque[_Item] = deque()
         self._lock = threading.Lock()
         self._scheduled = False
@@ -131,9 +143,13 @@ class _Inbox(Generic[_Item]):
         self.dropped = 0
         self.high_water = 0
 
-    def has_room(self, limit: int | None = None) -> bool:
-        """A hint (no reservation): would an item be accepted now?"""
-        return len(self._items) < (self._depth if limit is None else min(limit, self._depth))
+    def has_room(self, limit: int | None = None, weight: int = 0) -> bool:
+        """A hint (no reservation): would an item (of `weight`) be accepted now?"""
+        limit = self._depth if limit is None else min(limit, self._depth)
+        return len(self._items) < limit and self._fits(weight)
+
+    def _fits(self, weight: int) -> bool:
+        return self._weigh is None or not self._items or self._weight + weight <= self._max_weight
 
     def drop(self) -> None:
         """Count an item dropped before it was offered (see has_room)."""
@@ -143,11 +159,13 @@ class _Inbox(Generic[_Item]):
     def offer(self, item: _Item, limit: int | None = None) -> bool:
         """Queue `item` unless `limit` (default: the depth) items wait already."""
         limit = self._depth if limit is None else min(limit, self._depth)
+        weight = 0 if self._weigh is None else self._weigh(item)
         with self._lock:
-            if self._closed or len(self._items) >= limit:
+            if self._closed or len(self._items) >= limit or not self._fits(weight):
                 self.dropped += 1
                 return False
             self._items.append(item)
+            self._weight += weight
             self.high_water = max(self.high_water, len(self._items))
             wake = not (self._scheduled or self._running)
             self._scheduled = self._scheduled or wake
@@ -165,7 +183,7 @@ class _Inbox(Generic[_Item]):
         """Accept nothing more; return what was waiting."""
         with self._lock:
             self._closed = True
-            items, self._items = list(self._items), deque()
+            items, self._items, self._weight = list(self._items), deque(), 0
             return items
 
     def _drain(self) -> None:
@@ -175,6 +193,8 @@ class _Inbox(Generic[_Item]):
                     self._scheduled = False
                     return
                 item = self._items.popleft()
+                if self._weigh is not None:
+                    self._weight -= self._weigh(item)
             job = self._process(item)
             if job is not None and not job.done():
                 with self._lock:
@@ -305,7 +325,13 @@ class ZenohInterface:
         depth = self.settings.queue_depth
         self._loop = loop
         self._commands = _Inbox(loop, depth, self._run_command)
-        self._trajectories = _Inbox(loop, depth, self._run_trajectory)
+        self._trajectories = _Inbox(
+            loop,
+            depth,
+            self._run_trajectory,
+            _undecoded_bytes,
+            QUEUED_LARGEST_MESSAGES * self.settings.max_message_bytes,
+        )
         self._events = _Inbox(loop, depth, self._put_event)
         self._parser = ThreadPoolExecutor(
             1, thread_name_prefix="cdprd-trajectory-parse", initializer=_lower_priority
@@ -473,15 +499,18 @@ class ZenohInterface:
                 "bad_request", f"send trajectories to the exact key {self.key('trajectory')}"
             )
         assert self._trajectories is not None
-        if not self._trajectories.has_room():  # do not read what would be dropped
+        size = 0 if payload is None else len(payload)
+        undecoded = size if size > DECODE_ON_ARRIVAL_BYTES else 0  # as _undecoded_bytes weighs
+        if not self._trajectories.has_room(weight=undecoded):  # do not read what would drop
             self._trajectories.drop()
             return None, _busy("trajectory")
-        if payload is None or len(payload) == 0:
+        if size == 0:
             return None, CommandError("bad_request", "a trajectory message needs a JSON payload")
         try:
-            check_size(len(payload), self.settings.max_message_bytes)
+            check_size(size, self.settings.max_message_bytes)
         except CommandError as exc:
             return None, exc
+        assert payload is not None
         raw = payload.to_bytes()
         return raw if len(raw) > DECODE_ON_ARRIVAL_BYTES else self._decode_head(raw)
 
@@ -798,6 +827,13 @@ class ZenohInterface:
 def _id(item: bytes | TrajectoryMessage) -> str | None:
     """The sender's id of a queued trajectory, if it was decoded on arrival."""
     return None if isinstance(item, bytes) else item.id
+
+
+def _undecoded_bytes(item: _TrajectoryItem) -> int:
+    """A queued trajectory's weight: its size if it waits undecoded (the parse thread's
+    work), else nothing (decoded on arrival: small)."""
+    message = item[0]
+    return len(message) if isinstance(message, bytes) else 0
 
 
 def _rejected_event(ident: str | None, error: CommandError) -> dict[str, Any]:

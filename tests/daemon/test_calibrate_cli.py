@@ -280,10 +280,17 @@ def test_a_killed_calibrate_leaves_the_daemon_letting_go_within_its_lease(
         calibrate = _calibrating(client, tmp_path, path, port, subprocess.DEVNULL)
         try:
             assert client.observer()["held"] is True and client.payload()["frozen"] is True
+
+            def held_leases() -> list[dict[str, float]]:
+                with lock:
+                    return [s["leases"] for s in states if s["observer_held"]]
+
+            # the published state says so a cycle or more after the companion does (CI
+            # killed calibrate before any state had it)
+            _until(lambda: bool(held_leases()), 10.0, "held in the published state")
             calibrate.kill()
             assert calibrate.wait(timeout=30) == -signal.SIGKILL
-            with lock:
-                held = [s["leases"] for s in states if s["observer_held"]]
+            held = held_leases()
             assert held and all(0.0 < h["observer"] <= LEASE for h in held[-5:]), held[-5:]
             assert all(0.0 < h["payload"] <= LEASE for h in held[-5:]), held[-5:]
             _until(lambda: len(lapsed()) == 2, 10.0 * LEASE, "let go by the lease")

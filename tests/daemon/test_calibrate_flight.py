@@ -148,10 +148,12 @@ def fly_calibration(
     rounds: list[tuple[str, ...]],
     anchors_within: float = 1e-3,
     offsets_within: float = 0.2e-3,
+    reached_within: float = 0.5e-3,
 ) -> None:
     """Home, calibrate in `rounds` (each restarting the daemon on the last file), check
     the written file and offsets against the truth (the issue's bounds by default; EA
-    within 10 %), then fly the true platform with the corrected file."""
+    within 10 %), then fly the true platform with the corrected file to two poses, each
+    reached within `reached_within`."""
     bench = Bench(tmp_path, move, seed=16)
     try:
         bench.start(ROBOTS / "reference8.yaml")
@@ -214,6 +216,12 @@ def test_calibration_through_the_daemon_finds_the_true_robot(tmp_path: Path) -> 
     )
 
 
+# m: how far the true platform may end from a goto's target on the one round's file.  The
+# anchors it leaves (up to 1.5 mm) move the platform about as far: CI's run left them
+# 1.01 mm off and one goto ended 0.92 mm from its target (the other 0.08 mm).
+REACHED_ONE_ROUND = 1.5e-3
+
+
 @pytest.mark.timeout(600)
 def test_a_calibration_through_the_daemon_in_one_round(tmp_path: Path) -> None:
     """The same path, shorter: anchors 5 mm off (encoder zeros and EA as the issue's
@@ -225,15 +233,4 @@ def test_a_calibration_through_the_daemon_in_one_round(tmp_path: Path) -> None:
     (its pose fitted), held or not (largely the 15 um counts' rounding left); so the
     same run gave 0.34-0.76 mm held (4 runs), 0.39-0.55 mm not (3), 1.10 mm in CI, and
     random length errors of that size alone give 0.26-0.74 mm (10-90 % of 16 fits)."""
-    fly_calibration(
-        tmp_path,
-        0.005,
-        [
-            (
-                "--poses",
-                "30",
-            )
-        ],
-        1.5e-3,
-        0.6e-3,
-    )
+    fly_calibration(tmp_path, 0.005, [("--poses", "30")], 1.5e-3, 0.6e-3, REACHED_ONE_ROUND)

@@ -609,6 +609,56 @@ def test_a_stalled_loop_keeps_queues_bounded_and_busy_replies_immediate() -> Non
     assert max(b - a for a, b in itertools.pairwise(passes)) <= 2
 
 
+def test_undecoded_trajectories_waiting_weigh_at_most_two_of_the_largest() -> None:
+    """Large trajectories wait undecoded for the parse thread, each costing work in
+    proportion to its size: besides the queue's depth, those waiting weigh at most
+    QUEUED_LARGEST_MESSAGES x max_message_bytes, so the last in line waits a bounded
+    time.  With the loop held: of five ~20 KB messages (max 32 KiB) three wait (a fourth
+    would weigh more than 64 KiB), the others are answered busy at once; a small one,
+    decoded on arrival, still finds room by the depth."""
+    from daemon.interface.zenoh_io import DECODE_ON_ARRIVAL_BYTES, QUEUED_LARGEST_MESSAGES
+
+    largest = 32 * 1024
+    served = Running(StandIn(), queue_depth=8, max_message_bytes=largest)
+    padding = " " * 20_000  # JSON whitespace: parses to the same small trajectory
+    big = json.dumps(TRAJECTORY) + padding
+    assert DECODE_ON_ARRIVAL_BYTES < len(big) < largest
+    fits = QUEUED_LARGEST_MESSAGES * largest // len(big)  # 3
+    try:
+        with served.session() as session:
+            assert ask(session, "cmd/status")["ok"]
+            served.handler.calls.clear()
+            replies: list[dict] = []
+
+            def on_reply(reply: zenoh.Reply) -> None:
+                sample = reply.ok if reply.ok is not None else reply.err
+                replies.append(json.loads(sample.payload.to_bytes()))
+
+            release = served.block_loop()
+            for _ in range(5):
+                session.get(f"{PREFIX}/trajectory", on_reply, payload=big, timeout=WAIT)
+            wait_until(lambda: len(replies) == 5 - fits, "the busy replies at once")
+            assert {r["error"]["code"] for r in replies} == {"busy"}
+            session.get(f"{PREFIX}/trajectory", on_reply, payload=json.dumps(TRAJECTORY))
+
+            def decided() -> bool:  # the small one queued or dropped
+                counts = served.interface.stats()
+                return (
+                    counts["trajectories_queue_high_water"] + counts["trajectories_queue_dropped"]
+                    == 6
+                )
+
+            wait_until(decided, "the small one queued or dropped")
+            stats = served.interface.stats()
+            release.set()
+            wait_until(lambda: len(replies) == 6, "the queued replies")
+    finally:
+        served.stop()
+    assert stats["trajectories_queue_high_water"] == fits + 1  # the small one too
+    assert stats["trajectories_queue_dropped"] == 5 - fits
+    assert sum(r["ok"] for r in replies) == fits + 1
+
+
 FLOODER = r"""
 import json, sys, time, zenoh
 
