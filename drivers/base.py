@@ -331,7 +331,8 @@ class ActuatorDriver(ABC):
 
     @abstractmethod
     def receive(self, message: can.Message, now: float) -> int | None:
-        """Decode one received frame.  Returns the actuator index whose feedback this
+        """Decode one received frame, which reached the host at `now` (the daemon's
+        monotonic clock).  Returns the actuator index whose feedback this
         frame refreshed, else None.  Frames for other nodes or protocols are ignored;
         malformed frames for this driver's nodes are counted in `counters.rejected`
         (never raised, never acted on)."""

@@ -23,6 +23,7 @@ from __future__ import annotations
 import asyncio
 import errno
 import threading
+import time
 from collections import deque
 from collections.abc import Callable, Iterable
 
@@ -34,6 +35,7 @@ from can.interfaces.socketcand.socketcand import (
     convert_ascii_message_to_can_message,
     convert_can_message_to_ascii_message,
 )
+from can.interfaces.virtual import VirtualBus
 
 # errno values of a send or receive on a bus that is gone: the connection or socket is
 # closed (socketcand's server went away), the interface is down (ENETDOWN) or removed
@@ -54,6 +56,7 @@ GONE_ERRNOS = frozenset(
 CAN_ERR_BUSOFF = 0x40  # error class bit of an error frame: the controller went bus-off
 SOCKETCAND_MAX_LINE = 200  # bytes of an unfinished socketcand message kept (as python-can)
 FRAMES_PER_PASS = 128  # frames a reader takes per loop pass, so a flood cannot hold the loop
+MAX_FRAME_AGE = 0.1  # s: the most a frame's own stamp may set its arrival back (a bad stamp)
 THREAD_QUEUE_FRAMES = 4096  # frames a Notifier thread may queue for the loop (oldest dropped)
 
 
@@ -102,8 +105,22 @@ class FrameIO:
     a bus failure (`gone` tells which failures end the bus); `send` never blocks, a full
     transmit queue is an error."""
 
+    stamps_on_host_clock = False  # see arrival()
+
     def __init__(self, bus: can.BusABC) -> None:
         self.bus = bus
+
+    def arrival(self, message: can.Message, now: float) -> float:
+        """When `message` reached this host, on the monotonic clock: its own stamp where
+        the bus stamps frames on this host's wall clock (SocketCAN's kernel stamp; python-can's
+        virtual bus, stamped when sent in this process), else `now` (a remote socketcand's
+        stamps are on its own clock).  Never later than `now`, at most MAX_FRAME_AGE
+        before it."""
+        stamp = message.timestamp
+        if not self.stamps_on_host_clock or not stamp:
+            return now
+        age = time.time() - stamp
+        return now - min(max(age, 0.0), MAX_FRAME_AGE)
 
     def fileno(self) -> int:
         """A file descriptor readable while frames are queued, or -1 (none: a Notifier
@@ -142,6 +159,8 @@ class DrainingIO(FrameIO):
 
 class SocketcanIO(FrameIO):
     """The SocketCAN bus's raw socket, non-blocking: one system call per frame."""
+
+    stamps_on_host_clock = True  # the kernel's receive time
 
     def __init__(self, bus: SocketcanBus) -> None:
         super().__init__(bus)
@@ -260,7 +279,9 @@ def frame_io(bus: can.BusABC) -> FrameIO:
         return SocketcandIO(bus)
     if callable(getattr(bus, "drain", None)):
         return DrainingIO(bus)
-    return FrameIO(bus)
+    io = FrameIO(bus)
+    io.stamps_on_host_clock = isinstance(bus, VirtualBus)  # stamped when sent, here
+    return io
 
 
 class BusWatch:
@@ -309,16 +330,16 @@ class BusWatch:
                 return
             self._scheduled = True
         if not self._loop.is_closed():
-            self._loop.call_soon_threadsafe(self._hand_over)
+            self._loop.call_soon_threadsafe(self.hand_over)
 
-    def _hand_over(self) -> None:
+    def hand_over(self) -> None:
         """(On the loop) one batch of the frames the thread queued; the rest next pass."""
         with self._lock:
             queue = self._queue
             frames = [queue.popleft() for _ in range(min(FRAMES_PER_PASS, len(queue)))]
             self._scheduled = bool(queue)
         if self._scheduled:
-            self._loop.call_soon(self._hand_over)
+            self._loop.call_soon(self.hand_over)
         if frames:
             self._deliver(frames)
 

@@ -122,9 +122,18 @@ class BusPort:
     def poll(self) -> None:
         """Deliver the frames queued now, without waiting for the loop to notice them:
         after the loop was held up, frames that arrived in time may still sit in the
-        socket when a timer fires.  A no-op where a Notifier thread reads the bus."""
-        if self._watch is not None and self._watch.polled:
+        socket (or, where a Notifier thread reads the bus, in its queue) when a timer
+        fires."""
+        if self._watch is None:
+            return
+        if self._watch.polled:
             self._drain()
+        else:
+            self._watch.hand_over()
+
+    def arrival(self, message: can.Message, now: float) -> float:
+        """When a frame delivered at `now` reached this host (FrameIO.arrival)."""
+        return self._io.arrival(message, now)
 
     @property
     def ignored(self) -> int:
@@ -287,6 +296,10 @@ class MultiBusPort:
     def poll(self) -> None:
         for port in self.ports.values():
             port.poll()
+
+    def arrival(self, message: can.Message, now: float) -> float:
+        """When a frame delivered at `now` reached this host, by its bus's port."""
+        return self.ports[message.channel].arrival(message, now)  # type: ignore[index]
 
     def send(self, message: can.Message) -> None:
         """Send one frame on the bus its `channel` names."""

@@ -231,6 +231,10 @@ class Service:
         now = time.monotonic()
         self.stats.overruns += expired - 1
         self.stats.jitter.add(now - timer.last_expiry(now))
+        # answers to the last SYNC still queued are its answers, late, and must be taken
+        # before the next SYNC goes out: after it, they would be taken as its answers (a
+        # period old, their rates over the wrong interval)
+        self.port.poll()
         if self._waiting:  # the previous cycle never completed: close it now
             self._close_waiting_cycle()
         self._opened = now
@@ -285,14 +289,14 @@ class Service:
         for listener in self.frame_listeners:
             for msg in frames:
                 listener(msg, True)
-        receive = self.driver.receive
+        receive, arrival = self.driver.receive, self.port.arrival
         for msg in frames:
             if msg.is_error_frame:
                 error_class = msg.arbitration_id
                 bus_off = bool(error_class & CAN_ERR_BUSOFF)
                 self._on_bus_error(f"error frame 0x{error_class:x}", bus_off)
                 continue
-            if receive(msg, now) is not None:
+            if receive(msg, arrival(msg, now)) is not None:
                 self._last_rx = now
         if self._waiting and self._all_fresh():
             self._run_cycle(now, deadline=False)

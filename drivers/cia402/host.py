@@ -390,8 +390,11 @@ class Cia402Driver(ActuatorDriver):
             return None
 
     def _on_tpdo(self, i: int, can_id: int, data: bytearray, now: float) -> int | None:
-        """One TPDO of drive i; the last of its TPDOs since the latest SYNC completes the
-        sample (positions latched at that SYNC); any TPDO after that is stale."""
+        """One TPDO of drive i, received at `now`; the last of its TPDOs since the latest
+        SYNC completes the sample (positions latched at that SYNC); any TPDO after that is
+        stale, and so is one received before that SYNC went out (an answer to an earlier
+        one, read late: taken as this SYNC's it would put the length a period back and
+        its rate over the wrong interval)."""
         bit, name, layout, slots = self._tpdo[can_id]
         if len(data) != layout.size:
             raise Cia402FrameError(
@@ -406,6 +409,9 @@ class Cia402Driver(ActuatorDriver):
                 raise Cia402FrameError(
                     can_id, "statusword pattern", f"0x{word:04X} is no 402 state"
                 )
+        if bit and now < self._sync_at:
+            self.counters.reject("TPDO received before the latest SYNC")
+            return None
         if bit:
             if self._got_epoch[i] != self._epoch:
                 self._got_epoch[i], self._got[i] = self._epoch, 0

@@ -74,8 +74,10 @@ CANOPEN_DRIFT = 50.0  # m: safety.max_watchdog_drift for these consumer times (2
 # real drive answers within microseconds; these are the test host's limits, not the
 # daemon's defaults.
 SAFETY = {"max_watchdog_drift": CANOPEN_DRIFT, "feedback_deadline": 0.8, "stale_cycles": 10}
-# Truth against reference, measured on a loaded 2-CPU host: RMS 0.2-0.8 mm, worst
-# 0.5-2.4 mm in this process (one run of 11 beside two CPU hogs: 5.9 mm); against `cdprd
+# Truth against reference, measured on a 2-CPU host beside two CPU hogs: RMS 0.06-0.39
+# mm, worst 0.15-2.86 mm in this process (8 runs of the three flights; before the truth
+# was stamped with the plant's own time, a preempted plant thread put up to 10 mm into
+# it, and answers read after the next SYNC were taken as its own); against `cdprd
 # run` RMS 0.7-1.6 mm, worst 2-4.9 mm, most of it the reference's time: a published
 # state carries the last cycle's output, up to a period older than its time (the
 # daemon's own error, printed, stays at 0.1-0.4 mm RMS).  Bounds with margin:

@@ -6,6 +6,7 @@ on (a frame for a node on the other bus is not that drive's)."""
 from __future__ import annotations
 
 import asyncio
+import time
 
 import can
 import numpy as np
@@ -164,8 +165,9 @@ def test_a_frame_is_its_drives_only_on_the_bus_it_came_on() -> None:
         tpdo1 = cia402.encode_tpdo1(node, 0x0237, position, 10)
         tpdo2 = cia402.encode_tpdo2(node, 0)
         tpdo1.channel = tpdo2.channel = bus
-        driver.receive(tpdo1, 1.0)
-        return driver.receive(tpdo2, 1.0)
+        now = time.monotonic()  # received after the SYNCs went out
+        driver.receive(tpdo1, now)
+        return driver.receive(tpdo2, now)
 
     assert sample(3, "left", 1000) == 2
     assert sample(3, "right", 2000) == 4

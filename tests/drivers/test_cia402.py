@@ -517,8 +517,11 @@ def test_drive_states_seen_by_the_host() -> None:
 
 
 def host(**overrides) -> Cia402Driver:
+    """A driver whose SYNCs go out at time 0 (the frames below are received after)."""
     config = drives_config(**overrides)
-    return Cia402Driver(config, config.scalings([RADIUS] * len(config.nodes)))
+    driver = Cia402Driver(config, config.scalings([RADIUS] * len(config.nodes)))
+    driver.clock = lambda: 0.0
+    return driver
 
 
 def test_driver_basics_and_config_errors() -> None:
@@ -603,6 +606,25 @@ def test_feedback_is_complete_only_with_both_tpdos_of_one_sync() -> None:
     assert driver.counters.rejected["TPDO after the sample was complete"] == 1
     assert driver.feedback[0].count == 1
     assert driver.position[0] == 200
+
+
+def test_an_answer_received_before_the_latest_sync_is_not_its_answer() -> None:
+    """The loop read the answers to the last SYNC only after the next went out (held up,
+    or a thread that hands frames over late): received before that SYNC, they are
+    dropped, not taken as its sample (a period old) nor as a second answer to it."""
+    driver = host()
+    enabled = encode_statusword(State.OPERATION_ENABLED)
+    driver.clock = lambda: 1.0
+    driver.cycle_start()
+    driver.clock = lambda: 1.01
+    driver.cycle_start()  # the next SYNC, before the answers to the first were read
+    late, answer = tpdos(1, enabled, 100, 5), tpdos(1, enabled, 200, 6)
+    assert [driver.receive(frame, 1.002) for frame in late] == [None, None]
+    assert driver.counters.rejected["TPDO received before the latest SYNC"] == 2
+    assert [driver.receive(frame, 1.012) for frame in answer] == [None, 0]
+    assert driver.position[0] == 200 and driver.feedback[0].count == 1
+    assert math.isnan(driver.feedback[0].second)  # no second answer
+    assert driver.feedback[0].latched == 1.01
 
 
 def test_a_second_answer_to_one_sync_is_dropped_and_its_length_recorded() -> None:

@@ -1,0 +1,89 @@
+"""When a frame reached the host (drivers.bus.FrameIO.arrival): its own stamp where the
+bus stamps frames on this host's wall clock, moved onto the monotonic clock, else the
+moment it was delivered; and the daemon's port hands frames a Notifier thread queued to
+the cycle at once when polled (BusPort.poll), so that an answer read late is still
+taken before the next SYNC goes out."""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+import os
+import time
+
+import can
+import pytest
+
+from daemon.service.bus_port import BusPort
+from drivers.bus import MAX_FRAME_AGE, frame_io
+from sim_bus.bus.loopbus import LoopBus
+
+CHANNELS = itertools.count()
+NOW = 100.0  # s on the monotonic clock: when the frames below are delivered
+
+
+def _channel() -> str:
+    return f"cdprd-arrival-{os.getpid()}-{next(CHANNELS)}"
+
+
+def _virtual(channel: str) -> can.BusABC:
+    return can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
+
+
+def test_a_virtual_frame_arrived_when_it_was_sent() -> None:
+    bus = _virtual(_channel())
+    try:
+        io = frame_io(bus)
+        sent = can.Message(arbitration_id=0x181, data=b"\0", timestamp=time.time() - 0.03)
+        arrived = io.arrival(sent, NOW)
+        # at least its 30 ms of age back; a loaded host adds to the age, never takes off
+        assert NOW - MAX_FRAME_AGE <= arrived <= NOW - 0.03
+        future = can.Message(arbitration_id=0x181, timestamp=time.time() + 5.0)
+        ancient = can.Message(arbitration_id=0x181, timestamp=time.time() - 5.0)
+        unstamped = can.Message(arbitration_id=0x181, timestamp=0.0)
+        assert io.arrival(future, NOW) == NOW  # never later than delivered
+        assert io.arrival(ancient, NOW) == pytest.approx(NOW - MAX_FRAME_AGE)  # a bad stamp
+        assert io.arrival(unstamped, NOW) == NOW
+    finally:
+        bus.shutdown()
+
+
+def test_a_bus_without_host_clock_stamps_arrives_when_delivered() -> None:
+    """The loop bus (and a socketcand server, on its own host's clock) is not trusted
+    for stamps: a frame arrived when it was delivered."""
+    bus = LoopBus(_channel())
+    try:
+        old = can.Message(arbitration_id=0x181, timestamp=time.time() - 0.05)
+        assert frame_io(bus).arrival(old, NOW) == NOW
+    finally:
+        bus.shutdown()
+
+
+def test_polling_hands_over_what_the_notifier_thread_queued() -> None:
+    """With the loop not running (held up), a frame the Notifier thread queued reaches
+    the sink when the port is polled, not only at the loop's next pass."""
+    channel = _channel()
+    bus, drive = _virtual(channel), None
+    loop = asyncio.new_event_loop()
+    delivered: list[int] = []
+    port = BusPort(bus, lambda frames, now: delivered.extend(m.arbitration_id for m in frames))
+    try:
+        drive = _virtual(channel)
+        port.open(loop)
+        drive.send(can.Message(arbitration_id=0x181, data=b"\1", is_extended_id=False))
+        watch = port._watch
+        assert watch is not None and not watch.polled
+        for _ in range(400):  # a bound, not a measurement: the thread queues it
+            if watch._queue:
+                break
+            time.sleep(0.005)
+        assert watch._queue, "the Notifier thread never queued the frame"
+        assert delivered == []  # the loop has not run
+        port.poll()
+        assert delivered == [0x181]
+    finally:
+        port.close()
+        loop.close()
+        bus.shutdown()
+        if drive is not None:
+            drive.shutdown()
