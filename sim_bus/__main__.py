@@ -37,13 +37,16 @@ from sim_bus.virtual_robot import VirtualRobot
 log = logging.getLogger("sim_bus")
 
 DEVICE_FAULTS = ("silent", "stuck", "glitch", "drive", "snap")
+CLEAR = "clear"  # --fault-input's CLEAR:CABLE ends the cable's silent, stuck and glitch
 GLITCH = 0.1  # m a glitching drive's reported length jumps by
 TRUTH_PERIOD = 0.02  # s between two lines of --truth-log
 
 
-def parse_device_fault(text: str, when: bool = True) -> tuple[str, int, float]:
+def parse_device_fault(
+    text: str, when: bool = True, kinds: tuple[str, ...] = DEVICE_FAULTS
+) -> tuple[str, int, float]:
     """KIND:CABLE@T, e.g. snap:3@2.5 (cable 3 snaps at t = 2.5 s); with `when` False,
-    KIND:CABLE (now) and t is 0."""
+    KIND:CABLE (now) and t is 0; KIND one of `kinds`."""
     form = "KIND:CABLE@SECONDS" if when else "KIND:CABLE"
     try:
         kind, rest = text.split(":", 1)
@@ -51,11 +54,11 @@ def parse_device_fault(text: str, when: bool = True) -> tuple[str, int, float]:
         parsed = (kind, int(cable), float(at))
     except ValueError:
         raise argparse.ArgumentTypeError(
-            f"fault {text!r}: expected {form}, KIND one of {', '.join(DEVICE_FAULTS)}"
+            f"fault {text!r}: expected {form}, KIND one of {', '.join(kinds)}"
         ) from None
-    if parsed[0] not in DEVICE_FAULTS:
+    if parsed[0] not in kinds:
         raise argparse.ArgumentTypeError(
-            f"fault kind {parsed[0]!r} unknown; use one of {', '.join(DEVICE_FAULTS)}"
+            f"fault kind {parsed[0]!r} unknown; use one of {', '.join(kinds)}"
         )
     return parsed
 
@@ -69,11 +72,18 @@ def parse_address(text: str) -> tuple[str, int]:
 
 
 def fault_action(robot: VirtualRobot, kind: str, cable: int) -> Callable[[], list[can.Message]]:
-    """The device fault `kind` on `cable`, as an action for SimulatorRunner.at."""
+    """The device fault `kind` on `cable` (or CLEAR: its faults ended), as an action
+    for SimulatorRunner.at."""
     if not 0 <= cable < robot.n:
         raise ConfigError(f"fault on cable {cable}: the robot has cables 0..{robot.n - 1}")
 
     def act() -> list[can.Message]:
+        if kind == CLEAR:  # the drive reconnected, its encoder repaired
+            log.warning("clearing the faults of cable %d at t=%.3f s", cable, robot.t)
+            robot.silence(cable, False)
+            robot.stick_encoder(cable, False)
+            robot.glitch_encoder(cable, 0.0)
+            return []
         log.warning("injecting %s fault on cable %d at t=%.3f s", kind, cable, robot.t)
         if kind == "silent":
             robot.silence(cable)
@@ -107,7 +117,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--fault-input",
         action="store_true",
-        help="also read faults from standard input, one KIND:CABLE per line, injected at once",
+        help="also read faults from standard input, one KIND:CABLE per line, injected at "
+        f"once ({CLEAR}:CABLE ends the cable's silent, stuck and glitch faults)",
     )
     parser.add_argument("--drop", type=float, default=0.0, help="drop this fraction of frames")
     parser.add_argument(
@@ -262,7 +273,7 @@ class FaultInput:
 
     def _inject(self, line: str) -> None:
         try:
-            kind, cable, _ = parse_device_fault(line, when=False)
+            kind, cable, _ = parse_device_fault(line, when=False, kinds=(*DEVICE_FAULTS, CLEAR))
             self._runner.at(self._runner.t, fault_action(self._robot, kind, cable))
         except (argparse.ArgumentTypeError, ConfigError) as exc:
             print(f"error: {exc}", file=sys.stderr, flush=True)

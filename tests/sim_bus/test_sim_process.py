@@ -35,6 +35,14 @@ def _frames(bus: can.BusABC, seconds: float) -> list[can.Message]:
     return out
 
 
+def _answering_sync(bus: can.BusABC) -> set[int]:
+    """The nodes whose TPDO1 answers one SYNC (within half a second)."""
+    bus.send(can.Message(arbitration_id=0x080, data=b"", is_extended_id=False))
+    return {
+        m.arbitration_id - 0x180 for m in _frames(bus, 0.5) if 0x181 <= m.arbitration_id <= 0x188
+    }
+
+
 def _configure(bus: can.BusABC, node: int, layout: codec.PdoLayout) -> None:
     """Map `layout` in drive `node` by SDO (expedited writes, each answered)."""
     od = codec.load_eds(codec.EDS_PATH, node)
@@ -119,6 +127,15 @@ def test_faults_typed_on_standard_input_are_injected_at_once() -> None:
             proc.stdin.flush()
             emcy = [m for m in _frames(bus, 2.0) if 0x081 <= m.arbitration_id <= 0x088]
             assert [m.arbitration_id for m in emcy] == [0x085]
+            assert _answering_sync(bus) == set(range(1, 9))
+            proc.stdin.write("silent:2\n")  # node 3 neither hears nor sends
+            proc.stdin.flush()
+            _frames(bus, 0.5)
+            assert _answering_sync(bus) == set(range(1, 9)) - {3}
+            proc.stdin.write("clear:9\nclear:2\n")  # its faults end: it answers again
+            proc.stdin.flush()
+            _frames(bus, 0.5)
+            assert _answering_sync(bus) == set(range(1, 9))
         finally:
             bus.shutdown()
     finally:
@@ -127,3 +144,4 @@ def test_faults_typed_on_standard_input_are_injected_at_once() -> None:
     assert proc.returncode == 0
     assert "fault on cable 9: the robot has cables 0..7" in err
     assert "fault 'nonsense': expected KIND:CABLE" in err
+    assert err.count("fault on cable 9: the robot has cables 0..7") == 2  # drive:9, clear:9
