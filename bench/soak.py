@@ -52,6 +52,7 @@ from tests.processes import (  # noqa: E402
     connect,
     finish,
     serve_simulator,
+    socketcand_can,
     start_daemon,
     wait_status,
 )
@@ -236,8 +237,7 @@ def soak(minutes: float, load: int, seed: int, fault_every: float, workdir: Path
     zenoh_port = free_port()
     sim_config, data = configs(workdir, zenoh_port)
     sim, port, channel = serve_simulator(sim_config, "--fault-input")
-    data["can"] = {"interface": "socketcand", "channel": channel, "options": {"port": port}}
-    data["can"]["options"]["host"] = "127.0.0.1"
+    data["can"] = socketcand_can(port, channel)
     daemon_config = workdir / "daemon.yaml"
     daemon_config.write_text(yaml.safe_dump(data))
     daemon = start_daemon(daemon_config, log=workdir / "daemon.log")

@@ -99,28 +99,34 @@ class IdFilter:
         return kept
 
 
+def stamp_age(stamp: float, wall: float) -> float:
+    """How long before the wall-clock time `wall` a frame stamped `stamp` (wall clock)
+    arrived: never negative (a stamp from the future), at most MAX_FRAME_AGE (a bad one)."""
+    return min(max(wall - stamp, 0.0), MAX_FRAME_AGE)
+
+
 class FrameIO:
     """`send(frame)` and `drain()` on one python-can bus (this base: python-can's own
     send with timeout 0 and recv(0) until empty).  Both raise can.CanError or OSError on
     a bus failure (`gone` tells which failures end the bus); `send` never blocks, a full
     transmit queue is an error."""
 
-    stamps_on_host_clock = False  # see arrival()
-
     def __init__(self, bus: can.BusABC) -> None:
         self.bus = bus
+        # python-can's virtual bus stamps a frame when it is sent, in this process; a
+        # subclass whose bus stamps on this host's clock says so too (see arrival())
+        self.stamps_on_host_clock = isinstance(bus, VirtualBus)
 
     def arrival(self, message: can.Message, now: float) -> float:
         """When `message` reached this host, on the monotonic clock: its own stamp where
         the bus stamps frames on this host's wall clock (SocketCAN's kernel stamp; python-can's
         virtual bus, stamped when sent in this process), else `now` (a remote socketcand's
         stamps are on its own clock).  Never later than `now`, at most MAX_FRAME_AGE
-        before it."""
+        before it (stamp_age)."""
         stamp = message.timestamp
         if not self.stamps_on_host_clock or not stamp:
             return now
-        age = time.time() - stamp
-        return now - min(max(age, 0.0), MAX_FRAME_AGE)
+        return now - stamp_age(stamp, time.time())
 
     def fileno(self) -> int:
         """A file descriptor readable while frames are queued, or -1 (none: a Notifier
@@ -160,10 +166,9 @@ class DrainingIO(FrameIO):
 class SocketcanIO(FrameIO):
     """The SocketCAN bus's raw socket, non-blocking: one system call per frame."""
 
-    stamps_on_host_clock = True  # the kernel's receive time
-
     def __init__(self, bus: SocketcanBus) -> None:
         super().__init__(bus)
+        self.stamps_on_host_clock = True  # the kernel's receive time
         self._socket = bus.socket
         self._socket.setblocking(False)
         self._channel = bus.channel
@@ -279,9 +284,7 @@ def frame_io(bus: can.BusABC) -> FrameIO:
         return SocketcandIO(bus)
     if callable(getattr(bus, "drain", None)):
         return DrainingIO(bus)
-    io = FrameIO(bus)
-    io.stamps_on_host_clock = isinstance(bus, VirtualBus)  # stamped when sent, here
-    return io
+    return FrameIO(bus)
 
 
 class BusWatch:

@@ -136,15 +136,20 @@ def simulator_configs(
     return sim, data
 
 
-def daemon_config(tmp_path: Path, data: dict, port: int, channel: str, **safety: float) -> Path:
-    """The daemon's config file: `data` (simulator_configs) on the simulator's socketcand
-    bus at `port`, `channel`, with `safety` settings on top."""
-    data = dict(data)
-    data["can"] = {
+def socketcand_can(port: int, channel: str) -> dict:
+    """The `can:` section for the simulator's socketcand bus on loopback `port`."""
+    return {
         "interface": "socketcand",
         "channel": channel,
         "options": {"host": "127.0.0.1", "port": port},
     }
+
+
+def daemon_config(tmp_path: Path, data: dict, port: int, channel: str, **safety: float) -> Path:
+    """The daemon's config file: `data` (simulator_configs) on the simulator's socketcand
+    bus at `port`, `channel`, with `safety` settings on top."""
+    data = dict(data)
+    data["can"] = socketcand_can(port, channel)
     # late feedback is not the point
     data["safety"] = {**data["safety"], "stale_cycles": 25, **safety}
     path = tmp_path / "daemon.yaml"

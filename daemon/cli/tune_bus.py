@@ -35,13 +35,13 @@ from daemon.process.recording import frame_stamp
 from daemon.service.bus_port import BusPort
 from daemon.service.gc_policy import CollectorPolicy
 from drivers.base import ActuatorDriver, BrakeMode, DriverError, Timing
+from drivers.bus import stamp_age
 from drivers.clock import PeriodicTimer
 from tuning.experiment import Abort, WinchExperiment
 
 STARTUP_TIMEOUT = 5.0  # s for the drive to come up (the daemon's)
 FIRST_FEEDBACK = 1.0  # s to wait for a length before enabling
 BRAKE_HOLD = 0.1  # s of keep-alives after the brake frames, before the run returns
-MAX_AGE = 0.1  # s: the most a frame's own time stamp may set its receipt back
 
 
 class BusExperiment:
@@ -152,7 +152,7 @@ class BusExperiment:
         wall = time.time()
         for msg in frames:
             if not msg.is_error_frame:
-                age = min(max(wall - frame_stamp(msg, True), 0.0), MAX_AGE)
+                age = stamp_age(frame_stamp(msg, True), wall)
                 if self.driver.receive(msg, now - age) is not None:
                     self.ages.append(age)
         if self._waiting and self.driver.feedback[0].count > self._count:

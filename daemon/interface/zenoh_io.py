@@ -500,7 +500,7 @@ class ZenohInterface:
             )
         assert self._trajectories is not None
         size = 0 if payload is None else len(payload)
-        undecoded = size if size > DECODE_ON_ARRIVAL_BYTES else 0  # as _undecoded_bytes weighs
+        undecoded = 0 if _decoded_on_arrival(size) else size  # as _undecoded_bytes weighs
         if not self._trajectories.has_room(weight=undecoded):  # do not read what would drop
             self._trajectories.drop()
             return None, _busy("trajectory")
@@ -512,7 +512,7 @@ class ZenohInterface:
             return None, exc
         assert payload is not None
         raw = payload.to_bytes()
-        return raw if len(raw) > DECODE_ON_ARRIVAL_BYTES else self._decode_head(raw)
+        return self._decode_head(raw) if _decoded_on_arrival(len(raw)) else raw
 
     def _decode_head(self, raw: bytes) -> TrajectoryMessage | tuple[str | None, CommandError]:
         """The JSON decoded and the message's head checked; or (the id if known, why not)."""
@@ -827,6 +827,12 @@ class ZenohInterface:
 def _id(item: bytes | TrajectoryMessage) -> str | None:
     """The sender's id of a queued trajectory, if it was decoded on arrival."""
     return None if isinstance(item, bytes) else item.id
+
+
+def _decoded_on_arrival(size: int) -> bool:
+    """Whether a trajectory of `size` bytes is decoded on the zenoh thread (small), not
+    queued undecoded for the parse thread."""
+    return size <= DECODE_ON_ARRIVAL_BYTES
 
 
 def _undecoded_bytes(item: _TrajectoryItem) -> int:
