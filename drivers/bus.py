@@ -120,13 +120,17 @@ class FrameIO:
     def arrival(self, message: can.Message, now: float) -> float:
         """When `message` reached this host, on the monotonic clock: its own stamp where
         the bus stamps frames on this host's wall clock (SocketCAN's kernel stamp; python-can's
-        virtual bus, stamped when sent in this process), else `now` (a remote socketcand's
-        stamps are on its own clock).  Never later than `now`, at most MAX_FRAME_AGE
-        before it (stamp_age)."""
+        virtual bus, stamped when sent in this process), moved onto the monotonic clock by
+        both clocks read now, never later than now and at most MAX_FRAME_AGE before it
+        (stamp_age); else `now`, when it was delivered (a remote socketcand's stamps are
+        on its own clock).  The clocks are read here, not taken from `now`: a batch's
+        delivery time is read before its frames are handled, and the time spent since
+        would make each answer look older than it is (before the SYNC it answers)."""
         stamp = message.timestamp
         if not self.stamps_on_host_clock or not stamp:
             return now
-        return now - stamp_age(stamp, time.time())
+        wall = time.time()  # first: a pause between the reads can only make it look newer
+        return time.monotonic() - stamp_age(stamp, wall)
 
     def fileno(self) -> int:
         """A file descriptor readable while frames are queued, or -1 (none: a Notifier

@@ -7,10 +7,11 @@ every accepted estimate.  A force is sent as Set_Input_Torque in N·m at the mot
 lengths arrive as motor turns; both convert through `Scaling` (counts_per_rev = 1: turns).
 
 Axis state requests.  Set_Axis_State goes out only when the axis must change state: not
-when its last heartbeat already shows the state, nor when the host asked for it since
-that heartbeat.  Firmware restarts an axis that is asked for CLOSED_LOOP_CONTROL again
-(input reset, a gap in torque): braking, enable and reset never do that to an axis in
-closed loop.
+when its last heartbeat already shows the state, nor when the host asked for it and no
+heartbeat has shown it refused since (one that arrived within a heartbeat period of the
+request may have left the drive before it).  Firmware restarts an axis that is asked for
+CLOSED_LOOP_CONTROL again (input reset, a gap in torque): braking, enable and reset
+never do that to an axis in closed loop.
 
 Braking (DESIGN §9).  ODrive's Estop, and IDLE on an axis without a mechanical brake,
 cut the motor and let a suspended platform fall: neither is ever used as a brake here.
@@ -152,7 +153,9 @@ class OdriveDriver(ActuatorDriver):
         self.drive_errors: list[tuple[int, int] | None] = [None] * self.n
         self.intent = [Intent.NONE] * self.n
         self._axis_state: list[AxisState | int | None] = [None] * self.n
-        self._requested: list[AxisState | None] = [None] * self.n  # since the last heartbeat
+        self._requested: list[AxisState | None] = [None] * self.n  # not yet shown refused
+        self._requested_at = [-math.inf] * self.n  # when, by the sequence clock
+        self._heartbeat_period = config.heartbeat_period
         self._next_idle_feed = -math.inf
         self._axis_error = [0] * self.n
         self._hold: list[bytes | None] = [None] * self.n  # Set_Input_Pos data while holding
@@ -417,13 +420,14 @@ class OdriveDriver(ActuatorDriver):
         return self.has_holding_brake and state is AxisState.IDLE
 
     def _state_change(self, i: int, state: AxisState) -> list[can.Message]:
-        """Set_Axis_State(state) unless axis i was asked for `state` since its last
-        heartbeat or, asked for nothing since, that heartbeat shows it: never a second
-        CLOSED_LOOP_CONTROL (a restart)."""
+        """Set_Axis_State(state) unless axis i was asked for `state` and no heartbeat has
+        shown it refused since (_on_heartbeat) or, asked for nothing, its last heartbeat
+        shows it: never a second CLOSED_LOOP_CONTROL (a restart)."""
         requested = self._requested[i]
         if (self._axis_state[i] if requested is None else requested) is state:
             return []
         self._requested[i] = state
+        self._requested_at[i] = -math.inf if self._now is None else self._now()
         return [encode_set_axis_state(self.nodes[i], state)]
 
     def _position_mode(self, i: int) -> can.Message:
@@ -491,8 +495,13 @@ class OdriveDriver(ActuatorDriver):
         state = heartbeat.axis_state
         self._axis_state[i] = state
         self._axis_error[i] = error
-        if state is not self._requested[i]:
-            self._requested[i] = None  # reached, refused, or left since: ask again if needed
+        if state is self._requested[i]:
+            self._requested_at[i] = -math.inf  # reached: any other state shown later is news
+        elif now - self._requested_at[i] >= self._heartbeat_period:
+            # refused, or left since: ask again if needed.  A heartbeat that arrived within
+            # a heartbeat period of the request may have been sent before the drive took
+            # it: taken as a refusal, a braked axis being enabled went back on its brake
+            self._requested[i] = None
         status = self.status[i]
         status.heartbeat_stamp = now
         status.fault_code = error

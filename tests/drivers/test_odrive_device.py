@@ -524,6 +524,49 @@ def test_enable_fails_on_a_faulted_drive_and_names_it() -> None:
     assert devices[2].actuation is Actuation.OFF  # firmware 0.6: disarmed by the error
 
 
+class LaggingLink(SimLink):
+    """Device frames reach the host `lag` seconds after they were sent (a loaded host or
+    a slow guest reading its socket late); host frames reach the devices at once."""
+
+    def __init__(self, driver: OdriveDriver, devices: Sequence[OdriveAxis], lag: float) -> None:
+        super().__init__(driver, devices)
+        self.lag = lag
+        self.sent_at: deque[float] = deque()  # when each inbox frame was sent
+
+    def _drain(self, match: Callable[[can.Message], bool] | None = None) -> can.Message | None:
+        while len(self.sent_at) < len(self.inbox):
+            self.sent_at.append(self.t)
+        while self.inbox and self.sent_at[0] + self.lag <= self.t + 1e-9:
+            self.sent_at.popleft()
+            message = self.inbox.popleft()
+            self.heard.append(message)
+            self.driver.receive(message, self.t)
+            if match is not None and match(message):
+                return message
+        return None
+
+
+@pytest.mark.parametrize("lag_ms", range(0, 100, 5))  # below the heartbeat period
+def test_a_heartbeat_sent_before_enable_reached_the_drive_does_not_undo_it(lag_ms: int) -> None:
+    """A braked drive's heartbeat sent before it took Set_Axis_State(CLOSED_LOOP_CONTROL)
+    and read after the request went out still shows IDLE: taken as a refusal, the host
+    would put the axis back on its brake (a braked idle axis is kept braked) and enable
+    would time out with every axis IDLE.  A heartbeat is taken as a refusal only where it
+    arrived a heartbeat period (0.1 s) after the request: with any lag below that,
+    enable reaches closed loop."""
+    cfg = config(has_holding_brake=True)
+    driver = OdriveDriver(cfg, cfg.scalings(RADII))
+    devices = axes(cfg)
+    link = LaggingLink(driver, devices, lag_ms / 1000)
+    asyncio.run(driver.start(link, link.now))
+    # the host's cycle feeds the watchdogs; the next periodic heartbeats go out just
+    # before the requests
+    link.run(0.095, lambda: link.send_all(driver.keepalive()))
+    asyncio.run(driver.enable(link, [f.length for f in driver.feedback], HOLDING))
+    assert all(d.axis_state is AxisState.CLOSED_LOOP_CONTROL for d in devices)
+    assert driver.intent == [Intent.TORQUE] * 4
+
+
 def test_sequences_need_start_first() -> None:
     driver, _, link = setup()
     with pytest.raises(DriverError, match="start"):
