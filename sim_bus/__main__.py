@@ -217,7 +217,8 @@ async def simulate(setup: SimSetup, args: argparse.Namespace) -> int:
                     print(
                         f"t={runner.t:.1f} s bus load {report.load:.1%} "
                         f"({report.window_frames} frames/s at {c.bitrate} bit/s)"
-                        + (f" on bus {c.bus_name}" if len(setup.buses) > 1 else ""),
+                        + (f" on bus {c.bus_name}" if len(setup.buses) > 1 else "")
+                        + failure_note(runner),
                         flush=True,
                     )
         if args.truth_log:
@@ -281,6 +282,17 @@ class FaultInput:
 
 def _address(text: str | None) -> tuple[str, int] | None:
     return None if text is None else parse_address(text)
+
+
+def failure_note(runner: SimulatorRunner) -> str:
+    """The sends and receives that failed so far, where any did: a frame the drives
+    never answered, or an answer never sent, shows here (not on the host)."""
+    failed = [
+        f"{count} {what} failed"
+        for count, what in ((runner.send_errors, "sends"), (runner.receive_errors, "receives"))
+        if count
+    ]
+    return f"; {', '.join(failed)}" if failed else ""
 
 
 def main(argv: list[str] | None = None) -> int:

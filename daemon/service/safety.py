@@ -241,17 +241,23 @@ class SafetyMonitor:
         return []
 
     def check_freshness(self, fresh: Sequence[bool]) -> Fault | None:
-        """Count consecutive cycles without feedback per actuator."""
-        worst = None
+        """Count consecutive cycles without feedback per actuator; the fault names the
+        first drive over the limit and how many others are silent with it (one silent
+        drive points at it or its cable, all of them at the bus or the host)."""
+        limit, over = self.limits.stale_cycles, []
         for k, ok in enumerate(fresh):
             self.stale[k] = 0 if ok else self.stale[k] + 1
-            if self.stale[k] >= self.limits.stale_cycles and worst is None:
-                worst = Fault(
-                    Trigger.STALE_FEEDBACK,
-                    f"drive {k}: no feedback for {self.stale[k]} consecutive cycles "
-                    f"(limit {self.limits.stale_cycles})",
-                )
-        return worst
+            if self.stale[k] >= limit:
+                over.append(k)
+        if not over:
+            return None
+        first = over[0]
+        others = f"; drives {', '.join(map(str, over[1:]))} too" if len(over) > 1 else ""
+        return Fault(
+            Trigger.STALE_FEEDBACK,
+            f"drive {first}: no feedback for {self.stale[first]} consecutive cycles "
+            f"(limit {limit}){others}",
+        )
 
     def bus_error(self, now: float, what: str, bus_off: bool = False) -> Fault | None:
         """Record one bus error (error frame, failed send or receive); the bus fault if

@@ -108,6 +108,13 @@ def test_stale_feedback_counts_consecutive_cycles(config) -> None:
     fault = monitor.check_freshness(stale)
     assert fault is not None and fault.trigger is Trigger.STALE_FEEDBACK
     assert f"drive 5: no feedback for {limit} consecutive cycles" in fault.message
+    assert "too" not in fault.message  # the only one silent
+
+    together = SafetyMonitor(config)  # several silent: the fault says which
+    for _ in range(limit):
+        fault = together.check_freshness([k not in (2, 6, 7) for k in range(n)])
+    assert fault is not None
+    assert fault.message.startswith("drive 2: no feedback") and "drives 6, 7 too" in fault.message
 
 
 def test_bus_errors_within_one_second(config) -> None:

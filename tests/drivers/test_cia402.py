@@ -627,6 +627,24 @@ def test_an_answer_received_before_the_latest_sync_is_not_its_answer() -> None:
     assert driver.feedback[0].latched == 1.01
 
 
+def test_an_answer_stamped_a_little_before_its_sync_is_still_its_answer() -> None:
+    """A drive answers within a few hundred microseconds, and a frame's arrival is known
+    to as much at worst (a virtual machine's stamps and clocks moved 0.4 ms against each
+    other in 2 s): an answer that looks 0.3 ms older than its SYNC at a 10 ms period is
+    its answer; one from nearer the SYNC before is not."""
+    driver = host()
+    enabled = encode_statusword(State.OPERATION_ENABLED)
+    driver.clock = lambda: 1.0
+    driver.cycle_start()
+    driver.clock = lambda: 1.01
+    driver.cycle_start()
+    early, older = tpdos(1, enabled, 200, 6), tpdos(1, enabled, 100, 5)
+    assert driver.receive(older[0], 1.0049) is None  # nearer the SYNC before
+    assert driver.counters.rejected["TPDO received before the latest SYNC"] == 1
+    assert [driver.receive(frame, 1.0097) for frame in early] == [None, 0]
+    assert driver.position[0] == 200 and driver.feedback[0].latched == 1.01
+
+
 def test_a_second_answer_to_one_sync_is_dropped_and_its_length_recorded() -> None:
     """Another node's TPDOs of node 1 (or a late answer) to the same SYNC, after the
     sample or within it: the length of the second answer is recorded beside the first's
@@ -1006,6 +1024,39 @@ def test_enable_holds_then_torque_commands_reach_the_drives() -> None:
     assert [s.state for s in driver.status] == [DriveState.HOLDING] * 3  # TPDOs before commands
     link.cycle(forces)
     assert [s.state for s in driver.status] == [DriveState.ENABLED] * 3
+
+
+def test_enable_sends_no_sync_of_its_own_while_the_daemon_s_cycle_sends_them() -> None:
+    """The enable's rounds ask for TPDOs by SYNC only where no cycle does: a second
+    source between the cycle's SYNCs had each one's answers read after the other's
+    (dropped as answers to a SYNC before), and every drive went stale in a slow guest.
+    Alone (a test, a tool), it sends its own."""
+    lengths = [1.5, 2.5, 0.75]
+    driver, _, link = make_bus(lengths)
+    cycle = {"next": link.t, "syncs": 0}
+
+    def daemon_cycle() -> None:  # a 100 Hz cycle on the same bus
+        if link.t >= cycle["next"] - 1e-9:
+            cycle["next"] += 0.01
+            cycle["syncs"] += 1
+            for frame in driver.cycle_start():
+                link.send(frame)
+
+    link.every_tick = daemon_cycle
+    for _ in range(50):  # the cycle runs before the enable, as the daemon's does
+        link.advance(0.001)
+        link.deliver()
+    start, before = len(link.sent), cycle["syncs"]
+    link.run(driver.enable(link, lengths, [0.0] * 3))
+    link.every_tick = lambda: None
+    assert [s.state for s in driver.status] == [DriveState.HOLDING] * 3
+    syncs = sum(m.arbitration_id == 0x80 for m in link.sent[start:])
+    assert syncs == cycle["syncs"] - before > 0  # the cycle's, none of its own
+
+    alone, _, link = make_bus(lengths)
+    start = len(link.sent)
+    link.run(alone.enable(link, lengths, [0.0] * 3))
+    assert any(m.arbitration_id == 0x80 for m in link.sent[start:])
 
 
 def test_cycles_keep_the_drives_fed_and_feedback_fresh() -> None:

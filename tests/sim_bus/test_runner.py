@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import time
+from types import SimpleNamespace
 
 import can
 import numpy as np
@@ -13,6 +14,7 @@ import pytest
 
 from daemon.cli.simulated import InProcessSimulator
 from drivers.cia402.codec import SYNC_ID
+from sim_bus.__main__ import failure_note
 from sim_bus.plant.config import EncoderConfig
 from sim_bus.plant.encoder import Encoders
 from tests.daemon_stack import config_for
@@ -59,3 +61,10 @@ def test_a_sync_read_late_is_taken_at_the_moment_it_was_sent() -> None:
     sent, taken = asyncio.run(scenario())
     assert len(taken) == 1
     assert taken[0] == pytest.approx(sent, abs=0.01)  # read at sent + 0.05 or later
+
+
+def test_the_status_line_names_failed_sends_and_receives_only_when_there_are_some() -> None:
+    runner = SimpleNamespace(send_errors=0, receive_errors=0)
+    assert failure_note(runner) == ""
+    runner.send_errors, runner.receive_errors = 3, 1
+    assert failure_note(runner) == "; 3 sends failed, 1 receives failed"

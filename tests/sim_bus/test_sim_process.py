@@ -60,6 +60,7 @@ def _configure(bus: can.BusABC, node: int, layout: codec.PdoLayout) -> None:
 def test_simulator_process_serves_its_drives_over_socketcand() -> None:
     args = [sys.executable, "-m", "sim_bus", "--config", str(CONFIG)]
     args += ["--serve-socketcand", "127.0.0.1:0", "--duration", "20", "--fault", "drive:2@3.0"]
+    args += ["--report-every", "1"]
     proc = subprocess.Popen(
         args, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
     )
@@ -105,7 +106,10 @@ def test_simulator_process_serves_its_drives_over_socketcand() -> None:
             proc.wait(timeout=10)
         except subprocess.TimeoutExpired:
             proc.kill()
-    assert proc.returncode == 0
+    out, err = proc.communicate()
+    assert proc.returncode == 0, err
+    # the status line, printed every second meanwhile
+    assert re.search(r"t=\d+\.\d s bus load \d+\.\d% \(\d+ frames/s at \d+ bit/s\)", out), out
 
 
 @pytest.mark.timeout(60)
