@@ -113,21 +113,23 @@ class FrameIO:
 
     def __init__(self, bus: can.BusABC) -> None:
         self.bus = bus
-        # python-can's virtual bus stamps a frame when it is sent, in this process; a
-        # subclass whose bus stamps on this host's clock says so too (see arrival())
-        self.stamps_on_host_clock = isinstance(bus, VirtualBus)
+        # python-can's virtual bus: a Notifier thread reads it (a frame may reach the loop
+        # only after the next SYNC went out), and it stamps each frame when it is sent,
+        # in this process (see arrival())
+        self.read_late_with_stamps = isinstance(bus, VirtualBus)
 
     def arrival(self, message: can.Message, now: float) -> float:
-        """When `message` reached this host, on the monotonic clock: its own stamp where
-        the bus stamps frames on this host's wall clock (SocketCAN's kernel stamp; python-can's
-        virtual bus, stamped when sent in this process), moved onto the monotonic clock by
-        both clocks read now, never later than now and at most MAX_FRAME_AGE before it
-        (stamp_age); else `now`, when it was delivered (a remote socketcand's stamps are
-        on its own clock).  The clocks are read here, not taken from `now`: a batch's
-        delivery time is read before its frames are handled, and the time spent since
-        would make each answer look older than it is (before the SYNC it answers)."""
+        """When `message` reached this host, on the monotonic clock.  Where the loop reads
+        the bus itself (SocketCAN, socketcand, the loop bus), `now`, when it was
+        delivered: the daemon's cycle takes what is queued before each SYNC goes out, so
+        a frame delivered after a SYNC came after it.  (Not the kernel's stamp: in a
+        virtual machine the stamps and the monotonic clock disagreed by milliseconds, and
+        real answers looked older than their SYNC.)  Where a Notifier thread reads it
+        (python-can's virtual bus), the frame's own stamp, moved onto the monotonic
+        clock by both clocks read now: never later than now, at most MAX_FRAME_AGE
+        before it (stamp_age)."""
         stamp = message.timestamp
-        if not self.stamps_on_host_clock or not stamp:
+        if not self.read_late_with_stamps or not stamp:
             return now
         wall = time.time()  # first: a pause between the reads can only make it look newer
         return time.monotonic() - stamp_age(stamp, wall)
@@ -172,7 +174,6 @@ class SocketcanIO(FrameIO):
 
     def __init__(self, bus: SocketcanBus) -> None:
         super().__init__(bus)
-        self.stamps_on_host_clock = True  # the kernel's receive time
         self._socket = bus.socket
         self._socket.setblocking(False)
         self._channel = bus.channel

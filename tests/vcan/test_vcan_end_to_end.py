@@ -679,7 +679,7 @@ def test_another_node_s_command_on_vcan0_ends_in_a_confirmed_hold(
     protocol: Protocol, command: str, tracking: bool, tmp_path: Path
 ) -> None:
     """`cansend vcan0 000#0200` (NMT stop; 8000 pre-operational, 8200 reset communication)
-    to CiA 402 drives that hold or fly a goto: the drives then process no PDO (the
+    to CiA 402 drives that hold or fly a trajectory: the drives then process no PDO (the
     daemon's hold RPDO cannot reach them), so the daemon brakes, reaches each drive by SDO
     (drivers.cia402.hold_check) and says every hold is confirmed.  ODrive: Set_Axis_State
     (IDLE) to every axis: the daemon brakes on a drive no longer powered and confirms each
@@ -692,8 +692,13 @@ def test_another_node_s_command_on_vcan0_ends_in_a_confirmed_hold(
             client, watch = stack.client, stack.watch
             assert client.enable()["state"] == "hold"
             watch.wait_state(lambda s: s["state"] == "hold" and "pose" in s, 10, "holding")
-            if tracking:
-                assert client.goto(GOAL.tolist())["accepted"]
+            if tracking:  # 4 s: a goto ended between two state samples of a slow guest
+                waypoints = [
+                    {"t": 0.0, "position": HOME.tolist(), "quaternion": IDENTITY},
+                    {"t": 4.0, "position": GOAL.tolist(), "quaternion": IDENTITY},
+                ]
+                reply = client.send_trajectory({"waypoints": waypoints}, request_id="stranger")
+                assert reply["id"] == "stranger"
                 watch.wait_state(lambda s: s["state"] == "tracking", 10, "tracking")
             if protocol is CIA402:
                 _cansend(f"000#{command}")
