@@ -253,8 +253,8 @@ class Cia402Driver(ActuatorDriver):
         self._epoch = 0
         self._sync_at = 0.0  # clock() when the latest SYNC went out
         # a TPDO that arrived before this answers an earlier SYNC: halfway between the
-        # latest two (a frame's arrival is known to a few hundred microseconds at worst,
-        # the stamps and clocks of a virtual machine, and a drive answers within as much)
+        # latest two (drives answer within a small part of a period; an arrival is a
+        # frame's own stamp only where a thread reads the bus: drivers.bus FrameIO.arrival)
         self._answers_after = -math.inf
         self._cycle_syncs = (-math.inf, -math.inf)  # the latest two SYNCs cycle_start sent
         self._full = (1 << len(synced)) - 1
@@ -715,9 +715,10 @@ class Cia402Driver(ActuatorDriver):
         seen: dict[int, tuple[State | None, int]] = {}
         for _ in range(max(1, math.ceil(self.enable_timeout / round_timeout))):
             frames = self.keepalive()
-            # a SYNC to answer, unless the daemon's cycle sends them: a second source
-            # between its SYNCs had the answers to each read after the other's (dropped
-            # as a SYNC's before: every drive stale in a slow virtual machine)
+            # a SYNC to answer, unless the daemon's cycle sends them: with a second source
+            # between its SYNCs, answers to each were read after the other's went out
+            # (taken for its answers, or dropped as a SYNC's before: in the UML guest,
+            # every drive went stale and the enable braked)
             if not self._cycle_runs():
                 frames += self._sync()
             for frame in frames:
