@@ -95,9 +95,12 @@ class SimLink:
         for device in self.devices:
             self.inbox.extend(device.on_tick(self.t))
 
+    def _next(self) -> can.Message | None:
+        """The oldest device frame that has reached the host (at once, here), taken."""
+        return self.inbox.popleft() if self.inbox else None
+
     def _drain(self, match: Callable[[can.Message], bool] | None = None) -> can.Message | None:
-        while self.inbox:
-            message = self.inbox.popleft()
+        while (message := self._next()) is not None:
             self.heard.append(message)
             self.driver.receive(message, self.t)
             if match is not None and match(message):
@@ -533,17 +536,13 @@ class LaggingLink(SimLink):
         self.lag = lag
         self.sent_at: deque[float] = deque()  # when each inbox frame was sent
 
-    def _drain(self, match: Callable[[can.Message], bool] | None = None) -> can.Message | None:
+    def _next(self) -> can.Message | None:
         while len(self.sent_at) < len(self.inbox):
             self.sent_at.append(self.t)
-        while self.inbox and self.sent_at[0] + self.lag <= self.t + 1e-9:
-            self.sent_at.popleft()
-            message = self.inbox.popleft()
-            self.heard.append(message)
-            self.driver.receive(message, self.t)
-            if match is not None and match(message):
-                return message
-        return None
+        if not self.inbox or self.sent_at[0] + self.lag > self.t + 1e-9:
+            return None
+        self.sent_at.popleft()
+        return self.inbox.popleft()
 
 
 @pytest.mark.parametrize("lag_ms", range(0, 100, 5))  # below the heartbeat period

@@ -574,10 +574,10 @@ def _check_odrive_capture(capture: Path) -> None:
 
 def _print_what_happened(directory: Path, stack: Stack | None) -> None:
     """After a failure: the daemon's last cycle and frame figures (rejections by reason),
-    the tail of each process's log,
-    and where the capture shows cycles whose SYNC the CiA 402 drives did not all
-    answer (0.1 s bins), with every NMT and EMCY frame: whether the drives fell silent,
-    the daemon stopped reading, or a frame changed their state."""
+    the tail of each process's log, and where the capture shows cycles whose SYNC the
+    CiA 402 drives did not all answer (0.1 s bins), with every NMT and EMCY frame:
+    whether the drives fell silent, the daemon stopped reading, or a frame changed their
+    state."""
     if stack is not None and stack.watch.states:
         print("last cycle figures:", json.dumps(stack.watch.latest().get("cycle")))
         print("frames:", json.dumps(stack.watch.latest().get("frames")))
