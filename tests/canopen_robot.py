@@ -174,20 +174,22 @@ class CanopenRobot:
     def _on_sync(self, can_id: int, data: bytearray, timestamp: float) -> None:
         """Every drive answers a SYNC with the encoder readings of the moment the SYNC
         was sent (its frame's stamp), however late canopen's thread sees it, as a drive
-        latches its inputs at the SYNC (the plant waits until they all have).  A SYNC
-        seen half a period or more after it was sent (canopen's thread held up) goes
-        unanswered: eight drives' answers sent from then on could reach the bus after the
-        next SYNC, where a host takes them as the newest SYNC's (a real drive answers
-        within microseconds, or not at all)."""
-        if time.time() - timestamp >= 0.5 * self._period:
-            self.unanswered += 1
-            return
+        latches its inputs at the SYNC (the plant waits until they all have).  A drive
+        whose answer would go out half a period or more after the SYNC (canopen's thread
+        held up, or waiting for the plant thread to catch up after a stall of its own)
+        does not answer, nor do those after it: checked before each drive's answer, as
+        answers sent from then on could reach the bus after the next SYNC, where a host
+        takes them as the newest SYNC's (a real drive answers within microseconds, or
+        not at all)."""
         with self._lock:
             self._synced = timestamp
             self._advance()
             robot = self.robot
             ago = max(0, round((robot.t - (timestamp - self._t0)) / robot.plant.config.step))
             for actuator in robot.drives:
+                if time.time() - timestamp >= 0.5 * self._period:
+                    self.unanswered += 1
+                    return
                 actuator.report(ago)
                 actuator.drive.on_sync(can_id, data, timestamp)
                 actuator.report(0)

@@ -251,11 +251,10 @@ class Cia402Driver(ActuatorDriver):
         # feedback: SYNCs sent; per drive the TPDO bits seen since the latest SYNC (-1:
         # sample complete) and the SYNC count they belong to
         self._epoch = 0
-        self._sync_at = 0.0  # clock() when the latest SYNC went out
-        # a TPDO that arrived before this answers an earlier SYNC: halfway between the
-        # latest two (drives answer within a small part of a period; an arrival is a
-        # frame's own stamp only where a thread reads the bus: drivers.bus FrameIO.arrival)
-        self._answers_after = -math.inf
+        # clock() when the latest SYNC went out: a TPDO that arrived before it answers an
+        # earlier SYNC (an arrival is never earlier than the frame's: its own stamp where
+        # a thread reads the bus, else when the loop was handed it, FrameIO.arrival)
+        self._sync_at = -math.inf
         self._cycle_syncs = (-math.inf, -math.inf)  # the latest two SYNCs cycle_start sent
         self._full = (1 << len(synced)) - 1
         self._got = [0] * self.n
@@ -287,7 +286,6 @@ class Cia402Driver(ActuatorDriver):
     def _sync(self) -> list[can.Message]:
         self._epoch += 1
         now = self.clock()  # the moment the drives latch their TPDOs
-        self._answers_after = (now + self._sync_at) / 2 if self._epoch > 1 else -math.inf
         self._sync_at = now
         return [encode_sync(), *self._heartbeat_due()]
 
@@ -410,9 +408,9 @@ class Cia402Driver(ActuatorDriver):
     def _on_tpdo(self, i: int, can_id: int, data: bytearray, now: float) -> int | None:
         """One TPDO of drive i, received at `now`; the last of its TPDOs since the latest
         SYNC completes the sample (positions latched at that SYNC); any TPDO after that is
-        stale, and so is one received well before that SYNC went out, nearer the SYNC
-        before (an answer to an earlier one, read late: taken as this SYNC's it would put
-        the length a period back and its rate over the wrong interval)."""
+        stale, and so is one received before that SYNC went out (an answer to an earlier
+        one, read late: taken as this SYNC's it would put the length a period back and
+        its rate over the wrong interval)."""
         bit, name, layout, slots = self._tpdo[can_id]
         if len(data) != layout.size:
             raise Cia402FrameError(
@@ -427,7 +425,7 @@ class Cia402Driver(ActuatorDriver):
                 raise Cia402FrameError(
                     can_id, "statusword pattern", f"0x{word:04X} is no 402 state"
                 )
-        if bit and now < self._answers_after:
+        if bit and now < self._sync_at:
             self.counters.reject("TPDO received before the latest SYNC")
             return None
         if bit:
