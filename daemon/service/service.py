@@ -54,7 +54,10 @@ from drivers.factory import make_driver
 
 log = logging.getLogger("cdprd")
 
-STARTUP_TIMEOUT = 5.0  # s for the drives to come up
+# s for the drives to come up: a backstop only (each request has its own timeout, which
+# finds a silent drive); eight CiA 402 drives configured from an EDS take a few hundred
+# SDO exchanges, 5 s in a slow virtual machine, well under a second on a real bus
+STARTUP_TIMEOUT = 30.0
 SLACK_MARGIN = 3e-4  # s before a tick at which background work stops (> its longest step)
 RETRUST_CYCLES = 50  # cycles a reset waits for a complete set to judge afresh
 HOME_SAMPLES = 50  # cycles of feedback homing averages, each checked for rest
@@ -182,7 +185,8 @@ class Service:
         try:
             await asyncio.wait_for(self.driver.start(self.port, time.monotonic), STARTUP_TIMEOUT)
         except (TimeoutError, DriverError) as exc:
-            self.brake(Fault(Trigger.STARTUP, f"drives did not start: {exc or 'timeout'}"))
+            why = str(exc) or f"not done within {STARTUP_TIMEOUT:g} s"
+            self.brake(Fault(Trigger.STARTUP, f"drives did not start: {why}"))
             return
         self.machine.go("started")
         self._emit({"event": "state", "state": "idle", "why": "drives started"})

@@ -651,3 +651,27 @@ def test_the_core_sends_the_host_heartbeat_every_few_cycles() -> None:
             assert stack.service.machine.state is SafetyState.IDLE, stack.service.faults
 
     run(scenario())
+
+
+def test_a_start_up_that_never_ends_brakes_and_says_so(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A drives' start-up still waiting at STARTUP_TIMEOUT (each request has its own
+    timeout: this is the backstop) brakes on `startup`, and the fault says what ran
+    out, not an empty message."""
+    from daemon.service import service as service_module
+
+    monkeypatch.setattr(service_module, "STARTUP_TIMEOUT", 0.2)
+
+    async def scenario() -> None:
+        stack = Stack(config_for("cia402"))
+
+        async def never(*_: object) -> None:
+            await asyncio.Event().wait()
+
+        stack.service.driver.start = never  # type: ignore[method-assign]
+        async with stack:
+            fault = stack.service.machine.fault
+            assert stack.service.machine.state is SafetyState.BRAKED
+            assert fault is not None and fault.trigger is Trigger.STARTUP
+            assert fault.message == "drives did not start: not done within 0.2 s"
+
+    run(scenario())
