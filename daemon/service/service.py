@@ -138,6 +138,7 @@ class Service:
         self._trajectory: Curve | None = None
         self._scheduled: list[Curve] = []  # accepted, beginning later, by start time
         self.last_output = None
+        self.last_output_t = math.nan  # the cycle time last_output was computed for
         self.faults: list[Fault] = []  # conditions active at the last check
         # the last pretension (cdpr.pretension; published while it runs and after), and
         # its command waiting for it to end (in HOLD, or braked)
@@ -434,7 +435,7 @@ class Service:
             log.exception("controller step raised")
             self.brake(Fault(Trigger.CONTROLLER_EXCEPTION, f"{type(exc).__name__}: {exc}"))
             return None
-        self.last_output = output
+        self.last_output, self.last_output_t = output, t
         fault = self.monitor.check_output(output)
         if fault is not None:
             self._tell_listeners(output)  # before the brake, which changes the state
@@ -1244,6 +1245,9 @@ class Service:
                 forces=out.commands.tolist(),
                 tracking_error=out.theta_d.tolist(),
                 fk_residual=out.fk_residual,
+                # the cycle these are of: "t" is when the state was taken, up to a
+                # publication period later
+                cycle_t=self.last_output_t,
             )
         # the cables' EA as identified, a multiple of the robot file's (cdpr.stretch)
         state["stiffness_scale"] = self.controller.stretch.stiffness_scale

@@ -78,9 +78,10 @@ SAFETY = {"max_watchdog_drift": CANOPEN_DRIFT, "feedback_deadline": 0.8, "stale_
 # mm, worst 0.15-2.86 mm in this process (8 runs of the three flights; before the truth
 # was stamped with the plant's own time, a preempted plant thread put up to 10 mm into
 # it, and answers read after the next SYNC were taken as its own); against `cdprd
-# run` RMS 0.7-1.6 mm, worst 2-4.9 mm, most of it the reference's time: a published
-# state carries the last cycle's output, up to a period older than its time (the
-# daemon's own error, printed, stays at 0.1-0.4 mm RMS).  Bounds with margin:
+# run` on one CPU, RMS 0.12-0.42 mm, worst 0.37-2.08 mm (2 runs), as the daemon's own
+# error (printed: 0.17-0.43 mm RMS).  Before the reference was timed by its cycle
+# (`cycle_t`), RMS 0.7-1.6 mm and worst up to 6.5 mm were the metric's: a state is taken
+# up to a period after the cycle whose output it carries.  Bounds with margin:
 TRACK_RMS = 2e-3  # m
 TRACK_MAX = 6e-3  # m
 FLIGHTS = tuple(STANDARD_SET)
@@ -181,8 +182,8 @@ def tracking_errors(reference: np.ndarray, truth: np.ndarray) -> np.ndarray:
 
 def best_aligned(reference: np.ndarray, truth: np.ndarray, period: float) -> np.ndarray:
     """tracking_errors with the reference's times moved back by the one of 0, 1, ..
-    10 tenths of `period` that fits best: the time a published state's output was
-    computed, not known to the subscriber."""
+    10 tenths of `period` that fits best: the states' times carry the least delay any of
+    them took to arrive (States.references), not known to the subscriber."""
     shifts = [reference - (k * period / 10, 0.0, 0.0, 0.0) for k in range(11)]
     return min((tracking_errors(r, truth) for r in shifts), key=lambda e: float(e @ e))
 
@@ -438,10 +439,9 @@ class States:
 
     def references(self, since: float) -> np.ndarray:
         """(t, x, y, z) of the reference position in each state published after
-        monotonic `since`, t on this host's monotonic clock: the daemon's time of
-        publication shifted by the least delay any state took to arrive (within a few
-        ms).  A state carries the last cycle's output: its time is up to one period
-        earlier (`best_aligned`)."""
+        monotonic `since`, t on this host's monotonic clock: the time of the cycle it is
+        of (`cycle_t`, on the daemon's clock) moved by the least delay any state took to
+        arrive after it was taken (`t`): a little late, by that delay (`best_aligned`)."""
         with self.lock:
             states = list(self.states)
         offset = min(arrived - state["t"] for arrived, state in states)
@@ -451,7 +451,7 @@ class States:
                 q = state["pose"]["quaternion"]
                 measured = Pose(state["pose"]["position"], (q["w"], q["x"], q["y"], q["z"]))
                 reference = retract(measured, -np.asarray(state["tracking_error"]))
-                rows.append((state["t"] + offset, *reference.position))
+                rows.append((state["cycle_t"] + offset, *reference.position))
         return np.array(rows).reshape(-1, 4)
 
 
