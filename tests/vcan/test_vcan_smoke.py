@@ -7,13 +7,16 @@ that ``test_vcan_suite_in_uml`` boots); see ``conftest.py``.
 from __future__ import annotations
 
 import asyncio
+import os
 import re
 import subprocess
 import time
 from collections.abc import Iterator
+from pathlib import Path
 
 import can
 import pytest
+import uml
 
 pytestmark = [pytest.mark.vcan, pytest.mark.slow]
 
@@ -117,3 +120,20 @@ def test_asyncio_reader_on_bus_fileno(sender: can.BusABC) -> None:
     with open_bus(0x2C0) as receiver:
         got = asyncio.run(receive_one(receiver))
     assert (got.arbitration_id, bytes(got.data)) == (0x2C0, b"\x2a")
+
+
+@pytest.mark.skipif(
+    os.environ.get(uml.GUEST_ENV) != "1", reason="the UML guest's setting; a host has its own"
+)
+def test_the_guest_s_softirq_threads_run_above_every_test_process() -> None:
+    """In the UML guest, ksoftirqd (which delivers frames to sockets under load) runs at
+    SCHED_FIFO uml.SOFTIRQ_PRIORITY, above the simulator and the daemon's core."""
+    threads = [
+        int(entry.name)
+        for entry in Path("/proc").iterdir()
+        if entry.name.isdigit() and (entry / "comm").read_text().startswith("ksoftirqd/")
+    ]
+    assert threads, "no ksoftirqd in /proc"
+    for pid in threads:
+        assert os.sched_getscheduler(pid) == os.SCHED_FIFO, pid
+        assert os.sched_getparam(pid).sched_priority == uml.SOFTIRQ_PRIORITY, pid
