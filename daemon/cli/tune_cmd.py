@@ -25,19 +25,21 @@ simulated time instead (fast, deterministic).
 
 --json prints one object: drive, load {mass, clamped}, experiment {seconds, frames,
 samples, latency, transit, abort}, model {m0, k0, lag, cable_damping, confidence,
-residual_rms, response_rms}, actuator (the robot file's block), actuator_model
-(sim.plant.actuator), gains {kp, ki, kd, derivative_filter, bandwidth, ok,
-modal_mass_range, modal_loops [{mass, settling_time, overshoot, poles}]}, controller
-(the config section), plot (the --plot file), checks (--check-loads: per load {load,
-mass, settling_time, overshoot, predicted_settling_time, predicted_overshoot, abort}).
-After an abort of the identification: {drive, abort, reason}.
+residual_rms, response_rms, friction, residual_correlation, misfit}, actuator (the robot
+file's block), actuator_model (sim.plant.actuator), friction (sim.plant.friction), gains
+{kp, ki, kd, derivative_filter, bandwidth, ok, modal_mass_range, modal_loops [{mass,
+settling_time, overshoot, poles}]}, controller (the config section), plot (the --plot
+file), checks (--check-loads: per load {load, mass, settling_time, overshoot,
+predicted_settling_time, predicted_overshoot, abort}). After an abort of the
+identification: {drive, abort, reason}.
 --plot PNG draws the data, the fit and the closed-loop poles across the mass range
 (tuning.tune_plot).  --check-loads 0,5,10 flies the proposed gains on the winch through
 a step of the length reference with each load hung (tuning.load_check; on the bus the
 user hangs each and presses Enter) and sets the measured settling time and overshoot
 against the identified model's; exit 3 if one aborted.
-Exit 0 on success, 3 when the experiment aborted (the drive was braked), 1 on a bad
-config or request.
+Exit 0 on success (also where the fit's residual says the model misses part of the
+dynamics: a warning says so, tuning.identify), 3 when the experiment aborted (the drive
+was braked), 1 on a bad config or request.
 """
 
 from __future__ import annotations
@@ -55,7 +57,7 @@ import yaml
 
 from cdpr import ConfigError
 from daemon.cli.analyze_cmd import _clean
-from daemon.cli.exit_codes import EXIT_ABORTED
+from daemon.cli.exit_codes import EXIT_ABORTED, EXIT_OK
 from daemon.cli.run_cmd import load_checked, report
 from daemon.config import DaemonConfig
 from daemon.process.app import close_bus, open_bus
@@ -153,7 +155,13 @@ def run(args: argparse.Namespace) -> int:
         return EXIT_ABORTED
     model = result.model
     assert model is not None
-    say(f"fit: m0 {model.m0:.4g} kg, k0 {model.k0:.4g} N s/m, lag {model.lag * 1e3:.4g} ms")
+    say(
+        f"fit: m0 {model.m0:.4g} kg, k0 {model.k0:.4g} N s/m, lag {model.lag * 1e3:.4g} ms, "
+        f"Coulomb friction {model.friction:.3g} N"
+    )
+    misfit = model.misfit()
+    if misfit is not None:
+        print(f"warning: {misfit}", file=sys.stderr)
     say("analysing the robot's modal masses (Lemma 1)")
     analysis = analyse(robot, config.controller, points_per_axis=3)
     modal = analysis.grid.mass_range
@@ -186,7 +194,7 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(_clean(out)))
     else:
         _print(out)
-    return EXIT_ABORTED if aborted else 0
+    return EXIT_ABORTED if aborted else EXIT_OK
 
 
 def _loads(text: str) -> list[float]:
@@ -356,9 +364,13 @@ def _report(
             "confidence": model.confidence,
             "residual_rms": model.residual_rms,
             "response_rms": model.response_rms,
+            "friction": model.friction,
+            "residual_correlation": model.residual_correlation,
+            "misfit": model.misfit(),
         },
         "actuator": {"m0": round(model.m0, 4), "k0": round(model.k0, 3)},
         "actuator_model": {"c": [round(model.lag, 6)]},
+        "friction": {"coulomb": round(model.friction, 3)},
         "gains": {
             **gains.gains.model_dump(),
             "bandwidth": gains.bandwidth,
@@ -384,13 +396,13 @@ def _print(out: dict[str, Any]) -> None:
     print(
         f"identified (95 % half-widths): m0 {m['m0']:.4g} kg +-{100 * c['m0']:.2g} %, "
         f"k0 {m['k0']:.4g} N s/m +-{100 * c['k0']:.2g} %, lag {1e3 * m['lag']:.4g} ms "
-        f"+-{100 * c['lag']:.2g} %; residual {1e6 * m['residual_rms']:.3g} um RMS of a "
-        f"{1e3 * m['response_rms']:.3g} mm response"
+        f"+-{100 * c['lag']:.2g} %, Coulomb friction {m['friction']:.3g} N; residual "
+        f"{1e6 * m['residual_rms']:.3g} um RMS of a {1e3 * m['response_rms']:.3g} mm response"
     )
     print("robot file, actuator block:")
     print(yaml.safe_dump({"actuator": out["actuator"]}, sort_keys=False).rstrip())
-    print("simulator / analysis force lag (sim.plant.actuator):")
-    print(yaml.safe_dump({"actuator": out["actuator_model"]}).rstrip())
+    print("simulator / analysis force lag and friction (sim.plant):")
+    print(yaml.safe_dump({"actuator": out["actuator_model"], "friction": out["friction"]}).rstrip())
     print("the daemon's command timing (drives section; controller.command_lead auto):")
     print(f"  force_lag: {m['lag']:.4g}")
     g = out["gains"]
