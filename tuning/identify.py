@@ -210,8 +210,8 @@ def fit(setup: Setup, data: dict[str, Array]) -> Identified:
         [act.m0, max(act.k0, 0.1), setup.lag_guess, setup.damping_guess, 0.0, FRICTION_GUESS]
     )
     logs = [0, 1, 2, 3]  # fitted as logarithms: positive, and relative steps
-    # clamped (module docstring): the bias, the friction (the drum barely moves) and the
-    # cable's damping stay at the guess
+    # clamped (module docstring): the bias and the cable's damping stay at the guess, the
+    # friction at zero (the drum barely moves)
     free = [0, 1, 2] + ([] if clamped else [4, 5]) + ([3] if cabled and not clamped else [])
     if clamped:
         guess[5] = 0.0
