@@ -127,7 +127,10 @@ def test_a_full_disk_pauses_the_recordings_and_the_daemon_flies_on(
     for name in names:
         report = status["recording"][name]
         assert report["status"] == "paused" and report["reason"].startswith(reason), report
-        assert report["file"] is None and report["dropped"] > 0, report
+        assert report["file"] is None, report
+        # records that came while paused were dropped: by the flight's end (the status
+        # that first says paused may come before the first record after the pause)
+        assert final["recording"][name]["dropped"] > 0, final["recording"][name]
         said = [e for e in events if e.get("event") == "recording" and e["recording"] == name]
         assert said and said[-1]["status"] == "paused", events
         assert said[-1]["reason"].startswith(reason), said
