@@ -105,7 +105,6 @@ def listening(port: int, channel: str) -> Iterator[list[can.Message]]:
         bus.shutdown()
 
 
-@pytest.mark.slow  # real-time experiments, 10-20 s each
 def check_identified(meter: StealMeter, model: dict, lag_tolerance: float) -> None:
     """m0 and k0 within 10 % of TRUE, the lag within `lag_tolerance`: a real-time
     experiment's figures, judged unless the hypervisor took the host's CPUs meanwhile
@@ -120,6 +119,7 @@ def check_identified(meter: StealMeter, model: dict, lag_tolerance: float) -> No
         )
 
 
+@pytest.mark.slow  # real-time experiments, 10-20 s each
 def test_tune_identifies_a_winch_over_the_bus_in_real_time(tmp_path: Path) -> None:
     sim_config, data = configs(tmp_path, 0.0)
     sim, port, channel = serve_simulator(sim_config)
