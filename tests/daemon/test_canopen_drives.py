@@ -83,8 +83,8 @@ SAFETY = {"max_watchdog_drift": CANOPEN_DRIFT, "feedback_deadline": 0.8, "stale_
 # (`cycle_t`), RMS 0.7-1.6 mm and worst up to 6.5 mm were the metric's: a state is taken
 # up to a period after the cycle whose output it carries.  Bounds with margin:
 TRACK_RMS = 2e-3  # m
-OBSERVER_FORCE_MAX = 200.0  # N: controller.disturbance_observer.force_max (canopen_config)
 TRACK_MAX = 6e-3  # m
+OBSERVER_FORCE_MAX = 200.0  # N: controller.disturbance_observer.force_max (canopen_config)
 FLIGHTS = tuple(STANDARD_SET)
 HOLD_DRIFT = 0.5e-3  # m: how far the true platform may move over the second after a stop
 SETTLE = 1.0  # s: that second

@@ -87,10 +87,10 @@ def test_a_10000_waypoint_trajectory_reaches_a_holding_robot_without_a_stall() -
             await asyncio.sleep(0.2)
             stall = LongestStall(stack)
             service = stack.service
-            with StealMeter() as meter:
-                reply = await stack.planner.submit_trajectory(trajectory, None)  # validate,
-                assert reply["accepted"] and reply["duration"] >= trajectory.duration  # plan,
-                await asyncio.sleep(0.3)  # run
+            with StealMeter() as meter:  # over validating, planning and running it
+                reply = await stack.planner.submit_trajectory(trajectory, None)
+                assert reply["accepted"] and reply["duration"] >= trajectory.duration
+                await asyncio.sleep(0.3)
             assert service.machine.state is SafetyState.TRACKING, service.machine.fault
             # shifting and blending 10,000 waypoints on the loop stalled it ~100 periods
             limit = watchdog_periods(stack)
