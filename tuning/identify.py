@@ -107,10 +107,15 @@ class Setup(NamedTuple):
 
 
 def segment_residuals(
-    setup: Setup, params: Array, data: dict[str, Array], fitted: Array | None = None
+    setup: Setup,
+    params: Array,
+    data: dict[str, Array],
+    fitted: Array | None = None,
+    motion: Array | None = None,
 ) -> Array:
     """Measured minus predicted lengths (m) for parameters `params` (NAMES); the
-    predicted lengths also go into `fitted` (one per sample) when given.
+    predicted lengths also go into `fitted` (one per sample) when given.  `motion` is
+    _motion(data), where the caller has it (it does not depend on `params`).
 
     The record is cut into segments of `segment` seconds; in each, the model starts from
     the initial state that fits best (a linear least-squares problem, solved exactly),
@@ -131,7 +136,8 @@ def segment_residuals(
     index = np.searchsorted(starts, np.arange(count * per), side="right") - 1
     u = data["command"][index] - setup.load.hold + bias
     if friction:
-        u = u - friction * np.interp(grid, data["sample_t"], _motion(data))
+        motion = _motion(data) if motion is None else motion
+        u = u - friction * np.interp(grid, data["sample_t"], motion)
     u = u.reshape(count, per)
     # every segment's response from rest at once (a transfer function's polynomial
     # loses the precision of poles this close to z = 1)
@@ -218,6 +224,7 @@ def fit(setup: Setup, data: dict[str, Array]) -> Identified:
 
     start = guess.copy()
     start[logs] = np.log(start[logs])
+    motion = _motion(data)  # the friction's direction: the data's, whatever the parameters
 
     def params_of(x: Array) -> Array:
         params = start.copy()
@@ -231,7 +238,7 @@ def fit(setup: Setup, data: dict[str, Array]) -> Identified:
     lower, upper = start[free] - spread, start[free] + spread
     lower[np.equal(free, 5)] = 0.0  # friction opposes motion: never negative
     result = optimize.least_squares(
-        lambda x: segment_residuals(setup, params_of(x), data),
+        lambda x: segment_residuals(setup, params_of(x), data, motion=motion),
         start[free],
         method="trf",
         bounds=(lower, upper),
