@@ -36,6 +36,16 @@ def reference8() -> Robot:
     return load_robot("reference8")
 
 
+OFFSET8 = ROOT / "tests" / "data" / "robots" / "reference8-offset.yaml"
+
+
+@pytest.fixture(scope="session")
+def offset8() -> Robot:
+    """reference8 with its crossed pairs routed clear of each other (the interference
+    tests' robot: tests/data/robots/reference8-offset.yaml)."""
+    return Robot.from_yaml(OFFSET8)
+
+
 def workspace_poses(reach: float = 0.3, tilt: float = 0.2) -> st.SearchStrategy:
     """Offsets (dp, rotvec) from home within `reach` metres and `tilt` radians."""
     coord = st.floats(-reach, reach, allow_nan=False)
@@ -50,3 +60,17 @@ def pose_near_home(robot: Robot, offset: tuple) -> Pose:
 
 def twists(scale: float = 1.0) -> st.SearchStrategy:
     return st.lists(st.floats(-scale, scale, allow_nan=False), min_size=6, max_size=6).map(np.array)
+
+
+HOST_TIMING_RERUNS = 1
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """A test marked host_timing flies in real time with several threads or processes on
+    a shared host (the canopen harness, the daemon as processes, the UML guest): a
+    hypervisor's stall or a starved thread can brake it where the daemon did nothing
+    wrong.  Such a test runs again once when it fails (pytest-rerunfailures); a defect
+    fails both runs, and the rerun shows in the summary ("1 rerun")."""
+    for item in items:
+        if item.get_closest_marker("host_timing") is not None:
+            item.add_marker(pytest.mark.flaky(reruns=HOST_TIMING_RERUNS))

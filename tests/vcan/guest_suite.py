@@ -62,19 +62,26 @@ def pytest_command(config: pytest.Config, nodeids: list[str], junit: Path) -> li
 
 
 def read_junit(path: Path, run: uml.GuestRun) -> GuestSuite:
-    """Sort the test cases of a JUnit XML report into passed, skipped and failed."""
-    suite = GuestSuite(run=run)
+    """Sort the test cases of a JUnit XML report into passed, skipped and failed.  A test
+    run again (host_timing) is in the report once per run: its last run is its outcome."""
+    outcomes: dict[str, tuple[str, str]] = {}
     for case in ET.parse(path).getroot().iter("testcase"):
         name = "::".join(part for part in (case.get("classname"), case.get("name")) if part)
         problem = case.find("failure")
         if problem is None:
             problem = case.find("error")
         if problem is not None:
-            suite.failed[name] = (problem.get("message") or problem.tag).splitlines()[0]
+            outcomes[name] = ("failed", (problem.get("message") or problem.tag).splitlines()[0])
         elif case.find("skipped") is not None:
-            suite.skipped.append(name)
+            outcomes[name] = ("skipped", "")
         else:
-            suite.passed.append(name)
+            outcomes[name] = ("passed", "")
+    suite = GuestSuite(run=run)
+    for name, (outcome, why) in outcomes.items():
+        if outcome == "failed":
+            suite.failed[name] = why
+        else:
+            (suite.skipped if outcome == "skipped" else suite.passed).append(name)
     return suite
 
 

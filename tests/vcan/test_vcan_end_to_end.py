@@ -50,7 +50,12 @@ from drivers.cia402 import codec as cia402
 from tests.loopback import free_port
 from tests.processes import assert_still, patient_watchdogs, realtime_child, truth
 
-pytestmark = [pytest.mark.vcan, pytest.mark.timeout(240), pytest.mark.slow]
+pytestmark = [
+    pytest.mark.vcan,
+    pytest.mark.timeout(240),
+    pytest.mark.slow,
+    pytest.mark.host_timing,
+]
 
 ROOT = Path(__file__).resolve().parents[2]
 CHANNEL = "vcan0"
@@ -60,6 +65,10 @@ RATE_HZ = 100
 CAPTURE_BUFFER = 8 << 20  # bytes of candump's socket receive buffer
 # candump -L: "(1700000000.123456) vcan0 123#DEADBEEF"; a remote frame "123#R" or "123#R8"
 CANDUMP_LINE = re.compile(r"^\((\d+\.\d+)\) (\S+) ([0-9A-F]{3}|[0-9A-F]{8})#(R\d?|[0-9A-F]*)$")
+# candump -d: frames its socket's queue overflowed with (SO_RXQ_OVFL), never written
+DROPCOUNT_LINE = re.compile(
+    r"^DROPCOUNT: dropped \d+ CAN frames? on '\S+' socket \(total drops (\d+)\)$"
+)
 HOME = np.array([0.0, 0.0, 1.25])
 GOAL = HOME + np.array([0.08, -0.05, 0.06])
 IDENTITY = {"w": 1.0, "x": 0.0, "y": 0.0, "z": 0.0}
@@ -333,7 +342,7 @@ def running_stack(
         # guest's CPU went to the real-time simulator and daemon and candump, starved for
         # seconds, lost an EMCY even so
         candump = subprocess.Popen(
-            ["candump", "-L", "-r", str(CAPTURE_BUFFER), *channels],
+            ["candump", "-L", "-d", "-r", str(CAPTURE_BUFFER), *channels],
             stdout=dump_out,
             preexec_fn=realtime_child(20),
         )
@@ -493,6 +502,8 @@ def _frames(capture: Path, channel: str = CHANNEL) -> list[tuple[float, int, byt
     frame.  Every line must be on one of CHANNELS."""
     frames = []
     for line in capture.read_text().splitlines():
+        if DROPCOUNT_LINE.match(line):
+            continue
         match = CANDUMP_LINE.match(line)
         assert match, f"unexpected candump line {line!r}"
         stamp, on, can_id, data = match.groups()
@@ -502,6 +513,29 @@ def _frames(capture: Path, channel: str = CHANNEL) -> list[tuple[float, int, byt
         remote = data.startswith("R")
         frames.append((float(stamp), int(can_id, 16), None if remote else bytes.fromhex(data)))
     return frames
+
+
+def _dropped(capture: Path) -> int:
+    """How many frames candump's socket dropped (its queue full: candump kept from the
+    CPU in a loaded guest), by its own count."""
+    totals = [
+        int(m.group(1)) for m in map(DROPCOUNT_LINE.match, capture.read_text().splitlines()) if m
+    ]
+    return max(totals, default=0)
+
+
+def _only_garbage(odd: list[int], garbage: list[int], capture: Path) -> None:
+    """The frames of the wrong size are the garbage this test sent: all of it, or, where
+    candump says it dropped frames, none but it."""
+    dropped = _dropped(capture)
+    found = [hex(i) for i in sorted(odd)]
+    if dropped == 0:
+        assert sorted(odd) == garbage, f"only the garbage frames have the wrong size: {found}"
+    else:
+        assert set(odd) <= set(garbage), (
+            f"only the garbage frames have the wrong size: {found} (the capture dropped "
+            f"{dropped} frames)"
+        )
 
 
 def _check_cia402_capture(capture: Path) -> None:
@@ -535,11 +569,12 @@ def _check_cia402_capture(capture: Path) -> None:
         pdo.data = bytearray(data)  # canopen decodes every mapped object from these bytes
         for entry in pdo.map:
             values.get(entry.index, []).append(entry.raw)
-    assert sorted(odd) == [0x183, 0x283], (
-        f"only the garbage PDOs have the wrong size: {[hex(i) for i in odd]}"
-    )
+    _only_garbage(odd, [0x183, 0x283], capture)
     assert syncs > 3 * RATE_HZ, f"{syncs} SYNC frames"
-    assert emcy == 1, f"the cansend EMCY is in the capture once: {emcy} times"
+    dropped = _dropped(capture)
+    assert emcy == 1 or (dropped and emcy == 0), (
+        f"the cansend EMCY is in the capture once: {emcy} times (candump dropped {dropped})"
+    )
     assert len(values[0x6064]) > 8 * 3 * RATE_HZ, "positions of every drive, every cycle"
     assert any(word & 0x6F == 0x27 for word in values[0x6041]), "operation enabled was seen"
     assert sum(1 for t in values[0x6071] if t != 0) > 8 * RATE_HZ, "torque was commanded"
@@ -566,9 +601,7 @@ def _check_odrive_capture(capture: Path) -> None:
         counts[name] = counts.get(name, 0) + 1
         if name == "Set_Input_Torque":
             torques.append(decoded["Input_Torque"])
-    assert sorted(odd) == [0x041, 0x049], (
-        f"only the garbage frames have the wrong size: {[hex(i) for i in odd]}"
-    )
+    _only_garbage(odd, [0x041, 0x049], capture)
     assert counts.get("Heartbeat", 0) > 8 * 3, counts
     assert counts.get("Get_Encoder_Estimates", 0) > 8 * 3 * RATE_HZ, counts
     assert counts.get("Estop", 0) == 1, counts

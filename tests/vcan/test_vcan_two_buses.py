@@ -23,7 +23,12 @@ from test_vcan_end_to_end import (
 
 from drivers.cia402 import codec as cia402
 
-pytestmark = [pytest.mark.vcan, pytest.mark.timeout(240), pytest.mark.slow]
+pytestmark = [
+    pytest.mark.vcan,
+    pytest.mark.timeout(240),
+    pytest.mark.slow,
+    pytest.mark.host_timing,
+]
 
 # node 3 is on both buses: cable 2 on vcan0, cable 4 on vcan1
 NODES = [1, 2, 3, 4, 3, 5, 6, 7]
@@ -57,7 +62,9 @@ def test_cia402_drives_on_vcan0_and_vcan1(tmp_path: Path) -> None:
                 forged = f"181#3712{(10**7).to_bytes(4, 'little').hex()}0A"
                 _cansend(forged, "281#00000000", channel="vcan1")
             after = stack.watch.wait_state(lambda s: True, 5, "a state after the forgery")
-            assert after["state"] == "hold" and after["fault"] is None, after
+            assert after["state"] == "hold" and after["fault"] is None, (
+                f"after the forged frames: {after['state']}, fault {after['fault']}"
+            )
             assert abs(after["lengths"][0] - before["lengths"][0]) < 0.002
             assert _stop(stack.daemon) == 0
             assert _stop(stack.simulator) == 0
