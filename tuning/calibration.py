@@ -26,9 +26,11 @@ with 1 % larger drums reads the same).  The anchor corrections are kept orthogon
 the six infinitesimal rigid motions of the file's anchors: the world frame is the file's
 anchor frame in the least-squares sense (the corrected anchors' best rigid fit onto the
 file's is the identity).  The attachment corrections are kept orthogonal to the rigid
-motions of the file's attachments (the platform frame).  The scale comes from the drums:
-their radius scales keep a mean of 1 (a machined drum's radius is known far better than
-a frame measured with a tape; the scales find the drums' differences).
+motions of the file's attachments (the platform frame).  The fit takes the scale from
+the drums: their radius scales keep a mean of 1 (the scales find the drums' differences).
+Lengths alone cannot see a common drum radius error: a fit of drums 1 % larger than the
+file's is the true robot 1 % too small (`scale_cost`).  A measured distance between two
+anchors (`AnchorDistance`) sets the scale after the fit (`scaled`).
 
 Identifiability: the poses are eliminated (the parameter Jacobian projected onto the
 orthogonal complement of the pose columns), the columns scaled to unit norm, and the
@@ -46,7 +48,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -327,6 +329,56 @@ def _initial_poses(robot: Robot, samples: Sequence[Sample]) -> list[Pose]:
     return poses
 
 
+def _offsets_fitted(
+    robot: Robot, offsets: ArrayLike, samples: Sequence[Sample], say: Progress
+) -> tuple[_Model, Array]:
+    """The model of `samples` and its start: the file's parameters with the offsets
+    alone fitted (when the lengths outnumber the offsets and poses).  Homing with wrong
+    anchors, or none, leaves the offsets centimetres off, and the poses forward
+    kinematics gave with them too."""
+    offsets = np.asarray(offsets, dtype=float)
+    if len(samples) < 2:
+        raise ValueError(f"calibration needs poses: {len(samples)} given")
+    model = _Model(robot, offsets, samples)
+    x0 = model.initial(offsets, _initial_poses(robot, samples))
+    say(f"identifiability: {len(samples)} poses, {model.n_params} parameters")
+    if model.m * model.n >= model.n + 6 * model.m:  # else too few lengths to fit them
+        only_offsets = np.eye(model.n_params)[:, model.slices["offsets"]]
+        x0, _, _ = _least_squares(model, x0, only_offsets, say, "offsets")
+    return model, x0
+
+
+@dataclass(frozen=True)
+class Identifiability:
+    """What a set of poses can identify, before any fit of the geometry: the rank of the
+    pose-eliminated identification Jacobian (columns scaled) among its parameter
+    combinations, its condition over the identifiable ones, and each combination it
+    cannot identify, in words."""
+
+    poses: int
+    parameters: int
+    rank: int
+    condition: float
+    unidentifiable: list[str]
+
+
+def survey(
+    robot: Robot, offsets: ArrayLike, samples: Sequence[Sample], noise: float = NOISE
+) -> Identifiability:
+    """What `samples` (read with `offsets`) identify, at the file's geometry with the
+    offsets fitted: for poses too few to calibrate with (a round interrupted), said
+    instead of fitting.  ValueError as `identify`."""
+    model, x0 = _offsets_fitted(robot, offsets, samples, lambda _text: None)
+    sv, _, _, lines, _, good = _identifiability(model, model.jacobian(x0), noise)
+    return Identifiability(
+        poses=len(samples),
+        parameters=len(sv),
+        rank=int(good.sum()),
+        condition=float(sv[good].max() / sv[good].min()),
+        unidentifiable=lines,
+    )
+
+
 def identify(
     robot: Robot,
     offsets: ArrayLike,
@@ -338,17 +390,7 @@ def identify(
     drive), starting from `robot`'s file.  ValueError when there are fewer samples than
     needed to fit even the poses."""
     say = progress or (lambda _text: None)
-    offsets = np.asarray(offsets, dtype=float)
-    if len(samples) < 2:
-        raise ValueError(f"calibration needs poses: {len(samples)} given")
-    model = _Model(robot, offsets, samples)
-    x0 = model.initial(offsets, _initial_poses(robot, samples))
-    say(f"identifiability: {len(samples)} poses, {model.n_params} parameters")
-    p = model.n_params
-    # first the offsets alone (the file's geometry): homing with wrong anchors, or none,
-    # leaves them centimetres off, and the poses forward kinematics gave with them too
-    only_offsets = np.eye(p)[:, model.slices["offsets"]]
-    x0, _, _ = _least_squares(model, x0, only_offsets, say, "offsets")
+    model, x0 = _offsets_fitted(robot, offsets, samples, say)
     _, basis, scales, _, _, _ = _identifiability(model, model.jacobian(x0), noise)
     # then everything, in the identifiable span of the parameters (scaled)
     x, nfev, converged = _least_squares(model, x0, basis.T / scales[:, None], say, "all parameters")
@@ -428,6 +470,67 @@ def corrected_robot(robot: Robot, calibration: Calibration) -> dict[str, Any]:
         if stiffness is not None:
             actuator["cable_stiffness"] = float(f"{stiffness * calibration.stiffness_scale:.5g}")
     return spec
+
+
+# -- scale -------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class AnchorDistance:
+    """The measured distance (m) between cable `first`'s and cable `second`'s anchor
+    points (0-based cable indices, as the robot file lists them): the scale reference."""
+
+    first: int
+    second: int
+    metres: float
+
+
+def scaled(calibration: Calibration, distance: AnchorDistance) -> Calibration:
+    """`calibration` scaled so that the two anchors of `distance` lie its metres apart.
+    Scaling is a gauge freedom of the lengths (a robot and its drums scaled together
+    read the same, module docstring): the anchors are scaled about their centroid, the
+    attachments about theirs, the poses with them, and the offsets and drum radius scales
+    by the same factor; the lengths each pose predicts scale too, every residual with them.
+    ValueError when the two anchors coincide in the fit."""
+    anchors, attachments = calibration.anchors, calibration.attachments
+    fitted = float(np.linalg.norm(anchors[distance.first] - anchors[distance.second]))
+    if fitted < 1e-6:
+        raise ValueError(
+            f"the anchors of cables {distance.first} and {distance.second} coincide in the "
+            "fit: measure between two anchors apart"
+        )
+    factor = distance.metres / fitted
+    c, cb = anchors.mean(axis=0), attachments.mean(axis=0)
+    poses = [
+        Pose.from_matrix(
+            c + factor * (pose.position - c) + (factor - 1.0) * pose.rotation @ cb, pose.rotation
+        )
+        for pose in calibration.poses
+    ]
+    return replace(
+        calibration,
+        anchors=c + factor * (anchors - c),
+        attachments=cb + factor * (attachments - cb),
+        offsets=factor * calibration.offsets,
+        drum_radius_scale=factor * calibration.drum_radius_scale,
+        poses=poses,
+        residual_rms=factor * calibration.residual_rms,
+        residual_max=factor * calibration.residual_max,
+    )
+
+
+def scale_cost(robot: Robot, error: float = 0.01, reach: float = 0.3) -> tuple[float, float]:
+    """What a common drum radius error `error` (relative) costs a calibration without a
+    scale reference, for `robot`'s file: (the farthest anchor's error, the largest error
+    of a goto `reach` m from home), both m.  Such a fit is the true robot scaled by
+    1 / (1 + error) about the anchors' centroid c (and the attachments' b), so a goto to p
+    lands error x |p - c + R b| off."""
+    anchors = np.asarray(robot.geometry.anchors, dtype=float)
+    attachments = np.asarray(robot.geometry.attachments, dtype=float)
+    c = anchors.mean(axis=0)
+    home = robot.home
+    lever = float(np.linalg.norm(home.position - c + home.rotation @ attachments.mean(axis=0)))
+    return error * float(np.linalg.norm(anchors - c, axis=1).max()), error * (lever + reach)
 
 
 # -- pose selection ---------------------------------------------------------------------

@@ -1,10 +1,11 @@
 """`cdprd calibrate`: identify the robot's geometry from redundant cable lengths
 (DESIGN §15 step 5).
 
-    cdprd calibrate --config FILE [--poses N] [--reach X Y Z] [--tilt RAD] [--dwell S]
-                    [--average S]
+    cdprd calibrate --config FILE SCALE [--poses N] [--reach X Y Z] [--tilt RAD] [--dwell S]
+                    [--average S] [--resume]
                     [--output FILE] [--json]   + the client options (--prefix, --connect)
-    cdprd calibrate --config FILE --from-recording RUN.mcap [--output FILE] [--json]
+    cdprd calibrate --config FILE SCALE --from-recording RUN.mcap [--output FILE] [--json]
+    SCALE: --scale-distance A,B,METRES | --no-scale
 
 Flying: the daemon must be enabled (HOLD).  Poses are picked for identifiability
 (greedy D-optimal from random candidates within --reach of home and --tilt of its
@@ -24,6 +25,20 @@ cables' EA, and reports which are identifiable (singular values and condition nu
 the identification Jacobian, the poses eliminated; the gauge freedoms fixed as
 tuning.calibration says), the fit residual, and progress on stderr while it flies and
 solves.
+
+The round is kept on disk (daemon.cli.calibration_round: the poses planned and each one
+recorded, checked to belong to this robot and the offsets in force): a brake while
+flying ends the command naming the brake's trigger and message, with what the poses
+recorded so far identify (rank and condition of the identification Jacobian, what is not
+identifiable yet), and `--resume` (after `cdprd reset` and `cdprd enable`) flies the
+poses not yet flown and solves with all of them.
+
+Scale: lengths alone cannot see a common drum radius error (a robot and its drums scaled
+together read the same lengths), so the command asks for one measured distance,
+`--scale-distance A,B,METRES` between the anchor points of cables A and B (0-based, as
+the robot file lists them), which scales the fit (tuning.calibration.scaled), or
+`--no-scale`, the drums' mean radius taken as the file's; either way it says what a 1 %
+drum error costs this robot (tuning.calibration.scale_cost).
 
 Writes the corrected robot file beside the old one (ROBOT.calibrated-YYYYmmdd-HHMMSS.yaml,
 or --output; an existing file is never overwritten) and, where the config has a
@@ -57,10 +72,12 @@ import yaml
 from cdpr import ConfigError, Pose, Robot, liediff
 from daemon.cli.exit_codes import EXIT_FAILED, EXIT_OK, EXIT_UNREACHABLE, EXIT_USAGE
 from daemon.cli.run_cmd import load_checked
+from tuning.calibration import AnchorDistance
 
 if TYPE_CHECKING:
+    from daemon.cli.calibration_round import CalibrationRound
     from daemon.config import DaemonConfig
-    from daemon.interface.client import CdprClient
+    from daemon.interface.client import CdprClient, RequestError
     from tuning.calibration import Calibration, Sample
 
 SPEED = 0.2  # m/s (and rad/s) of the moves between poses
@@ -69,6 +86,9 @@ MIN_POSES = 8  # below this the command refuses before flying
 DITHER = 2e-4  # m: the loop flown about each pose while its state is averaged
 LEASE = 5.0  # s: the lease on the payload freeze and the observer hold (daemon.service.lease)
 RENEW_PERIOD = 1.0  # s between its renewals while flying
+SCALE_MISMATCH = 0.05  # a measured distance this far (relative) from the file's: a mistake
+COST_ERROR = 0.01  # the common drum radius error whose cost is reported
+COST_REACH = 0.3  # m from home: the goto whose error is reported
 
 
 class CalibrationError(Exception):
@@ -95,6 +115,19 @@ def add_parser(subparsers: Any) -> None:
         "--average", type=float, help="seconds at the end of each dwell averaged (default: half)"
     )
     p.add_argument("--seed", type=int, default=0, help="of the candidate poses")
+    scale = p.add_mutually_exclusive_group()
+    scale.add_argument(
+        "--scale-distance", type=_anchor_distance, metavar="A,B,METRES",
+        help="the measured distance between the anchors of cables A and B (0-based): the scale",
+    )  # fmt: skip
+    scale.add_argument(
+        "--no-scale", action="store_true",
+        help="calibrate without a scale reference (what that costs is printed)",
+    )  # fmt: skip
+    p.add_argument(
+        "--resume", action="store_true",
+        help="continue the round a brake interrupted (its poses kept on disk)",
+    )  # fmt: skip
     p.add_argument("--output", help="the corrected robot file (default: beside the old one)")
     p.add_argument("--json", action="store_true", help="print the report as one JSON object")
     p.add_argument("--prefix", help="key prefix of the daemon (default: the only one)")
@@ -106,8 +139,66 @@ def add_parser(subparsers: Any) -> None:
     p.set_defaults(handler=run)
 
 
+def _anchor_distance(text: str) -> AnchorDistance:
+    """--scale-distance A,B,METRES: two different cables and a distance in metres."""
+    parts = text.split(",")
+    try:
+        if len(parts) != 3:
+            raise ValueError(text)
+        first, second, metres = int(parts[0]), int(parts[1]), float(parts[2])
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: expected A,B,METRES (two cable indices and metres), e.g. 0,5,4.9244"
+        ) from None
+    if min(first, second) < 0 or first == second:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected two different cables (0-based)")
+    if not (math.isfinite(metres) and metres > 0.0):
+        raise argparse.ArgumentTypeError(f"{text!r}: the distance must be more than 0 m")
+    return AnchorDistance(first, second, metres)
+
+
 def _say(text: str) -> None:
     print(text, file=sys.stderr, flush=True)
+
+
+def _scale_cost(robot: Robot) -> str:
+    """What an unknown scale costs `robot`, in words."""
+    from tuning.calibration import scale_cost
+
+    anchors, goto = scale_cost(robot, COST_ERROR, COST_REACH)
+    return (
+        f"on {robot.name} a {COST_ERROR:.0%} drum radius error leaves the anchors up to "
+        f"{anchors * 1e3:.1f} mm off and a goto {COST_REACH:g} m from home up to "
+        f"{goto * 1e3:.1f} mm off"
+    )
+
+
+def _scale_problem(robot: Robot, args: argparse.Namespace) -> str | None:
+    """Why the scale reference given cannot be used (None: it can, or it is waived)."""
+    distance = args.scale_distance
+    if distance is None:
+        if args.no_scale:
+            return None
+        return (
+            "a scale reference is needed: give --scale-distance A,B,METRES (the measured "
+            "distance between the anchor points of cables A and B, 0-based as the robot "
+            "file lists them; the farther apart the better), or --no-scale to calibrate "
+            "without one.  Cable lengths alone cannot see a common drum radius error: "
+            + _scale_cost(robot)
+        )
+    n = robot.n_cables
+    for cable in (distance.first, distance.second):
+        if cable >= n:
+            return f"--scale-distance: cable {cable}: {robot.name} has cables 0 to {n - 1}"
+    anchors = np.asarray(robot.geometry.anchors, dtype=float)
+    in_file = float(np.linalg.norm(anchors[distance.first] - anchors[distance.second]))
+    if abs(distance.metres - in_file) > SCALE_MISMATCH * in_file:
+        return (
+            f"--scale-distance: the anchors of cables {distance.first} and {distance.second} "
+            f"are {in_file:.4f} m apart in the robot file, {distance.metres:.4f} m measured: "
+            f"more than {SCALE_MISMATCH:.0%} apart (check the cables and that it is in metres)"
+        )
+    return None
 
 
 def run(args: argparse.Namespace) -> int:
@@ -125,6 +216,14 @@ def run(args: argparse.Namespace) -> int:
               file=sys.stderr)  # fmt: skip
         return EXIT_USAGE
     args.average = average
+    problem = _scale_problem(config.robot, args)
+    if problem is not None:
+        print(f"usage error: {problem}", file=sys.stderr)
+        return EXIT_USAGE
+    if args.resume and args.from_recording is not None:
+        print("usage error: --resume continues a flown round, not --from-recording",
+              file=sys.stderr)  # fmt: skip
+        return EXIT_USAGE
     output = _output_path(config, args.output)
     if output.exists():
         print(f"error: {output} exists: not overwritten (give another --output)", file=sys.stderr)
@@ -135,14 +234,16 @@ def run(args: argparse.Namespace) -> int:
     try:
         if args.from_recording is not None:
             offsets, samples = _from_recording(config, Path(args.from_recording))
+            calibration = _solve(config.robot, offsets, samples)
+            planned = len(samples)
         else:
-            offsets, samples = _fly(config, args)
-        calibration = _solve(config.robot, offsets, samples)
+            calibration, planned = _fly_and_solve(config, args)
+        calibration, scale = _scaled(config.robot, calibration, args.scale_distance)
     except UnreachableError as exc:
         print(f"error: no daemon reachable: {exc}", file=sys.stderr)
         return EXIT_UNREACHABLE
     except RequestError as exc:
-        print(f"error: the daemon refused ({exc.code}): {exc.reason}", file=sys.stderr)
+        print(f"error: {_refused(exc)}", file=sys.stderr)
         return EXIT_FAILED
     except CalibrationError as exc:
         print(f"error: {exc}", file=sys.stderr)
@@ -155,6 +256,8 @@ def run(args: argparse.Namespace) -> int:
     stored = _store_offsets(config, calibration, output)
     report = {
         **calibration.report(),
+        "planned": planned,
+        "scale": scale,
         "robot_file": str(output),
         "offsets_stored": stored,
         "seconds": seconds,
@@ -197,8 +300,50 @@ def _solve(robot: Robot, offsets: np.ndarray, samples: list[Sample]) -> Calibrat
     return calibration
 
 
-def _fly(config: DaemonConfig, args: argparse.Namespace) -> tuple[np.ndarray, list[Sample]]:
-    from daemon.interface.client import CdprClient, default_connect
+def _scaled(
+    robot: Robot, calibration: Calibration, distance: AnchorDistance | None
+) -> tuple[Calibration, dict[str, Any]]:
+    """The fit scaled to the measured `distance` (as it is without one), and the scale as
+    the report gives it: the distance measured and fitted, and their ratio, the factor
+    the fit was scaled by; or none, and what that costs."""
+    from tuning.calibration import scale_cost, scaled
+
+    if distance is None:
+        anchors, goto = scale_cost(robot, COST_ERROR, COST_REACH)
+        cost = {"cost_anchors_mm": anchors * 1e3, "cost_goto_mm": goto * 1e3}
+        return calibration, {"reference": None, "cost": _scale_cost(robot), **cost}
+    a = calibration.anchors
+    fitted = float(np.linalg.norm(a[distance.first] - a[distance.second]))
+    try:
+        found = scaled(calibration, distance)
+    except ValueError as exc:
+        raise CalibrationError(str(exc)) from None
+    return found, {
+        "reference": f"anchors of cables {distance.first} and {distance.second}",
+        "measured_m": distance.metres,
+        "fitted_m": fitted,
+        "factor": distance.metres / fitted,
+    }
+
+
+def _fly_and_solve(config: DaemonConfig, args: argparse.Namespace) -> tuple[Calibration, int]:
+    """Fly the round (a new one, or the kept one with --resume) and solve: (the fit, the
+    poses planned).  Once every planned pose has been flown the round is over and its
+    file removed, whatever the solve finds (too few poses: fly a new round)."""
+    from daemon.cli.calibration_round import round_path
+
+    path = round_path(config)
+    calibration_round = _fly(config, args, path)
+    samples = calibration_round.samples()
+    try:
+        calibration = _solve(config.robot, np.array(calibration_round.offsets), samples)
+    finally:
+        path.unlink(missing_ok=True)
+    return calibration, len(calibration_round.planned)
+
+
+def _plan(config: DaemonConfig, args: argparse.Namespace) -> list[Pose]:
+    """The poses of a new round (module docstring)."""
     from tuning.calibration import candidate_poses, select_poses
 
     robot = config.robot
@@ -216,15 +361,118 @@ def _fly(config: DaemonConfig, args: argparse.Namespace) -> tuple[np.ndarray, li
         )
     poses = select_poses(robot, args.poses, candidates)
     _say(f"flying {len(poses)} poses (greedy D-optimal of {len(candidates)} candidates)")
+    return poses
+
+
+def _kept_round(robot: Robot, identity: str, path: Path, resume: bool) -> CalibrationRound | None:
+    """The round kept in `path` to resume (None: --resume not given); refused when there
+    is none to resume, or one that a new round would throw away."""
+    from daemon.cli.calibration_round import RoundFileError, load_round
+
+    try:
+        kept = load_round(path, robot.name, robot.n_cables, identity)
+    except RoundFileError as exc:
+        raise CalibrationError(f"{exc}: remove it to fly a new round") from None
+    if kept is None:
+        if resume:
+            raise CalibrationError(f"no round to resume: {path} does not exist")
+        return None
+    recorded = f"{len(kept.recorded)} of {len(kept.planned)} poses recorded"
+    if not resume:
+        raise CalibrationError(
+            f"{path} holds a round interrupted with {recorded}: continue it with --resume, "
+            "or remove the file to fly a new round"
+        )
+    _say(f"resuming the round in {path}: {recorded}, {len(kept.remaining())} to fly")
+    return kept
+
+
+def _fly(config: DaemonConfig, args: argparse.Namespace, path: Path) -> CalibrationRound:
+    """Fly the poses of the round not yet flown, keeping each in `path` (module
+    docstring); the round, every pose flown.  Interrupted (a brake, SIGTERM, a lost
+    lease, a refusal), a CalibrationError says why, and what the poses kept identify."""
+    from daemon.cli.calibration_round import CalibrationRound
+    from daemon.interface.client import CdprClient, RequestError, default_connect
+    from daemon.service.calibration_state import robot_identity
+
+    robot = config.robot
+    identity = robot_identity(robot, config.drives)
+    kept = _kept_round(robot, identity, path, args.resume)
+    if kept is not None and not kept.remaining():
+        return kept  # flown to the end, but not solved: interrupted in between
+    poses = _plan(config, args) if kept is None else []
     with CdprClient(args.prefix, args.connect or default_connect(), timeout=args.timeout) as client:
         status = client.status()
         if status["state"] != "hold":
+            fault = status.get("fault")
+            why = "" if not fault else f" on {fault['trigger']}: {fault['message']}"
             raise CalibrationError(
-                f"the daemon is {status['state']}: enable it (cdprd enable) at rest first"
+                f"the daemon is {status['state']}{why}: reset it if braked (cdprd reset) and "
+                "enable it (cdprd enable) at rest first"
             )
-        offsets = np.array(status["offsets"]["values"], dtype=float)
-        with _file_model(client, robot):
-            return offsets, _record_poses(client, poses, args.dwell, args.average)
+        offsets = [float(x) for x in status["offsets"]["values"]]
+        if kept is None:
+            calibration_round = CalibrationRound(robot.name, identity, offsets, poses)
+            _keep(path, calibration_round)
+        elif offsets != kept.offsets:
+            raise CalibrationError(
+                "the daemon's offsets are not those the kept round's lengths were read with "
+                f"(homed since?): its poses cannot be combined with new ones; remove {path} "
+                "to fly a new round"
+            )
+        else:
+            calibration_round = kept
+        try:
+            with _file_model(client, robot):
+                _record_poses(client, calibration_round, path, args.dwell, args.average)
+        except (RequestError, CalibrationError) as exc:
+            why = _refused(exc) if isinstance(exc, RequestError) else str(exc)
+            raise CalibrationError(f"{why}\n{_kept_note(robot, calibration_round, path)}") from None
+    return calibration_round
+
+
+def _refused(exc: RequestError) -> str:
+    return f"the daemon refused ({exc.code}): {exc.reason}"
+
+
+def _keep(path: Path, calibration_round: CalibrationRound) -> None:
+    """Write the round to `path`; CalibrationError if it cannot."""
+    from daemon.cli.calibration_round import save_round
+
+    try:
+        save_round(path, calibration_round)
+    except OSError as exc:
+        raise CalibrationError(f"cannot keep the round in {path}: {exc}") from None
+
+
+def _kept_note(robot: Robot, calibration_round: CalibrationRound, path: Path) -> str:
+    """What an interrupted round keeps, how to continue it, and what its poses identify
+    so far (tuning.calibration.survey: said, not fitted)."""
+    from tuning.calibration import survey
+
+    samples = calibration_round.samples()
+    planned = len(calibration_round.planned)
+    lines = [
+        f"{len(samples)} of {planned} poses recorded, kept in {path}: reset and enable the "
+        "daemon (cdprd reset, cdprd enable), then continue the round with cdprd calibrate "
+        "--resume (the same --config and scale options)"
+    ]
+    if len(samples) < 2:
+        lines.append("too few poses recorded to identify anything yet")
+        return "\n".join(lines)
+    try:
+        found = survey(robot, np.array(calibration_round.offsets), samples)
+    except ValueError as exc:
+        lines.append(f"what the poses recorded identify cannot be said: {exc}")
+        return "\n".join(lines)
+    lines.append(
+        f"so far the {found.poses} poses recorded identify {found.rank} of {found.parameters} "
+        f"parameter combinations (identification Jacobian, poses eliminated, columns scaled: "
+        f"condition {found.condition:.3g}); not yet identifiable: "
+        f"{len(found.unidentifiable)}"
+        + (f", e.g. {found.unidentifiable[0]}" if found.unidentifiable else "")
+    )
+    return "\n".join(lines)
 
 
 @contextlib.contextmanager
@@ -331,32 +579,61 @@ def _terminated(signum: int, frame: object) -> None:
 
 
 def _record_poses(
-    client: CdprClient, poses: list[Pose], dwell: float, average: float
-) -> list[Sample]:
-    """Move slowly to each pose (a rest-to-rest trajectory at SPEED, not a goto at the
-    trajectory limits: the model is not calibrated yet), wait, and average the state over
-    the dither loop there (the module docstring); a pose the daemon refuses to go to (the
-    way leaves the wrench set, say) is skipped."""
+    client: CdprClient,
+    calibration_round: CalibrationRound,
+    path: Path,
+    dwell: float,
+    average: float,
+) -> None:
+    """Move slowly to each pose of the round not yet flown (a rest-to-rest trajectory at
+    SPEED, not a goto at the trajectory limits: the model is not calibrated yet), wait,
+    average the state over the dither loop there (the module docstring), and keep it in
+    the round and in `path`; a pose the daemon refuses to go to (the way leaves the
+    wrench set, say) is skipped.  The daemon braking ends the flight at once, a
+    CalibrationError naming the brake's trigger and message."""
     from cdpr.trajectory import Trajectory, Waypoint
     from daemon.interface.client import RequestError
     from tuning.calibration import Sample
 
     rows: list[tuple[float, list[float], list[float]]] = []
     latest: list[Pose] = []
+    faults: list[dict[str, Any] | None] = []
+    braked = threading.Event()
     lock = threading.Lock()
+    total = len(calibration_round.planned)
 
     def on_state(state: dict[str, Any]) -> None:
-        if state.get("state") in ("hold", "tracking") and "pose" in state:
+        if state.get("state") == "braked":
+            with lock:
+                faults.append(state.get("fault"))
+            braked.set()
+        elif state.get("state") in ("hold", "tracking") and "pose" in state:
             q = state["pose"]["quaternion"]
             with lock:
                 latest[:] = [Pose(state["pose"]["position"], (q["w"], q["x"], q["y"], q["z"]))]
                 rows.append((time.monotonic(), state["lengths"], state["forces"]))
 
-    samples = []
+    def brake(k: int, fault: dict[str, Any] | None) -> CalibrationError:
+        why = "(no fault given)" if not fault else f"on {fault['trigger']}: {fault['message']}"
+        return CalibrationError(f"pose {k + 1} of {total}: the daemon braked {why}")
+
+    def wait(seconds: float, k: int) -> None:
+        """Sleep `seconds`, ended by a brake."""
+        if braked.wait(seconds):
+            with lock:
+                raise brake(k, faults[0])
+
+    def braked_now(k: int) -> CalibrationError | None:
+        """The brake, if the daemon is braked now (the cause of a refusal)."""
+        state = client.status()
+        return brake(k, state.get("fault")) if state["state"] == "braked" else None
+
     subscriber = client.subscribe_state(on_state)
+    k = calibration_round.remaining()[0]
     try:
         here = _wait_for_pose(latest, lock)
-        for k, target in enumerate(poses):
+        for k in calibration_round.remaining():
+            target = calibration_round.planned[k]
             error = liediff(here, target)
             distance = max(float(np.linalg.norm(error[:3])), float(np.linalg.norm(error[3:])))
             move = max(MOVE_MIN, distance / SPEED)
@@ -366,34 +643,35 @@ def _record_poses(
             except RequestError as exc:
                 if exc.code != "rejected":
                     raise
-                _say(f"flying: pose {k + 1} of {len(poses)} refused, skipped: {exc.reason}")
+                calibration_round.skipped[k] = exc.reason
+                _keep(path, calibration_round)
+                _say(f"flying: pose {k + 1} of {total} refused, skipped: {exc.reason}")
                 continue
-            time.sleep(float(reply["result"].get("duration", move)) + dwell - average)
+            wait(float(reply["result"].get("duration", move)) + dwell - average, k)
             here = target
             with lock:
                 rows.clear()
             _dither(client, target, average)
-            time.sleep(average)
+            wait(average, k)
             with lock:
                 recent = list(rows)
                 rows.clear()
             if not recent:
                 state = client.status()
+                if state["state"] == "braked":
+                    raise brake(k, state.get("fault"))
                 raise CalibrationError(
-                    f"pose {k + 1}: no state at rest from the daemon ({state['state']}"
-                    + (f": {state['fault']['message']}" if state.get("fault") else "")
-                    + ")"
+                    f"pose {k + 1}: no state at rest from the daemon ({state['state']})"
                 )
-            samples.append(
-                Sample(
-                    np.mean([r[1] for r in recent], axis=0),
-                    np.mean([r[2] for r in recent], axis=0),
-                )
+            calibration_round.recorded[k] = Sample(
+                np.mean([r[1] for r in recent], axis=0), np.mean([r[2] for r in recent], axis=0)
             )
-            _say(f"flying: pose {k + 1} of {len(poses)} recorded")
+            _keep(path, calibration_round)
+            _say(f"flying: pose {k + 1} of {total} recorded")
+    except RequestError as exc:
+        raise braked_now(k) or exc from None
     finally:
         subscriber.undeclare()
-    return samples
 
 
 def _dither(client: CdprClient, pose: Pose, duration: float) -> None:
@@ -504,9 +782,17 @@ def _print_report(report: dict[str, Any], calibration: Calibration) -> None:
     std = report["predicted_std"]
     print(f"corrected robot file: {report['robot_file']}")
     print(
-        f"fit: {report['poses']} poses, residual RMS {report['residual_rms_mm']:.4f} mm, "
-        f"max {report['residual_max_mm']:.4f} mm"
+        f"fit: {report['poses']} poses (of {report['planned']}), residual RMS "
+        f"{report['residual_rms_mm']:.4f} mm, max {report['residual_max_mm']:.4f} mm"
     )
+    scale = report["scale"]
+    if scale["reference"] is None:
+        print(f"scale: none (--no-scale), the drums' mean radius the file's: {scale['cost']}")
+    else:
+        print(
+            f"scale: {scale['reference']} measured {scale['measured_m']:.4f} m, fitted "
+            f"{scale['fitted_m']:.4f} m: the fit scaled x{scale['factor']:.6f}"
+        )
     sv = report["singular_values"]
     print(
         f"identification Jacobian (poses eliminated, columns scaled): {sv['count']} singular "

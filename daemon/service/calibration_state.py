@@ -91,7 +91,7 @@ def robot_identity(robot: Robot, drives: DrivesConfig) -> str:
         "nodes": list(drives.nodes),
         "scalings": [repr(s) for s in scalings],
     }
-    return "sha256:" + _digest(facts)
+    return checksum(facts)
 
 
 def new_state(robot: str, identity: str, offsets: list[float], method: str) -> CalibrationState:
@@ -100,9 +100,11 @@ def new_state(robot: str, identity: str, offsets: list[float], method: str) -> C
     return CalibrationState(robot, identity, tuple(offsets), (None,) * n, time.time(), method)
 
 
-def _digest(data: Any) -> str:
-    canonical = json.dumps(data, sort_keys=True, separators=(",", ":"), allow_nan=False)
-    return hashlib.sha256(canonical.encode()).hexdigest()
+def checksum(body: Any) -> str:
+    """SHA-256 of `body` as canonical JSON ("sha256:..."): what a checked file carries
+    to show it is unedited and undamaged; ValueError on a NaN or infinity."""
+    canonical = json.dumps(body, sort_keys=True, separators=(",", ":"), allow_nan=False)
+    return "sha256:" + hashlib.sha256(canonical.encode()).hexdigest()
 
 
 def load_state(path: Path, robot: str, n: int, identity: str) -> CalibrationState | None:
@@ -135,13 +137,12 @@ def _parse(data: Any, path: Path, robot: str, n: int, identity: str) -> Calibrat
         )
     if data.get("schema") != SCHEMA:
         raise bad("schema", f"expected {SCHEMA}, got {data.get('schema')!r}")
-    checksum = data.get("checksum")
     body = {k: v for k, v in data.items() if k != "checksum"}
     try:
-        expected = "sha256:" + _digest(body)
+        expected = checksum(body)
     except ValueError:  # a NaN or infinity: not what save_state writes
         expected = None
-    if checksum != expected:
+    if data.get("checksum") != expected:
         raise bad("checksum", f"does not match the content (edited or damaged); {REHOME}")
     if data.get("robot") != robot:
         raise bad("robot", f"the state of robot {data.get('robot')!r}, not of {robot!r}")
@@ -180,8 +181,13 @@ def save_state(path: Path, state: CalibrationState) -> None:
     """Write `state` to `path` atomically (module docstring); OSError if it cannot."""
     body = {"schema": SCHEMA, **asdict(state)}
     body["offsets"], body["invalid"] = list(state.offsets), list(state.invalid)
-    body["checksum"] = "sha256:" + _digest(body)
-    data = (json.dumps(body, indent=1) + "\n").encode()
+    body["checksum"] = checksum(body)
+    write_atomically(path, (json.dumps(body, indent=1) + "\n").encode())
+
+
+def write_atomically(path: Path, data: bytes) -> None:
+    """Write `data` to `path` so that a crash leaves the old file or the new one, never a
+    torn one (module docstring); OSError if it cannot."""
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, temporary = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
     try:

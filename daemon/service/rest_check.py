@@ -38,7 +38,8 @@ class RestResidual:
     torque: np.ndarray
 
     def text(self) -> str:
-        f, m = self.force, self.torque
+        # rounded first, so that a rounding error prints as 0.0, not -0.0
+        f, m = np.round(self.force, 1) + 0.0, np.round(self.torque, 2) + 0.0
         return (
             f"net force [{f[0]:.1f}, {f[1]:.1f}, {f[2]:.1f}] N (|{np.linalg.norm(f):.1f}| N), "
             f"torque [{m[0]:.2f}, {m[1]:.2f}, {m[2]:.2f}] N m (|{np.linalg.norm(m):.2f}| N m)"

@@ -11,8 +11,16 @@ taken or seen than its instant says):
 - rate: the reported rate is at most `max_speed` (the fastest the drive can wind);
 - step: the length moved at most max_speed x (elapsed + slack) + tolerance;
 - own rate: the length moved as its rates say, mean rate x elapsed, within tolerance +
-  mean rate x slack: tight while the cable stands still, where a glitch or a forged
-  frame would otherwise pass the step bound unnamed.
+  mean rate x slack + max_accel x elapsed^2 / 4: tight while the cable stands still,
+  where a glitch or a forged frame would otherwise pass the step bound unnamed.  The
+  last term is what a length whose acceleration stays within max_accel may depart from
+  the mean of its end rates over `elapsed` (the most, with both end rates given, is
+  (a e^2 - dv^2 / a) / 4): 0.02 mm over a 2 ms cycle at 17 m/s^2, but 9 cm over the
+  150 ms a stalled host can leave between two trusted samples, where a figure-eight
+  turned a cable round (moved +2.0 mm where the end rates gave -0.7 mm: a false brake).
+  Only over a gap in which no set was trusted: a cable refused while the others were
+  trusted (a forger's frames) gets none, or its allowance would grow with the forgery.
+  `cable_accel_bound` gives max_accel from the trajectory limits.
 
 Two answers to one SYNC (`second_answer`; the CiA 402 host records them): their samples
 were taken at most `slack` apart (a late answer to the SYNC before, over relays on a
@@ -30,7 +38,16 @@ residual |N_k . N^T d| / |N_k| exceeds the tolerance is inconsistent.  Cables wh
 N_k are parallel cannot be told apart this way (reference8 pairs them in two groups of
 four at home): the message names every cable that disagrees as much.  N is linearised at
 a recent measured pose (`follow_pose`), again once the pose moved REFRESH_DISTANCE; the
-change is one cycle's, so cable stretch and the linearisation barely enter.
+change is usually one cycle's, so cable stretch and the linearisation barely enter.
+After a gap between trusted sets (a stalled host, lost frames) it is not: the linear
+check errs with the square of the change (reference8, measured: about d^2 / 1 m for a
+largest cable change d, 0.76 mm at 28 mm, 3.0 mm at 57 mm), which braked flights on
+`implausible_feedback` after 90 ms gaps.  A change beyond `linear_reach` (LINEAR_REACH
+tolerances: a change no cycle of a live loop makes) that fails the linear check gets a
+second look
+(`_second_look`): forward kinematics fits a pose to the trusted set and one to the new
+set, and the residual each fit leaves is compared, exact however far the platform moved;
+a failed second look waits RETRY before the next.
 
 Every cycle's values are judged, a cable's stale value too (a frame may have changed it
 since the last cycle).  A complete cycle (every cable fresh and finite) that is
@@ -59,12 +76,17 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from cdpr import Pose, Robot
 from cdpr.stretch import ComplianceScale
+from cdpr.trajectory.limits import TrajectoryLimits
 
 RETRY = 0.1  # s between attempts to trust a first set after one failed
 REFRESH_DISTANCE = 0.05  # m (or rad) the pose may move before N is linearised again
+# x feedback_tolerance: the largest change of a cable the linear consistency check judges
+# alone (module docstring); at 1 mm, a 1 cm change, where it errs by 0.1 mm on reference8
+LINEAR_REACH = 10.0
 AS_MUCH = 0.9  # cables within this fraction of the largest residual are as suspect
 _UNOBSERVABLE = 1e-6  # |N_k|^2 below which a cable's error cannot be told from motion
 
@@ -82,6 +104,17 @@ class Implausible:
         return f"drive {self.cable} (node {self.node}): {self.reason}"
 
 
+def cable_accel_bound(limits: TrajectoryLimits, attachments: ArrayLike, shortest: float) -> float:
+    """The most a cable's length accelerates (m/s^2) along a reference within `limits`:
+    with l = a_i - p - R b_i, |L''| <= |l''| + |l'|^2 / L, |l''| <= |p''| + (|w'| + |w|^2)
+    |b_i| and |l'| <= |p'| + |w| |b_i|, at the attachments' largest radius |b_i| and the
+    `shortest` length a cable has (m)."""
+    radius = float(np.max(np.linalg.norm(np.asarray(attachments, dtype=float), axis=1)))
+    speed = limits.linear_speed + limits.angular_speed * radius
+    turning = limits.angular_accel + limits.angular_speed**2
+    return limits.linear_accel + turning * radius + speed * speed / shortest
+
+
 class TrustedLengths:
     """The last trusted length of each cable (`held`, NaN until the first set is
     trusted) and the checks a new measurement must pass to replace it (module docstring)."""
@@ -95,6 +128,7 @@ class TrustedLengths:
         tolerance: float,
         slack: float,
         rest_tensions: Sequence[float],
+        max_accel: float = 0.0,
         stretch: ComplianceScale | None = None,
     ) -> None:
         self.robot = robot
@@ -105,17 +139,21 @@ class TrustedLengths:
         self.max_speed = max_speed
         self.tolerance = tolerance
         self.slack = slack
+        self.max_accel = max_accel
+        self.linear_reach = LINEAR_REACH * tolerance  # m of change judged linearly alone
         self.rest_tensions = np.asarray(rest_tensions, dtype=float)
         self.stretch = ComplianceScale(robot) if stretch is None else stretch
         self.held = [math.nan] * n
         self._rates = [0.0] * n  # the rate of each trusted sample
         self._times = [-math.inf] * n  # the cycle instant of each trusted sample
+        self._set_at = -math.inf  # the instant of the last set trusted (whole or in part)
         self._first = True  # the next complete set is checked without history
         self._next_attempt = -math.inf
         self._failed: list[Implausible] = []  # the last failed first set, while it stands
         self._basis: list[list[float]] = []  # rows N_k of the left null space of Lambda
         self._inverse_norms = [0.0] * n  # 1 / |N_k| (0: cable not observable)
         self._pose: Pose | None = None  # where N was linearised
+        self._next_look = -math.inf  # no second look before (a failed one waits RETRY)
 
     # -- every cycle ------------------------------------------------------------------
 
@@ -154,6 +192,9 @@ class TrustedLengths:
             return flagged
         residuals = self._residuals(change)
         largest = max(residuals, default=0.0)
+        if largest > self.tolerance and self._far(change, instant):
+            residuals = self._second_look(change, instant) or residuals
+            largest = max(residuals)
         if largest > self.tolerance:
             worst = residuals.index(largest)
             if all(f.cable != worst for f in flagged):
@@ -163,8 +204,10 @@ class TrustedLengths:
             held[:] = lengths
             self._rates[:] = rates
             self._times[:] = [instant] * self.n
+            self._set_at = instant
             return flagged
         rejected = {f.cable for f in flagged}
+        self._set_at = instant
         for k in range(self.n):
             if k not in rejected:
                 held[k] = lengths[k]
@@ -267,7 +310,10 @@ class TrustedLengths:
             return None
         mean = 0.5 * (v + self._rates[k])
         expected = mean * elapsed
-        allowed = tolerance + abs(mean) * slack
+        # the acceleration's allowance over a gap no set was trusted in (a stalled host),
+        # never over one this cable alone was refused in (a forger's, however long)
+        gap = elapsed if self._times[k] >= self._set_at else 0.0
+        allowed = tolerance + abs(mean) * slack + 0.25 * self.max_accel * gap * gap
         if abs(step - expected) > allowed:
             return Implausible(
                 k,
@@ -326,6 +372,35 @@ class TrustedLengths:
             out.append(abs(r) * scale)
         return out
 
+    def _far(self, change: Sequence[float], instant: float) -> bool:
+        """A change too large for the linear check alone, and no second look failed
+        within RETRY."""
+        if instant < self._next_look or self._pose is None:
+            return False
+        return max(map(abs, change)) > self.linear_reach
+
+    def _second_look(self, change: Sequence[float], instant: float) -> list[float] | None:
+        """The consistency residuals of a long change, from the least-squares poses of
+        the trusted set and of the new one (the trusted lengths plus `change`): what each
+        fit leaves unexplained, compared (module docstring).  None where either fit
+        fails; a look whose residuals exceed the tolerance holds the next off for RETRY
+        (a cable really off would otherwise cost two fits a cycle)."""
+        robot = self.robot
+        held = np.array(self.held)
+        after = held + np.asarray(change)
+        before_fit = robot.forward_kinematics(held, self._pose)
+        after_fit = robot.forward_kinematics(after, before_fit.pose)
+        if not (before_fit.converged and after_fit.converged):
+            self._next_look = instant + RETRY
+            return None
+        left = (after - robot.cable_lengths(after_fit.pose)) - (
+            held - robot.cable_lengths(before_fit.pose)
+        )
+        residuals = self._residuals(left.tolist())
+        if max(residuals) > self.tolerance:
+            self._next_look = instant + RETRY
+        return residuals
+
     def _disagrees(self, k: int, x: float, residuals: list[float], why: str = "") -> Implausible:
         """Cable k disagrees most with the pose the others give; names the cables that
         disagree as much (the geometry cannot tell them apart)."""
@@ -372,6 +447,7 @@ class TrustedLengths:
                 self.held[:] = [float(x) for x in lengths]
                 self._rates[:] = [float(v) for v in rates]
                 self._times[:] = [instant] * self.n
+                self._set_at = instant
                 self._first, self._failed = False, []
                 return []
             stretch.scale = scale  # a fit to lengths that fit no pose says nothing of EA

@@ -5,7 +5,8 @@ One steady-state torque cycle on a bus is: the SYNC of the host driver, the torq
 commands it sends (one RPDO per drive, or one shared RPDO for the bus; a control RPDO
 sent on change is not part of the steady state), and each drive's TPDOs on SYNC (those
 sent on change are not either).  Heartbeats come at their own period, not each cycle:
-the host's (one per bus) and every drive's (0x1017, drives.heartbeat_period).
+every drive's (0x1017, drives.heartbeat_period) and the host's (one per bus, every
+DrivesConfig.host_heartbeat_interval: 5 ms by default, 1.3 % of a 1 Mbit/s bus).
 """
 
 from __future__ import annotations
@@ -26,31 +27,49 @@ from sim_bus.bus.busload import Stuffing, cycle_load
 
 @dataclass(frozen=True)
 class BusCycle:
-    """One bus: the frames of a steady-state cycle, and the heartbeats per second."""
+    """One bus: the frames of a steady-state cycle, and its heartbeats: the drives' at
+    their own period, the host's (one per bus) at the period its cycle rate gives it."""
 
     name: str
     bitrate: int
     cycle: list[can.Message]
-    heartbeats: float  # frames per second (1 data byte each)
+    drive_heartbeats: float  # frames per second (1 data byte each)
+    drives: DrivesConfig  # the host heartbeat's period
 
     def bits_per_cycle(self, stuffing: Stuffing = "worst") -> float:
         """The bits of one cycle's frames (heartbeats not included)."""
         return cycle_load(self.cycle, 1.0, self.bitrate, stuffing).bits_per_cycle
 
-    def heartbeat_bits(self, stuffing: Stuffing = "worst") -> float:
-        """The heartbeats' bits per second."""
+    def heartbeats(self, rate_hz: float) -> float:
+        """Heartbeat frames per second at `rate_hz` cycles per second."""
+        return self.drive_heartbeats + 1.0 / self.drives.host_heartbeat_interval(1.0 / rate_hz)
+
+    def heartbeat_bits(self, rate_hz: float, stuffing: Stuffing = "worst") -> float:
+        """The heartbeats' bits per second at `rate_hz` cycles per second."""
         beat = [message(HEARTBEAT_BASE, b"\x05")]
-        return cycle_load(beat, 1.0, self.bitrate, stuffing).bits_per_cycle * self.heartbeats
+        return cycle_load(beat, 1.0, self.bitrate, stuffing).bits_per_cycle * self.heartbeats(
+            rate_hz
+        )
 
     def load(self, rate_hz: float, stuffing: Stuffing = "worst") -> float:
         """Fraction of the bus's bit time used at `rate_hz` cycles per second."""
-        bits = self.bits_per_cycle(stuffing) * rate_hz + self.heartbeat_bits(stuffing)
+        bits = self.bits_per_cycle(stuffing) * rate_hz + self.heartbeat_bits(rate_hz, stuffing)
         return bits / self.bitrate
 
     def max_rate_hz(self, load: float, stuffing: Stuffing = "worst") -> float:
-        """The fastest cycle rate that keeps the bus at `load` (a fraction)."""
-        spare = load * self.bitrate - self.heartbeat_bits(stuffing)
-        return spare / self.bits_per_cycle(stuffing)
+        """The fastest cycle rate that keeps the bus at `load` (a fraction).  The host
+        heartbeat's share depends on the rate (whole cycles, at most one per cycle), so
+        the rate is found by bisection on the monotone `load`."""
+        low, high = 0.0, load * self.bitrate / self.bits_per_cycle(stuffing)
+        if self.load(high, stuffing) <= load:
+            return high
+        for _ in range(60):
+            middle = 0.5 * (low + high)
+            if middle > 0 and self.load(middle, stuffing) > load:
+                high = middle
+            else:
+                low = middle
+        return low
 
 
 def bus_cycles(drives: DrivesConfig, robot: Robot, buses: Sequence[CanConfig]) -> list[BusCycle]:
@@ -77,6 +96,6 @@ def bus_cycles(drives: DrivesConfig, robot: Robot, buses: Sequence[CanConfig]) -
                 for layout in part.plan.tpdos
                 if layout.on_sync
             ]
-        heartbeats = (1 + part.n) / drives.heartbeat_period
-        out.append(BusCycle(name, bitrates[name], frames, heartbeats))
+        beats = part.n / drives.heartbeat_period
+        out.append(BusCycle(name, bitrates[name], frames, beats, drives))
     return out

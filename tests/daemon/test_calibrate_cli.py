@@ -71,7 +71,7 @@ def test_home_then_calibrate_with_too_few_poses_names_what_is_unidentifiable(
         assert cdprd("enable", *connection).returncode == 0
         output = tmp_path / "calibrated.yaml"
         run = cdprd(
-            "calibrate", "--config", str(path), "--poses", "8", "--dwell", "0.6",
+            "calibrate", "--config", str(path), "--no-scale", "--poses", "8", "--dwell", "0.6",
             "--output", str(output), *connection,
         )  # fmt: skip
         assert run.returncode == 1, run.stderr
@@ -93,7 +93,7 @@ def test_calibrate_never_overwrites_a_robot_file(tmp_path: Path) -> None:
     path = config_file(tmp_path, free_port())
     output = tmp_path / "robot.yaml"
     output.write_text("mine\n")
-    run = cdprd("calibrate", "--config", str(path), "--output", str(output))
+    run = cdprd("calibrate", "--config", str(path), "--no-scale", "--output", str(output))
     assert run.returncode == 2
     assert f"error: {output} exists: not overwritten" in run.stderr
     assert output.read_text() == "mine\n"
@@ -200,7 +200,7 @@ def _calibrating(
     `output`), once `client` sees the observer held out of the loop (AssertionError and
     calibrate killed if never)."""
     command = [
-        sys.executable, "-m", "daemon.cli", "calibrate", "--config", str(config),
+        sys.executable, "-m", "daemon.cli", "calibrate", "--config", str(config), "--no-scale",
         "--poses", "8", "--dwell", "0.6", "--output", str(tmp_path / "robot.yaml"),
         "--connect", f"tcp/127.0.0.1:{port}",
     ]  # fmt: skip
@@ -239,6 +239,9 @@ def test_calibrate_lets_the_observer_and_the_payload_go_however_it_ends(
         assert "error: " in stderr
         if ending == "sigterm":
             assert "error: terminated (SIGTERM)" in stderr
+        else:  # the brake, not the refusal of the next trajectory it causes
+            assert "of 8: the daemon braked on command: the test\n" in stderr, stderr
+            assert "while braked" not in stderr
         assert client.observer()["held"] is False
         assert client.payload()["frozen"] is False
         assert not (tmp_path / "robot.yaml").exists()
@@ -321,3 +324,54 @@ def test_a_killed_calibrate_leaves_the_daemon_letting_go_within_its_lease(
         assert refused.value.reply["error"].get("field") == "lease"
         assert "observer.lease: 0 s: must be more than 0" in refused.value.reason
         assert client.observer()["held"] is False
+
+
+def _recorded(kept: Path) -> int:
+    """Poses recorded in the round file `kept` (0: none yet)."""
+    return len(json.loads(kept.read_text())["recorded"]) if kept.exists() else 0
+
+
+@pytest.mark.timeout(300)
+def test_a_brake_mid_round_keeps_the_poses_and_resume_flies_the_rest(tmp_path: Path) -> None:
+    """The daemon braked once calibrate has recorded two of its 8 poses: calibrate ends
+    naming the brake's trigger and message, keeps the poses recorded in the round file
+    and says what they identify so far.  Reset and enabled, `--resume` flies only the
+    poses not flown yet and solves with all of them (8 poses cannot identify every
+    parameter: refused naming 8), and the round is over: its file removed."""
+    with _enabled_daemon(tmp_path) as (client, path, port):
+        kept = tmp_path / "state" / "reference8.calibration-round.json"
+        calibrate = _calibrating(client, tmp_path, path, port, subprocess.PIPE)
+        try:
+            _until(lambda: _recorded(kept) >= 2, 120.0, "two poses recorded")
+            client.brake("a cable snagged (the test)")
+            _, stderr = calibrate.communicate(timeout=60)
+        finally:
+            if calibrate.poll() is None:
+                calibrate.kill()
+        assert calibrate.returncode == 1, stderr
+        assert "the daemon braked on command: a cable snagged (the test)\n" in stderr
+        round_ = json.loads(kept.read_text())
+        recorded, skipped = len(round_["recorded"]), len(round_["skipped"])
+        assert recorded >= 2 and stderr.count(" recorded\n") == recorded
+        assert f"{recorded} of 8 poses recorded, kept in {kept}: reset and enable" in stderr
+        assert f"so far the {recorded} poses recorded identify {2 * recorded} of 52" in stderr
+        assert client.observer()["held"] is False and client.payload()["frozen"] is False
+        connection = ("--connect", f"tcp/127.0.0.1:{port}")
+        assert cdprd("calibrate", "--config", str(path), "--no-scale", *connection).returncode == 1
+        client.reset()
+        client.enable()
+        wait_status(client, "hold", 10.0)
+        resumed = cdprd(
+            "calibrate", "--config", str(path), "--no-scale", "--resume", "--dwell", "0.6",
+            "--output", str(tmp_path / "robot.yaml"), *connection,
+        )  # fmt: skip
+        assert resumed.returncode == 1, resumed.stderr
+        left = 8 - recorded - skipped
+        assert (
+            f"resuming the round in {kept}: {recorded} of 8 poses recorded, {left} to fly"
+            in resumed.stderr
+        )
+        flown = resumed.stderr.count(" recorded\n")
+        assert flown + resumed.stderr.count(" skipped: ") == left
+        assert f"error: {recorded + flown} poses do not identify every parameter" in resumed.stderr
+        assert not kept.exists()

@@ -111,8 +111,8 @@ class Bench:
 
     def calibrate(self, output: Path, *options: str) -> dict:
         run = cdprd(
-            "calibrate", "--config", str(self.config), "--json", "--output", str(output),
-            *options, *self.connection, timeout=900.0,
+            "calibrate", "--config", str(self.config), "--no-scale", "--json",
+            "--output", str(output), *options, *self.connection, timeout=900.0,
         )  # fmt: skip
         assert run.returncode == 0, run.stderr[-3000:]
         return json.loads(run.stdout)

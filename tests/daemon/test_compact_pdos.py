@@ -6,6 +6,7 @@ it (sim_bus.bus.cycle_frames, which `check-config` prints), and that load meets 
 from __future__ import annotations
 
 import asyncio
+from collections import Counter
 from pathlib import Path
 
 import can
@@ -16,9 +17,10 @@ from daemon.cli import main
 from daemon.config import DaemonConfig, load_config
 from drivers.cia402 import codec
 from sim_bus.bus.busload import message_bits
-from sim_bus.bus.cycle_frames import bus_cycles
+from sim_bus.bus.cycle_frames import BusCycle, bus_cycles
 from tests.daemon.test_multibus import goto_reading, read_spies, spy_on
 from tests.daemon_stack import Stack
+from tests.host_steal import FreezeWatch, judged
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -40,6 +42,10 @@ def two_bus(compact: bool = True, **drives: object) -> DaemonConfig:
         if not compact:
             del data["drives"]["profile"]
             data["controller"]["velocity"] = "drive"
+            # and the default filter for it: the file's 5 ms is for differentiated positions;
+            # on the drives' rates (5 mm/s steps) it passed their steps to the damping,
+            # which rang the loop into a brake once the robot's rotational modes changed
+            del data["controller"]["velocity_filter"]
 
     return load_config(TWO_BUS, edit)
 
@@ -63,17 +69,32 @@ async def fly(config: DaemonConfig) -> tuple[float, dict[str, list[can.Message]]
 
 def test_the_compact_layout_flies_on_two_buses_as_the_default_does_within_the_goal() -> None:
     errors, loads = {}, {}
-    for compact in (True, False):
+    with FreezeWatch() as freezes:
+        flights = {c: asyncio.run(asyncio.wait_for(fly(two_bus(c)), 90)) for c in (True, False)}
+        frozen = max((d for _, _, d in freezes.freezes()), default=0.0)
+    for compact, (error, frames) in flights.items():
         config = two_bus(compact)
         rate = config.controller.rate_hz
-        errors[compact], frames = asyncio.run(asyncio.wait_for(fly(config), 90))
+        errors[compact] = error
         for bus in bus_cycles(config.drives, config.robot, config.buses):
             seen = frames[bus.name]
             syncs = sum(m.arbitration_id == codec.SYNC_ID for m in seen)
             assert syncs > 100, f"{syncs} cycles on {bus.name}"
-            # what the bus carried, as a load at the cycle rate, against the model's
-            measured = sum(message_bits(m, "worst") for m in seen) / syncs * rate / bus.bitrate
-            assert measured == pytest.approx(bus.load(rate), rel=0.03), bus.name
+            # what the bus carried, as a load at the cycle rate, against the model's: the
+            # cycle's frames per SYNC, the heartbeats per second (they keep their own time,
+            # a loaded host's late cycles do not stretch them)
+            beats = [m for m in seen if m.arbitration_id & ~0x7F == codec.HEARTBEAT_BASE]
+            cycled = [m for m in seen if m.arbitration_id & ~0x7F != codec.HEARTBEAT_BASE]
+            seconds = seen[-1].timestamp - seen[0].timestamp
+            measured = (
+                sum(message_bits(m, "worst") for m in cycled) / syncs * rate
+                + sum(message_bits(m, "worst") for m in beats) / seconds
+            ) / bus.bitrate
+            assert len(beats) / seconds == pytest.approx(bus.heartbeats(rate), rel=0.2), bus.name
+            assert measured == pytest.approx(bus.load(rate), rel=0.03), (
+                f"{bus.name}: {syncs} cycles in {seconds:.3f} s, frames by id "
+                f"{beyond_the_cycle(seen, bus)}"
+            )
             loads[compact, bus.name] = bus.load(rate)
             if compact:  # one torque frame per cycle for the bus, position alone on SYNC
                 shared = [m for m in seen if m.arbitration_id == 0x201]
@@ -86,7 +107,17 @@ def test_the_compact_layout_flies_on_two_buses_as_the_default_does_within_the_go
     assert max(v for (compact, _), v in loads.items() if compact) <= GOALS[2]
     assert min(v for (compact, _), v in loads.items() if not compact) > 1.0  # overloaded
     # it tracks as the default layout does (both settle within a fraction of a mm)
-    assert errors[True] < max(0.5, 2.0 * errors[False]), errors
+    bound = max(0.5, 2.0 * errors[False])
+    judged(errors[True] < bound, frozen, "the compact layout's RMS error (mm)", f"{errors}")
+
+
+def beyond_the_cycle(seen: list[can.Message], bus: BusCycle) -> dict[str, int]:
+    """The frames seen per id that a steady cycle does not carry once per SYNC (the
+    heartbeats, frames on change): what a failed load comparison needs to be read."""
+    per_cycle = Counter(m.arbitration_id for m in bus.cycle)
+    seen_ids = Counter(m.arbitration_id for m in seen)
+    syncs = seen_ids[codec.SYNC_ID]
+    return {hex(i): n for i, n in sorted(seen_ids.items()) if n != per_cycle.get(i, 0) * syncs}
 
 
 def test_the_model_meets_the_load_goals_with_two_and_four_buses() -> None:
