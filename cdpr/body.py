@@ -144,8 +144,14 @@ class PlatformBody:
 
     def meets(self, world: Array, rotation: Array, box: Box, grow: float) -> bool:
         """True if the hull of the corners `world` (at rotation R) meets `box` grown by
-        `grow` (m) on every side: no separating axis among the box's axes, the hull's
-        face normals and the cross products of its edge directions with the box's axes."""
+        `grow` (m) on every side (one pose of `meets_many`)."""
+        return bool(self.meets_many(world[None], rotation, box, grow)[0])
+
+    def meets_many(self, world: Array, rotation: Array, box: Box, grow: float) -> NDArray[np.bool_]:
+        """Per pose (world: N x corners x 3, one rotation R): does the corners' hull meet
+        `box` grown by `grow` (m) on every side?  No separating axis among the box's axes,
+        the hull's face normals and the cross products of its edge directions with the
+        box's axes."""
         lower = np.array(box.lower) - grow
         upper = np.array(box.upper) + grow
         centre, half = (lower + upper) / 2.0, (upper - lower) / 2.0
@@ -159,11 +165,11 @@ class PlatformBody:
         crosses[:m, 1], crosses[:m, 2] = -z, y
         crosses[m : 2 * m, 0], crosses[m : 2 * m, 2] = z, -x
         crosses[2 * m :, 0], crosses[2 * m :, 1] = -y, x
-        projected = world.dot(axes.T)
+        projected = world.dot(axes.T)  # N x corners x axes
         reach = np.abs(axes).dot(half)
         middle = axes.dot(centre)
-        apart = (projected.max(axis=0) < middle - reach) | (projected.min(axis=0) > middle + reach)
-        return not bool(apart.any())
+        apart = (projected.max(axis=1) < middle - reach) | (projected.min(axis=1) > middle + reach)
+        return ~apart.any(axis=1)
 
 
 def _hull_axes(points: Array) -> tuple[Array, Array]:
@@ -221,6 +227,21 @@ def segment_meets(
         if enter > leave:
             return False
     return True
+
+
+def segments_meet(starts: Array, ends: Array, lower: Array, upper: Array) -> NDArray[np.bool_]:
+    """`segment_meets` for many segments at once (starts, ends: N x 3), one box."""
+    d = ends - starts
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t0 = (np.asarray(lower) - starts) / d
+        t1 = (np.asarray(upper) - starts) / d
+    flat = d == 0.0
+    inside = (starts >= lower) & (starts <= upper)
+    near = np.where(flat, np.where(inside, -np.inf, np.inf), np.minimum(t0, t1))
+    far = np.where(flat, np.where(inside, np.inf, -np.inf), np.maximum(t0, t1))
+    enter = np.maximum(near.max(axis=1), 0.0)
+    leave = np.minimum(far.min(axis=1), 1.0)
+    return enter <= leave
 
 
 class Crossing(NamedTuple):

@@ -36,6 +36,7 @@ Section = TypeVar("Section", bound=BaseModel)
 
 CONFIG_MAX_BYTES = 1 << 20  # a config or robot file larger than this is refused unread
 AXIS_TOLERANCE = 1e-6  # |norm - 1| of a pulley axis that is normalised rather than refused
+DEFAULT_CABLE_DIAMETER = 0.004  # m: a cable whose robot file gives none (Dyneema 3-4 mm)
 
 
 class ConfigError(ValueError):
@@ -141,6 +142,7 @@ class ActuatorOverrides(StrictModel):
     length_max: PositiveFloat | None = None  # m, this cable's; null: actuator.length_max
     t_min: NonNegativeFloat | None = None  # N, this cable's; null: actuator.t_min
     cable_stiffness: PositiveFloat | None = None  # N, this cable's EA; null: actuator's
+    cable_diameter: PositiveFloat | None = None  # m, this cable's; null: actuator's
     spool: SpoolSpec | None = None  # this cable's drum buildup; null: actuator.spool
 
 
@@ -157,6 +159,8 @@ class ActuatorSpec(StrictModel):
     t_min: minimum cable tension kept by the tension distribution, N.
     cable_stiffness: EA of the cable (N per unit strain) for the stretch correction of
       the encoder lengths, l_geometric = l_drum (1 + t / EA); None: inextensible.
+    cable_diameter: the cable's diameter (m): two cables closer than the mean of their
+      diameters interfere (cdpr.interference); None: the spool's, else 4 mm.
     spool: the drum's radius growing with the cable wound on (SpoolSpec); None: constant.
     """
 
@@ -168,7 +172,15 @@ class ActuatorSpec(StrictModel):
     length_max: PositiveFloat
     t_min: NonNegativeFloat
     cable_stiffness: PositiveFloat | None = None
+    cable_diameter: PositiveFloat | None = None
     spool: SpoolSpec | None = None
+
+    @property
+    def diameter(self) -> float:
+        """The cable's diameter (m): its own, the spool's, else DEFAULT_CABLE_DIAMETER."""
+        if self.cable_diameter is not None:
+            return self.cable_diameter
+        return DEFAULT_CABLE_DIAMETER if self.spool is None else self.spool.cable_diameter
 
     @model_validator(mode="after")
     def _ranges(self) -> ActuatorSpec:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -65,6 +66,7 @@ class Robot:
         self.force_max = np.array([a.force_max for a in self.actuators])
         self.length_min = np.array([a.length_min for a in self.actuators])
         self.length_max = np.array([a.length_max for a in self.actuators])
+        self.cable_diameter = np.array([a.diameter for a in self.actuators])
         self.compliance = np.array(
             [0.0 if a.cable_stiffness is None else 1.0 / a.cable_stiffness for a in self.actuators]
         )
@@ -190,12 +192,24 @@ class Robot:
         table, G = self._model(pose, twist)
         return np.ascontiguousarray(table[:, :6]), table[:, 6], G[:6, :6], G[:6, 6]
 
+    def model_terms_at(
+        self, position: Sequence[float], rotation: Sequence[float], twist: ArrayLike
+    ) -> tuple[Array, Array, Array, Array]:
+        """model_terms at the pose with this position and rotation matrix (9 floats, row
+        by row): for callers that hold rotations as matrices (a path's grid), without a
+        quaternion in between."""
+        table, G = self._model_at(tuple(map(float, position)), list(map(float, rotation)), twist)
+        return np.ascontiguousarray(table[:, :6]), table[:, 6], G[:6, :6], G[:6, 6]
+
     def _model(self, pose: Pose, twist: ArrayLike) -> tuple[Array, Array]:
         """The n x 7 table [Lambda | c] and a 7 x 7 matrix whose first 6 rows are [M | mu]."""
+        return self._model_at(pose.position_tuple, quat_to_r9(*pose.quaternion_tuple), twist)
+
+    def _model_at(self, position: tuple, R: list[float], twist: ArrayLike) -> tuple[Array, Array]:
+        """_model at a position and a rotation matrix (9 floats, row by row)."""
         phi = _twist_list(twist)
-        R = quat_to_r9(*pose.quaternion_tuple)
         n = self.geometry.n
-        flat = self.geometry.evaluate(pose.position_tuple, R, phi)
+        flat = self.geometry.evaluate(position, R, phi)
         flat += self.platform.mass_and_bias(R, phi)  # [M_p | mu_p], 6 x 7
         data = to_array(flat)
         table = data[: 7 * n].reshape(n, 7)

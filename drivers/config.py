@@ -258,9 +258,8 @@ class DrivesConfig(StrictModel):
         from the heartbeat that would have come next (+ one period and one cycle).  At
         least two periods.  Short either way: the drives apply the last torque for that
         long after the daemon dies (the consumer heartbeat is their only watchdog)."""
-        cycles = max(1, math.ceil(HEARTBEAT_PERIOD_MIN / cycle_period - 1e-9))
-        period = self.host_heartbeat_period or _ceil_ms(cycles * cycle_period)
-        sent = max(period, cycle_period)  # never more often than the cycle
+        period = self._host_heartbeat_period(cycle_period)
+        sent = self.host_heartbeat_interval(cycle_period)
         consumer = self.consumer_heartbeat_time or _ceil_ms(
             max(2 * sent, self.watchdog_timeout + sent + cycle_period)
         )
@@ -271,6 +270,17 @@ class DrivesConfig(StrictModel):
                 "per control cycle): one late heartbeat would stop the drives"
             )
         return period, consumer
+
+    def _host_heartbeat_period(self, cycle_period: float) -> float:
+        """The configured host heartbeat period, or the default: whole cycles, at least
+        HEARTBEAT_PERIOD_MIN, in whole ms."""
+        cycles = max(1, math.ceil(HEARTBEAT_PERIOD_MIN / cycle_period - 1e-9))
+        return self.host_heartbeat_period or _ceil_ms(cycles * cycle_period)
+
+    def host_heartbeat_interval(self, cycle_period: float = DEFAULT_CYCLE_PERIOD) -> float:
+        """How often (s) the host heartbeat goes out: its period, but never more often
+        than the cycle whose SYNC carries it."""
+        return max(self._host_heartbeat_period(cycle_period), cycle_period)
 
     def bus_names(self) -> list[str | None]:
         """The bus each drive is on, in cable order (None: `bus` not given, the only bus)."""

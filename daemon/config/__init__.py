@@ -11,12 +11,13 @@ rank at home, the home pose's static wrench in W, the platform clear of the envi
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 from collections import Counter
 from collections.abc import Callable
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 import numpy as np
 from pydantic import Field, field_validator, model_validator
@@ -45,6 +46,10 @@ from daemon.config.environment_config import EnvironmentConfig, environment_of
 from daemon.config.ros2_config import Ros2Settings
 from daemon.config.view_config import ViewConfig
 from daemon.config.watchdog_drift import DriftBound, check_drift, drift_bounds
+from daemon.config.workspace_config import WorkspaceConfig
+
+if TYPE_CHECKING:
+    from cdpr.workspace_check import WorkspaceCheck
 from daemon.config.zenoh_config import ZenohSettings
 from drivers.cia402.profile import ProfileError, plans, with_eds_from
 from drivers.config import CanConfig, CanSection, DrivesConfig, can_buses, parse_drives
@@ -199,6 +204,7 @@ class FileConfig(StrictModel):
     can: CanSection = CanConfig()  # the CAN bus (python-can arguments), or a list of buses
     safety: SafetyConfig = SafetyConfig()  # brake triggers and the workspace (below)
     environment: EnvironmentConfig = EnvironmentConfig()  # obstacles: planes and boxes (below)
+    workspace: WorkspaceConfig = WorkspaceConfig()  # capacity margin, interference, map (below)
     trajectory: TrajectoryLimits = TrajectoryLimits()  # limits every trajectory keeps (below)
     zenoh: dict[str, Any] = Field(default_factory=dict)  # the zenoh session (below)
     logging: LoggingConfig = LoggingConfig()  # the daemon's log output (below)
@@ -322,6 +328,27 @@ class DaemonConfig:
                 "linear_speed + angular_speed x the farthest attachment)"
             )
         check_drift(self.watchdog_drift, raw.safety.max_watchdog_drift, source)
+        self.workspace = raw.workspace
+        self.environment = environment
+        self.workspace_box = (lo, hi)
+
+    @functools.cached_property
+    def workspace_check(self) -> WorkspaceCheck:
+        """What validation holds every sampled reference to beyond the pose limits
+        (cdpr.workspace_check).  Built on first use, by the companion and the offline
+        tools: it compiles with numba, which the real-time core never loads."""
+        from cdpr.workspace_check import WorkspaceCheck
+
+        return WorkspaceCheck.of(self.robot, self.workspace.margin, self.workspace.interference)
+
+    def workspace_map_path(self) -> Path | None:
+        """Where the workspace map lives: workspace.map, else STATE_DIR/ROBOT.workspace,
+        else None (no state directory)."""
+        if self.workspace.map is not None:
+            return self.path(self.workspace.map)
+        if self.state_dir is None:
+            return None
+        return self.state_dir / f"{self.robot.name}.workspace"
 
     @property
     def channels(self) -> str:
@@ -376,6 +403,20 @@ def parse_config(data: Any, base: Path, source: str = "config") -> DaemonConfig:
     config = DaemonConfig(raw, Robot.from_reference(raw.robot, base, source), base, source)
     check_geometry(config)
     return config
+
+
+def check_workspace(config: DaemonConfig) -> None:
+    """The home pose inside the workspace trajectories must keep (the capacity margin, no
+    interference: cdpr.workspace_check), else ConfigError.  Apart from check_geometry:
+    it compiles with numba, which `check-config`, the companion and the offline tools
+    load and the real-time core does not."""
+    home = config.robot.home
+    refused = config.workspace_check.first_refusal(home.position[None], home.rotation)
+    if refused is not None:
+        raise ConfigError(
+            f"{config.source}: {refused.limit}: at the home pose {refused.detail}, which "
+            "trajectories must keep"
+        )
 
 
 def check_geometry(config: DaemonConfig) -> None:

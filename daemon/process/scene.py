@@ -16,6 +16,9 @@ in the world frame (z up, m):
     /cdpr/reference_pose  foxglove.PoseInFrame      reference pose (while there is one)
     /cdpr/series          JSON, cdprd.Series        tensions, forces, lengths, tracking
                                                     error, safety state, cycle timing
+    /cdpr/workspace       foxglove.SceneUpdate      the saved workspace map's boundary at
+                          home coloured by margin, the environment's boxes, the box
+                          (workspace_scene; now and then, for clients that join late)
 
 and from a core event (state changes, brakes, trajectories) a foxglove.Log on /cdpr/log.
 Messages leave here encoded (protobuf, JSON), as (topic, bytes).
@@ -62,6 +65,7 @@ POSE_TOPIC = "/cdpr/pose"
 REFERENCE_POSE_TOPIC = "/cdpr/reference_pose"
 SERIES_TOPIC = "/cdpr/series"
 LOG_TOPIC = "/cdpr/log"
+WORKSPACE_TOPIC = "/cdpr/workspace"
 SERIES_SCHEMA_NAME = "cdprd.Series"
 
 SLACK_COLOR = (0.6, 0.6, 0.6, 0.8)
@@ -106,6 +110,7 @@ def standard_channels() -> tuple[ChannelSpec, ...]:
         (POSE_TOPIC, PoseInFrame),
         (REFERENCE_POSE_TOPIC, PoseInFrame),
         (LOG_TOPIC, Log),
+        (WORKSPACE_TOPIC, SceneUpdate),
     )
     specs = []
     for topic, message in typed:
@@ -413,4 +418,61 @@ def _pose_in_frame(
         timestamp=_stamp(stamp_ns),
         frame_id=WORLD,
         pose=Pose(position=_vector(position), orientation=_quaternion(quaternion)),
+    )
+
+
+def workspace_scene(
+    corners: tuple[Sequence[float], Sequence[float]],
+    voxels: np.ndarray,
+    margins: np.ndarray,
+    size: float,
+    boxes: Sequence[tuple[str, Sequence[float], Sequence[float]]],
+    anchors: np.ndarray,
+    stamp_ns: int = 0,
+) -> SceneUpdate:
+    """The workspace in the world frame: the box `corners` (lo, hi) as lines, each voxel
+    centre of `voxels` (N x 3, m) a cube of side `size` coloured by its margin (N:
+    tension_color of margin / the largest), the environment's `boxes` (name, min, max)
+    as translucent grey cubes, and the frame's `anchors` (n x 3) as spheres."""
+    stamp = _stamp(stamp_ns)
+    top = float(margins.max()) if len(margins) else 1.0
+    cubes = [
+        CubePrimitive(
+            pose=Pose(position=_vector(v), orientation=Quaternion(w=1.0)),
+            size=Vector3(x=size, y=size, z=size),
+            color=_color(tension_color(float(m) / top)),
+        )
+        for v, m in zip(voxels.tolist(), margins.tolist(), strict=True)
+    ]
+    obstacles = [
+        CubePrimitive(
+            pose=Pose(
+                position=_vector((np.asarray(lo) + np.asarray(hi)) / 2.0),
+                orientation=Quaternion(w=1.0),
+            ),
+            size=_vector(np.asarray(hi) - np.asarray(lo)),
+            color=_color((0.5, 0.5, 0.5, 0.4)),
+        )
+        for _, lo, hi in boxes
+    ]
+    lo, hi = (np.asarray(c, dtype=float) for c in corners)
+    return SceneUpdate(
+        entities=[
+            SceneEntity(timestamp=stamp, frame_id=WORLD, id="workspace", cubes=cubes),
+            SceneEntity(
+                timestamp=stamp,
+                frame_id=WORLD,
+                id="environment",
+                cubes=obstacles,
+                lines=[_box_lines(lo, hi, (0.6, 0.6, 0.6, 1.0))],
+                spheres=[
+                    SpherePrimitive(
+                        pose=Pose(position=_vector(a), orientation=Quaternion(w=1.0)),
+                        size=Vector3(x=0.05, y=0.05, z=0.05),
+                        color=_color((0.3, 0.3, 0.3, 1.0)),
+                    )
+                    for a in np.asarray(anchors, dtype=float).tolist()
+                ],
+            ),
+        ]
     )

@@ -23,6 +23,7 @@ from mcap_protobuf.decoder import DecoderFactory
 from websockets.exceptions import InvalidStatus
 from websockets.sync.client import connect as ws_connect
 
+from daemon.cli import main
 from daemon.process.recording import CYCLE_SCHEMA_NAME, CYCLE_TOPIC
 from daemon.process.view_gate import refusal
 from tests.foxglove_client import SUBPROTOCOLS, collect
@@ -38,6 +39,7 @@ STANDARD = {
     "/cdpr/reference_pose": "foxglove.PoseInFrame",
     "/cdpr/log": "foxglove.Log",
     "/cdpr/series": "cdprd.Series",
+    "/cdpr/workspace": "foxglove.SceneUpdate",
 }
 
 
@@ -46,6 +48,11 @@ def _config(tmp_path: Path, zenoh: int, recording: dict | None = None) -> Path:
     data["robot"] = str(ROOT / "config" / "robots" / "reference8.yaml")
     data["zenoh"]["listen"] = [f"tcp/127.0.0.1:{zenoh}"]
     data["recording"] = recording or {}
+    data["state_dir"] = str(tmp_path / "state")
+    data["workspace"] = {"step": 0.2, "tilt": 0.2}  # a coarse map, quick to compute
+    data["environment"] = {
+        "boxes": [{"name": "table", "min": [-0.3, 1.0, 0], "max": [0.3, 1.4, 0.5]}]
+    }
     path = tmp_path / "cdprd.yaml"
     path.write_text(yaml.safe_dump(data))
     return path
@@ -74,6 +81,7 @@ def test_a_foxglove_client_sees_the_robot_as_zenoh_does_and_the_mcap_matches(
     zenoh, view = free_port(), free_port()
     (tmp_path / "rec").mkdir()
     config = _config(tmp_path, zenoh, {"telemetry": "rec/cycle.mcap"})
+    assert main(["workspace", "--config", str(config)]) == 0  # the map the view shows
     proc = _run(config, f"127.0.0.1:{view}")
     try:
         with connect(zenoh, proc) as client:
@@ -118,6 +126,11 @@ def test_a_foxglove_client_sees_the_robot_as_zenoh_does_and_the_mcap_matches(
     assert np.allclose(_xyz(box.pose.position), zenoh_position, atol=0.05)  # box centre
     assert len(scene["cables"].lines) == 8
     assert first["/cdpr/series"].message["tensions"][0] > 0
+    # the saved map's boundary at home, the environment's table, the box
+    workspace = {e.id: e for e in first["/cdpr/workspace"].message.entities}
+    assert len(workspace["workspace"].cubes) > 50
+    (table,) = workspace["environment"].cubes
+    assert np.allclose(_xyz(table.pose.position), [0.0, 1.2, 0.25])
 
     recording = next((tmp_path / "rec").glob("cycle-*.mcap"))
     with recording.open("rb") as stream:
@@ -135,6 +148,7 @@ def test_a_foxglove_client_sees_the_robot_as_zenoh_does_and_the_mcap_matches(
     assert by_topic["/tf"] == by_topic["/cdpr/scene"] > 10
     assert by_topic[CYCLE_TOPIC] > 10 * by_topic["/tf"]
     assert by_topic["/cdpr/log"] >= 3  # idle, enabled, goto, ...
+    assert by_topic["/cdpr/workspace"] == 1  # recorded once
     assert min(np.linalg.norm(np.subtract(p, TARGET)) for p in poses) < 5e-3
 
 
