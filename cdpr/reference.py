@@ -21,37 +21,55 @@ def attachment_offsets(robot: Robot, pose: Pose) -> Array:
     return robot.geometry.attachments @ pose.rotation.T
 
 
-def pulley_cable(d: Array, radius: float, axis: Array) -> tuple[float, Array, Array, float, Array]:
-    """Standard pulley model for d = B - a: (length, u, n_P, free length, x_p).
+def pulley_cable(d: Array, radius: float, axis: Array) -> tuple[Array, Array, Array, Array, Array]:
+    """Standard pulley model for d = B - a (one per row, or one vector): (length, u, n_P,
+    free length, x_p).
 
     In the plane spanned by the swivel axis z and x_p (towards B), the pulley centre
     sits at a + r x_p; the cable leaves it at P where the radius n_P is normal to B - P.
     """
-    z = axis
-    e = d - (d @ z) * z
-    rho = float(np.linalg.norm(e))
-    x_p = e / rho
-    w = np.array([rho - radius, d @ z])  # B - centre, in (x_p, z) coordinates
-    wn = float(np.linalg.norm(w))
-    free = float(np.sqrt(wn**2 - radius**2))
-    theta_p = float(np.arctan2(w[1], w[0]) + np.arccos(radius / wn))
-    u = np.sin(theta_p) * x_p - np.cos(theta_p) * z
-    n_p = np.cos(theta_p) * x_p + np.sin(theta_p) * z
+    z = np.asarray(axis, dtype=float)
+    along = d @ z
+    e = d - along[..., None] * z
+    rho = np.linalg.norm(e, axis=-1)
+    x_p = e / rho[..., None]
+    w0, w1 = rho - radius, along  # B - centre, in (x_p, z) coordinates
+    wn = np.hypot(w0, w1)
+    free = np.sqrt(wn**2 - radius**2)
+    theta_p = np.arctan2(w1, w0) + np.arccos(radius / wn)
+    s, c = np.sin(theta_p)[..., None], np.cos(theta_p)[..., None]
+    u = s * x_p - c * z
+    n_p = c * x_p + s * z
     return radius * (np.pi - theta_p) + free, u, n_p, free, x_p
+
+
+def cable_segments(
+    robot: Robot, positions: ArrayLike, rotations: Array
+) -> tuple[Array, Array, Array, Array]:
+    """At the poses (positions: N x 3; rotations: N x 3 x 3, or one 3 x 3 for all): cable
+    lengths (N x n), the free segments' unit directions u (N x n x 3, towards the
+    platform), where the free segments start (the anchor, or the pulley's leave point)
+    and where they end (the attachments), N x n x 3 each, world frame."""
+    geometry = robot.geometry
+    R = np.asarray(rotations, dtype=float)
+    b = geometry.attachments
+    r = b @ R.T if R.ndim == 2 else np.einsum("nij,kj->nki", R, b)
+    ends = np.asarray(positions, dtype=float)[:, None, :] + r
+    d = ends - geometry.anchors
+    lengths = np.linalg.norm(d, axis=-1)
+    u = d / lengths[..., None]
+    starts = np.broadcast_to(geometry.anchors, d.shape).copy()
+    for k, pulley in enumerate(geometry.pulleys):
+        if pulley is not None:
+            lengths[:, k], u[:, k], _, free, _ = pulley_cable(d[:, k], pulley[0], pulley[1])
+            starts[:, k] = ends[:, k] - free[:, None] * u[:, k]
+    return lengths, u, starts, ends
 
 
 def lengths_directions(robot: Robot, pose: Pose) -> tuple[Array, Array]:
     """Cable lengths and unit directions u_k of the free segments at the attachments."""
-    d = pose.position + attachment_offsets(robot, pose) - robot.geometry.anchors
-    lengths = np.empty(robot.n_cables)
-    u = np.empty((robot.n_cables, 3))
-    for k, pulley in enumerate(robot.geometry.pulleys):
-        if pulley is None:
-            lengths[k] = np.linalg.norm(d[k])
-            u[k] = d[k] / lengths[k]
-        else:
-            lengths[k], u[k], *_ = pulley_cable(d[k], pulley[0], np.array(pulley[1]))
-    return lengths, u
+    lengths, u, _, _ = cable_segments(robot, pose.position[None], pose.rotation)
+    return lengths[0], u[0]
 
 
 def jacobian(robot: Robot, pose: Pose) -> Array:

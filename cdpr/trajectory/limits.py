@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
-from typing import Annotated
+from typing import Annotated, NamedTuple, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -24,6 +24,25 @@ from cdpr.robot import Robot
 from cdpr.trajectory.core import Reference, Trajectory, TrajectoryError
 
 WrenchCheck = Callable[[Pose, NDArray[np.float64], NDArray[np.float64]], str | None]
+CHUNK = 32  # sampled references checked together by a BatchCheck (~0.5 ms a batch)
+
+
+class BatchRefusal(NamedTuple):
+    """The first pose of a batch a BatchCheck refuses: its index, the limit, one line."""
+
+    index: int
+    limit: str
+    detail: str
+
+
+class BatchCheck(Protocol):
+    """A check of many poses at once (cdpr.workspace_check.WorkspaceCheck)."""
+
+    def first_refusal(
+        self, positions: NDArray[np.float64], rotations: NDArray[np.float64]
+    ) -> BatchRefusal | None: ...
+
+
 # The most waypoints a trajectory may have, and the highest max_waypoints a config may
 # set: the daemon's event loop still does a few things whose cost grows with the count
 # (the first validation step sorts the sample times: ~1.5 ms at 10,000; releasing a
@@ -198,6 +217,7 @@ def validate(
     wrench_check: WrenchCheck | None = None,
     pose_limits: PoseLimits | None = None,
     length_limits: LengthLimits | None = None,
+    workspace: BatchCheck | None = None,
 ) -> None:
     """Raise TrajectoryError on the first problem along the path, else return.
 
@@ -205,11 +225,13 @@ def validate(
     waypoint).  Then samples every limits.sample_period from the start and at every
     waypoint time: rate limits, `pose_limits`, cable lengths within `length_limits`
     (default the robot's [length_min, length_max]), and, if given,
-    ``wrench_check(pose, twist, accel)`` (None when the wrench is in W, else a reason).
-    The waypoint index reported for a sample is that of the segment holding the failing
-    instant.
+    ``wrench_check(pose, twist, accel)`` (None when the wrench is in W, else a reason),
+    and `workspace`'s checks (run on CHUNK samples at once).  The waypoint index reported
+    for a sample is that of the segment holding the failing instant.
     """
-    steps = validation_steps(trajectory, robot, limits, wrench_check, pose_limits, length_limits)
+    steps = validation_steps(
+        trajectory, robot, limits, wrench_check, pose_limits, length_limits, workspace=workspace
+    )
     for _ in steps:
         pass
 
@@ -222,9 +244,12 @@ def validation_steps(
     pose_limits: PoseLimits | None = None,
     length_limits: LengthLimits | None = None,
     segments: int | None = None,
+    workspace: BatchCheck | None = None,
 ) -> Iterator[float]:
     """`validate` one step at a time: yields each checked waypoint's and sample's time once
-    it passed, so a caller sharing an event loop with a control cycle can pause between.
+    it passed (the `workspace` check runs on every CHUNK samples, and before a problem
+    found later is raised), so a caller sharing an event loop with a control cycle can
+    pause between.
     `segments`: only the first that many segments (a transition into a trajectory already
     validated), whose end need not be at rest."""
     if segments is None:
@@ -255,36 +280,81 @@ def validation_steps(
     steps = math.floor(duration / limits.sample_period)
     grid = trajectory.start_time + limits.sample_period * np.arange(steps + 1)
     knots = [w.t for w in waypoints]
+    pending: list[tuple[float, Reference]] = []  # passed, not yet checked by `workspace`
     for t in np.union1d(grid, knots).tolist():
         ref = trajectory.sample(t)
-        index = trajectory.waypoint_index(t)
-        at = f"at t={t:.6g} s"
-        bad = rate_violation(ref, limits)
-        if bad is not None:
-            name, size, unit = bad
-            raise TrajectoryError(
-                name,
-                f"{size:.6g} {unit} exceeds the limit {getattr(limits, name):g} {unit} {at}",
-                waypoint=index,
-                value=size,
-            )
-        if pose_limits is not None:
-            _check_pose(pose_limits, ref.pose, index, at)
-        bad = bounds.violation(robot.cable_lengths(ref.pose).tolist())
-        if bad is not None:
-            k, ell, lo, hi = bad
-            raise TrajectoryError(
-                "cable_length",
-                f"cable {k} length {ell:.6g} m outside [{lo:.6g}, {hi:.6g}] m "
-                f"({bounds.limits}) {at}",
-                waypoint=index,
-                value=ell,
-            )
-        if wrench_check is not None:
-            reason = wrench_check(ref.pose, ref.twist, ref.accel)
-            if reason is not None:
-                raise TrajectoryError("wrench_set", f"{reason} {at}", waypoint=index)
+        try:
+            _check_sample(trajectory, robot, limits, wrench_check, pose_limits, bounds, t, ref)
+        except TrajectoryError:
+            _check_batch(trajectory, workspace, pending)  # an earlier sample's problem first
+            raise
+        pending.append((t, ref))
+        if len(pending) == CHUNK:
+            _check_batch(trajectory, workspace, pending)
         yield t
+    _check_batch(trajectory, workspace, pending)
+
+
+def _check_batch(
+    trajectory: Trajectory, workspace: BatchCheck | None, pending: list[tuple[float, Reference]]
+) -> None:
+    """Raise TrajectoryError for the first of the `pending` samples `workspace` refuses;
+    empty `pending` either way."""
+    batch = pending[:]
+    pending.clear()
+    if workspace is None or not batch:
+        return
+    refused = _first_refusal(workspace, [ref for _, ref in batch])
+    if refused is not None:
+        t = batch[refused.index][0]
+        raise TrajectoryError(
+            refused.limit, f"{refused.detail} at t={t:.6g} s", waypoint=trajectory.waypoint_index(t)
+        )
+
+
+def _first_refusal(workspace: BatchCheck, refs: list[Reference]) -> BatchRefusal | None:
+    positions = np.array([r.pose.position_tuple for r in refs])
+    rotations = np.array([r.pose.rotation for r in refs])
+    return workspace.first_refusal(positions, rotations)
+
+
+def _check_sample(
+    trajectory: Trajectory,
+    robot: Robot,
+    limits: TrajectoryLimits,
+    wrench_check: WrenchCheck | None,
+    pose_limits: PoseLimits | None,
+    bounds: LengthLimits,
+    t: float,
+    ref: Reference,
+) -> None:
+    """Raise TrajectoryError if the sample `ref` at time t breaks a limit."""
+    index = trajectory.waypoint_index(t)
+    at = f"at t={t:.6g} s"
+    bad = rate_violation(ref, limits)
+    if bad is not None:
+        name, size, unit = bad
+        raise TrajectoryError(
+            name,
+            f"{size:.6g} {unit} exceeds the limit {getattr(limits, name):g} {unit} {at}",
+            waypoint=index,
+            value=size,
+        )
+    if pose_limits is not None:
+        _check_pose(pose_limits, ref.pose, index, at)
+    bad = bounds.violation(robot.cable_lengths(ref.pose).tolist())
+    if bad is not None:
+        k, ell, lo, hi = bad
+        raise TrajectoryError(
+            "cable_length",
+            f"cable {k} length {ell:.6g} m outside [{lo:.6g}, {hi:.6g}] m ({bounds.limits}) {at}",
+            waypoint=index,
+            value=ell,
+        )
+    if wrench_check is not None:
+        reason = wrench_check(ref.pose, ref.twist, ref.accel)
+        if reason is not None:
+            raise TrajectoryError("wrench_set", f"{reason} {at}", waypoint=index)
 
 
 def _check_pose(pose_limits: PoseLimits, pose: Pose, index: int, at: str) -> None:

@@ -42,29 +42,33 @@ _LARGEST_INT = int(sys.float_info.max)  # larger ones overflow float()
 def parse_trajectory(data: Any, limits: TrajectoryLimits | None = None) -> Trajectory:
     """Build a Trajectory from its interface form; TrajectoryError on any bad input."""
     limits = TrajectoryLimits() if limits is None else limits
-    _keys(data, ("waypoints",), ("version",), "trajectory", None)
-    if "version" in data:
-        version = data["version"]
-        if type(version) is not int or version != SCHEMA_VERSION:
-            raise TrajectoryError(
-                "schema",
-                f"version: unsupported trajectory schema version {version!r} "
-                f"(this daemon reads {SCHEMA_VERSION})",
-                field="version",
-            )
-    raw = data["waypoints"]
-    if not isinstance(raw, list | tuple):
+    raw = items(data, "waypoints", "trajectory", limits)
+    return Trajectory(_waypoints(raw, limits.unit_tolerance))
+
+
+def items(data: Any, key: str, what: str, limits: TrajectoryLimits) -> list | tuple:
+    """The list under `key` of a `what` message ("trajectory", "path"), after its keys,
+    its version and its length are checked; TrajectoryError naming the problem."""
+    _keys(data, (key,), ("version",), what, None)
+    version = data.get("version", SCHEMA_VERSION)
+    if type(version) is not int or version != SCHEMA_VERSION:
         raise TrajectoryError(
-            "schema", f"waypoints: expected a list, got {_kind(raw)}", field="waypoints"
+            "schema",
+            f"version: unsupported {what} schema version {version!r} "
+            f"(this daemon reads {SCHEMA_VERSION})",
+            field="version",
         )
+    raw = data[key]
+    if not isinstance(raw, list | tuple):
+        raise TrajectoryError("schema", f"{key}: expected a list, got {_kind(raw)}", field=key)
     if len(raw) > limits.max_waypoints:
         raise TrajectoryError(
             "max_waypoints",
-            f"{len(raw)} waypoints exceed the limit of {limits.max_waypoints}",
+            f"{len(raw)} {key} exceed the limit of {limits.max_waypoints}",
             value=float(len(raw)),
-            field="waypoints",
+            field=key,
         )
-    return Trajectory(_waypoints(raw, limits.unit_tolerance))
+    return raw
 
 
 def _waypoints(raw: list[Any] | tuple[Any, ...], unit_tolerance: float) -> list[Waypoint]:

@@ -1,6 +1,7 @@
 """The `cdprd` client commands: send a trajectory, run a command, print the daemon's reply.
 
     cdprd send FILE [--start now|UNIX_TIME] [--id ID] [--preempt]  (YAML or JSON)
+    cdprd send FILE --path | --gcode --config CFG [--blend M]  (a path the daemon times)
     cdprd status | enable | disable | hold | reset
     cdprd brake [--reason TEXT]
     cdprd goto x y z [qw qx qy qz] [--preempt]
@@ -27,11 +28,12 @@ import json
 import math
 import sys
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any
 
-from cdpr.description import ConfigError, load_yaml, read_text
+from cdpr.description import ConfigError
+from cdpr.trajectory import TrajectoryError
 from daemon.cli.exit_codes import EXIT_FAILED, EXIT_OK, EXIT_UNREACHABLE, EXIT_USAGE
+from daemon.cli.input_files import UsageError, read_mapping, read_path
 from daemon.interface.client import (
     CONNECT_ENV,
     DEFAULT_CONNECT,
@@ -51,7 +53,6 @@ LEASE_ID_HELP = "the lease_id the hold on a lease replied: needed to renew or re
 PREEMPT_HELP = "replace a motion another client runs (refused otherwise, naming it)"
 IDENTIFY_TIMEOUT = 120.0  # s: identify-payload moves through five poses
 PRETENSION_TIMEOUT = 120.0  # s: winding in (up to pretension.taut_timeout), ramp, settle
-REQUEST_FILE_MAX_BYTES = 64 << 20  # a trajectory file (the daemon limits what it takes)
 _SIMPLE = {
     "status": "print the daemon's safety state",
     "enable": "enable the drives (IDLE -> ENABLED, holding the current pose)",
@@ -62,10 +63,6 @@ _SIMPLE = {
 
 
 Action = Callable[[CdprClient], Any]
-
-
-class _UsageError(Exception):
-    """A bad argument or input file (exit 2)."""
 
 
 def add_parsers(subparsers: argparse._SubParsersAction) -> None:
@@ -102,6 +99,17 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
         "send", parents=[common], help="send a trajectory file (YAML or JSON) and await the verdict"
     )
     send.add_argument("file", help="trajectory in the form of docs/reference/zenoh-api.md")
+    kind = send.add_mutually_exclusive_group()
+    kind.add_argument(
+        "--path", action="store_true", help="FILE is a path (docs/guide/paths.md), timed there"
+    )
+    kind.add_argument(
+        "--gcode",
+        action="store_true",
+        help="FILE is G-code, from the robot's home as `cdprd plan` reads it (needs --config)",
+    )
+    send.add_argument("--config", help="--gcode: the daemon's config (the robot's home, limits)")
+    send.add_argument("--blend", type=float, default=0.0, help="--gcode: corner blend radius, m")
     send.add_argument("--start", default="now", help='"now" (default) or a unix time in seconds')
     send.add_argument("--id", help="request id echoed in the reply and the events")
     send.add_argument("--preempt", action="store_true", help=PREEMPT_HELP)
@@ -193,9 +201,9 @@ def _runner(
     def run(args: argparse.Namespace) -> int:
         try:
             if not (args.timeout > 0 and math.isfinite(args.timeout)):
-                raise _UsageError(f"--timeout must be a positive number of seconds: {args.timeout}")
+                raise UsageError(f"--timeout must be a positive number of seconds: {args.timeout}")
             action = prepare(args)
-            raw = None if args.zenoh_config is None else _read_mapping(args.zenoh_config)
+            raw = None if args.zenoh_config is None else read_mapping(args.zenoh_config)
             with CdprClient(
                 args.prefix,
                 args.connect or default_connect(),
@@ -204,7 +212,7 @@ def _runner(
                 name=args.client,
             ) as client:
                 result = action(client)
-        except _UsageError as exc:
+        except UsageError as exc:
             print(f"usage error: {exc}", file=sys.stderr)
             return EXIT_USAGE
         except UnreachableError as exc:
@@ -227,9 +235,27 @@ def _runner(
 
 
 def _prepare_send(args: argparse.Namespace) -> Action:
-    body, start = _read_mapping(args.file), _start(args.start)
-    return lambda client: client.send_trajectory(
-        body, start=start, request_id=args.id, preempt=args.preempt
+    """A trajectory file as it is; a path (--path) or G-code (--gcode) read here, so that
+    a bad pose or line is a usage error before any network, and sent as a path."""
+    start = _start(args.start)
+    if not (args.path or args.gcode):
+        body = read_mapping(args.file)
+        return lambda client: client.send_trajectory(
+            body, start=start, request_id=args.id, preempt=args.preempt
+        )
+    from daemon.config import load_config
+
+    if args.gcode and args.config is None:
+        raise UsageError("--gcode needs --config: the G-code starts at the robot's home")
+    try:
+        config = None if args.config is None else load_config(args.config)
+        path = read_path(args.file, config, args.blend, gcode=args.gcode)
+    except ConfigError as exc:
+        raise UsageError(str(exc).strip()) from None
+    except TrajectoryError as exc:
+        raise UsageError(f"{args.file}: {exc}") from None
+    return lambda client: client.send_path(
+        path, start=start, request_id=args.id, preempt=args.preempt
     )
 
 
@@ -242,47 +268,28 @@ def _prepare_goto(args: argparse.Namespace) -> Action:
     return lambda client: client.goto(position, quaternion, args.preempt)
 
 
-def _read_mapping(path: str) -> dict[str, Any]:
-    """A YAML or JSON file (a regular file of at most REQUEST_FILE_MAX_BYTES) holding a
-    mapping of strict-JSON values."""
-    file = Path(path)
-    try:
-        if file.suffix.lower() == ".json":
-            data = json.loads(read_text(file, REQUEST_FILE_MAX_BYTES))
-        else:
-            data = load_yaml(file, REQUEST_FILE_MAX_BYTES)
-        json.dumps(data, allow_nan=False)
-    except ConfigError as exc:
-        raise _UsageError(str(exc)) from None
-    except ValueError as exc:  # bad JSON, NaN / Infinity
-        raise _UsageError(f"{path}: not strict JSON data: {exc}") from None
-    if not isinstance(data, dict):
-        raise _UsageError(f"{path}: expected a mapping, got {type(data).__name__}")
-    return data
-
-
 def _start(text: str) -> float | None:
     if text == "now":
         return None
     try:
         start = float(text)
     except ValueError:
-        raise _UsageError(
+        raise UsageError(
             f'--start: expected "now" or a unix time in seconds, got {text!r}'
         ) from None
     if not (math.isfinite(start) and start > 0.0):
-        raise _UsageError(f"--start: {text!r} is not a unix time in seconds")
+        raise UsageError(f"--start: {text!r} is not a unix time in seconds")
     return start
 
 
 def _pose(values: list[str]) -> tuple[list[float], dict[str, float] | None]:
     if len(values) not in (3, 7):
-        raise _UsageError(f"goto takes x y z [qw qx qy qz]: 3 or 7 numbers, got {len(values)}")
+        raise UsageError(f"goto takes x y z [qw qx qy qz]: 3 or 7 numbers, got {len(values)}")
     try:
         numbers = [float(v) for v in values]
     except ValueError as exc:
-        raise _UsageError(f"goto: {exc}") from None
+        raise UsageError(f"goto: {exc}") from None
     if not all(math.isfinite(v) for v in numbers):
-        raise _UsageError("goto: every number must be finite")
+        raise UsageError("goto: every number must be finite")
     quaternion = None if len(numbers) == 3 else dict(zip("wxyz", numbers[3:], strict=True))
     return numbers[:3], quaternion

@@ -30,6 +30,7 @@ from typing import Any
 
 import zenoh
 
+from cdpr.path import Path
 from cdpr.trajectory import SCHEMA_VERSION, Trajectory
 from daemon.config.zenoh_config import DEFAULT_LISTEN, client_zenoh_config
 
@@ -247,12 +248,39 @@ class CdprClient:
         Returns the accepted reply (with "id" and "result"); RequestError says which
         limit, waypoint and value made the daemon reject it.
         """
-        body = dict(trajectory.as_dict() if isinstance(trajectory, Trajectory) else trajectory)
-        body.setdefault("version", SCHEMA_VERSION)
-        body["id"] = request_id or body.get("id") or uuid.uuid4().hex[:16]
-        body["start"] = "now" if start is None else float(start)
-        body["client"] = self.name
-        return self._query("trajectory", _preempting(body, preempt))
+        body = trajectory.as_dict() if isinstance(trajectory, Trajectory) else trajectory
+        return self._query("trajectory", self._envelope(body, start, request_id, preempt))
+
+    def send_path(
+        self,
+        path: Path | Mapping[str, Any],
+        *,
+        start: float | None = None,
+        request_id: str | None = None,
+        preempt: bool = False,
+    ) -> dict[str, Any]:
+        """Submit a path (a cdpr.path.Path or its JSON form, docs/guide/paths.md): poses
+        without times, which the daemon times within the cables' tensions and runs as a
+        trajectory; `start`, `request_id`, `preempt` and the reply as send_trajectory's
+        (RequestError names the pose, or where no timing holds the tensions)."""
+        body = path.as_dict() if isinstance(path, Path) else path
+        return self._query("path", self._envelope(body, start, request_id, preempt))
+
+    def _envelope(
+        self,
+        body: Mapping[str, Any],
+        start: float | None,
+        request_id: str | None,
+        preempt: bool,
+    ) -> dict[str, Any]:
+        """A trajectory's or a path's message: `body` with the version, an id, the start
+        and who sends it."""
+        message = dict(body)
+        message.setdefault("version", SCHEMA_VERSION)
+        message["id"] = request_id or message.get("id") or uuid.uuid4().hex[:16]
+        message["start"] = "now" if start is None else float(start)
+        message["client"] = self.name
+        return _preempting(message, preempt)
 
     # -- streams -----------------------------------------------------------------------
 

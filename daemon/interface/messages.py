@@ -55,12 +55,14 @@ import enum
 import json
 import math
 import re
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import orjson
 
+from cdpr.path import Path, parse_path
 from cdpr.pose import QUATERNION_NORM_TOLERANCE, Pose
 from cdpr.trajectory import (
     SCHEMA_VERSION,
@@ -124,15 +126,16 @@ class TrajectoryRequest:
 
 @dataclass(frozen=True)
 class TrajectoryMessage:
-    """A trajectory message whose head is checked (check_trajectory_head): the sender's
-    id, the start time, the body still to parse, how many waypoints it lists and who
-    sends it."""
+    """A trajectory or path message whose head is checked (check_trajectory_head): the
+    sender's id, the start time, the body still to parse, how many waypoints (a path:
+    poses) it lists, who sends it, and whether it is a path (poses to be timed)."""
 
     id: str | None
     start: float | None
     body: dict[str, Any]
     waypoints: int
     claim: Claim = UNNAMED
+    path: bool = False
 
 
 def decode_json(payload: bytes, max_bytes: int) -> Any:
@@ -294,10 +297,14 @@ def decode_trajectory(data: Any, limits: TrajectoryLimits) -> TrajectoryRequest:
     return parse_waypoints(check_trajectory_head(data, limits), limits)
 
 
-def check_trajectory_head(data: Any, limits: TrajectoryLimits) -> TrajectoryMessage:
+def check_trajectory_head(
+    data: Any, limits: TrajectoryLimits, path: bool = False
+) -> TrajectoryMessage:
     """The cheap part of decode_trajectory (O(1) and a count): everything but the
-    waypoints themselves, which parse_waypoints reads (~0.07 ms a waypoint)."""
-    _check_object(data, "trajectory")
+    waypoints themselves, which parse_waypoints reads (~0.07 ms a waypoint); with `path`,
+    the same envelope around a path's poses (time_path_message)."""
+    what = "path" if path else "trajectory"
+    _check_object(data, what)
     body = dict(data)
     _check_version(body.pop(VERSION_KEY, SCHEMA_VERSION))
     ident = body.pop("id", None)
@@ -308,30 +315,51 @@ def check_trajectory_head(data: Any, limits: TrajectoryLimits) -> TrajectoryMess
     start = _start_time(body.pop("start", "now"))
     claim = Claim(
         _client(body.pop("client", ANONYMOUS)),
-        _flag({"preempt": body.pop("preempt", False)}, "preempt", "trajectory"),
+        _flag({"preempt": body.pop("preempt", False)}, "preempt", what),
         ident,
     )
-    waypoints = body.get("waypoints")
-    if isinstance(waypoints, list) and len(waypoints) > limits.max_waypoints:
+    key = "poses" if path else "waypoints"
+    listed = body.get(key)
+    if isinstance(listed, list) and len(listed) > limits.max_waypoints:
         raise CommandError(
             "rejected",
-            f"{len(waypoints)} waypoints exceed the limit of {limits.max_waypoints}",
+            f"{len(listed)} {key} exceed the limit of {limits.max_waypoints}",
             limit="max_waypoints",
-            value=len(waypoints),
-            field="waypoints",
+            value=len(listed),
+            field=key,
         )
-    count = len(waypoints) if isinstance(waypoints, list) else 0
-    return TrajectoryMessage(ident, start, body, count, claim)
+    count = len(listed) if isinstance(listed, list) else 0
+    return TrajectoryMessage(ident, start, body, count, claim, path)
 
 
 def parse_waypoints(message: TrajectoryMessage, limits: TrajectoryLimits) -> TrajectoryRequest:
     """The rest of decode_trajectory: the waypoints, and the C² curve through them."""
-    try:
+    with _refused_as_command_error():
         trajectory = parse_trajectory(message.body, limits)
+    return TrajectoryRequest(message.id, message.start, trajectory, message.claim)
+
+
+def time_path_message(
+    message: TrajectoryMessage,
+    limits: TrajectoryLimits,
+    timer: Callable[[Path], Trajectory],
+) -> TrajectoryRequest:
+    """A path message's poses (cdpr.path.parse_path), timed by `timer` (the daemon's:
+    cdpr.path.timing within the robot's tensions) into the trajectory to run."""
+    with _refused_as_command_error():
+        trajectory = timer(parse_path(message.body, limits))
+    return TrajectoryRequest(message.id, message.start, trajectory, message.claim)
+
+
+@contextlib.contextmanager
+def _refused_as_command_error() -> Iterator[None]:
+    """A TrajectoryError as the CommandError a sender gets: bad_request for the schema,
+    rejected for a limit (with its details)."""
+    try:
+        yield
     except TrajectoryError as exc:
         code = "bad_request" if exc.limit == "schema" else "rejected"
         raise CommandError(code, clip(str(exc)), **trajectory_error_details(exc)) from None
-    return TrajectoryRequest(message.id, message.start, trajectory, message.claim)
 
 
 def decode_command(

@@ -10,7 +10,9 @@ trajectory on the zenoh interface (DESIGN §19): zenoh's ingress limit
 says otherwise), checked on zenoh's thread with the waypoint count its first bytes
 declare (ros2_wire.sequence_length) before anything is decoded; then it is decoded,
 converted and parsed in the zenoh interface's parse thread, within its CPU budget
-(ZenohInterface.run_parser: a flood of long ones leaves the loop its time), and submitted
+(ZenohInterface.run_parser: a flood of long ones leaves the loop its time; a Path whose
+poses carry no times, all one stamp, is a path, timed there as `<prefix>/path` is by the
+interface's timer), and submitted
 to the handler like a trajectory from the zenoh interface; its verdict, accepted or
 rejected with the reason, goes out on the status topic as JSON text.  Trajectories are
 handled one at a time; at most `queue_depth` wait, more are refused "busy".
@@ -29,7 +31,8 @@ from typing import Any
 
 import zenoh
 
-from cdpr.trajectory import SCHEMA_VERSION, TrajectoryLimits
+from cdpr.path import Path
+from cdpr.trajectory import SCHEMA_VERSION, Trajectory, TrajectoryLimits
 from daemon.config.ros2_config import Ros2Settings
 from daemon.config.zenoh_config import ZenohSettings
 from daemon.interface import ros2_wire as wire
@@ -42,6 +45,7 @@ from daemon.interface.messages import (
     encode,
     error_body,
     parse_waypoints,
+    time_path_message,
 )
 from daemon.interface.ros2_convert import (
     DIAGNOSTICS,
@@ -260,7 +264,9 @@ class Ros2Bridge:
         while True:
             item = await self._queue.get()
             topic = item[0]
-            parse = functools.partial(read_trajectory, item, self.settings, self.limits)
+            parse = functools.partial(
+                read_trajectory, item, self.settings, self.limits, self._interface.timer
+            )
             ident, parsed = await self._interface.run_parser(parse, _shutting_down)
             if isinstance(parsed, CommandError):
                 self._status(ident, topic, parsed)
@@ -291,19 +297,29 @@ def _shutting_down() -> tuple[None, CommandError]:
 
 
 def read_trajectory(
-    item: Received, settings: Ros2Settings, limits: TrajectoryLimits
+    item: Received,
+    settings: Ros2Settings,
+    limits: TrajectoryLimits,
+    timer: Callable[[Path], Trajectory] | None = None,
 ) -> tuple[str | None, TrajectoryRequest | CommandError]:
     """A received sample's request id (<topic>#<sequence number>, once the attachment
-    reads) and its trajectory parsed, or why not: every bad input gets a CommandError
-    that names the problem, never another exception."""
+    reads) and its trajectory parsed, or a stampless Path's poses timed by `timer`; or
+    why not: every bad input gets a CommandError that names the problem, never another
+    exception."""
     topic, msgtype, payload, extra = item
     ident = None
     try:
         ident = f"{topic}#{wire.read_attachment(extra).sequence_number}"
         msg = wire.deserialize(payload, msgtype)
         body = trajectory_body(msg, settings, limits.max_waypoints)
-        head = TrajectoryMessage(ident, None, body, len(body["waypoints"]))
-        return ident, parse_waypoints(head, limits)
+        if "poses" not in body:
+            head = TrajectoryMessage(ident, None, body, len(body["waypoints"]))
+            return ident, parse_waypoints(head, limits)
+        if timer is None:
+            why = f"{msgtype}: poses without times are a path, and this interface times none"
+            return ident, CommandError("rejected", why)
+        head = TrajectoryMessage(ident, None, body, len(body["poses"]), path=True)
+        return ident, time_path_message(head, limits, timer)
     except wire.WireError as exc:
         return ident, CommandError("bad_request", f"{msgtype}: {exc}")
     except CommandError as exc:

@@ -156,14 +156,18 @@ def _diagnostics(state: dict[str, Any], settings: Ros2Settings, ns: int) -> Any:
 
 
 def trajectory_body(msg: Any, settings: Ros2Settings, max_waypoints: int) -> dict[str, Any]:
-    """A received Path or MultiDOFJointTrajectory in the daemon's trajectory form;
-    CommandError names what does not fit (the trajectory's own rules are checked when the
-    form is parsed)."""
+    """A received Path or MultiDOFJointTrajectory in the daemon's trajectory form, or a
+    Path whose poses all carry one stamp (none: a planner's path, no times) in the path
+    form, {"poses": ...}, which the daemon times; CommandError names what does not fit
+    (the trajectory's or path's own rules are checked when the form is parsed)."""
     items = msg.poses if msg.__msgtype__ == PATH else msg.points
     _check_frame(msg.header.frame_id, "header.frame_id", settings)
     check_waypoint_count(len(items), msg.__msgtype__, max_waypoints)
     if msg.__msgtype__ == PATH:
-        return {"waypoints": _path_waypoints(msg, settings)}
+        waypoints = _path_waypoints(msg, settings)
+        if len(waypoints) > 1 and all(w["t"] == 0.0 for w in waypoints):
+            return {"poses": [{k: v for k, v in w.items() if k != "t"} for w in waypoints]}
+        return {"waypoints": waypoints}
     return {"waypoints": _multi_dof_waypoints(msg, settings)}
 
 

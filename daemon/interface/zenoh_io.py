@@ -2,6 +2,8 @@
 
 Keys under the prefix (default cdpr/<robot>):
     trajectory   subscriber (put) and queryable (get with payload): a trajectory to run
+    path         the same for a path: poses without times, which the interface times
+                 within the cables' tensions (cdpr.path.timing) into the trajectory to run
     cmd/<name>   queryable, one for cmd/**: the COMMANDS of daemon/service/api.py, JSON replies
     state        published at zenoh.state_rate_hz
     events       trajectory accepted / rejected, and the service's state changes and faults
@@ -17,20 +19,22 @@ queue per loop pass before yielding to the other callbacks (the control cycle). 
 flood costs bounded memory, and each loop pass at most one handler call per queue plus
 one event publication.
 
-Trajectories run one at a time.  Parsing one (JSON, schema, the curve through the
-waypoints: ~3 ms for 100 waypoints, ~0.1-0.2 s for 10000) happens in a parse thread, never on
-the loop (except a move of two waypoints, ~0.1 ms); the loop calls the handler with the
-result and awaits its validation, while the next one is parsed.  The parse thread must
-not delay the loop either: while it computes, the loop would wait for the GIL up to the
-switch interval (5 ms) and, on a loaded host, for a CPU.  So it pauses every PARSE_SLICE
-(a profile hook, _Yielding: cdpr's parser has no points to pause at), runs below the
-loop's OS priority, uses at most PARSE_SHARE of a core in a long flood, and long JSON is decoded
-in pieces (daemon.interface.messages.decode_json) so that no single C call holds the GIL long.
-The ROS 2 bridge on this session parses its trajectories in the same thread, within the same
-budget (run_parser): a flood of Paths costs the loop no more than a flood of JSON.  Of
+Trajectories run one at a time. Parsing one (JSON, schema, the curve through the
+waypoints: ~3 ms for 100 waypoints, ~0.1-0.2 s for 10000) happens in a parse thread,
+never on the loop (except a move of two waypoints, ~0.1 ms); so does timing a path
+(`path`: its poses timed within the tensions by the `timer`, 0.24-0.34 s for 100 blended
+poses); the loop calls the handler with the result and awaits its validation, while the
+next one is parsed. The parse thread must not delay the loop either: while it computes,
+the loop would wait for the GIL up to the switch interval (5 ms) and, on a loaded host,
+for a CPU. So it pauses every PARSE_SLICE (a profile hook, _Yielding: cdpr's parser has
+no points to pause at), runs below the loop's OS priority, uses at most PARSE_SHARE of a
+core in a long flood, and long JSON is decoded in pieces
+(daemon.interface.messages.decode_json) so that no single C call holds the GIL long. The
+ROS 2 bridge on this session parses its trajectories in the same thread, within the same
+budget (run_parser): a flood of Paths costs the loop no more than a flood of JSON. Of
 the commands that wait for the drives or for planning (enable, reset, goto:
 _ONE_AT_A_TIME) one runs at a time; another one meanwhile is answered "busy" and never
-started.  A hold, which plans its stop for a few ms, is never turned away, nor is a
+started. A hold, which plans its stop for a few ms, is never turned away, nor is a
 request that preempts (it replaces what runs: daemon.service.motion).
 
 One queryable serves cmd/** (rather than one per command) so that an unknown command gets
@@ -52,11 +56,13 @@ import time
 from collections import Counter, deque
 from collections.abc import Awaitable, Callable, Mapping
 from concurrent.futures import ThreadPoolExecutor
-from typing import Any, Generic, TypeVar
+from dataclasses import dataclass
+from typing import Any, Generic, TypeGuard, TypeVar
 
 import zenoh
 
-from cdpr.trajectory import SCHEMA_VERSION, TrajectoryError, TrajectoryLimits
+from cdpr.path import Path
+from cdpr.trajectory import SCHEMA_VERSION, Trajectory, TrajectoryError, TrajectoryLimits
 from daemon.config.zenoh_config import ZenohSettings, build_zenoh_config, zenoh_reason
 from daemon.interface.messages import (
     EVENT_KEY,
@@ -74,6 +80,7 @@ from daemon.interface.messages import (
     reply_error,
     reply_ok,
     request_id,
+    time_path_message,
 )
 from daemon.service.api import CommandError, DaemonHandler, rejection
 
@@ -100,7 +107,19 @@ QUEUED_LARGEST_MESSAGES = 2  # undecoded trajectories waiting weigh at most this
 INLINE_WAYPOINTS = 2  # a decoded trajectory of at most 2 waypoints is parsed on the loop
 # (a move from A to B: no spline system to solve, ~0.1 ms), longer ones in the parse thread
 _Parsed = TrajectoryRequest | tuple[str | None, CommandError]  # or (id, why refused)
-_TrajectoryItem = tuple[bytes | TrajectoryMessage, zenoh.Query | None]  # queued, and who asks
+
+
+@dataclass(frozen=True)
+class _Raw:
+    """A message queued undecoded (too long to decode on zenoh's thread): its bytes, and
+    whether it came as a path.  (Not a tuple: a refusal is one.)"""
+
+    data: bytes
+    path: bool
+
+
+_Message = _Raw | TrajectoryMessage
+_TrajectoryItem = tuple[_Message, zenoh.Query | None]  # queued, and who asks
 _Item = TypeVar("_Item")
 _Result = TypeVar("_Result")
 
@@ -239,7 +258,7 @@ class _Yielding:
             self._since = time.perf_counter()
 
 
-def _shutting_down(item: bytes | TrajectoryMessage) -> tuple[str | None, CommandError]:
+def _shutting_down(item: _Message) -> tuple[str | None, CommandError]:
     """The parse thread's answer to `item` once the interface closes (_ParseStopped)."""
     ident = item.id if isinstance(item, TrajectoryMessage) else None
     return ident, CommandError("busy", "the daemon is shutting down")
@@ -264,6 +283,8 @@ class ZenohInterface:
     lowered to zenoh.max_waypoints); the service checks the robot-specific limits.
     `ingress_limits` (full key -> Hz) are limited like zenoh.ingress_limits_hz: the keys
     outside the prefix that the session takes in (the ROS 2 bridge's trajectory topics).
+    `timer` times a path's poses into the trajectory to run (cdpr.path.timing with the
+    robot's model and tensions); without one, paths are refused.
     """
 
     def __init__(
@@ -273,8 +294,10 @@ class ZenohInterface:
         prefix: str,
         limits: TrajectoryLimits | None = None,
         ingress_limits: Mapping[str, float] | None = None,
+        timer: Callable[[Path], Trajectory] | None = None,
     ) -> None:
         limits = TrajectoryLimits() if limits is None else limits
+        self.timer = timer
         self.settings = settings
         self.ingress_limits = dict(ingress_limits or {})
         self.prefix = prefix
@@ -351,6 +374,8 @@ class ZenohInterface:
         self._entities = [
             session.declare_subscriber(self.key("trajectory"), self._on_trajectory_put),
             session.declare_queryable(self.key("trajectory"), self._on_trajectory_query),
+            session.declare_subscriber(self.key("path"), self._on_trajectory_put),
+            session.declare_queryable(self.key("path"), self._on_trajectory_query),
             session.declare_queryable(self.key("cmd/**"), self._on_command_query),
             session.liveliness().declare_token(self.key("alive")),
         ]
@@ -491,13 +516,16 @@ class ZenohInterface:
 
     def _take_trajectory(
         self, key: str, payload: zenoh.ZBytes | None
-    ) -> bytes | TrajectoryMessage | tuple[str | None, CommandError]:
+    ) -> _Message | tuple[str | None, CommandError]:
         """What to queue: the payload, or a small one decoded with its head checked; or
         (the sender's id if known, why not)."""
-        if key != self.key("trajectory"):
+        if key not in (self.key("trajectory"), self.key("path")):
             return None, CommandError(
-                "bad_request", f"send trajectories to the exact key {self.key('trajectory')}"
+                "bad_request",
+                f"send trajectories to the exact key {self.key('trajectory')}, paths to "
+                f"{self.key('path')}",
             )
+        path = key == self.key("path")
         assert self._trajectories is not None
         size = 0 if payload is None else len(payload)
         undecoded = 0 if _decoded_on_arrival(size) else size  # as _undecoded_bytes weighs
@@ -505,23 +533,24 @@ class ZenohInterface:
             self._trajectories.drop()
             return None, _busy("trajectory")
         if size == 0:
-            return None, CommandError("bad_request", "a trajectory message needs a JSON payload")
+            what = "path" if path else "trajectory"
+            return None, CommandError("bad_request", f"a {what} message needs a JSON payload")
         try:
             check_size(size, self.settings.max_message_bytes)
         except CommandError as exc:
             return None, exc
         assert payload is not None
-        raw = payload.to_bytes()
-        return self._decode_head(raw) if _decoded_on_arrival(len(raw)) else raw
+        raw = _Raw(payload.to_bytes(), path)
+        return self._decode_head(raw) if _decoded_on_arrival(len(raw.data)) else raw
 
-    def _decode_head(self, raw: bytes) -> TrajectoryMessage | tuple[str | None, CommandError]:
+    def _decode_head(self, raw: _Raw) -> TrajectoryMessage | tuple[str | None, CommandError]:
         """The JSON decoded and the message's head checked; or (the id if known, why not)."""
         try:
-            data = decode_json(raw, self.settings.max_message_bytes)
+            data = decode_json(raw.data, self.settings.max_message_bytes)
         except CommandError as exc:
             return None, exc
         try:
-            return check_trajectory_head(data, self.limits)
+            return check_trajectory_head(data, self.limits, raw.path)
         except CommandError as exc:
             return request_id(data), exc
 
@@ -559,24 +588,29 @@ class ZenohInterface:
 
     # -- parsing: in the parse thread, or on the loop for the smallest ---------------------
 
-    def _parse_payload(self, payload: bytes) -> _Parsed:
+    def _parse_payload(self, payload: _Raw) -> _Parsed:
         """A whole message, from its bytes."""
         head = self._decode_head(payload)
         return head if isinstance(head, tuple) else self._parse_waypoints(head)
 
     def _parse_waypoints(self, message: TrajectoryMessage) -> _Parsed:
+        """A trajectory's waypoints, or a path's poses timed (`timer`)."""
         try:
-            return parse_waypoints(message, self.limits)
+            if not message.path:
+                return parse_waypoints(message, self.limits)
+            if self.timer is None:
+                raise CommandError("rejected", "this interface takes no paths (no timer)")
+            return time_path_message(message, self.limits, self.timer)
         except CommandError as exc:
             return message.id, exc
         except Exception as exc:  # a bug in a decoder must not reach the sender as silence
             log.exception("trajectory decoding raised")
             return message.id, CommandError("internal", f"decoding failed: {type(exc).__name__}")
 
-    async def _parse(self, item: bytes | TrajectoryMessage) -> _Parsed:
-        if isinstance(item, TrajectoryMessage) and item.waypoints <= INLINE_WAYPOINTS:
+    async def _parse(self, item: _Message) -> _Parsed:
+        if _inline(item):
             return self._parse_waypoints(item)
-        parse = self._parse_payload if isinstance(item, bytes) else self._parse_waypoints
+        parse = self._parse_payload if isinstance(item, _Raw) else self._parse_waypoints
         return await self.run_parser(functools.partial(parse, item), lambda: _shutting_down(item))
 
     async def run_parser(
@@ -668,11 +702,7 @@ class ZenohInterface:
         parsed and submitted right here."""
         message, query = item
         free = self._submission is None or self._submission.done()
-        if (
-            free
-            and isinstance(message, TrajectoryMessage)
-            and message.waypoints <= INLINE_WAYPOINTS
-        ):
+        if free and _inline(message):
             self._submit(self._parse_waypoints(message), query)
             return None
         assert self._loop is not None
@@ -683,7 +713,7 @@ class ZenohInterface:
 
     async def _trajectory_job(
         self,
-        item: bytes | TrajectoryMessage,
+        item: _Message,
         query: zenoh.Query | None,
         handed_over: asyncio.Future[None],
     ) -> None:
@@ -824,9 +854,19 @@ class ZenohInterface:
             _quietly(query.drop)
 
 
-def _id(item: bytes | TrajectoryMessage) -> str | None:
+def _id(item: _Message) -> str | None:
     """The sender's id of a queued trajectory, if it was decoded on arrival."""
-    return None if isinstance(item, bytes) else item.id
+    return None if isinstance(item, _Raw) else item.id
+
+
+def _inline(item: _Message) -> TypeGuard[TrajectoryMessage]:
+    """A decoded trajectory of at most INLINE_WAYPOINTS waypoints: parsed on the loop (a
+    path is timed in the parse thread, however short)."""
+    return (
+        isinstance(item, TrajectoryMessage)
+        and not item.path
+        and item.waypoints <= INLINE_WAYPOINTS
+    )
 
 
 def _decoded_on_arrival(size: int) -> bool:
@@ -839,7 +879,7 @@ def _undecoded_bytes(item: _TrajectoryItem) -> int:
     """A queued trajectory's weight: its size if it waits undecoded (the parse thread's
     work), else nothing (decoded on arrival: small)."""
     message = item[0]
-    return len(message) if isinstance(message, bytes) else 0
+    return len(message.data) if isinstance(message, _Raw) else 0
 
 
 def _rejected_event(ident: str | None, error: CommandError) -> dict[str, Any]:

@@ -27,7 +27,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
 
-from daemon.config import DaemonConfig
+from cdpr import ConfigError
+from daemon.config import DaemonConfig, check_workspace
 from daemon.process import wire
 from daemon.process.app import ignore_stop_signals
 from daemon.process.companion_link import OtherCodeError, RemoteLink, greeted
@@ -37,7 +38,7 @@ from daemon.process.ordinary import drop_inherited_realtime
 from daemon.process.recording import CanRecorder, TelemetryRecorder
 from daemon.process.recording_files import file_limits
 from daemon.process.systemd import Notifier, Progress, run_watchdog
-from daemon.service.planner import Planner
+from daemon.service.planner import Planner, path_timer
 from daemon.service.safety import Fault, Trigger
 
 if TYPE_CHECKING:
@@ -68,6 +69,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: companion: {exc}", file=sys.stderr)
         return wire.OTHER_CODE
     configure_logging(level)
+    try:  # compiles (or loads) the workspace check before the core's hang timer runs
+        check_workspace(config)
+    except ConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
     return asyncio.run(run(config, link))
 
 
@@ -104,7 +110,9 @@ async def run(config: DaemonConfig, link: RemoteLink) -> int:
             from daemon.interface.ros2_bridge import Ros2Bridge, ingress_limits
 
             limits = ingress_limits(config.ros2, config.zenoh)
-        interface = ZenohInterface(config.zenoh, planner, prefix, config.trajectory, limits)
+        interface = ZenohInterface(
+            config.zenoh, planner, prefix, config.trajectory, limits, path_timer(config)
+        )
         try:
             await interface.start()
         except SessionError as exc:  # e.g. the port is in use
@@ -171,6 +179,34 @@ def _status_updates(
     return on_event
 
 
+WORKSPACE_EVERY = 5.0  # s between the workspace scenes sent to the live view
+VIEW_VOXELS = 4000  # the boundary's cubes in the view (~0.2 MB a scene)
+
+
+def _workspace_view(config: DaemonConfig) -> list[tuple[str, bytes]]:
+    """The workspace scene (daemon.process.scene.workspace_scene): the saved map's
+    boundary at home if the map is still this config's (logged if not), the
+    environment's boxes and the workspace box."""
+    import numpy as np
+
+    from cdpr.workspace_map import shell
+    from daemon.config.workspace_files import stored_map
+    from daemon.process.scene import WORKSPACE_TOPIC, workspace_scene
+
+    saved, why = stored_map(config)
+    if saved is None:
+        log.info("live view: no workspace boundary (%s)", why)
+        voxels, margins, size = np.zeros((0, 3)), np.zeros(0), 0.0
+    else:
+        voxels, margins = shell(saved, 0, VIEW_VOXELS)
+        size = saved.step
+    boxes = [(b.name, b.lower, b.upper) for b in config.environment.boxes]
+    limits = config.pose_limits
+    anchors = config.robot.geometry.anchors
+    update = workspace_scene((limits.lower, limits.upper), voxels, margins, size, boxes, anchors)
+    return [(WORKSPACE_TOPIC, update.encode())]
+
+
 def _feed(
     config: DaemonConfig,
     link: RemoteLink,
@@ -189,10 +225,20 @@ def _feed(
     scene = SceneBuilder(config.robot, (limits.lower, limits.upper))
     throttle = Throttle(config.view.rate_hz)
     sinks = [sink for sink in (telemetry, view) if sink is not None]
+    workspace = _workspace_view(config)
+    shown = Throttle(1.0 / WORKSPACE_EVERY)  # the workspace to the view, now and then
+    recorded = telemetry is None  # the workspace to the recording, once
 
     def on_rows(rows: bytes) -> None:
+        nonlocal recorded
         origin = time.time_ns() - round(link.now() * 1e9)  # the core's clock -> wall clock
         state = link.state()
+        now = time.time_ns()
+        if not recorded:
+            telemetry.log_messages(workspace, now)
+            recorded = True
+        if view is not None and shown.due(link.now()):
+            view.log_messages(workspace, now)
         for record in records(rows, n):
             stamp = origin + round(record.t * 1e9)
             if telemetry is not None:

@@ -18,9 +18,10 @@ from __future__ import annotations
 
 import time
 from collections.abc import Awaitable, Callable, Generator
-from typing import Any, Literal, Protocol, TypeVar
+from typing import TYPE_CHECKING, Any, Literal, Protocol, TypeVar
 
 from cdpr.controller import tension_solver, wrench_check
+from cdpr.path import Path
 from cdpr.pose import Pose
 from cdpr.pose_limits import PoseLimits
 from cdpr.trajectory import (
@@ -28,18 +29,23 @@ from cdpr.trajectory import (
     Reference,
     Trajectory,
     TrajectoryError,
+    WrenchCheck,
     approach_steps,
     check_start_delay,
     goto_steps,
     stop_steps,
+    validate,
     validation_steps,
 )
-from daemon.config import DaemonConfig
+from daemon.config import DaemonConfig, check_workspace
 from daemon.service.api import UNNAMED, Claim, CommandError, rejection
 from daemon.service.calibration_state import OffsetStore, robot_identity
 from daemon.service.identify_payload import identify_payload
 from daemon.service.lease import HELD_BY, Kept, Leases
 from daemon.service.motion import MOVING, Motion, Motions
+
+if TYPE_CHECKING:
+    from cdpr.workspace_check import WorkspaceCheck
 
 STATUS_REPLIES = ("status", "enable", "disable", "brake", "reset")  # the core replies its status
 PLANNING_LEAD = 0.05  # s ahead of now a planned transition begins (planning takes time)
@@ -49,6 +55,45 @@ SETTLE_ATTEMPTS = 3  # plans of an approach that begins later, from the state it
 HOLD_ATTEMPTS = 6  # a hold is never refused for want of time: it tries with longer leads
 EventSink = Callable[[dict[str, Any]], None]
 Result = TypeVar("Result")
+
+
+def path_timer(config: DaemonConfig, margin: float | None = None) -> Callable[[Path], Trajectory]:
+    """How the daemon times a path's poses into a trajectory (cdpr.path.timing): within
+    its robot's tensions kept `margin` N inside their range (default workspace.margin)
+    and its trajectory limits.  The zenoh interface times `<prefix>/path` with it, and
+    `cdprd plan` shows what it gives."""
+    chosen = config.workspace.margin if margin is None else margin
+
+    def timed(path: Path) -> Trajectory:
+        # toppra, and the matplotlib it imports (1.7 s, log lines): at the first path
+        # timed, in the parse thread, never at the daemon's start
+        from cdpr.path.timing import Timing, time_path
+
+        return time_path(path, config.robot, config.trajectory, Timing(margin=chosen))
+
+    return timed
+
+
+def daemon_wrench_check(config: DaemonConfig) -> WrenchCheck:
+    """The wrench check the daemon validates trajectories with: the controller's model
+    and its tension distribution (cdpr.controller)."""
+    return wrench_check(config.robot, tension_solver(config.robot, config.controller))
+
+
+def validate_as_the_daemon(trajectory: Trajectory, config: DaemonConfig) -> None:
+    """Validate `trajectory` as the daemon validates a client's (rates, poses, cable
+    lengths, the wrench set, the workspace), for the robot at rest in its configured
+    limits (the Planner checks against the live ones, step by step between cycles):
+    TrajectoryError names the first problem.  `cdprd plan` shows its verdict."""
+    validate(
+        trajectory,
+        config.robot,
+        config.trajectory,
+        daemon_wrench_check(config),
+        config.reference_limits,
+        config.reference_lengths,
+        workspace=config.workspace_check,
+    )
 
 
 class CoreLink(Protocol):
@@ -107,15 +152,19 @@ class CoreLink(Protocol):
 
 class Planner:
     """Hold, goto and trajectories planned and validated here, the other commands
-    forwarded to the core; implements daemon.service.api.DaemonHandler."""
+    forwarded to the core; implements daemon.service.api.DaemonHandler.
+
+    Building one loads the compiled workspace check (daemon.config.check_workspace: about
+    a second the first time in a process): where a control cycle runs in the same
+    process (the tests' in-process stacks), build it, or call check_workspace, first."""
 
     def __init__(self, config: DaemonConfig, link: CoreLink) -> None:
         self.config = config
         self.robot = config.robot
         self.link = link
-        self._wrench_check = wrench_check(
-            config.robot, tension_solver(config.robot, config.controller)
-        )
+        self._wrench_check = daemon_wrench_check(config)
+        # the home pose in the workspace; compiles the check now, not in a validation
+        check_workspace(config)
         self._holds = 0  # hold commands so far: plans under way when one came are dropped
         # homing's offsets and the drives that lost theirs, kept in the state directory
         robot = config.robot
@@ -327,11 +376,22 @@ class Planner:
             pose_limits,
             length_limits,
             segments,
+            self._workspace(),
         )
         try:
             await self.link.run_steps(steps)
         except TrajectoryError as exc:
             raise rejection(what, exc) from None
+
+    def _workspace(self) -> WorkspaceCheck:
+        """The workspace check (daemon.config.workspace) for the platform as the core
+        last published it: the payload estimate's mass and centre of mass, else the
+        robot file's."""
+        check = self.config.workspace_check
+        payload = self.link.state().get("payload")
+        if not payload:
+            return check
+        return check.carrying(payload["mass"], payload["center_of_mass"])
 
     async def _plan_and_follow(
         self,
@@ -363,7 +423,7 @@ class Planner:
             except TrajectoryError as exc:
                 raise rejection(what, exc) from None
             if validate != "none":
-                begins = planned.waypoints[0].pose
+                begins = planned.knot(0).pose  # not .waypoints: all of them made
                 inside = self.config.reference_limits.widened_to(begins)
                 reach = self.config.reference_lengths.widened_to(
                     self.robot.cable_lengths(begins).tolist()

@@ -41,6 +41,10 @@ def test_plain_zenoh_client_drives_a_simulated_daemon(tmp_path: Path) -> None:
     data = yaml.safe_load(CONFIG.read_text())
     data["robot"] = str(ROOT / "config" / "robots" / "reference8.yaml")
     data["zenoh"]["listen"] = [f"tcp/127.0.0.1:{port}"]
+    # the zenoh client is the point: a clean-clone run braked on payload_limit when the
+    # inertia estimate's zz fell to half the file's within 0.3 s of this pure translation
+    # (an estimator fault that issue 35 owns, seen in the motion-owner test before)
+    data["controller"].setdefault("adaptation", {})["inertia"] = False
     config = tmp_path / "cdprd.yaml"
     config.write_text(yaml.safe_dump(data))
     proc = start_daemon(config, "--sim")

@@ -221,8 +221,14 @@ def test_a_hold_from_another_client_stops_identify_payload() -> None:
     B's hold stops it: A's command ends "preempted" naming the hold and B, A hears
     `motion_preempted`, the robot holds."""
 
+    # who owns the motion is the point, not the estimate: half a second of the flight's
+    # data under a full run's load gave an inertia estimate below half the file's in two
+    # full runs (payload_limit: a false brake the adaptation has yet to learn to avoid)
+    pid = {"kp": 100.0, "ki": 50.0, "kd": 20.0}  # the example's
+    controller = {"rate_hz": 500, "pid": pid, "adaptation": {"inertia": False}}
+
     async def scenario() -> None:
-        async with Stack(config_for("cia402")) as stack:
+        async with Stack(config_for("cia402", controller=controller)) as stack:
             planner = stack.planner
             events: list[dict] = []
             planner.subscribe(events.append)

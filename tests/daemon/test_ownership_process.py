@@ -15,7 +15,7 @@ import yaml
 
 from daemon.interface.client import CdprClient, RequestError
 from tests.loopback import free_port
-from tests.processes import CONFIG, PREFIX, ROOT, connect, finish, start_daemon, wait_status
+from tests.processes import CONFIG, PREFIX, ROOT, enabled_sim, wait_status
 
 pytestmark = [pytest.mark.timeout(150), pytest.mark.slow]
 
@@ -55,15 +55,8 @@ def daemon(tmp_path_factory: pytest.TempPathFactory) -> Iterator[int]:
     data["zenoh"]["listen"] = [f"tcp/127.0.0.1:{port}"]
     config = tmp_path_factory.mktemp("ownership") / "cdprd.yaml"
     config.write_text(yaml.safe_dump(data))
-    proc = start_daemon(config, "--sim")
-    try:
-        with connect(port, proc) as client:
-            wait_status(client, "idle", 30.0)
-            client.enable()
-            wait_status(client, "hold", 10.0)
+    with enabled_sim(config, port):
         yield port
-    finally:
-        finish(proc)
 
 
 def _client(port: int, name: str) -> CdprClient:

@@ -257,8 +257,9 @@ def test_long_paths_parse_in_the_interfaces_budgeted_thread_and_status_is_answer
     try:
         with served.session() as session:
             verdicts = Verdicts(session)
-            for k in range(PATHS):
-                session.put(PATH_KEY, long, attachment=attachment(1 + k))
+            for k in range(PATHS):  # blocking: a sender's full queue drops puts by default
+                block = zenoh.CongestionControl.BLOCK
+                session.put(PATH_KEY, long, attachment=attachment(1 + k), congestion_control=block)
             answered = [ask(session, "cmd/status")["ok"] for _ in range(10)]
             end = time.monotonic() + 20 * WAIT  # the budget: 1/4 of a core, on a loaded host
             while verdicts.count() < PATHS:
@@ -272,3 +273,37 @@ def test_long_paths_parse_in_the_interfaces_budgeted_thread_and_status_is_answer
     assert len(where) == PATHS
     assert {name.split("_")[0] for name, _ in where} == {"cdprd-trajectory-parse"}
     assert {hook for _, hook in where} == {"_Yielding"}
+
+
+# -- a Path without times is a path ----------------------------------------------------------
+
+
+@pytest.mark.parametrize("timed", [True, False])
+def test_a_path_whose_poses_carry_no_times_is_timed_by_the_daemon(timed: bool) -> None:
+    """A planner's nav_msgs/Path (every pose one stamp) is a path: with the daemon's
+    timer it reaches the handler timed within the tensions (from the first pose to the
+    last, as <prefix>/path would), without one it is rejected saying why."""
+    from daemon.config import load_config
+    from daemon.service.planner import path_timer
+    from tests.daemon.test_zenoh_paths import CONFIG
+
+    corner = [(0.0, HOME), (0.0, [0.2, 0.0, 1.25]), (0.0, [0.2, 0.2, 1.3])]
+    timer = path_timer(load_config(CONFIG)) if timed else None
+    served = Running(StandIn(), ros2=ROS2, timer=timer)
+    try:
+        with served.session() as session:
+            verdicts = Verdicts(session)
+            session.put(PATH_KEY, path(corner, IDENTITY), attachment=attachment(1))
+            wait_until(lambda: verdicts.count() == 1, "the verdict")
+    finally:
+        served.stop()
+    [verdict] = verdicts.items
+    handed = [c[1] for c in served.handler.calls if c[0] == "trajectory"]
+    if not timed:
+        assert verdict["event"] == "trajectory_rejected" and handed == [], verdict
+        assert "poses without times are a path" in json.dumps(verdict)
+        return
+    assert verdict["event"] == "trajectory_accepted", verdict
+    [trajectory] = handed
+    end = trajectory.sample(trajectory.end_time).pose.position
+    assert trajectory.duration > 0.5 and list(end) == pytest.approx([0.2, 0.2, 1.3])

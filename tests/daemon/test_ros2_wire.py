@@ -210,11 +210,11 @@ def _second(position: tuple[float, float, float]) -> list:
             r"waypoints\[1\]\.position\[2\]: inf is not a finite number",
             id="infinity",
         ),
-        pytest.param(
-            path_cdr([TWO[0], (0.0, (0, 0, 1.3))]),
+        pytest.param(  # (every pose at one time is no trajectory but a path: its tests)
+            path_cdr([*TWO, (0.5, (0, 0, 1.28))]),
             None,
             "rejected",
-            "waypoint 1: times_increasing",
+            "waypoint 2: times_increasing",
             id="times-not-increasing",
         ),
         pytest.param(

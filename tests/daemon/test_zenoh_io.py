@@ -120,7 +120,8 @@ class StandIn:
 class Running:
     """A ZenohInterface serving `handler` on its own event loop in a thread: with
     `settings`, or listening on a free loopback port with the `overrides`; with `ros2`,
-    the ROS 2 bridge on its session too, as the companion runs them."""
+    the ROS 2 bridge on its session too, as the companion runs them; `timer` times the
+    paths it takes."""
 
     def __init__(
         self,
@@ -128,6 +129,7 @@ class Running:
         settings: ZenohSettings | None = None,
         prefix: str = PREFIX,
         ros2: Ros2Settings | None = None,
+        timer: Callable[[Any], Trajectory] | None = None,
         **overrides: Any,
     ) -> None:
         if settings is None:
@@ -138,6 +140,7 @@ class Running:
         self.prefix = prefix
         self.ros2 = ros2
         self.handler = handler
+        self.timer = timer
         self.loop = asyncio.new_event_loop()
         self._ready = threading.Event()
         self._thread = threading.Thread(target=self.loop.run_until_complete, args=(self._run(),))
@@ -147,7 +150,9 @@ class Running:
     async def _run(self) -> None:
         self.loop_thread = threading.get_ident()
         limits = {} if self.ros2 is None else ingress_limits(self.ros2, self.settings)
-        self.interface = ZenohInterface(self.settings, self.handler, self.prefix, None, limits)
+        self.interface = ZenohInterface(
+            self.settings, self.handler, self.prefix, None, limits, self.timer
+        )
         self._stop = asyncio.Event()
         await self.interface.start()
         bridge = None
@@ -448,8 +453,8 @@ def test_hostile_input_is_refused_clearly_and_never_reaches_the_handler(
         raw = list(session.get(f"{PREFIX}/{key}", payload=payload, timeout=WAIT))
         replies = [json.loads(r.err.payload.to_bytes()) for r in raw if r.err is not None]
         assert len(replies) == len(raw)
-        # "*" reaches both the trajectory and the cmd/** queryables; trajectory/x nothing
-        assert len(replies) == {"*": 2, "trajectory/x": 0}.get(key, 1), key
+        # "*" reaches the trajectory, path and cmd/** queryables; trajectory/x nothing
+        assert len(replies) == {"*": 3, "trajectory/x": 0}.get(key, 1), key
         for reply in replies:
             assert reply["error"]["code"] == code, key
             assert words in reply["error"]["reason"], (key, reply["error"]["reason"])

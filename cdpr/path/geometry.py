@@ -1,0 +1,184 @@
+"""The geometric path of one motion (rest to rest): straight lines between the poses in
+a 6-D space q = (position, l theta), theta the rotation vector of R R0^T and l the robot's
+moment length (a radian counts as l metres of path), each corner rounded by a quintic
+that leaves and joins the lines with their direction and no curvature, so that q(s) is
+twice continuously differentiable in the path length s (what time-optimal
+parameterisation needs: q, q', q'').
+
+A blend of radius r starts r before the corner and ends r after it (r at most half of
+either line, so that blends never overlap); on it q(s) = H(tau), tau = (s - s0) / (2 r),
+the quintic Hermite with H(0), H(1) the two points, H'(0) = 2 r u_in, H'(1) = 2 r u_out,
+H''(0) = H''(1) = 0: |q'| is 1 at both ends and close to it between.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from cdpr.pose import Pose
+from cdpr.so3 import exp_so3, log_so3
+from cdpr.trajectory.core import TrajectoryError
+from cdpr.trajectory.rotation import angular_rates
+
+Array = NDArray[np.float64]
+
+_STRAIGHT = 1e-9  # |u_out - u_in| below this: the lines go on straight, no corner
+
+
+def _hermite(tau: Array, order: int) -> tuple[Array, Array, Array, Array]:
+    """The quintic Hermite basis for H(0), H'(0), H(1), H'(1) (zero H''), its `order`-th
+    derivative in tau."""
+    t = tau
+    if order == 0:
+        return (
+            1 - 10 * t**3 + 15 * t**4 - 6 * t**5,
+            t - 6 * t**3 + 8 * t**4 - 3 * t**5,
+            10 * t**3 - 15 * t**4 + 6 * t**5,
+            -4 * t**3 + 7 * t**4 - 3 * t**5,
+        )
+    if order == 1:
+        return (
+            -30 * t**2 + 60 * t**3 - 30 * t**4,
+            1 - 18 * t**2 + 32 * t**3 - 15 * t**4,
+            30 * t**2 - 60 * t**3 + 30 * t**4,
+            -12 * t**2 + 28 * t**3 - 15 * t**4,
+        )
+    return (
+        -60 * t + 180 * t**2 - 120 * t**3,
+        -36 * t + 96 * t**2 - 60 * t**3,
+        60 * t - 180 * t**2 + 120 * t**3,
+        -24 * t + 84 * t**2 - 60 * t**3,
+    )
+
+
+def path_coordinates(pose: Pose, origin: Array, length: float) -> Array:
+    """q = (position, l theta) of `pose`, theta the rotation vector of R origin^T and l
+    the moment `length` (module docstring)."""
+    return np.concatenate([pose.position, length * log_so3(pose.rotation @ origin.T)])
+
+
+class BlendedPath:
+    """q(s) through `poses` (one motion, rest to rest) with each interior corner rounded
+    by its `blends` entry (m; 0: none, allowed only where the lines go on straight), q in
+    the 6-D space of the module docstring with moment length `length` (m).  Callable as
+    toppra's geometric paths are: path(s, order) for s a float or an array."""
+
+    def __init__(self, poses: list[Pose], blends: list[float], length: float) -> None:
+        self.length = length
+        self.origin = poses[0].rotation
+        nodes = np.array([self._q(p) for p in poses])
+        # parts: (s0, s1, kind, data): kind 0 a line (start, unit), 1 a blend (A, V0, B, V1)
+        self._parts: list[tuple[float, float, int, tuple[Array, ...]]] = []
+        self._segments: list[tuple[int, ...]] = []  # the segments (their end points) of each
+        s, at = 0.0, nodes[0]
+        for i in range(1, len(nodes)):
+            step = nodes[i] - nodes[i - 1]
+            u_in = step / np.linalg.norm(step)
+            end = nodes[i]
+            r = 0.0
+            if i + 1 < len(nodes):
+                ahead = nodes[i + 1] - nodes[i]
+                u_out = ahead / np.linalg.norm(ahead)
+                if np.linalg.norm(u_out - u_in) > _STRAIGHT:
+                    half = 0.5 * min(np.linalg.norm(step), np.linalg.norm(ahead))
+                    r = min(blends[i], half)
+                    if not r > 0.0:
+                        raise ValueError(f"pose {i}: a corner without a blend inside a motion")
+                    end = nodes[i] - r * u_in
+            run = float(np.linalg.norm(end - at))
+            if run > 0.0:
+                self._parts.append((s, s + run, 0, (at, u_in)))
+                self._segments.append((i,))
+                s += run
+            if r > 0.0:
+                exit_ = nodes[i] + r * u_out
+                span = 2.0 * r
+                data = (end, span * u_in, exit_, span * u_out)
+                self._parts.append((s, s + span, 1, data))
+                self._segments.append((i, i + 1))
+                s += span
+                at = exit_
+            else:
+                at = end
+        self.s_end = s
+        self._starts = np.array([p[0] for p in self._parts])
+
+    def _q(self, pose: Pose) -> Array:
+        q = path_coordinates(pose, self.origin, self.length)
+        if np.linalg.norm(q[3:]) > 0.9 * np.pi * self.length:
+            raise TrajectoryError(
+                "path_rotation", "a motion turns the platform by nearly 180 deg or more"
+            )
+        return q
+
+    def segments(self, s: Array) -> list[tuple[int, ...]]:
+        """At each path length s, the segments the path is on (each named by the pose it
+        ends at): one on a line, the two it joins on a blend."""
+        which = np.clip(np.searchsorted(self._starts, s, side="right") - 1, 0, None)
+        return [self._segments[k] for k in which]
+
+    def parts(self) -> list[tuple[float, float, bool]]:
+        """The path's pieces in order: (s0, s1, True on a blend, False on a line)."""
+        return [(s0, s1, kind == 1) for s0, s1, kind, _ in self._parts]
+
+    @property
+    def dof(self) -> int:
+        return 6
+
+    @property
+    def path_interval(self) -> Array:
+        return np.array([0.0, self.s_end])
+
+    @property
+    def waypoints(self) -> None:
+        return None
+
+    def __call__(self, s: float | Array, order: int = 0) -> Array:
+        scalar = np.ndim(s) == 0
+        ss = np.clip(np.atleast_1d(np.asarray(s, dtype=float)), 0.0, self.s_end)
+        out = np.zeros((len(ss), 6))
+        which = np.clip(np.searchsorted(self._starts, ss, side="right") - 1, 0, None)
+        for k in np.unique(which):
+            mask = which == k
+            s0, s1, kind, data = self._parts[k]
+            local = ss[mask] - s0
+            if kind == 0:
+                start, unit = data
+                if order == 0:
+                    out[mask] = start + local[:, None] * unit
+                elif order == 1:
+                    out[mask] = unit
+            else:
+                span = s1 - s0
+                basis = _hermite(local / span, order)
+                q = sum(b[:, None] * d for b, d in zip(basis, data, strict=True))
+                out[mask] = q / span**order
+        return out[0] if scalar else out
+
+    def eval(self, s: float | Array) -> Array:
+        return self(s, 0)
+
+    def evald(self, s: float | Array) -> Array:
+        return self(s, 1)
+
+    def evaldd(self, s: float | Array) -> Array:
+        return self(s, 2)
+
+    def poses(self, s: Array) -> tuple[Array, Array, Array, Array, Array, Array]:
+        """At each path length s: positions (N, 3), rotations (N, 3, 3), and per unit s
+        the linear and angular rates p', w_s and their derivatives p'', w_ss (world
+        frame; the platform's twist is (p', w_s) s', its accel (p', w_s) s'' + (p'',
+        w_ss) s'^2)."""
+        q, dq, ddq = self(s, 0), self(s, 1), self(s, 2)
+        theta, dtheta, ddtheta = (x[:, 3:] / self.length for x in (q, dq, ddq))
+        rotations = np.array([exp_so3(th) @ self.origin for th in theta])
+        omega, omega_dot = angular_rates(theta.T, dtheta.T, ddtheta.T)
+        return (
+            q[:, :3],
+            rotations,
+            dq[:, :3],
+            np.array(omega).T,
+            ddq[:, :3],
+            np.array(omega_dot).T,
+        )
