@@ -43,7 +43,7 @@ from timing import SimulatorTime
 from cdpr import Pose
 from cdpr.trajectory.core import Curve
 from daemon.cli.simulated import InProcessSimulator
-from daemon.config import DaemonConfig, load_config
+from daemon.config import DaemonConfig, check_workspace, load_config
 from daemon.service.planner import LocalLink, Planner
 from daemon.service.safety import SafetyState
 from daemon.service.service import Service
@@ -235,6 +235,7 @@ def measure(protocol: str, rate_hz: float, seconds: float, top: int) -> dict[str
     """Enable, settle, fly `seconds` plain (the service's own figures), then `seconds`
     with every part wrapped (or, with `top`, under cProfile)."""
     config = profile_config(protocol, rate_hz)
+    check_workspace(config)  # the planner's compiled check, loaded before the cycle runs
     sim = InProcessSimulator(config)
     simulator = SimulatorTime(sim.runner)
     out: dict[str, Any] = {"rate_hz": rate_hz, "protocol": protocol}

@@ -14,9 +14,12 @@ from daemon.cli import (
     client_cmd,
     completion,
     demo_cmd,
+    plan_cmd,
     run_cmd,
     tune_cmd,
+    workspace_cmd,
 )
+from daemon.config import check_workspace
 from daemon.config.watchdog_drift import FORMULA
 from drivers.cia402.profile import plans as drive_plans
 from sim_bus.bus.cycle_frames import bus_cycles
@@ -34,6 +37,7 @@ def check_config(path: str) -> int:
 
             config, gains = run_cmd.load_for_run(path)
             simulated_robot(config, sim_section(config))
+            check_workspace(config)
             robot = config.robot
         else:
             config, gains, robot = None, None, Robot.from_yaml(path)
@@ -89,6 +93,7 @@ def check_config(path: str) -> int:
         )
         if gains is not None:
             print(gains.summary())
+        print(workspace_cmd.summary_line(config))
         prefix = config.zenoh.key_prefix(robot.name)
         listen = ", ".join(config.zenoh.listen_endpoints)
         print(f"zenoh: prefix {prefix}, listening on {listen}")
@@ -110,6 +115,8 @@ def command_parser() -> argparse.ArgumentParser:
     demo_cmd.add_parser(sub)
     tune_cmd.add_parser(sub)
     calibrate_cmd.add_parser(sub)
+    workspace_cmd.add_parser(sub)
+    plan_cmd.add_parser(sub)
     completion.add_parser(sub, parser)
     return parser
 
@@ -125,5 +132,7 @@ def main(argv: list[str] | None = None) -> int:
         return analyze_cmd.run(args)
     if args.command == "check-config":
         return check_config(args.file)
+    if args.command == "workspace":
+        return workspace_cmd.run(args)
     parser.error(f"unknown command {args.command}")
     return 2

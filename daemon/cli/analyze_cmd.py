@@ -46,7 +46,7 @@ from daemon.cli.run_cmd import report
 if TYPE_CHECKING:
     from tuning.workspace_analysis import Analysis, PoseAnalysis, PredictedMode, Progress
 
-PLOTS = ("modal_masses.png", "modes_vs_mass.png", "robot-3d.png")
+PLOTS = ("modal_masses.png", "modes_vs_mass.png", "robot-3d.png", "workspace.png")
 
 
 def add_parser(subparsers: Any) -> None:
@@ -78,7 +78,9 @@ def run(args: argparse.Namespace) -> int:
         robot, spec, args.grid, args.shrink, progress=_bar() if show else None, force_lag=force_lag
     )
     try:
-        plots = write_plots(analysis, Path(args.plot), robot, spec) if args.plot else []
+        plots = (
+            write_plots(analysis, Path(args.plot), robot, spec, args.config) if args.plot else []
+        )
     except OSError as exc:
         print(f"error: cannot write plots to {args.plot}: {exc.strerror or exc}", file=sys.stderr)
         return 1
@@ -339,10 +341,13 @@ def _clean(value: Any) -> Any:
 # -- plots --------------------------------------------------------------------------
 
 
-def write_plots(a: Analysis, directory: Path, robot: Robot, spec: ControllerSpec) -> list[str]:
+def write_plots(
+    a: Analysis, directory: Path, robot: Robot, spec: ControllerSpec, config: str
+) -> list[str]:
     """PNG files in `directory` (created): modal masses over the grid; poles and
     settling time against the effective mass with the grid's modal-mass range marked;
-    the robot in 3-D at home with its static tensions."""
+    the robot in 3-D at home with its static tensions; the workspace's slices at home
+    (`cdprd workspace` on a 10 cm grid, from the file at `config`)."""
     import matplotlib
 
     from tuning.robot_plot import write_robot_3d
@@ -416,6 +421,11 @@ def write_plots(a: Analysis, directory: Path, robot: Robot, spec: ControllerSpec
     home = static_tensions(robot, tension_solver(robot, spec), robot.home)
     title = f"{a.robot} at home: static tensions"
     write_robot_3d(names[2], robot, robot.home, home, title=title)
+    from daemon.cli.workspace_cmd import COARSE_STEP, coarse_map
+    from tuning.workspace_map import plot_slices
+
+    title = f"{a.robot}: capacity margin at home ({COARSE_STEP * 100:g} cm grid)"
+    plot_slices(coarse_map(config), names[3], title)
     return names
 
 

@@ -39,7 +39,7 @@ def bash_completion(parser: argparse.ArgumentParser) -> str:
         "# bash completion for cdprd, written by `cdprd completion bash`",
         "_cdprd() {",
         '    local cur="${COMP_WORDS[COMP_CWORD]}" opts=""',
-        "    if [ \"$COMP_CWORD\" -eq 1 ]; then",
+        '    if [ "$COMP_CWORD" -eq 1 ]; then',
         f'        COMPREPLY=($(compgen -W "{words}" -- "$cur"))',
         "        return",
         "    fi",

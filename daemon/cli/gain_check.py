@@ -151,4 +151,3 @@ def law(spec: ControllerSpec) -> str:
     return f"pid kp {gains.kp:g} ki {gains.ki:g} kd {gains.kd:g}" + (
         f" filter {gains.derivative_filter:g} s" if gains.derivative_filter else ""
     )
-

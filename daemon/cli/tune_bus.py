@@ -189,8 +189,9 @@ class BusExperiment:
             return
         self.mode = "braked"
         length = self.driver.feedback[0].length
-        self._send(self.driver.brake([length if math.isfinite(length) else math.nan],
-                                     self.brake_mode))
+        self._send(
+            self.driver.brake([length if math.isfinite(length) else math.nan], self.brake_mode)
+        )
         self._braked_at = time.monotonic()
         if self.port.lost is not None:
             self._finish()

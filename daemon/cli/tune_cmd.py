@@ -316,9 +316,7 @@ async def _on_bus(
     robot, drives = config.robot, config.drives
     one = drives.single(request.drive)
     driver = protocol_driver(one, [drives.scalings_for(robot)[request.drive]])
-    experiment.plan = dataclasses.replace(
-        experiment.plan, stale_cycles=config.safety.stale_cycles
-    )
+    experiment.plan = dataclasses.replace(experiment.plan, stale_cycles=config.safety.stale_cycles)
     if sim:
         from daemon.cli.simulated import InProcessSimulator
 

@@ -46,7 +46,7 @@ from daemon.service.homing import LengthOffsets
 from daemon.service.planner import PLANNING_LEAD
 from daemon.service.rest_check import judge
 from daemon.service.safety import Fault, SafetyMonitor, SafetyState, StateMachine, Trigger
-from daemon.service.trusted_lengths import Implausible, TrustedLengths
+from daemon.service.trusted_lengths import Implausible, TrustedLengths, cable_accel_bound
 from drivers.base import ActuatorDriver, DriverError, Feedback, FrameError, Timing
 from drivers.bus import CAN_ERR_BUSOFF
 from drivers.clock import DeadlineTimer, PeriodicTimer
@@ -124,6 +124,9 @@ class Service:
             tolerance=config.safety.feedback_tolerance,
             slack=2.0 * self.period + 0.01,
             rest_tensions=static_tensions(robot, self.controller.tension, robot.home),
+            max_accel=cable_accel_bound(
+                config.trajectory, robot.geometry.attachments, min(config.reference_lengths.lower)
+            ),
             stretch=self.controller.stretch,
         )
         # the length offsets in force (homing, calibration) and whether each still holds
@@ -752,8 +755,11 @@ class Service:
         (daemon.service.rest_check); None if they can, or if the drives measure no force
         (the FK residual is then the only check, as the log says)."""
         if not self.driver.measures_force:
-            log.warning("%s: the drives measure no force: the pose is not checked by the "
-                        "tensions at rest, only by the FK residual", what)
+            log.warning(
+                "%s: the drives measure no force: the pose is not checked by the "
+                "tensions at rest, only by the FK residual",
+                what,
+            )
             return None
         end = self.now() + REST_SETTLE
         while True:  # the hold takes the load from the brake: the cables settle first

@@ -157,7 +157,7 @@ def test_grid_flags_the_infeasible_points(capsys: pytest.CaptureFixture[str]) ->
 def test_plot_writes_non_empty_pngs(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     code, out, _ = analyze(capsys, "--config", REFERENCE8, "--grid", "2", "--plot", str(tmp_path))
     assert code == 0
-    for name in ("modal_masses.png", "modes_vs_mass.png", "robot-3d.png"):
+    for name in ("modal_masses.png", "modes_vs_mass.png", "robot-3d.png", "workspace.png"):
         data = (tmp_path / name).read_bytes()
         assert data.startswith(b"\x89PNG") and len(data) > 10_000
         assert f"wrote {tmp_path / name}" in out
