@@ -12,6 +12,18 @@ its durations come to an independent time-optimal bound.
   (which the convex form cannot hold): vertical_lift and edge_move (the standard
   trajectories' end poses, rest to rest), blended_corner (two sides of a square, 5 cm
   blend).  Within 3 % is the goal.
+- Flown (--flown): the standard paths (figure_eight, vertical_lift, edge_move: the
+  standard trajectories' poses without their times, corners blended 5 cm; gcode_200: a
+  200-segment star part, 1 cm blends) timed as the daemon times a path (path_timer:
+  reference8-cia402, its workspace margin) and flown in lock-step by the daemon's
+  controller at 500 Hz on that config's simulated plant (the file's robot with 10 um
+  encoder counts, 1 ms plant step: a robot calibrated to its file):
+  tension_min_n.<path> / tension_max_n.<path> (the true tensions, against t_min and
+  force_max in tension_range_n), tracking_rms_mm.<path> (true position against the
+  reference), fault.<path> (empty when the controller never gave up), and
+  speedup.<path>: the duration of the best constant-speed timing that the daemon's
+  validation accepts (a trapezoid in path speed: the fastest cruise found by bisection,
+  for the best of three ramps) over the planned one.
 """
 
 from __future__ import annotations
@@ -24,10 +36,19 @@ import time
 import numpy as np
 from timing import REFERENCE8
 
+from cdpr.controller import ParallelController
 from cdpr.path import Path, PathPoint, parse_gcode, parse_path
+from cdpr.path.geometry import BlendedPath
 from cdpr.path.timing import Timing, time_path
 from cdpr.pose import Pose
+from cdpr.trajectory import Trajectory, TrajectoryError
+from cdpr.trajectory.core import Waypoint
+from cdpr.wrench_margin import wrench_length
+from daemon.cli.simulated import sim_section
 from daemon.config import load_config
+from daemon.service.planner import path_timer, validate_as_the_daemon
+from tuning.scenarios import STANDARD_SET
+from tuning.tracking import run_tracking
 
 CONFIG = REFERENCE8.parent.parent / "reference8-cia402.yaml"
 MARGIN = 5.0
@@ -90,16 +111,124 @@ def duration_ratios(config) -> dict[str, float]:
     return out
 
 
+def standard_paths(config) -> dict[str, Path]:
+    """The flown paths (module docstring)."""
+    robot = config.robot
+    paths = {}
+    for name in ("figure_eight", "vertical_lift", "edge_move"):
+        poses = [w.pose for w in STANDARD_SET[name](robot).waypoints]
+        blends = [0.0] + [0.05] * (len(poses) - 2) + [0.0]
+        paths[name] = Path(tuple(PathPoint(p, blend=b) for p, b in zip(poses, blends, strict=True)))
+    paths["gcode_200"] = parse_gcode(star(200), robot.home, 0.01, config.trajectory)
+    return paths
+
+
+def star(segments: int) -> str:
+    """A G-code star about home: `segments` moves between radii 150 and 80 mm."""
+    rows = ["G21 G91 F30000", "G1 X150 Y0"]
+    point = np.array([150.0, 0.0])
+    for k in range(1, segments):
+        radius = 150.0 if k % 2 == 0 else 80.0
+        angle = 2.0 * np.pi * k / 20.0
+        target = radius * np.array([np.cos(angle), np.sin(angle)])
+        dx, dy = target - point
+        rows.append(f"G1 X{dx:.3f} Y{dy:.3f}")
+        point = target
+    return "\n".join(rows)
+
+
+def constant_speed(path: Path, length: float, speed: float, accel: float) -> Trajectory:
+    """`path` (one motion) flown at path speed `speed` (m/s of path), reached and left at
+    path acceleration `accel`: a trapezoid in path speed, sampled every 1 cm of path."""
+    geometry = BlendedPath([p.pose for p in path.points], [p.blend for p in path.points], length)
+    total = geometry.s_end
+    speed = min(speed, float(np.sqrt(accel * total)))  # a triangle when it never cruises
+    ramp_s, ramp_t = speed**2 / (2.0 * accel), speed / accel
+    cruise_t = (total - 2.0 * ramp_s) / speed
+    s = np.linspace(0.0, total, max(int(np.ceil(total / 0.01)), 2) + 1)
+    t = np.where(
+        s < ramp_s,
+        np.sqrt(2.0 * s / accel),
+        np.where(
+            s <= total - ramp_s,
+            ramp_t + (s - ramp_s) / speed,
+            2.0 * ramp_t + cruise_t - np.sqrt(2.0 * np.maximum(total - s, 0.0) / accel),
+        ),
+    )
+    sd = np.minimum(np.minimum(accel * t, speed), accel * (t[-1] - t))
+    sdd = np.where(s < ramp_s, accel, np.where(s <= total - ramp_s, 0.0, -accel))
+    positions, rotations, p1, w1, p2, w2 = geometry.poses(s)
+    v, a = np.hstack([p1, w1]), np.hstack([p2, w2])
+    last = len(s) - 1
+    waypoints = [
+        Waypoint(
+            float(t[i]),
+            Pose.from_matrix(positions[i], rotations[i]),
+            np.zeros(6) if i in (0, last) else v[i] * sd[i],
+            np.zeros(6) if i in (0, last) else v[i] * sdd[i] + a[i] * sd[i] ** 2,
+        )
+        for i in range(len(s))
+    ]
+    return Trajectory(waypoints)
+
+
+def best_constant_speed(path: Path, config) -> float:
+    """The shortest duration of a constant-speed timing of `path` that the daemon's
+    validation accepts (module docstring)."""
+    length = wrench_length(config.robot.geometry.attachments)
+    best = np.inf
+    for share in (0.25, 0.5, 1.0):
+        accel = share * config.trajectory.linear_accel
+        lo, hi = 0.0, 2.0 * config.trajectory.linear_speed
+        for _ in range(14):
+            mid = 0.5 * (lo + hi)
+            try:
+                validate_as_the_daemon(constant_speed(path, length, mid, accel), config)
+                lo = mid
+            except TrajectoryError:
+                hi = mid
+        if lo > 0.0:
+            best = min(best, constant_speed(path, length, lo, accel).duration)
+    return best
+
+
+def flown(config) -> dict[str, dict]:
+    """The flown keys (module docstring)."""
+    robot, spec = config.robot, config.controller
+    plant = sim_section(config).plant
+    timer = path_timer(config)
+    out: dict[str, dict] = {
+        k: {} for k in ("tension_min_n", "tension_max_n", "tracking_rms_mm", "fault", "speedup")
+    }
+    out["tension_range_n"] = {
+        "t_min": float(min(robot.t_min)),
+        "force_max": float(min(robot.force_max)),
+    }
+    for name, path in standard_paths(config).items():
+        trajectory = timer(path)
+        validate_as_the_daemon(trajectory, config)
+        run = run_tracking(robot, trajectory, ParallelController(robot, spec), plant, spec.rate_hz)
+        out["tension_min_n"][name] = round(run.min_tension, 2)
+        out["tension_max_n"][name] = round(run.max_tension, 2)
+        out["tracking_rms_mm"][name] = round(run.rms_mm, 4)
+        out["fault"][name] = run.fault
+        out["speedup"][name] = round(best_constant_speed(path, config) / trajectory.duration, 3)
+    return out
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--json", action="store_true")
     parser.add_argument("--runs", type=int, default=5)
     parser.add_argument("--no-ratios", action="store_true", help="skip the convex bounds")
+    parser.add_argument("--flown", action="store_true", help="fly the standard paths too")
     args = parser.parse_args()
     config = load_config(CONFIG)
     result = {"plan_ms": plan_ms(config, args.runs)}
     if not args.no_ratios:
         result["duration_ratio"] = duration_ratios(config)
+    if args.flown:
+        result.update(flown(config))
     if args.json:
         print(json.dumps(result))
     else:

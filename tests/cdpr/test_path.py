@@ -16,8 +16,9 @@ from cdpr.path.timing import Timing, time_path
 from cdpr.pose import Pose
 from cdpr.robot import Robot
 from cdpr.trajectory import Trajectory, TrajectoryError, TrajectoryLimits, Waypoint
-from daemon.service.planner import validate_as_the_daemon
+from daemon.service.planner import path_timer, validate_as_the_daemon
 from tests.daemon_stack import config_for
+from tuning.scenarios import STANDARD_SET
 
 Q = {"w": 1.0, "x": 0.0, "y": 0.0, "z": 0.0}
 
@@ -206,6 +207,25 @@ def test_a_long_blended_path_stays_within_the_acceleration_limit(cia402) -> None
     accels = [np.linalg.norm(w.accel[:3]) for w in samples(trajectory, 20_000)]
     assert max(accels) <= cia402.trajectory.linear_accel
     validate_as_the_daemon(trajectory, cia402)
+
+
+@pytest.mark.parametrize("name", ["figure_eight", "vertical_lift", "edge_move"])
+def test_the_standard_paths_timed_as_the_daemon_times_them_pass_its_validation(
+    cia402, name: str
+) -> None:
+    """The standard trajectories' poses without their times, corners blended 5 cm, timed
+    by the daemon's own path timer: its validation accepts them.  At the full limits the
+    quintics between grid points went 0.1-0.3 % over the speed limit and 4-15 % over the
+    acceleration limit on blends (refused: the daemon would have refused its own timing),
+    and the figure-eight's close poses put grid points less than a trajectory's shortest
+    segment apart (a times_increasing error)."""
+    poses = [w.pose for w in STANDARD_SET[name](cia402.robot).waypoints]
+    blends = [0.0] + [0.05] * (len(poses) - 2) + [0.0]
+    path = Path(tuple(PathPoint(p, blend=b) for p, b in zip(poses, blends, strict=True)))
+    trajectory = path_timer(cia402)(path)
+    validate_as_the_daemon(trajectory, cia402)
+    speeds = [np.linalg.norm(w.twist[:3]) for w in samples(trajectory, 20_000)]
+    assert max(speeds) <= cia402.trajectory.linear_speed
 
 
 def test_the_speed_cap_holds_on_its_segment_and_is_reached(cia402) -> None:
