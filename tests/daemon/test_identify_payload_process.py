@@ -30,7 +30,7 @@ from tests.processes import (
     wait_status,
 )
 
-pytestmark = [pytest.mark.timeout(150), pytest.mark.slow]
+pytestmark = [pytest.mark.timeout(150), pytest.mark.slow, pytest.mark.host_timing]
 
 
 def test_identify_payload_from_the_command_line(tmp_path: Path) -> None:
