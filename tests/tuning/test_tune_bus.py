@@ -120,6 +120,7 @@ def check_identified(meter: StealMeter, model: dict, lag_tolerance: float) -> No
 
 
 @pytest.mark.slow  # real-time experiments, 10-20 s each
+@pytest.mark.host_timing
 def test_tune_identifies_a_winch_over_the_bus_in_real_time(tmp_path: Path) -> None:
     sim_config, data = configs(tmp_path, 0.0)
     sim, port, channel = serve_simulator(sim_config)
@@ -167,6 +168,7 @@ def test_a_slack_cable_over_the_bus_brakes_and_says_why(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow  # real-time experiments, 10-20 s each
+@pytest.mark.host_timing
 def test_tune_sim_runs_in_real_time_on_the_in_process_simulator(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
