@@ -68,6 +68,20 @@ class Stack:
             await asyncio.sleep(0.002)
         return time.monotonic() - start
 
+    async def finish(self, reply: dict, timeout: float = 10.0) -> None:
+        """Wait until the trajectory of the accepted `reply` has ended and the robot holds
+        again.  Not the state right after the reply: a planned start more than the
+        planning lead ahead is scheduled, and the robot holds until it comes."""
+        service = self.service
+        assert reply["accepted"], reply
+
+        def ended() -> bool:
+            tracking = service.machine.state is SafetyState.TRACKING
+            return service.now() >= reply["end"] and not tracking
+
+        await self.until(ended, timeout)
+        assert service.machine.state is SafetyState.HOLD, service.machine.fault
+
     async def watch(self, duration: float) -> tuple[np.ndarray, float]:
         """Sample the true platform position and the lowest cable tension for `duration`
         seconds of simulated time (a simulator slowed by a busy host shows the same

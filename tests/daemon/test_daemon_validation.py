@@ -326,9 +326,7 @@ def test_enabled_outside_the_margin_it_may_move_back_in_but_not_further_out() ->
             err = await _refused(stack, stack.planner.submit_trajectory(trajectory, None))
             assert (err.details["limit"], err.details["waypoint"]) == ("workspace_min", 0)
             reply = await stack.planner.command("goto", {"pose": _home(config)})
-            assert reply["accepted"]
-            await stack.until(lambda: service.machine.state is SafetyState.HOLD, 3.0)
-            assert service.machine.fault is None
+            await stack.finish(reply)
 
     run(scenario())
 

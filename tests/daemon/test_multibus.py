@@ -221,9 +221,10 @@ async def goto_reading(stack: Stack, spies: dict[str, Spy], offset: list[float])
     0.3 s longer (at most 10 s): how far (mm) the platform ended from the target."""
     home, service = stack.service.config.robot.home, stack.service
     target = Pose(home.position + np.array(offset), home.quaternion)
-    await stack.planner.command("goto", {"pose": target})
+    reply = await stack.planner.command("goto", {"pose": target})
+    assert reply["accepted"], reply
     for _ in range(200):
-        if service.machine.state is SafetyState.HOLD:
+        if service.now() >= reply["end"] and service.machine.state is not SafetyState.TRACKING:
             break
         await read_spies(spies, 0.05)
     await read_spies(spies, 0.3)
