@@ -7,8 +7,10 @@ device and frame faults on a schedule (or device faults typed on standard input 
 `--fault-input`, one `KIND:CABLE` per line), and prints the bus load every few seconds.
 `--truth-log FILE` writes the platform's TRUE pose (the plant's, not what the drives
 report) as one JSON line every TRUTH_PERIOD s, flushed at once, for tests and
-experiments that must see what really moved: {"t": simulated s, "position": [x, y, z],
-"quaternion": {"w", "x", "y", "z"}, "lowest_tension": N}.
+experiments that must see what really moved: {"t": simulated s, "monotonic": that instant
+on this host's monotonic clock (s), "position": [x, y, z], "quaternion": {"w", "x", "y",
+"z"}, "lowest_tension": N, "tensions": [N, ...]}.  `--bus-fd` runs it on inherited socket
+pairs (sim_bus.bus.pairbus) instead of the config's buses: `cdprd demo`'s simulator.
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ import json
 import logging
 import os
 import signal
+import socket
 import sys
 from collections.abc import Callable
 from typing import TextIO
@@ -29,6 +32,7 @@ import can
 from cdpr import ConfigError
 from sim_bus.bus.busload import BusLoadMeter
 from sim_bus.bus.frame_faults import FaultyBus, parse_frame_faults
+from sim_bus.bus.pairbus import PairBus
 from sim_bus.bus.socketcand import SocketcandServer
 from sim_bus.config import SimSetup, load_sim_setup
 from sim_bus.runner import SimulatorRunner
@@ -107,6 +111,15 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--serve-socketcand", type=parse_address, metavar="HOST:PORT")
     parser.add_argument(
+        "--bus-fd",
+        type=int,
+        action="append",
+        default=[],
+        metavar="FD",
+        help="an inherited end of a socket pair (sim_bus.bus.pairbus) as the bus, in place "
+        "of the config's: one per bus of the config's can section, in its order",
+    )
+    parser.add_argument(
         "--fault",
         type=parse_device_fault,
         action="append",
@@ -166,10 +179,15 @@ async def simulate(setup: SimSetup, args: argparse.Namespace) -> int:
             "--serve-socketcand / sim.serve_socketcand serves one bus; can: lists "
             f"{len(setup.buses)}"
         )
+    if args.bus_fd and (address is not None or len(args.bus_fd) != len(setup.buses)):
+        raise ConfigError(
+            f"--bus-fd: {len(args.bus_fd)} given for the config's {len(setup.buses)} buses"
+            + (", and a pair bus is not served over socketcand" if address is not None else "")
+        )
     device: dict[str, can.BusABC] = {}
     try:
-        for c in setup.buses:
-            bus = c.open()
+        for k, c in enumerate(setup.buses):
+            bus = pair_end(args.bus_fd[k], c.channel) if args.bus_fd else c.open()
             device[c.bus_name] = FaultyBus(bus, faults) if faults.named_rules() else bus
     except BaseException:
         for bus in device.values():
@@ -205,7 +223,7 @@ async def simulate(setup: SimSetup, args: argparse.Namespace) -> int:
             fault_input = FaultInput(robot, runner, sys.stdin.fileno())
             loop.add_reader(sys.stdin.fileno(), fault_input.on_readable)
         if args.truth_log:
-            truth = asyncio.create_task(log_truth(robot, args.truth_log, stop))
+            truth = asyncio.create_task(log_truth(runner, args.truth_log, stop))
         if args.duration:
             loop.call_later(args.duration, stop.set)
         while not stop.is_set():
@@ -234,18 +252,21 @@ async def simulate(setup: SimSetup, args: argparse.Namespace) -> int:
             bus.shutdown()
 
 
-async def log_truth(robot: VirtualRobot, out: TextIO, stop: asyncio.Event) -> None:
+async def log_truth(runner: SimulatorRunner, out: TextIO, stop: asyncio.Event) -> None:
     """--truth-log: the plant's pose every TRUTH_PERIOD s until `stop`."""
-    plant = robot.plant
+    plant = runner.robot.plant
     with out:
         while not stop.is_set():
             pose = plant.pose
             w, x, y, z = pose.quaternion.tolist()
+            tensions = plant.tensions
             line = {
                 "t": plant.time,
+                "monotonic": runner.monotonic(plant.time),
                 "position": pose.position.tolist(),
                 "quaternion": {"w": w, "x": x, "y": y, "z": z},
-                "lowest_tension": float(plant.tensions.min()),
+                "lowest_tension": float(tensions.min()),
+                "tensions": tensions.tolist(),
             }
             out.write(json.dumps(line) + "\n")
             out.flush()
@@ -278,6 +299,18 @@ class FaultInput:
             self._runner.at(self._runner.t, fault_action(self._robot, kind, cable))
         except (argparse.ArgumentTypeError, ConfigError) as exc:
             print(f"error: {exc}", file=sys.stderr, flush=True)
+
+
+def pair_end(fd: int, channel: str) -> PairBus:
+    """--bus-fd: the inherited socket `fd` as the bus `channel` (ConfigError if it is none)."""
+    try:
+        sock = socket.socket(fileno=fd)
+    except OSError as exc:
+        raise ConfigError(f"--bus-fd {fd}: not an open socket ({exc.strerror})") from None
+    if sock.type != socket.SOCK_STREAM:
+        sock.detach()
+        raise ConfigError(f"--bus-fd {fd}: not a stream socket pair's end")
+    return PairBus(sock, channel)
 
 
 def _address(text: str | None) -> tuple[str, int] | None:

@@ -73,6 +73,10 @@ class SimulatorRunner:
     def t(self) -> float:
         return time.monotonic() - self._t0
 
+    def monotonic(self, t: float) -> float:
+        """Simulated time `t` on this host's monotonic clock."""
+        return self._t0 + t
+
     def start(self) -> None:
         loop = asyncio.get_running_loop()
         self._loop = loop

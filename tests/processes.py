@@ -7,39 +7,24 @@ from __future__ import annotations
 import contextlib
 import json
 import math
-import os
 import re
 import signal
 import subprocess
 import sys
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 import yaml
 
+from daemon.cli.simulated import SIMULATOR_PRIORITY, realtime_child, simulator_environment
 from daemon.interface.client import CdprClient, UnreachableError
 
 ROOT = Path(__file__).resolve().parent.parent
 CONFIG = ROOT / "config" / "reference8-cia402.yaml"
 PREFIX = "cdpr/reference8"
 ANNOUNCED = re.compile(r"serving socketcand on 127\.0\.0\.1:(\d+) channel (\S+)")
-
-
-SIMULATOR_PRIORITY = 40  # below the daemon core's default realtime.priority (50)
-
-
-def realtime_child(priority: int) -> Callable[[], None]:
-    """preexec_fn: SCHED_FIFO at `priority` where permitted (root, or CAP_SYS_NICE), so
-    that a simulated drive, like a real one on its own processor, answers whatever else
-    loads the host; ordinary scheduling where refused."""
-
-    def apply() -> None:
-        with contextlib.suppress(PermissionError, OSError):
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
-
-    return apply
 
 
 def serve_simulator(
@@ -61,6 +46,7 @@ def serve_simulator(
         stderr=stderr,
         text=True,
         preexec_fn=realtime_child(priority),
+        env=simulator_environment(),
     )
     line = ""
     for _ in range(20):

@@ -1,10 +1,13 @@
-"""`cdprd demo`: simulator + daemon in one process, the robot flown over zenoh.
+"""`cdprd demo`: the daemon and its simulator, the robot flown over zenoh.
 
-The simulator (reference8, eight CiA 402 drives by default) runs on the in-process
-loop bus; the daemon starts held, and a zenoh client on loopback — the same client
-module a planner uses — enables it and sends a figure-eight with a ±10° wobble.  At
-the end it prints the tracking error of the SIMULATED platform (truth, not the
-daemon's estimate), the cable tensions and the cycle timing, and optionally plots them.
+The simulator (reference8, eight CiA 402 drives by default) runs in a process of its
+own on socket pairs (daemon.cli.simulated.ProcessSimulator: like real drives, it never
+takes the control cycle's CPU); the daemon starts held, and a zenoh client on loopback
+— the same client module a planner uses — enables it and sends a figure-eight with a
+±10° wobble.  At the end it prints the tracking error of the SIMULATED platform (truth,
+not the daemon's estimate: the simulator's true pose every 20 ms against the reference
+the controller followed at that instant), the cable tensions and the cycle timing, and
+optionally plots them.
 Like `analyze`, this command imports sim_bus (the documented exception, DESIGN §2).
 """
 
@@ -12,7 +15,9 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import bisect
 import json
+import os
 import socket
 import sys
 from collections.abc import Callable
@@ -39,7 +44,7 @@ DEFAULT_CONFIG = Path(__file__).resolve().parents[2] / "config" / "reference8-ci
 def add_parser(sub: argparse._SubParsersAction) -> None:
     demo = sub.add_parser(
         "demo",
-        help="simulator + daemon in one process: enable and fly a figure-eight over zenoh",
+        help="the daemon and its simulator: enable and fly a figure-eight over zenoh",
         description=__doc__,
     )
     demo.add_argument("--config", default=str(DEFAULT_CONFIG), help="daemon config YAML")
@@ -56,7 +61,7 @@ def run(args: argparse.Namespace) -> int:
     except ConfigError as exc:
         report(exc)
         return 1
-    return asyncio.run(_demo(config, args.plot))
+    return asyncio.run(_demo(config, Path(args.config), args.plot))
 
 
 def _loopback_config(
@@ -72,31 +77,30 @@ def _loopback_config(
         zenoh = dict(data.get("zenoh") or {})
         zenoh.update(listen=[f"tcp/127.0.0.1:{port}"], connect=[], mode="peer", expose=False)
         data["zenoh"] = zenoh
+        realtime = dict(data.get("realtime") or {})
+        realtime.setdefault("cpus", sorted(os.sched_getaffinity(0))[:1])
+        data["realtime"] = realtime
         if edit is not None:
             edit(data)
 
     return load_config(path, loopback)
 
 
-async def _demo(config: DaemonConfig, plot: str | None) -> int:
-    from daemon.cli.simulated import InProcessSimulator
+async def _demo(config: DaemonConfig, path: Path, plot: str | None) -> int:
+    from daemon.cli.simulated import ProcessSimulator
     from tuning.scenarios import figure_eight
 
     trajectory = figure_eight(config.robot)
-    simulator = InProcessSimulator(config)
-    plant = simulator.robot.plant
-    samples: list[tuple[float, Pose, Pose, list[float]]] = []
     result: dict[str, Any] = {}
+    sources: list[tuple[float, Any]] = []  # (from, what the controller followed)
 
     async def fly(service: Service) -> None:
         def record(t: float, out: ControlOutput) -> None:
-            """The platform's true pose against the reference at the same instant: the
-            plant's state is that of its last whole step, which a cycle's reference
-            (at the cycle's opening) may be up to a step or a host's hiccup apart from."""
-            at = service.now() - (simulator.runner.t - plant.time)
-            reference = service.reference_at(at)[0].pose
-            samples.append((at, reference, plant.pose, plant.tensions.tolist()))
+            source = service.controller.source
+            if not sources or sources[-1][1] is not source:
+                sources.append((t, source))
 
+        result["t0"] = service.t0
         service.cycle_listeners.append(record)
         endpoint = config.zenoh.listen_endpoints[0]
         result["client"] = await _client_flight(client, endpoint, trajectory)
@@ -113,7 +117,11 @@ async def _demo(config: DaemonConfig, plot: str | None) -> int:
         )
     client = await _start_client()
     try:
+        simulator = ProcessSimulator(config, path)
         code = await simulator.serve(after_start=fly)
+    except (ConfigError, RuntimeError) as exc:
+        print(f"demo: {exc}", file=sys.stderr)
+        return 1
     finally:
         if client.returncode is None:  # the daemon stopped before the flight
             client.kill()
@@ -121,6 +129,7 @@ async def _demo(config: DaemonConfig, plot: str | None) -> int:
     if "client" not in result:
         print("demo did not complete", file=sys.stderr)
         return 1
+    samples = _truth_samples(simulator.truth, result["t0"], sources)
     start = result["client"]["start"]
     figures = _summary(samples, start, start + trajectory.duration)
     if figures is None:
@@ -166,6 +175,26 @@ async def _client_flight(
     if client.returncode != 0:
         raise RuntimeError(f"the demo's client failed (exit code {client.returncode})")
     return json.loads(out)
+
+
+def _truth_samples(
+    truth: list[dict], t0: float, sources: list[tuple[float, Any]]
+) -> list[tuple[float, Pose, Pose, list[float]]]:
+    """(daemon time, reference, true pose, tensions) for each record of the simulator's
+    truth log: its monotonic stamp less the daemon's clock origin `t0`, and the
+    reference the controller followed at that instant (`sources`: each source from the
+    cycle it was first followed)."""
+    samples = []
+    starts = [t for t, _ in sources]
+    for record in truth:
+        t = record["monotonic"] - t0
+        k = bisect.bisect_right(starts, t) - 1
+        if k < 0:
+            continue
+        q = record["quaternion"]
+        pose = Pose(np.array(record["position"]), np.array([q["w"], q["x"], q["y"], q["z"]]))
+        samples.append((t, sources[k][1].sample(t).pose, pose, record["tensions"]))
+    return samples
 
 
 def _summary(samples, t0: float, t1: float) -> TrackingFigures | None:

@@ -1,15 +1,26 @@
-"""The in-process simulator behind `cdprd run --sim` and `cdprd demo`.
+"""The simulators behind `cdprd run --sim` and `cdprd demo`.
 
-With `analyze`, the only place the daemon imports sim_bus (DESIGN §2): the simulator
-runs as a task in the daemon's own event loop on a private in-process loop bus (one per
-bus of the config), so the service under test is byte for byte the one that drives
-hardware.
+With `analyze`, the only place the daemon imports sim_bus (DESIGN §2).  In process
+(`InProcessSimulator`, `run --sim`, tests and benches): the simulator runs as a task in
+the daemon's own event loop on a private in-process loop bus (one per bus of the
+config), so the service under test is byte for byte the one that drives hardware.  In a
+process of its own (`ProcessSimulator`, the demo): `python -m sim_bus` on socket pairs,
+at real-time priority where permitted, so that the simulated drives, like real ones on
+their own processors, neither take the control cycle's CPU nor wait for it.
 """
 
 from __future__ import annotations
 
+import asyncio
+import collections
+import contextlib
 import itertools
+import json
 import os
+import signal
+import sys
+from collections.abc import Callable
+from pathlib import Path
 
 import can
 
@@ -19,11 +30,29 @@ from daemon.process.app import ServiceHook, serve
 from daemon.service.bus_port import Buses
 from sim_bus.bus.frame_faults import FaultyBus
 from sim_bus.bus.loopbus import LoopBus
+from sim_bus.bus.pairbus import PairBus, bus_pair
 from sim_bus.config import SimConfig, parse_sim, true_base
 from sim_bus.runner import SimulatorRunner
 from sim_bus.virtual_robot import VirtualRobot
 
 _channels = itertools.count()
+SIMULATOR_PRIORITY = 40  # SCHED_FIFO, below the core's default realtime.priority (50)
+READY_TIMEOUT = 30.0  # s for the simulator process to announce its drives (imports)
+STOP_TIMEOUT = 5.0  # s for it to end after SIGTERM before it is killed
+ERROR_LINES = 20  # of its standard error kept, the last of which a failure names
+
+
+def realtime_child(priority: int) -> Callable[[], None]:
+    """preexec_fn: SCHED_FIFO at `priority` where permitted (root, or CAP_SYS_NICE), so
+    that a simulated drive, like a real one on its own processor, answers whatever else
+    loads the host; ordinary scheduling where refused."""
+
+    def apply() -> None:
+        if priority:
+            with contextlib.suppress(PermissionError, OSError):
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+
+    return apply
 
 
 class InProcessSimulator:
@@ -67,6 +96,110 @@ class InProcessSimulator:
             )
         finally:
             self.close()
+
+
+def simulator_environment() -> dict[str, str]:
+    """The environment of a simulator process: this one's, with one BLAS thread (see
+    daemon/__init__.py: at real-time priority, OpenBLAS's spinning workers stalled the
+    simulated drives' answers by 5-20 ms)."""
+    return {**os.environ, "OPENBLAS_NUM_THREADS": "1"}
+
+
+class ProcessSimulator:
+    """`python -m sim_bus` for the config at `path` in a process of its own, one socket
+    pair (sim_bus.bus.pairbus) per bus: `daemon_bus` is the daemon's side.  Its truth
+    log (the true platform every 20 ms, stamped on the monotonic clock) comes through a
+    pipe into `truth` (one dict a line), never through a file: a write to this host's
+    disk stalled it for tens of milliseconds.  `serve` as InProcessSimulator's."""
+
+    def __init__(self, config: DaemonConfig, path: Path) -> None:
+        sim_section(config)  # a ConfigError before any process starts
+        self.config, self._path = config, path
+        ours: dict[str, can.BusABC] = {}
+        self._theirs = []
+        for bus in config.buses:
+            mine, theirs = bus_pair()
+            ours[bus.bus_name] = PairBus(mine, bus.channel)
+            self._theirs.append(theirs)
+        self.daemon_bus: Buses = ours if len(ours) > 1 else next(iter(ours.values()))
+        self.truth: list[dict] = []
+        self._errors: collections.deque[str] = collections.deque(maxlen=ERROR_LINES)
+        self._simulating = asyncio.Event()
+        self._readers: list[asyncio.Task] = []
+        self.process: asyncio.subprocess.Process | None = None
+
+    async def start(self) -> None:
+        """Start the simulator and wait until it simulates (RuntimeError naming its last
+        error line if it ends before)."""
+        fds = [end.fileno() for end in self._theirs]
+        argv = ["-m", "sim_bus", "--config", str(self._path), "--truth-log", "-"]
+        for fd in fds:
+            argv += ["--bus-fd", str(fd)]
+        self.process = process = await asyncio.create_subprocess_exec(
+            sys.executable,
+            *argv,
+            stdout=asyncio.subprocess.PIPE,
+            stderr=asyncio.subprocess.PIPE,
+            pass_fds=fds,
+            env=simulator_environment(),
+            preexec_fn=realtime_child(SIMULATOR_PRIORITY),
+        )
+        for end in self._theirs:
+            end.close()  # the child's now: its end of the stream is the bus's end
+        assert process.stdout is not None and process.stderr is not None
+        self._readers = [
+            asyncio.create_task(self._read_output(process.stdout)),
+            asyncio.create_task(self._read_errors(process.stderr)),
+        ]
+        simulating = asyncio.create_task(self._simulating.wait())
+        ended = asyncio.create_task(process.wait())
+        await asyncio.wait(
+            {simulating, ended}, timeout=READY_TIMEOUT, return_when="FIRST_COMPLETED"
+        )
+        simulating.cancel()
+        ended.cancel()
+        if not self._simulating.is_set():
+            await self.stop()
+            last = self._errors[-1] if self._errors else "no error output"
+            raise RuntimeError(f"the simulator process did not start: {last}")
+
+    async def _read_output(self, stream: asyncio.StreamReader) -> None:
+        """Its standard output: truth records (JSON lines), the announcement that it
+        simulates, and bus-load reports (read so that the pipe never fills)."""
+        while line := await stream.readline():
+            if line.startswith(b"{"):
+                with contextlib.suppress(ValueError):  # a line cut short by the stop
+                    self.truth.append(json.loads(line))
+            elif line.startswith(b"simulating "):
+                self._simulating.set()
+
+    async def _read_errors(self, stream: asyncio.StreamReader) -> None:
+        while line := await stream.readline():
+            self._errors.append(line.decode(errors="replace").rstrip())
+
+    async def stop(self) -> None:
+        """SIGTERM, then killed if it has not ended within STOP_TIMEOUT; its output read
+        to the end."""
+        process = self.process
+        if process is not None and process.returncode is None:
+            process.send_signal(signal.SIGTERM)
+            try:
+                await asyncio.wait_for(process.wait(), STOP_TIMEOUT)
+            except TimeoutError:
+                process.kill()
+                await process.wait()
+        await asyncio.gather(*self._readers)
+
+    async def serve(self, *, after_start: ServiceHook | None = None) -> int:
+        """daemon.process.app.serve() on the simulator process's buses; the exit code."""
+        await self.start()
+        try:
+            return await serve(self.config, self.daemon_bus, after_start=after_start)
+        finally:
+            await self.stop()
+            buses = self.daemon_bus
+            for bus in [buses] if isinstance(buses, can.BusABC) else buses.values():
+                bus.shutdown()
 
 
 def sim_section(config: DaemonConfig) -> SimConfig:

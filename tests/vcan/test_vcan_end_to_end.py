@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import contextlib
 import json
-import os
 import re
 import shlex
 import signal
@@ -48,7 +47,13 @@ import yaml
 from daemon.interface.client import CdprClient, ClientError
 from drivers.cia402 import codec as cia402
 from tests.loopback import free_port
-from tests.processes import assert_still, patient_watchdogs, realtime_child, truth
+from tests.processes import (
+    assert_still,
+    patient_watchdogs,
+    realtime_child,
+    simulator_environment,
+    truth,
+)
 
 pytestmark = [
     pytest.mark.vcan,
@@ -340,7 +345,7 @@ def running_stack(
     capture = directory / "candump.log"
     logs = directory / "logs"
     logs.mkdir()
-    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    env = dict(simulator_environment(), PYTHONUNBUFFERED="1")
     python = sys.executable
     with contextlib.ExitStack() as stack:
         dump_out = stack.enter_context(capture.open("w"))
