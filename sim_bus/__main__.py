@@ -173,7 +173,9 @@ def frame_fault_flags(args: argparse.Namespace) -> dict:
 async def simulate(setup: SimSetup, args: argparse.Namespace) -> int:
     flags = frame_fault_flags(args)
     faults = parse_frame_faults(flags, "command line") if flags else setup.sim.frame_faults
-    address = args.serve_socketcand or _address(setup.sim.serve_socketcand)
+    # on pair buses (the daemon's own simulator) the config's server is not started
+    configured = None if args.bus_fd else _address(setup.sim.serve_socketcand)
+    address = args.serve_socketcand or configured
     if address is not None and len(setup.buses) > 1:
         raise ConfigError(
             "--serve-socketcand / sim.serve_socketcand serves one bus; can: lists "

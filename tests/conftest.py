@@ -4,6 +4,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
+# isort: off
+import daemon  # noqa: F401  first: its one BLAS thread is set before numpy loads
+
+# isort: on
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, settings

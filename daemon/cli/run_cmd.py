@@ -26,7 +26,9 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     )
     run.add_argument("--config", required=True, help="daemon config YAML")
     run.add_argument(
-        "--sim", action="store_true", help="drive an in-process simulator instead of hardware"
+        "--sim",
+        action="store_true",
+        help="drive the simulator (a process of its own) instead of hardware",
     )
     run.add_argument("--log-level", help="override logging.level (debug, info, warning, error)")
     add_interface_options(run)
@@ -133,22 +135,29 @@ def run_command(args: argparse.Namespace) -> int:
         report(exc)
         return 2
     try:
-        return asyncio.run(_run(config, args.sim))
+        return asyncio.run(_run(config, Path(args.config) if args.sim else None))
     except ConfigError as exc:  # the simulator of `run --sim` cannot be built
         report(exc)
         return 1
+    except RuntimeError as exc:  # its process did not start
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
 
 
-async def _run(config: DaemonConfig, sim: bool) -> int:
-    if not sim:
+async def _run(config: DaemonConfig, sim: Path | None) -> int:
+    """Serve on the config's buses, or on a simulator of the config at `sim` in a
+    process of its own (daemon.cli.simulated.ProcessSimulator: in the core's process,
+    the core and the simulator needed most of a CPU at real-time priority, where the
+    kernel's real-time throttling held both up for tens of milliseconds each second)."""
+    if sim is None:
         bus = open_bus(config)
         try:
             return await serve(config, bus)
         finally:
             close_bus(bus)
-    from daemon.cli.simulated import InProcessSimulator
+    from daemon.cli.simulated import ProcessSimulator
 
-    return await InProcessSimulator(config).serve()
+    return await ProcessSimulator(config, sim, truth=False).serve()
 
 
 def sim_command(args: argparse.Namespace) -> int:

@@ -1,12 +1,13 @@
 """The simulators behind `cdprd run --sim` and `cdprd demo`.
 
 With `analyze`, the only place the daemon imports sim_bus (DESIGN §2).  In process
-(`InProcessSimulator`, `run --sim`, tests and benches): the simulator runs as a task in
-the daemon's own event loop on a private in-process loop bus (one per bus of the
-config), so the service under test is byte for byte the one that drives hardware.  In a
-process of its own (`ProcessSimulator`, the demo): `python -m sim_bus` on socket pairs,
-at real-time priority where permitted, so that the simulated drives, like real ones on
-their own processors, neither take the control cycle's CPU nor wait for it.
+(`InProcessSimulator`, tests and benches that reach into the plant): the simulator runs
+as a task in the daemon's own event loop on a private in-process loop bus (one per bus
+of the config), so the service under test is byte for byte the one that drives
+hardware.  In a process of its own (`ProcessSimulator`, `run --sim` and the demo):
+`python -m sim_bus` on socket pairs, at real-time priority where permitted, so that the
+simulated drives, like real ones on their own processors, neither take the control
+cycle's CPU nor wait for it.
 """
 
 from __future__ import annotations
@@ -14,8 +15,10 @@ from __future__ import annotations
 import asyncio
 import collections
 import contextlib
+import ctypes
 import itertools
 import json
+import logging
 import os
 import signal
 import sys
@@ -35,10 +38,12 @@ from sim_bus.config import SimConfig, parse_sim, true_base
 from sim_bus.runner import SimulatorRunner
 from sim_bus.virtual_robot import VirtualRobot
 
+log = logging.getLogger("cdprd")
 _channels = itertools.count()
 SIMULATOR_PRIORITY = 40  # SCHED_FIFO, below the core's default realtime.priority (50)
 READY_TIMEOUT = 30.0  # s for the simulator process to announce its drives (imports)
 STOP_TIMEOUT = 5.0  # s for it to end after SIGTERM before it is killed
+PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
 ERROR_LINES = 20  # of its standard error kept, the last of which a failure names
 
 
@@ -98,6 +103,14 @@ class InProcessSimulator:
             self.close()
 
 
+def _simulator_child() -> None:
+    """preexec_fn of ProcessSimulator's child: real-time priority (realtime_child), and
+    SIGTERM when the daemon's process ends however it ends (PR_SET_PDEATHSIG), so that
+    a killed demo leaves no simulator behind."""
+    realtime_child(SIMULATOR_PRIORITY)()
+    ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+
+
 def simulator_environment() -> dict[str, str]:
     """The environment of a simulator process: this one's, with one BLAS thread (see
     daemon/__init__.py: at real-time priority, OpenBLAS's spinning workers stalled the
@@ -107,14 +120,16 @@ def simulator_environment() -> dict[str, str]:
 
 class ProcessSimulator:
     """`python -m sim_bus` for the config at `path` in a process of its own, one socket
-    pair (sim_bus.bus.pairbus) per bus: `daemon_bus` is the daemon's side.  Its truth
-    log (the true platform every 20 ms, stamped on the monotonic clock) comes through a
-    pipe into `truth` (one dict a line), never through a file: a write to this host's
-    disk stalled it for tens of milliseconds.  `serve` as InProcessSimulator's."""
+    pair (sim_bus.bus.pairbus) per bus: `daemon_bus` is the daemon's side.  With
+    `truth`, its truth log (the true platform every 20 ms, stamped on the monotonic
+    clock) comes through a pipe into `truth` (one dict a line), never through a file: a
+    write to this host's disk stalled it for tens of milliseconds.  `serve` as
+    InProcessSimulator's."""
 
-    def __init__(self, config: DaemonConfig, path: Path) -> None:
-        sim_section(config)  # a ConfigError before any process starts
-        self.config, self._path = config, path
+    def __init__(self, config: DaemonConfig, path: Path, truth: bool = True) -> None:
+        # a ConfigError before any process starts, as InProcessSimulator's
+        simulated_robot(config, sim_section(config))
+        self.config, self._path, self._truth = config, path, truth
         ours: dict[str, can.BusABC] = {}
         self._theirs = []
         for bus in config.buses:
@@ -132,7 +147,9 @@ class ProcessSimulator:
         """Start the simulator and wait until it simulates (RuntimeError naming its last
         error line if it ends before)."""
         fds = [end.fileno() for end in self._theirs]
-        argv = ["-m", "sim_bus", "--config", str(self._path), "--truth-log", "-"]
+        argv = ["-m", "sim_bus", "--config", str(self._path)]
+        if self._truth:
+            argv += ["--truth-log", "-"]
         for fd in fds:
             argv += ["--bus-fd", str(fd)]
         self.process = process = await asyncio.create_subprocess_exec(
@@ -142,7 +159,7 @@ class ProcessSimulator:
             stderr=asyncio.subprocess.PIPE,
             pass_fds=fds,
             env=simulator_environment(),
-            preexec_fn=realtime_child(SIMULATOR_PRIORITY),
+            preexec_fn=_simulator_child,
         )
         for end in self._theirs:
             end.close()  # the child's now: its end of the stream is the bus's end
@@ -174,8 +191,11 @@ class ProcessSimulator:
                 self._simulating.set()
 
     async def _read_errors(self, stream: asyncio.StreamReader) -> None:
+        """Its log (standard error): into the daemon's at info, the last lines kept."""
         while line := await stream.readline():
-            self._errors.append(line.decode(errors="replace").rstrip())
+            text = line.decode(errors="replace").rstrip()
+            self._errors.append(text)
+            log.info("simulator: %s", text)
 
     async def stop(self) -> None:
         """SIGTERM, then killed if it has not ended within STOP_TIMEOUT; its output read
