@@ -48,6 +48,8 @@ def config_file(tmp_path: Path, port: int, push: float = 0.0) -> Path:
     return path
 
 
+# a real-time flight through three processes: a clean-clone run braked once on stale feedback
+@pytest.mark.host_timing
 @pytest.mark.timeout(240)
 def test_home_then_calibrate_with_too_few_poses_names_what_is_unidentifiable(
     tmp_path: Path,
