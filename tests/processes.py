@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from daemon.cli.simulated import SIMULATOR_PRIORITY, realtime_child, simulator_environment
+from daemon.cli.simulated import SIMULATOR_PRIORITY, realtime_child
 from daemon.interface.client import CdprClient, UnreachableError
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -46,7 +46,6 @@ def serve_simulator(
         stderr=stderr,
         text=True,
         preexec_fn=realtime_child(priority),
-        env=simulator_environment(),
     )
     line = ""
     for _ in range(20):

@@ -53,9 +53,8 @@ def realtime_child(priority: int) -> Callable[[], None]:
     loads the host; ordinary scheduling where refused."""
 
     def apply() -> None:
-        if priority:
-            with contextlib.suppress(PermissionError, OSError):
-                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+        with contextlib.suppress(PermissionError, OSError):
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
 
     return apply
 
@@ -106,16 +105,10 @@ class InProcessSimulator:
 def _simulator_child() -> None:
     """preexec_fn of ProcessSimulator's child: real-time priority (realtime_child), and
     SIGTERM when the daemon's process ends however it ends (PR_SET_PDEATHSIG), so that
-    a killed demo leaves no simulator behind."""
+    a killed demo leaves no simulator behind.  Its one BLAS thread it inherits: importing
+    `daemon` set OPENBLAS_NUM_THREADS in this environment (daemon/__init__.py)."""
     realtime_child(SIMULATOR_PRIORITY)()
     ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
-
-
-def simulator_environment() -> dict[str, str]:
-    """The environment of a simulator process: this one's, with one BLAS thread (see
-    daemon/__init__.py: at real-time priority, OpenBLAS's spinning workers stalled the
-    simulated drives' answers by 5-20 ms)."""
-    return {**os.environ, "OPENBLAS_NUM_THREADS": "1"}
 
 
 class ProcessSimulator:
@@ -158,7 +151,6 @@ class ProcessSimulator:
             stdout=asyncio.subprocess.PIPE,
             stderr=asyncio.subprocess.PIPE,
             pass_fds=fds,
-            env=simulator_environment(),
             preexec_fn=_simulator_child,
         )
         for end in self._theirs:

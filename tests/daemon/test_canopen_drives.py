@@ -51,7 +51,6 @@ from tests.processes import (
     finish,
     realtime_child,
     simulator_configs,
-    simulator_environment,
     start_daemon,
     wait_status,
 )
@@ -467,7 +466,6 @@ def _drives_process(config: Path) -> tuple[subprocess.Popen, int]:
         stderr=subprocess.DEVNULL,
         text=True,
         preexec_fn=realtime_child(SIMULATOR_PRIORITY),
-        env=simulator_environment(),
     )
     line = proc.stdout.readline()
     if not line.startswith("PORT "):

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import os
 import re
 import shlex
 import signal
@@ -51,7 +52,6 @@ from tests.processes import (
     assert_still,
     patient_watchdogs,
     realtime_child,
-    simulator_environment,
     truth,
 )
 
@@ -345,7 +345,7 @@ def running_stack(
     capture = directory / "candump.log"
     logs = directory / "logs"
     logs.mkdir()
-    env = dict(simulator_environment(), PYTHONUNBUFFERED="1")
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
     python = sys.executable
     with contextlib.ExitStack() as stack:
         dump_out = stack.enter_context(capture.open("w"))
