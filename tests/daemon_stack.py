@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import os
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -21,19 +23,27 @@ DRIVER_CONFIGS = {
     "cia402": CONFIGS / "reference8-cia402.yaml",
     "odrive": CONFIGS / "reference8-odrive.yaml",
 }
+HIGHEST_NORMAL_PRIORITY = -20  # nice
 
 
 class Stack:
     """Service + planner + simulator in the running loop; `plant` is the simulated truth.
 
-    While it runs, this process has the real-time priority of the config's `realtime:`
-    section where permitted (memory not locked: that costs each test a tenth of a
-    second), as the daemon's core would: the timing-sensitive tests then pass on a busy
-    host too."""
+    While it runs, the test's thread has the config's CPUs and switch interval and the
+    highest normal priority (nice -20) where permitted, not SCHED_FIFO: the core and the
+    simulator share one thread here and need 0.7 of a CPU at 500 Hz on our host, and on
+    a host slower by a third that is more than the kernel lets real-time work have
+    (sched_rt_runtime_us, 95 %): it then stops the thread for up to 50 ms each second,
+    and the drives' heartbeat consumers brake the robot (reproduced with a cgroup at
+    60 %: tests/daemon/test_stack_priority.py).  Nice -20 still wins the CPU from any
+    normal task on a busy host, and is never stopped that way."""
 
     def __init__(self, config: DaemonConfig) -> None:
         self.config = config
-        self._realtime = realtime(config.realtime.model_copy(update={"lock_memory": False}))
+        self._realtime = realtime(
+            config.realtime.model_copy(update={"priority": 0, "lock_memory": False})
+        )
+        self._niceness: int | None = None
         self.sim = InProcessSimulator(config)
         self.service = Service(config, self.sim.daemon_bus)
         self.planner = Planner(config, LocalLink(self.service))  # hold, goto, trajectories
@@ -46,6 +56,9 @@ class Stack:
 
     async def __aenter__(self) -> Stack:
         self._realtime.__enter__()
+        self._niceness = os.getpriority(os.PRIO_PROCESS, 0)  # this thread's (Linux)
+        with contextlib.suppress(PermissionError):
+            os.setpriority(os.PRIO_PROCESS, 0, HIGHEST_NORMAL_PRIORITY)
         self.sim.start()
         await self.service.start()
         return self
@@ -53,6 +66,8 @@ class Stack:
     async def __aexit__(self, *exc: object) -> None:
         self.service.close()
         self.sim.close()
+        if self._niceness is not None:
+            os.setpriority(os.PRIO_PROCESS, 0, self._niceness)
         self._realtime.__exit__(None, None, None)
 
     async def enable(self) -> None:
