@@ -58,6 +58,7 @@ def _random_pose(rng: np.random.Generator, robot: Robot) -> tuple[np.ndarray, np
     return p, quat_to_matrix(q)
 
 
+@pytest.mark.slow  # over 10 s of the default run's 10 minutes
 def test_the_verdicts_agree_with_brute_force_on_random_poses(robot: Robot) -> None:
     """Each robot in turn; every pair of cables and every cable against the body."""
     touching, _ = _compare(robot)
@@ -122,6 +123,7 @@ def test_crossed_cables_at_one_height_pass_through_each_other(offset8: Robot) ->
     assert _model(offset8).first(g.anchors, p + g.attachments, np.eye(3)) is None
 
 
+@pytest.mark.slow  # over 10 s of the default run's 10 minutes
 def test_cables_through_a_box_body_agree_with_brute_force(offset8: Robot) -> None:
     """reference8-offset's body is a box the +y attachments sit inside the faces of:
     cables run through it at some poses, and the verdicts are brute force's."""

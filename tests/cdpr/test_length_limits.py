@@ -83,6 +83,7 @@ def test_a_reference_inside_the_raw_limits_but_not_the_margins_is_refused(
     direction=st.tuples(*[st.floats(-1.0, 1.0)] * 6),
     tensions=st.lists(st.floats(0.0, 1.0), min_size=8, max_size=8),
 )
+@pytest.mark.slow  # over 5 s of the default run's 10 minutes
 def test_measured_lengths_stay_inside_the_raw_limits(
     offset: tuple, turn: tuple, direction: tuple, tensions: list
 ) -> None:

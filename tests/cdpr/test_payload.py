@@ -72,6 +72,7 @@ def test_the_estimate_converges_to_the_payload(reference8: Robot) -> None:
     assert reference8.platform.mass == 10.0
 
 
+@pytest.mark.slow  # over 10 s of the default run's 10 minutes
 @pytest.mark.parametrize("scenario", sorted(STANDARD_SET))
 @pytest.mark.parametrize("payload", sorted(PAYLOADS))
 def test_the_estimate_cuts_the_tracking_error(
@@ -135,6 +136,7 @@ def test_holding_still_identifies_the_mass_and_the_horizontal_centre_of_mass_onl
     assert z == pytest.approx(reference8.platform.center_of_mass[2], abs=2e-4)
 
 
+@pytest.mark.slow  # over 5 s of the default run's 10 minutes
 def test_without_a_payload_the_estimate_stays_at_the_file(reference8: Robot) -> None:
     """The standard set without a payload: the estimate stays within 0.2 % of the file's
     mass and 1 mm of its centre of mass, and the tracking as good as without it

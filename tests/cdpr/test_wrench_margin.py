@@ -47,6 +47,7 @@ def _random_poses(robot: Robot, count: int, seed: int) -> tuple[np.ndarray, np.n
     return np.array(jacobians), np.array(wrenches)
 
 
+@pytest.mark.slow  # over 5 s of the default run's 10 minutes
 def test_the_verdict_agrees_with_an_independent_lp_on_random_poses(reference8: Robot) -> None:
     model = WrenchMargin(reference8.t_min, reference8.force_max, 0.4)
     jacobians, wrenches = _random_poses(reference8, 400, seed=3)

@@ -315,6 +315,7 @@ def _check(case: Case, path: Path) -> tuple[int | None, str | None]:
     return code, None
 
 
+@pytest.mark.slow  # over 10 s of the default run's 10 minutes
 @pytest.mark.timeout(120)
 def test_no_traceback_and_no_silent_coercion_in_hundreds_of_mutated_configs(
     tmp_path: Path,

@@ -34,6 +34,7 @@ def _config(adaptation: dict) -> DaemonConfig:
     )
 
 
+@pytest.mark.slow  # over 10 s of the default run's 10 minutes
 def test_identify_payload_estimates_and_applies_the_payload() -> None:
     """With the online estimate frozen (the file's model), identify_payload holds five
     poses and finds the payload from the forces: within 1 % and 3 mm, the tilted poses

@@ -35,6 +35,7 @@ def _wait(condition, timeout: float, seen=lambda: "") -> None:
         time.sleep(0.05)
 
 
+@pytest.mark.slow  # over 10 s of the default run's 10 minutes
 @pytest.mark.timeout(90)
 def test_plain_zenoh_client_drives_a_simulated_daemon(tmp_path: Path) -> None:
     port = free_port()

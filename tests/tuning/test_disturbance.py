@@ -19,6 +19,7 @@ def reference8() -> Robot:
     return load_robot("reference8")
 
 
+@pytest.mark.slow  # over 5 s of the default run's 10 minutes
 def test_a_push_moves_the_platform_its_way_in_proportion_and_the_loop_brings_it_back(
     reference8: Robot,
 ) -> None:

@@ -133,6 +133,7 @@ def tune_config(tmp_path: Path) -> Path:
     return config
 
 
+@pytest.mark.slow  # over 5 s of the default run's 10 minutes
 def test_tune_lockstep_identifies_the_true_robots_winch(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -155,6 +156,7 @@ def test_tune_lockstep_identifies_the_true_robots_winch(
         assert model[name] == pytest.approx(true, rel=0.05), name
 
 
+@pytest.mark.slow  # over 10 s of the default run's 10 minutes
 def test_tune_prints_the_friction_and_warns_of_a_misfit(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -175,6 +177,7 @@ def test_tune_prints_the_friction_and_warns_of_a_misfit(
     assert "Coulomb friction" in printed and "coulomb: " in printed
 
 
+@pytest.mark.slow  # over 5 s of the default run's 10 minutes
 def test_tune_plots_the_data_the_fit_and_the_poles(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -202,6 +205,7 @@ def test_a_clamped_drum_is_identified_too() -> None:
     assert run.model.cable_damping is None  # not fitted: it cannot be told from k0
 
 
+@pytest.mark.slow  # over 5 s of the default run's 10 minutes
 def test_tune_checks_the_gains_at_each_hung_load_against_the_model(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
