@@ -6,7 +6,7 @@ import asyncio
 import contextlib
 import os
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -26,24 +26,36 @@ DRIVER_CONFIGS = {
 HIGHEST_NORMAL_PRIORITY = -20  # nice
 
 
-class Stack:
-    """Service + planner + simulator in the running loop; `plant` is the simulated truth.
-
-    While it runs, the test's thread has the config's CPUs and switch interval and the
-    highest normal priority (nice -20) where permitted, not SCHED_FIFO: the core and the
-    simulator share one thread here and need 0.7 of a CPU at 500 Hz on our host, and on
-    a host slower by a third that is more than the kernel lets real-time work have
+@contextlib.contextmanager
+def flight_priority(config: DaemonConfig) -> Iterator[None]:
+    """For a test that flies the core and a simulator in one process: the config's CPUs
+    and switch interval, and the highest normal priority (nice -20) where permitted, not
+    SCHED_FIFO.  The core and the simulator need 0.7 of a CPU at 500 Hz on our host, and
+    on a host slower by a third that is more than the kernel lets real-time work have
     (sched_rt_runtime_us, 95 %): it then stops the thread for up to 50 ms each second,
     and the drives' heartbeat consumers brake the robot (reproduced with a cgroup at
     60 %: tests/daemon/test_stack_priority.py).  Nice -20 still wins the CPU from any
-    normal task on a busy host, and is never stopped that way."""
+    normal task on a busy host, and is never stopped that way.  Threads started inside
+    inherit it (Linux: niceness is a thread's)."""
+    settings = config.realtime.model_copy(update={"priority": 0, "lock_memory": False})
+    with realtime(settings):
+        niceness = os.getpriority(os.PRIO_PROCESS, 0)  # this thread's
+        with contextlib.suppress(PermissionError):
+            os.setpriority(os.PRIO_PROCESS, 0, HIGHEST_NORMAL_PRIORITY)
+        try:
+            yield
+        finally:
+            os.setpriority(os.PRIO_PROCESS, 0, niceness)
+
+
+class Stack:
+    """Service + planner + simulator in the running loop; `plant` is the simulated truth.
+
+    While it runs, the test's thread has `flight_priority`."""
 
     def __init__(self, config: DaemonConfig) -> None:
         self.config = config
-        self._realtime = realtime(
-            config.realtime.model_copy(update={"priority": 0, "lock_memory": False})
-        )
-        self._niceness: int | None = None
+        self._priority = flight_priority(config)
         self.sim = InProcessSimulator(config)
         self.service = Service(config, self.sim.daemon_bus)
         self.planner = Planner(config, LocalLink(self.service))  # hold, goto, trajectories
@@ -55,10 +67,7 @@ class Stack:
         return self.sim.robot.plant
 
     async def __aenter__(self) -> Stack:
-        self._realtime.__enter__()
-        self._niceness = os.getpriority(os.PRIO_PROCESS, 0)  # this thread's (Linux)
-        with contextlib.suppress(PermissionError):
-            os.setpriority(os.PRIO_PROCESS, 0, HIGHEST_NORMAL_PRIORITY)
+        self._priority.__enter__()
         self.sim.start()
         await self.service.start()
         return self
@@ -66,9 +75,7 @@ class Stack:
     async def __aexit__(self, *exc: object) -> None:
         self.service.close()
         self.sim.close()
-        if self._niceness is not None:
-            os.setpriority(os.PRIO_PROCESS, 0, self._niceness)
-        self._realtime.__exit__(None, None, None)
+        self._priority.__exit__(None, None, None)
 
     async def enable(self) -> None:
         await self.service.command("enable", {})

@@ -33,14 +33,13 @@ from cdpr.controller import ParallelController
 from cdpr.pose import Pose, retract
 from daemon.cli.simulated import sim_section
 from daemon.config import DaemonConfig, check_workspace, load_config
-from daemon.process.realtime import realtime
 from daemon.service.planner import LocalLink, Planner
 from daemon.service.safety import SafetyState
 from daemon.service.service import Service
 from sim_bus.plant import Plant, equilibrium_tensions
 from tests.canopen_drive import ENABLED, QUICK_STOP, VENDOR_EDS
 from tests.canopen_robot import CanopenRobot
-from tests.daemon_stack import DRIVER_CONFIGS
+from tests.daemon_stack import DRIVER_CONFIGS, flight_priority
 from tests.host_steal import FreezeWatch
 from tests.loopback import free_port
 from tests.processes import (
@@ -313,9 +312,9 @@ def test_eight_canopen_drives_fly_the_standard_trajectories_and_end_holding(
 ) -> None:
     channel = f"cdprd-canopen-{os.getpid()}-{next(CHANNELS)}"
     config = canopen_config(channel)
-    # as the daemon's core would (tests/daemon_stack.Stack): the threads started below
-    # (canopen's, the plant's) inherit it
-    with realtime(config.realtime.model_copy(update={"lock_memory": False})):
+    # as tests/daemon_stack.Stack: the threads started below (canopen's, the plant's)
+    # inherit it
+    with flight_priority(config):
         network = canopen.Network()
         network.connect(interface="virtual", channel=channel, receive_own_messages=False)
         robot = CanopenRobot(config, network)
