@@ -2,7 +2,7 @@
 saved for the daemon.
 
     cdprd workspace --config FILE [--step M] [--tilt RAD] [--payload-max KG] [--margin N]
-                    [--interference] [--output MAP] [--png FILE] [--mcap FILE] [--json]
+                    [--[no-]interference] [--output MAP] [--png FILE] [--mcap FILE] [--json]
 
 FILE is a daemon config (its workspace box, environment and `workspace:` section) or a
 bare robot file (the anchors' box, no environment, the section's defaults).  The map goes
@@ -49,8 +49,8 @@ def add_parser(subparsers: Any) -> None:
     p.add_argument("--margin", type=float, help="capacity margin a point needs, N")
     p.add_argument(
         "--interference",
-        action="store_true",
-        help="refuse cables that touch (default: the config's workspace.interference)",
+        action=argparse.BooleanOptionalAction,
+        help="refuse cables that touch or cross the body (default: workspace.interference)",
     )
     p.add_argument("--output", help="where to save the map (default: from the config)")
     p.add_argument("--png", help="draw slices at home into this PNG")

@@ -3,7 +3,7 @@
 
     workspace:
       margin: 5.0          # N: the capacity margin every sampled reference keeps at rest
-      interference: false  # true: refuse cables closer than their diameters or through the body
+      interference: true   # refuse cables closer than their diameters or through the body
       map: null            # the map's file; null: STATE_DIR/ROBOT.workspace
       step: 0.02           # m, the map's grid
       tilt: null           # rad, the map's orientations beside home; null: safety.tilt_max
@@ -32,10 +32,10 @@ class WorkspaceConfig(StrictModel):
       the wrench that holds the platform at rest that the cables' tensions in
       [t_min, force_max] still give: a push that large is still balanced.
     interference: refuse references where two cables come closer than their diameters
-      (actuator.cable_diameter) or a cable runs through the platform's body.  Off unless
-      set: the reference robot's crossed cable pairs pass through each other at every
-      untilted pose (`cdprd workspace` with it on shows where); set it for a robot whose
-      cables are routed clear of each other.
+      (actuator.cable_diameter) or a cable runs through the platform's body.  On unless
+      set false: the reference robot's configs do, because its crossed cable pairs are
+      idealised and pass through each other at every untilted pose (`cdprd workspace
+      --interference` shows where).
     map: the file `cdprd workspace` writes and `check-config` reads (relative to the
       config); null: STATE_DIR/ROBOT.workspace, else none.
     step: the map's grid spacing (m).
@@ -45,7 +45,7 @@ class WorkspaceConfig(StrictModel):
     """
 
     margin: NonNegativeFloat = 5.0
-    interference: bool = False
+    interference: bool = True
     map: str | None = None
     step: Annotated[float, Field(ge=0.005, le=0.5)] = 0.02
     tilt: Annotated[float, Field(ge=0.0, le=1.5)] | None = None
@@ -58,16 +58,15 @@ class WorkspaceConfig(StrictModel):
         tilt: float | None = None,
         payload_max: float | None = None,
         margin: float | None = None,
-        interference: bool = False,
+        interference: bool | None = None,
     ) -> MapSettings:
         """The map settings of this section, the tilt defaulting to `tilt_max`
-        (safety.tilt_max); each value given (not None) replaces the section's, and
-        `interference` True turns the check on."""
+        (safety.tilt_max); each value given (not None) replaces the section's."""
         tilt = (tilt_max if self.tilt is None else self.tilt) if tilt is None else tilt
         return MapSettings(
             step=self.step if step is None else step,
             tilt=tilt,
             payload=(0.0, self.payload_max if payload_max is None else payload_max),
             margin=self.margin if margin is None else margin,
-            interference=interference or self.interference,
+            interference=self.interference if interference is None else interference,
         )

@@ -49,7 +49,7 @@ def _config(tmp_path: Path, zenoh: int, recording: dict | None = None) -> Path:
     data["zenoh"]["listen"] = [f"tcp/127.0.0.1:{zenoh}"]
     data["recording"] = recording or {}
     data["state_dir"] = str(tmp_path / "state")
-    data["workspace"] = {"step": 0.2, "tilt": 0.2}  # a coarse map, quick to compute
+    data["workspace"] = {"step": 0.2, "tilt": 0.2, "interference": False}  # coarse: quick
     data["environment"] = {
         "boxes": [{"name": "table", "min": [-0.3, 1.0, 0], "max": [0.3, 1.4, 0.5]}]
     }

@@ -1,8 +1,9 @@
 """Every config shipped in config/ passes `cdprd check-config` with the robot it names.
 
 The hardware template names files the operator provides (/etc/cdprd/robot.yaml, the
-drive's EDS beside the config); it is checked with the reference8 robot and the EDS in
-config/can in their place, as the template's header says to begin."""
+drive's EDS beside the config); it is checked with the EDS in config/can and reference8
+with its crossed cables routed clear (tests/data/robots/reference8-offset.yaml: the
+template keeps the interference check on, as a real robot should) in their place."""
 
 from __future__ import annotations
 
@@ -11,13 +12,13 @@ from pathlib import Path
 import pytest
 
 from daemon.cli import main
-from tests.conftest import ROBOTS
+from tests.conftest import OFFSET8, ROBOTS
 
 CONFIG = ROBOTS.parent
 # what the template names that only exists on the operator's machine -> its stand-in
 STAND_INS = {
     "hardware-template.yaml": {
-        "robot: /etc/cdprd/robot.yaml": f"robot: {ROBOTS / 'reference8.yaml'}",
+        "robot: /etc/cdprd/robot.yaml": f"robot: {OFFSET8}",
         "eds: drive.eds": f"eds: {CONFIG / 'can' / 'cia402_cst.eds'}",
     }
 }

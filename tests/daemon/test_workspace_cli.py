@@ -107,3 +107,24 @@ def test_a_home_pose_with_too_little_margin_is_refused_by_check_config(
     (line,) = capsys.readouterr().err.splitlines()
     assert line.startswith(f"error: {path}: workspace.margin: at the home pose the wrench ")
     assert "less than workspace.margin 500 N, which trajectories must keep" in line
+
+
+def test_interference_is_refused_unless_the_config_turns_it_off(tmp_path: Path, capsys) -> None:
+    """On by default: reference8's idealised crossed pairs meet at home, which check-config
+    refuses naming the cables; its shipped configs turn it off, and --no-interference
+    maps without it."""
+    data = yaml.safe_load(CONFIG.read_text())
+    assert data["workspace"] == {"interference": False}
+    del data["workspace"]
+    data["robot"] = str(ROBOTS / "reference8.yaml")
+    data["state_dir"] = str(tmp_path / "state")
+    path = tmp_path / "cdprd.yaml"
+    path.write_text(yaml.safe_dump(data))
+    assert main(["check-config", str(path)]) == 1
+    error = capsys.readouterr().err
+    assert "workspace.interference: at the home pose cables 0 and 6 pass 0.0 mm apart" in error
+    args = ["workspace", "--config", str(path), "--step", "0.25", "--tilt", "0.2", "--json"]
+    assert main([*args, "--no-interference"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["settings"]["interference"] is False and out["reasons"]["interference"] == 0
+    assert out["volume_per_orientation_m3"][0] > 0.0
