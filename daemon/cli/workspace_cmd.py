@@ -233,9 +233,8 @@ def _write_mcap(
     from daemon.process.scene import SCENE_TOPIC, workspace_scene
 
     voxels, margins = shell(workspace, 0)
-    boxes = [(b.name, b.lower, b.upper) for b in environment.boxes]
     anchors = robot.geometry.anchors
-    scene = workspace_scene((lower, upper), voxels, margins, workspace.step, boxes, anchors)
+    scene = workspace_scene((lower, upper), voxels, margins, workspace.step, environment, anchors)
     schema = SceneUpdate.get_schema()
     with open(path, "wb") as stream:
         writer = Writer(stream)

@@ -186,7 +186,7 @@ VIEW_VOXELS = 4000  # the boundary's cubes in the view (~0.2 MB a scene)
 def _workspace_view(config: DaemonConfig) -> list[tuple[str, bytes]]:
     """The workspace scene (daemon.process.scene.workspace_scene): the saved map's
     boundary at home if the map is still this config's (logged if not), the
-    environment's boxes and the workspace box."""
+    environment's boxes and planes and the workspace box."""
     import numpy as np
 
     from cdpr.workspace_map import shell
@@ -200,10 +200,10 @@ def _workspace_view(config: DaemonConfig) -> list[tuple[str, bytes]]:
     else:
         voxels, margins = shell(saved, 0, VIEW_VOXELS)
         size = saved.step
-    boxes = [(b.name, b.lower, b.upper) for b in config.environment.boxes]
     limits = config.pose_limits
     anchors = config.robot.geometry.anchors
-    update = workspace_scene((limits.lower, limits.upper), voxels, margins, size, boxes, anchors)
+    corners = (limits.lower, limits.upper)
+    update = workspace_scene(corners, voxels, margins, size, config.environment, anchors)
     return [(WORKSPACE_TOPIC, update.encode())]
 
 

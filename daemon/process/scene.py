@@ -56,6 +56,7 @@ from foxglove.messages import (
 
 from cdpr import Pose as CdprPose
 from cdpr import Robot, liediff
+from cdpr.body import Environment, Plane
 from daemon.process.recording import ChannelSpec, CycleRecord, json_bytes
 
 WORLD, PLATFORM, REFERENCE = "world", "platform", "reference"
@@ -390,6 +391,33 @@ def _stamp(ns: int) -> Timestamp:
     return Timestamp(sec=ns // 1_000_000_000, nsec=ns % 1_000_000_000)
 
 
+PLANE_THICKNESS = 0.002  # m: a plane drawn as a square this thin
+
+
+def _plane_square(plane: Plane, corners: tuple[Sequence[float], Sequence[float]]) -> CubePrimitive:
+    """A plane as a thin translucent square on it, as wide as the box `corners`'
+    diagonal, centred where the box's centre projects onto it."""
+    lo, hi = (np.asarray(c, dtype=float) for c in corners)
+    normal = np.asarray(plane.normal, dtype=float)
+    centre = (lo + hi) / 2.0
+    on_plane = centre - (centre.dot(normal) - plane.offset) * normal
+    width = float(np.linalg.norm(hi - lo))
+    # the rotation taking z onto the normal: about z x n by the angle between them
+    axis = np.cross((0.0, 0.0, 1.0), normal)
+    sine, cosine = float(np.linalg.norm(axis)), float(normal[2])
+    if sine < 1e-12:  # along z already (or against it: a half turn about x)
+        turn = Quaternion(w=1.0) if cosine > 0 else Quaternion(x=1.0, w=0.0)
+    else:
+        half = np.arctan2(sine, cosine) / 2.0
+        x, y, z = axis / sine * np.sin(half)
+        turn = Quaternion(x=float(x), y=float(y), z=float(z), w=float(np.cos(half)))
+    return CubePrimitive(
+        pose=Pose(position=_vector(on_plane), orientation=turn),
+        size=Vector3(x=width, y=width, z=PLANE_THICKNESS),
+        color=_color((0.45, 0.45, 0.5, 0.25)),
+    )
+
+
 def _vector(v: Sequence[float]) -> Vector3:
     x, y, z = (float(c) for c in v)
     return Vector3(x=x, y=y, z=z)
@@ -426,14 +454,15 @@ def workspace_scene(
     voxels: np.ndarray,
     margins: np.ndarray,
     size: float,
-    boxes: Sequence[tuple[str, Sequence[float], Sequence[float]]],
+    environment: Environment,
     anchors: np.ndarray,
     stamp_ns: int = 0,
 ) -> SceneUpdate:
     """The workspace in the world frame: the box `corners` (lo, hi) as lines, each voxel
     centre of `voxels` (N x 3, m) a cube of side `size` coloured by its margin (N:
-    tension_color of margin / the largest), the environment's `boxes` (name, min, max)
-    as translucent grey cubes, and the frame's `anchors` (n x 3) as spheres."""
+    tension_color of margin / the largest), the environment's boxes as translucent grey
+    cubes and its planes (floor, walls) as thin translucent squares across the box, and
+    the frame's `anchors` (n x 3) as spheres."""
     stamp = _stamp(stamp_ns)
     top = float(margins.max()) if len(margins) else 1.0
     cubes = [
@@ -447,14 +476,15 @@ def workspace_scene(
     obstacles = [
         CubePrimitive(
             pose=Pose(
-                position=_vector((np.asarray(lo) + np.asarray(hi)) / 2.0),
+                position=_vector((np.asarray(box.lower) + np.asarray(box.upper)) / 2.0),
                 orientation=Quaternion(w=1.0),
             ),
-            size=_vector(np.asarray(hi) - np.asarray(lo)),
+            size=_vector(np.asarray(box.upper) - np.asarray(box.lower)),
             color=_color((0.5, 0.5, 0.5, 0.4)),
         )
-        for _, lo, hi in boxes
+        for box in environment.boxes
     ]
+    obstacles += [_plane_square(plane, corners) for plane in environment.planes]
     lo, hi = (np.asarray(c, dtype=float) for c in corners)
     return SceneUpdate(
         entities=[

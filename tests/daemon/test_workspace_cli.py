@@ -8,11 +8,13 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 
+from cdpr.so3 import quat_to_matrix
 from cdpr.workspace_map import WorkspaceMap
 from daemon.cli import main
 from tests.conftest import OFFSET8, ROBOTS
@@ -20,8 +22,10 @@ from tests.conftest import OFFSET8, ROBOTS
 CONFIG = ROBOTS.parent / "reference8-cia402.yaml"
 
 
-def _config(tmp_path: Path, **workspace: object) -> Path:
+def _config(tmp_path: Path, environment: dict | None = None, **workspace: object) -> Path:
     data = yaml.safe_load(CONFIG.read_text())
+    if environment is not None:
+        data["environment"] = environment
     data["robot"] = str(OFFSET8)  # its crossed pairs clear of each other untilted
     data["state_dir"] = str(tmp_path / "state")
     data["workspace"] = {"step": 0.2, "tilt": 0.2, "interference": True, **workspace}
@@ -70,8 +74,19 @@ def test_a_daemon_config_s_map_goes_to_its_state_dir_and_check_config_uses_it(
 
 
 def test_the_slices_and_the_scene_are_written(tmp_path: Path, capsys) -> None:
+    """The MCAP holds the boundary, the anchors, the box obstacle and both planes (the
+    floor and a slanted wall), each as a thin square turned onto its plane."""
     png, scene = tmp_path / "ws.png", tmp_path / "ws.mcap"
-    args = ["workspace", "--config", str(_config(tmp_path)), "--step", "0.15"]
+    wall = np.array([-0.6, -0.8, 0.0])
+    environment = {
+        "planes": [
+            {"name": "floor", "point": [0.0, 0.0, 0.0], "normal": [0.0, 0.0, 1.0]},
+            {"name": "wall", "point": [3.0, 3.0, 0.0], "normal": wall.tolist()},
+        ],
+        "boxes": [{"name": "table", "min": [-0.3, 1.0, 0.0], "max": [0.3, 1.4, 0.5]}],
+    }
+    config = _config(tmp_path, environment)
+    args = ["workspace", "--config", str(config), "--step", "0.15"]
     assert main([*args, "--png", str(png), "--mcap", str(scene)]) == 0
     assert png.read_bytes()[:4] == b"\x89PNG"
     with scene.open("rb") as stream:  # decoded by mcap_protobuf from the file's own schema
@@ -85,6 +100,15 @@ def test_the_slices_and_the_scene_are_written(tmp_path: Path, capsys) -> None:
     assert cubes["workspace"] > 10
     entities = {entity.id: entity for entity in messages[0].decoded_message.entities}
     assert len(entities["environment"].spheres) == 8  # the frame's anchors
+    table, floor, slanted = entities["environment"].cubes
+    assert (table.size.x, table.size.y, table.size.z) == pytest.approx((0.6, 0.4, 0.5))
+    for square, normal, offset in ((floor, (0.0, 0.0, 1.0), 0.0), (slanted, wall, -4.2)):
+        assert square.size.z == pytest.approx(0.002) and square.size.x > 1.0
+        q = square.pose.orientation
+        turned = quat_to_matrix([q.w, q.x, q.y, q.z]) @ (0.0, 0.0, 1.0)
+        assert turned == pytest.approx(normal, abs=1e-9)
+        centre = np.array([square.pose.position.x, square.pose.position.y, square.pose.position.z])
+        assert centre.dot(normal) == pytest.approx(offset)
 
 
 @pytest.mark.parametrize(
