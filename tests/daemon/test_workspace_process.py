@@ -1,8 +1,9 @@
 """The workspace enforced on `cdprd run --sim` as its own processes, over zenoh (loopback,
-no scouting): a goto that takes the platform's corners through the floor, one where the
-crossed cables 0 and 6 touch, one with too little capacity margin, and a trajectory
-through the touching pose are refused naming the limit, the waypoint and the corner or
-cables; nothing moves, and a goto inside the workspace is still flown."""
+no scouting): a goto that takes the platform's corners through the floor, one that puts
+its body into a table, one where the crossed cables 0 and 6 touch, one with too little
+capacity margin, and a trajectory and a path through the touching pose are refused
+naming the limit, the waypoint and the corner, obstacle or cables; nothing moves, and a
+goto inside the workspace is still flown."""
 
 from __future__ import annotations
 
@@ -40,7 +41,10 @@ def daemon(tmp_path_factory: pytest.TempPathFactory) -> Iterator[int]:
     data["robot"] = str(OFFSET8)  # its crossed pairs clear of each other untilted
     data["zenoh"]["listen"] = [f"tcp/127.0.0.1:{port}"]
     data["zenoh"]["prefix"] = PREFIX  # the helpers' (the robot is named reference8-offset)
-    data["environment"] = {"planes": [{"name": "floor", "point": [0, 0, 0], "normal": [0, 0, 1]}]}
+    data["environment"] = {
+        "planes": [{"name": "floor", "point": [0, 0, 0], "normal": [0, 0, 1]}],
+        "boxes": [{"name": "table", "min": [-0.3, -0.3, 0.0], "max": [0.3, 0.3, 0.5]}],
+    }
     data["workspace"] = {"interference": True}
     config = tmp_path_factory.mktemp("workspace") / "cdprd.yaml"
     config.write_text(yaml.safe_dump(data))
@@ -71,7 +75,8 @@ def _refused(client: CdprClient, latest: Latest, call) -> RequestError:
     with pytest.raises(RequestError) as refused:
         call()
     time.sleep(0.3)  # a state published after the refusal
-    assert client.status()["state"] == "hold"
+    status = client.status()
+    assert status["state"] == "hold", status
     assert np.allclose(latest.position(), before, atol=5e-4)  # nothing moved
     return refused.value
 
@@ -80,6 +85,7 @@ def test_the_workspace_refuses_and_names_what_it_refuses(daemon: int) -> None:
     with CdprClient(PREFIX, f"tcp/127.0.0.1:{daemon}", timeout=15.0, name="ws") as client:
         latest = Latest(client)
         floor = _refused(client, latest, lambda: client.goto([0.0, 0.0, 0.10]))
+        table = _refused(client, latest, lambda: client.goto([0.0, 0.0, 0.75]))
         crossed = _refused(
             client, latest, lambda: client.goto(CROSSED.position_tuple, _quaternion(CROSSED))
         )
@@ -102,12 +108,31 @@ def test_the_workspace_refuses_and_names_what_it_refuses(daemon: int) -> None:
                 }
             ),
         )
+        path = _refused(
+            client,
+            latest,
+            lambda: client.send_path(
+                {
+                    "version": 1,
+                    "poses": [
+                        {"position": home["position"], "quaternion": home["quaternion"]},
+                        {
+                            "position": list(CROSSED.position_tuple),
+                            "quaternion": _quaternion(CROSSED),
+                        },
+                    ],
+                }
+            ),
+        )
         reply = client.goto([0.05, 0.0, 1.3])  # inside: flown
         assert reply["accepted"], reply
     assert (
         "workspace_min: platform corner 0 (-0.2, -0.2, -0.3 m in the platform frame)"
         in floor.reason
     )
+    # the corners at z = 0.45 m, inside the table's 0.5 m top
+    assert "goto rejected: waypoint 1: environment: platform corner 0 " in table.reason
+    assert "crosses box 'table'" in table.reason
     assert (
         "goto rejected: waypoint 0: workspace.interference: cables 0 and 6 pass" in crossed.reason
     )
@@ -117,3 +142,4 @@ def test_the_workspace_refuses_and_names_what_it_refuses(daemon: int) -> None:
     assert re.search(r"holding the (9\.9\d*|10(\.0\d*)?) kg platform at rest", thin.reason)
     assert "less than workspace.margin 5 N" in thin.reason
     assert "waypoint 0: workspace.interference: cables 0 and 6 pass" in through.reason
+    assert "workspace.interference: cables 0 and 6 pass" in path.reason
