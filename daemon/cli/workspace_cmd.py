@@ -62,8 +62,9 @@ COARSE_STEP = 0.1  # m: the grid check-config computes when no fresh map is save
 
 
 def summary_line(config: DaemonConfig) -> str:
-    """check-config's line on the workspace: the saved map's volume at home and worst
-    margin, else those of a coarse grid computed now (and why the map was not used)."""
+    """check-config's line on the workspace: the saved map's volume at home and at every
+    orientation (and its fraction of the box) and its worst margin, else those of a
+    coarse grid computed now (and why the map was not used)."""
     from tuning.workspace_map import compute_map
 
     section = config.workspace
@@ -79,9 +80,11 @@ def summary_line(config: DaemonConfig) -> str:
         source = f"{source}; computed on a {grid} grid (`cdprd workspace` saves the map)"
     summary = workspace.summary()
     home = summary["volume_per_orientation_m3"][0]
+    every, fraction = summary["volume_m3"], summary["fraction"]
     worst = summary["worst_margin_n"]
     margin = "none inside" if worst is None else f"worst margin {worst:.1f} N"
-    return f"workspace: {rules}; {home:.3g} m^3 at home, {margin} ({source})"
+    volumes = f"{home:.3g} m^3 at home, {every:.3g} m^3 ({fraction:.0%} of the box) at every tilt"
+    return f"workspace: {rules}; {volumes}, {margin} ({source})"
 
 
 def coarse_map(path: str, step: float = COARSE_STEP) -> WorkspaceMap:

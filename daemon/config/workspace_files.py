@@ -1,5 +1,7 @@
 """The workspace map a daemon config names (cdpr.workspace_map): the saved map if it is
-still this config's (its settings from the `workspace:` section's map_settings)."""
+still this config's: the same robot, box and environment, and the `workspace:` section's
+margin, interference and payload range.  Its grid step and tilt may differ (`cdprd
+workspace --step 0.05` is a coarser map of the same workspace, not another one)."""
 
 from __future__ import annotations
 
@@ -13,7 +15,8 @@ if TYPE_CHECKING:
 
 def stored_map(config: DaemonConfig) -> tuple[WorkspaceMap | None, str]:
     """The config's saved map if it is there and was computed from this robot, box,
-    environment and these settings; else None and why not."""
+    environment, margin, interference and payload range (at any step and tilt); else
+    None and why not."""
     path = config.workspace_map_path()
     if path is None:
         return None, "no map file: set workspace.map or state_dir"
@@ -25,9 +28,10 @@ def stored_map(config: DaemonConfig) -> tuple[WorkspaceMap | None, str]:
         return None, str(exc)
     lower, upper = config.workspace_box
     expected = fingerprint(config.robot, lower, upper, config.environment, saved.settings)
-    if saved.fingerprint != expected or saved.settings != config.workspace.map_settings(
-        config.safety.tilt_max
-    ):
+    wanted = config.workspace.map_settings(
+        config.safety.tilt_max, step=saved.settings.step, tilt=saved.settings.tilt
+    )
+    if saved.fingerprint != expected or saved.settings != wanted:
         return None, (
             f"the map at {path} is stale: the robot file, the config or the workspace "
             "settings changed since it was computed"

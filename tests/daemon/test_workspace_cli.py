@@ -6,6 +6,7 @@ workspace is refused."""
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -65,6 +66,13 @@ def test_a_daemon_config_s_map_goes_to_its_state_dir_and_check_config_uses_it(
     assert main(["check-config", str(path)]) == 0
     line = next(x for x in capsys.readouterr().out.splitlines() if x.startswith("workspace:"))
     assert line.startswith("workspace: margin >= 5 N at rest, cables' interference refused; ")
+    assert re.search(r"; \S+ m\^3 at home, \S+ m\^3 \(\d+% of the box\) at every tilt, ", line)
+    assert line.endswith(f"(map {saved})")
+    # a coarser map of the same workspace is still the config's
+    assert main(["workspace", "--config", str(path), "--step", "0.25", "--tilt", "0.1"]) == 0
+    capsys.readouterr()
+    assert main(["check-config", str(path)]) == 0
+    line = next(x for x in capsys.readouterr().out.splitlines() if x.startswith("workspace:"))
     assert line.endswith(f"(map {saved})")
     # the robot's margin asked for changes: the map is stale, named, and not used
     _config(tmp_path, margin=6.0)
