@@ -28,6 +28,10 @@ from numba import njit, prange
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import ConvexHull
 
+from cdpr.compiled_cache import key_numba_cache
+
+key_numba_cache()  # before the first @njit(cache=True): its cache keyed by the sources
+
 Array = NDArray[np.float64]
 
 _ON_FACE = 1e-9  # m: an attachment this close to a face's plane lies on it

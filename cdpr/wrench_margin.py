@@ -33,7 +33,10 @@ import numpy as np
 from numba import njit, prange
 from numpy.typing import ArrayLike, NDArray
 
+from cdpr.compiled_cache import key_numba_cache
 from cdpr.dynamics import PlatformInertia
+
+key_numba_cache()  # before the first @njit(cache=True): its cache keyed by the sources
 
 Array = NDArray[np.float64]
 

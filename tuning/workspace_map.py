@@ -28,6 +28,7 @@ from numba import njit, prange
 from numpy.typing import NDArray
 
 from cdpr.body import Environment, segments_meet
+from cdpr.compiled_cache import key_numba_cache
 from cdpr.interference import touch_kernel
 from cdpr.robot import Robot
 from cdpr.so3 import quat_multiply, quat_to_matrix
@@ -43,6 +44,8 @@ from cdpr.workspace_map import (
     fingerprint,
 )
 from cdpr.wrench_margin import margin_kernel, margin_scratch, rest_wrenches
+
+key_numba_cache()  # before the first @njit(cache=True): its cache keyed by the sources
 
 Array = NDArray[np.float64]
 
