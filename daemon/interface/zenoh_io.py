@@ -119,6 +119,8 @@ class _Raw:
 
 
 _Message = _Raw | TrajectoryMessage
+Reply = Callable[[dict[str, Any], bool], None]  # a command's answer: (body, ok), once
+_Command = tuple[str, dict[str, Any], Reply]  # queued: the name, its args, who answers
 _TrajectoryItem = tuple[_Message, zenoh.Query | None]  # queued, and who asks
 _Item = TypeVar("_Item")
 _Result = TypeVar("_Result")
@@ -323,7 +325,7 @@ class ZenohInterface:
         self._stop_parsing = threading.Event()
         self._credit_time = 0.0  # (monotonic) when the credit was reckoned
         self._submission: asyncio.Future[Any] | None = None  # the verdict awaited
-        self._commands: _Inbox[tuple[str, dict[str, Any], zenoh.Query]] | None = None
+        self._commands: _Inbox[_Command] | None = None
         self._trajectories: _Inbox[_TrajectoryItem] | None = None
         self._events: _Inbox[bytes] | None = None
         self._state_task: asyncio.Task[None] | None = None
@@ -409,8 +411,8 @@ class ZenohInterface:
         if self._tasks:
             await asyncio.wait(self._tasks)  # their busy answers
         gone = CommandError("busy", "the daemon is shutting down")
-        for name, _args, query in self._commands.close():
-            self._reply(query, reply_error(name, gone), ok=False)
+        for name, _args, reply in self._commands.close():
+            reply(reply_error(name, gone), False)
         for item, query in waiting:
             self._trajectory_outcome(_id(item), query, None, gone)
         assert self._events is not None and self._parser is not None
@@ -575,9 +577,7 @@ class ZenohInterface:
                 check_size(len(payload), limit, "max_command_bytes")
                 data = decode_json(payload.to_bytes(), limit)
             args = decode_command(name, data, self.limits.unit_tolerance)
-            assert self._commands is not None
-            if not self._commands.offer((name, args, query)):
-                self._reply(query, reply_error(name, _busy(name)), ok=False)
+            self.offer_command(name, args, functools.partial(self._reply, query))
         except CommandError as exc:
             self._count("commands_refused")
             self._reply(query, reply_error(name, exc), ok=False)
@@ -585,6 +585,14 @@ class ZenohInterface:
             self._count("callback_errors")
             log.exception("command query callback failed")
             _quietly(query.drop)
+
+    def offer_command(self, name: str, args: dict[str, Any], reply: Reply) -> None:
+        """Queue command `name` with its validated `args` for the handler (any thread);
+        `reply(body, ok)` gets its answer once, "busy" at once if the queue is full.  The
+        ROS 2 bridge's services come in here too: one queue, one command at a time."""
+        assert self._commands is not None
+        if not self._commands.offer((name, args, reply)):
+            reply(reply_error(name, _busy(name)), False)
 
     # -- parsing: in the parse thread, or on the loop for the smallest ---------------------
 
@@ -646,51 +654,51 @@ class ZenohInterface:
 
     # -- event loop ------------------------------------------------------------------------
 
-    def _run_command(self, item: tuple[str, dict[str, Any], zenoh.Query]) -> None:
-        name, args, query = item
+    def _run_command(self, item: _Command) -> None:
+        name, args, reply = item
         try:
             result = self._handler.command(name, args)
         except CommandError as exc:
-            self._reply(query, reply_error(name, exc), ok=False)
+            reply(reply_error(name, exc), False)
             return
         except Exception as exc:
-            self._reply(query, reply_error(name, _failure(name, exc)), ok=False)
+            reply(reply_error(name, _failure(name, exc)), False)
             return
         one_at_a_time = name in _ONE_AT_A_TIME and not args.get("preempt")
         if not inspect.isawaitable(result):
-            self._reply(query, reply_ok(name, result), ok=True)
+            reply(reply_ok(name, result), True)
         elif one_at_a_time and self._command_task is not None and inspect.iscoroutine(result):
             result.close()  # never started: nothing happened
             self._count("commands_busy")
             busy = CommandError("busy", f"{name}: another command is still running, retry")
-            self._reply(query, reply_error(name, busy), ok=False)
+            reply(reply_error(name, busy), False)
         elif one_at_a_time:
-            task = self._track(self._finish_command(name, result, query))
+            task = self._track(self._finish_command(name, result, reply))
             self._command_task = task
             task.add_done_callback(self._command_done)
         else:  # a hold plans its stop for a few ms, and never waits for the slot; a
             # request that preempts replaces what holds it
-            self._track(self._finish_command(name, result, query))
+            self._track(self._finish_command(name, result, reply))
 
     def _command_done(self, task: asyncio.Future[Any]) -> None:
         if self._command_task is task:
             self._command_task = None
 
     async def _finish_command(
-        self, name: str, pending: Awaitable[dict[str, Any]], query: zenoh.Query
+        self, name: str, pending: Awaitable[dict[str, Any]], reply: Reply
     ) -> None:
         try:
             body, ok = reply_ok(name, await pending), True
         except CommandError as exc:
             body, ok = reply_error(name, exc), False
         except asyncio.CancelledError:
-            self._reply(query, reply_error(name, _busy(name)), ok=False)
+            reply(reply_error(name, _busy(name)), False)
             raise
         except Exception as exc:
             body, ok = reply_error(name, _failure(name, exc)), False
         if self._command_task is asyncio.current_task():
             self._command_task = None  # free before replying: the sender may go on at once
-        self._reply(query, body, ok)
+        reply(body, ok)
 
     def _run_trajectory(self, item: _TrajectoryItem) -> asyncio.Future[Any] | None:
         """Submit one trajectory, or start the job that parses and submits it.
@@ -863,9 +871,7 @@ def _inline(item: _Message) -> TypeGuard[TrajectoryMessage]:
     """A decoded trajectory of at most INLINE_WAYPOINTS waypoints: parsed on the loop (a
     path is timed in the parse thread, however short)."""
     return (
-        isinstance(item, TrajectoryMessage)
-        and not item.path
-        and item.waypoints <= INLINE_WAYPOINTS
+        isinstance(item, TrajectoryMessage) and not item.path and item.waypoints <= INLINE_WAYPOINTS
     )
 
 
