@@ -3,8 +3,8 @@
 The bridge uses the daemon's own zenoh session (the `zenoh:` section decides where it
 listens or connects), so a ROS 2 graph reaches it through a zenoh router such as
 `ros2 run rmw_zenoh_cpp rmw_zenohd` (zenoh.connect: [tcp/127.0.0.1:7447]) or by
-connecting to the daemon's listen endpoint.  Topic names follow ROS 2: a name that starts
-with "/" is absolute, any other is under `namespace`.
+connecting to the daemon's listen endpoint.  Topic and service names follow ROS 2: a name
+that starts with "/" is absolute, any other is under `namespace`.
 """
 
 from __future__ import annotations
@@ -55,6 +55,16 @@ class Ros2Settings(StrictModel):
     """trajectory_msgs/msg/MultiDOFJointTrajectory in: a trajectory to fly."""
     status_topic: str = Field("trajectory_status", pattern=_TOPIC)
     """std_msgs/msg/String: the verdict on each trajectory received (JSON text)."""
+    enable_service: str = Field("enable", pattern=_TOPIC)
+    """std_srvs/srv/Trigger: the `enable` command (success and the reply or the refusal)."""
+    hold_service: str = Field("hold", pattern=_TOPIC)
+    """std_srvs/srv/Trigger: the `hold` command."""
+    brake_service: str = Field("brake", pattern=_TOPIC)
+    """std_srvs/srv/Trigger: the `brake` command."""
+    reset_service: str = Field("reset", pattern=_TOPIC)
+    """std_srvs/srv/Trigger: the `reset` command."""
+    disable_service: str = Field("disable", pattern=_TOPIC)
+    """std_srvs/srv/Trigger: the `disable` command."""
     max_message_bytes: int | None = Field(None, ge=1024, le=256 * 1024 * 1024)
     """An incoming trajectory above this size is refused unread; None: the zenoh
     interface's zenoh.max_message_bytes, the cap of every way a trajectory comes in."""
@@ -66,7 +76,8 @@ class Ros2Settings(StrictModel):
     """Trajectories waiting to be decoded and validated; more are refused "busy"."""
 
     def topic(self, name: str) -> str:
-        """The fully qualified name of topic `name` (absolute, or under the namespace)."""
+        """The fully qualified name of topic or service `name` (absolute, or under the
+        namespace)."""
         if name.startswith("/"):
             return name
         return f"{self.namespace.rstrip('/')}/{name}"

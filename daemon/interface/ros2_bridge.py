@@ -16,6 +16,15 @@ interface's timer), and submitted
 to the handler like a trajectory from the zenoh interface; its verdict, accepted or
 rejected with the reason, goes out on the status topic as JSON text.  Trajectories are
 handled one at a time; at most `queue_depth` wait, more are refused "busy".
+
+The std_srvs/srv/Trigger services enable, hold, brake, reset and disable run those
+commands as rmw_zenoh_cpp's service servers answer (ros2_wire): a request whose
+attachment or CDR does not read, or that repeats a pending (client, sequence number), is
+dropped unanswered as rmw_zenoh drops it.  A good one joins the zenoh interface's
+command queue (ZenohInterface.offer_command: its depth, one enable or reset at a time,
+"busy" beyond), under the ingress limit zenoh.ingress_limits_hz puts on
+`cmd/<command>`; the answer is success and the command's result as JSON text, or the
+refusal's "<code>: <reason>".
 """
 
 from __future__ import annotations
@@ -25,6 +34,7 @@ import contextlib
 import functools
 import inspect
 import logging
+import threading
 import time
 from collections.abc import Callable
 from typing import Any
@@ -60,7 +70,7 @@ from daemon.interface.ros2_convert import (
     status_message,
     trajectory_body,
 )
-from daemon.interface.zenoh_io import ZenohInterface
+from daemon.interface.zenoh_io import MAX_COMMAND_BYTES, ZenohInterface
 from daemon.service.api import UNNAMED, CommandError, DaemonHandler
 
 log = logging.getLogger(__name__)
@@ -74,6 +84,13 @@ PUBLISHED = {  # setting naming the topic -> its type
     "status_topic": STATUS,
 }
 ACCEPTED = {"path_topic": PATH, "multi_dof_trajectory_topic": MULTI_DOF}
+SERVICES = {  # setting naming the std_srvs/srv/Trigger service -> the command it runs
+    "enable_service": "enable",
+    "hold_service": "hold",
+    "brake_service": "brake",
+    "reset_service": "reset",
+    "disable_service": "disable",
+}
 Received = tuple[str, str, bytes, bytes | None]  # topic, type, payload, attachment
 
 
@@ -86,14 +103,31 @@ def intake_keys(settings: Ros2Settings) -> dict[str, tuple[str, str]]:
     return out
 
 
+def service_keys(settings: Ros2Settings) -> dict[str, tuple[str, str]]:
+    """The zenoh key of each Trigger service the node serves: key -> (service, command)."""
+    out = {}
+    for name, command in SERVICES.items():
+        service = settings.topic(getattr(settings, name))
+        out[wire.topic_key(settings.domain_id, service, wire.TRIGGER)] = (service, command)
+    return out
+
+
 def ingress_limits(settings: Ros2Settings, zenoh_settings: ZenohSettings) -> dict[str, float]:
-    """What zenoh limits the trajectory topics to (key -> Hz), for the session's config
-    (ZenohInterface's `ingress_limits`): ros2.ingress_limit_hz, else the limit on the
-    zenoh interface's `trajectory`; none when neither is set or ROS 2 is off."""
-    hz = settings.ingress_limit_hz or zenoh_settings.ingress_limit("trajectory")
-    if not settings.enabled or hz is None:
+    """What zenoh limits the node's inputs to (key -> Hz), for the session's config
+    (ZenohInterface's `ingress_limits`): the trajectory topics to ros2.ingress_limit_hz,
+    else the limit on the zenoh interface's `trajectory`; each service to the limit on
+    its command's `cmd/<command>`; none when those are not set or ROS 2 is off."""
+    if not settings.enabled:
         return {}
-    return dict.fromkeys(intake_keys(settings), hz)
+    out = {}
+    hz = settings.ingress_limit_hz or zenoh_settings.ingress_limit("trajectory")
+    if hz is not None:
+        out.update(dict.fromkeys(intake_keys(settings), hz))
+    for key, (_service, command) in service_keys(settings).items():
+        limit = zenoh_settings.ingress_limit(f"cmd/{command}")
+        if limit is not None:
+            out[key] = limit
+    return out
 
 
 class _Publisher:
@@ -134,6 +168,8 @@ class Ros2Bridge:
         self._entities: list[Any] = []
         self._tasks: list[asyncio.Task[None]] = []
         self._queue: asyncio.Queue[Received] | None = None
+        self._pending: set[tuple[bytes, int]] = set()  # requests taken, not yet answered
+        self._pending_lock = threading.Lock()
         self.node = wire.Node(
             settings.domain_id,
             str(session.info.zid()),
@@ -143,8 +179,8 @@ class Ros2Bridge:
         )
 
     async def start(self) -> None:
-        """Declare the node, its publishers and subscriptions (each with its liveliness
-        token), start publishing and taking trajectories."""
+        """Declare the node, its publishers, subscriptions and services (each with its
+        liveliness token), start publishing and taking trajectories and requests."""
         self._loop = asyncio.get_running_loop()
         self._queue = asyncio.Queue(self.settings.queue_depth)
         liveliness = self._session.liveliness()
@@ -162,6 +198,12 @@ class Ros2Bridge:
             receive = self._receiver(topic, msgtype)
             self._entities.append(self._session.declare_subscriber(key, receive))
             token = self.node.entity_token(entity_id, wire.SUBSCRIPTION, topic, msgtype)
+            self._entities.append(liveliness.declare_token(token))
+        for key, (service, command) in service_keys(self.settings).items():
+            entity_id += 1
+            serve = self._server(key, command)
+            self._entities.append(self._session.declare_queryable(key, serve, complete=True))
+            token = self.node.entity_token(entity_id, wire.SERVICE_SERVER, service, wire.TRIGGER)
             self._entities.append(liveliness.declare_token(token))
         self._tasks = [
             self._loop.create_task(self._publish_states()),
@@ -247,6 +289,64 @@ class Ros2Bridge:
 
         return receive
 
+    def _server(self, key: str, command: str) -> Callable[[zenoh.Query], None]:
+        """The queryable callback of the Trigger service running `command` (zenoh's
+        thread): the request read as rmw_zenoh's ServiceData::take_request reads it, or
+        dropped unanswered; then queued with the zenoh interface's commands."""
+
+        def serve(query: zenoh.Query) -> None:
+            try:
+                payload, extra = query.payload, query.attachment
+                check_size(0 if payload is None else len(payload), MAX_COMMAND_BYTES)
+                wire.deserialize(b"" if payload is None else payload.to_bytes(), _REQUEST)
+                request = wire.read_attachment(None if extra is None else extra.to_bytes())
+                if request.sequence_number < 0 or request.source_timestamp < 0:
+                    raise wire.WireError("negative sequence number or timestamp")
+                pending = (request.source_gid, request.sequence_number)
+                with self._pending_lock:
+                    if pending in self._pending:
+                        raise wire.WireError("duplicate sequence number")
+                    self._pending.add(pending)
+            except (wire.WireError, CommandError) as exc:
+                log.debug("ROS 2 service %s: request dropped: %s", key, exc)
+                query.drop()  # the client gets no reply, as from rmw_zenoh
+                return
+            except Exception:
+                log.exception("ROS 2 service %s: the request callback failed", key)
+                query.drop()
+                return
+            respond = functools.partial(self._respond, query, key, request)
+            self._interface.offer_command(command, {}, respond)
+
+        return serve
+
+    def _respond(
+        self,
+        query: zenoh.Query,
+        key: str,
+        request: wire.Attachment,
+        body: dict[str, Any],
+        ok: bool,
+    ) -> None:
+        """Answer a Trigger request with the command's reply `body`, as rmw_zenoh's
+        ServiceData::send_response does: on the service's key, the Response in CDR, the
+        attachment with the request's sequence number and client GID and our time."""
+        with self._pending_lock:
+            self._pending.discard((request.source_gid, request.sequence_number))
+        if ok:
+            text = encode(body["result"]).decode()
+        else:
+            text = f"{body['error']['code']}: {body['error']['reason']}"
+        response = wire.message(_RESPONSE, success=ok, message=text)
+        extra = wire.attachment(request.sequence_number, time.time_ns(), request.source_gid)
+        try:
+            query.reply(key, wire.serialize(response), attachment=extra)
+        except zenoh.ZError:  # the client gave up (timeout) or left
+            log.debug("ROS 2 service %s: the client left before the reply", key)
+        finally:
+            with contextlib.suppress(zenoh.ZError):
+                query.drop()
+
     def _on_loop(self, call: Callable[..., None], *args: Any) -> None:
         assert self._loop is not None
         with contextlib.suppress(RuntimeError):  # the loop is closed: shutting down
@@ -273,9 +373,7 @@ class Ros2Bridge:
                 continue
             try:
                 # a ROS 2 message names no client: every ROS 2 sender is the unnamed one
-                result = self._handler.submit_trajectory(
-                    parsed.trajectory, parsed.start, UNNAMED
-                )
+                result = self._handler.submit_trajectory(parsed.trajectory, parsed.start, UNNAMED)
                 if inspect.isawaitable(result):
                     result = await result
             except CommandError as exc:
@@ -286,6 +384,9 @@ class Ros2Bridge:
                 self._status(ident, topic, error)
             else:
                 self._status(ident, topic, None, result=result)
+
+
+_REQUEST, _RESPONSE = f"{wire.TRIGGER}_Request", f"{wire.TRIGGER}_Response"
 
 
 def _busy() -> CommandError:

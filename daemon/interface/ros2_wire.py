@@ -24,6 +24,19 @@ rmw_zenoh_cpp/src/detail/qos.cpp @ 5e10d47b06c3fe327105d06a8350be455411ea5b.
   compact form, empty fields for its defaults.
 - GID: XXH3-128 of the entity's liveliness key, low 64 bits then high 64 bits, each in
   the host's (little-endian) byte order.
+- Service servers (rmw_zenoh_cpp/src/detail/rmw_service_data.cpp): a queryable (complete)
+  on the key above with the service's type (std_srvs::srv::dds_::Trigger_) and the
+  service type's hash, and a liveliness token of kind SS.  A request is the Request in
+  CDR with the client's attachment (its sequence number, timestamp and GID); one whose
+  CDR or attachment does not read is taken and never answered.  The reply, on the
+  service's key, is the Response in CDR with the attachment (the request's sequence
+  number, the server's time, the client's GID).
+- A service type's RIHS01 hash (REP-2016) covers request_message, response_message and
+  event_message (<srv>_Event: service_msgs/msg/ServiceEventInfo info, request and
+  response as sequences of at most one).  rosbags has no std_srvs and writes
+  ServiceEventInfo's client_gid as char[16], where rosidl (its .msg -> .idl maps char to
+  uint8) writes uint8[16]: the hashes are computed here in a store of their own, and
+  give Jazzy's (tests/data/rmw_zenoh_reference.md).
 """
 
 from __future__ import annotations
@@ -34,10 +47,12 @@ from typing import Any, NamedTuple
 
 import xxhash
 from rosbags.typesys import Stores, get_typestore
+from rosbags.typesys.base import Nodetype
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 ADMIN_SPACE = "@ros2_lv"
-NODE, PUBLISHER, SUBSCRIPTION = "NN", "MP", "MS"
+NODE, PUBLISHER, SUBSCRIPTION, SERVICE_SERVER = "NN", "MP", "MS", "SS"
+TRIGGER = "std_srvs/srv/Trigger"
 # reliable, volatile, keep last 10 (rclcpp's default profile; depth 10 is not rmw_zenoh's
 # default of 42, so it is written out): reliability:durability:history,depth:deadline:
 # lifespan:liveliness,lease s,lease ns
@@ -56,6 +71,68 @@ class Attachment(NamedTuple):
     source_gid: bytes
 
 
+def _field(typ: str) -> tuple[Nodetype, tuple[str, int]]:
+    return Nodetype.BASE, (typ, 0)
+
+
+def _nested(typ: str, bound: int | None = None) -> Any:
+    return (
+        (Nodetype.NAME, typ)
+        if bound is None
+        else (Nodetype.SEQUENCE, ((Nodetype.NAME, typ), bound))
+    )
+
+
+def _service_types(srvtype: str, request: list[Any], response: list[Any]) -> dict[str, Any]:
+    """rosbags' field definitions of a service's Request, Response, Event and the
+    service type itself (the struct REP-2016 hashes).  An empty Request has rosidl's
+    placeholder field, as on the wire."""
+    req, res, event = (f"{srvtype}_{part}" for part in ("Request", "Response", "Event"))
+    return {
+        req: ([], request or [("structure_needs_at_least_one_member", _field("uint8"))]),
+        res: ([], response),
+        event: (
+            [],
+            [
+                ("info", _nested(_EVENT_INFO)),
+                ("request", _nested(req, 1)),
+                ("response", _nested(res, 1)),
+            ],
+        ),
+        srvtype: (
+            [],
+            [
+                ("request_message", _nested(req)),
+                ("response_message", _nested(res)),
+                ("event_message", _nested(event)),
+            ],
+        ),
+    }
+
+
+_EVENT_INFO = "service_msgs/msg/ServiceEventInfo"
+_TRIGGER_TYPES = _service_types(
+    TRIGGER, [], [("success", _field("bool")), ("message", _field("string"))]
+)
+TYPESTORE.register(
+    {name: _TRIGGER_TYPES[name] for name in (f"{TRIGGER}_Request", f"{TRIGGER}_Response")}
+)
+_SERVICE_HASHES = get_typestore(Stores.EMPTY)  # Jazzy's ServiceEventInfo, client_gid uint8[16]
+_SERVICE_HASHES.register(
+    {
+        "builtin_interfaces/msg/Time": TYPESTORE.fielddefs["builtin_interfaces/msg/Time"],
+        _EVENT_INFO: (
+            TYPESTORE.fielddefs[_EVENT_INFO][0],
+            [
+                (n, (Nodetype.ARRAY, (_field("uint8"), 16)) if n == "client_gid" else d)
+                for n, d in TYPESTORE.fielddefs[_EVENT_INFO][1]
+            ],
+        ),
+        **_TRIGGER_TYPES,
+    }
+)
+
+
 def dds_type_name(msgtype: str) -> str:
     """geometry_msgs/msg/PoseStamped -> geometry_msgs::msg::dds_::PoseStamped_"""
     package, kind, name = msgtype.split("/")
@@ -63,8 +140,10 @@ def dds_type_name(msgtype: str) -> str:
 
 
 def type_hash(msgtype: str) -> str:
-    """The RIHS01 type hash of `msgtype` (REP-2016), as rosbags computes it."""
-    return TYPESTORE.hash_rihs01(msgtype)
+    """The RIHS01 type hash of message or service type `msgtype` (REP-2016), as rosbags
+    computes it (a service's in the store above)."""
+    store = _SERVICE_HASHES if msgtype in _TRIGGER_TYPES else TYPESTORE
+    return store.hash_rihs01(msgtype)
 
 
 def topic_key(domain_id: int, topic: str, msgtype: str) -> str:
@@ -109,7 +188,9 @@ class Node:
     def entity_token(
         self, entity_id: int, kind: str, topic: str, msgtype: str, qos: str = DEFAULT_QOS
     ) -> str:
-        """The liveliness key of a publisher (MP) or subscription (MS) of this node."""
+        """The liveliness key of a publisher (MP), subscription (MS) or service server
+        (SS, `msgtype` the service type) of this node; DEFAULT_QOS is also the services'
+        default profile (reliable, volatile, keep last 10)."""
         tail = (mangle(topic), mangle(dds_type_name(msgtype)), type_hash(msgtype), qos)
         return "/".join((self._head(entity_id, kind), *tail))
 

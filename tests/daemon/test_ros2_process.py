@@ -199,8 +199,10 @@ def _exercise(s: zenoh.Session) -> None:
         ("MS", "%lab%multi_dof_trajectory", MULTI_DOF),
     ]:
         assert entities[(kind, topic)][10:12] == [dds(msgtype), STORE.hash_rihs01(msgtype)]
+    for service in ("enable", "hold", "brake", "reset", "disable"):  # test_ros2_services.py
+        assert entities[("SS", f"%lab%{service}")][10] == "std_srvs::srv::dds_::Trigger_"
     ids = [int(p[4]) for p in parts if p[5] != "NN"]
-    assert len(set(ids)) == len(ids) == 8
+    assert len(set(ids)) == len(ids) == 13
 
     # -- JointState: the lengths of the JSON state, rmw_zenoh's attachment
     joint_msg, extra = joints.last()

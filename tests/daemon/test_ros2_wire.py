@@ -74,6 +74,36 @@ def test_keys_carry_rosbags_type_hash_for_every_type_used() -> None:
         assert key == f"3/ns/topic/{package}::msg::dds_::{name}_/{STORE.hash_rihs01(msgtype)}"
 
 
+@pytest.mark.parametrize(
+    "srvtype",
+    [
+        "std_srvs/srv/Trigger",
+        "std_srvs/srv/Trigger_Request",
+        "std_srvs/srv/Trigger_Response",
+        "std_srvs/srv/Trigger_Event",
+    ],
+)
+def test_the_trigger_service_hashes_are_jazzys(srvtype: str) -> None:
+    """The reference's table of Jazzy's values (tests/data/rmw_zenoh_reference.md)."""
+    assert f"| {srvtype} | `{wire.type_hash(srvtype)}` |" in _reference_text()
+
+
+def test_a_service_is_keyed_and_announced_under_its_service_type() -> None:
+    key = wire.topic_key(0, "/cdprd/enable", wire.TRIGGER)
+    assert key == (
+        "0/cdprd/enable/std_srvs::srv::dds_::Trigger_/"
+        "RIHS01_eeff2cd6fa5ad9d27cdf4dec64818317839b62f212a91e6b5304b634b2062c5f"
+    )
+    node = wire.Node(0, ZID, 0, "/", "cdprd")
+    token = node.entity_token(3, wire.SERVICE_SERVER, "/cdprd/enable", wire.TRIGGER)
+    assert (
+        token
+        == f"@ros2_lv/0/{ZID}/0/3/SS/%/%/cdprd/%cdprd%enable/"
+        + "/".join(key.split("/")[3:])
+        + "/::,10:,:,:,,"
+    )
+
+
 def test_the_attachment_is_what_zenoh_ext_serializes_and_reads() -> None:
     gid = bytes(range(16))
     ours = wire.attachment(7, 1_700_000_000_123_456_789, gid)
