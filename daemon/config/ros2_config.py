@@ -65,6 +65,12 @@ class Ros2Settings(StrictModel):
     """std_srvs/srv/Trigger: the `reset` command."""
     disable_service: str = Field("disable", pattern=_TOPIC)
     """std_srvs/srv/Trigger: the `disable` command."""
+    observer_hold_service: str = Field("hold_observer", pattern=_TOPIC)
+    """std_srvs/srv/SetBool: the `observer` command, the wrench observer held (data true)
+    or let back in (false)."""
+    payload_freeze_service: str = Field("freeze_payload", pattern=_TOPIC)
+    """std_srvs/srv/SetBool: the `payload` command, the payload estimate frozen (data
+    true) or unfrozen (false)."""
     max_message_bytes: int | None = Field(None, ge=1024, le=256 * 1024 * 1024)
     """An incoming trajectory above this size is refused unread; None: the zenoh
     interface's zenoh.max_message_bytes, the cap of every way a trajectory comes in."""

@@ -18,7 +18,9 @@ rejected with the reason, goes out on the status topic as JSON text.  Trajectori
 handled one at a time; at most `queue_depth` wait, more are refused "busy".
 
 The std_srvs/srv/Trigger services enable, hold, brake, reset and disable run those
-commands as rmw_zenoh_cpp's service servers answer (ros2_wire): a request whose
+commands, the std_srvs/srv/SetBool services hold_observer and freeze_payload the
+observer and payload commands with held / frozen = data, as rmw_zenoh_cpp's service
+servers answer (ros2_wire): a request whose
 attachment or CDR does not read, or that repeats a pending (client, sequence number), is
 dropped unanswered as rmw_zenoh drops it.  A good one joins the zenoh interface's
 command queue (ZenohInterface.offer_command: its depth, one enable or reset at a time,
@@ -52,9 +54,11 @@ from daemon.interface.messages import (
     TrajectoryMessage,
     TrajectoryRequest,
     check_size,
+    decode_command,
     encode,
     error_body,
     parse_waypoints,
+    reply_error,
     time_path_message,
 )
 from daemon.interface.ros2_convert import (
@@ -84,13 +88,17 @@ PUBLISHED = {  # setting naming the topic -> its type
     "status_topic": STATUS,
 }
 ACCEPTED = {"path_topic": PATH, "multi_dof_trajectory_topic": MULTI_DOF}
-SERVICES = {  # setting naming the std_srvs/srv/Trigger service -> the command it runs
-    "enable_service": "enable",
-    "hold_service": "hold",
-    "brake_service": "brake",
-    "reset_service": "reset",
-    "disable_service": "disable",
+SERVICES = {  # setting naming the service -> its type, the command it runs, the argument
+    # SetBool's data sets (a Trigger has none)
+    "enable_service": (wire.TRIGGER, "enable", None),
+    "hold_service": (wire.TRIGGER, "hold", None),
+    "brake_service": (wire.TRIGGER, "brake", None),
+    "reset_service": (wire.TRIGGER, "reset", None),
+    "disable_service": (wire.TRIGGER, "disable", None),
+    "observer_hold_service": (wire.SET_BOOL, "observer", "held"),
+    "payload_freeze_service": (wire.SET_BOOL, "payload", "frozen"),
 }
+Service = tuple[str, str, str, str | None]  # its name, type, command, argument
 Received = tuple[str, str, bytes, bytes | None]  # topic, type, payload, attachment
 
 
@@ -103,12 +111,13 @@ def intake_keys(settings: Ros2Settings) -> dict[str, tuple[str, str]]:
     return out
 
 
-def service_keys(settings: Ros2Settings) -> dict[str, tuple[str, str]]:
-    """The zenoh key of each Trigger service the node serves: key -> (service, command)."""
+def service_keys(settings: Ros2Settings) -> dict[str, Service]:
+    """The zenoh key of each service the node serves, and what it is."""
     out = {}
-    for name, command in SERVICES.items():
+    for name, (srvtype, command, argument) in SERVICES.items():
         service = settings.topic(getattr(settings, name))
-        out[wire.topic_key(settings.domain_id, service, wire.TRIGGER)] = (service, command)
+        key = wire.topic_key(settings.domain_id, service, srvtype)
+        out[key] = (service, srvtype, command, argument)
     return out
 
 
@@ -123,7 +132,7 @@ def ingress_limits(settings: Ros2Settings, zenoh_settings: ZenohSettings) -> dic
     hz = settings.ingress_limit_hz or zenoh_settings.ingress_limit("trajectory")
     if hz is not None:
         out.update(dict.fromkeys(intake_keys(settings), hz))
-    for key, (_service, command) in service_keys(settings).items():
+    for key, (_service, _srvtype, command, _argument) in service_keys(settings).items():
         limit = zenoh_settings.ingress_limit(f"cmd/{command}")
         if limit is not None:
             out[key] = limit
@@ -199,11 +208,12 @@ class Ros2Bridge:
             self._entities.append(self._session.declare_subscriber(key, receive))
             token = self.node.entity_token(entity_id, wire.SUBSCRIPTION, topic, msgtype)
             self._entities.append(liveliness.declare_token(token))
-        for key, (service, command) in service_keys(self.settings).items():
+        for key, served in service_keys(self.settings).items():
             entity_id += 1
-            serve = self._server(key, command)
+            serve = self._server(key, served)
             self._entities.append(self._session.declare_queryable(key, serve, complete=True))
-            token = self.node.entity_token(entity_id, wire.SERVICE_SERVER, service, wire.TRIGGER)
+            service, srvtype = served[:2]
+            token = self.node.entity_token(entity_id, wire.SERVICE_SERVER, service, srvtype)
             self._entities.append(liveliness.declare_token(token))
         self._tasks = [
             self._loop.create_task(self._publish_states()),
@@ -289,16 +299,18 @@ class Ros2Bridge:
 
         return receive
 
-    def _server(self, key: str, command: str) -> Callable[[zenoh.Query], None]:
-        """The queryable callback of the Trigger service running `command` (zenoh's
-        thread): the request read as rmw_zenoh's ServiceData::take_request reads it, or
-        dropped unanswered; then queued with the zenoh interface's commands."""
+    def _server(self, key: str, served: Service) -> Callable[[zenoh.Query], None]:
+        """The queryable callback of service `served` (zenoh's thread): the request read
+        as rmw_zenoh's ServiceData::take_request reads it, or dropped unanswered; then
+        its command queued with the zenoh interface's, its arguments checked as theirs."""
+        _service, srvtype, command, argument = served
 
         def serve(query: zenoh.Query) -> None:
             try:
                 payload, extra = query.payload, query.attachment
                 check_size(0 if payload is None else len(payload), MAX_COMMAND_BYTES)
-                wire.deserialize(b"" if payload is None else payload.to_bytes(), _REQUEST)
+                raw = b"" if payload is None else payload.to_bytes()
+                msg = wire.deserialize(raw, f"{srvtype}_Request")
                 request = wire.read_attachment(None if extra is None else extra.to_bytes())
                 if request.sequence_number < 0 or request.source_timestamp < 0:
                     raise wire.WireError("negative sequence number or timestamp")
@@ -315,8 +327,14 @@ class Ros2Bridge:
                 log.exception("ROS 2 service %s: the request callback failed", key)
                 query.drop()
                 return
-            respond = functools.partial(self._respond, query, key, request)
-            self._interface.offer_command(command, {}, respond)
+            respond = functools.partial(self._respond, query, key, srvtype, request)
+            data = {} if argument is None else {argument: bool(msg.data)}
+            try:
+                args = decode_command(command, data, self.limits.unit_tolerance)
+            except CommandError as exc:
+                respond(reply_error(command, exc), False)
+                return
+            self._interface.offer_command(command, args, respond)
 
         return serve
 
@@ -324,11 +342,12 @@ class Ros2Bridge:
         self,
         query: zenoh.Query,
         key: str,
+        srvtype: str,
         request: wire.Attachment,
         body: dict[str, Any],
         ok: bool,
     ) -> None:
-        """Answer a Trigger request with the command's reply `body`, as rmw_zenoh's
+        """Answer a request with the command's reply `body`, as rmw_zenoh's
         ServiceData::send_response does: on the service's key, the Response in CDR, the
         attachment with the request's sequence number and client GID and our time."""
         with self._pending_lock:
@@ -337,7 +356,7 @@ class Ros2Bridge:
             text = encode(body["result"]).decode()
         else:
             text = f"{body['error']['code']}: {body['error']['reason']}"
-        response = wire.message(_RESPONSE, success=ok, message=text)
+        response = wire.message(f"{srvtype}_Response", success=ok, message=text)
         extra = wire.attachment(request.sequence_number, time.time_ns(), request.source_gid)
         try:
             query.reply(key, wire.serialize(response), attachment=extra)
@@ -384,9 +403,6 @@ class Ros2Bridge:
                 self._status(ident, topic, error)
             else:
                 self._status(ident, topic, None, result=result)
-
-
-_REQUEST, _RESPONSE = f"{wire.TRIGGER}_Request", f"{wire.TRIGGER}_Response"
 
 
 def _busy() -> CommandError:

@@ -25,7 +25,7 @@ rmw_zenoh_cpp/src/detail/qos.cpp @ 5e10d47b06c3fe327105d06a8350be455411ea5b.
 - GID: XXH3-128 of the entity's liveliness key, low 64 bits then high 64 bits, each in
   the host's (little-endian) byte order.
 - Service servers (rmw_zenoh_cpp/src/detail/rmw_service_data.cpp): a queryable (complete)
-  on the key above with the service's type (std_srvs::srv::dds_::Trigger_) and the
+  on the key above with the service's type (std_srvs::srv::dds_::Trigger_, SetBool_) and the
   service type's hash, and a liveliness token of kind SS.  A request is the Request in
   CDR with the client's attachment (its sequence number, timestamp and GID); one whose
   CDR or attachment does not read is taken and never answered.  The reply, on the
@@ -52,7 +52,7 @@ from rosbags.typesys.base import Nodetype
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 ADMIN_SPACE = "@ros2_lv"
 NODE, PUBLISHER, SUBSCRIPTION, SERVICE_SERVER = "NN", "MP", "MS", "SS"
-TRIGGER = "std_srvs/srv/Trigger"
+TRIGGER, SET_BOOL = "std_srvs/srv/Trigger", "std_srvs/srv/SetBool"
 # reliable, volatile, keep last 10 (rclcpp's default profile; depth 10 is not rmw_zenoh's
 # default of 42, so it is written out): reliability:durability:history,depth:deadline:
 # lifespan:liveliness,lease s,lease ns
@@ -111,11 +111,13 @@ def _service_types(srvtype: str, request: list[Any], response: list[Any]) -> dic
 
 
 _EVENT_INFO = "service_msgs/msg/ServiceEventInfo"
-_TRIGGER_TYPES = _service_types(
-    TRIGGER, [], [("success", _field("bool")), ("message", _field("string"))]
-)
+_ANSWER = [("success", _field("bool")), ("message", _field("string"))]  # std_srvs' Response
+_STD_SRVS = {
+    **_service_types(TRIGGER, [], _ANSWER),
+    **_service_types(SET_BOOL, [("data", _field("bool"))], _ANSWER),
+}
 TYPESTORE.register(
-    {name: _TRIGGER_TYPES[name] for name in (f"{TRIGGER}_Request", f"{TRIGGER}_Response")}
+    {name: fields for name, fields in _STD_SRVS.items() if name.endswith(("_Request", "_Response"))}
 )
 _SERVICE_HASHES = get_typestore(Stores.EMPTY)  # Jazzy's ServiceEventInfo, client_gid uint8[16]
 _SERVICE_HASHES.register(
@@ -128,7 +130,7 @@ _SERVICE_HASHES.register(
                 for n, d in TYPESTORE.fielddefs[_EVENT_INFO][1]
             ],
         ),
-        **_TRIGGER_TYPES,
+        **_STD_SRVS,
     }
 )
 
@@ -142,7 +144,7 @@ def dds_type_name(msgtype: str) -> str:
 def type_hash(msgtype: str) -> str:
     """The RIHS01 type hash of message or service type `msgtype` (REP-2016), as rosbags
     computes it (a service's in the store above)."""
-    store = _SERVICE_HASHES if msgtype in _TRIGGER_TYPES else TYPESTORE
+    store = _SERVICE_HASHES if msgtype in _STD_SRVS else TYPESTORE
     return store.hash_rihs01(msgtype)
 
 

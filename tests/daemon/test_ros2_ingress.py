@@ -19,7 +19,7 @@ import zenoh
 from daemon.config.ros2_config import Ros2Settings
 from daemon.config.zenoh_config import ZenohSettings, build_zenoh_config
 from daemon.interface import ros2_wire
-from daemon.interface.ros2_bridge import SERVICES, ingress_limits
+from daemon.interface.ros2_bridge import ingress_limits, service_keys
 from tests.daemon.test_ros2_process import MULTI_DOF, PATH, POSE, STATUS, dds, path
 from tests.daemon.test_zenoh_io import (
     PREFIX,
@@ -137,7 +137,7 @@ def test_the_ros2_trajectory_topics_take_the_trajectory_limit_or_their_own() -> 
     """(The services take their commands' limits: test_ros2_services.py.)"""
     intake = {key("/path", PATH), key("/multi_dof_trajectory", MULTI_DOF)}
     assert all(dds(PATH) in k or dds(MULTI_DOF) in k for k in intake)
-    services = {key(f"/{name}", ros2_wire.TRIGGER) for name in SERVICES.values()}
+    services = set(service_keys(ROS2))
     limited = ZenohSettings(ingress_limits_hz={"trajectory": 5.0, "cmd/*": 20.0})
     assert ingress_limits(ROS2, limited) == {
         **dict.fromkeys(intake, 5.0),

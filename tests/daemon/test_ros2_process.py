@@ -201,8 +201,10 @@ def _exercise(s: zenoh.Session) -> None:
         assert entities[(kind, topic)][10:12] == [dds(msgtype), STORE.hash_rihs01(msgtype)]
     for service in ("enable", "hold", "brake", "reset", "disable"):  # test_ros2_services.py
         assert entities[("SS", f"%lab%{service}")][10] == "std_srvs::srv::dds_::Trigger_"
+    for service in ("hold_observer", "freeze_payload"):
+        assert entities[("SS", f"%lab%{service}")][10] == "std_srvs::srv::dds_::SetBool_"
     ids = [int(p[4]) for p in parts if p[5] != "NN"]
-    assert len(set(ids)) == len(ids) == 13
+    assert len(set(ids)) == len(ids) == 15
 
     # -- JointState: the lengths of the JSON state, rmw_zenoh's attachment
     joint_msg, extra = joints.last()

@@ -1,5 +1,6 @@
 """The ROS 2 bridge's std_srvs/srv/Trigger services (enable, hold, brake, reset, disable)
-called as an rmw_zenoh_cpp client calls them, by a client written here from rmw_zenoh's
+and std_srvs/srv/SetBool services (hold_observer, freeze_payload) called as an
+rmw_zenoh_cpp client calls them, by a client written here from rmw_zenoh's
 design document and sources (tests/data/rmw_zenoh_reference.md, "Service servers" and
 "Service type hashes"), not from the project's encoder: the key and the liveliness token
 spelled out from the reference, the 33-byte attachment packed with struct, the request's
@@ -45,6 +46,8 @@ REFERENCE = Path(__file__).resolve().parents[1] / "data" / "rmw_zenoh_reference.
 # Jazzy's RIHS01 hash of the service type std_srvs/srv/Trigger (the reference's sources)
 TRIGGER_HASH = "RIHS01_eeff2cd6fa5ad9d27cdf4dec64818317839b62f212a91e6b5304b634b2062c5f"
 TRIGGER_DDS = "std_srvs::srv::dds_::Trigger_"
+SET_BOOL_HASH = "RIHS01_abe9e4bb6b41b40e6789712c00ec8871923e089af3f667a79992a428cff2da0a"
+SET_BOOL_DDS = "std_srvs::srv::dds_::SetBool_"
 # std_srvs/srv/Trigger_Request: no field but rosidl's placeholder uint8; CDR little endian
 REQUEST = bytes([0x00, 0x01, 0x00, 0x00]) + bytes([0])
 QOS = "::,10:,:,:,,"  # rmw_qos_profile_services_default: reliable, volatile, keep last 10
@@ -59,13 +62,22 @@ STEPS = (  # label, service: the simulated robot's run
     ("reset", "reset"),
 )
 
-_STORE = get_typestore(Stores.EMPTY)  # the Response as Trigger.srv declares it
+_STORE = get_typestore(Stores.EMPTY)  # the Response as Trigger.srv (and SetBool.srv) declare it
 _STORE.register(get_types_from_msg("bool success\nstring message", "std_srvs/msg/Trigger_Response"))
 
 
 def service_key(name: str, domain: int = 0, type_hash: str = TRIGGER_HASH) -> str:
     """<domain_id>/<fully qualified name>/<type name>/<type hash> (design.md)."""
     return f"{domain}/{name.strip('/')}/{TRIGGER_DDS}/{type_hash}"
+
+
+def set_bool_key(name: str, domain: int = 0) -> str:
+    return f"{domain}/{name.strip('/')}/{SET_BOOL_DDS}/{SET_BOOL_HASH}"
+
+
+def set_bool(data: bool) -> bytes:
+    """std_srvs/srv/SetBool_Request (bool data) in little-endian CDR."""
+    return bytes([0x00, 0x01, 0x00, 0x00, int(data)])
 
 
 def request_attachment(sequence: int, gid: bytes = CLIENT_GID, stamp: int | None = None) -> bytes:
@@ -102,10 +114,10 @@ def response(reply: zenoh.Reply) -> tuple[Any, tuple[int, int, int, bytes]]:
     return msg, struct.unpack("<qqB16s", extra.to_bytes())
 
 
-def trigger(session: zenoh.Session, key: str, sequence: int) -> Any:
+def trigger(session: zenoh.Session, key: str, sequence: int, payload: bytes = REQUEST) -> Any:
     """A well-formed call: its Response, after checking the reply attachment."""
     before = time.time_ns()
-    (reply,) = call(session, key, attachment=request_attachment(sequence))
+    (reply,) = call(session, key, payload, request_attachment(sequence))
     msg, (echoed, stamp, size, gid) = response(reply)
     assert str(reply.ok.key_expr) == key
     assert (echoed, size, gid) == (sequence, 16, CLIENT_GID)
@@ -153,7 +165,8 @@ def test_the_services_are_under_the_namespace_and_announced_as_ss() -> None:
         served.stop()
     assert msg.success is True
     names = {"%lab%enable", "%lab%hold", "%stop", "%lab%reset", "%lab%disable"}
-    assert len(tokens) == 5
+    set_bools = {"%lab%hold_observer", "%lab%freeze_payload"}
+    assert len(tokens) == 7
     for token in tokens:
         admin, domain, _zid, node, entity, kind, enclave, ns, node_name, *tail = token.split("/")
         assert (admin, domain, node, kind, enclave, ns, node_name) == (
@@ -166,9 +179,40 @@ def test_the_services_are_under_the_namespace_and_announced_as_ss() -> None:
             "cdprd",
         )
         assert int(entity) > 0
+        if tail[0] in set_bools:
+            assert tail[1:] == [SET_BOOL_DDS, SET_BOOL_HASH, QOS]
+            set_bools.discard(tail[0])
+            continue
         assert tail[1:] == [TRIGGER_DDS, TRIGGER_HASH, QOS]
         names.discard(tail[0])
-    assert names == set()
+    assert names == set_bools == set()
+
+
+def test_the_set_bool_services_hold_the_observer_and_freeze_the_payload() -> None:
+    handler = StandIn()
+    served = Running(handler, ros2=ROS2)
+    s = served.session()
+    try:
+        answers = [
+            trigger(s, set_bool_key("/hold_observer"), 1, set_bool(True)),
+            trigger(s, set_bool_key("/hold_observer"), 2, set_bool(False)),
+            trigger(s, set_bool_key("/freeze_payload"), 3, set_bool(True)),
+            trigger(s, set_bool_key("/freeze_payload"), 4, set_bool(False)),
+        ]
+        dropped = call(s, set_bool_key("/hold_observer"), REQUEST[:4], request_attachment(5))
+        untyped = call(s, set_bool_key("/hold_observer"), set_bool(True), None, timeout=1.0)
+    finally:
+        s.close()
+        served.stop()
+    assert all(msg.success for msg in answers), answers
+    assert '"command":"observer"' in answers[0].message
+    assert (dropped, untyped) == ([], [])
+    assert [c for c in handler.calls if c[0] in ("observer", "payload")] == [
+        ("observer", {"held": True}),
+        ("observer", {"held": False}),
+        ("payload", {"frozen": True}),
+        ("payload", {"frozen": False}),
+    ]
 
 
 @pytest.mark.parametrize(

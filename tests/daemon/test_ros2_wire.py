@@ -81,6 +81,9 @@ def test_keys_carry_rosbags_type_hash_for_every_type_used() -> None:
         "std_srvs/srv/Trigger_Request",
         "std_srvs/srv/Trigger_Response",
         "std_srvs/srv/Trigger_Event",
+        "std_srvs/srv/SetBool",
+        "std_srvs/srv/SetBool_Response",
+        "std_srvs/srv/SetBool_Event",
     ],
 )
 def test_the_trigger_service_hashes_are_jazzys(srvtype: str) -> None:
