@@ -325,24 +325,27 @@ def test_the_services_take_the_limit_of_their_commands() -> None:
 
 def test_a_flood_of_requests_passes_the_templates_command_limit_only() -> None:
     """The hardware template limits `cmd/*` to 20 Hz: of thirty hold requests sent at
-    once, zenoh lets one or two through (the rest time out at the client, as a dropped
-    query does), and the handler sees no more."""
+    once, zenoh lets one or two through, and one more for each 50 ms the sending took on a
+    loaded host (the rest time out at the client, as a dropped query does); the handler
+    sees no more."""
     handler = StandIn()
     served = Running(handler, template_zenoh(access_control=True), ros2=ROS2)
     s = served.session()
     key = service_key("/hold")
     try:
+        began = time.monotonic()
         pending = [
             s.get(key, payload=REQUEST, attachment=request_attachment(n), timeout=2.0)
             for n in range(1, 31)
         ]
+        periods = int((time.monotonic() - began) * 20.0)
         answered = sum(len(list(replies)) for replies in pending)
         time.sleep(0.1)  # past the limit's period: the next request passes
         assert trigger(s, key, 100).success
     finally:
         s.close()
         served.stop()
-    assert 1 <= answered <= 2
+    assert 1 <= answered <= 2 + periods < 30
     assert len([c for c in handler.calls if c[0] == "hold"]) == answered + 1
 
 
