@@ -509,6 +509,7 @@ WELL_FORMED = st.lists(
         WELL_FORMED,
     )
 )
+@pytest.mark.slow  # over 4.5 s of the default run's 10 minutes
 def test_hostile_input_raises_only_trajectory_error(data: object) -> None:
     try:
         tr = parse_trajectory(data)

@@ -201,6 +201,7 @@ def cdprd(*args: str) -> subprocess.Popen[str]:
     return subprocess.Popen(command, cwd=CONFIG.parent, stdout=pipe, stderr=pipe, text=True)
 
 
+@pytest.mark.slow  # over 4.5 s of the default run's 10 minutes
 @pytest.mark.timeout(120)
 def test_run_refuses_what_check_config_refuses_with_the_same_lines(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
@@ -219,6 +220,7 @@ def test_run_refuses_what_check_config_refuses_with_the_same_lines(
         assert proc.returncode == 1 and err == expected, f"{case}: {err}"
 
 
+@pytest.mark.slow  # over 4.5 s of the default run's 10 minutes
 @pytest.mark.timeout(120)
 def test_run_with_its_zenoh_port_taken_exits_with_one_line(tmp_path: Path) -> None:
     with socket.socket() as taken:

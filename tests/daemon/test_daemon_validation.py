@@ -203,6 +203,7 @@ def test_a_start_ahead_holds_until_its_approach_begins() -> None:
     run(scenario())
 
 
+@pytest.mark.slow  # over 4.5 s of the default run's 10 minutes
 def test_a_start_ahead_while_moving_waits_for_the_motion_and_never_jumps() -> None:
     """Accepted while a goto runs: the goto finishes (TRACKING), the robot holds (HOLD),
     the trajectory runs (TRACKING) and ends (HOLD), with a continuous reference.  A start
@@ -261,6 +262,7 @@ async def _settled(stack: Stack) -> None:
     raise AssertionError("the platform did not settle within 5 s of enabling")
 
 
+@pytest.mark.slow  # over 4.5 s of the default run's 10 minutes
 @pytest.mark.parametrize("start", ["here", "moving"])
 def test_a_trajectory_with_free_interior_velocities_is_flown_from_a_hold(start: str) -> None:
     """Three waypoints, the middle one's velocity left free (DESIGN §7): from where the

@@ -70,6 +70,7 @@ def test_a_lapsed_lease_lets_go_of_the_payload_and_the_observer(
     assert any("external wrench observer's hold lapsed" in m for m in warned), warned
 
 
+@pytest.mark.slow  # over 4.5 s of the default run's 10 minutes
 def test_renewals_keep_the_hold_and_a_hold_without_a_lease_stays() -> None:
     """30 renewals of a 1 s lease with its id, 0.1 s apart (3 s in all): held after every
     one, no lapse, the same id each time.  Then the holder releases it (with the id), and

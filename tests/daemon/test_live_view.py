@@ -233,6 +233,7 @@ def test_the_view_lets_in_no_origin_and_foxglove_but_not_other_pages_or_rebound_
     assert f"live view: refused a connection: Host '{rebound}' is not this view's" in out
 
 
+@pytest.mark.slow  # over 4.5 s of the default run's 10 minutes
 @pytest.mark.timeout(120)
 def test_run_with_its_view_port_taken_exits_with_one_line(tmp_path: Path) -> None:
     with socket.socket() as taken:

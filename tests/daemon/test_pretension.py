@@ -78,6 +78,7 @@ async def started(stack: Stack) -> None:
     assert "fit no pose" in service.machine.fault.message
 
 
+@pytest.mark.slow  # over 4.5 s of the default run's 10 minutes
 @pytest.mark.parametrize("protocol", ["cia402", "odrive"])
 def test_pretension_from_slack_cables_holds_the_platform_where_it_rested(protocol: str) -> None:
     config = slack_config(protocol)

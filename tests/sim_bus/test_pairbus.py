@@ -134,6 +134,7 @@ def _simulator(*args: str, pass_fds: tuple[int, ...] = ()) -> subprocess.Complet
     )
 
 
+@pytest.mark.slow  # over 4.5 s of the default run's 10 minutes
 def test_bus_fd_refuses_what_is_not_a_stream_pairs_end(tmp_path: Path) -> None:
     read, write = os.pipe()
     try:

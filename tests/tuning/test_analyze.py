@@ -154,6 +154,7 @@ def test_grid_flags_the_infeasible_points(capsys: pytest.CaptureFixture[str]) ->
     )
 
 
+@pytest.mark.slow  # over 4.5 s of the default run's 10 minutes
 def test_plot_writes_non_empty_pngs(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     code, out, _ = analyze(capsys, "--config", REFERENCE8, "--grid", "2", "--plot", str(tmp_path))
     assert code == 0

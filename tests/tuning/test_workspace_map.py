@@ -137,6 +137,7 @@ def test_the_boundary_and_the_slices_are_drawn(workspace, tmp_path) -> None:
     assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+@pytest.mark.slow  # over 4.5 s of the default run's 10 minutes
 def test_a_pulley_robot_s_map_has_the_scalar_verdicts_too() -> None:
     """suspended6's cables leave pulleys (their leave points from numpy, the rest in the
     compiled pass): every point past the box has the lengths', the interference's and
