@@ -21,6 +21,7 @@ from daemon.cli import (
 )
 from daemon.config import check_workspace
 from daemon.config.watchdog_drift import FORMULA
+from daemon.config.zenoh_config import taken
 from drivers.cia402.profile import plans as drive_plans
 from sim_bus.bus.cycle_frames import bus_cycles
 
@@ -97,6 +98,13 @@ def check_config(path: str) -> int:
         prefix = config.zenoh.key_prefix(robot.name)
         listen = ", ".join(config.zenoh.listen_endpoints)
         print(f"zenoh: prefix {prefix}, listening on {listen}")
+        for endpoint in filter(taken, config.zenoh.listen_endpoints):
+            print(
+                f"zenoh: {endpoint} is taken on this host now: `cdprd run` would stop with "
+                "'Address already in use' (a zenoh router, rmw_zenohd too, takes 7447 by "
+                "default): listen on a free port (zenoh.listen), or connect to the router "
+                "(ros2.router, zenoh.connect)"
+            )
     return 0
 
 

@@ -10,7 +10,7 @@
     cdprd observer [--hold [--lease S] | --release] [--lease-id ID]  (the wrench observer)
     cdprd home [--pose NAME] [--preempt]  (the platform resting at the robot file's pose)
     cdprd pretension [--pose NAME] [--preempt]  (from slack cables, on a fixture there)
-    common options: --prefix cdpr/<robot>  --connect tcp/127.0.0.1:7447  --timeout S
+    common options: --prefix cdpr/<robot>  --connect tcp/127.0.0.1:7448  --timeout S
                     --zenoh-config FILE (raw zenoh keys, e.g. TLS certificates)
                     --client NAME (who asks, in the daemon's events; default user@host:pid)
 

@@ -287,6 +287,11 @@ class DaemonConfig:
         self.view: ViewConfig = raw.view
         self.sim = raw.sim
         self.ros2: Ros2Settings = validate_section(Ros2Settings, raw.ros2, source, "ros2")
+        if self.ros2.enabled and self.ros2.router is not None:  # one more zenoh.connect
+            connect = [*raw.zenoh.get("connect", ()), self.ros2.router]
+            joined = {**raw.zenoh, "connect": connect}
+            where = f"{source}: ros2.router joins zenoh.connect"
+            self.zenoh = validate_section(ZenohSettings, joined, where, "zenoh")
         if self.ros2.ingress_limit_hz is not None and "downsampling" in self.zenoh.config:
             raise ConfigError(
                 f"{source}: ros2.ingress_limit_hz: a raw zenoh.config downsampling is set "

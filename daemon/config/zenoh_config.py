@@ -1,6 +1,6 @@
 """The `zenoh:` config section and the zenoh.Config built from it (DESIGN §10, §14).
 
-Safe by default: the daemon listens on tcp/127.0.0.1:7447 only, multicast scouting and
+Safe by default: the daemon listens on tcp/127.0.0.1:7448 only, multicast scouting and
 gossip are OFF whatever the raw zenoh config says, and any endpoint that is not on
 loopback is refused unless `expose: true` is set (see docs/reference/zenoh-api.md for TLS and access
 control).  The raw `config:` dict passes everything else (transport/link/tls,
@@ -9,9 +9,11 @@ access_control, ...) to zenoh unchanged; it is checked by zenoh at load time.
 
 from __future__ import annotations
 
+import errno
 import ipaddress
 import json
 import re
+import socket
 from collections.abc import Mapping, Sequence
 from typing import Any, Literal
 
@@ -20,7 +22,9 @@ from pydantic import Field, field_validator, model_validator
 
 from cdpr.description import PositiveFloat, StrictModel
 
-DEFAULT_PORT = 7447
+# one above 7447, which zenoh routers take by default (rmw_zenohd, the ROS 2 router, too):
+# a daemon and a ROS 2 graph on one host must not both want it
+DEFAULT_PORT = 7448
 DEFAULT_LISTEN = f"tcp/127.0.0.1:{DEFAULT_PORT}"
 PROTOCOLS = ("tcp", "tls", "quic", "udp", "ws", "unixsock-stream")
 _LOCAL_PROTOCOLS = ("unixsock-stream",)  # no network address at all
@@ -39,7 +43,7 @@ class ZenohSettings(StrictModel):
     mode: Literal["peer", "client"] = "peer"
     """peer: the daemon listens itself; client: it connects to a zenohd router."""
     listen: tuple[str, ...] | None = None
-    """Endpoints to listen on; None: [tcp/127.0.0.1:7447] as a peer, none as a client."""
+    """Endpoints to listen on; None: [tcp/127.0.0.1:7448] as a peer, none as a client."""
     connect: tuple[str, ...] = ()
     """Endpoints to connect to (a router, or other peers)."""
     expose: bool = False
@@ -217,6 +221,26 @@ def endpoint_host(endpoint: str) -> str | None:
     if not sep or not host or not port.isdigit() or int(port) > 65535:
         raise ValueError(f"endpoint {endpoint!r} is not of the form {protocol}/<host>:<port>")
     return host[1:-1] if host.startswith("[") and host.endswith("]") else host
+
+
+def taken(endpoint: str) -> bool:
+    """True when a TCP endpoint (tcp/, tls/) names a port something on this host already
+    listens on, so that zenoh's listener would fail ("Address already in use"); bound
+    as zenoh binds (SO_REUSEADDR), so a closing connection does not count.  False for
+    other protocols, and where binding fails for another reason (zenoh will say)."""
+    protocol = endpoint.split("/", 1)[0]
+    host = endpoint_host(endpoint)
+    if protocol not in ("tcp", "tls") or host is None:
+        return False
+    port = int(endpoint.split("#", 1)[0].split("?", 1)[0].rpartition(":")[2])
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    with socket.socket(family, socket.SOCK_STREAM) as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            probe.bind((host, port))
+        except OSError as exc:
+            return exc.errno == errno.EADDRINUSE
+    return False
 
 
 def is_local(endpoint: str) -> bool:

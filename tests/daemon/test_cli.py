@@ -222,13 +222,17 @@ def test_run_refuses_what_check_config_refuses_with_the_same_lines(
 
 @pytest.mark.slow  # over 4.5 s of the default run's 10 minutes
 @pytest.mark.timeout(120)
-def test_run_with_its_zenoh_port_taken_exits_with_one_line(tmp_path: Path) -> None:
+def test_run_with_its_zenoh_port_taken_exits_with_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     with socket.socket() as taken:
         taken.bind(("127.0.0.1", free_port()))
         taken.listen()
         endpoint = f"tcp/127.0.0.1:{taken.getsockname()[1]}"
         path = tmp_path / "cdprd.yaml"
-        path.write_text(example(("tcp/127.0.0.1:7447", endpoint)))
+        path.write_text(example(("tcp/127.0.0.1:7448", endpoint)))
+        assert main(["check-config", str(path)]) == 0  # it explains the clash first
+        clash = capsys.readouterr().out.splitlines()[-1]
         proc = cdprd("run", "--sim", "--config", str(path))
         _out, err = proc.communicate(timeout=60)
     assert proc.returncode == 1, err
@@ -238,6 +242,9 @@ def test_run_with_its_zenoh_port_taken_exits_with_one_line(tmp_path: Path) -> No
     line = lines[0]
     assert line.startswith(f"error: {path}: zenoh.listen: {endpoint}: cannot open the zenoh")
     assert "Address already in use" in line
+    assert clash.startswith(f"zenoh: {endpoint} is taken on this host now: `cdprd run` would")
+    assert main(["check-config", str(path)]) == 0  # the port free again: no such line
+    assert " is taken on this host" not in capsys.readouterr().out
 
 
 # -- the CiA 402 drive profile at config load ----------------------------------

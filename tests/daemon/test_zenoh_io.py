@@ -777,7 +777,8 @@ def shared_memory(conf: zenoh.Config) -> bool:
 def test_default_config_is_loopback_only_without_multicast_or_gossip() -> None:
     conf = build_zenoh_config(validate_section(ZenohSettings, {}, "zenoh"), PREFIX)
     assert scouting(conf) == (False, False)
-    assert json.loads(conf.get_json("listen/endpoints")) == ["tcp/127.0.0.1:7447"]
+    # 7448: zenoh routers (rmw_zenohd too) take 7447
+    assert json.loads(conf.get_json("listen/endpoints")) == ["tcp/127.0.0.1:7448"]
     assert json.loads(conf.get_json("connect/endpoints")) == []
     assert json.loads(conf.get_json("mode")) == "peer"
     assert not shared_memory(conf)
@@ -1200,7 +1201,7 @@ def test_an_exposed_daemon_obeys_only_the_planner_certificate(certificates: Path
     block = docs_block("exposed-daemon").replace("/etc/cdprd/tls", str(certificates))
     section = yaml.safe_load(block)["zenoh"]
     endpoint = f"tls/127.0.0.1:{free_port()}"
-    assert section["listen"] == ["tls/0.0.0.0:7447"] and section["expose"] is True
+    assert section["listen"] == ["tls/0.0.0.0:7448"] and section["expose"] is True
     section["listen"] = [endpoint]  # tests stay on loopback
     settings = validate_section(ZenohSettings, section, "zenoh")
     served = Running(StandIn(), settings, prefix=section["prefix"])
