@@ -6,8 +6,10 @@ edit of cdpr/wrench_margin.py, tuning/workspace_map.py's map pass went on runnin
 old margin kernel from its cache, silently (and an upgrade that leaves a cache directory
 in place, as the systemd unit's NUMBA_CACHE_DIR does, could do the same).  Each module
 that compiles calls `key_numba_cache()` before its first `@njit(cache=True)`: the cache
-then lives in `cdprd-<digest>` under NUMBA_CACHE_DIR (else the user's cache directory),
-the digest taken over every file in SOURCES, so any edit starts a fresh cache.
+then lives in `cdprd-<digest>` under NUMBA_CACHE_DIR (else cdpr/__pycache__/numba, beside
+the sources as numba's own default is: a read-only root with the source tree writable,
+as the UML guest of the vcan tests has, still finds what the host compiled), the digest
+taken over every file in SOURCES, so any edit starts a fresh cache.
 """
 
 from __future__ import annotations
@@ -32,13 +34,11 @@ def source_digest(root: Path = ROOT) -> str:
 
 
 def cache_base() -> Path:
-    """NUMBA_CACHE_DIR if set (the systemd unit sets /var/cache/cdprd), else the user's
-    cache directory (XDG_CACHE_HOME, else ~/.cache) / cdprd / numba."""
+    """NUMBA_CACHE_DIR if set (the systemd unit sets /var/cache/cdprd), else
+    cdpr/__pycache__/numba."""
     configured = os.environ.get("NUMBA_CACHE_DIR")
-    if configured:
-        return Path(configured)
-    xdg = os.environ.get("XDG_CACHE_HOME")
-    return (Path(xdg) if xdg else Path.home() / ".cache") / "cdprd" / "numba"
+    beside_the_sources = Path(__file__).resolve().parent / "__pycache__" / "numba"
+    return Path(configured) if configured else beside_the_sources
 
 
 def key_numba_cache() -> Path:
