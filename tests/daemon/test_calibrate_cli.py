@@ -61,32 +61,31 @@ def test_home_then_calibrate_with_too_few_poses_names_what_is_unidentifiable(
     path = config_file(tmp_path, port)
     daemon = start_daemon(path, "--sim")
     try:
-        client = connect(port, daemon)
-        wait_status(client, "idle", 30.0)
-        connection = ("--connect", f"tcp/127.0.0.1:{port}")
-        homed = cdprd("home", *connection)
-        assert homed.returncode == 0, homed.stderr
-        result = json.loads(homed.stdout)
-        assert result["method"] == "home at pose home" and len(result["offsets"]) == 8
-        stored = json.loads(state_path(tmp_path / "state", "reference8").read_text())
-        assert stored["offsets"] == result["offsets"]
-        assert cdprd("enable", *connection).returncode == 0
-        output = tmp_path / "calibrated.yaml"
-        run = cdprd(
-            "calibrate", "--config", str(path), "--no-scale", "--poses", "8", "--dwell", "0.6",
-            "--output", str(output), *connection,
-        )  # fmt: skip
-        assert run.returncode == 1, run.stderr
-        recorded = run.stderr.count(" recorded\n")
-        assert recorded + run.stderr.count(" skipped: ") == 8 and recorded >= 4
-        unknown = 52 - 2 * recorded  # each pose: 8 lengths, 6 of them for its own pose
-        assert (
-            f"error: {recorded} poses do not identify every parameter ({unknown} combinations"
-            in run.stderr
-        )
-        assert "anchors of cables" in run.stderr
-        assert not output.exists()
-        client.close()
+        with connect(port, daemon) as client:  # closed on a failure too
+            wait_status(client, "idle", 30.0)
+            connection = ("--connect", f"tcp/127.0.0.1:{port}")
+            homed = cdprd("home", *connection)
+            assert homed.returncode == 0, homed.stderr
+            result = json.loads(homed.stdout)
+            assert result["method"] == "home at pose home" and len(result["offsets"]) == 8
+            stored = json.loads(state_path(tmp_path / "state", "reference8").read_text())
+            assert stored["offsets"] == result["offsets"]
+            assert cdprd("enable", *connection).returncode == 0
+            output = tmp_path / "calibrated.yaml"
+            run = cdprd(
+                "calibrate", "--config", str(path), "--no-scale", "--poses", "8", "--dwell", "0.6",
+                "--output", str(output), *connection,
+            )  # fmt: skip
+            assert run.returncode == 1, run.stderr
+            recorded = run.stderr.count(" recorded\n")
+            assert recorded + run.stderr.count(" skipped: ") == 8 and recorded >= 4
+            unknown = 52 - 2 * recorded  # each pose: 8 lengths, 6 of them for its own pose
+            assert (
+                f"error: {recorded} poses do not identify every parameter ({unknown} combinations"
+                in run.stderr
+            )
+            assert "anchors of cables" in run.stderr
+            assert not output.exists()
     finally:
         finish(daemon)
 
@@ -125,56 +124,56 @@ def test_the_observer_is_held_out_of_the_loop_through_zenoh(tmp_path: Path) -> N
     port = free_port()
     daemon = start_daemon(config_file(tmp_path, port, push=30.0), "--sim")
     try:
-        client = connect(port, daemon)
-        wait_status(client, "idle", 30.0)
-        client.enable()
-        states: list[dict[str, Any]] = []
-        lock = threading.Lock()
+        # closed on a failure too: a session left open hangs pytest's exit
+        with connect(port, daemon) as client:
+            wait_status(client, "idle", 30.0)
+            client.enable()
+            states: list[dict[str, Any]] = []
+            lock = threading.Lock()
 
-        def on_state(state: dict[str, Any]) -> None:
+            def on_state(state: dict[str, Any]) -> None:
+                with lock:
+                    states.append(state)
+
+            def last() -> dict[str, Any]:
+                with lock:
+                    return states[-1] if states else {"observer_held": None}
+
+            subscriber = client.subscribe_state(on_state)
+            _until(lambda: (last().get("external_wrench") or [0.0])[0] > 25.0, 20.0, "pushed")
+            assert last()["observer_held"] is False
+            reply = client.observer(True)
+            assert reply == {"held": True, "estimate": [0.0] * 6}
+            _until(lambda: last()["observer_held"] is True, 5.0, "held in the state")
             with lock:
-                states.append(state)
-
-        def last() -> dict[str, Any]:
+                start = len(states) - 1
+            time.sleep(1.5)
             with lock:
-                return states[-1] if states else {"observer_held": None}
-
-        subscriber = client.subscribe_state(on_state)
-        _until(lambda: (last().get("external_wrench") or [0.0])[0] > 25.0, 20.0, "pushed")
-        assert last()["observer_held"] is False
-        reply = client.observer(True)
-        assert reply == {"held": True, "estimate": [0.0] * 6}
-        _until(lambda: last()["observer_held"] is True, 5.0, "held in the state")
-        with lock:
-            start = len(states) - 1
-        time.sleep(1.5)
-        with lock:
-            held = states[start:]
-        assert len(held) >= 20  # 50 Hz for 1.5 s, on a loaded machine
-        assert all(s["observer_held"] is True for s in held)
-        assert all(s["external_wrench"] == [0.0] * 6 for s in held), held[-1]["external_wrench"]
-        assert all(s["state"] == "hold" for s in held), held[-1]["fault"]
-        assert client.observer() == {"held": True, "estimate": [0.0] * 6}
-        released = cdprd("observer", "--release", "--connect", f"tcp/127.0.0.1:{port}")
-        assert released.returncode == 0 and json.loads(released.stdout)["held"] is False
-        _until(lambda: last()["observer_held"] is False, 5.0, "let back in")
-        _until(lambda: last()["external_wrench"][0] > 25.0, 20.0, "the push taken in again")
-        assert last()["state"] == "hold"
-        subscriber.undeclare()
-        for body, field, words in (
-            ({"held": "yes"}, "held", "observer.held: expected true or false"),
-            (
-                {"hold": True},
-                "observer",
-                "unknown key(s) 'hold' (allowed: version, client, held, lease, lease_id)",
-            ),
-        ):
-            with pytest.raises(RequestError) as refused:
-                client.request("observer", body)
-            assert refused.value.code == "bad_request" and words in refused.value.reason
-            assert refused.value.reply["error"].get("field") == field
-        assert client.observer()["held"] is False
-        client.close()
+                held = states[start:]
+            assert len(held) >= 20  # 50 Hz for 1.5 s, on a loaded machine
+            assert all(s["observer_held"] is True for s in held)
+            assert all(s["external_wrench"] == [0.0] * 6 for s in held), held[-1]["external_wrench"]
+            assert all(s["state"] == "hold" for s in held), held[-1]["fault"]
+            assert client.observer() == {"held": True, "estimate": [0.0] * 6}
+            released = cdprd("observer", "--release", "--connect", f"tcp/127.0.0.1:{port}")
+            assert released.returncode == 0 and json.loads(released.stdout)["held"] is False
+            _until(lambda: last()["observer_held"] is False, 5.0, "let back in")
+            _until(lambda: last()["external_wrench"][0] > 25.0, 20.0, "the push taken in again")
+            assert last()["state"] == "hold"
+            subscriber.undeclare()
+            for body, field, words in (
+                ({"held": "yes"}, "held", "observer.held: expected true or false"),
+                (
+                    {"hold": True},
+                    "observer",
+                    "unknown key(s) 'hold' (allowed: version, client, held, lease, lease_id)",
+                ),
+            ):
+                with pytest.raises(RequestError) as refused:
+                    client.request("observer", body)
+                assert refused.value.code == "bad_request" and words in refused.value.reason
+                assert refused.value.reply["error"].get("field") == field
+            assert client.observer()["held"] is False
     finally:
         finish(daemon)
 

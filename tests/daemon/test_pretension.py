@@ -248,18 +248,17 @@ def test_cdprd_pretension_through_the_cli_against_a_daemon_process(tmp_path: Pat
     path.write_text(yaml.safe_dump(data))
     daemon = start_daemon(path, "--sim")
     try:
-        client = connect(port, daemon)
-        wait_status(client, "braked", 30.0)
-        done = cdprd("pretension", "--connect", f"tcp/127.0.0.1:{port}")
-        assert done.returncode == 0, done.stderr
-        result = json.loads(done.stdout)
-        assert result["state"] == "hold" and result["pretension"]["fault"] is None
-        assert result["loop_close_step_n"] < 3.0
-        stored = json.loads(state_path(tmp_path / "state", "reference8").read_text())
-        assert stored["offsets"] == result["offsets"]
-        assert stored["method"] == "pretension at pose home"
-        assert client.status()["state"] == "hold"
-        client.close()
+        with connect(port, daemon) as client:  # closed on a failure too
+            wait_status(client, "braked", 30.0)
+            done = cdprd("pretension", "--connect", f"tcp/127.0.0.1:{port}")
+            assert done.returncode == 0, done.stderr
+            result = json.loads(done.stdout)
+            assert result["state"] == "hold" and result["pretension"]["fault"] is None
+            assert result["loop_close_step_n"] < 3.0
+            stored = json.loads(state_path(tmp_path / "state", "reference8").read_text())
+            assert stored["offsets"] == result["offsets"]
+            assert stored["method"] == "pretension at pose home"
+            assert client.status()["state"] == "hold"
     finally:
         finish(daemon)
 
