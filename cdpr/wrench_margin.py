@@ -242,6 +242,16 @@ def _solve_columns(L: Array, X: Array) -> None:
 
 
 @njit(cache=True)
+def _facet_distance(reach: float, offset: float, size: float, norm2: float) -> float:
+    """A facet's signed distance (reach - |offset|) / |c| from its sums over the facet's
+    cables (|c|^2 = norm2); inf where c vanishes (the cables span no facet: skipped)."""
+    norm = math.sqrt(max(norm2, 0.0))
+    if norm <= _DEGENERATE * size:
+        return math.inf
+    return (reach - abs(offset)) / norm
+
+
+@njit(cache=True)
 def margin_kernel(
     A: Array,
     w: Array,
@@ -295,10 +305,7 @@ def margin_kernel(
             size += abs(vj)
             for i in range(k + 1):
                 norm2 += vj * H[t, combos[f, i]] * v[i]
-        norm = math.sqrt(max(norm2, 0.0))
-        if norm <= _DEGENERATE * size:
-            continue
-        distance = (reach - abs(offset)) / norm
+        distance = _facet_distance(reach, offset, size, norm2)
         if distance < best:
             best, facet = distance, f
             side = 1.0 if offset >= 0.0 else -1.0
@@ -325,10 +332,7 @@ def _facets_of_a_plane_kernel(
         size = abs(v0) + abs(v1) + abs(v2)
         norm2 = v0 * v0 * H[a, a] + v1 * v1 * H[b, b] + v2 * v2 * H[c, c]
         norm2 += 2.0 * (v0 * v1 * H[a, b] + v0 * v2 * H[a, c] + v1 * v2 * H[b, c])
-        norm = math.sqrt(max(norm2, 0.0))
-        if norm <= _DEGENERATE * size:
-            continue
-        distance = (reach - abs(offset)) / norm
+        distance = _facet_distance(reach, offset, size, norm2)
         if distance < best:
             best, facet = distance, f
             side = 1.0 if offset >= 0.0 else -1.0
