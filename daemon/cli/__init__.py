@@ -21,7 +21,7 @@ from daemon.cli import (
 )
 from daemon.config import check_workspace
 from daemon.config.watchdog_drift import FORMULA
-from daemon.config.zenoh_config import taken
+from daemon.config.zenoh_config import answers, taken
 from drivers.cia402.profile import plans as drive_plans
 from sim_bus.bus.cycle_frames import bus_cycles
 
@@ -105,6 +105,10 @@ def check_config(path: str) -> int:
                 "default): listen on a free port (zenoh.listen), or connect to the router "
                 "(ros2.router, zenoh.connect)"
             )
+        if config.ros2_router is not None:
+            (router,) = config.ros2_router.connect
+            waits = "" if answers(router) else " (nothing listens there now: it joins when it does)"
+            print(f"ros2: node {config.ros2.node_name} on the ROS 2 graph's router {router}{waits}")
     return 0
 
 

@@ -287,11 +287,17 @@ class DaemonConfig:
         self.view: ViewConfig = raw.view
         self.sim = raw.sim
         self.ros2: Ros2Settings = validate_section(Ros2Settings, raw.ros2, source, "ros2")
-        if self.ros2.enabled and self.ros2.router is not None:  # one more zenoh.connect
-            connect = [*raw.zenoh.get("connect", ()), self.ros2.router]
-            joined = {**raw.zenoh, "connect": connect}
-            where = f"{source}: ros2.router joins zenoh.connect"
-            self.zenoh = validate_section(ZenohSettings, joined, where, "zenoh")
+        # the ROS 2 bridge's own client session to the ROS 2 graph's router, if any
+        self.ros2_router: ZenohSettings | None = None
+        if self.ros2.enabled and self.ros2.router is not None:
+            section = {
+                "mode": "client",
+                "connect": [self.ros2.router],
+                "expose": self.zenoh.expose,  # off loopback as zenoh.connect may be
+                "max_message_bytes": self.ros2.max_message_bytes or self.zenoh.max_message_bytes,
+            }
+            where = f"{source}: ros2.router (a client session of the ROS 2 bridge's own)"
+            self.ros2_router = validate_section(ZenohSettings, section, where, "zenoh")
         if self.ros2.ingress_limit_hz is not None and "downsampling" in self.zenoh.config:
             raise ConfigError(
                 f"{source}: ros2.ingress_limit_hz: a raw zenoh.config downsampling is set "

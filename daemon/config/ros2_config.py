@@ -1,9 +1,8 @@
 """The `ros2:` config section: ROS 2 over rmw_zenoh's wire format (opt-in; docs/guide/ros2.md).
 
-The bridge uses the daemon's own zenoh session (the `zenoh:` section decides where it
-listens or connects), so a ROS 2 graph reaches it through a zenoh router such as
-`ros2 run rmw_zenoh_cpp rmw_zenohd` (`ros2: {enabled: true, router:
-tcp/127.0.0.1:7447}` connects to it) or by connecting to the daemon's listen endpoint.
+The bridge joins a ROS 2 graph's zenoh router such as `ros2 run rmw_zenoh_cpp rmw_zenohd`
+as a client (`ros2: {enabled: true, router: tcp/127.0.0.1:7447}`), or runs on the
+daemon's own zenoh session, where ROS 2 nodes connect to the daemon's listen endpoint.
 Topic and service names follow ROS 2: a name that starts with "/" is absolute, any other
 is under `namespace`.
 """
@@ -26,10 +25,10 @@ class Ros2Settings(StrictModel):
     """Run the ROS 2 bridge on the daemon's zenoh session."""
     router: str | None = Field(None, max_length=200)
     """The ROS 2 graph's zenoh router, e.g. tcp/127.0.0.1:7447 where `ros2 run
-    rmw_zenoh_cpp rmw_zenohd` listens: the daemon's session connects to it as well as
-    listening on its own endpoint (zenoh.listen, 7448 by default), under the same
-    loopback rule as zenoh.connect.  None: ROS 2 nodes reach the daemon through the
-    zenoh section's endpoints only."""
+    rmw_zenoh_cpp rmw_zenohd` listens: the node runs on a client session of its own that
+    connects there (tried every 2 s until the router answers), under the same loopback
+    rule as zenoh.connect; the daemon's session keeps its own endpoint (zenoh.listen, 7448
+    by default).  None: the node is on the daemon's session, where ROS 2 nodes connect."""
     domain_id: int = Field(0, ge=0, le=232)  # the ROS 2 domain (ROS_DOMAIN_ID) of its topics
     node_name: str = Field("cdprd", pattern=rf"^{_NAME}$", max_length=100)
     """The ROS 2 node's name; the diagnostics status is named after it too."""

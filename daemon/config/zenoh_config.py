@@ -223,17 +223,25 @@ def endpoint_host(endpoint: str) -> str | None:
     return host[1:-1] if host.startswith("[") and host.endswith("]") else host
 
 
+def _tcp_address(endpoint: str) -> tuple[socket.AddressFamily, str, int] | None:
+    """The socket family, host and port of a TCP endpoint (tcp/, tls/); None for others."""
+    protocol = endpoint.split("/", 1)[0]
+    host = endpoint_host(endpoint)
+    if protocol not in ("tcp", "tls") or host is None:
+        return None
+    port = int(endpoint.split("#", 1)[0].split("?", 1)[0].rpartition(":")[2])
+    return (socket.AF_INET6 if ":" in host else socket.AF_INET), host, port
+
+
 def taken(endpoint: str) -> bool:
     """True when a TCP endpoint (tcp/, tls/) names a port something on this host already
     listens on, so that zenoh's listener would fail ("Address already in use"); bound
     as zenoh binds (SO_REUSEADDR), so a closing connection does not count.  False for
     other protocols, and where binding fails for another reason (zenoh will say)."""
-    protocol = endpoint.split("/", 1)[0]
-    host = endpoint_host(endpoint)
-    if protocol not in ("tcp", "tls") or host is None:
+    address = _tcp_address(endpoint)
+    if address is None:
         return False
-    port = int(endpoint.split("#", 1)[0].split("?", 1)[0].rpartition(":")[2])
-    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    family, host, port = address
     with socket.socket(family, socket.SOCK_STREAM) as probe:
         probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
@@ -241,6 +249,18 @@ def taken(endpoint: str) -> bool:
         except OSError as exc:
             return exc.errno == errno.EADDRINUSE
     return False
+
+
+def answers(endpoint: str, timeout: float = 0.5) -> bool:
+    """True when something accepts a TCP connection at a tcp/ or tls/ endpoint now (a
+    router that is up); False when nothing does, or for other protocols."""
+    address = _tcp_address(endpoint)
+    if address is None:
+        return False
+    family, host, port = address
+    with socket.socket(family, socket.SOCK_STREAM) as probe:
+        probe.settimeout(timeout)
+        return probe.connect_ex((host, port)) == 0
 
 
 def is_local(endpoint: str) -> bool:

@@ -98,6 +98,7 @@ SERVICES = {  # setting naming the service -> its type, the command it runs, the
     "observer_hold_service": (wire.SET_BOOL, "observer", "held"),
     "payload_freeze_service": (wire.SET_BOOL, "payload", "frozen"),
 }
+ROUTER_RETRY = 2.0  # s between attempts to reach the ROS 2 router
 Service = tuple[str, str, str, str | None]  # its name, type, command, argument
 Received = tuple[str, str, bytes, bytes | None]  # topic, type, payload, attachment
 
@@ -162,16 +163,23 @@ class Ros2Bridge:
     """`await start()`, then `await close()`; the handler is called on start()'s loop."""
 
     def __init__(
-        self, settings: Ros2Settings, handler: DaemonHandler, interface: ZenohInterface
+        self,
+        settings: Ros2Settings,
+        handler: DaemonHandler,
+        interface: ZenohInterface,
+        router: zenoh.Config | None = None,
     ) -> None:
-        """On `interface`'s session, with its limits, size cap and parse thread (its
-        `ingress_limits` must be this bridge's: module function ingress_limits)."""
+        """With `interface`'s limits, size cap and parse thread; on its session (whose
+        `ingress_limits` must be this bridge's: module function ingress_limits), or on a
+        client session of the bridge's own to the ROS 2 graph's router, `router`
+        (ros2.router: the router relays between its clients and the graph's peers, where
+        it would not relay between two peers without gossip, which stays off here)."""
         self.settings = settings
         self.limits: TrajectoryLimits = interface.limits
         self.max_message_bytes = settings.max_message_bytes or interface.settings.max_message_bytes
         self._interface = interface
         self._handler = handler
-        self._session = session = interface.session
+        self._own_session: zenoh.Session | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._publishers: dict[str, _Publisher] = {}
         self._entities: list[Any] = []
@@ -179,43 +187,69 @@ class Ros2Bridge:
         self._queue: asyncio.Queue[Received] | None = None
         self._pending: set[tuple[bytes, int]] = set()  # requests taken, not yet answered
         self._pending_lock = threading.Lock()
-        self.node = wire.Node(
-            settings.domain_id,
-            str(session.info.zid()),
-            0,
-            settings.namespace,
-            settings.node_name,
-        )
+        self._router = router
+        self.node: wire.Node | None = None  # once declared
 
     async def start(self) -> None:
-        """Declare the node, its publishers, subscriptions and services (each with its
-        liveliness token), start publishing and taking trajectories and requests."""
+        """Declare the node on the interface's session, or on a client session of its
+        own once the router answers (tried every ROUTER_RETRY s meanwhile, so that the
+        daemon runs while the ROS 2 graph is down); then publish and take trajectories
+        and requests."""
         self._loop = asyncio.get_running_loop()
         self._queue = asyncio.Queue(self.settings.queue_depth)
-        liveliness = self._session.liveliness()
-        self._entities.append(liveliness.declare_token(self.node.token()))
+        if self._router is None:
+            self._declare(self._interface.session)
+        else:
+            self._tasks.append(self._loop.create_task(self._join_router(self._router)))
+
+    async def _join_router(self, config: zenoh.Config) -> None:
+        waited = False
+        while True:
+            try:
+                session = await asyncio.to_thread(zenoh.open, config)
+                break
+            except zenoh.ZError as exc:
+                if not waited:
+                    log.warning("ROS 2: the router does not answer (%s); trying again", exc)
+                waited = True
+                await asyncio.sleep(ROUTER_RETRY)
+        self._own_session = session
+        if waited:
+            log.info("ROS 2: the router answers now")
+        self._declare(session)
+
+    def _declare(self, session: zenoh.Session) -> None:
+        """The node, its publishers, subscriptions and services (each with its liveliness
+        token) on `session`, and the tasks that publish and take trajectories."""
+        assert self._loop is not None
+        settings = self.settings
+        self.node = node = wire.Node(
+            settings.domain_id, str(session.info.zid()), 0, settings.namespace, settings.node_name
+        )
+        liveliness = session.liveliness()
+        self._entities.append(liveliness.declare_token(node.token()))
         entity_id = 0
         for name, msgtype in PUBLISHED.items():
             entity_id += 1
             topic = self.settings.topic(getattr(self.settings, name))
-            token = self.node.entity_token(entity_id, wire.PUBLISHER, topic, msgtype)
+            token = node.entity_token(entity_id, wire.PUBLISHER, topic, msgtype)
             key = wire.topic_key(self.settings.domain_id, topic, msgtype)
-            self._publishers[name] = _Publisher(self._session, key, token)
+            self._publishers[name] = _Publisher(session, key, token)
             self._entities.append(liveliness.declare_token(token))
         for key, (topic, msgtype) in intake_keys(self.settings).items():
             entity_id += 1
             receive = self._receiver(topic, msgtype)
-            self._entities.append(self._session.declare_subscriber(key, receive))
-            token = self.node.entity_token(entity_id, wire.SUBSCRIPTION, topic, msgtype)
+            self._entities.append(session.declare_subscriber(key, receive))
+            token = node.entity_token(entity_id, wire.SUBSCRIPTION, topic, msgtype)
             self._entities.append(liveliness.declare_token(token))
         for key, served in service_keys(self.settings).items():
             entity_id += 1
             serve = self._server(key, served)
-            self._entities.append(self._session.declare_queryable(key, serve, complete=True))
+            self._entities.append(session.declare_queryable(key, serve, complete=True))
             service, srvtype = served[:2]
-            token = self.node.entity_token(entity_id, wire.SERVICE_SERVER, service, srvtype)
+            token = node.entity_token(entity_id, wire.SERVICE_SERVER, service, srvtype)
             self._entities.append(liveliness.declare_token(token))
-        self._tasks = [
+        self._tasks += [
             self._loop.create_task(self._publish_states()),
             self._loop.create_task(self._take_trajectories()),
         ]
@@ -235,6 +269,9 @@ class Ros2Bridge:
         for entity in [*self._entities, *(p.publisher for p in self._publishers.values())]:
             with contextlib.suppress(zenoh.ZError):
                 entity.undeclare()
+        if self._own_session is not None:
+            with contextlib.suppress(zenoh.ZError):
+                self._own_session.close()
 
     # -- out --------------------------------------------------------------------------
 

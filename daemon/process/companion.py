@@ -80,6 +80,7 @@ def main(argv: list[str] | None = None) -> int:
 async def run(config: DaemonConfig, link: RemoteLink) -> int:
     """Serve until the core closes the link; the exit code."""
     link.start()  # "alive" from now on: the core's hang timer runs
+    from daemon.config.zenoh_config import build_zenoh_config
     from daemon.interface.zenoh_io import SessionError, ZenohInterface
 
     loop = asyncio.get_running_loop()
@@ -105,13 +106,22 @@ async def run(config: DaemonConfig, link: RemoteLink) -> int:
                 return 1
         _feed(config, link, recorders.get("telemetry"), view)
         prefix = config.zenoh.key_prefix(config.robot.name)
-        limits: dict[str, float] = {}  # the ROS 2 trajectory topics' ingress limits
-        if config.ros2.enabled:  # ROS 2 over rmw_zenoh on the same session
+        limits: dict[str, float] = {}  # the ROS 2 topics' and services' ingress limits
+        if config.ros2.enabled:  # ROS 2 over rmw_zenoh: on the daemon's session, or
+            # on a session of its own to the ROS 2 graph's router (ros2.router)
             from daemon.interface.ros2_bridge import Ros2Bridge, ingress_limits
 
             limits = ingress_limits(config.ros2, config.zenoh)
+        router = None
+        if config.ros2_router is not None:
+            router = build_zenoh_config(config.ros2_router, prefix, limits)
         interface = ZenohInterface(
-            config.zenoh, planner, prefix, config.trajectory, limits, path_timer(config)
+            config.zenoh,
+            planner,
+            prefix,
+            config.trajectory,
+            limits if router is None else {},
+            path_timer(config),
         )
         try:
             await interface.start()
@@ -125,7 +135,7 @@ async def run(config: DaemonConfig, link: RemoteLink) -> int:
         # the leases the core kept from the last companion: a lapse now reaches zenoh
         planner.leases.resume(link.kept_leases)
         if config.ros2.enabled:
-            ros2 = Ros2Bridge(config.ros2, planner, interface)
+            ros2 = Ros2Bridge(config.ros2, planner, interface, router)
             await ros2.start()
         link.ready()  # the core starts its drives now
         await link.core_started()

@@ -247,6 +247,24 @@ def test_run_with_its_zenoh_port_taken_exits_with_one_line(
     assert " is taken on this host" not in capsys.readouterr().out
 
 
+def test_check_config_says_where_the_ros2_node_joins_and_whether_the_router_is_up(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with socket.socket() as router:
+        router.bind(("127.0.0.1", free_port()))
+        endpoint = f"tcp/127.0.0.1:{router.getsockname()[1]}"
+        path = tmp_path / "cdprd.yaml"
+        path.write_text(example() + f"ros2: {{enabled: true, router: {endpoint}}}\n")
+        assert main(["check-config", str(path)]) == 0
+        down = capsys.readouterr().out.splitlines()[-1]
+        router.listen()
+        assert main(["check-config", str(path)]) == 0
+        up = capsys.readouterr().out.splitlines()[-1]
+    joins = f"ros2: node cdprd on the ROS 2 graph's router {endpoint}"
+    assert down == f"{joins} (nothing listens there now: it joins when it does)"
+    assert up == joins
+
+
 # -- the CiA 402 drive profile at config load ----------------------------------
 
 DEFAULT_EDS = CONFIG / "can" / "cia402_cst.eds"

@@ -233,19 +233,24 @@ def test_a_ros2_ingress_limit_and_raw_downsampling_are_exclusive() -> None:
     assert parse_config(data, CONFIG, "test.yaml").ros2.ingress_limit_hz is None
 
 
-def test_ros2_router_joins_the_sessions_connect_beside_its_own_listen_port() -> None:
+def test_ros2_router_is_a_client_session_of_its_own_beside_the_daemons() -> None:
     """`ros2: {enabled: true, router: tcp/127.0.0.1:7447}` is the one line that joins a
-    ROS 2 graph: the session connects to rmw_zenohd's port and listens on its own (7448),
-    so the two never clash; a router off loopback is refused as zenoh.connect's would be."""
+    ROS 2 graph: the bridge reaches rmw_zenohd's port as a client (a router relays
+    between its clients and the graph's peers; between two peers only with gossip, which
+    stays off), while the daemon's session listens on its own port (7448) unchanged; a
+    router off loopback is refused as zenoh.connect's would be."""
     example = CONFIG / "reference8-cia402.yaml"
     router = "tcp/127.0.0.1:7447"
     joined = load_config(example, lambda d: d.update(ros2={"enabled": True, "router": router}))
-    assert joined.zenoh.connect == (router,)
+    assert joined.ros2_router is not None
+    assert (joined.ros2_router.mode, joined.ros2_router.connect) == ("client", (router,))
+    assert joined.ros2_router.listen_endpoints == ()
+    assert joined.zenoh.connect == ()
     assert joined.zenoh.listen_endpoints == ("tcp/127.0.0.1:7448",)
     off = load_config(example, lambda d: d.update(ros2={"enabled": False, "router": router}))
-    assert off.zenoh.connect == ()
+    assert off.ros2_router is None
     far = {"enabled": True, "router": "tcp/10.0.0.5:7447"}
     with pytest.raises(ConfigError) as refused:
         load_config(example, lambda d: d.update(ros2=far))
-    assert "ros2.router joins zenoh.connect" in str(refused.value)
+    assert "ros2.router (a client session of the ROS 2 bridge's own)" in str(refused.value)
     assert "'tcp/10.0.0.5:7447' is not on loopback" in str(refused.value)

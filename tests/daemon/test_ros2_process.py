@@ -52,19 +52,19 @@ def dds(msgtype: str) -> str:
     return f"{package}::{kind}::dds_::{name}_"
 
 
-def key(topic: str, msgtype: str) -> str:
+def key(topic: str, msgtype: str, domain: int = DOMAIN) -> str:
     """<domain_id>/<fully_qualified_name>/<type_name>/<type_hash> (design.md)."""
-    return f"{DOMAIN}/{topic.strip('/')}/{dds(msgtype)}/{STORE.hash_rihs01(msgtype)}"
+    return f"{domain}/{topic.strip('/')}/{dds(msgtype)}/{STORE.hash_rihs01(msgtype)}"
 
 
 class Inbox:
     """The samples received on one key: (decoded message, attachment bytes)."""
 
-    def __init__(self, s: zenoh.Session, topic: str, msgtype: str) -> None:
+    def __init__(self, s: zenoh.Session, topic: str, msgtype: str, domain: int = DOMAIN) -> None:
         self.msgtype = msgtype
         self.items: list[tuple[object, bytes | None]] = []
         self.lock = threading.Lock()
-        self.sub = s.declare_subscriber(key(topic, msgtype), self.on_sample)
+        self.sub = s.declare_subscriber(key(topic, msgtype, domain), self.on_sample)
 
     def on_sample(self, sample: zenoh.Sample) -> None:
         msg = STORE.deserialize_cdr(sample.payload.to_bytes(), self.msgtype)
