@@ -28,7 +28,8 @@ the figures without them are then printed beside, under "unloaded".  --view turn
 interfaces that see the robot, at full rate on loopback: the live view (view: section at
 its maximum 200 Hz) with a Foxglove client subscribed to every channel in a process of
 its own (tests/foxglove_client.py; `view_messages` counts what it decoded), and ROS 2 over
-rmw_zenoh (ros2: section at the loop rate; published with nobody subscribed); the
+rmw_zenoh (ros2: section at the loop rate) with a ROS 2 node subscribed to every topic of
+its domain in another (tests/ros2_listener.py; `ros2_messages` counts what it decoded); the
 figures without them, under the same load, under "no_view", and their ratios
 (`view_latency_p99_ratio`, `view_misses_delta_per_1e4`).  Figures are for this machine
 (2 vCPU); nothing here is hard real time (PERF-FACTS).
@@ -131,19 +132,25 @@ def busy_host(
         os.set_blocking(flood_out, False)
         children.append(spawn_ordinary(argv, env, stdout=flood_in))
         os.close(flood_in)
-    viewer = None
+    viewers: list[tuple[Child, int]] = []  # each viewer and its stdout's read end
     if config.view.enabled:
         url = f"ws://{config.view.host}:{config.view.port}"
-        argv = [sys.executable, "-m", "tests.foxglove_client", url, str(seconds)]
-        read, write = os.pipe()
-        viewer = spawn_ordinary(argv, {**env, "PYTHONPATH": str(ROOT)}, stdout=write)
-        os.close(write)
-    busy = Load(children + ([] if viewer is None else [viewer]), flood_out)
+        watch = ["tests.foxglove_client", url, str(seconds)]
+        port = config.zenoh.listen_endpoints[0].rpartition(":")[2]
+        listen = ["tests.ros2_listener", port, str(config.ros2.domain_id), str(seconds)]
+        for module in (watch, listen):
+            read, write = os.pipe()
+            argv = [sys.executable, "-m", *module]
+            viewers.append(
+                (spawn_ordinary(argv, {**env, "PYTHONPATH": str(ROOT)}, stdout=write), read)
+            )
+            os.close(write)
+    busy = Load(children + [viewer for viewer, _ in viewers], flood_out)
     try:
         yield busy
     finally:
         busy.stop()
-        if viewer is not None:
+        for _viewer, read in viewers:
             with os.fdopen(read) as counted:
                 lines = counted.read().split()
             if viewed is not None:
@@ -192,7 +199,7 @@ def measure(
         simulator = SimulatorTime(sim.runner)
         asyncio.run(sim.serve(after_start=hold_and_measure))
     if view:
-        out["view_messages"] = viewed[0] if viewed else 0
+        out["view_messages"], out["ros2_messages"] = viewed if len(viewed) == 2 else (0, 0)
     return out
 
 
