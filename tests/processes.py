@@ -61,18 +61,22 @@ def serve_simulator(
 
 
 def start_daemon(
-    config: Path, *options: str, log: Path | None = None, cwd: Path = ROOT
+    config: Path,
+    *options: str,
+    log: Path | None = None,
+    cwd: Path = ROOT,
+    env: dict[str, str] | None = None,
 ) -> subprocess.Popen:
     """`cdprd run --config CONFIG OPTIONS` as its own process, run from `cwd` (whose
-    packages it imports): its output (stdout and stderr) to the file `log`, else to a
-    text pipe."""
+    packages it imports), in `env` (default: this process's): its output (stdout and
+    stderr) to the file `log`, else to a text pipe."""
     argv = [sys.executable, "-m", "daemon.cli", "run", "--config", str(config), *options]
     if log is None:
         return subprocess.Popen(
-            argv, cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+            argv, cwd=cwd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
         )
     with log.open("w") as out:  # the child keeps its own descriptor open
-        return subprocess.Popen(argv, cwd=cwd, stdout=out, stderr=subprocess.STDOUT)
+        return subprocess.Popen(argv, cwd=cwd, env=env, stdout=out, stderr=subprocess.STDOUT)
 
 
 def stop_impatiently(proc: subprocess.Popen, timeout: float = 15.0) -> None:

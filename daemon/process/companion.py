@@ -29,7 +29,7 @@ from typing import TYPE_CHECKING, Any, TypeVar
 
 from cdpr import ConfigError
 from daemon.config import DaemonConfig, check_workspace
-from daemon.process import wire
+from daemon.process import warm_up, wire
 from daemon.process.app import ignore_stop_signals
 from daemon.process.companion_link import OtherCodeError, RemoteLink, greeted
 from daemon.process.cycle_rows import Throttle, records
@@ -91,7 +91,7 @@ async def run(config: DaemonConfig, link: RemoteLink) -> int:
     # before zenoh is up, within the unit's WatchdogSec
     watchdog = asyncio.create_task(run_watchdog(notifier, Progress(lambda: link.cycles)))
     planner = Planner(config, link)
-    interface = view = ros2 = None
+    interface = view = ros2 = warming = None
     recorders = _recorders(config, link)
     _report_recordings(planner, recorders)
     writers = [asyncio.create_task(r.run()) for r in recorders.values()]
@@ -140,6 +140,7 @@ async def run(config: DaemonConfig, link: RemoteLink) -> int:
         link.ready()  # the core starts its drives now
         await link.core_started()
         notifier.ready()  # bus, drives and zenoh all up
+        warming = warm_up.start(config.source)  # the first path's kernels, if not cached
         update_status = _status_updates(notifier, link, config)
         planner.subscribe(update_status)
         update_status({})
@@ -147,6 +148,9 @@ async def run(config: DaemonConfig, link: RemoteLink) -> int:
         return 0
     finally:
         watchdog.cancel()
+        if warming is not None and warming.poll() is None:
+            warming.kill()  # what it compiled so far stays cached
+            warming.wait()
         # the recordings first: the core handed its last records over before it closed
         # the link, and closing zenoh under a flood of queries on a busy host may outlast
         # the core's wait for this process (companion_host.STOP_WAIT)
