@@ -294,6 +294,8 @@ class DaemonConfig:
                 "mode": "client",
                 "connect": [self.ros2.router],
                 "expose": self.zenoh.expose,  # off loopback as zenoh.connect may be
+                # with the daemon's transport settings (TLS certificates for tls/ ones)
+                "config": {k: v for k, v in self.zenoh.config.items() if k == "transport"},
                 "max_message_bytes": self.ros2.max_message_bytes or self.zenoh.max_message_bytes,
             }
             where = f"{source}: ros2.router (a client session of the ROS 2 bridge's own)"

@@ -27,8 +27,9 @@ class Ros2Settings(StrictModel):
     """The ROS 2 graph's zenoh router, e.g. tcp/127.0.0.1:7447 where `ros2 run
     rmw_zenoh_cpp rmw_zenohd` listens: the node runs on a client session of its own that
     connects there (tried every 2 s until the router answers), under the same loopback
-    rule as zenoh.connect; the daemon's session keeps its own endpoint (zenoh.listen, 7448
-    by default).  None: the node is on the daemon's session, where ROS 2 nodes connect."""
+    rule as zenoh.connect and with zenoh.config's `transport` settings (a tls/ router's
+    certificates); the daemon's session keeps its own endpoint (zenoh.listen, 7448 by
+    default).  None: the node is on the daemon's session, where ROS 2 nodes connect."""
     domain_id: int = Field(0, ge=0, le=232)  # the ROS 2 domain (ROS_DOMAIN_ID) of its topics
     node_name: str = Field("cdprd", pattern=rf"^{_NAME}$", max_length=100)
     """The ROS 2 node's name; the diagnostics status is named after it too."""

@@ -249,6 +249,15 @@ def test_ros2_router_is_a_client_session_of_its_own_beside_the_daemons() -> None
     assert joined.zenoh.listen_endpoints == ("tcp/127.0.0.1:7448",)
     off = load_config(example, lambda d: d.update(ros2={"enabled": False, "router": router}))
     assert off.ros2_router is None
+    lease = {"link": {"tx": {"lease": 5000}}}  # the daemon's transport settings go along
+    both = {"ros2": {"enabled": True, "router": router}}
+
+    def with_transport(d: dict) -> None:
+        d.update(both)
+        d["zenoh"]["config"] = {"transport": lease, "adminspace": {"enabled": False}}
+
+    tuned = load_config(example, with_transport)
+    assert tuned.ros2_router is not None and tuned.ros2_router.config == {"transport": lease}
     far = {"enabled": True, "router": "tcp/10.0.0.5:7447"}
     with pytest.raises(ConfigError) as refused:
         load_config(example, lambda d: d.update(ros2=far))
