@@ -51,7 +51,8 @@ def test_the_guide_line_connects_to_rmw_zenohds_port() -> None:
 
 def test_beside_a_router_on_7447_the_shipped_config_is_driven_from_ros2(tmp_path: Path) -> None:
     """The daemon first, the graph's router later (the bridge waits for it, the daemon
-    runs meanwhile), then a ROS 2 node on the router drives the robot."""
+    runs meanwhile), then a ROS 2 node on the router drives the robot; the router
+    restarts, and a node on the new one resets the robot."""
     for port, whose in ((ROUTER_PORT, "the stand-in router"), (DAEMON_PORT, "the daemon")):
         if _listening(port):
             pytest.skip(
@@ -66,27 +67,47 @@ def test_beside_a_router_on_7447_the_shipped_config_is_driven_from_ros2(tmp_path
     router = None
     try:
         wait(lambda: _listening(DAEMON_PORT), 60.0, "the daemon to listen")
-        router = subprocess.Popen(
-            [sys.executable, "-m", "tests.stand_in_router", f"tcp/127.0.0.1:{ROUTER_PORT}"],
-            cwd=ROOT,
-            stdin=subprocess.PIPE,
-            stdout=subprocess.PIPE,
-        )
-        assert router.stdout is not None and router.stdout.readline().strip() == b"ready"
+        router = start_router()
         ros_node = zenoh_peer(ROUTER_PORT)  # reaches the daemon through the router only
         try:
             _drive(ros_node)
         finally:
             ros_node.close()
+        stop_router(router)  # the graph's router restarts: the node is back on it
+        router = start_router()
+        ros_node = zenoh_peer(ROUTER_PORT)
+        try:
+            diagnostics = Inbox(ros_node, "/diagnostics", DIAGNOSTICS, domain=0)
+            wait(lambda: _state(diagnostics) == "braked", 30.0, "the node back on the router")
+            reset = trigger(ros_node, service_key("/reset"), 1)
+            assert reset.success, reset.message
+            wait(lambda: _state(diagnostics) == "idle", 10.0, "idle after the reset")
+        finally:
+            ros_node.close()
     finally:
         finish(proc)
         if router is not None:
-            assert router.stdin is not None
-            router.stdin.close()
-            router.wait(timeout=10)
+            stop_router(router)
     log = (tmp_path / "daemon.log").read_text()
     assert proc.returncode == 0, log
     assert "ROS 2: the router does not answer" in log and "ROS 2: the router answers now" in log
+
+
+def start_router() -> subprocess.Popen:
+    router = subprocess.Popen(
+        [sys.executable, "-m", "tests.stand_in_router", f"tcp/127.0.0.1:{ROUTER_PORT}"],
+        cwd=ROOT,
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+    )
+    assert router.stdout is not None and router.stdout.readline().strip() == b"ready"
+    return router
+
+
+def stop_router(router: subprocess.Popen) -> None:
+    assert router.stdin is not None
+    router.stdin.close()
+    router.wait(timeout=10)
 
 
 def _state(diagnostics: Inbox) -> str | None:
