@@ -1,7 +1,7 @@
 """The daemon's control cycle as `cdprd run --sim` runs it: the real-time core (this
-process: SCHED_FIFO where permitted, memory locked, the in-process simulator's 8 drives
-on the loop bus) and its companion process (zenoh), enabled and holding for a fixed
-time at 500 Hz and at 1000 Hz; optionally with a busy host.
+process: SCHED_FIFO where permitted, memory locked), its companion process (zenoh) and
+the simulator's 8 drives in a process of their own on socket-pair buses, enabled and
+holding for a fixed time at 500 Hz and at 1000 Hz; optionally with a busy host.
 
     python bench/loop.py --json [--seconds 10] [--protocol cia402|odrive] [--load N] [--flood]
                          [--view]
@@ -11,13 +11,9 @@ controller's work done ahead while the feedback is on its way (prepare), latency
 the last feedback frame of a cycle (or its tick, when streamed ODrive feedback was
 complete before it) to the last command frame sent, deadline misses + overruns per 10^4
 cycles, and `braked` (1 if the robot braked during the measurement) with `fault`, its
-trigger and message.  The in-process simulator shares the core's loop: its callbacks
-(plant steps, its drives' frames) are timed in CPU time and kept apart, so
-`core_cpu_fraction` is the core's share of a CPU alone (what a robot's computer pays;
-the loop's dispatch of the simulator's wake-ups stays in it),
-`simulator_cpu_fraction` the simulator's and `cpu_fraction` the process's, both
-together.  The compute and latency figures are the core's alone (no simulator callback
-runs inside a cycle).
+trigger and message.  `core_cpu_fraction` is the core process's share of a CPU (what a
+robot's computer pays for the cycle), `simulator_cpu_fraction` the simulator process's
+(what real drives do in their own hardware).
 `timer_floor_misses_per_1e4` is the host's share, measured in the same conditions:
 overruns of a bare timerfd loop at the same priority and load that does nothing else
 (a vCPU not run for a few ms misses periods whatever runs on it).
@@ -42,16 +38,20 @@ import asyncio
 import contextlib
 import json
 import os
+import shutil
 import sys
+import tempfile
 import time
 from collections.abc import Iterator
 from pathlib import Path
 
-from timing import SimulatorTime, free_endpoint
+import yaml
+from timing import free_endpoint
 
-from daemon.cli.simulated import InProcessSimulator
+from daemon.cli.simulated import ProcessSimulator
 from daemon.config import DaemonConfig, load_config
 from daemon.process.realtime import Child, realtime, spawn_ordinary
+from daemon.service.api import CommandError
 from daemon.service.service import Service
 from drivers.clock import PeriodicTimer
 
@@ -63,22 +63,33 @@ LOAD_START = 60.0  # s the flood may take to connect (its imports, on the busy h
 VIEW_RATE_HZ = 200.0  # the view: section's largest rate_hz
 
 
-def rate_config(protocol: str, rate_hz: float, view: bool = False) -> DaemonConfig:
+def rate_config(
+    protocol: str, rate_hz: float, folder: Path, view: bool = False
+) -> tuple[DaemonConfig, Path]:
     """The example config at `rate_hz`, zenoh on a free loopback port (and, if `view`,
-    the live view on another at its top rate and ROS 2 at the loop rate)."""
+    the live view on another at its top rate and ROS 2 at the loop rate), written to a
+    file in `folder` (the simulator's process reads it too) and loaded."""
     endpoint = free_endpoint()
     view_port = int(free_endpoint().rpartition(":")[2])
+    source = CONFIGS / f"reference8-{protocol}.yaml"
+    data = yaml.safe_load(source.read_text())
+    data["robot"] = str((source.parent / data["robot"]).resolve())
+    data["controller"]["rate_hz"] = rate_hz
+    data["drives"]["feedback_rate_hz"] = rate_hz
+    data["zenoh"]["listen"] = [endpoint]
+    data["logging"] = {"level": "warning"}
+    if view:
+        data["view"] = {"enabled": True, "port": view_port, "rate_hz": VIEW_RATE_HZ}
+        data["ros2"] = {"enabled": True, "rate_hz": rate_hz}
+    path = folder / f"loop-{protocol}-{rate_hz:g}.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return load_config(path), path
 
-    def edit(data: dict) -> None:
-        data["controller"]["rate_hz"] = rate_hz
-        data["drives"]["feedback_rate_hz"] = rate_hz
-        data["zenoh"]["listen"] = [endpoint]
-        data["logging"] = {"level": "warning"}
-        if view:
-            data["view"] = {"enabled": True, "port": view_port, "rate_hz": VIEW_RATE_HZ}
-            data["ros2"] = {"enabled": True, "rate_hz": rate_hz}
 
-    return load_config(CONFIGS / f"reference8-{protocol}.yaml", edit)
+def process_cpu_seconds(pid: int) -> float:
+    """CPU time (user + system) a process has used, from /proc."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 class Load:
@@ -164,7 +175,8 @@ def measure(
     protocol: str, rate_hz: float, seconds: float, load: int, flood: bool, view: bool = False
 ) -> dict:
     """One run of the daemon as `cdprd run --sim`: enable, settle, measure."""
-    config = rate_config(protocol, rate_hz, view)
+    folder = Path(tempfile.mkdtemp(prefix="cdprd-loop-"))
+    config, path = rate_config(protocol, rate_hz, folder, view)
     out: dict[str, float] = {}
     viewed: list[int] = []
     # the load is killed after the measurement and waited for once the daemon has
@@ -173,7 +185,11 @@ def measure(
     with contextlib.ExitStack() as load_running:
 
         async def hold_and_measure(service: Service) -> None:
-            await service.command("enable", {})
+            try:
+                await service.command("enable", {})
+            except CommandError as exc:  # braked before it held: that is the figure
+                out.update(braked=1, fault=f"enable refused: {exc.code}: {exc.reason}")
+                return
             busy = load_running.enter_context(
                 busy_host(config, load, flood, seconds + SETTLE + 5.0, viewed)
             )
@@ -187,25 +203,29 @@ def measure(
             fresh = type(service.stats)(rate_hz)
             await asyncio.sleep(SETTLE)  # the robot settles, the load gets going
             service.stats = fresh
-            simulator.reset()
+            assert sim.process is not None
+            simulated0 = process_cpu_seconds(sim.process.pid)
             cpu0, wall0 = time.process_time(), time.monotonic()
             await asyncio.sleep(seconds)
             wall = time.monotonic() - wall0
             cpu = (time.process_time() - cpu0) / wall
-            out.update(figures(service, rate_hz, cpu, simulator.seconds() / wall))
+            simulated = (process_cpu_seconds(sim.process.pid) - simulated0) / wall
+            out.update(figures(service, rate_hz, cpu, simulated))
             busy.stop()
 
-        sim = InProcessSimulator(config)
-        simulator = SimulatorTime(sim.runner)
-        asyncio.run(sim.serve(after_start=hold_and_measure))
+        sim = ProcessSimulator(config, path, truth=False)
+        try:
+            asyncio.run(sim.serve(after_start=hold_and_measure))
+        finally:
+            shutil.rmtree(folder)
     if view:
         out["view_messages"], out["ros2_messages"] = viewed if len(viewed) == 2 else (0, 0)
     return out
 
 
 def figures(service: Service, rate_hz: float, cpu: float, simulator: float) -> dict[str, float]:
-    """The service's cycle figures; `cpu` the process's share of a CPU, `simulator`
-    the in-process simulator's part of it."""
+    """The service's cycle figures; `cpu` the core process's share of a CPU, `simulator`
+    the simulator process's."""
     stats = service.stats
     compute, latency = stats.compute.summary_us(), stats.latency.summary_us()
     prepare = stats.prepare.summary_us()
@@ -221,9 +241,8 @@ def figures(service: Service, rate_hz: float, cpu: float, simulator: float) -> d
         "latency_p99_us": latency["p99_us"],
         "latency_max_us": latency["max_us"],
         "misses_per_1e4": round(1e4 * misses / max(stats.cycles, 1), 2),
-        "core_cpu_fraction": round(cpu - simulator, 3),
+        "core_cpu_fraction": round(cpu, 3),
         "simulator_cpu_fraction": round(simulator, 3),
-        "cpu_fraction": round(cpu, 3),
         "braked": int(fault is not None),
         "fault": "" if fault is None else f"{fault.trigger.value}: {fault.message}",
     }
@@ -271,13 +290,15 @@ def main() -> None:
         if args.view:
             plain = measure(args.protocol, rate, args.seconds, args.load, args.flood)
             figures["no_view"] = plain
-            figures["view_latency_p99_ratio"] = round(
-                figures["latency_p99_us"] / max(plain["latency_p99_us"], 1.0), 3
-            )
-            figures["view_misses_delta_per_1e4"] = round(
-                figures["misses_per_1e4"] - plain["misses_per_1e4"], 2
-            )
-        config = rate_config(args.protocol, rate)
+            if "latency_p99_us" in figures and "latency_p99_us" in plain:  # both held
+                figures["view_latency_p99_ratio"] = round(
+                    figures["latency_p99_us"] / max(plain["latency_p99_us"], 1.0), 3
+                )
+                figures["view_misses_delta_per_1e4"] = round(
+                    figures["misses_per_1e4"] - plain["misses_per_1e4"], 2
+                )
+        with tempfile.TemporaryDirectory() as folder:
+            config, _ = rate_config(args.protocol, rate, Path(folder))
         figures["timer_floor_misses_per_1e4"] = timer_floor(config, args.seconds, args.load)
         if busy:
             figures["load"], figures["flood"] = args.load, int(args.flood)
