@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -19,18 +20,25 @@ from daemon.cli import (
     tune_cmd,
     workspace_cmd,
 )
+from daemon.cli.exit_codes import EXIT_FAILED, EXIT_OK, codes_of, epilog
+from daemon.cli.output import add_json_flag, print_result
 from daemon.config import check_workspace
 from daemon.config.watchdog_drift import FORMULA
 from daemon.config.zenoh_config import answers, taken
 from drivers.cia402.profile import plans as drive_plans
 from sim_bus.bus.cycle_frames import bus_cycles
 
+if TYPE_CHECKING:
+    from daemon.cli.gain_check import GainCheck
+    from daemon.config import DaemonConfig
 
-def check_config(path: str) -> int:
+
+def check_config(path: str, as_json: bool = False) -> int:
     """Validate a daemon config (or a bare robot description) and print a readable
-    summary; 0 if it is sound, 1 with each problem named (`error: FILE: KEY: problem`)
-    if not.  A daemon config passes only if `run` would take it (its gains stable:
-    gain_check) and the simulator of `run --sim` can be built from it."""
+    summary (`as_json`: one object, a key per line of it); 0 if it is sound, 1 with each
+    problem named (`error: FILE: KEY: problem`) if not.  A daemon config passes only if
+    `run` would take it (its gains stable: gain_check) and the simulator of `run --sim`
+    can be built from it."""
     try:
         data = load_yaml(path)
         if isinstance(data, dict) and "drives" in data:
@@ -43,73 +51,130 @@ def check_config(path: str) -> int:
         else:
             config, gains, robot = None, None, Robot.from_yaml(path)
     except ConfigError as exc:
-        run_cmd.report(exc)
-        return 1
+        run_cmd.report(exc, as_json)
+        return EXIT_FAILED
+    summary, lines = config_summary(robot, config, gains)
+    print_result(summary, as_json, lambda: print("\n".join(lines)))
+    return EXIT_OK
+
+
+def config_summary(
+    robot: Robot, config: DaemonConfig | None, gains: GainCheck | None
+) -> tuple[dict[str, Any], list[str]]:
+    """check-config's summary of a robot (and of the daemon config around it): the
+    figures by key, and the lines a person reads, each built beside its figures."""
     home = robot.home
     lengths = robot.cable_lengths(home)
     masses = robot.modal_masses(home)
-    print(f"robot {robot.name}: {robot.n_cables} cables, platform {robot.platform.mass:g} kg")
-    print(
-        f"home position {np.round(home.position, 4).tolist()} m, "
-        f"quaternion {np.round(home.quaternion, 6).tolist()}"
-    )
-    print(f"cable lengths at home: {np.round(lengths, 4).tolist()} m")
     shown = ", ".join("inf" if np.isinf(m) else f"{m:.3g}" for m in masses)
-    print(f"modal masses at home (Lemma 1, kg): {shown}")
-    if config is not None:
-        d = config.drives
-        print(
-            f"drives: {d.protocol} nodes {d.nodes}, brake {d.brake.value}, "
-            f"watchdog {d.watchdog_timeout * 1e3:g} ms"
+    summary: dict[str, Any] = {
+        "robot": {
+            "name": robot.name,
+            "cables": robot.n_cables,
+            "platform_mass": robot.platform.mass,
+            "home": {"position": home.position.tolist(), "quaternion": home.quaternion.tolist()},
+            "cable_lengths_at_home": lengths.tolist(),
+            "modal_masses_at_home": masses.tolist(),  # inf: null
+        }
+    }
+    lines = [
+        f"robot {robot.name}: {robot.n_cables} cables, platform {robot.platform.mass:g} kg",
+        f"home position {np.round(home.position, 4).tolist()} m, "
+        f"quaternion {np.round(home.quaternion, 6).tolist()}",
+        f"cable lengths at home: {np.round(lengths, 4).tolist()} m",
+        f"modal masses at home (Lemma 1, kg): {shown}",
+    ]
+    if config is None:
+        return summary, lines
+    d = config.drives
+    drives: dict[str, Any] = {
+        "protocol": d.protocol,
+        "nodes": list(d.nodes),
+        "brake": d.brake.value,
+        "watchdog_timeout_s": d.watchdog_timeout,
+    }
+    summary["drives"] = drives
+    lines.append(
+        f"drives: {d.protocol} nodes {d.nodes}, brake {d.brake.value}, "
+        f"watchdog {d.watchdog_timeout * 1e3:g} ms"
+    )
+    loads: dict[str, float] = {}
+    rate = config.controller.rate_hz
+    if d.protocol == "cia402":  # what a dead daemon leaves behind (checked at load)
+        plan = next(iter(drive_plans(d).values()))
+        limit = config.safety.max_watchdog_drift
+        drives.update(
+            eds=str(plan.eds),
+            drive_watchdog=plan.watchdog,
+            host_heartbeat_period_s=d.host_heartbeat_period,
+            host_node=d.profile.host_node,
+            detection_s=plan.detection,
+            drift={
+                "formula": FORMULA,
+                "limit_m": limit,
+                "bounds": [
+                    {"cable": b.cable, "node": b.node, "drift_m": b.drift}
+                    for b in config.watchdog_drift
+                ],
+            },
         )
-        loads: dict[str, str] = {}
-        if d.protocol == "cia402":  # what a dead daemon leaves behind (checked at load)
-            plan = next(iter(drive_plans(d).values()))
-            print(f"drive profile: EDS {plan.eds}")
-            print(f"drive watchdog (when the daemon dies): {plan.watchdog}")
-            print(
-                f"host heartbeat: every {d.host_heartbeat_period * 1e3:g} ms (node "
-                f"{d.profile.host_node}); a drive notices a dead daemon within "
-                f"{plan.detection * 1e3:g} ms"
-            )
-            limit = config.safety.max_watchdog_drift * 1e3
-            print(f"drift before a drive notices ({FORMULA}; limit {limit:g} mm):")
-            for bound in config.watchdog_drift:
-                print(f"  {bound.text()}")
-            rate = config.controller.rate_hz
-            loads = {
-                bus.name: f", load {bus.load(rate) * 100:.1f} % at {rate:g} Hz (worst-case "
-                "stuffing)"
-                for bus in bus_cycles(d, robot, config.buses)
-            }
-        for c in config.buses:
-            where = f"bus: {c.interface} {c.channel} at {c.bitrate} bit/s"
-            if len(config.buses) > 1:
-                nodes = [n for n, b in zip(d.nodes, d.bus_names(), strict=True) if b == c.bus_name]
-                where = f"bus {c.bus_name}: {where.removeprefix('bus: ')}, nodes {nodes}"
-            print(where + loads.get(c.bus_name, ""))
-        print(
-            f"controller: {config.controller.rate_hz:g} Hz, model at {config.controller.model_at}; "
-            f"home pose in W: yes"
+        lines += [
+            f"drive profile: EDS {plan.eds}",
+            f"drive watchdog (when the daemon dies): {plan.watchdog}",
+            f"host heartbeat: every {d.host_heartbeat_period * 1e3:g} ms (node "
+            f"{d.profile.host_node}); a drive notices a dead daemon within "
+            f"{plan.detection * 1e3:g} ms",
+            f"drift before a drive notices ({FORMULA}; limit {limit * 1e3:g} mm):",
+            *(f"  {bound.text()}" for bound in config.watchdog_drift),
+        ]
+        loads = {bus.name: bus.load(rate) for bus in bus_cycles(d, robot, config.buses)}
+    summary["buses"] = []
+    for c in config.buses:
+        nodes = list(d.nodes)
+        if len(config.buses) > 1:
+            nodes = [n for n, b in zip(d.nodes, d.bus_names(), strict=True) if b == c.bus_name]
+        load = loads.get(c.bus_name)
+        summary["buses"].append(
+            {"name": c.bus_name, "interface": c.interface, "channel": c.channel,
+             "bitrate": c.bitrate, "nodes": nodes, "load": load}
+        )  # fmt: skip
+        where = f"bus: {c.interface} {c.channel} at {c.bitrate} bit/s"
+        if len(config.buses) > 1:
+            where = f"bus {c.bus_name}: {where.removeprefix('bus: ')}, nodes {nodes}"
+        if load is not None:
+            where += f", load {load * 100:.1f} % at {rate:g} Hz (worst-case stuffing)"
+        lines.append(where)
+    summary["controller"] = {"rate_hz": rate, "model_at": config.controller.model_at}
+    lines.append(
+        f"controller: {rate:g} Hz, model at {config.controller.model_at}; home pose in W: yes"
+    )
+    if gains is not None:
+        summary["gains"] = gains.figures()
+        lines.append(gains.summary())
+    summary["workspace"], line = workspace_cmd.summary(config)
+    lines.append(line)
+    prefix = config.zenoh.key_prefix(robot.name)
+    listen = list(config.zenoh.listen_endpoints)
+    summary["zenoh"] = {"prefix": prefix, "listen": listen}
+    lines.append(f"zenoh: prefix {prefix}, listening on {', '.join(listen)}")
+    warnings = [
+        f"zenoh: {endpoint} is taken on this host now: `cdprd run` would stop with "
+        "'Address already in use' (a zenoh router, rmw_zenohd too, takes 7447 by "
+        "default): listen on a free port (zenoh.listen), or connect to the router "
+        "(ros2.router, zenoh.connect)"
+        for endpoint in filter(taken, listen)
+    ]
+    lines += warnings
+    if config.ros2_router is not None:
+        (router,) = config.ros2_router.connect
+        up = answers(router)
+        summary["ros2"] = {"node": config.ros2.node_name, "router": router, "router_answers": up}
+        waits = "" if up else " (nothing listens there now: it joins when it does)"
+        lines.append(
+            f"ros2: node {config.ros2.node_name} on the ROS 2 graph's router {router}{waits}"
         )
-        if gains is not None:
-            print(gains.summary())
-        print(workspace_cmd.summary_line(config))
-        prefix = config.zenoh.key_prefix(robot.name)
-        listen = ", ".join(config.zenoh.listen_endpoints)
-        print(f"zenoh: prefix {prefix}, listening on {listen}")
-        for endpoint in filter(taken, config.zenoh.listen_endpoints):
-            print(
-                f"zenoh: {endpoint} is taken on this host now: `cdprd run` would stop with "
-                "'Address already in use' (a zenoh router, rmw_zenohd too, takes 7447 by "
-                "default): listen on a free port (zenoh.listen), or connect to the router "
-                "(ros2.router, zenoh.connect)"
-            )
-        if config.ros2_router is not None:
-            (router,) = config.ros2_router.connect
-            waits = "" if answers(router) else " (nothing listens there now: it joins when it does)"
-            print(f"ros2: node {config.ros2.node_name} on the ROS 2 graph's router {router}{waits}")
-    return 0
+    summary["warnings"] = warnings
+    return summary, lines
 
 
 def command_parser() -> argparse.ArgumentParser:
@@ -121,6 +186,7 @@ def command_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
     check = sub.add_parser("check-config", help="validate a daemon config or robot file")
     check.add_argument("file", help="e.g. config/reference8-cia402.yaml or config/robots/*.yaml")
+    add_json_flag(check, "print the summary as one JSON object (its warnings under warnings)")
     analyze_cmd.add_parser(sub)
     client_cmd.add_parsers(sub)
     run_cmd.add_parsers(sub)
@@ -130,6 +196,8 @@ def command_parser() -> argparse.ArgumentParser:
     workspace_cmd.add_parser(sub)
     plan_cmd.add_parser(sub)
     completion.add_parser(sub, parser)
+    for name, command in completion.subcommands(parser).items():
+        command.epilog = epilog(codes_of(name))
     return parser
 
 
@@ -143,7 +211,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.command == "analyze":
         return analyze_cmd.run(args)
     if args.command == "check-config":
-        return check_config(args.file)
+        return check_config(args.file, args.json)
     if args.command == "workspace":
         return workspace_cmd.run(args)
     parser.error(f"unknown command {args.command}")

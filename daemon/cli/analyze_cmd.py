@@ -28,7 +28,6 @@ searched_to, mass_range}, plots [files].  Non-finite numbers are null.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 from pathlib import Path
@@ -41,10 +40,12 @@ from cdpr.control_spec import DEFAULT_PID, ControllerSpec, parse_controller
 from cdpr.controller import static_tensions, tension_solver
 from cdpr.description import load_yaml
 from daemon.cli.gain_check import law
+from daemon.cli.output import add_json_flag, plain, print_result
+from daemon.cli.progress import add_progress_flag, progress_line
 from daemon.cli.run_cmd import report
 
 if TYPE_CHECKING:
-    from tuning.workspace_analysis import Analysis, PoseAnalysis, PredictedMode, Progress
+    from tuning.workspace_analysis import Analysis, PoseAnalysis, PredictedMode
 
 PLOTS = ("modal_masses.png", "modes_vs_mass.png", "robot-3d.png", "workspace.png")
 
@@ -59,9 +60,9 @@ def add_parser(subparsers: Any) -> None:
     p.add_argument(
         "--shrink", type=_fraction, default=0.5, help="grid box: fraction of the anchors' box"
     )
-    p.add_argument("--json", action="store_true", help="print one JSON object")
+    add_json_flag(p)
     p.add_argument("--plot", metavar="DIR", help="write PNG plots into DIR")
-    p.add_argument("--progress", action="store_true", help="progress bar even if not a TTY")
+    add_progress_flag(p)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -71,12 +72,12 @@ def run(args: argparse.Namespace) -> int:
     try:
         robot, spec, force_lag = load_config(args.config)
     except ConfigError as exc:
-        report(exc)
+        report(exc, args.json)
         return 1
-    show = args.progress or sys.stderr.isatty()
-    analysis = analyse(
-        robot, spec, args.grid, args.shrink, progress=_bar() if show else None, force_lag=force_lag
-    )
+    with progress_line("grid", args.progress) as line:
+        analysis = analyse(
+            robot, spec, args.grid, args.shrink, progress=line.count, force_lag=force_lag
+        )
     try:
         plots = (
             write_plots(analysis, Path(args.plot), robot, spec, args.config) if args.plot else []
@@ -84,10 +85,11 @@ def run(args: argparse.Namespace) -> int:
     except OSError as exc:
         print(f"error: cannot write plots to {args.plot}: {exc.strerror or exc}", file=sys.stderr)
         return 1
-    if args.json:
-        print(json.dumps(to_json(analysis, args.config, args.shrink, plots)))
-    else:
-        print_text(analysis, plots, sys.stdout)
+    print_result(
+        to_json(analysis, args.config, args.shrink, plots),
+        args.json,
+        lambda: print_text(analysis, plots, sys.stdout),
+    )
     return 0
 
 
@@ -219,19 +221,6 @@ def _yes(flag: bool) -> str:
     return "yes" if flag else "NO"
 
 
-def _bar(width: int = 30) -> Progress:
-    """A one-line progress bar on stderr: (done, total) -> redraw."""
-
-    def show(done: int, total: int) -> None:
-        filled = width * done // total
-        sys.stderr.write(f"\rgrid [{'#' * filled}{'.' * (width - filled)}] {done}/{total}")
-        if done == total:
-            sys.stderr.write("\n")
-        sys.stderr.flush()
-
-    return show
-
-
 # -- JSON ---------------------------------------------------------------------------
 
 
@@ -241,7 +230,7 @@ def to_json(a: Analysis, config: str, shrink: float, plots: list[str]) -> dict[s
     gains = None if spec.state_space is not None else (spec.pid or DEFAULT_PID).model_dump()
     modes = [m for p in grid.feasible for m in p.modes]
     settle = [m.settling_time for m in modes]
-    return _clean(
+    return plain(
         {
             "robot": a.robot,
             "config": str(config),
@@ -321,21 +310,6 @@ def _mode_json(m: PredictedMode, poles: bool) -> dict[str, Any]:
     if poles:
         out["poles"] = [[float(s.real), float(s.imag)] for s in m.poles]
     return out
-
-
-def _clean(value: Any) -> Any:
-    """numpy scalars to Python, non-finite floats to None, recursively."""
-    if isinstance(value, dict):
-        return {k: _clean(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_clean(v) for v in value]
-    if isinstance(value, np.bool_ | bool):
-        return bool(value)
-    if isinstance(value, np.integer | int):
-        return int(value)
-    if isinstance(value, np.floating | float):
-        return float(value) if math.isfinite(value) else None
-    return value
 
 
 # -- plots --------------------------------------------------------------------------

@@ -71,7 +71,10 @@ import yaml
 
 from cdpr import ConfigError, Pose, Robot, liediff
 from daemon.cli.exit_codes import EXIT_FAILED, EXIT_OK, EXIT_UNREACHABLE, EXIT_USAGE
+from daemon.cli.output import add_json_flag, print_error, print_result
+from daemon.cli.progress import ProgressLine, add_progress_flag, progress_line
 from daemon.cli.run_cmd import load_checked
+from daemon.cli.run_cmd import report as report_config
 from tuning.calibration import AnchorDistance
 
 if TYPE_CHECKING:
@@ -129,7 +132,8 @@ def add_parser(subparsers: Any) -> None:
         help="continue the round a brake interrupted (its poses kept on disk)",
     )  # fmt: skip
     p.add_argument("--output", help="the corrected robot file (default: beside the old one)")
-    p.add_argument("--json", action="store_true", help="print the report as one JSON object")
+    add_json_flag(p)
+    add_progress_flag(p)
     p.add_argument("--prefix", help="key prefix of the daemon (default: the only one)")
     p.add_argument(
         "--connect",
@@ -159,6 +163,10 @@ def _anchor_distance(text: str) -> AnchorDistance:
 
 def _say(text: str) -> None:
     print(text, file=sys.stderr, flush=True)
+
+
+def _usage(reason: str, as_json: bool) -> None:
+    print_error("usage", reason, as_json, prefix="usage error")
 
 
 def _scale_cost(robot: Robot) -> str:
@@ -205,28 +213,26 @@ def run(args: argparse.Namespace) -> int:
     try:
         config = load_checked(args.config)
     except ConfigError as exc:
-        print(f"error: {exc}", file=sys.stderr)
+        report_config(exc, args.json)
         return EXIT_USAGE
     if args.poses < MIN_POSES and args.from_recording is None:
-        print(f"usage error: --poses: at least {MIN_POSES}", file=sys.stderr)
+        _usage(f"--poses: at least {MIN_POSES}", args.json)
         return EXIT_USAGE
     average = args.dwell / 2 if args.average is None else args.average
     if not 0.0 < average <= args.dwell:
-        print(f"usage error: --average: more than 0 s, at most --dwell ({args.dwell:g} s)",
-              file=sys.stderr)  # fmt: skip
+        _usage(f"--average: more than 0 s, at most --dwell ({args.dwell:g} s)", args.json)
         return EXIT_USAGE
     args.average = average
     problem = _scale_problem(config.robot, args)
     if problem is not None:
-        print(f"usage error: {problem}", file=sys.stderr)
+        _usage(problem, args.json)
         return EXIT_USAGE
     if args.resume and args.from_recording is not None:
-        print("usage error: --resume continues a flown round, not --from-recording",
-              file=sys.stderr)  # fmt: skip
+        _usage("--resume continues a flown round, not --from-recording", args.json)
         return EXIT_USAGE
     output = _output_path(config, args.output)
     if output.exists():
-        print(f"error: {output} exists: not overwritten (give another --output)", file=sys.stderr)
+        print_error("usage", f"{output} exists: not overwritten (give another --output)", args.json)
         return EXIT_USAGE
     from daemon.interface.client import RequestError, UnreachableError
 
@@ -234,19 +240,19 @@ def run(args: argparse.Namespace) -> int:
     try:
         if args.from_recording is not None:
             offsets, samples = _from_recording(config, Path(args.from_recording))
-            calibration = _solve(config.robot, offsets, samples)
+            calibration = _solve(config.robot, offsets, samples, args.progress)
             planned = len(samples)
         else:
             calibration, planned = _fly_and_solve(config, args)
         calibration, scale = _scaled(config.robot, calibration, args.scale_distance)
     except UnreachableError as exc:
-        print(f"error: no daemon reachable: {exc}", file=sys.stderr)
+        print_error("unreachable", f"no daemon reachable: {exc}", args.json)
         return EXIT_UNREACHABLE
     except RequestError as exc:
-        print(f"error: {_refused(exc)}", file=sys.stderr)
+        print_error(exc.code, _refused(exc), args.json)
         return EXIT_FAILED
     except CalibrationError as exc:
-        print(f"error: {exc}", file=sys.stderr)
+        print_error("failed", str(exc), args.json)
         return EXIT_FAILED
     seconds = time.perf_counter() - started
     from tuning.calibration import corrected_robot
@@ -262,10 +268,7 @@ def run(args: argparse.Namespace) -> int:
         "offsets_stored": stored,
         "seconds": seconds,
     }
-    if args.json:
-        print(json.dumps(report))
-    else:
-        _print_report(report, calibration)
+    print_result(report, args.json, lambda: _print_report(report, calibration))
     return EXIT_OK
 
 
@@ -278,12 +281,16 @@ def _output_path(config: DaemonConfig, given: str | None) -> Path:
     return source.with_name(f"{source.stem}.calibrated-{stamp}.yaml")
 
 
-def _solve(robot: Robot, offsets: np.ndarray, samples: list[Sample]) -> Calibration:
+def _solve(robot: Robot, offsets: np.ndarray, samples: list[Sample], progress: bool) -> Calibration:
+    """The fit of `samples`, its progress on the live line (`progress`: --progress)."""
     from tuning.calibration import identify
 
     _say(f"solving: {len(samples)} poses")
     try:
-        calibration = identify(robot, offsets, samples, progress=_say)
+        with progress_line("calibrate", progress) as line:
+            calibration = identify(
+                robot, offsets, samples, progress=lambda text: line.update(phase=text)
+            )
     except ValueError as exc:
         raise CalibrationError(f"calibration failed: {exc}") from None
     if not calibration.converged:
@@ -336,7 +343,8 @@ def _fly_and_solve(config: DaemonConfig, args: argparse.Namespace) -> tuple[Cali
     calibration_round = _fly(config, args, path)
     samples = calibration_round.samples()
     try:
-        calibration = _solve(config.robot, np.array(calibration_round.offsets), samples)
+        offsets = np.array(calibration_round.offsets)
+        calibration = _solve(config.robot, offsets, samples, args.progress)
     finally:
         path.unlink(missing_ok=True)
     return calibration, len(calibration_round.planned)
@@ -423,8 +431,8 @@ def _fly(config: DaemonConfig, args: argparse.Namespace, path: Path) -> Calibrat
         else:
             calibration_round = kept
         try:
-            with _file_model(client, robot):
-                _record_poses(client, calibration_round, path, args.dwell, args.average)
+            with _file_model(client, robot), progress_line("calibrate", args.progress) as line:
+                _record_poses(client, calibration_round, path, args.dwell, args.average, line)
         except (RequestError, CalibrationError) as exc:
             why = _refused(exc) if isinstance(exc, RequestError) else str(exc)
             raise CalibrationError(f"{why}\n{_kept_note(robot, calibration_round, path)}") from None
@@ -584,13 +592,15 @@ def _record_poses(
     path: Path,
     dwell: float,
     average: float,
+    line: ProgressLine,
 ) -> None:
     """Move slowly to each pose of the round not yet flown (a rest-to-rest trajectory at
     SPEED, not a goto at the trajectory limits: the model is not calibrated yet), wait,
     average the state over the dither loop there (the module docstring), and keep it in
     the round and in `path`; a pose the daemon refuses to go to (the way leaves the
     wrench set, say) is skipped.  The daemon braking ends the flight at once, a
-    CalibrationError naming the brake's trigger and message."""
+    CalibrationError naming the brake's trigger and message.  `line` shows the poses
+    recorded of the round's."""
     from cdpr.trajectory import Trajectory, Waypoint
     from daemon.interface.client import RequestError
     from tuning.calibration import Sample
@@ -601,6 +611,13 @@ def _record_poses(
     braked = threading.Event()
     lock = threading.Lock()
     total = len(calibration_round.planned)
+    flying = ["flying"]  # the phase shown, as the flight goes on
+    before = len(calibration_round.recorded) + len(calibration_round.skipped)
+    left = total - before  # the poses this command flies (--resume: the rest)
+
+    def shown() -> None:
+        done = len(calibration_round.recorded) + len(calibration_round.skipped) - before
+        line.update(done / left, flying[0])
 
     def on_state(state: dict[str, Any]) -> None:
         if state.get("state") == "braked":
@@ -612,6 +629,7 @@ def _record_poses(
             with lock:
                 latest[:] = [Pose(state["pose"]["position"], (q["w"], q["x"], q["y"], q["z"]))]
                 rows.append((time.monotonic(), state["lengths"], state["forces"]))
+        shown()
 
     def brake(k: int, fault: dict[str, Any] | None) -> CalibrationError:
         why = "(no fault given)" if not fault else f"on {fault['trigger']}: {fault['message']}"
@@ -634,6 +652,7 @@ def _record_poses(
         here = _wait_for_pose(latest, lock)
         for k in calibration_round.remaining():
             target = calibration_round.planned[k]
+            flying[0] = f"pose {k + 1} of {total}"
             error = liediff(here, target)
             distance = max(float(np.linalg.norm(error[:3])), float(np.linalg.norm(error[3:])))
             move = max(MOVE_MIN, distance / SPEED)
@@ -645,7 +664,7 @@ def _record_poses(
                     raise
                 calibration_round.skipped[k] = exc.reason
                 _keep(path, calibration_round)
-                _say(f"flying: pose {k + 1} of {total} refused, skipped: {exc.reason}")
+                line.note(f"flying: pose {k + 1} of {total} refused, skipped: {exc.reason}")
                 continue
             wait(float(reply["result"].get("duration", move)) + dwell - average, k)
             here = target
@@ -667,7 +686,7 @@ def _record_poses(
                 np.mean([r[1] for r in recent], axis=0), np.mean([r[2] for r in recent], axis=0)
             )
             _keep(path, calibration_round)
-            _say(f"flying: pose {k + 1} of {total} recorded")
+            line.note(f"flying: pose {k + 1} of {total} recorded")
     except RequestError as exc:
         raise braked_now(k) or exc from None
     finally:

@@ -81,6 +81,21 @@ class GainCheck(NamedTuple):
             "safety.feedback_deadline)"
         )
 
+    def figures(self) -> dict[str, object]:
+        """check-config --json's figures of summary() (the same check, as numbers)."""
+        pid = None if self.spec.state_space is not None else self.spec.pid or DEFAULT_PID
+        return {
+            "law": "pid" if pid is not None else "state_space",
+            "pid": None if pid is None else pid.model_dump(),
+            "m0": self.m0,
+            "largest_stable_mass": self.largest_stable_mass,
+            "stable_to_sweep_end": self.stable_to_sweep_end,
+            "largest_modal_mass_at_home": float(np.max(self.masses)),
+            "latency_tolerance_s": self.latency.seconds,
+            "latency_scan_end": self.latency.limiting_mass is None,
+            "deadline_s": self.deadline,
+        }
+
     def problem(self) -> str:
         """What makes the loop unstable, naming the mode, rate and gains ('' if nothing)."""
         setting = (

@@ -19,7 +19,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import sys
 import time
 from pathlib import Path as FilePath
 from typing import Any
@@ -31,6 +30,7 @@ from cdpr.path import Path
 from cdpr.trajectory import Trajectory, TrajectoryError
 from daemon.cli.exit_codes import EXIT_FAILED, EXIT_OK, EXIT_USAGE
 from daemon.cli.input_files import UsageError, read_path
+from daemon.cli.output import add_json_flag, print_error, print_result
 from daemon.cli.run_cmd import report
 from daemon.config import DaemonConfig, load_config
 from daemon.service.planner import path_timer, validate_as_the_daemon
@@ -46,7 +46,7 @@ def add_parser(subparsers: Any) -> None:
     p.add_argument("--blend", type=float, default=0.0, help="G-code: corner blend radius, m")
     p.add_argument("--margin", type=float, help="tension margin, N (default: workspace.margin)")
     p.add_argument("--output", help="save the timed trajectory here (JSON, for cdprd send)")
-    p.add_argument("--json", action="store_true", help="print the result as one JSON object")
+    add_json_flag(p)
     p.set_defaults(handler=run)
 
 
@@ -58,16 +58,16 @@ def run(args: argparse.Namespace) -> int:
         if not (math.isfinite(margin) and margin >= 0.0):
             raise UsageError(f"--margin: {margin:g} must be a number >= 0")
     except ConfigError as exc:
-        report(exc)
+        report(exc, args.json)
         return EXIT_USAGE
     except (UsageError, TrajectoryError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
+        print_error("usage", str(exc), args.json)
         return EXIT_USAGE
     began = time.perf_counter()
     try:
         trajectory = path_timer(config, margin)(path)
     except TrajectoryError as exc:
-        print(f"cannot time {args.file}: {exc}", file=sys.stderr)
+        print_error("rejected", str(exc), args.json, prefix=f"cannot time {args.file}")
         return EXIT_FAILED
     seconds = time.perf_counter() - began
     refusal = _refusal(trajectory, config)
@@ -76,10 +76,7 @@ def run(args: argparse.Namespace) -> int:
         FilePath(args.output).write_text(json.dumps(trajectory.as_dict()))
         saved = args.output
     summary = _summary(path, trajectory, seconds, refusal, saved)
-    if args.json:
-        print(json.dumps(summary))
-    else:
-        print(_text(args.file, summary))
+    print_result(summary, args.json, lambda: print(_text(args.file, summary)))
     return EXIT_OK if refusal is None else EXIT_FAILED
 
 

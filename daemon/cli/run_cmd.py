@@ -11,6 +11,7 @@ from typing import Any
 
 from cdpr import ConfigError
 from daemon.cli.gain_check import GainCheck, stable_gains
+from daemon.cli.output import print_error
 from daemon.config import DaemonConfig, load_config
 from daemon.process.app import close_bus, open_bus, serve
 from daemon.process.logsetup import configure_logging
@@ -91,9 +92,16 @@ def interface_edit(args: argparse.Namespace) -> Callable[[dict[str, Any]], None]
     return edit
 
 
-def report(exc: ConfigError) -> None:
-    """Print a config problem on stderr, each line as `error: FILE: KEY: problem`."""
-    for line in str(exc).splitlines():
+def report(exc: ConfigError, as_json: bool = False) -> None:
+    """Print a config problem on stderr, each line as `error: FILE: KEY: problem`; with
+    `as_json` as an error object on stdout (code "invalid_config", each line in
+    "problems")."""
+    problems = str(exc).strip().splitlines()
+    if as_json:
+        reason = "; ".join(problems)
+        print_error("invalid_config", reason, as_json, {"problems": problems})
+        return
+    for line in problems:
         print(f"error: {line}", file=sys.stderr)
 
 

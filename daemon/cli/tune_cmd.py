@@ -47,7 +47,6 @@ from __future__ import annotations
 import argparse
 import asyncio
 import dataclasses
-import json
 import sys
 from collections.abc import Callable, Mapping
 from pathlib import Path
@@ -56,8 +55,8 @@ from typing import TYPE_CHECKING, Any
 import yaml
 
 from cdpr import ConfigError
-from daemon.cli.analyze_cmd import _clean
 from daemon.cli.exit_codes import EXIT_ABORTED, EXIT_OK
+from daemon.cli.output import add_json_flag, print_result
 from daemon.cli.run_cmd import load_checked, report
 from daemon.config import DaemonConfig
 from daemon.process.app import close_bus, open_bus
@@ -92,7 +91,7 @@ def add_parser(subparsers: Any) -> None:
     p.add_argument("--amplitude", type=float, default=20.0, help="largest |f_c - hold|, N")
     p.add_argument("--duration", type=float, default=20.0, help="excitation time, s")
     p.add_argument("--travel", type=float, default=0.1, help="largest length excursion, m")
-    p.add_argument("--json", action="store_true", help="print one JSON object")
+    add_json_flag(p)
     p.add_argument("--plot", metavar="PNG", help="write the data, fit and gain check to PNG")
     p.add_argument(
         "--check-loads",
@@ -127,7 +126,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         config = load_checked(args.config, _rig_edit(request) if args.sim else None)
     except ConfigError as exc:
-        report(exc)
+        report(exc, args.json)
         return 1
     robot, rate = config.robot, config.controller.rate_hz
     try:
@@ -138,7 +137,7 @@ def run(args: argparse.Namespace) -> int:
     except (ValueError, ConfigError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
-    say = _progress(args.json)
+    say = _say
     where = "simulated time" if args.lockstep else ("in-process simulator" if args.sim else "bus")
     say(
         f"tune: cable {args.drive} ({config.drives.protocol} node "
@@ -151,7 +150,7 @@ def run(args: argparse.Namespace) -> int:
         say(f"ABORTED and braked: {result.abort}")
         if args.json:
             abort = {"drive": args.drive, "abort": result.abort.kind, "reason": str(result.abort)}
-            print(json.dumps(abort))
+            print_result(abort, as_json=True)
         return EXIT_ABORTED
     model = result.model
     assert model is not None
@@ -190,10 +189,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"error: cannot write {args.plot}: {exc.strerror or exc}", file=sys.stderr)
             return 1
         out["plot"] = args.plot
-    if args.json:
-        print(json.dumps(_clean(out)))
-    else:
-        _print(out)
+    print_result(out, args.json, lambda: _print(out))
     return EXIT_ABORTED if aborted else EXIT_OK
 
 
@@ -425,10 +421,6 @@ def _load(request: Request) -> str:
     return f"{request.load_mass:g} kg hanging" if request.load_mass else "none (free drum)"
 
 
-def _progress(quiet: bool) -> Callable[[str], None]:
-    """Progress lines: on stdout, or on stderr when stdout carries the JSON."""
-
-    def say(line: str) -> None:
-        print(line, file=sys.stderr if quiet else sys.stdout, flush=True)
-
-    return say
+def _say(line: str) -> None:
+    """A line of what the command does, on stderr: stdout carries the result alone."""
+    print(line, file=sys.stderr, flush=True)

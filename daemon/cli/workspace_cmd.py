@@ -19,7 +19,6 @@ or null).
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 from pathlib import Path
@@ -31,6 +30,7 @@ from cdpr import ConfigError, Robot
 from cdpr.body import Environment
 from cdpr.description import load_yaml
 from cdpr.workspace_map import WorkspaceMap
+from daemon.cli.output import add_json_flag, print_result
 from daemon.cli.run_cmd import report
 from daemon.config import DaemonConfig, SafetyConfig, load_config, workspace_box
 from daemon.config.workspace_config import WorkspaceConfig
@@ -55,16 +55,16 @@ def add_parser(subparsers: Any) -> None:
     p.add_argument("--output", help="where to save the map (default: from the config)")
     p.add_argument("--png", help="draw slices at home into this PNG")
     p.add_argument("--mcap", help="write the boundary as a Foxglove scene into this MCAP")
-    p.add_argument("--json", action="store_true", help="print the summary as one JSON object")
+    add_json_flag(p)
 
 
 COARSE_STEP = 0.1  # m: the grid check-config computes when no fresh map is saved
 
 
-def summary_line(config: DaemonConfig) -> str:
-    """check-config's line on the workspace: the saved map's volume at home and at every
-    orientation (and its fraction of the box) and its worst margin, else those of a
-    coarse grid computed now (and why the map was not used)."""
+def summary(config: DaemonConfig) -> tuple[dict[str, Any], str]:
+    """check-config's figures of the workspace and its line: the saved map's volume at
+    home and at every orientation (and its fraction of the box) and its worst margin,
+    else those of a coarse grid computed now (and why the map was not used)."""
     from tuning.workspace_map import compute_map
 
     section = config.workspace
@@ -78,13 +78,22 @@ def summary_line(config: DaemonConfig) -> str:
         workspace = compute_map(config.robot, lower, upper, config.environment, settings)
         grid = f"{settings.step * 100:g} cm"
         source = f"{source}; computed on a {grid} grid (`cdprd workspace` saves the map)"
-    summary = workspace.summary()
-    home = summary["volume_per_orientation_m3"][0]
-    every, fraction = summary["volume_m3"], summary["fraction"]
-    worst = summary["worst_margin_n"]
+    found = workspace.summary()
+    home = found["volume_per_orientation_m3"][0]
+    every, fraction = found["volume_m3"], found["fraction"]
+    worst = found["worst_margin_n"]
     margin = "none inside" if worst is None else f"worst margin {worst:.1f} N"
     volumes = f"{home:.3g} m^3 at home, {every:.3g} m^3 ({fraction:.0%} of the box) at every tilt"
-    return f"workspace: {rules}; {volumes}, {margin} ({source})"
+    figures = {
+        "margin_n": section.margin,
+        "interference": section.interference,
+        "volume_at_home_m3": home,
+        "volume_m3": every,
+        "fraction": fraction,
+        "worst_margin_n": worst,
+        "source": source,
+    }
+    return figures, f"workspace: {rules}; {volumes}, {margin} ({source})"
 
 
 def coarse_map(path: str, step: float = COARSE_STEP) -> WorkspaceMap:
@@ -111,7 +120,7 @@ def run(args: argparse.Namespace) -> int:
             interference=args.interference,
         )
     except ConfigError as exc:
-        report(exc)
+        report(exc, args.json)
         return 1
     workspace = compute_map(robot, lower, upper, environment, settings)
     summary = workspace.summary()
@@ -122,16 +131,17 @@ def run(args: argparse.Namespace) -> int:
         plot_slices(workspace, args.png, f"{robot.name}: capacity margin at home")
     if args.mcap:
         _write_mcap(workspace, robot, args.mcap, lower, upper, environment)
-    if args.json:
-        out = {
-            **summary,
-            "settings": vars(settings),
-            "fingerprint": workspace.fingerprint,
-            "saved": saved,
-        }
-        print(json.dumps(out))
-    else:
-        print(describe(robot.name, workspace.quaternions, summary, settings, saved))
+    out = {
+        **summary,
+        "settings": vars(settings),
+        "fingerprint": workspace.fingerprint,
+        "saved": saved,
+    }
+    print_result(
+        out,
+        args.json,
+        lambda: print(describe(robot.name, workspace.quaternions, summary, settings, saved)),
+    )
     return 0
 
 

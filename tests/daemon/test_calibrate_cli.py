@@ -64,7 +64,7 @@ def test_home_then_calibrate_with_too_few_poses_names_what_is_unidentifiable(
         with connect(port, daemon) as client:  # closed on a failure too
             wait_status(client, "idle", 30.0)
             connection = ("--connect", f"tcp/127.0.0.1:{port}")
-            homed = cdprd("home", *connection)
+            homed = cdprd("home", *connection, "--json")
             assert homed.returncode == 0, homed.stderr
             result = json.loads(homed.stdout)
             assert result["method"] == "home at pose home" and len(result["offsets"]) == 8
@@ -155,7 +155,9 @@ def test_the_observer_is_held_out_of_the_loop_through_zenoh(tmp_path: Path) -> N
             assert all(s["external_wrench"] == [0.0] * 6 for s in held), held[-1]["external_wrench"]
             assert all(s["state"] == "hold" for s in held), held[-1]["fault"]
             assert client.observer() == {"held": True, "estimate": [0.0] * 6}
-            released = cdprd("observer", "--release", "--connect", f"tcp/127.0.0.1:{port}")
+            released = cdprd(
+                "observer", "--release", "--json", "--connect", f"tcp/127.0.0.1:{port}"
+            )
             assert released.returncode == 0 and json.loads(released.stdout)["held"] is False
             _until(lambda: last()["observer_held"] is False, 5.0, "let back in")
             _until(lambda: last()["external_wrench"][0] > 25.0, 20.0, "the push taken in again")

@@ -78,7 +78,7 @@ def test_identify_payload_from_the_command_line(tmp_path: Path) -> None:
 
 def _cdprd(port: int, *command: str) -> dict:
     """What `cdprd COMMAND` prints, run against the daemon on zenoh `port`."""
-    cli = _run(port, *command)
+    cli = _run(port, *command, "--json")
     assert cli.returncode == 0, cli.stderr
     return json.loads(cli.stdout)
 

@@ -250,7 +250,7 @@ def test_cdprd_pretension_through_the_cli_against_a_daemon_process(tmp_path: Pat
     try:
         with connect(port, daemon) as client:  # closed on a failure too
             wait_status(client, "braked", 30.0)
-            done = cdprd("pretension", "--connect", f"tcp/127.0.0.1:{port}")
+            done = cdprd("pretension", "--connect", f"tcp/127.0.0.1:{port}", "--json")
             assert done.returncode == 0, done.stderr
             result = json.loads(done.stdout)
             assert result["state"] == "hold" and result["pretension"]["fault"] is None

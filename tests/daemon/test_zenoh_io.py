@@ -959,7 +959,7 @@ def test_cli_exit_codes_against_a_stand_in_daemon(
     running: Running, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     handler = running.handler
-    assert cli(running, "status", "--prefix", PREFIX) == 0
+    assert cli(running, "status", "--prefix", PREFIX, "--json") == 0
     assert json.loads(capsys.readouterr().out)["state"] == "IDLE"
     assert cli(running, "status") == 0  # the only daemon alive: found without --prefix
     assert cli(running, "enable") == 1
@@ -989,7 +989,7 @@ def test_cli_exit_codes_against_a_stand_in_daemon(
         "  - {t: 3, position: [0, 0, 1.30], quaternion: {w: 1, x: 0, y: 0, z: 0}}\n"
     )
     capsys.readouterr()
-    assert cli(running, "send", str(good), "--id", "cli-1") == 0
+    assert cli(running, "send", str(good), "--id", "cli-1", "--json") == 0
     out = json.loads(capsys.readouterr().out)
     assert out["id"] == "cli-1" and out["result"] == {"duration": 3.0}
     backwards = tmp_path / "backwards.json"
@@ -1239,7 +1239,7 @@ def test_several_daemons_behind_a_router_with_access_control(
             check_access(certificates, endpoint, f"cdpr/{name}", served.handler)
         planner = tmp_path / "planner.yaml"
         planner.write_text(yaml.safe_dump(tls(certificates, "planner")))
-        argv = ["status", "--prefix", "cdpr/b", "--connect", endpoint, "--timeout", "5"]
+        argv = ["status", "--prefix", "cdpr/b", "--connect", endpoint, "--timeout", "5", "--json"]
         assert main([*argv, "--zenoh-config", str(planner)]) == 0
         assert json.loads(capsys.readouterr().out)["state"] == "IDLE"
     finally:

@@ -131,7 +131,7 @@ def test_cdprd_send_path_and_gcode(
     its line and --gcode without a config is refused, both before any network."""
     path_file = tmp_path / "corner.json"
     path_file.write_text(json.dumps({"poses": CORNER["poses"]}))
-    assert cli(timing, "send", str(path_file), "--path", "--id", "c-1") == 0
+    assert cli(timing, "send", str(path_file), "--path", "--id", "c-1", "--json") == 0
     assert json.loads(capsys.readouterr().out)["id"] == "c-1"
     program = tmp_path / "square.gcode"
     program.write_text("G21 G90\nG1 X100 F6000\nG1 Y100\nG4 P200\nG1 X0\n")

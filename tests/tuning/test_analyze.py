@@ -219,7 +219,9 @@ def test_progress_goes_to_stderr_only_when_asked(capsys: pytest.CaptureFixture[s
     code, out, err = analyze(capsys, "--config", REFERENCE8, "--grid", "2", "--json", "--progress")
     assert code == 0
     assert json.loads(out)["grid"]["total"] == 8  # stdout stays one clean JSON object
-    assert err.startswith("\rgrid [") and err.endswith("] 8/8\n")
+    last = err.rsplit("\r", 1)[1]  # the line redrawn in place (daemon.cli.progress)
+    assert err.startswith("\rgrid  [") and last.startswith("grid  [") and last.endswith("\n")
+    assert "] 100%  8/8  " in last
 
 
 def test_the_modal_basis_diagonalises_n() -> None:
