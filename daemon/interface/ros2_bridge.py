@@ -42,6 +42,7 @@ from collections.abc import Callable
 from typing import Any
 
 import zenoh
+import zenoh.ext as ze
 
 from cdpr.path import Path
 from cdpr.trajectory import SCHEMA_VERSION, Trajectory, TrajectoryLimits
@@ -99,6 +100,9 @@ SERVICES = {  # setting naming the service -> its type, the command it runs, the
     "payload_freeze_service": (wire.SET_BOOL, "payload", "frozen"),
 }
 ROUTER_RETRY = 2.0  # s between attempts to reach the ROS 2 router
+# s: a transient-local publisher's sporadic heartbeat, rmw_zenoh_cpp's
+# SAMPLE_MISS_DETECTION_HEARTBEAT_PERIOD (500 ms)
+HEARTBEAT = 0.5
 Service = tuple[str, str, str, str | None]  # its name, type, command, argument
 Received = tuple[str, str, bytes, bytes | None]  # topic, type, payload, attachment
 
@@ -141,17 +145,42 @@ def ingress_limits(settings: Ros2Settings, zenoh_settings: ZenohSettings) -> dic
 
 
 class _Publisher:
-    """One ROS 2 publisher: its zenoh publisher, GID and sequence numbers."""
+    """One ROS 2 publisher, reliable, keep last `depth`, as rmw_zenoh_cpp declares it
+    (ros2_wire): its zenoh publisher, liveliness token (with the QoS), GID and sequence
+    numbers.  Volatile by default; `transient_local`: an AdvancedPublisher whose cache
+    keeps the last `depth` samples for late-joining transient-local subscriptions."""
 
-    def __init__(self, session: zenoh.Session, key: str, token: str) -> None:
-        self.token = token
-        self.gid = wire.gid(token)
+    def __init__(
+        self,
+        session: zenoh.Session,
+        node: wire.Node,
+        entity_id: int,
+        topic: str,
+        msgtype: str,
+        depth: int = 10,
+        transient_local: bool = False,
+    ) -> None:
+        qos = wire.qos_keyexpr(depth, transient_local)
+        self.token = node.entity_token(entity_id, wire.PUBLISHER, topic, msgtype, qos)
+        self.gid = wire.gid(self.token)
         self.sequence = 0
-        self.publisher = session.declare_publisher(
-            key,
-            congestion_control=zenoh.CongestionControl.DROP,
-            reliability=zenoh.Reliability.RELIABLE,
-        )
+        key = wire.topic_key(node.domain_id, topic, msgtype)
+        drop, reliable = zenoh.CongestionControl.DROP, zenoh.Reliability.RELIABLE
+        self.publisher: zenoh.Publisher | ze.AdvancedPublisher
+        if transient_local:
+            self.publisher = ze.declare_advanced_publisher(
+                session,
+                key,
+                congestion_control=drop,
+                reliability=reliable,
+                cache=ze.CacheConfig(max_samples=depth),
+                sample_miss_detection=ze.MissDetectionConfig(sporadic_heartbeat=HEARTBEAT),
+                publisher_detection=True,
+            )
+        else:
+            self.publisher = session.declare_publisher(
+                key, congestion_control=drop, reliability=reliable
+            )
 
     def put(self, msg: Any) -> None:
         self.sequence += 1
@@ -232,10 +261,8 @@ class Ros2Bridge:
         for name, msgtype in PUBLISHED.items():
             entity_id += 1
             topic = self.settings.topic(getattr(self.settings, name))
-            token = node.entity_token(entity_id, wire.PUBLISHER, topic, msgtype)
-            key = wire.topic_key(self.settings.domain_id, topic, msgtype)
-            self._publishers[name] = _Publisher(session, key, token)
-            self._entities.append(liveliness.declare_token(token))
+            self._publishers[name] = _Publisher(session, node, entity_id, topic, msgtype)
+            self._entities.append(liveliness.declare_token(self._publishers[name].token))
         for key, (topic, msgtype) in intake_keys(self.settings).items():
             entity_id += 1
             receive = self._receiver(topic, msgtype)
