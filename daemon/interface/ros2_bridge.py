@@ -17,6 +17,10 @@ to the handler like a trajectory from the zenoh interface; its verdict, accepted
 rejected with the reason, goes out on the status topic as JSON text.  Trajectories are
 handled one at a time; at most `queue_depth` wait, more are refused "busy".
 
+Given the robot, RViz's view of it as well (daemon.interface.ros2_model): its URDF on
+robot_description and its fixed frames on /tf_static (transient local, for displays that
+start later), and the cables as markers at `rate_hz`.
+
 The std_srvs/srv/Trigger services enable, hold, brake, reset and disable run those
 commands, the std_srvs/srv/SetBool services hold_observer and freeze_payload the
 observer and payload commands with held / frozen = data, as rmw_zenoh_cpp's service
@@ -44,10 +48,12 @@ from typing import Any
 import zenoh
 import zenoh.ext as ze
 
+from cdpr import Robot
 from cdpr.path import Path
 from cdpr.trajectory import SCHEMA_VERSION, Trajectory, TrajectoryLimits
 from daemon.config.ros2_config import Ros2Settings
 from daemon.config.zenoh_config import ZenohSettings
+from daemon.interface import ros2_model
 from daemon.interface import ros2_wire as wire
 from daemon.interface.messages import (
     EVENT_KEY,
@@ -197,12 +203,14 @@ class Ros2Bridge:
         handler: DaemonHandler,
         interface: ZenohInterface,
         router: zenoh.Config | None = None,
+        robot: Robot | None = None,
     ) -> None:
         """With `interface`'s limits, size cap and parse thread; on its session (whose
         `ingress_limits` must be this bridge's: module function ingress_limits), or on a
         client session of the bridge's own to the ROS 2 graph's router, `router`
         (ros2.router: the router relays between its clients and the graph's peers, where
-        it would not relay between two peers without gossip, which stays off here)."""
+        it would not relay between two peers without gossip, which stays off here).
+        With `robot`, RViz's view of it too (daemon.interface.ros2_model)."""
         self.settings = settings
         self.limits: TrajectoryLimits = interface.limits
         self.max_message_bytes = settings.max_message_bytes or interface.settings.max_message_bytes
@@ -217,6 +225,7 @@ class Ros2Bridge:
         self._pending: set[tuple[bytes, int]] = set()  # requests taken, not yet answered
         self._pending_lock = threading.Lock()
         self._router = router
+        self._model = None if robot is None else ros2_model.RobotModel(robot, settings)
         self.node: wire.Node | None = None  # once declared
 
     async def start(self) -> None:
@@ -276,6 +285,15 @@ class Ros2Bridge:
             service, srvtype = served[:2]
             token = node.entity_token(entity_id, wire.SERVICE_SERVER, service, srvtype)
             self._entities.append(liveliness.declare_token(token))
+        if self._model is not None:
+            for name, (msgtype, depth, latched) in ros2_model.TOPICS.items():
+                entity_id += 1
+                topic = settings.topic(getattr(settings, name))
+                publisher = _Publisher(session, node, entity_id, topic, msgtype, depth, latched)
+                self._publishers[name] = publisher
+                self._entities.append(liveliness.declare_token(publisher.token))
+            for name, msg in self._model.latched(time.time_ns()).items():
+                self._publishers[name].put(msg)
         self._tasks += [
             self._loop.create_task(self._publish_states()),
             self._loop.create_task(self._take_trajectories()),
@@ -312,7 +330,10 @@ class Ros2Bridge:
             await asyncio.sleep(due - self._loop.time())
             await self._handler.slack()
             try:
-                messages = state_messages(self._handler.state(), self.settings, time.time_ns())
+                state, ns = self._handler.state(), time.time_ns()
+                messages = state_messages(state, self.settings, ns)
+                if self._model is not None:
+                    messages["cables_topic"] = self._model.cables(state, ns)
                 for name, msg in messages.items():
                     self._publishers[name].put(msg)
             except Exception:
