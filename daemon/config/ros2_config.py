@@ -36,7 +36,7 @@ class Ros2Settings(StrictModel):
     namespace: str = Field("/", pattern=_NAMESPACE, max_length=200)
     """The node's namespace ("/" or "/a/b"); a topic name without a leading "/" is under it."""
     rate_hz: PositiveFloat = Field(30.0, le=1000.0)
-    """Publication rate of the pose, joint, tf and diagnostic topics."""
+    """Publication rate of the pose, joint, tf, diagnostic and cable marker topics."""
     world_frame: str = Field("world", pattern=rf"^{_NAME}$")
     """The frame of every pose sent and the frame_id an incoming trajectory must name
     (or leave empty)."""
@@ -60,6 +60,17 @@ class Ros2Settings(StrictModel):
     """nav_msgs/msg/Path in: a trajectory to fly."""
     multi_dof_trajectory_topic: str = Field("multi_dof_trajectory", pattern=_TOPIC)
     """trajectory_msgs/msg/MultiDOFJointTrajectory in: a trajectory to fly."""
+    robot_description_topic: str = Field("robot_description", pattern=_TOPIC)
+    """std_msgs/msg/String out, transient local (keep last 1, as robot_state_publisher's):
+    the robot file as a URDF, for RViz's RobotModel display."""
+    tf_static_topic: str = Field("/tf_static", pattern=_TOPIC)
+    """tf2_msgs/msg/TFMessage out, transient local (keep last 1, as tf2's static
+    broadcaster's): world_frame -> anchor<k> at each cable's anchor and platform_frame ->
+    attachment<k> at each attachment point."""
+    cables_topic: str = Field("cables", pattern=_TOPIC)
+    """visualization_msgs/msg/MarkerArray out at rate_hz: each cable a line from its
+    anchor to its attachment point at the measured pose, coloured by tension; deleted
+    while there is no pose."""
     status_topic: str = Field("trajectory_status", pattern=_TOPIC)
     """std_msgs/msg/String: the verdict on each trajectory received (JSON text)."""
     enable_service: str = Field("enable", pattern=_TOPIC)

@@ -17,6 +17,10 @@ to the handler like a trajectory from the zenoh interface; its verdict, accepted
 rejected with the reason, goes out on the status topic as JSON text.  Trajectories are
 handled one at a time; at most `queue_depth` wait, more are refused "busy".
 
+Given the robot, RViz's view of it as well (daemon.interface.ros2_model): its URDF on
+robot_description and its fixed frames on /tf_static (transient local, for displays that
+start later), and the cables as markers at `rate_hz`.
+
 The std_srvs/srv/Trigger services enable, hold, brake, reset and disable run those
 commands, the std_srvs/srv/SetBool services hold_observer and freeze_payload the
 observer and payload commands with held / frozen = data, as rmw_zenoh_cpp's service
@@ -42,11 +46,14 @@ from collections.abc import Callable
 from typing import Any
 
 import zenoh
+import zenoh.ext as ze
 
+from cdpr import Robot
 from cdpr.path import Path
 from cdpr.trajectory import SCHEMA_VERSION, Trajectory, TrajectoryLimits
 from daemon.config.ros2_config import Ros2Settings
 from daemon.config.zenoh_config import ZenohSettings
+from daemon.interface import ros2_model
 from daemon.interface import ros2_wire as wire
 from daemon.interface.messages import (
     EVENT_KEY,
@@ -99,6 +106,9 @@ SERVICES = {  # setting naming the service -> its type, the command it runs, the
     "payload_freeze_service": (wire.SET_BOOL, "payload", "frozen"),
 }
 ROUTER_RETRY = 2.0  # s between attempts to reach the ROS 2 router
+# s: a transient-local publisher's sporadic heartbeat, rmw_zenoh_cpp's
+# SAMPLE_MISS_DETECTION_HEARTBEAT_PERIOD (500 ms)
+HEARTBEAT = 0.5
 Service = tuple[str, str, str, str | None]  # its name, type, command, argument
 Received = tuple[str, str, bytes, bytes | None]  # topic, type, payload, attachment
 
@@ -141,17 +151,42 @@ def ingress_limits(settings: Ros2Settings, zenoh_settings: ZenohSettings) -> dic
 
 
 class _Publisher:
-    """One ROS 2 publisher: its zenoh publisher, GID and sequence numbers."""
+    """One ROS 2 publisher, reliable, keep last `depth`, as rmw_zenoh_cpp declares it
+    (ros2_wire): its zenoh publisher, liveliness token (with the QoS), GID and sequence
+    numbers.  Volatile by default; `transient_local`: an AdvancedPublisher whose cache
+    keeps the last `depth` samples for late-joining transient-local subscriptions."""
 
-    def __init__(self, session: zenoh.Session, key: str, token: str) -> None:
-        self.token = token
-        self.gid = wire.gid(token)
+    def __init__(
+        self,
+        session: zenoh.Session,
+        node: wire.Node,
+        entity_id: int,
+        topic: str,
+        msgtype: str,
+        depth: int = 10,
+        transient_local: bool = False,
+    ) -> None:
+        qos = wire.qos_keyexpr(depth, transient_local)
+        self.token = node.entity_token(entity_id, wire.PUBLISHER, topic, msgtype, qos)
+        self.gid = wire.gid(self.token)
         self.sequence = 0
-        self.publisher = session.declare_publisher(
-            key,
-            congestion_control=zenoh.CongestionControl.DROP,
-            reliability=zenoh.Reliability.RELIABLE,
-        )
+        key = wire.topic_key(node.domain_id, topic, msgtype)
+        drop, reliable = zenoh.CongestionControl.DROP, zenoh.Reliability.RELIABLE
+        self.publisher: zenoh.Publisher | ze.AdvancedPublisher
+        if transient_local:
+            self.publisher = ze.declare_advanced_publisher(
+                session,
+                key,
+                congestion_control=drop,
+                reliability=reliable,
+                cache=ze.CacheConfig(max_samples=depth),
+                sample_miss_detection=ze.MissDetectionConfig(sporadic_heartbeat=HEARTBEAT),
+                publisher_detection=True,
+            )
+        else:
+            self.publisher = session.declare_publisher(
+                key, congestion_control=drop, reliability=reliable
+            )
 
     def put(self, msg: Any) -> None:
         self.sequence += 1
@@ -168,12 +203,14 @@ class Ros2Bridge:
         handler: DaemonHandler,
         interface: ZenohInterface,
         router: zenoh.Config | None = None,
+        robot: Robot | None = None,
     ) -> None:
         """With `interface`'s limits, size cap and parse thread; on its session (whose
         `ingress_limits` must be this bridge's: module function ingress_limits), or on a
         client session of the bridge's own to the ROS 2 graph's router, `router`
         (ros2.router: the router relays between its clients and the graph's peers, where
-        it would not relay between two peers without gossip, which stays off here)."""
+        it would not relay between two peers without gossip, which stays off here).
+        With `robot`, RViz's view of it too (daemon.interface.ros2_model)."""
         self.settings = settings
         self.limits: TrajectoryLimits = interface.limits
         self.max_message_bytes = settings.max_message_bytes or interface.settings.max_message_bytes
@@ -188,6 +225,7 @@ class Ros2Bridge:
         self._pending: set[tuple[bytes, int]] = set()  # requests taken, not yet answered
         self._pending_lock = threading.Lock()
         self._router = router
+        self._model = None if robot is None else ros2_model.RobotModel(robot, settings)
         self.node: wire.Node | None = None  # once declared
 
     async def start(self) -> None:
@@ -232,10 +270,8 @@ class Ros2Bridge:
         for name, msgtype in PUBLISHED.items():
             entity_id += 1
             topic = self.settings.topic(getattr(self.settings, name))
-            token = node.entity_token(entity_id, wire.PUBLISHER, topic, msgtype)
-            key = wire.topic_key(self.settings.domain_id, topic, msgtype)
-            self._publishers[name] = _Publisher(session, key, token)
-            self._entities.append(liveliness.declare_token(token))
+            self._publishers[name] = _Publisher(session, node, entity_id, topic, msgtype)
+            self._entities.append(liveliness.declare_token(self._publishers[name].token))
         for key, (topic, msgtype) in intake_keys(self.settings).items():
             entity_id += 1
             receive = self._receiver(topic, msgtype)
@@ -249,6 +285,15 @@ class Ros2Bridge:
             service, srvtype = served[:2]
             token = node.entity_token(entity_id, wire.SERVICE_SERVER, service, srvtype)
             self._entities.append(liveliness.declare_token(token))
+        if self._model is not None:
+            for name, (msgtype, depth, latched) in ros2_model.TOPICS.items():
+                entity_id += 1
+                topic = settings.topic(getattr(settings, name))
+                publisher = _Publisher(session, node, entity_id, topic, msgtype, depth, latched)
+                self._publishers[name] = publisher
+                self._entities.append(liveliness.declare_token(publisher.token))
+            for name, msg in self._model.latched(time.time_ns()).items():
+                self._publishers[name].put(msg)
         self._tasks += [
             self._loop.create_task(self._publish_states()),
             self._loop.create_task(self._take_trajectories()),
@@ -285,7 +330,10 @@ class Ros2Bridge:
             await asyncio.sleep(due - self._loop.time())
             await self._handler.slack()
             try:
-                messages = state_messages(self._handler.state(), self.settings, time.time_ns())
+                state, ns = self._handler.state(), time.time_ns()
+                messages = state_messages(state, self.settings, ns)
+                if self._model is not None:
+                    messages["cables_topic"] = self._model.cables(state, ns)
                 for name, msg in messages.items():
                     self._publishers[name].put(msg)
             except Exception:

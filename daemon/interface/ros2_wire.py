@@ -21,7 +21,12 @@ rmw_zenoh_cpp/src/detail/qos.cpp @ 5e10d47b06c3fe327105d06a8350be455411ea5b.
 - Liveliness tokens: @ros2_lv/<domain>/<zid>/<node id>/<entity id>/<kind>/<enclave>/
   <namespace>/<node name>[/<topic>/<type>/<hash>/<qos>], each name with "/" mangled to
   "%"; kind NN (node, whose entity id is its node id), MP, MS; qos in rmw_zenoh's
-  compact form, empty fields for its defaults.
+  compact form, empty fields for its defaults (qos_keyexpr).
+- A TRANSIENT_LOCAL publisher (rmw_publisher_data.cpp @ 3e19ec73..., Jazzy from 0.2.4)
+  is a zenoh-ext AdvancedPublisher with publisher_detection, a cache of `depth` samples
+  and, being reliable, sample miss detection with a sporadic heartbeat of 500 ms; a
+  late-joining transient-local subscription (an AdvancedSubscriber whose history detects
+  late publishers) queries that cache.
 - GID: XXH3-128 of the entity's liveliness key, low 64 bits then high 64 bits, each in
   the host's (little-endian) byte order.
 - Service servers (rmw_zenoh_cpp/src/detail/rmw_service_data.cpp): a queryable (complete)
@@ -53,10 +58,8 @@ TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 ADMIN_SPACE = "@ros2_lv"
 NODE, PUBLISHER, SUBSCRIPTION, SERVICE_SERVER = "NN", "MP", "MS", "SS"
 TRIGGER, SET_BOOL = "std_srvs/srv/Trigger", "std_srvs/srv/SetBool"
-# reliable, volatile, keep last 10 (rclcpp's default profile; depth 10 is not rmw_zenoh's
-# default of 42, so it is written out): reliability:durability:history,depth:deadline:
-# lifespan:liveliness,lease s,lease ns
-DEFAULT_QOS = "::,10:,:,:,,"
+RMW_ZENOH_DEFAULT_DEPTH = 42  # rmw_zenoh's default history depth (qos.cpp)
+TRANSIENT_LOCAL = 1  # rmw_qos_durability_policy_e (rmw/types.h); VOLATILE (2) is the default
 GID_SIZE = 16
 _ATTACHMENT = struct.Struct("<qqB16s")
 
@@ -133,6 +136,20 @@ _SERVICE_HASHES.register(
         **_STD_SRVS,
     }
 )
+
+
+def qos_keyexpr(depth: int = 10, transient_local: bool = False) -> str:
+    """rmw_zenoh's compact form (qos_to_keyexpr) of a reliable, keep-last `depth` QoS
+    profile, volatile or transient-local: reliability:durability:history,depth:deadline:
+    lifespan:liveliness,lease s,lease ns, each field empty where it is rmw_zenoh's default
+    (reliable, volatile, keep last 42, infinite durations, automatic liveliness)."""
+    durability = str(TRANSIENT_LOCAL) if transient_local else ""
+    written = "" if depth == RMW_ZENOH_DEFAULT_DEPTH else str(depth)
+    return f":{durability}:,{written}:,:,:,,"
+
+
+# reliable, volatile, keep last 10: rclcpp's default profile, and the services' default
+DEFAULT_QOS = qos_keyexpr(10)
 
 
 def dds_type_name(msgtype: str) -> str:

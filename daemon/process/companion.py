@@ -135,7 +135,7 @@ async def run(config: DaemonConfig, link: RemoteLink) -> int:
         # the leases the core kept from the last companion: a lapse now reaches zenoh
         planner.leases.resume(link.kept_leases)
         if config.ros2.enabled:
-            ros2 = Ros2Bridge(config.ros2, planner, interface, router)
+            ros2 = Ros2Bridge(config.ros2, planner, interface, router, config.robot)
             await ros2.start()
         link.ready()  # the core starts its drives now
         await link.core_started()

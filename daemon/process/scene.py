@@ -10,8 +10,8 @@ in the world frame (z up, m):
                           anchors, the workspace box, each cable as a line from its anchor
                           to its attachment point coloured by tension (tension_color;
                           slack cables grey and labelled, faulted ones magenta and
-                          labelled), the platform as the box through its attachment
-                          points, the reference pose as a ghost of it
+                          labelled), the platform as the box round its body
+                          (platform_box), the reference pose as a ghost of it
     /cdpr/pose            foxglove.PoseInFrame      measured platform pose
     /cdpr/reference_pose  foxglove.PoseInFrame      reference pose (while there is one)
     /cdpr/series          JSON, cdprd.Series        tensions, forces, lengths, tracking
@@ -71,6 +71,8 @@ SERIES_SCHEMA_NAME = "cdprd.Series"
 
 SLACK_COLOR = (0.6, 0.6, 0.6, 0.8)
 FAULT_COLOR = (1.0, 0.0, 1.0, 1.0)
+PLATFORM_COLOR = (0.9, 0.5, 0.1, 0.9)
+ANCHOR_COLOR = (0.1, 0.1, 0.1, 1.0)
 #: tension / force_max -> colour: blue (none), yellow (half), red (the drive's limit)
 TENSION_STOPS = ((0.0, (0.15, 0.35, 1.0)), (0.5, (1.0, 0.85, 0.1)), (1.0, (1.0, 0.1, 0.0)))
 CABLE_WIDTH = 0.008  # m
@@ -133,6 +135,46 @@ def tension_color(fraction: float) -> tuple[float, float, float, float]:
     raise AssertionError("unreachable: the stops end at 1")
 
 
+RGBA = tuple[float, float, float, float]
+
+
+def cable_styles(
+    robot: Robot, tensions: Sequence[float], faults: Sequence[str | None] = ()
+) -> list[tuple[RGBA, float, str | None]]:
+    """Each cable's colour, line width (m) and label (None for a taut one): a faulted
+    cable magenta, a slack one (Robot.slack: below its t_min) grey and thinner, a taut
+    one coloured by tension_color of its tension over its drive's force_max."""
+    t = np.asarray(tensions, dtype=float)
+    slack = robot.slack(t)
+    styles: list[tuple[RGBA, float, str | None]] = []
+    for k in range(robot.n_cables):
+        fault = faults[k] if k < len(faults) else None
+        if fault:
+            styles.append((FAULT_COLOR, CABLE_WIDTH, f"cable {k}: {fault}"))
+        elif slack[k]:
+            styles.append((SLACK_COLOR, SLACK_WIDTH, f"cable {k} slack"))
+        else:
+            styles.append((tension_color(t[k] / robot.force_max[k]), CABLE_WIDTH, None))
+    return styles
+
+
+def attachments_at(
+    attachments: np.ndarray, position: Sequence[float], quaternion: Sequence[float]
+) -> np.ndarray:
+    """The attachment points (platform frame, n x 3) in the world at the pose (n x 3)."""
+    pose = CdprPose(position, quaternion)
+    return pose.position + attachments @ pose.rotation.T
+
+
+def platform_box(robot: Robot) -> tuple[np.ndarray, np.ndarray]:
+    """The centre (platform frame) and size of the axis-aligned box round the platform's
+    body: its corners, i.e. the attachment points and the robot file's body if it gives
+    one; MIN_BOX at least a side (a flat or point platform)."""
+    points = robot.body.points
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    return (lo + hi) / 2.0, np.maximum(hi - lo, MIN_BOX)
+
+
 def cable_faults(state: Mapping[str, Any], n: int) -> tuple[str | None, ...]:
     """Each cable's drive fault (None if none) from a state snapshot's "drives"."""
     drives = list(state.get("drives") or ())[:n]
@@ -160,9 +202,7 @@ class SceneBuilder:
         self.robot = robot
         self.anchors = robot.geometry.anchors
         self.attachments = robot.geometry.attachments
-        lo, hi = self.attachments.min(axis=0), self.attachments.max(axis=0)
-        self.box_center = (lo + hi) / 2.0  # platform frame
-        self.box_size = np.maximum(hi - lo, MIN_BOX)
+        self.box_center, self.box_size = platform_box(robot)  # platform frame
         self.workspace = (np.asarray(workspace[0], float), np.asarray(workspace[1], float))
 
     # -- encoded, for the sinks -----------------------------------------------------------
@@ -214,8 +254,7 @@ class SceneBuilder:
 
     def attachment_points(self, position: Sequence[float], quaternion: Sequence[float]):
         """The attachment points in the world at the pose (n x 3)."""
-        pose = CdprPose(position, quaternion)
-        return pose.position + self.attachments @ pose.rotation.T
+        return attachments_at(self.attachments, position, quaternion)
 
     def scene(
         self, record: CycleRecord, stamp_ns: int, faults: Sequence[str | None] = ()
@@ -226,7 +265,7 @@ class SceneBuilder:
             self._frame(stamp),
             self._workspace(stamp),
             self._cables(record, stamp, faults),
-            self._box("platform", record.position, record.quaternion, (0.9, 0.5, 0.1, 0.9), stamp),
+            self._box("platform", record.position, record.quaternion, PLATFORM_COLOR, stamp),
         ]
         deletions = []
         if record.reference is not None:
@@ -275,7 +314,7 @@ class SceneBuilder:
                 SpherePrimitive(
                     pose=Pose(position=_vector(a), orientation=Quaternion(w=1.0)),
                     size=Vector3(x=0.04, y=0.04, z=0.04),
-                    color=_color((0.1, 0.1, 0.1, 1.0)),
+                    color=_color(ANCHOR_COLOR),
                 )
                 for a in self.anchors
             ],
@@ -301,18 +340,9 @@ class SceneBuilder:
         self, record: CycleRecord, stamp: Timestamp, faults: Sequence[str | None]
     ) -> SceneEntity:
         ends = self.attachment_points(record.position, record.quaternion)
-        tensions = np.asarray(record.tensions, dtype=float)
-        slack = self.robot.slack(tensions)
+        styles = cable_styles(self.robot, record.tensions, faults)
         lines, texts = [], []
-        for k, (a, b) in enumerate(zip(self.anchors, ends, strict=True)):
-            fault = faults[k] if k < len(faults) else None
-            if fault:
-                color, width, label = FAULT_COLOR, CABLE_WIDTH, f"cable {k}: {fault}"
-            elif slack[k]:
-                color, width, label = SLACK_COLOR, SLACK_WIDTH, f"cable {k} slack"
-            else:
-                fraction = tensions[k] / self.robot.force_max[k]
-                color, width, label = tension_color(fraction), CABLE_WIDTH, None
+        for a, b, (color, width, label) in zip(self.anchors, ends, styles, strict=True):
             lines.append(
                 LinePrimitive(
                     type=LinePrimitiveLineType.LineStrip,

@@ -47,6 +47,9 @@ OUTPUTS = {  # the daemon's ROS 2 topics a forger tries
     "pose": key("/pose", POSE),
     "diagnostics": key("/diagnostics", "diagnostic_msgs/msg/DiagnosticArray"),
     "trajectory_status": key("/trajectory_status", STATUS),
+    "robot_description": key("/robot_description", STATUS),
+    "tf_static": key("/tf_static", "tf2_msgs/msg/TFMessage"),
+    "cables": key("/cables", "visualization_msgs/msg/MarkerArray"),
 }
 
 
@@ -80,7 +83,8 @@ def test_with_the_templates_zenoh_section_only_the_daemon_speaks_ros2(
     access_control: bool,
 ) -> None:
     """Another local process publishes on the daemon's ROS 2 topics (pose, diagnostics,
-    trajectory_status) and declares a second node `cdprd`.  With the template's zenoh
+    trajectory_status, the robot's description, static frames and cables) and declares a
+    second node `cdprd`.  With the template's zenoh
     section none of it reaches a subscriber, which still gets the daemon's own poses;
     without its access control (the control case) all of it does."""
     served = Running(StandIn(), template_zenoh(access_control), ros2=ROS2)

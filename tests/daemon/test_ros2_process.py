@@ -203,8 +203,14 @@ def _exercise(s: zenoh.Session) -> None:
         assert entities[("SS", f"%lab%{service}")][10] == "std_srvs::srv::dds_::Trigger_"
     for service in ("hold_observer", "freeze_payload"):
         assert entities[("SS", f"%lab%{service}")][10] == "std_srvs::srv::dds_::SetBool_"
+    for topic, msgtype, qos in [  # the robot for RViz (test_ros2_model.py)
+        ("%lab%robot_description", STATUS, ":1:,1:,:,:,,"),  # transient local, keep last 1
+        ("%tf_static", "tf2_msgs/msg/TFMessage", ":1:,1:,:,:,,"),
+        ("%lab%cables", "visualization_msgs/msg/MarkerArray", QOS),
+    ]:
+        assert entities[("MP", topic)][10:] == [dds(msgtype), STORE.hash_rihs01(msgtype), qos]
     ids = [int(p[4]) for p in parts if p[5] != "NN"]
-    assert len(set(ids)) == len(ids) == 15
+    assert len(set(ids)) == len(ids) == 18
 
     # -- JointState: the lengths of the JSON state, rmw_zenoh's attachment
     joint_msg, extra = joints.last()

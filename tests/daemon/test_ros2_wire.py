@@ -107,6 +107,20 @@ def test_a_service_is_keyed_and_announced_under_its_service_type() -> None:
     )
 
 
+def test_qos_strings_are_qos_to_keyexprs() -> None:
+    """rmw_zenoh's compact QoS (liveliness_utils.cpp's qos_to_keyexpr: a field left empty
+    where it equals rmw_zenoh's default, qos.cpp; durability TRANSIENT_LOCAL = 1 in
+    rmw/types.h), against the design document's examples and the reference's values."""
+    text = _reference_text()
+    assert wire.qos_keyexpr(10) == wire.DEFAULT_QOS == "::,10:,:,:,,"  # the listener's
+    assert wire.qos_keyexpr(7) == "::,7:,:,:,,"  # the talker's
+    assert "/::,10:,:,:,,`" in text and "/::,7:,:,:,,`" in text
+    assert wire.qos_keyexpr(42) == "::,:,:,:,,"  # rmw_zenoh's defaults: every field empty
+    transient = wire.qos_keyexpr(1, transient_local=True)
+    assert transient == ":1:,1:,:,:,,"
+    assert f"`{transient}`" in text
+
+
 def test_the_attachment_is_what_zenoh_ext_serializes_and_reads() -> None:
     gid = bytes(range(16))
     ours = wire.attachment(7, 1_700_000_000_123_456_789, gid)

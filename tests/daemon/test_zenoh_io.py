@@ -28,7 +28,7 @@ import zenoh
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from cdpr import Pose
+from cdpr import Pose, Robot
 from cdpr.description import ConfigError, load_yaml, validate_section
 from cdpr.trajectory import Trajectory, TrajectoryError, parse_trajectory
 from daemon.cli import main
@@ -68,6 +68,8 @@ class StandIn:
         self.delay = 0.0  # s of busy work per call (to make the loop the bottleneck)
         self.state_calls = 0
         self.slack_waits = 0
+        self.pose: Pose | None = Pose((0.0, 0.0, 1.25))  # None: no pose (idle, braked)
+        self.tensions = [float("nan")] * 8
 
     def _record(self, *call: Any) -> None:
         self.threads.add(threading.get_ident())
@@ -109,19 +111,21 @@ class StandIn:
     def state(self) -> dict[str, Any]:
         self.threads.add(threading.get_ident())
         self.state_calls += 1
+        if self.pose is None:
+            return {"state": "IDLE"}
         return {
             "state": "IDLE",
-            "pose": Pose((0.0, 0.0, 1.25)).as_dict(),
+            "pose": self.pose.as_dict(),
             "tracking_error": [0.0] * 6,
-            "tensions": [float("nan")] * 8,
+            "tensions": list(self.tensions),
         }
 
 
 class Running:
     """A ZenohInterface serving `handler` on its own event loop in a thread: with
     `settings`, or listening on a free loopback port with the `overrides`; with `ros2`,
-    the ROS 2 bridge on its session too, as the companion runs them; `timer` times the
-    paths it takes."""
+    the ROS 2 bridge on its session too, as the companion runs them (with `robot`, its
+    RViz view); `timer` times the paths it takes."""
 
     def __init__(
         self,
@@ -130,6 +134,7 @@ class Running:
         prefix: str = PREFIX,
         ros2: Ros2Settings | None = None,
         timer: Callable[[Any], Trajectory] | None = None,
+        robot: Robot | None = None,
         **overrides: Any,
     ) -> None:
         if settings is None:
@@ -141,6 +146,7 @@ class Running:
         self.ros2 = ros2
         self.handler = handler
         self.timer = timer
+        self.robot = robot
         self.loop = asyncio.new_event_loop()
         self._ready = threading.Event()
         self._thread = threading.Thread(target=self.loop.run_until_complete, args=(self._run(),))
@@ -157,7 +163,7 @@ class Running:
         await self.interface.start()
         bridge = None
         if self.ros2 is not None:
-            bridge = Ros2Bridge(self.ros2, self.handler, self.interface)
+            bridge = Ros2Bridge(self.ros2, self.handler, self.interface, robot=self.robot)
             await bridge.start()
         self._ready.set()
         await self._stop.wait()
