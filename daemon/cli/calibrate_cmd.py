@@ -649,7 +649,10 @@ def _record_poses(
     subscriber = client.subscribe_state(on_state)
     k = calibration_round.remaining()[0]
     try:
-        here = _wait_for_pose(latest, lock)
+        here = _wait_for_pose(latest, lock, braked)
+        if here is None:  # it braked before it published a pose: the brake says why
+            with lock:
+                raise brake(k, faults[0])
         for k in calibration_round.remaining():
             target = calibration_round.planned[k]
             flying[0] = f"pose {k + 1} of {total}"
@@ -715,14 +718,17 @@ def _dither(client: CdprClient, pose: Pose, duration: float) -> None:
             raise
 
 
-def _wait_for_pose(latest: list[Pose], lock: threading.Lock, timeout: float = 5.0) -> Pose:
-    """The first measured pose the daemon publishes."""
+def _wait_for_pose(
+    latest: list[Pose], lock: threading.Lock, braked: threading.Event, timeout: float = 5.0
+) -> Pose | None:
+    """The first measured pose the daemon publishes; None if it brakes first."""
     end = time.monotonic() + timeout
     while time.monotonic() < end:
         with lock:
             if latest:
                 return latest[0]
-        time.sleep(0.05)
+        if braked.wait(0.05):
+            return None
     raise CalibrationError(f"no state with a pose from the daemon within {timeout:g} s")
 
 
