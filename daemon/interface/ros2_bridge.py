@@ -46,6 +46,7 @@ from cdpr.path import Path
 from cdpr.trajectory import SCHEMA_VERSION, Trajectory, TrajectoryLimits
 from daemon.config.ros2_config import Ros2Settings
 from daemon.config.zenoh_config import ZenohSettings
+from daemon.interface import ros2_action
 from daemon.interface import ros2_wire as wire
 from daemon.interface.messages import (
     EVENT_KEY,
@@ -123,7 +124,8 @@ def ingress_limits(settings: Ros2Settings, zenoh_settings: ZenohSettings) -> dic
     """What zenoh limits the node's inputs to (key -> Hz), for the session's config
     (ZenohInterface's `ingress_limits`): the trajectory topics to ros2.ingress_limit_hz,
     else the limit on the zenoh interface's `trajectory`; each service to the limit on
-    its command's `cmd/<command>`; none when those are not set or ROS 2 is off."""
+    its command's `cmd/<command>`; the action's as ros2_action.ingress_limits says; none
+    when those are not set or ROS 2 is off."""
     if not settings.enabled:
         return {}
     out = {}
@@ -134,6 +136,7 @@ def ingress_limits(settings: Ros2Settings, zenoh_settings: ZenohSettings) -> dic
         limit = zenoh_settings.ingress_limit(f"cmd/{command}")
         if limit is not None:
             out[key] = limit
+    out.update(ros2_action.ingress_limits(settings, zenoh_settings, hz))
     return out
 
 
@@ -185,6 +188,9 @@ class Ros2Bridge:
         self._pending = wire.Pending()  # requests taken, not yet answered
         self._router = router
         self.node: wire.Node | None = None  # once declared
+        self._action = ros2_action.FlyPathServer(
+            settings, handler, interface, self.max_message_bytes, self._action_publisher
+        )
 
     async def start(self) -> None:
         """Declare the node on the interface's session, or on a client session of its
@@ -245,6 +251,7 @@ class Ros2Bridge:
             service, srvtype = served[:2]
             token = node.entity_token(entity_id, wire.SERVICE_SERVER, service, srvtype)
             self._entities.append(liveliness.declare_token(token))
+        entity_id = self._action.declare(session, node, entity_id)
         self._tasks += [
             self._loop.create_task(self._publish_states()),
             self._loop.create_task(self._take_trajectories()),
@@ -257,6 +264,7 @@ class Ros2Bridge:
         )
 
     async def close(self) -> None:
+        await self._action.close()
         for task in self._tasks:
             task.cancel()
         for task in self._tasks:
@@ -268,6 +276,15 @@ class Ros2Bridge:
         if self._own_session is not None:
             with contextlib.suppress(zenoh.ZError):
                 self._own_session.close()
+
+    @staticmethod
+    def _action_publisher(
+        session: zenoh.Session, key: str, token: str, transient_local: bool
+    ) -> _Publisher:
+        """A publisher of the action server (ros2_action.Publisher).  Its status topic is
+        `transient_local` (as its liveliness token says): published as a plain publisher,
+        a late subscriber gets the next status (published on every change)."""
+        return _Publisher(session, key, token)
 
     # -- out --------------------------------------------------------------------------
 
@@ -340,13 +357,9 @@ class Ros2Bridge:
 
         def serve(query: zenoh.Query) -> None:
             try:
-                payload, extra = query.payload, query.attachment
-                check_size(0 if payload is None else len(payload), MAX_COMMAND_BYTES)
-                raw = b"" if payload is None else payload.to_bytes()
-                msg = wire.deserialize(raw, f"{srvtype}_Request")
-                request = wire.request_attachment(None if extra is None else extra.to_bytes())
-                self._pending.take(request)
-            except (wire.WireError, CommandError) as exc:
+                reqtype = f"{srvtype}_Request"
+                msg, request = wire.take_request(query, reqtype, MAX_COMMAND_BYTES, self._pending)
+            except wire.WireError as exc:
                 log.debug("ROS 2 service %s: request dropped: %s", key, exc)
                 query.drop()  # the client gets no reply, as from rmw_zenoh
                 return

@@ -69,7 +69,7 @@ def state_messages(state: dict[str, Any], settings: Ros2Settings, ns: int) -> di
         measured = _pose(state["pose"])
         reference = retract(measured, -np.asarray(state["tracking_error"], dtype=float))
         world = settings.world_frame
-        out["pose_topic"] = message(POSE, header=header(ns, world), pose=_ros_pose(measured))
+        out["pose_topic"] = pose_stamped(measured, ns, world)
         out["reference_pose_topic"] = message(
             POSE, header=header(ns, world), pose=_ros_pose(reference)
         )
@@ -81,6 +81,16 @@ def state_messages(state: dict[str, Any], settings: Ros2Settings, ns: int) -> di
             ],
         )
     return out
+
+
+def pose_stamped(pose: Pose, ns: int, frame: str) -> Any:
+    """`pose` as a geometry_msgs/msg/PoseStamped in `frame`, stamped `ns`."""
+    return message(POSE, header=header(ns, frame), pose=_ros_pose(pose))
+
+
+def state_pose(state: dict[str, Any]) -> Pose | None:
+    """The measured pose of a state snapshot (none unless the robot holds or tracks)."""
+    return _pose(state["pose"]) if "pose" in state else None
 
 
 def answer_text(body: dict[str, Any], ok: bool) -> str:

@@ -323,30 +323,6 @@ def read_attachment(raw: bytes | None) -> Attachment:
     return Attachment(sequence, stamp, source)
 
 
-def request_attachment(raw: bytes | None) -> Attachment:
-    """A service request's attachment as rmw_zenoh's ServiceData::take_request reads it:
-    WireError if missing or malformed, or with a negative sequence number or timestamp."""
-    request = read_attachment(raw)
-    if request.sequence_number < 0 or request.source_timestamp < 0:
-        raise WireError("negative sequence number or timestamp")
-    return request
-
-
-def respond(query: zenoh.Query, key: str, response: Any, request: Attachment) -> None:
-    """Answer the taken `request` with `response` (a rosbags message) as rmw_zenoh's
-    ServiceData::send_response does: on the service's `key`, in CDR, the attachment with
-    the request's sequence number and client GID and the server's time.  A client that
-    left meanwhile is no error; the query is done with either way."""
-    extra = attachment(request.sequence_number, time.time_ns(), request.source_gid)
-    try:
-        query.reply(key, serialize(response), attachment=extra)
-    except zenoh.ZError:  # the client gave up (timeout) or left
-        log.debug("ROS 2 service %s: the client left before the reply", key)
-    finally:
-        with contextlib.suppress(zenoh.ZError):
-            query.drop()
-
-
 class Pending:
     """Service requests taken and not yet answered, by (client GID, sequence number):
     rmw_zenoh takes no second request of a pair still pending.  Thread-safe."""
@@ -368,14 +344,51 @@ class Pending:
             self._taken.discard((request.source_gid, request.sequence_number))
 
 
+def take_request(
+    query: zenoh.Query, reqtype: str | None, max_bytes: int, pending: Pending
+) -> tuple[Any, Attachment]:
+    """A service request as rmw_zenoh's ServiceData::take_request takes it: its payload
+    decoded as `reqtype` (or its bytes, None: decoded later), and its attachment, noted
+    in `pending` until respond(); WireError, the query to be dropped unanswered, for a
+    payload above `max_bytes`, CDR that does not read, an attachment that is missing or
+    malformed or has a negative sequence number or timestamp, or a pair still pending."""
+    payload, extra = query.payload, query.attachment
+    size = 0 if payload is None else len(payload)
+    if size > max_bytes:
+        raise WireError(f"a request of {size} bytes, above {max_bytes}")
+    raw = b"" if payload is None else payload.to_bytes()
+    msg = raw if reqtype is None else deserialize(raw, reqtype)
+    request = read_attachment(None if extra is None else extra.to_bytes())
+    if request.sequence_number < 0 or request.source_timestamp < 0:
+        raise WireError("negative sequence number or timestamp")
+    pending.take(request)
+    return msg, request
+
+
+def respond(query: zenoh.Query, key: str, response: Any, request: Attachment) -> None:
+    """Answer the taken `request` with `response` (a rosbags message) as rmw_zenoh's
+    ServiceData::send_response does: on the service's `key`, in CDR, the attachment with
+    the request's sequence number and client GID and the server's time.  A client that
+    left meanwhile is no error; the query is done with either way."""
+    extra = attachment(request.sequence_number, time.time_ns(), request.source_gid)
+    try:
+        query.reply(key, serialize(response), attachment=extra)
+    except zenoh.ZError:  # the client gave up (timeout) or left
+        log.debug("ROS 2 service %s: the client left before the reply", key)
+    finally:
+        with contextlib.suppress(zenoh.ZError):
+            query.drop()
+
+
 _PEEKED_NAMES = 64  # joint names read past at most; more: left to the full decoding
 
 
-def sequence_length(raw: bytes, msgtype: str) -> int | None:
+def sequence_length(raw: bytes, msgtype: str, skip: int = 0) -> int | None:
     """The number of poses a nav_msgs/msg/Path, or of points a
     trajectory_msgs/msg/MultiDOFJointTrajectory, declares, read from the first bytes of
     its CDR without decoding it (so that too long a one is refused at the cost of a few
-    reads); None where those bytes do not read so (the full decoding names why).
+    reads), after `skip` bytes (an action goal's 16-byte id before its Path); None where
+    those bytes do not read so (the full decoding names why).
 
     Both begin with a std_msgs/msg/Header (stamp: int32 + uint32; frame_id: uint32
     length with the NUL, the bytes); a MultiDOFJointTrajectory then has joint_names
@@ -384,7 +397,7 @@ def sequence_length(raw: bytes, msgtype: str) -> int | None:
     if len(raw) < 4 or raw[0] != 0 or raw[1] not in (0, 1):
         return None
     u32 = struct.Struct("<I" if raw[1] == 1 else ">I")
-    at = 4 + 8  # the stamp
+    at = 4 + skip + 8  # the stamp
     names = 0
 
     def read() -> int | None:

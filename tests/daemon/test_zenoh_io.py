@@ -68,6 +68,7 @@ class StandIn:
         self.delay = 0.0  # s of busy work per call (to make the loop the bottleneck)
         self.state_calls = 0
         self.slack_waits = 0
+        self.sinks: list[Callable[[dict[str, Any]], None]] = []  # subscribed to its events
 
     def _record(self, *call: Any) -> None:
         self.threads.add(threading.get_ident())
@@ -105,6 +106,9 @@ class StandIn:
 
     async def slack(self) -> None:
         self.slack_waits += 1  # a stand-in: no control cycle, slack at once
+
+    def subscribe(self, sink: Callable[[dict[str, Any]], None]) -> None:
+        self.sinks.append(sink)
 
     def state(self) -> dict[str, Any]:
         self.threads.add(threading.get_ident())
