@@ -16,6 +16,7 @@ requests rmw_zenoh would not take dropped, reaching nothing.
 from __future__ import annotations
 
 import asyncio
+import json
 import re
 import struct
 import threading
@@ -27,6 +28,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+import yaml
 import zenoh
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
@@ -162,30 +164,43 @@ def goal_request(goal_id: bytes, flown: Any) -> bytes:
 
 
 class Client:
-    """An action client's requests, each with its sequence number (from 1)."""
+    """An action client's requests, each with its sequence number (from 1), to action
+    `action` of domain `domain`, each answer awaited up to `timeout` s."""
 
-    def __init__(self, session: zenoh.Session) -> None:
+    def __init__(
+        self,
+        session: zenoh.Session,
+        domain: int = 0,
+        action: str = "fly_path",
+        timeout: float = WAIT,
+    ) -> None:
         self.session = session
         self.sequence = 0
+        self.timeout = timeout
+        self.keys = {
+            name: k.replace("0/fly_path/", f"{domain}/{action.strip('/')}/", 1)
+            for name, k in (("send", SEND_GOAL), ("result", GET_RESULT), ("cancel", CANCEL_GOAL))
+        }
 
     def attachment(self) -> bytes:
         self.sequence += 1
         return request_attachment(self.sequence)
 
     def send_goal(self, goal_id: bytes, flown: Any) -> Any:
-        (reply,) = call(self.session, SEND_GOAL, goal_request(goal_id, flown), self.attachment())
+        request = goal_request(goal_id, flown)
+        (reply,) = call(self.session, self.keys["send"], request, self.attachment(), self.timeout)
         return self._response(reply, "SendGoal_Response")
 
     def get_result(self, goal_id: bytes) -> Callable[[], Any]:
         """Ask for the result now; the returned call waits for it."""
         request = encode(msg("GetResult_Request", goal_id=uuid_msg(goal_id)))
         replies = self.session.get(
-            GET_RESULT,
+            self.keys["result"],
             payload=request,
             attachment=self.attachment(),
             target=zenoh.QueryTarget.ALL_COMPLETE,
             consolidation=zenoh.ConsolidationMode.NONE,
-            timeout=WAIT,
+            timeout=self.timeout,
         )
         return lambda: self._response(next(iter(replies)), "GetResult_Response")
 
@@ -194,7 +209,7 @@ class Client:
             goal_id=uuid_msg(goal_id), stamp=time_msg(before_ns)
         )
         request = encode(msg("CancelGoal_Request", goal_info=info))
-        (reply,) = call(self.session, CANCEL_GOAL, request, self.attachment())
+        (reply,) = call(self.session, self.keys["cancel"], request, self.attachment(), self.timeout)
         return self._response(reply, "CancelGoal_Response")
 
     def _response(self, reply: zenoh.Reply, name: str) -> Any:
@@ -637,3 +652,72 @@ def test_the_action_takes_the_limits_of_trajectories_hold_and_status() -> None:
         CANCEL_GOAL: 20.0,
         GET_RESULT: 50.0,
     }
+
+
+# -- the simulated robot ----------------------------------------------------------------
+
+
+@pytest.mark.slow
+@pytest.mark.host_timing
+@pytest.mark.timeout(180)
+def test_the_simulated_robot_flies_a_goal_and_a_cancel_holds_it(tmp_path: Path) -> None:
+    """`cdprd run --sim` with ROS 2 on (domain 7, namespace /lab): enabled by its
+    service, the robot flies a goal to SUCCEEDED with rising feedback, and a second,
+    longer goal cancelled midway ends CANCELED, the robot holding."""
+    from tests.daemon.test_ros2_process import DOMAIN, NAMESPACE, PREFIX, _listening, wait
+    from tests.daemon.test_ros2_services import service_key, trigger
+    from tests.loopback import free_port, zenoh_peer
+    from tests.processes import CONFIG, ROOT, finish, start_daemon
+
+    port = free_port()
+    data = yaml.safe_load(CONFIG.read_text())
+    data["robot"] = str(ROOT / "config" / "robots" / "reference8.yaml")
+    data["zenoh"]["listen"] = [f"tcp/127.0.0.1:{port}"]
+    data["ros2"] = {"enabled": True, "domain_id": DOMAIN, "namespace": NAMESPACE, "rate_hz": 20}
+    data["safety"]["stale_cycles"] = 100  # a loaded host's late feedback is not the point
+    config = tmp_path / "cdprd.yaml"
+    config.write_text(yaml.safe_dump(data))
+    proc = start_daemon(config, "--sim")
+    flights = {
+        "short": path((0.0, (0.0, 0.0, 1.25)), (1.5, (0.05, 0.0, 1.25))),
+        "long": path((0.0, (0.0, 0.0, 1.25)), (8.0, (0.2, 0.0, 1.25))),
+    }
+    try:
+        wait(lambda: _listening(port), 60.0, "the daemon to listen")
+        s = zenoh_peer(port)
+        feedback: list[Any] = []
+        kept = s.declare_subscriber(
+            FEEDBACK.replace("0/fly_path/", f"{DOMAIN}/lab/fly_path/", 1),
+            lambda x: feedback.append(decode(x.payload.to_bytes(), "FeedbackMessage").feedback),
+        )
+        states: list[str] = []
+        kept_state = s.declare_subscriber(
+            f"{PREFIX}/state", lambda x: states.append(json.loads(x.payload.to_bytes())["state"])
+        )
+        client = Client(s, DOMAIN, f"{NAMESPACE}/fly_path", timeout=60.0)  # a cold host
+        try:
+            wait(lambda: bool(states) and states[-1] == "idle", 60.0, "idle")
+            enable = service_key(f"{NAMESPACE}/enable", DOMAIN)
+            assert trigger(s, enable, 900).success
+            first, second = new_id(), new_id()
+            assert client.send_goal(first, flights["short"]).accepted
+            result = client.get_result(first)()
+            assert client.send_goal(second, flights["long"]).accepted
+            canceling = client.get_result(second)
+            wait(lambda: bool(feedback) and feedback[-1].progress > 0.1, 30.0, "flying")
+            canceled = client.cancel(second)
+            ended = canceling()
+        finally:
+            kept.undeclare()
+            kept_state.undeclare()
+            s.close()
+    finally:
+        out = finish(proc)
+    assert proc.returncode == 0, out
+    assert result.status == SUCCEEDED and result.result.success, result
+    assert result.result.duration > 1.5  # the approach, then the trajectory
+    assert canceled.return_code == ERROR_NONE
+    assert ended.status == CANCELED, ended
+    assert '"state":"hold"' in ended.result.message
+    progress = [f.progress for f in feedback]
+    assert max(progress) > 0.1
