@@ -89,6 +89,12 @@ class Ros2Settings(StrictModel):
     payload_freeze_service: str = Field("freeze_payload", pattern=_TOPIC)
     """std_srvs/srv/SetBool: the `payload` command, the payload estimate frozen (data
     true) or unfrozen (false)."""
+    fly_path_action: str = Field("fly_path", pattern=_TOPIC)
+    """cdprd_interfaces/action/FlyPath: a nav_msgs/Path flown as the `path` topic's is,
+    with feedback (progress, time remaining, tracking error, pose) at `rate_hz`; a cancel
+    holds the robot.  One goal at a time: a new one replaces the one flying (which ends
+    aborted).  The interface package is daemon/interface/cdprd_interfaces (colcon
+    build it where ROS 2 nodes run)."""
     max_message_bytes: int | None = Field(None, ge=1024, le=256 * 1024 * 1024)
     """An incoming trajectory above this size is refused unread; None: the zenoh
     interface's zenoh.max_message_bytes, the cap of every way a trajectory comes in."""

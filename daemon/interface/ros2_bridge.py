@@ -40,7 +40,6 @@ import contextlib
 import functools
 import inspect
 import logging
-import threading
 import time
 from collections.abc import Callable
 from typing import Any
@@ -53,20 +52,17 @@ from cdpr.path import Path
 from cdpr.trajectory import SCHEMA_VERSION, Trajectory, TrajectoryLimits
 from daemon.config.ros2_config import Ros2Settings
 from daemon.config.zenoh_config import ZenohSettings
-from daemon.interface import ros2_model
+from daemon.interface import ros2_action, ros2_model
 from daemon.interface import ros2_wire as wire
 from daemon.interface.messages import (
     EVENT_KEY,
     VERSION_KEY,
-    TrajectoryMessage,
     TrajectoryRequest,
     check_size,
     decode_command,
     encode,
     error_body,
-    parse_waypoints,
     reply_error,
-    time_path_message,
 )
 from daemon.interface.ros2_convert import (
     DIAGNOSTICS,
@@ -76,10 +72,11 @@ from daemon.interface.ros2_convert import (
     POSE,
     STATUS,
     TF,
+    answer_text,
     check_waypoint_count,
     state_messages,
     status_message,
-    trajectory_body,
+    trajectory_request,
 )
 from daemon.interface.zenoh_io import MAX_COMMAND_BYTES, ZenohInterface
 from daemon.service.api import UNNAMED, CommandError, DaemonHandler
@@ -136,7 +133,8 @@ def ingress_limits(settings: Ros2Settings, zenoh_settings: ZenohSettings) -> dic
     """What zenoh limits the node's inputs to (key -> Hz), for the session's config
     (ZenohInterface's `ingress_limits`): the trajectory topics to ros2.ingress_limit_hz,
     else the limit on the zenoh interface's `trajectory`; each service to the limit on
-    its command's `cmd/<command>`; none when those are not set or ROS 2 is off."""
+    its command's `cmd/<command>`; the action's as ros2_action.ingress_limits says; none
+    when those are not set or ROS 2 is off."""
     if not settings.enabled:
         return {}
     out = {}
@@ -147,6 +145,7 @@ def ingress_limits(settings: Ros2Settings, zenoh_settings: ZenohSettings) -> dic
         limit = zenoh_settings.ingress_limit(f"cmd/{command}")
         if limit is not None:
             out[key] = limit
+    out.update(ros2_action.ingress_limits(settings, zenoh_settings, hz))
     return out
 
 
@@ -222,11 +221,13 @@ class Ros2Bridge:
         self._entities: list[Any] = []
         self._tasks: list[asyncio.Task[None]] = []
         self._queue: asyncio.Queue[Received] | None = None
-        self._pending: set[tuple[bytes, int]] = set()  # requests taken, not yet answered
-        self._pending_lock = threading.Lock()
+        self._pending = wire.Pending()  # requests taken, not yet answered
         self._router = router
         self._model = None if robot is None else ros2_model.RobotModel(robot, settings)
         self.node: wire.Node | None = None  # once declared
+        self._action = ros2_action.FlyPathServer(
+            settings, handler, interface, self.max_message_bytes, _Publisher
+        )
 
     async def start(self) -> None:
         """Declare the node on the interface's session, or on a client session of its
@@ -294,6 +295,7 @@ class Ros2Bridge:
                 self._entities.append(liveliness.declare_token(publisher.token))
             for name, msg in self._model.latched(time.time_ns()).items():
                 self._publishers[name].put(msg)
+        entity_id = self._action.declare(session, node, entity_id)
         self._tasks += [
             self._loop.create_task(self._publish_states()),
             self._loop.create_task(self._take_trajectories()),
@@ -306,6 +308,7 @@ class Ros2Bridge:
         )
 
     async def close(self) -> None:
+        await self._action.close()
         for task in self._tasks:
             task.cancel()
         for task in self._tasks:
@@ -392,19 +395,9 @@ class Ros2Bridge:
 
         def serve(query: zenoh.Query) -> None:
             try:
-                payload, extra = query.payload, query.attachment
-                check_size(0 if payload is None else len(payload), MAX_COMMAND_BYTES)
-                raw = b"" if payload is None else payload.to_bytes()
-                msg = wire.deserialize(raw, f"{srvtype}_Request")
-                request = wire.read_attachment(None if extra is None else extra.to_bytes())
-                if request.sequence_number < 0 or request.source_timestamp < 0:
-                    raise wire.WireError("negative sequence number or timestamp")
-                pending = (request.source_gid, request.sequence_number)
-                with self._pending_lock:
-                    if pending in self._pending:
-                        raise wire.WireError("duplicate sequence number")
-                    self._pending.add(pending)
-            except (wire.WireError, CommandError) as exc:
+                reqtype = f"{srvtype}_Request"
+                msg, request = wire.take_request(query, reqtype, MAX_COMMAND_BYTES, self._pending)
+            except wire.WireError as exc:
                 log.debug("ROS 2 service %s: request dropped: %s", key, exc)
                 query.drop()  # the client gets no reply, as from rmw_zenoh
                 return
@@ -432,24 +425,10 @@ class Ros2Bridge:
         body: dict[str, Any],
         ok: bool,
     ) -> None:
-        """Answer a request with the command's reply `body`, as rmw_zenoh's
-        ServiceData::send_response does: on the service's key, the Response in CDR, the
-        attachment with the request's sequence number and client GID and our time."""
-        with self._pending_lock:
-            self._pending.discard((request.source_gid, request.sequence_number))
-        if ok:
-            text = encode(body["result"]).decode()
-        else:
-            text = f"{body['error']['code']}: {body['error']['reason']}"
-        response = wire.message(f"{srvtype}_Response", success=ok, message=text)
-        extra = wire.attachment(request.sequence_number, time.time_ns(), request.source_gid)
-        try:
-            query.reply(key, wire.serialize(response), attachment=extra)
-        except zenoh.ZError:  # the client gave up (timeout) or left
-            log.debug("ROS 2 service %s: the client left before the reply", key)
-        finally:
-            with contextlib.suppress(zenoh.ZError):
-                query.drop()
+        """Answer a request with the command's reply `body` (wire.respond)."""
+        self._pending.done(request)
+        response = wire.message(f"{srvtype}_Response", success=ok, message=answer_text(body, ok))
+        wire.respond(query, key, response, request)
 
     def _on_loop(self, call: Callable[..., None], *args: Any) -> None:
         assert self._loop is not None
@@ -513,19 +492,6 @@ def read_trajectory(
     try:
         ident = f"{topic}#{wire.read_attachment(extra).sequence_number}"
         msg = wire.deserialize(payload, msgtype)
-        body = trajectory_body(msg, settings, limits.max_waypoints)
-        if "poses" not in body:
-            head = TrajectoryMessage(ident, None, body, len(body["waypoints"]))
-            return ident, parse_waypoints(head, limits)
-        if timer is None:
-            why = f"{msgtype}: poses without times are a path, and this interface times none"
-            return ident, CommandError("rejected", why)
-        head = TrajectoryMessage(ident, None, body, len(body["poses"]), path=True)
-        return ident, time_path_message(head, limits, timer)
     except wire.WireError as exc:
         return ident, CommandError("bad_request", f"{msgtype}: {exc}")
-    except CommandError as exc:
-        return ident, exc
-    except Exception as exc:  # a bug must not reach the sender as silence
-        log.exception("decoding a ROS 2 trajectory failed")
-        return ident, CommandError("internal", f"decoding failed: {type(exc).__name__}")
+    return ident, trajectory_request(msg, ident, settings, limits, timer)

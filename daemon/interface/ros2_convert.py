@@ -16,15 +16,28 @@ the configured world frame).  They become the daemon's trajectory form
 
 from __future__ import annotations
 
+import logging
 import math
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 
+from cdpr.path import Path
 from cdpr.pose import Pose, retract
+from cdpr.trajectory import Trajectory, TrajectoryLimits
 from daemon.config.ros2_config import Ros2Settings
+from daemon.interface.messages import (
+    TrajectoryMessage,
+    TrajectoryRequest,
+    encode,
+    parse_waypoints,
+    time_path_message,
+)
 from daemon.interface.ros2_wire import message
 from daemon.service.api import CommandError
+
+log = logging.getLogger(__name__)
 
 POSE = "geometry_msgs/msg/PoseStamped"
 JOINTS = "sensor_msgs/msg/JointState"
@@ -56,7 +69,7 @@ def state_messages(state: dict[str, Any], settings: Ros2Settings, ns: int) -> di
         measured = _pose(state["pose"])
         reference = retract(measured, -np.asarray(state["tracking_error"], dtype=float))
         world = settings.world_frame
-        out["pose_topic"] = message(POSE, header=header(ns, world), pose=_ros_pose(measured))
+        out["pose_topic"] = pose_stamped(measured, ns, world)
         out["reference_pose_topic"] = message(
             POSE, header=header(ns, world), pose=_ros_pose(reference)
         )
@@ -68,6 +81,24 @@ def state_messages(state: dict[str, Any], settings: Ros2Settings, ns: int) -> di
             ],
         )
     return out
+
+
+def pose_stamped(pose: Pose, ns: int, frame: str) -> Any:
+    """`pose` as a geometry_msgs/msg/PoseStamped in `frame`, stamped `ns`."""
+    return message(POSE, header=header(ns, frame), pose=_ros_pose(pose))
+
+
+def state_pose(state: dict[str, Any]) -> Pose | None:
+    """The measured pose of a state snapshot (none unless the robot holds or tracks)."""
+    return _pose(state["pose"]) if "pose" in state else None
+
+
+def answer_text(body: dict[str, Any], ok: bool) -> str:
+    """A daemon reply `body` (messages.reply_ok / reply_error) as a ROS 2 answer's text:
+    the result as JSON, or the refusal as "<code>: <reason>"."""
+    if ok:
+        return encode(body["result"]).decode()
+    return f"{body['error']['code']}: {body['error']['reason']}"
 
 
 def status_message(text: str) -> Any:
@@ -169,6 +200,33 @@ def trajectory_body(msg: Any, settings: Ros2Settings, max_waypoints: int) -> dic
             return {"poses": [{k: v for k, v in w.items() if k != "t"} for w in waypoints]}
         return {"waypoints": waypoints}
     return {"waypoints": _multi_dof_waypoints(msg, settings)}
+
+
+def trajectory_request(
+    msg: Any,
+    ident: str | None,
+    settings: Ros2Settings,
+    limits: TrajectoryLimits,
+    timer: Callable[[Path], Trajectory] | None = None,
+) -> TrajectoryRequest | CommandError:
+    """A decoded Path or MultiDOFJointTrajectory (a topic's sample, an action's goal)
+    parsed as request `ident`, or a stampless Path's poses timed by `timer`; or why not:
+    every bad input gets a CommandError that names the problem, never another exception."""
+    try:
+        body = trajectory_body(msg, settings, limits.max_waypoints)
+        if "poses" not in body:
+            head = TrajectoryMessage(ident, None, body, len(body["waypoints"]))
+            return parse_waypoints(head, limits)
+        if timer is None:
+            why = "poses without times are a path, and this interface times none"
+            return CommandError("rejected", f"{msg.__msgtype__}: {why}")
+        head = TrajectoryMessage(ident, None, body, len(body["poses"]), path=True)
+        return time_path_message(head, limits, timer)
+    except CommandError as exc:
+        return exc
+    except Exception as exc:  # a bug must not reach the sender as silence
+        log.exception("decoding a ROS 2 trajectory failed")
+        return CommandError("internal", f"decoding failed: {type(exc).__name__}")
 
 
 def check_waypoint_count(count: int, msgtype: str, max_waypoints: int) -> None:

@@ -46,20 +46,30 @@ rmw_zenoh_cpp/src/detail/qos.cpp @ 5e10d47b06c3fe327105d06a8350be455411ea5b.
 
 from __future__ import annotations
 
+import contextlib
+import logging
+import re
 import struct
+import threading
+import time
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
 import xxhash
-from rosbags.typesys import Stores, get_typestore
+import zenoh
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.base import Nodetype
 
+log = logging.getLogger(__name__)
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 ADMIN_SPACE = "@ros2_lv"
 NODE, PUBLISHER, SUBSCRIPTION, SERVICE_SERVER = "NN", "MP", "MS", "SS"
 TRIGGER, SET_BOOL = "std_srvs/srv/Trigger", "std_srvs/srv/SetBool"
 RMW_ZENOH_DEFAULT_DEPTH = 42  # rmw_zenoh's default history depth (qos.cpp)
 TRANSIENT_LOCAL = 1  # rmw_qos_durability_policy_e (rmw/types.h); VOLATILE (2) is the default
+CANCEL_GOAL = "action_msgs/srv/CancelGoal"  # every action's cancel_goal service
+TIME, UUID = "builtin_interfaces/msg/Time", "unique_identifier_msgs/msg/UUID"
+GOAL_INFO = "action_msgs/msg/GoalInfo"
 GID_SIZE = 16
 _ATTACHMENT = struct.Struct("<qqB16s")
 
@@ -92,8 +102,8 @@ def _service_types(srvtype: str, request: list[Any], response: list[Any]) -> dic
     placeholder field, as on the wire."""
     req, res, event = (f"{srvtype}_{part}" for part in ("Request", "Response", "Event"))
     return {
-        req: ([], request or [("structure_needs_at_least_one_member", _field("uint8"))]),
-        res: ([], response),
+        req: ([], _fields(request)),
+        res: ([], _fields(response)),
         event: (
             [],
             [
@@ -113,27 +123,119 @@ def _service_types(srvtype: str, request: list[Any], response: list[Any]) -> dic
     }
 
 
+def _fields(fields: list[Any]) -> list[Any]:
+    """rosidl gives a struct without fields a placeholder uint8 (and so does the wire)."""
+    return fields or [("structure_needs_at_least_one_member", _field("uint8"))]
+
+
+def action_types(action: str, text: str) -> dict[str, Any]:
+    """rosbags' field definitions of action `action` (pkg/action/Name) from its .action
+    `text` (goal, result and feedback, each in .msg syntax, between lines "---"), and of
+    what rosidl derives from it (rosidl_generator_c's action/detail/*__description.c):
+    <Name>_Goal, _Result, _Feedback; the services _SendGoal (Request: goal_id, goal;
+    Response: accepted, stamp) and _GetResult (Request: goal_id; Response: status,
+    result), each with its Request, Response and Event; _FeedbackMessage (goal_id,
+    feedback); and the action type itself, the struct REP-2016 hashes (goal, result,
+    feedback, send_goal_service, get_result_service, feedback_message)."""
+    parts = re.split(r"^---[ \t]*$", text, flags=re.MULTILINE)
+    if len(parts) != 3:
+        raise ValueError(f"{action}: {len(parts)} parts, an .action has goal---result---feedback")
+    names = [f"{action}_{part}" for part in ("Goal", "Result", "Feedback")]
+    out: dict[str, Any] = {}
+    for name, part in zip(names, parts, strict=True):
+        consts, fields = get_types_from_msg(part, name)[name]
+        out[name] = (consts, _fields(fields))
+    goal, result, feedback = names
+    send_goal, get_result, message = (
+        f"{action}_{part}" for part in ("SendGoal", "GetResult", "FeedbackMessage")
+    )
+    goal_id = ("goal_id", _nested(UUID))
+    out.update(
+        _service_types(
+            send_goal,
+            [goal_id, ("goal", _nested(goal))],
+            [("accepted", _field("bool")), ("stamp", _nested(TIME))],
+        )
+    )
+    out.update(
+        _service_types(
+            get_result, [goal_id], [("status", _field("int8")), ("result", _nested(result))]
+        )
+    )
+    out[message] = ([], [goal_id, ("feedback", _nested(feedback))])
+    out[action] = (
+        [],
+        [
+            ("goal", _nested(goal)),
+            ("result", _nested(result)),
+            ("feedback", _nested(feedback)),
+            ("send_goal_service", _nested(send_goal)),
+            ("get_result_service", _nested(get_result)),
+            ("feedback_message", _nested(message)),
+        ],
+    )
+    return out
+
+
 _EVENT_INFO = "service_msgs/msg/ServiceEventInfo"
-_ANSWER = [("success", _field("bool")), ("message", _field("string"))]  # std_srvs' Response
-_STD_SRVS = {
-    **_service_types(TRIGGER, [], _ANSWER),
-    **_service_types(SET_BOOL, [("data", _field("bool"))], _ANSWER),
-}
-TYPESTORE.register(
-    {name: fields for name, fields in _STD_SRVS.items() if name.endswith(("_Request", "_Response"))}
-)
-_SERVICE_HASHES = get_typestore(Stores.EMPTY)  # Jazzy's ServiceEventInfo, client_gid uint8[16]
-_SERVICE_HASHES.register(
-    {
-        "builtin_interfaces/msg/Time": TYPESTORE.fielddefs["builtin_interfaces/msg/Time"],
-        _EVENT_INFO: (
-            TYPESTORE.fielddefs[_EVENT_INFO][0],
+_HASHES = get_typestore(Stores.EMPTY)  # the types as rosidl hashes them (see register)
+_HASHED: set[str] = set()  # the types whose hash _HASHES gives
+_CARRIED = ("_Request", "_Response", "_Goal", "_Result", "_Feedback", "_FeedbackMessage")
+
+
+def register(types: dict[str, Any]) -> None:
+    """Make derived types (_service_types, action_types) known: those a sample carries
+    (no Event, no service or action struct) in TYPESTORE, for CDR; all of them, with the
+    Jazzy types they refer to, in a store of their own for their hashes, where
+    ServiceEventInfo's client_gid is uint8[16] as rosidl types it (rosbags: char[16])."""
+    TYPESTORE.register({name: fields for name, fields in types.items() if name.endswith(_CARRIED)})
+    needed: set[str] = set()
+    todo = [ref for fields in types.values() for ref in _references(fields)]
+    while todo:
+        name = todo.pop()
+        if name in types or name in needed or name in _HASHES.fielddefs:
+            continue
+        needed.add(name)
+        todo += _references(TYPESTORE.fielddefs[name])
+    known = {name: TYPESTORE.fielddefs[name] for name in needed}
+    if _EVENT_INFO in known:
+        consts, fields = known[_EVENT_INFO]
+        known[_EVENT_INFO] = (
+            consts,
             [
                 (n, (Nodetype.ARRAY, (_field("uint8"), 16)) if n == "client_gid" else d)
-                for n, d in TYPESTORE.fielddefs[_EVENT_INFO][1]
+                for n, d in fields
+            ],
+        )
+    _HASHES.register(known)
+    _HASHES.register(types)
+    _HASHED.update(types)
+
+
+def _references(definition: tuple[Any, list[Any]]) -> list[str]:
+    """The type names the fields of a rosbags definition refer to."""
+    out = []
+    for _name, (kind, detail) in definition[1]:
+        if kind in (Nodetype.ARRAY, Nodetype.SEQUENCE):
+            kind, detail = detail[0]
+        if kind == Nodetype.NAME:
+            out.append(detail)
+    return out
+
+
+_ANSWER = [("success", _field("bool")), ("message", _field("string"))]  # std_srvs' Response
+register(
+    {
+        **_service_types(TRIGGER, [], _ANSWER),
+        **_service_types(SET_BOOL, [("data", _field("bool"))], _ANSWER),
+        **_service_types(
+            CANCEL_GOAL,
+            [("goal_info", _nested(GOAL_INFO))],
+            [
+                ("return_code", _field("int8")),
+                ("goals_canceling", (Nodetype.SEQUENCE, (_nested(GOAL_INFO), 0))),
             ],
         ),
-        **_STD_SRVS,
     }
 )
 
@@ -161,7 +263,7 @@ def dds_type_name(msgtype: str) -> str:
 def type_hash(msgtype: str) -> str:
     """The RIHS01 type hash of message or service type `msgtype` (REP-2016), as rosbags
     computes it (a service's in the store above)."""
-    store = _SERVICE_HASHES if msgtype in _STD_SRVS else TYPESTORE
+    store = _HASHES if msgtype in _HASHED else TYPESTORE
     return store.hash_rihs01(msgtype)
 
 
@@ -238,14 +340,72 @@ def read_attachment(raw: bytes | None) -> Attachment:
     return Attachment(sequence, stamp, source)
 
 
+class Pending:
+    """Service requests taken and not yet answered, by (client GID, sequence number):
+    rmw_zenoh takes no second request of a pair still pending.  Thread-safe."""
+
+    def __init__(self) -> None:
+        self._taken: set[tuple[bytes, int]] = set()
+        self._lock = threading.Lock()
+
+    def take(self, request: Attachment) -> None:
+        """Note `request` taken; WireError if its pair is pending."""
+        pair = (request.source_gid, request.sequence_number)
+        with self._lock:
+            if pair in self._taken:
+                raise WireError("duplicate sequence number")
+            self._taken.add(pair)
+
+    def done(self, request: Attachment) -> None:
+        with self._lock:
+            self._taken.discard((request.source_gid, request.sequence_number))
+
+
+def take_request(
+    query: zenoh.Query, reqtype: str | None, max_bytes: int, pending: Pending
+) -> tuple[Any, Attachment]:
+    """A service request as rmw_zenoh's ServiceData::take_request takes it: its payload
+    decoded as `reqtype` (or its bytes, None: decoded later), and its attachment, noted
+    in `pending` until respond(); WireError, the query to be dropped unanswered, for a
+    payload above `max_bytes`, CDR that does not read, an attachment that is missing or
+    malformed or has a negative sequence number or timestamp, or a pair still pending."""
+    payload, extra = query.payload, query.attachment
+    size = 0 if payload is None else len(payload)
+    if size > max_bytes:
+        raise WireError(f"a request of {size} bytes, above {max_bytes}")
+    raw = b"" if payload is None else payload.to_bytes()
+    msg = raw if reqtype is None else deserialize(raw, reqtype)
+    request = read_attachment(None if extra is None else extra.to_bytes())
+    if request.sequence_number < 0 or request.source_timestamp < 0:
+        raise WireError("negative sequence number or timestamp")
+    pending.take(request)
+    return msg, request
+
+
+def respond(query: zenoh.Query, key: str, response: Any, request: Attachment) -> None:
+    """Answer the taken `request` with `response` (a rosbags message) as rmw_zenoh's
+    ServiceData::send_response does: on the service's `key`, in CDR, the attachment with
+    the request's sequence number and client GID and the server's time.  A client that
+    left meanwhile is no error; the query is done with either way."""
+    extra = attachment(request.sequence_number, time.time_ns(), request.source_gid)
+    try:
+        query.reply(key, serialize(response), attachment=extra)
+    except zenoh.ZError:  # the client gave up (timeout) or left
+        log.debug("ROS 2 service %s: the client left before the reply", key)
+    finally:
+        with contextlib.suppress(zenoh.ZError):
+            query.drop()
+
+
 _PEEKED_NAMES = 64  # joint names read past at most; more: left to the full decoding
 
 
-def sequence_length(raw: bytes, msgtype: str) -> int | None:
+def sequence_length(raw: bytes, msgtype: str, skip: int = 0) -> int | None:
     """The number of poses a nav_msgs/msg/Path, or of points a
     trajectory_msgs/msg/MultiDOFJointTrajectory, declares, read from the first bytes of
     its CDR without decoding it (so that too long a one is refused at the cost of a few
-    reads); None where those bytes do not read so (the full decoding names why).
+    reads), after `skip` bytes (an action goal's 16-byte id before its Path); None where
+    those bytes do not read so (the full decoding names why).
 
     Both begin with a std_msgs/msg/Header (stamp: int32 + uint32; frame_id: uint32
     length with the NUL, the bytes); a MultiDOFJointTrajectory then has joint_names
@@ -254,7 +414,7 @@ def sequence_length(raw: bytes, msgtype: str) -> int | None:
     if len(raw) < 4 or raw[0] != 0 or raw[1] not in (0, 1):
         return None
     u32 = struct.Struct("<I" if raw[1] == 1 else ">I")
-    at = 4 + 8  # the stamp
+    at = 4 + skip + 8  # the stamp
     names = 0
 
     def read() -> int | None:

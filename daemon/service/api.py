@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import math
 import re
-from collections.abc import Awaitable
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Protocol
 
@@ -142,6 +142,12 @@ class DaemonHandler(Protocol):
         The interface publishes the trajectory_accepted / trajectory_rejected event
         itself (with the sender's id); the service does not.
         """
+        ...
+
+    def subscribe(self, sink: Callable[[dict[str, Any]], None]) -> None:
+        """Pass every event from now on to `sink` (the core's and the planner's: state
+        changes, brake, trajectory_done, motion_preempted, ...), as the zenoh interface
+        publishes them: the ROS 2 action server follows its goal by them."""
         ...
 
     async def slack(self) -> None:

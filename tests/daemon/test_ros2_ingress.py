@@ -18,7 +18,7 @@ import zenoh
 
 from daemon.config.ros2_config import Ros2Settings
 from daemon.config.zenoh_config import ZenohSettings, build_zenoh_config
-from daemon.interface import ros2_wire
+from daemon.interface import ros2_action, ros2_wire
 from daemon.interface.ros2_bridge import ingress_limits, service_keys
 from tests.daemon.test_ros2_process import MULTI_DOF, PATH, POSE, STATUS, dds, path
 from tests.daemon.test_zenoh_io import (
@@ -50,6 +50,7 @@ OUTPUTS = {  # the daemon's ROS 2 topics a forger tries
     "robot_description": key("/robot_description", STATUS),
     "tf_static": key("/tf_static", "tf2_msgs/msg/TFMessage"),
     "cables": key("/cables", "visualization_msgs/msg/MarkerArray"),
+    "action_status": key("/fly_path/_action/status", "action_msgs/msg/GoalStatusArray"),
 }
 
 
@@ -83,10 +84,10 @@ def test_with_the_templates_zenoh_section_only_the_daemon_speaks_ros2(
     access_control: bool,
 ) -> None:
     """Another local process publishes on the daemon's ROS 2 topics (pose, diagnostics,
-    trajectory_status, the robot's description, static frames and cables) and declares a
-    second node `cdprd`.  With the template's zenoh
-    section none of it reaches a subscriber, which still gets the daemon's own poses;
-    without its access control (the control case) all of it does."""
+    trajectory_status, the robot's description, static frames, cables and the action's
+    status) and declares a second node `cdprd`.  With the template's zenoh section none
+    of it reaches a subscriber, which still gets the daemon's own poses; without its
+    access control (the control case) all of it does."""
     served = Running(StandIn(), template_zenoh(access_control), ros2=ROS2)
     forger, listener = served.session(), served.session()
     seen: list[tuple[str, bytes]] = []
@@ -142,6 +143,11 @@ def test_the_ros2_trajectory_topics_take_the_trajectory_limit_or_their_own() -> 
     intake = {key("/path", PATH), key("/multi_dof_trajectory", MULTI_DOF)}
     assert all(dds(PATH) in k or dds(MULTI_DOF) in k for k in intake)
     services = set(service_keys(ROS2))
+    # the action's send_goal as a trajectory topic, its cancel_goal and get_result as
+    # services (test_ros2_action.py)
+    action = ros2_action.services(ROS2)
+    intake |= {k for k, (_name, srvtype) in action.items() if srvtype.endswith("_SendGoal")}
+    services |= set(action) - intake
     limited = ZenohSettings(ingress_limits_hz={"trajectory": 5.0, "cmd/*": 20.0})
     assert ingress_limits(ROS2, limited) == {
         **dict.fromkeys(intake, 5.0),

@@ -209,8 +209,13 @@ def _exercise(s: zenoh.Session) -> None:
         ("%lab%cables", "visualization_msgs/msg/MarkerArray", QOS),
     ]:
         assert entities[("MP", topic)][10:] == [dds(msgtype), STORE.hash_rihs01(msgtype), qos]
+    for part in ("send_goal", "cancel_goal", "get_result"):  # the action (test_ros2_action.py)
+        assert ("SS", f"%lab%fly_path%_action%{part}") in entities
+    goals = entities[("MP", "%lab%fly_path%_action%status")]
+    assert goals[10:] == ["action_msgs::msg::dds_::GoalStatusArray_", goals[11], ":1:,1:,:,:,,"]
+    assert ("MP", "%lab%fly_path%_action%feedback") in entities
     ids = [int(p[4]) for p in parts if p[5] != "NN"]
-    assert len(set(ids)) == len(ids) == 18
+    assert len(set(ids)) == len(ids) == 23  # 6 + 3 publishers, 2 subscriptions, 12 services
 
     # -- JointState: the lengths of the JSON state, rmw_zenoh's attachment
     joint_msg, extra = joints.last()

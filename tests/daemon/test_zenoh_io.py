@@ -70,6 +70,7 @@ class StandIn:
         self.slack_waits = 0
         self.pose: Pose | None = Pose((0.0, 0.0, 1.25))  # None: no pose (idle, braked)
         self.tensions = [float("nan")] * 8
+        self.sinks: list[Callable[[dict[str, Any]], None]] = []  # subscribed to its events
 
     def _record(self, *call: Any) -> None:
         self.threads.add(threading.get_ident())
@@ -107,6 +108,9 @@ class StandIn:
 
     async def slack(self) -> None:
         self.slack_waits += 1  # a stand-in: no control cycle, slack at once
+
+    def subscribe(self, sink: Callable[[dict[str, Any]], None]) -> None:
+        self.sinks.append(sink)
 
     def state(self) -> dict[str, Any]:
         self.threads.add(threading.get_ident())
