@@ -1,7 +1,8 @@
 """Beside a ROS 2 graph's zenoh router on 7447 (tests.stand_in_router, set up as rmw_zenohd
 is), `cdprd run --sim` with a shipped config and the one line docs/guide/ros2.md gives
 starts, and a ROS 2 node that reaches the router only (rmw_zenoh's session connects to
-tcp/localhost:7447) drives it: enable by service, a Path flown, brake by service.  The
+tcp/localhost:7447) drives it: enable by service, a Path flown, a goal of the fly_path
+action with feedback cancelled midway (the robot holds), brake by service.  The
 client is written from rmw_zenoh's design (tests/daemon/test_ros2_process.py and
 test_ros2_services.py), not from the project's encoder.
 """
@@ -12,11 +13,21 @@ import json
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import pytest
 import yaml
 import zenoh
 
+from tests.daemon.test_ros2_action import (
+    CANCELED,
+    ERROR_NONE,
+    FEEDBACK,
+    Client,
+    decode,
+    new_id,
+)
+from tests.daemon.test_ros2_action import path as action_path
 from tests.daemon.test_ros2_process import (
     PATH,
     POSE,
@@ -147,6 +158,28 @@ def _drive(s: zenoh.Session) -> None:
         return _state(diagnostics) == "hold" and abs(p.x - target[0]) < 2e-3
 
     wait(arrived, 20.0, "the Path flown")
+
+    # the fly_path action: a long goal with feedback, cancelled midway: the robot holds
+    feedback: list[Any] = []
+    watched = s.declare_subscriber(
+        FEEDBACK, lambda x: feedback.append(decode(x.payload.to_bytes(), "FeedbackMessage"))
+    )
+    client = Client(s, timeout=60.0)
+    goal = new_id()
+    away = [target[0] + 0.15, target[1], target[2]]
+    slow = action_path((0.0, tuple(target)), (8.0, tuple(away)))
+    assert client.send_goal(goal, slow).accepted
+    ending = client.get_result(goal)
+    wait(lambda: bool(feedback) and feedback[-1].feedback.progress > 0.1, 30.0, "feedback")
+    assert client.cancel(goal).return_code == ERROR_NONE
+    ended = ending()
+    watched.undeclare()
+    assert ended.status == CANCELED, ended
+    wait(lambda: _state(diagnostics) == "hold", 10.0, "holding after the cancel")
+    stopped = poses.last()[0].pose.position.x
+    assert target[0] < stopped < away[0]  # midway
+    progress = [f.feedback.progress for f in feedback]
+    assert progress == sorted(progress) and 0.1 < progress[-1] < 1.0
 
     braked = trigger(s, service_key("/brake"), 2)
     assert braked.success, braked.message
