@@ -68,9 +68,9 @@ class Ros2Settings(StrictModel):
     broadcaster's): world_frame -> anchor<k> at each cable's anchor and platform_frame ->
     attachment<k> at each attachment point."""
     cables_topic: str = Field("cables", pattern=_TOPIC)
-    """visualization_msgs/msg/MarkerArray out at rate_hz: each cable a line from its
-    anchor to its attachment point at the measured pose, coloured by tension; deleted
-    while there is no pose."""
+    """visualization_msgs/msg/MarkerArray out at rate_hz, at most 30 Hz: each cable a
+    line from its anchor to its attachment point at the measured pose, coloured by
+    tension; deleted while there is no pose."""
     status_topic: str = Field("trajectory_status", pattern=_TOPIC)
     """std_msgs/msg/String: the verdict on each trajectory received (JSON text)."""
     enable_service: str = Field("enable", pattern=_TOPIC)

@@ -335,7 +335,7 @@ class Ros2Bridge:
             try:
                 state, ns = self._handler.state(), time.time_ns()
                 messages = state_messages(state, self.settings, ns)
-                if self._model is not None:
+                if self._model is not None and self._model.cables_due(ns):
                     messages["cables_topic"] = self._model.cables(state, ns)
                 for name, msg in messages.items():
                     self._publishers[name].put(msg)

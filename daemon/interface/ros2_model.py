@@ -38,6 +38,8 @@ TOPICS = {
     "cables_topic": (MARKERS, 10, False),
 }
 LIFETIME_PERIODS = 3  # a line outlives its publication by this many periods (at least 1 s)
+CABLES_MAX_HZ = 30.0  # the markers at most this often: RViz draws no faster, and at the
+# loop's rate (ros2.rate_hz up to 1000) their ~0.8 ms each would take most of a core
 
 
 class RobotModel:
@@ -47,7 +49,9 @@ class RobotModel:
         self.robot = robot
         self.settings = settings
         self.urdf = robot_urdf(robot, settings)
-        lifetime = max(1.0, LIFETIME_PERIODS / settings.rate_hz)
+        self.cables_period_ns = round(1e9 / min(settings.rate_hz, CABLES_MAX_HZ))
+        self._cables_ns = -self.cables_period_ns  # when they last went out
+        lifetime = max(1.0, LIFETIME_PERIODS * self.cables_period_ns / 1e9)
         empty = np.zeros(0, dtype=np.uint8)
         self._constant = {  # the fields every marker shares, built once
             "pose": message(
@@ -96,6 +100,14 @@ class RobotModel:
                 ],
             ),
         }
+
+    def cables_due(self, ns: int) -> bool:
+        """Whether a snapshot at `ns` publishes the cables (at most CABLES_MAX_HZ; a
+        snapshot a little early, by the loop's jitter, still counts), and if so, mark it."""
+        if ns - self._cables_ns < 0.9 * self.cables_period_ns:
+            return False
+        self._cables_ns = ns
+        return True
 
     def cables(self, state: dict[str, Any], ns: int) -> Any:
         """The cables of one state snapshot as a MarkerArray stamped `ns`: a line each

@@ -461,3 +461,19 @@ def test_the_rviz_config_shows_the_bridges_topics() -> None:
         settings.topic(settings.pose_topic),
         settings.topic(settings.reference_pose_topic),
     }
+
+
+@pytest.mark.parametrize(("rate_hz", "least", "most"), [(20.0, 20, 20), (1000.0, 30, 34)])
+def test_the_cables_go_out_at_the_state_rate_but_at_most_30_hz(
+    rate_hz: float, least: int, most: int
+) -> None:
+    """At the loop's rate (1 kHz) the markers would take most of a core: one second of
+    snapshots at `rate_hz`, with the loop's jitter, publishes them every snapshot below
+    30 Hz and about 30 times above (a snapshot 10 % early still counts: at most 33)."""
+    from daemon.interface.ros2_model import RobotModel
+
+    robot = Robot.from_yaml(ROBOTS["reference8"])
+    model = RobotModel(robot, Ros2Settings(rate_hz=rate_hz))
+    jitter = np.random.default_rng(1).uniform(-0.05, 0.05, int(rate_hz))
+    times = [round((k + j) * 1e9 / rate_hz) for k, j in enumerate(jitter)]
+    assert least <= sum(model.cables_due(ns) for ns in times) <= most
