@@ -79,6 +79,17 @@ def start_daemon(
         return subprocess.Popen(argv, cwd=cwd, env=env, stdout=out, stderr=subprocess.STDOUT)
 
 
+def cdprd(
+    *args: str, timeout: float = 120.0, cwd: Path = ROOT, env: dict[str, str] | None = None
+) -> subprocess.CompletedProcess[str]:
+    """`python -m daemon.cli ARGS` run from `cwd` (default this checkout) in `env`
+    (default: this process's), to its end: its exit code, stdout and stderr."""
+    command = [sys.executable, "-m", "daemon.cli", *args]
+    return subprocess.run(
+        command, cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout
+    )
+
+
 def stop_impatiently(proc: subprocess.Popen, timeout: float = 15.0) -> None:
     """SIGTERM every 20 ms until the process exits, as an impatient operator would."""
     end = time.monotonic() + timeout

@@ -21,15 +21,9 @@ import yaml
 from daemon.interface.client import CdprClient, RequestError
 from daemon.service.calibration_state import state_path
 from tests.loopback import free_port
-from tests.processes import CONFIG, ROOT, connect, finish, start_daemon, wait_status
+from tests.processes import CONFIG, ROOT, cdprd, connect, finish, start_daemon, wait_status
 
 pytestmark = pytest.mark.slow  # the daemon as processes: the slow suites (CI runs them)
-
-
-def cdprd(*args: str, timeout: float = 120.0) -> subprocess.CompletedProcess[str]:
-    """`python -m daemon.cli ARGS` from this checkout, to its end."""
-    command = [sys.executable, "-m", "daemon.cli", *args]
-    return subprocess.run(command, cwd=ROOT, capture_output=True, text=True, timeout=timeout)
 
 
 def config_file(tmp_path: Path, port: int, push: float = 0.0) -> Path:

@@ -19,8 +19,8 @@ import yaml
 from cdpr import Pose, Robot
 from tests import processes
 from tests.conftest import ROBOTS
-from tests.daemon.test_calibrate_cli import cdprd
 from tests.loopback import free_port
+from tests.processes import cdprd
 from tuning.calibration_flight import best_fit, model_frame
 
 pytestmark = pytest.mark.slow  # the daemon as processes: the slow suites (CI runs them)

@@ -18,10 +18,10 @@ from daemon.interface.messages import decode_command
 from daemon.service.api import COMMANDS, CommandError
 from daemon.service.calibration_state import state_path
 from daemon.service.safety import SafetyState, Trigger
-from tests.daemon.test_calibrate_cli import cdprd, config_file
+from tests.daemon.test_calibrate_cli import config_file
 from tests.daemon_stack import DRIVER_CONFIGS, Stack
 from tests.loopback import free_port
-from tests.processes import connect, finish, patient_watchdogs, start_daemon, wait_status
+from tests.processes import cdprd, connect, finish, patient_watchdogs, start_daemon, wait_status
 
 pytestmark = pytest.mark.timeout(120)
 SLACK = [0.0, 0.06, 0.02, 0.05, 0.01, 0.03, 0.04, 0.06]
