@@ -281,7 +281,9 @@ def _output_path(config: DaemonConfig, given: str | None) -> Path:
     return source.with_name(f"{source.stem}.calibrated-{stamp}.yaml")
 
 
-def _solve(robot: Robot, offsets: np.ndarray, samples: list[Sample], progress: bool) -> Calibration:
+def _solve(
+    robot: Robot, offsets: np.ndarray, samples: list[Sample], progress: bool = False
+) -> Calibration:
     """The fit of `samples`, its progress on the live line (`progress`: --progress)."""
     from tuning.calibration import identify
 

@@ -71,8 +71,7 @@ from daemon.interface.ros2_convert import (
     trajectory_request,
 )
 from daemon.interface.zenoh_io import MAX_COMMAND_BYTES, ZenohInterface
-from daemon.service.api import UNNAMED, CommandError, DaemonHandler
-from daemon.service.motion import MOVING
+from daemon.service.api import MOVING, UNNAMED, CommandError, DaemonHandler
 
 log = logging.getLogger(__name__)
 

@@ -21,10 +21,10 @@ import numpy as np
 
 from cdpr import Robot
 from daemon.config.ros2_config import Ros2Settings
+from daemon.interface.robot_drawing import attachments_at, cable_faults, cable_styles
 from daemon.interface.ros2_convert import TF, header
 from daemon.interface.ros2_wire import message
 from daemon.interface.urdf import fixed_frames, robot_urdf
-from daemon.process.scene import attachments_at, cable_faults, cable_styles
 
 STRING = "std_msgs/msg/String"
 MARKER = "visualization_msgs/msg/Marker"

@@ -23,7 +23,7 @@ from typing import NamedTuple
 
 from cdpr import Robot
 from daemon.config.ros2_config import Ros2Settings
-from daemon.process.scene import ANCHOR_COLOR, PLATFORM_COLOR, platform_box
+from daemon.interface.robot_drawing import ANCHOR_COLOR, PLATFORM_COLOR, platform_box
 
 ANCHOR_RADIUS = 0.02  # m: the sphere drawn at an anchor
 ATTACHMENT_RADIUS = 0.01  # m: the sphere drawn at an attachment point

@@ -232,7 +232,8 @@ def _feed(
     view; the core's events to both as log messages.  Stamps are wall-clock times."""
     if telemetry is None and view is None:
         return
-    from daemon.process.scene import SceneBuilder, cable_faults, timing_figures
+    from daemon.interface.robot_drawing import cable_faults
+    from daemon.process.scene import SceneBuilder, timing_figures
 
     n = config.robot.n_cables
     limits = config.pose_limits

@@ -29,6 +29,10 @@ COMMANDS = (
 )  # fmt: skip
 """The command names, each served on `<prefix>/cmd/<name>`."""
 
+MOVING = ("hold", "tracking")
+"""The published safety states in which the robot follows plans (holds or flies): a
+motion runs only in them (daemon.service.motion; SafetyState's values)."""
+
 ERROR_CODES = (
     "bad_request",  # malformed or ill-typed input (the interface says which field)
     "unknown_command",  # not one of COMMANDS

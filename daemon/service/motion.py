@@ -28,12 +28,10 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from daemon.service.api import Claim, CommandError
-from daemon.service.safety import SafetyState
+from daemon.service.api import MOVING, Claim, CommandError
 
 FLIGHTS = ("trajectory", "goto")
 PROCEDURES = ("identify_payload", "home", "pretension")
-MOVING = (SafetyState.HOLD.value, SafetyState.TRACKING.value)  # states that follow plans
 EventSink = Callable[[dict[str, Any]], None]
 
 

@@ -320,3 +320,10 @@ def test_the_runtime_check_brakes_just_outside_what_validation_allows(fenced) ->
     within = Pose(edge.position - np.array([margin - 1e-4, 0.0, 0.0]), edge.quaternion)
     output = base._replace(pose=within, theta_d=liediff(edge, within))
     assert monitor.pose_limits.violation(within) is None and output.feasible
+
+
+def test_the_states_that_follow_plans_are_hold_and_tracking() -> None:
+    """daemon.service.api.MOVING (what the interfaces may know) is SafetyState's."""
+    from daemon.service.api import MOVING
+
+    assert (SafetyState.HOLD.value, SafetyState.TRACKING.value) == MOVING

@@ -14,21 +14,18 @@ import numpy as np
 import pytest
 
 from cdpr import Pose, Robot
+from daemon.interface.robot_drawing import FAULT_COLOR, SLACK_COLOR, cable_faults, tension_color
 from daemon.process.recording import CycleRecord
 from daemon.process.scene import (
-    FAULT_COLOR,
     LOG_TOPIC,
     POSE_TOPIC,
     REFERENCE_POSE_TOPIC,
     SCENE_TOPIC,
     SERIES_SCHEMA,
     SERIES_TOPIC,
-    SLACK_COLOR,
     TF_TOPIC,
     SceneBuilder,
-    cable_faults,
     standard_channels,
-    tension_color,
     timing_figures,
 )
 from tests.foxglove_client import decoder
