@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 # isort: off
@@ -16,6 +17,10 @@ from hypothesis import strategies as st
 from cdpr import Pose, Robot
 
 ROOT = Path(__file__).resolve().parent.parent
+# the daemons the tests start compile no kernels ahead (daemon.process.warm_up): a suite
+# starts hundreds, each a few seconds long, and a warm-up each would be a CPU-bound
+# process beside every flight; tests/daemon/test_warm_up.py turns it on for its own
+os.environ.setdefault("CDPRD_WARM_UP", "0")
 ROBOTS = ROOT / "config" / "robots"
 
 # Deterministic in CI: the same examples every run, no wall-clock deadline on a busy machine.

@@ -30,8 +30,11 @@ def _marker() -> Path:
 
 def start(config_path: str | Path) -> subprocess.Popen[bytes] | None:
     """The warm-up of the kernels for the daemon config at `config_path`, started in
-    the background; None when this cache was warmed before or the config is not a file
-    (it is then compiled at the first path, as before)."""
+    the background; None when this cache was warmed before, the config is not a file,
+    or CDPRD_WARM_UP=0 (a host whose cache is compiled at install, or a test suite that
+    starts a daemon a second: the kernels are then compiled at the first path)."""
+    if os.environ.get("CDPRD_WARM_UP") == "0":
+        return None
     if not Path(config_path).is_file() or _marker().exists():
         return None
     argv = [sys.executable, "-m", __name__, str(config_path)]

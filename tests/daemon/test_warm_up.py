@@ -23,7 +23,7 @@ from tests.processes import CONFIG, ROOT, finish, start_daemon
 def started(cache: Path, config: Path) -> str:
     """What warm_up.start returns, asked in a process whose cache is `cache`."""
     code = "import sys; from daemon.process import warm_up; print(warm_up.start(sys.argv[1]))"
-    env = {**os.environ, "NUMBA_CACHE_DIR": str(cache)}
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(cache), "CDPRD_WARM_UP": "1"}
     run = subprocess.run(
         [sys.executable, "-c", code, str(config)],
         env=env,
@@ -40,6 +40,11 @@ def test_a_config_that_is_no_file_starts_nothing(tmp_path: Path) -> None:
     assert warm_up.start(tmp_path / "absent.yaml") is None
 
 
+def test_cdprd_warm_up_0_starts_nothing(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("CDPRD_WARM_UP", "0")
+    assert warm_up.start(CONFIG) is None
+
+
 def test_a_marked_cache_starts_nothing(tmp_path: Path) -> None:
     marker = tmp_path / f"cdprd-{source_digest()}" / warm_up.MARKER
     marker.parent.mkdir()
@@ -50,7 +55,7 @@ def test_a_marked_cache_starts_nothing(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.timeout(240)
+@pytest.mark.timeout(600)
 def test_a_daemon_on_a_cold_cache_warms_it_for_the_first_path(tmp_path: Path) -> None:
     cache = tmp_path / "numba"
     data = yaml.safe_load(CONFIG.read_text())
@@ -59,12 +64,14 @@ def test_a_daemon_on_a_cold_cache_warms_it_for_the_first_path(tmp_path: Path) ->
     config = tmp_path / "cdprd.yaml"
     config.write_text(yaml.safe_dump(data))
     marker = cache / f"cdprd-{source_digest()}" / warm_up.MARKER
-    proc = start_daemon(config, "--sim", env={**os.environ, "NUMBA_CACHE_DIR": str(cache)})
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(cache), "CDPRD_WARM_UP": "1"}
+    proc = start_daemon(config, "--sim", env=env)
     try:
-        end = time.monotonic() + 200.0  # a cold compile on a loaded 2-vCPU host
+        end = time.monotonic() + 500.0  # a cold compile at nice 19: ~20 s on a quiet
+        # 2-vCPU host, minutes beside other work (it yields to everything)
         while not marker.exists():
-            assert proc.poll() is None, "the daemon stopped"
-            assert time.monotonic() < end, "no warm cache within 200 s"
+            assert proc.poll() is None, f"the daemon stopped: {finish(proc)}"
+            assert time.monotonic() < end, "no warm cache within 500 s"
             time.sleep(0.5)
     finally:
         out = finish(proc)
