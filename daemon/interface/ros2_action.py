@@ -243,22 +243,12 @@ class FlyPathServer:
         reqtype = None if goal else f"{srvtype}_Request"
         cap = self.max_message_bytes if goal else MAX_COMMAND_BYTES
 
-        def serve(query: zenoh.Query) -> None:
-            try:
-                msg, request = wire.take_request(query, reqtype, cap, self._pending)
-            except wire.WireError as exc:
-                log.debug("ROS 2 action %s: request dropped: %s", key, exc)
-                query.drop()  # the client gets no reply, as from rmw_zenoh
-                return
-            except Exception:
-                log.exception("ROS 2 action %s: the request callback failed", key)
-                query.drop()
-                return
+        def taken(query: zenoh.Query, msg: Any, request: wire.Attachment) -> None:
             assert self._loop is not None
             with contextlib.suppress(RuntimeError):  # the loop is closed: shutting down
                 self._loop.call_soon_threadsafe(take, query, key, request, msg)
 
-        return serve
+        return wire.request_server(key, reqtype, cap, self._pending, taken)
 
     # -- send_goal ------------------------------------------------------------------------
 

@@ -393,18 +393,7 @@ class Ros2Bridge:
         its command queued with the zenoh interface's, its arguments checked as theirs."""
         _service, srvtype, command, argument = served
 
-        def serve(query: zenoh.Query) -> None:
-            try:
-                reqtype = f"{srvtype}_Request"
-                msg, request = wire.take_request(query, reqtype, MAX_COMMAND_BYTES, self._pending)
-            except wire.WireError as exc:
-                log.debug("ROS 2 service %s: request dropped: %s", key, exc)
-                query.drop()  # the client gets no reply, as from rmw_zenoh
-                return
-            except Exception:
-                log.exception("ROS 2 service %s: the request callback failed", key)
-                query.drop()
-                return
+        def taken(query: zenoh.Query, msg: Any, request: wire.Attachment) -> None:
             respond = functools.partial(self._respond, query, key, srvtype, request)
             data = {} if argument is None else {argument: bool(msg.data)}
             try:
@@ -414,7 +403,8 @@ class Ros2Bridge:
                 return
             self._interface.offer_command(command, args, respond)
 
-        return serve
+        reqtype = f"{srvtype}_Request"
+        return wire.request_server(key, reqtype, MAX_COMMAND_BYTES, self._pending, taken)
 
     def _respond(
         self,

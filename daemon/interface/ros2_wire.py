@@ -52,6 +52,7 @@ import re
 import struct
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
@@ -380,6 +381,33 @@ def take_request(
         raise WireError("negative sequence number or timestamp")
     pending.take(request)
     return msg, request
+
+
+def request_server(
+    key: str,
+    reqtype: str | None,
+    max_bytes: int,
+    pending: Pending,
+    taken: Callable[[zenoh.Query, Any, Attachment], None],
+) -> Callable[[zenoh.Query], None]:
+    """The queryable callback (zenoh's thread) of service `key`: each request taken as
+    take_request takes it and handed to `taken(query, msg, request)`, or dropped
+    unanswered, as rmw_zenoh drops what it cannot take."""
+
+    def serve(query: zenoh.Query) -> None:
+        try:
+            msg, request = take_request(query, reqtype, max_bytes, pending)
+        except WireError as exc:
+            log.debug("ROS 2 service %s: request dropped: %s", key, exc)
+            query.drop()  # the client gets no reply, as from rmw_zenoh
+            return
+        except Exception:
+            log.exception("ROS 2 service %s: the request callback failed", key)
+            query.drop()
+            return
+        taken(query, msg, request)
+
+    return serve
 
 
 def respond(query: zenoh.Query, key: str, response: Any, request: Attachment) -> None:
