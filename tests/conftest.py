@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from types import ModuleType
 
 # isort: off
 import daemon  # noqa: F401  first: its one BLAS thread is set before numpy loads
@@ -72,14 +73,55 @@ def twists(scale: float = 1.0) -> st.SearchStrategy:
 
 
 HOST_TIMING_RERUNS = 1
+FLIGHT_HARNESSES = frozenset(  # what flies the robot in real time, by qualified name
+    {
+        "tests.daemon_stack.Stack",
+        "tests.daemon_stack.flight_priority",
+        "tests.processes",
+        "tests.processes.serve_simulator",
+        "tests.processes.start_daemon",
+        "tests.processes.enabled_sim",
+        "tests.canopen_robot.CanopenRobot",
+        "daemon.cli.simulated.InProcessSimulator",
+        "daemon.cli.simulated.ProcessSimulator",
+        "tests.host_steal",
+        "tests.host_steal.StealMeter",
+        "tests.host_steal.FreezeWatch",
+    }
+)
+FLIGHTS = pytest.mark.xdist_group("flights")
 
 
+def qualified_name(value: object) -> str | None:
+    """A module's name, or a class's or function's module and qualified name."""
+    if isinstance(value, ModuleType):
+        return value.__name__
+    module, name = getattr(value, "__module__", None), getattr(value, "__qualname__", None)
+    return f"{module}.{name}" if isinstance(module, str) and isinstance(name, str) else None
+
+
+def flies(module: ModuleType) -> bool:
+    """The test module flies the robot in real time: it holds one of FLIGHT_HARNESSES."""
+    return any(qualified_name(value) in FLIGHT_HARNESSES for value in vars(module).values())
+
+
+@pytest.hookimpl(tryfirst=True)  # before pytest-xdist's, which reads the xdist_group marks
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     """A test marked host_timing flies in real time with several threads or processes on
     a shared host (the canopen harness, the daemon as processes, the UML guest): a
     hypervisor's stall or a starved thread can brake it where the daemon did nothing
     wrong.  Such a test runs again once when it fails (pytest-rerunfailures); a defect
-    fails both runs, and the rerun shows in the summary ("1 rerun")."""
+    fails both runs, and the rerun shows in the summary ("1 rerun").
+
+    Under pytest-xdist (`-n auto`, `--dist loadgroup` from pyproject's addopts) the tests
+    of a module that flies (`flies`) and those marked host_timing run in one group: on
+    one worker, one at a time, as in a plain run, for two flights side by side starve
+    each other's threads and brake.  The group also keeps the fixed ports some take
+    (7447 and 7448 in tests/daemon/test_ros2_router.py) to one test at a time."""
     for item in items:
-        if item.get_closest_marker("host_timing") is not None:
+        timing = item.get_closest_marker("host_timing") is not None
+        if timing:
             item.add_marker(pytest.mark.flaky(reruns=HOST_TIMING_RERUNS))
+        module = getattr(item, "module", None)
+        if timing or (module is not None and flies(module)):
+            item.add_marker(FLIGHTS)

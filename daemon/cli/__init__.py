@@ -21,7 +21,7 @@ from daemon.cli import (
     workspace_cmd,
 )
 from daemon.cli.exit_codes import EXIT_FAILED, EXIT_OK, codes_of, epilog
-from daemon.cli.output import add_json_flag, print_result
+from daemon.cli.output import CommandParser, add_json_flag, print_result
 from daemon.config import check_workspace
 from daemon.config.watchdog_drift import FORMULA
 from daemon.config.zenoh_config import answers, taken
@@ -180,7 +180,7 @@ def config_summary(
 def command_parser() -> argparse.ArgumentParser:
     """The `cdprd` command line, every subcommand (also the source of the CLI reference,
     daemon.cli.reference)."""
-    parser = argparse.ArgumentParser(
+    parser = CommandParser(
         prog="cdprd", description="Hardware-interface daemon for cable-driven parallel robots."
     )
     sub = parser.add_subparsers(dest="command", required=True)

@@ -40,7 +40,7 @@ from cdpr.control_spec import DEFAULT_PID, ControllerSpec, parse_controller
 from cdpr.controller import static_tensions, tension_solver
 from cdpr.description import load_yaml
 from daemon.cli.gain_check import law
-from daemon.cli.output import add_json_flag, plain, print_result
+from daemon.cli.output import add_json_flag, plain, print_error, print_result
 from daemon.cli.progress import add_progress_flag, progress_line
 from daemon.cli.run_cmd import report
 
@@ -83,7 +83,8 @@ def run(args: argparse.Namespace) -> int:
             write_plots(analysis, Path(args.plot), robot, spec, args.config) if args.plot else []
         )
     except OSError as exc:
-        print(f"error: cannot write plots to {args.plot}: {exc.strerror or exc}", file=sys.stderr)
+        reason = f"cannot write plots to {args.plot}: {exc.strerror or exc}"
+        print_error("not_written", reason, args.json)
         return 1
     print_result(
         to_json(analysis, args.config, args.shrink, plots),

@@ -8,6 +8,15 @@ takes the control cycle's CPU); the daemon starts held, and a zenoh client on lo
 not the daemon's estimate: the simulator's true pose every 20 ms against the reference
 the controller followed at that instant), the cable tensions and the cycle timing, and
 optionally plots them.
+
+--json prints one object on stdout (the live-view line goes to stderr): robot, cables,
+protocol, rate_hz, zenoh, trajectory {shape, duration_s, peak_speed_m_s, wobble_deg},
+tracking_error {definition, rms_mm, max_mm, orientation_rms_deg, orientation_max_deg},
+tensions {min_n, max_n, slack_events}, cycle (the daemon's cycle statistics: cycles,
+deadline_misses, overruns, bus_errors, and p50_us/p99_us/max_us of jitter, compute,
+prepare and latency, feedback->command), final_state, telemetry, plot, drawing (the
+files written, or null).  A demo that ends not holding or off by RMS 5 mm or more exits
+1 with its figures; one that did not complete prints {"error": ...} and exits 1.
 Like `analyze`, this command imports sim_bus (the documented exception, DESIGN §2).
 """
 
@@ -29,6 +38,8 @@ import numpy as np
 from cdpr import ConfigError, Pose
 from cdpr.controller import ControlOutput
 from cdpr.trajectory import Trajectory
+from daemon.cli.exit_codes import EXIT_FAILED
+from daemon.cli.output import add_json_flag, print_error, print_result
 from daemon.cli.run_cmd import add_interface_options, interface_edit, report
 from daemon.config import DaemonConfig, load_config
 from daemon.process.logsetup import configure_logging
@@ -39,6 +50,12 @@ if TYPE_CHECKING:
     from tuning.tracking import TrackingFigures
 
 DEFAULT_CONFIG = Path(__file__).resolve().parents[2] / "config" / "reference8-cia402.yaml"
+PEAK_SPEED = 0.5  # m/s: the figure-eight's
+WOBBLE_DEG = 10.0  # its tilt, +-
+TRACKING_ERROR = (
+    "the simulated platform's true pose (the simulator's, every 20 ms) against the "
+    "reference the controller followed at the same instant, while the trajectory runs"
+)
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -51,17 +68,19 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     demo.add_argument("--plot", metavar="PNG", help="write a plot of the run")
     demo.add_argument("--log-level", default="error")
     add_interface_options(demo)
+    add_json_flag(demo)
     demo.set_defaults(handler=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    """Fly the demo and print its figures (text, or JSON with --json)."""
     try:
         configure_logging(args.log_level)
         config = _loopback_config(Path(args.config), interface_edit(args))
     except ConfigError as exc:
-        report(exc)
-        return 1
-    return asyncio.run(_demo(config, Path(args.config), args.plot))
+        report(exc, args.json)
+        return EXIT_FAILED
+    return asyncio.run(_demo(config, Path(args.config), args.plot, args.json))
 
 
 def _loopback_config(
@@ -86,11 +105,11 @@ def _loopback_config(
     return load_config(path, loopback)
 
 
-async def _demo(config: DaemonConfig, path: Path, plot: str | None) -> int:
+async def _demo(config: DaemonConfig, path: Path, plot: str | None, as_json: bool) -> int:
     from daemon.cli.simulated import ProcessSimulator
     from tuning.scenarios import figure_eight
 
-    trajectory = figure_eight(config.robot)
+    trajectory = figure_eight(config.robot, PEAK_SPEED, WOBBLE_DEG)
     result: dict[str, Any] = {}
     sources: list[tuple[float, Any]] = []  # (from, what the controller followed)
 
@@ -113,6 +132,7 @@ async def _demo(config: DaemonConfig, path: Path, plot: str | None) -> int:
         print(
             f"live view: ws://{view.host}:{view.port} (Foxglove: open a connection, then "
             "the layout config/foxglove-layout.json)",
+            file=sys.stderr if as_json else sys.stdout,
             flush=True,
         )
     client = await _start_client()
@@ -120,31 +140,33 @@ async def _demo(config: DaemonConfig, path: Path, plot: str | None) -> int:
         simulator = ProcessSimulator(config, path)
         code = await simulator.serve(after_start=fly)
     except (ConfigError, RuntimeError) as exc:
-        print(f"demo: {exc}", file=sys.stderr)
-        return 1
+        print_error("failed", str(exc), as_json, prefix="demo")
+        return EXIT_FAILED
     finally:
         if client.returncode is None:  # the daemon stopped before the flight
             client.kill()
             await client.wait()
     if "client" not in result:
-        print("demo did not complete", file=sys.stderr)
-        return 1
+        print_error("failed", "the flight did not complete", as_json, prefix="demo")
+        return EXIT_FAILED
     samples = _truth_samples(simulator.truth, result["t0"], sources)
     start = result["client"]["start"]
     figures = _summary(samples, start, start + trajectory.duration)
     if figures is None:
-        print("demo: no control cycle while the trajectory ran", file=sys.stderr)
-        return 1
-    _print(config, result, figures, trajectory.duration)
+        reason = "no control cycle while the trajectory ran"
+        print_error("failed", reason, as_json, prefix="demo")
+        return EXIT_FAILED
+    summary, lines = _report(config, result, figures, trajectory.duration)
+    written: dict[str, str | None] = {"telemetry": None, "plot": plot, "drawing": None}
     if config.recording.telemetry:
-        print(f"telemetry recorded to {_latest_recording(Path(config.recording.telemetry))}")
+        written["telemetry"] = str(_latest_recording(Path(config.recording.telemetry)))
     if plot:
         _plot(samples, Path(plot))
-        print(f"plot written to {plot}")
-        drawing = _plot_3d(config, samples, Path(plot))
-        print(f"3-D view at the largest tension written to {drawing}")
+        written["drawing"] = str(_plot_3d(config, samples, Path(plot)))
+    human = lines + _written_lines(written)
+    print_result({**summary, **written}, as_json, lambda: print("\n".join(human)))
     ok = result["state"] == "hold" and figures.rms_mm < 5.0
-    return code if ok else 1
+    return code if ok else EXIT_FAILED
 
 
 def _latest_recording(path: Path) -> Path:
@@ -207,34 +229,67 @@ def _summary(samples, t0: float, t1: float) -> TrackingFigures | None:
     return tracking_figures([s[1] for s in window], [s[2] for s in window], [s[3] for s in window])
 
 
-def _print(
+def _report(
     config: DaemonConfig, result: dict[str, Any], f: TrackingFigures, duration: float
-) -> None:
+) -> tuple[dict[str, Any], list[str]]:
+    """The run's figures by key (--json), and the lines a person reads, each built
+    beside its figures."""
     stats = result["stats"]
-    print(
+    endpoint = config.zenoh.listen_endpoints[0]
+    summary = {
+        "robot": config.robot.name,
+        "cables": config.robot.n_cables,
+        "protocol": config.drives.protocol,
+        "rate_hz": config.controller.rate_hz,
+        "zenoh": endpoint,
+        "trajectory": {
+            "shape": "figure-eight",
+            "duration_s": duration,
+            "peak_speed_m_s": PEAK_SPEED,
+            "wobble_deg": WOBBLE_DEG,
+        },
+        "tracking_error": {
+            "definition": TRACKING_ERROR,
+            "rms_mm": f.rms_mm,
+            "max_mm": f.max_mm,
+            "orientation_rms_deg": f.rms_deg,
+            "orientation_max_deg": f.max_deg,
+        },
+        "tensions": {
+            "min_n": f.min_tension,
+            "max_n": f.max_tension,
+            "slack_events": f.slack_events,
+        },
+        "cycle": stats,
+        "final_state": result["state"],
+    }
+    lines = [
         f"cdprd demo: {config.robot.name}, {config.robot.n_cables} {config.drives.protocol} "
-        f"drives on the simulator, {config.controller.rate_hz:g} Hz, "
-        f"zenoh on {config.zenoh.listen_endpoints[0]}"
-    )
-    print(
-        f"figure-eight, {duration:.1f} s, 0.5 m/s peak, ±10 deg wobble: "
-        "trajectory accepted over zenoh"
-    )
-    print(
+        f"drives on the simulator, {config.controller.rate_hz:g} Hz, zenoh on {endpoint}",
+        f"figure-eight, {duration:.1f} s, {PEAK_SPEED:g} m/s peak, ±{WOBBLE_DEG:g} deg wobble: "
+        "trajectory accepted over zenoh",
         f"tracking error (simulated platform vs reference, same instant): RMS {f.rms_mm:.2f} mm, "
-        f"max {f.max_mm:.2f} mm, orientation RMS {f.rms_deg:.3f} deg"
-    )
-    print(
+        f"max {f.max_mm:.2f} mm, orientation RMS {f.rms_deg:.3f} deg",
         f"cable tensions: {f.min_tension:.0f} .. {f.max_tension:.0f} N, "
-        f"slack events {f.slack_events}"
-    )
-    print(
+        f"slack events {f.slack_events}",
         f"cycle: {stats['cycles']} cycles, compute p50/p99 {stats['compute']['p50_us']:.0f}/"
         f"{stats['compute']['p99_us']:.0f} us, feedback->command p50/p99 "
         f"{stats['latency']['p50_us']:.0f}/{stats['latency']['p99_us']:.0f} us, "
-        f"deadline misses {stats['deadline_misses']}, overruns {stats['overruns']}"
-    )
-    print(f"final state: {result['state']}")
+        f"deadline misses {stats['deadline_misses']}, overruns {stats['overruns']}",
+        f"final state: {result['state']}",
+    ]
+    return summary, lines
+
+
+def _written_lines(written: dict[str, str | None]) -> list[str]:
+    """The files the run wrote, a line each."""
+    lines = []
+    if written["telemetry"]:
+        lines.append(f"telemetry recorded to {written['telemetry']}")
+    if written["plot"]:
+        lines.append(f"plot written to {written['plot']}")
+        lines.append(f"3-D view at the largest tension written to {written['drawing']}")
+    return lines
 
 
 def _plot(samples, path: Path) -> None:

@@ -63,7 +63,11 @@ COMMAND_CODES: dict[str, dict[int, str]] = {  # the commands that are not daemon
         "manager to restart it",
     },
     "sim": {EXIT_OK: "stopped", EXIT_FAILED: "a config with problems", EXIT_USAGE: "bad arguments"},
-    "demo": {EXIT_OK: "the demo ran", EXIT_FAILED: "it did not complete (the reason is printed)"},
+    "demo": {
+        EXIT_OK: "the demo ran",
+        EXIT_FAILED: "it did not complete (the reason is printed), or it did not end holding "
+        "within 5 mm RMS (its figures are printed)",
+    },
     "completion": {EXIT_OK: "printed"},
 }
 

@@ -56,7 +56,7 @@ import yaml
 
 from cdpr import ConfigError
 from daemon.cli.exit_codes import EXIT_ABORTED, EXIT_OK
-from daemon.cli.output import add_json_flag, print_result
+from daemon.cli.output import add_json_flag, print_error, print_result
 from daemon.cli.run_cmd import load_checked, report
 from daemon.config import DaemonConfig
 from daemon.process.app import close_bus, open_bus
@@ -109,10 +109,11 @@ def run(args: argparse.Namespace) -> int:
     from tuning.workspace_analysis import analyse
 
     if args.lockstep and not args.sim:
-        print("error: --lockstep runs the simulator in simulated time: add --sim", file=sys.stderr)
+        reason = "--lockstep runs the simulator in simulated time: add --sim"
+        print_error("usage", reason, args.json)
         return 1
     if args.plot and not Path(args.plot).resolve().parent.is_dir():
-        print(f"error: --plot {args.plot}: no such directory", file=sys.stderr)
+        print_error("usage", f"--plot {args.plot}: no such directory", args.json)
         return 1
     request = Request(
         drive=args.drive,
@@ -135,7 +136,7 @@ def run(args: argparse.Namespace) -> int:
         config.drives.single(args.drive)
         simulated = _simulated(config) if args.lockstep else None
     except (ValueError, ConfigError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
+        print_error("usage", str(exc), args.json)
         return 1
     say = _say
     where = "simulated time" if args.lockstep else ("in-process simulator" if args.sim else "bus")
@@ -171,7 +172,7 @@ def run(args: argparse.Namespace) -> int:
     if args.check_loads:
         checks = _check_loads(args, config, request, simulated, model, gains, say)
         if checks is None:
-            print("error: standard input ended before the next load was hung", file=sys.stderr)
+            print_error("failed", "standard input ended before the next load was hung", args.json)
             return 1
         out["checks"] = [
             {**c._replace(abort=None)._asdict(), "abort": None if c.abort is None else str(c.abort)}
@@ -186,7 +187,8 @@ def run(args: argparse.Namespace) -> int:
         try:
             write_tune_plot(Path(args.plot), result.record, setup, model, gains)
         except OSError as exc:
-            print(f"error: cannot write {args.plot}: {exc.strerror or exc}", file=sys.stderr)
+            reason = f"cannot write {args.plot}: {exc.strerror or exc}"
+            print_error("not_written", reason, args.json)
             return 1
         out["plot"] = args.plot
     print_result(out, args.json, lambda: _print(out))

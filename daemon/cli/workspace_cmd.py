@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -30,7 +29,7 @@ from cdpr import ConfigError, Robot
 from cdpr.body import Environment
 from cdpr.description import load_yaml
 from cdpr.workspace_map import WorkspaceMap
-from daemon.cli.output import add_json_flag, print_result
+from daemon.cli.output import add_json_flag, print_error, print_result
 from daemon.cli.run_cmd import report
 from daemon.config import DaemonConfig, SafetyConfig, load_config, workspace_box
 from daemon.config.workspace_config import WorkspaceConfig
@@ -124,7 +123,12 @@ def run(args: argparse.Namespace) -> int:
         return 1
     workspace = compute_map(robot, lower, upper, environment, settings)
     summary = workspace.summary()
-    saved = _save(workspace, args.output, config)
+    target = _map_path(args.output, config)
+    try:
+        saved = _save(workspace, target)
+    except OSError as exc:
+        print_error("not_written", f"cannot save the workspace map to {target}: {exc}", args.json)
+        return 1
     if args.png:
         from tuning.workspace_map import plot_slices
 
@@ -218,16 +222,17 @@ def _checked(given: float | None, flag: str, positive: bool = False) -> float | 
     return given
 
 
-def _save(workspace: Any, output: str | None, config: DaemonConfig | None) -> str | None:
-    target = Path(output) if output else (config.workspace_map_path() if config else None)
+def _map_path(output: str | None, config: DaemonConfig | None) -> Path | None:
+    """Where the map goes: --output, else the config's (None: a robot file alone)."""
+    return Path(output) if output else (config.workspace_map_path() if config else None)
+
+
+def _save(workspace: WorkspaceMap, target: Path | None) -> str | None:
+    """The map saved at `target` (its directory made), its path; None saves nothing."""
     if target is None:
         return None
-    try:
-        target.parent.mkdir(parents=True, exist_ok=True)
-        workspace.save(target)
-    except OSError as exc:
-        print(f"error: cannot save the workspace map to {target}: {exc}", file=sys.stderr)
-        return None
+    target.parent.mkdir(parents=True, exist_ok=True)
+    workspace.save(target)
     return str(target)
 
 

@@ -1,13 +1,16 @@
 """What `cdprd` commands print: --json (one object on stdout, the daemon's reply as a
-stand-in daemon sent it; errors as {"error": ...}), the progress line (a fake clock),
-`send --wait` following a short flight to its end or its brake, the exit codes in
-every command's --help."""
+stand-in daemon sent it, the demo's figures; errors as {"error": ...}, argparse's
+refusals too), the progress line (a fake clock), `send --wait` following a short flight
+to its end or its brake, the exit codes in every command's --help."""
 
 from __future__ import annotations
 
 import asyncio
 import io
 import json
+import logging
+import subprocess
+import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -26,6 +29,7 @@ from daemon.cli.exit_codes import codes_of
 from daemon.cli.progress import ProgressLine, render
 from daemon.config import load_config
 from tests.daemon.test_zenoh_io import TRAJECTORY, Running, StandIn, cli
+from tests.loopback import free_port
 
 ROOT = Path(__file__).resolve().parents[2]
 CONFIG = ROOT / "config" / "reference8-cia402.yaml"
@@ -268,6 +272,137 @@ def test_check_config_json_names_the_problems(
     assert main(["check-config", str(bad)]) == 1  # without --json: each on stderr
     captured = capsys.readouterr()
     assert captured.out == "" and captured.err.startswith(f"error: {bad}")
+
+
+# -- usage and config errors with --json -------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("argv", "words"),
+    [
+        (["analyze", "--config", str(CONFIG), "--grid", "99"], "--grid must be between 2 and 20"),
+        (["analyze", "--grid", "3"], "the following arguments are required: --config"),
+        (["tune", "--config", str(CONFIG), "--check-loads", "x"], "expected masses in kg"),
+        (["workspace", "--config", str(CONFIG), "--step", "abc"], "invalid float value: 'abc'"),
+        (["demo", "--plot"], "argument --plot: expected one argument"),
+        (["status", "--timeout", "soon"], "invalid float value: 'soon'"),
+    ],
+    ids=["analyze-range", "analyze-missing", "tune", "workspace", "demo", "client"],
+)
+def test_argument_errors_with_json_are_one_object_on_stdout(
+    argv: list[str], words: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """argparse's own refusals: with --json an error object on stdout and nothing on
+    stderr; without, argparse's usage and message on stderr.  Exit code 2 either way."""
+    with pytest.raises(SystemExit) as exited:
+        main([*argv, "--json"])
+    assert exited.value.code == 2
+    out, err = out_json(capsys)
+    assert out["error"]["code"] == "usage" and words in out["error"]["reason"]
+    assert err == ""
+    with pytest.raises(SystemExit) as exited:
+        main(argv)
+    assert exited.value.code == 2
+    captured = capsys.readouterr()
+    assert captured.out == ""
+    assert captured.err.startswith("usage: cdprd") and "error: " in captured.err
+    assert words in captured.err
+
+
+@pytest.fixture
+def root_logger_kept() -> Iterator[None]:
+    """The root logger's handlers and level restored after the test (`demo` sets up the
+    daemon's logging in this process)."""
+    root = logging.getLogger()
+    handlers, level = list(root.handlers), root.level
+    yield
+    for handler in [h for h in root.handlers if h not in handlers]:
+        root.removeHandler(handler)
+    root.setLevel(level)
+
+
+@pytest.mark.usefixtures("root_logger_kept")
+def test_analyze_tune_workspace_and_demo_name_a_bad_config_as_json(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("name: nothing\n")
+    for command in ("analyze", "tune", "workspace", "demo"):
+        assert main([command, "--config", str(bad), "--json"]) == 1, command
+        out, err = out_json(capsys)
+        assert out["error"]["code"] == "invalid_config", command
+        assert all(str(bad) in problem for problem in out["error"]["problems"]), command
+        assert err == "", command
+
+
+def test_tune_analyze_and_workspace_refusals_are_error_objects_with_json(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Each refusal after the arguments parsed: {"error": ...} on stdout, exit code 1,
+    and without --json the same reason on stderr."""
+    blocker = tmp_path / "file"  # a file where a directory should be
+    blocker.write_text("")
+    robot = str(ROOT / "config" / "robots" / "reference8.yaml")
+    tune = ["tune", "--config", str(CONFIG)]
+    cases = [
+        ([*tune, "--lockstep"], "usage", "--lockstep runs the simulator in simulated time"),
+        ([*tune, "--plot", str(tmp_path / "no" / "t.png")], "usage", "t.png: no such directory"),
+        ([*tune, "--drive", "99"], "usage", "--drive 99: the robot has cables 0..7"),
+        (
+            ["analyze", "--config", robot, "--grid", "2", "--plot", str(blocker)],
+            "not_written",
+            f"cannot write plots to {blocker}: ",
+        ),
+        (
+            ["workspace", "--config", robot, "--step", "0.3", "--output", str(blocker / "m")],
+            "not_written",
+            f"cannot save the workspace map to {blocker / 'm'}: ",
+        ),
+    ]
+    for argv, code, words in cases:
+        assert main([*argv, "--json"]) == 1, argv
+        out, err = out_json(capsys)
+        assert out["error"]["code"] == code and words in out["error"]["reason"], argv
+        assert err == "", argv
+        assert main(argv) == 1, argv
+        captured = capsys.readouterr()
+        assert captured.out == "" and captured.err.startswith("error: "), argv
+        assert words in captured.err, argv
+
+
+@pytest.mark.slow  # the demo flown, 20-30 s
+@pytest.mark.timeout(120)
+def test_demo_json_is_one_object_with_the_figures_it_prints() -> None:
+    """`cdprd demo --json` as a process: stdout one object (the tracking error with its
+    definition, the tensions, the daemon's cycle statistics), the live view's address on
+    stderr."""
+    view = free_port()
+    run = subprocess.run(
+        [sys.executable, "-m", "daemon.cli", "demo", "--json", "--view", f"127.0.0.1:{view}"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=100,
+    )
+    assert run.returncode == 0, run.stdout + run.stderr
+    [line] = run.stdout.splitlines()
+    out = json.loads(line)
+    assert out["robot"] == "reference8" and out["cables"] == 8 and out["final_state"] == "hold"
+    trajectory = out["trajectory"]
+    assert trajectory["shape"] == "figure-eight" and trajectory["duration_s"] > 5.0
+    error = out["tracking_error"]
+    assert "same instant" in error["definition"]
+    assert 0.0 < error["rms_mm"] <= error["max_mm"] and error["rms_mm"] < 2.0
+    assert 0.0 < error["orientation_rms_deg"] <= error["orientation_max_deg"]
+    assert out["tensions"]["slack_events"] == 0
+    assert 0.0 < out["tensions"]["min_n"] < out["tensions"]["max_n"]
+    cycle = out["cycle"]
+    assert cycle["cycles"] >= trajectory["duration_s"] * cycle["rate_hz"]  # flown throughout
+    assert cycle["deadline_misses"] >= 0 and cycle["overruns"] >= 0
+    assert 0.0 < cycle["compute"]["p50_us"] <= cycle["compute"]["p99_us"]
+    assert cycle["latency"]["p50_us"] <= cycle["latency"]["p99_us"]
+    assert (out["plot"], out["drawing"], out["telemetry"]) == (None, None, None)
+    assert f"live view: ws://127.0.0.1:{view}" in run.stderr
 
 
 # -- send --wait ------------------------------------------------------------------------
