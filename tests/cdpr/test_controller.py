@@ -271,6 +271,7 @@ def test_a_source_followed_from_a_time_takes_over_then(reference8: Robot) -> Non
 GOAL_MM = {"figure_eight": 0.10, "vertical_lift": 0.08, "edge_move": 0.15}
 
 
+@pytest.mark.slow  # over 4.5 s
 @pytest.mark.parametrize("scenario", sorted(STANDARD_SET))
 def test_the_command_lead_cuts_the_tracking_error(reference8: Robot, scenario: str) -> None:
     """Evaluated for the middle of the interval it acts over (auto: half a period plus

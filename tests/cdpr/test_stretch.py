@@ -32,6 +32,7 @@ def right_rms(reference8: Robot) -> dict[str, float]:
     return {name: fly(reference8, SPEC, 1.0, name)["rms_mm"] for name in STANDARD_SET}
 
 
+@pytest.mark.slow  # over 4.5 s
 @pytest.mark.parametrize("factor", [0.5, 0.6, 1.5, 2.0])
 def test_enables_and_flies_with_a_wrong_stiffness(
     reference8: Robot, right_rms: dict[str, float], factor: float
@@ -67,6 +68,7 @@ def test_the_estimate_converges_in_flight(reference8: Robot) -> None:
     assert estimates[-1] == pytest.approx(0.8, rel=0.01)
 
 
+@pytest.mark.slow  # over 4.5 s
 @pytest.mark.parametrize("factor", [0.5, 2.0])
 def test_a_5_mm_length_fault_is_still_caught(reference8: Robot, factor: float) -> None:
     """With the stiffness identified the residual of a sound flight is micrometres at

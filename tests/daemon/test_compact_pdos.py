@@ -67,6 +67,7 @@ async def fly(config: DaemonConfig) -> tuple[float, dict[str, list[can.Message]]
                 spy.bus.shutdown()
 
 
+@pytest.mark.slow  # over 4.5 s
 def test_the_compact_layout_flies_on_two_buses_as_the_default_does_within_the_goal() -> None:
     errors, loads = {}, {}
     with FreezeWatch() as freezes:

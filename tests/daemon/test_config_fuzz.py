@@ -331,6 +331,7 @@ def test_no_traceback_and_no_silent_coercion_in_hundreds_of_mutated_configs(
     assert CASES // 20 < accepted < CASES // 2  # both verdicts are exercised
 
 
+@pytest.mark.slow  # over 4.5 s
 @pytest.mark.timeout(120)
 def test_check_config_as_a_process_agrees_with_the_in_process_verdicts(tmp_path: Path) -> None:
     """Every 100th case through `python -m daemon.cli check-config`: the same exit code and

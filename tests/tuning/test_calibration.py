@@ -438,6 +438,7 @@ def test_the_calibration_flight_flies_with_the_files_platform() -> None:
     assert fault == "" and len(samples) == 3
 
 
+@pytest.mark.slow  # over 4.5 s
 def test_the_calibration_flight_holds_the_wrench_observer_out_of_the_loop() -> None:
     """The external wrench observer held (as `cdprd calibrate` does), the flight records
     exactly what it does without one: the geometry error left to the integral action,

@@ -140,6 +140,7 @@ def test_tune_identifies_a_winch_over_the_bus_in_real_time(tmp_path: Path) -> No
     assert report["gains"]["ok"]
 
 
+@pytest.mark.slow  # over 4.5 s
 def test_a_slack_cable_over_the_bus_brakes_and_says_why(tmp_path: Path) -> None:
     sim_config, data = configs(tmp_path, 5.0)
     sim, port, channel = serve_simulator(sim_config, "--fault-input")
