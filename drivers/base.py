@@ -346,12 +346,16 @@ class Actuation(enum.Enum):
     POSITION = "position"  # servo to `VirtualDrive.target_length`, plus `force` feed-forward
 
 
+def _unheeded() -> None:
+    """No simulator routes this drive's frames yet."""
+
+
 class VirtualDrive(ABC):
     """Device side of one drive, for the simulator: the drive's state machine,
     watchdog and heartbeat, answering frames as the real drive would.
 
     The simulator calls `measure` with the winch's true drum length and rate every
-    plant step, `on_frame` for every frame on the bus, and `on_tick` at least every
+    plant step, `on_frame` for every frame on the bus it `hears`, and `on_tick` at least every
     millisecond; it applies `actuation`, `force`, `target_length` and `brake_engaged`
     to the winch.  `glitch` (m) is added to the length the drive reports, in its
     feedback frames only: a corrupted feedback channel; its own position loop keeps
@@ -371,6 +375,14 @@ class VirtualDrive(ABC):
         self.length = 0.0  # m, the encoder's view, set by measure()
         self.rate = 0.0
         self.glitch = 0.0  # m added to the reported length (a fault the simulator injects)
+        # called when the set of CAN ids `hears` accepts changes (the simulator's routes)
+        self.routes_changed: Callable[[], None] = _unheeded
+
+    def hears(self, can_id: int) -> bool:
+        """Whether a frame of this standard `can_id` can concern the drive (its simulator
+        hands it no others; default: every frame).  A drive whose answer changes calls
+        `routes_changed()`."""
+        return True
 
     def measure(self, length: float, rate: float) -> None:
         """The winch's drum length (m) and rate (m/s) as the drive's encoder sees them."""

@@ -137,6 +137,10 @@ class VirtualRobot:
         self._applied: list[Actuation | None] = [None] * self.n
         self._brakes: list[bool | None] = [None] * self.n
         self._step = self.plant.config.step
+        # (bus, CAN id; -1 extended or error frame) -> the drives that hear it
+        self._listeners: dict[tuple[str | None, int], list[int]] = {}
+        for drive in self.drives:
+            drive.routes_changed = self._listeners.clear
         self._measure()
         self._apply()
 
@@ -167,14 +171,30 @@ class VirtualRobot:
         now = self.plant.time
         if t > now and message.arbitration_id == SYNC_ID and not message.is_extended_id:
             self._measure(t - now)  # the drives latch at the SYNC's instant, between steps
-        buses = self.buses
-        for k, drive in enumerate(self.drives):
-            if self.silent[k] or (buses is not None and buses[k] != message.channel):
+        drives, silent = self.drives, self.silent
+        for k in self._hearing(message):
+            if silent[k]:
                 continue
-            frames = drive.on_frame(message, now)
+            frames = drives[k].on_frame(message, now)
             if frames:
                 out.extend(self._from(k, frames))
         return out
+
+    def _hearing(self, message: can.Message) -> list[int]:
+        """The drives a frame reaches: those on its bus that hear its id (extended and
+        error frames: every drive on its bus, to ignore as theirs do)."""
+        buses = self.buses
+        channel = None if buses is None else message.channel
+        key = (channel, -1 if message.is_extended_id or message.is_error_frame else
+               message.arbitration_id)  # fmt: skip
+        hearing = self._listeners.get(key)
+        if hearing is None:
+            hearing = self._listeners[key] = [
+                k
+                for k, drive in enumerate(self.drives)
+                if (buses is None or buses[k] == channel) and (key[1] < 0 or drive.hears(key[1]))
+            ]
+        return hearing
 
     def _from(self, k: int, frames: list[can.Message]) -> list[can.Message]:
         """Frames drive k sends, tagged with its bus where there are several."""
@@ -221,10 +241,11 @@ class VirtualRobot:
     def _measure(self, ahead: float = 0.0) -> None:
         """Each drive's encoder reading: after the last step, or `ahead` s later."""
         lengths, rates = self.plant.measure(ahead)
-        for k, drive in enumerate(self.drives):
-            stuck = self.stuck[k]
+        for drive, stuck, length, rate in zip(
+            self.drives, self.stuck, lengths.tolist(), rates.tolist(), strict=True
+        ):
             if stuck is None:
-                drive.measure(float(lengths[k]), float(rates[k]))
+                drive.measure(length, rate)
             else:
                 drive.measure(*stuck)
 

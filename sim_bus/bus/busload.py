@@ -28,6 +28,7 @@ it interrupted are not known here).  CAN FD frames are not supported.
 
 from __future__ import annotations
 
+import functools
 import re
 from collections import deque
 from collections.abc import Iterable, Sequence
@@ -81,6 +82,7 @@ def expected_stuff_bits(dlc: int, extended: bool = False, remote: bool = False) 
     return stuffable_bits(dlc, extended, remote) / 30.0
 
 
+@functools.lru_cache(maxsize=128, typed=True)  # a few dozen shapes, asked for every frame
 def frame_bits(
     dlc: int, extended: bool = False, remote: bool = False, stuffing: Stuffing = "worst"
 ) -> float:

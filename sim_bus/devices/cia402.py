@@ -71,6 +71,7 @@ mode, RTR) are counted in `counters.rejected` and ignored.
 from __future__ import annotations
 
 import contextlib
+import functools
 import math
 import struct
 from collections.abc import Callable
@@ -192,6 +193,7 @@ class Tpdo(NamedTuple):
     kind: int
     inhibit: int  # us
     event_timer: int  # us
+    values: tuple[Callable[[], int], ...]  # each mapped object's value now, in order
 
 
 def _i32(value: float) -> int:
@@ -261,7 +263,6 @@ class Cia402Drive(VirtualDrive):
         self._transfer: tuple[str, tuple[int, int], bytes, int] | None = None  # segmented
         self._syncs = 0
         self._sent: dict[int, tuple[bytes, float]] = {}  # TPDO COB-ID -> data, time last sent
-        self._reset_values(communication_only=False)
         self._live: dict[tuple[int, int], Callable[[], int]] = {
             (STATUSWORD, 0): lambda: encode_statusword(self.state, self.hold is not None),
             (CONTROLWORD, 0): lambda: self.controlword,
@@ -272,6 +273,7 @@ class Cia402Drive(VirtualDrive):
             (ERROR_CODE, 0): lambda: self.fault_code,
             (ERROR_REGISTER, 0): lambda: error_register(self.fault_code),
         }
+        self._reset_values(communication_only=False)
         self._apply()
 
     # -- object dictionary ----------------------------------------------------------------
@@ -349,6 +351,7 @@ class Cia402Drive(VirtualDrive):
                         self.values.get((comm, 2), 0),
                         self.values.get((comm, 3), 0) * 100,
                         self.values.get((comm, 5), 0) * 1000,
+                        tuple(self._reader(key) for key in keys),
                     )
                 )
         self._event_driven = [tpdo for tpdo in self.tpdos if tpdo.kind in (254, 255)]
@@ -358,6 +361,14 @@ class Cia402Drive(VirtualDrive):
         self._pending = {
             c: fields for c, fields in self._pending.items() if c in rpdos and rpdos[c].synchronous
         }
+        self.routes_changed()
+
+    def hears(self, can_id: int) -> bool:
+        return (
+            can_id in self._routes
+            or can_id == self.sync_id
+            or can_id - HEARTBEAT_BASE in self.consumers
+        )
 
     @property
     def rpdo_deadlines(self) -> dict[str, float]:
@@ -518,15 +529,17 @@ class Cia402Drive(VirtualDrive):
         return out
 
     def _data(self, tpdo: Tpdo) -> bytes:
-        return tpdo.layout.pack(*(self._value(key) for key in tpdo.keys))
+        return tpdo.layout.pack(*[value() for value in tpdo.values])
 
     def _transmit(self, tpdo: Tpdo, data: bytes, now: float) -> can.Message:
         self._sent[tpdo.cob] = (data, now)
         return can.Message(arbitration_id=tpdo.cob, data=data, is_extended_id=False)
 
-    def _value(self, key: tuple[int, int]) -> int:
+    def _reader(self, key: tuple[int, int]) -> Callable[[], int]:
+        """What reads a mapped object's value when its TPDO goes out: its live source, or
+        its entry in this dictionary (which SDO writes and RPDOs update in place)."""
         live = self._live.get(key)
-        return live() if live is not None else self.values.get(key, 0)
+        return live if live is not None else functools.partial(self.values.get, key, 0)
 
     # -- RPDOs ------------------------------------------------------------------------------
 

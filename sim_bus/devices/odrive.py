@@ -121,6 +121,9 @@ class OdriveAxis(VirtualDrive):
 
     # -- VirtualDrive ---------------------------------------------------------------------
 
+    def hears(self, can_id: int) -> bool:
+        return can_id >> 5 == self.node_id
+
     def on_frame(self, message: can.Message, now: float) -> list[can.Message]:
         arbitration_id = message.arbitration_id
         if (

@@ -51,17 +51,21 @@ class Encoders:
         steps reads its drum then, carried on at the last step's rate, as a real drive
         latches at the SYNC's instant, not at the simulator's step)."""
         history, latency = self._history, self._latency
-        now = np.array(history[-1 - latency])
-        before = np.array(history[-1 - latency - self._window])
+        now = history[-1 - latency]
+        before = history[-1 - latency - self._window]
         if ahead > 0.0:
             # the history holds latency + window + 1 >= latency + 2 steps (reset)
-            shift = (now - np.array(history[-2 - latency])) * (ahead / self.step)
-            now, before = now + shift, before + shift
+            f = ahead / self.step
+            shift = [(a - b) * f for a, b in zip(now, history[-2 - latency], strict=True)]
+            now = [a + d for a, d in zip(now, shift, strict=True)]
+            before = [a + d for a, d in zip(before, shift, strict=True)]
         if self._noise > 0.0:
-            noise = self._rng.normal(0.0, self._noise, (2, self.n))
-            now = now + noise[0]
-            before = before + noise[1]
-        if self._counts is not None:
-            now = np.round(now * self._counts) / self._counts
-            before = np.round(before * self._counts) / self._counts
-        return now, (now - before) / (self._window * self.step)
+            noise = self._rng.normal(0.0, self._noise, (2, self.n)).tolist()
+            now = [a + e for a, e in zip(now, noise[0], strict=True)]
+            before = [a + e for a, e in zip(before, noise[1], strict=True)]
+        counts = self._counts
+        if counts is not None:  # whole counts, ties to even as numpy's round
+            now = [round(a * counts) / counts for a in now]
+            before = [round(a * counts) / counts for a in before]
+        dt = self._window * self.step
+        return np.array(now), np.array([(a - b) / dt for a, b in zip(now, before, strict=True)])
