@@ -335,6 +335,7 @@ def test_analyze_tune_workspace_and_demo_name_a_bad_config_as_json(
         assert err == "", command
 
 
+@pytest.mark.slow  # over 4.5 s (seven processes)
 def test_tune_analyze_and_workspace_refusals_are_error_objects_with_json(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
