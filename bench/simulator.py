@@ -6,12 +6,12 @@ clock), so the figures are the simulator's own work, whatever else loads the hos
 
     python bench/simulator.py [--json] [--seconds 4] [--rate 1000] [--protocol cia402]
 
-- `cycle_us`: median / p99 of the simulator's CPU time per control cycle (every frame
+- `cycle`: median / p99 (us) of the simulator's CPU time per control cycle (every frame
   the host sends and every plant step in the cycle), time.thread_time_ns;
-- `sync_answer_us`: median / p99 of the CPU time from a SYNC's delivery to the drives'
+- `sync_answer`: median / p99 (us) of the CPU time from a SYNC's delivery to the drives'
   answers to it (CiA 402; the SYNC-less ODrive: the cycle's frames): what a SYNC waits
   in the simulator before its feedback leaves, on top of the host's scheduling;
-- `core_fraction`: cycle_us median x rate, the share of a core the simulator takes.
+- `core_fraction`: the cycle's median x rate, the share of a core the simulator takes.
 The host's side (driver encode/decode) is not counted.  Compare medians of several runs.
 """
 
@@ -24,11 +24,12 @@ import time
 from pathlib import Path
 
 import numpy as np
+from timing import summary_us
 
-from cdpr.controller import ParallelController, static_tensions
+from cdpr.controller import static_tensions, tension_solver
+from daemon.cli.simulated import sim_section, simulated_robot
 from daemon.config import load_config
 from drivers.factory import protocol_driver
-from sim_bus.virtual_robot import VirtualRobot
 from tuning.can_lockstep import LockstepLink, bring_up
 
 CONFIGS = Path(__file__).resolve().parent.parent / "config"
@@ -37,11 +38,11 @@ CONFIGS = Path(__file__).resolve().parent.parent / "config"
 def measure(protocol: str, rate_hz: float, seconds: float) -> dict:
     config = load_config(CONFIGS / f"reference8-{protocol}.yaml")
     robot = config.robot
-    sim = VirtualRobot(robot, config.drives)
+    sim = simulated_robot(config, sim_section(config))  # as the simulator process builds it
     driver = protocol_driver(config.drives, config.drives.scalings_for(robot))
     link = LockstepLink(sim, driver)
-    controller = ParallelController(robot, config.controller)
-    forces = (-static_tensions(robot, controller.tension, robot.home)).tolist()
+    tension = tension_solver(robot, config.controller)
+    forces = (-static_tensions(robot, tension, robot.home)).tolist()
     period = 1.0 / rate_hz
     bring_up(link, forces, period)
     clock = time.thread_time_ns
@@ -79,16 +80,9 @@ def measure(protocol: str, rate_hz: float, seconds: float) -> dict:
         "cycles": cycles,
         "drives": sim.n,
         "drive_states": sorted(states),
-        "cycle_us": _summary(cycle_ns),
-        "sync_answer_us": _summary(sync_ns),
+        "cycle": summary_us(cycle_ns),
+        "sync_answer": summary_us(sync_ns),
         "core_fraction": round(float(np.median(cycle_ns)) * 1e-9 * rate_hz, 3),
-    }
-
-
-def _summary(ns: np.ndarray) -> dict[str, float]:
-    return {
-        "median": round(float(np.median(ns)) / 1e3, 1),
-        "p99": round(float(np.percentile(ns, 99)) / 1e3, 1),
     }
 
 
@@ -108,9 +102,9 @@ def main() -> None:
     for p, r in out.items():
         print(
             f"{p:7s} {r['rate_hz']:g} Hz, {r['drives']} drives {'/'.join(r['drive_states'])}: "
-            f"cycle {r['cycle_us']['median']} us (p99 {r['cycle_us']['p99']}), "
-            f"SYNC answered after {r['sync_answer_us']['median']} us "
-            f"(p99 {r['sync_answer_us']['p99']}), {r['core_fraction']} of a core"
+            f"cycle {r['cycle']['median_us']} us (p99 {r['cycle']['p99_us']}), "
+            f"SYNC answered after {r['sync_answer']['median_us']} us "
+            f"(p99 {r['sync_answer']['p99_us']}), {r['core_fraction']} of a core"
         )
 
 
