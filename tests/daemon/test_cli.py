@@ -115,8 +115,8 @@ NAMED = {  # case: (file content, the problem each error line names after 'error
         "drives.has_holding_brake: Input should be a valid boolean (got 'yes')",
     ),
     "a float for an integer": (
-        example(("stale_cycles: 3", "stale_cycles: 3.0")),
-        "safety.stale_cycles: Input should be a valid integer (got 3.0)",
+        example(("stale_cycles: 25", "stale_cycles: 25.0")),
+        "safety.stale_cycles: Input should be a valid integer (got 25.0)",
     ),
     "a string for a number": (
         example(("bitrate: 1000000", 'bitrate: "1000000"')),

@@ -219,6 +219,9 @@ def test_tune_checks_the_gains_at_each_hung_load_against_the_model(
         assert c["abort"] is None
         assert c["settling_time"] == pytest.approx(c["predicted_settling_time"], rel=0.10), c
         assert c["overshoot"] == pytest.approx(c["predicted_overshoot"], abs=0.01), c
-    with pytest.raises(SystemExit):
+    with pytest.raises(SystemExit) as refused:  # under --json: an error object on stdout
         main([*args, "--check-loads", "0,-5"])
-    assert "load -5 kg: a mass must be finite and >= 0" in capsys.readouterr().err
+    assert refused.value.code == 2
+    error = json.loads(capsys.readouterr().out)["error"]
+    assert error["code"] == "usage"
+    assert "load -5 kg: a mass must be finite and >= 0" in error["reason"]
