@@ -14,6 +14,7 @@ import math
 import os
 import signal
 import time
+from collections import Counter
 
 import can
 import numpy as np
@@ -500,7 +501,11 @@ def test_a_hold_drops_the_plans_under_way() -> None:
 
 def test_background_work_runs_only_in_the_cycles_slack() -> None:
     """Validation and planning steps never run while a cycle waits for its feedback, nor
-    within SLACK_MARGIN of the next tick (give or take the one step that crosses it)."""
+    within SLACK_MARGIN of the next tick, but for the one step a cycle's turn lets go
+    however short its slack (Service.slack): at most one step starts that late before
+    any tick.  How many ticks leave short slack is the host's (a late feedback frame, a
+    stalled CPU: 1.7 % of the steps in a clean-clone run), how many steps each lets go
+    is the code's."""
     from daemon.service.service import SLACK_MARGIN
 
     async def scenario() -> None:
@@ -512,8 +517,8 @@ def test_background_work_runs_only_in_the_cycles_slack() -> None:
 
             def steps():
                 for _ in range(3000):
-                    lead = service._timer.next_expiry() - time.monotonic()
-                    seen.append((service._waiting, lead))
+                    tick = service._timer.next_expiry()
+                    seen.append((service._waiting, tick, tick - time.monotonic()))
                     busy = time.perf_counter() + 5e-5
                     while time.perf_counter() < busy:  # a 50 us step
                         pass
@@ -523,9 +528,11 @@ def test_background_work_runs_only_in_the_cycles_slack() -> None:
             assert await service.in_slack(steps()) == "done"
             cycles = service.stats.cycles
             assert service.machine.fault is None
-        assert not any(waiting for waiting, _ in seen)
-        late = sum(lead < SLACK_MARGIN - 1e-4 for _, lead in seen)  # > one step past
-        assert late <= 0.01 * len(seen)
+        assert not any(waiting for waiting, _, _ in seen)
+        # > one step past the margin: only a turn's step, one before a tick at most
+        late = Counter(tick for _, tick, lead in seen if lead < SLACK_MARGIN - 1e-4)
+        assert max(late.values(), default=0) <= 1, late.most_common(3)
+        assert len({tick for _, tick, _ in seen}) > 1  # the steps spanned several cycles
         assert cycles > 0
 
     run(scenario())
