@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import os
+import shutil
+import tempfile
 from pathlib import Path
 from types import ModuleType
 
@@ -23,6 +25,30 @@ ROOT = Path(__file__).resolve().parent.parent
 # process beside every flight; tests/daemon/test_warm_up.py turns it on for its own
 os.environ.setdefault("CDPRD_WARM_UP", "0")
 ROBOTS = ROOT / "config" / "robots"
+MEMORY_DIR = Path("/dev/shm")  # tmpfs: files here never reach the disk
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """Each test's tmp_path in memory where the host has a tmpfs (unless --basetemp
+    says otherwise): the daemons the tests start write logs, state files and recordings
+    there, and on this project's virtual machine a write reaching its disk can hold a
+    CPU for tens of milliseconds, which a real-time flight beside it (a simulator's
+    SYNC answers) does not survive.  Under pytest-xdist the workers take the
+    controller's directory; it is removed at the end of the run."""
+    if config.option.basetemp or os.environ.get("PYTEST_XDIST_WORKER"):
+        return
+    if MEMORY_DIR.is_dir() and os.access(MEMORY_DIR, os.W_OK):
+        config.option.basetemp = tempfile.mkdtemp(prefix="cdprd-pytest-", dir=MEMORY_DIR)
+        config.stash[_MEMORY_BASETEMP] = config.option.basetemp
+
+
+def pytest_unconfigure(config: pytest.Config) -> None:
+    made = config.stash.get(_MEMORY_BASETEMP, None)
+    if made is not None:
+        shutil.rmtree(made, ignore_errors=True)
+
+
+_MEMORY_BASETEMP = pytest.StashKey[str]()
 
 # Deterministic in CI: the same examples every run, no wall-clock deadline on a busy machine.
 settings.register_profile(

@@ -119,6 +119,11 @@ def test_loop_bus_link_down_brakes_reports_and_exits(
         home = config.robot.home
         target = Pose(home.position + np.array([0.1, 0.05, 0.1]), home.quaternion)
         await Planner(config, LocalLink(service)).command("goto", {"pose": target})
+        # the goto starts a command lead after it is accepted: lose the bus in flight
+        for _ in range(200):
+            if service.machine.state is not SafetyState.HOLD:
+                break
+            await asyncio.sleep(0.005)
         seen["before"] = service.machine.state
         loopbus.set_link(service.port.bus.channel, up=False)
         await service.wait_stopped()

@@ -53,7 +53,7 @@ def test_home_then_calibrate_with_too_few_poses_names_what_is_unidentifiable(
     command says which, exits 1, and writes no robot file."""
     port = free_port()
     path = config_file(tmp_path, port)
-    daemon = start_daemon(path, "--sim")
+    daemon = start_daemon(path, "--sim", log=tmp_path / "daemon.log")
     try:
         with connect(port, daemon) as client:  # closed on a failure too
             wait_status(client, "idle", 30.0)

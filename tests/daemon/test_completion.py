@@ -54,4 +54,5 @@ def test_it_completes_a_subcommands_own_options(script: Path, tmp_path: Path) ->
 def test_it_completes_file_names(script: Path, tmp_path: Path) -> None:
     (tmp_path / "robot-a.yaml").write_text("")
     (tmp_path / "robot-b.yaml").write_text("")
-    assert _complete(script, tmp_path, "run", "robot-") == ["robot-a.yaml", "robot-b.yaml"]
+    # in directory order (bash sorts what it shows): tmpfs lists the newest first
+    assert sorted(_complete(script, tmp_path, "run", "robot-")) == ["robot-a.yaml", "robot-b.yaml"]
