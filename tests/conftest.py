@@ -26,6 +26,7 @@ ROOT = Path(__file__).resolve().parent.parent
 os.environ.setdefault("CDPRD_WARM_UP", "0")
 ROBOTS = ROOT / "config" / "robots"
 MEMORY_DIR = Path("/dev/shm")  # tmpfs: files here never reach the disk
+_MEMORY_BASETEMP = pytest.StashKey[str]()  # the directory pytest_configure made there
 
 
 def pytest_configure(config: pytest.Config) -> None:
@@ -47,8 +48,6 @@ def pytest_unconfigure(config: pytest.Config) -> None:
     if made is not None:
         shutil.rmtree(made, ignore_errors=True)
 
-
-_MEMORY_BASETEMP = pytest.StashKey[str]()
 
 # Deterministic in CI: the same examples every run, no wall-clock deadline on a busy machine.
 settings.register_profile(
