@@ -69,12 +69,25 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: companion: {exc}", file=sys.stderr)
         return wire.OTHER_CODE
     configure_logging(level)
+    _announce_start_up_check(sock)
     try:  # compiles (or loads) the workspace check before the core's hang timer runs
         check_workspace(config)
     except ConfigError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
     return asyncio.run(run(config, link))
+
+
+def _announce_start_up_check(sock: socket.socket) -> None:
+    """Tell the core and systemd that the workspace check is being compiled or loaded:
+    both then wait up to wire.STARTING_LIMIT for "ready", not the seconds imports take."""
+    if not warm_up.is_warm():
+        log.info(
+            "compiling the workspace check (numba's cache is cold after an install or "
+            "upgrade): up to minutes on a small computer, once"
+        )
+    wire.send(sock, ("starting",))
+    Notifier().notify(f"EXTEND_TIMEOUT_USEC={int(wire.STARTING_LIMIT * 1e6)}")
 
 
 async def run(config: DaemonConfig, link: RemoteLink) -> int:

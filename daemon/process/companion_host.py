@@ -87,6 +87,8 @@ class CompanionHost:
         self._ever_ready = False
         self._last_heard = time.monotonic()
         self._allowed_silence = START_TIMEOUT
+        self._start_limit = START_TIMEOUT  # s given for "ready", from...
+        self._start_deadline = time.monotonic() + START_TIMEOUT  # ... its spawn or "starting"
         self._lost_since: float | None = None  # no live companion since
         self._deaths = 0  # in a row, for the restart pause
         self._restart_at = 0.0
@@ -130,13 +132,17 @@ class CompanionHost:
     async def wait_ready(self) -> int | None:
         """Wait for the companion's first "ready" (zenoh listening): None then; else the
         exit code to stop with, if it could not start (it said why on stderr) or did not
-        come up within START_TIMEOUT."""
-        deadline = time.monotonic() + START_TIMEOUT
+        come up: its first message within START_TIMEOUT, "ready" within
+        wire.STARTING_LIMIT of its "starting"."""
         while not self.ready.is_set():
             if self.exit_code is not None:
                 return self.exit_code
-            if time.monotonic() > deadline:
-                log.error("the companion process did not come up within %g s", START_TIMEOUT)
+            if time.monotonic() > self._start_deadline:
+                log.error(
+                    "the companion process did not come up within %g s of %s",
+                    self._start_limit,
+                    "its start-up check" if self._start_limit > START_TIMEOUT else "its start",
+                )
                 return 1
             await asyncio.sleep(0.02)
         return None
@@ -189,6 +195,8 @@ class CompanionHost:
         self._serving = asyncio.get_running_loop().create_task(self._serve(sock))
         self._last_heard = time.monotonic()
         self._allowed_silence = START_TIMEOUT  # until it first speaks: imports take seconds
+        self._start_limit = START_TIMEOUT
+        self._start_deadline = self._last_heard + START_TIMEOUT
         level = logging.getLevelName(logging.getLogger().getEffectiveLevel()).lower()
         in_use = list(self._in_ring.items())
         state = self.service.state()
@@ -299,6 +307,9 @@ class CompanionHost:
         if kind == "call":
             _, ident, method, args = message
             self._call(ident, method, args)
+        elif kind == "starting":  # its start-up check compiles: minutes on a cold cache
+            self._allowed_silence = self._start_limit = wire.STARTING_LIMIT
+            self._start_deadline = self._last_heard + wire.STARTING_LIMIT
         elif kind == "ready":
             self.ready.set()
             self._ever_ready = True

@@ -28,6 +28,11 @@ def _marker() -> Path:
     return key_numba_cache() / MARKER
 
 
+def is_warm() -> bool:
+    """True once a warm-up finished in this cache (the kernels load, not compile)."""
+    return _marker().exists()
+
+
 def start(config_path: str | Path) -> subprocess.Popen[bytes] | None:
     """The warm-up of the kernels for the daemon config at `config_path`, started in
     the background; None when this cache was warmed before, the config is not a file,
@@ -35,7 +40,7 @@ def start(config_path: str | Path) -> subprocess.Popen[bytes] | None:
     starts a daemon a second: the kernels are then compiled at the first path)."""
     if os.environ.get("CDPRD_WARM_UP") == "0":
         return None
-    if not Path(config_path).is_file() or _marker().exists():
+    if not Path(config_path).is_file() or is_warm():
         return None
     argv = [sys.executable, "-m", __name__, str(config_path)]
     devnull = subprocess.DEVNULL

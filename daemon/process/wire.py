@@ -27,6 +27,10 @@ BUFFER_BYTES = 1 << 20  # each direction's socket buffer
 MAX_MESSAGE = 256 * 1024  # a datagram larger than this is a bug (trajectories go by the ring)
 PACKAGES = ("cdpr", "daemon", "drivers", "sim_bus", "tuning")  # the project's (pyproject)
 OTHER_CODE = 3  # the companion's exit code when its code is not the core's
+# s the core and systemd wait for a companion that said ("starting",): its start-up check
+# compiles numba kernels, 12 s on a cold cache on this 2-vCPU host and over 30 s in the
+# UML guest, minutes on a small computer (first start after an install or upgrade)
+STARTING_LIMIT = 300.0
 
 
 @functools.cache

@@ -151,3 +151,36 @@ def test_a_held_up_batch_of_can_frames_reaches_the_companion_whole() -> None:
             host._disconnect()
 
     asyncio.run(scenario())
+
+
+@pytest.mark.parametrize("says_starting", [True, False])
+def test_a_companion_compiling_its_start_up_check_is_waited_for(
+    monkeypatch: pytest.MonkeyPatch, says_starting: bool
+) -> None:
+    """A companion that said ("starting",) compiles its workspace check, minutes on a cold
+    numba cache on a small computer: the core waits for its "ready" up to
+    wire.STARTING_LIMIT, silent meanwhile; one that says nothing is given up on after
+    START_TIMEOUT (the daemon then exits 1)."""
+    start_timeout = 1.0
+    monkeypatch.setattr("daemon.process.companion_host.START_TIMEOUT", start_timeout)
+
+    async def scenario() -> int | None:
+        async with Stack(config_for("cia402")) as stack:
+            host = CompanionHost(stack.service, stack.config)
+            core_end, companion_end = wire.socket_pair()
+            host.connect(core_end)
+            with companion_end:
+                await asyncio.to_thread(greeted, companion_end, host.ring.fd, 5.0)
+                if says_starting:
+                    assert wire.send(companion_end, ("starting",))
+                waiting = asyncio.create_task(host.wait_ready())
+                await asyncio.sleep(3 * start_timeout)  # silent: compiling
+                if waiting.done():
+                    await host.close()
+                    return waiting.result()
+                assert wire.send(companion_end, ("ready",))
+                result = await asyncio.wait_for(waiting, 10.0)
+                await host.close()
+                return result
+
+    assert asyncio.run(scenario()) == (None if says_starting else 1)

@@ -21,6 +21,7 @@ import pytest
 import yaml
 
 from daemon.interface.client import CdprClient, RequestError
+from daemon.process import wire
 from tests.loopback import free_port
 from tests.processes import finish, stop_impatiently
 from tests.systemd_notify import NotifySocket
@@ -149,6 +150,10 @@ def test_notifications_over_a_run_and_sigterm(tmp_path: Path, notify: NotifySock
         if field.startswith("STATUS=")
     ]
     assert any(i < ready for i, _ in statuses), "no STATUS= progress before READY=1"
+    # the start-up check (numba compiling on a cold cache) gets more than TimeoutStartSec
+    extend = [i for i, (_, batch) in enumerate(messages) if batch[0].startswith("EXTEND_")]
+    assert len(extend) == 1 and extend[0] < ready, messages
+    assert messages[extend[0]][1] == [f"EXTEND_TIMEOUT_USEC={int(wire.STARTING_LIMIT * 1e6)}"]
     assert any("idle" in text and "reference8" in text for _, text in statuses), statuses
     # STATUS= follows the safety state while running, the braking fault included
     after_ready = [text.split(";")[0] for i, text in statuses if ready <= i]
