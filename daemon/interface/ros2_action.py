@@ -435,6 +435,9 @@ class FlyPathServer:
         name, state = event.get("event"), event.get("state")
         if name == "trajectory_done" and float(event.get("t", -math.inf)) >= goal.end - 1e-6:
             goal.t = goal.end
+            flown = event.get("max_position_error")  # every cycle's, where states are samples
+            if isinstance(flown, (int, float)) and math.isfinite(flown):
+                goal.max_error = max(goal.max_error, float(flown))
             goal.success = True  # the message stays the accepted submission's JSON
             self._finish(goal, SUCCEEDED, goal.message)
         elif state is not None and state not in MOVING:

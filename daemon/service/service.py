@@ -40,6 +40,7 @@ from daemon.service.calibration_state import (
 )
 from daemon.service.command_lead import LatencyMedian
 from daemon.service.cycle_stats import CycleStats
+from daemon.service.flight_stats import FlightStats
 from daemon.service.gc_policy import CollectorPolicy
 from daemon.service.hold_report import HoldReport, hold_summary
 from daemon.service.homing import LengthOffsets
@@ -140,6 +141,7 @@ class Service:
         self._load_offsets()
         self._trajectory: Curve | None = None
         self._scheduled: list[Curve] = []  # accepted, beginning later, by start time
+        self._flight = FlightStats()  # the current trajectory's, for trajectory_done
         self.last_output = None
         self.last_output_t = math.nan  # the cycle time last_output was computed for
         self.faults: list[Fault] = []  # conditions active at the last check
@@ -470,18 +472,17 @@ class Service:
         t = self._opened - self.t0
         while self._scheduled and t >= self._scheduled[0].start_time:
             self._trajectory = self._scheduled.pop(0)
+            self._flight = FlightStats()
             if self.machine.state is SafetyState.HOLD:
                 self.machine.go("track")
                 self._emit({"event": "state", "why": "trajectory started"})
         trajectory = self._trajectory
-        if (
-            self.machine.state is SafetyState.TRACKING
-            and trajectory is not None
-            and t >= trajectory.end_time
-        ):
-            self._trajectory = None
-            self.machine.go("finish")
-            self._emit({"event": "trajectory_done", "t": t})
+        if self.machine.state is SafetyState.TRACKING and trajectory is not None:
+            self._flight.add(output)
+            if t >= trajectory.end_time:
+                self._trajectory = None
+                self.machine.go("finish")
+                self._emit({"event": "trajectory_done", "t": t, **self._flight.summary()})
 
     def _tell_listeners(self, output: ControlOutput) -> None:
         """The cycle listeners' (time, output) of the cycle opened at `self._opened`."""
@@ -1099,6 +1100,7 @@ class Service:
             self._scheduled.append(trajectory)
         else:
             self._trajectory = trajectory
+            self._flight = FlightStats()
             if self.machine.state is SafetyState.HOLD:
                 self.machine.go("track")
                 self._emit({"event": "state", "why": f"{what} accepted"})

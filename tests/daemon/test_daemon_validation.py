@@ -393,3 +393,43 @@ def test_over_zenoh_put_query_and_goto_are_rejected_with_the_waypoint_and_limit(
     assert (put[0]["error"]["waypoint"], put[0]["error"]["limit"]) == (2, "workspace_min")
     assert result["status"]["state"] == "hold" and result["status"]["fault"] is None
     assert result["moved"] < 5e-4
+
+
+def test_trajectory_done_reports_every_cycle_of_the_flight() -> None:
+    """trajectory_done carries the flight's extremes over every cycle the core ran from
+    the trajectory's start to its end (states are only samples): equal to what the cycle
+    listeners saw over that span."""
+
+    async def scenario() -> None:
+        config = config_for("cia402")
+        async with Stack(config) as stack:
+            service = stack.service
+            cycles: list[tuple[float, np.ndarray, np.ndarray]] = []
+            service.cycle_listeners.append(
+                lambda t, out: cycles.append((t, out.theta_d.copy(), out.tensions.copy()))
+            )
+            await stack.enable()
+            here = service.reference_at(service.now())[0].pose
+            moved = Pose(here.position + np.array([0.05, 0.0, 0.03]), here.quaternion)
+            trajectory = Trajectory([Waypoint(0.0, here), Waypoint(1.0, moved)])
+            # starting ahead: the cycle switches to it at its start time, the first counted
+            reply = await stack.planner.submit_trajectory(trajectory, time.time() + 0.5)
+            assert reply["accepted"] and service.machine.state is SafetyState.HOLD
+            await stack.until(lambda: service.machine.state is SafetyState.TRACKING, 2.0)
+            await stack.until(lambda: service.machine.state is SafetyState.HOLD, 3.0)
+            done = [e for e in stack.events if e["event"] == "trajectory_done"][-1]
+            flown = [(e, f) for t, e, f in cycles if reply["start"] <= t <= done["t"]]
+            assert done["cycles"] == len(flown) > 0.9 * config.controller.rate_hz
+            errors = np.array([e for e, _ in flown])
+            tensions = np.array([f for _, f in flown])
+            assert done["max_position_error"] == pytest.approx(
+                np.linalg.norm(errors[:, :3], axis=1).max(), rel=1e-12
+            )
+            assert done["max_orientation_error"] == pytest.approx(
+                np.linalg.norm(errors[:, 3:], axis=1).max(), rel=1e-12
+            )
+            assert done["tension_min"] == tensions.min() and done["tension_max"] == tensions.max()
+            assert 0.0 < done["max_position_error"] < 0.005
+            assert np.min(config.robot.t_min) <= done["tension_min"] < done["tension_max"]
+
+    run(scenario())

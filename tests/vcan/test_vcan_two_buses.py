@@ -58,8 +58,8 @@ def test_cia402_drives_on_vcan0_and_vcan1(tmp_path: Path) -> None:
         with running_stack(
             CIA402, tmp_path, _two_buses, ("vcan0", "vcan1"), ("--report-every", "1")
         ) as stack:
-            flight = _fly_trajectory(stack)
-            _check_flight(stack, flight)
+            done = _fly_trajectory(stack)
+            _check_flight(stack, done)
             before = stack.watch.wait_settled(15)
             for _ in range(10):  # node 1 (cable 0, on vcan0) forged on vcan1, 1 m off
                 _cansend(*FORGED, channel="vcan1")
