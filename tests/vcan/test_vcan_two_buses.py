@@ -46,9 +46,14 @@ def _two_buses(data: dict) -> None:
     data["drives"].update(nodes=NODES, bus=ON)
 
 
+def _node_frames(frames: list[tuple[float, int, bytes | None]]) -> list[tuple[int, bytes | None]]:
+    """(id, data) of the node-addressed CiA 402 frames (all but NMT and SYNC)."""
+    return [(i, data) for _, i, data in frames if cia402.SYNC_ID < i <= 0x7FF]
+
+
 def _nodes_heard(frames: list[tuple[float, int, bytes | None]]) -> set[int]:
-    """Node ids of the node-addressed CiA 402 frames (all but NMT and SYNC)."""
-    return {can_id & 0x7F for _, can_id, _ in frames if cia402.SYNC_ID < can_id <= 0x7FF}
+    """Node ids of the node-addressed CiA 402 frames."""
+    return {can_id & 0x7F for can_id, _ in _node_frames(frames)}
 
 
 def test_cia402_drives_on_vcan0_and_vcan1(tmp_path: Path) -> None:
@@ -84,7 +89,7 @@ def test_cia402_drives_on_vcan0_and_vcan1(tmp_path: Path) -> None:
     # node 1's own frames never on vcan1: what candump saw of it there is the forgeries
     # (cansend succeeded, so they were on the bus; all seen unless candump dropped frames)
     forged = {(int(i, 16), bytes.fromhex(d)) for i, d in (f.split("#") for f in FORGED)}
-    node1 = {(i, d) for _, i, d in vcan1 if cia402.SYNC_ID < i <= 0x7FF and i & 0x7F == 1}
+    node1 = {(i, d) for i, d in _node_frames(vcan1) if i & 0x7F == 1}
     assert node1 <= forged, node1 - forged
     assert node1 == forged or _dropped(stack.capture) > 0, "the forged frames not captured"
     sim_log = (tmp_path / "logs" / "sim.log").read_text()
