@@ -25,13 +25,14 @@ class FlightStats:
         self.tension_min = math.inf  # N
         self.tension_max = -math.inf  # N
 
-    def add(self, output: ControlOutput) -> None:
-        """One cycle's output (a few microseconds: plain floats, no numpy reductions)."""
-        ex, ey, ez, rx, ry, rz = output.theta_d.tolist()
+    def add(self, tracking_errors: tuple[float, float], output: ControlOutput) -> None:
+        """One cycle: its tracking errors' norms as the safety check judged them
+        (SafetyMonitor.tracking_errors: m, rad) and its output's tensions (plain floats,
+        no numpy reductions)."""
         tensions = output.tensions.tolist()
         self.cycles += 1
-        self.position_error = max(self.position_error, math.sqrt(ex * ex + ey * ey + ez * ez))
-        self.orientation_error = max(self.orientation_error, math.sqrt(rx * rx + ry * ry + rz * rz))
+        self.position_error = max(self.position_error, tracking_errors[0])
+        self.orientation_error = max(self.orientation_error, tracking_errors[1])
         self.tension_min = min(self.tension_min, *tensions)
         self.tension_max = max(self.tension_max, *tensions)
 

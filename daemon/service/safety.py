@@ -173,6 +173,8 @@ class SafetyMonitor:
         self._last_error = ""
         self._bus_off: tuple[float, str] = (-math.inf, "")  # when, what
         self.lost: Fault | None = None  # the bus is gone (for good)
+        # |position| (m) and |orientation| (rad) of the tracking error check_output judged
+        self.tracking_errors = (0.0, 0.0)
 
     # -- inputs every cycle --------------------------------------------------------
 
@@ -315,6 +317,7 @@ class SafetyMonitor:
         ex, ey, ez, rx, ry, rz = output.theta_d.tolist()
         e_pos = math.sqrt(ex * ex + ey * ey + ez * ez)
         e_rot = math.sqrt(rx * rx + ry * ry + rz * rz)
+        self.tracking_errors = (e_pos, e_rot)
         if e_pos > self.limits.tracking_error_position:
             return Fault(
                 Trigger.TRACKING_ERROR,

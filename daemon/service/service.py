@@ -478,7 +478,7 @@ class Service:
                 self._emit({"event": "state", "why": "trajectory started"})
         trajectory = self._trajectory
         if self.machine.state is SafetyState.TRACKING and trajectory is not None:
-            self._flight.add(output)
+            self._flight.add(self.monitor.tracking_errors, output)
             if t >= trajectory.end_time:
                 self._trajectory = None
                 self.machine.go("finish")
