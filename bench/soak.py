@@ -16,13 +16,19 @@ is typed into the simulator while a trajectory flies; after the brake that shoul
 follow, the fault is cleared (`clear:CABLE`), the daemon reset and enabled again.
 
 Every brake is counted by trigger and judged: one within CAUGHT_WITHIN s after an
-injected fault is that fault caught (true); one after that but before a flight has
-ended well again is the fault's aftermath (a stuck encoder under the drive's own hold
-leaves its cable slack or overdrawn: the recovery, not the flight, is at fault), listed
-apart; any other is false, listed with its message.  A fault no brake followed within
-CAUGHT_WITHIN is missed.  Printed (JSON with --json): seconds flown, flights, holds,
-motions the daemon refused, brakes by trigger, `false_brakes` and the list, `aftermath`,
-`injected`, `caught`, `missed`, and the daemon's most frequent refusals.
+injected fault is that fault caught (true); one after that but before a flight has ended
+well again is the fault's aftermath (a stuck encoder under the drive's own hold leaves
+its cable slack or overdrawn: the recovery, not the flight, is at fault), listed apart;
+a drive's "heartbeat lost" where the daemon's record says it sent none for the drives'
+consumer time (drivers.cia402.host) and a CPU of this machine was frozen for at least
+HELD_UP_SHARE of that silence just before (tests.host_steal.FreezeWatch: a SCHED_FIFO 90
+probe per CPU) is the machine holding the host up, the drive right to stop: listed apart
+as `held_up`; any other is false, listed with its message.  A fault no brake followed
+within CAUGHT_WITHIN is missed.  Printed (JSON with --json): seconds flown, flights,
+holds, motions the daemon refused, brakes by trigger, `false_brakes` and the list,
+`aftermath`, `held_up`, `injected`, `caught`, `missed`, the CPUs' freezes
+(`cpu_freezes`: how many of at least FREEZE_REPORTED, the longest) and the daemon's most
+frequent refusals.
 """
 
 from __future__ import annotations
@@ -31,6 +37,7 @@ import argparse
 import json
 import math
 import random
+import re
 import subprocess
 import sys
 import tempfile
@@ -47,6 +54,7 @@ sys.path.insert(0, str(ROOT))
 
 from cdpr.robot import Robot  # noqa: E402
 from daemon.interface.client import CdprClient, RequestError  # noqa: E402
+from tests.host_steal import FreezeWatch  # noqa: E402
 from tests.loopback import free_port  # noqa: E402
 from tests.processes import (  # noqa: E402
     connect,
@@ -72,6 +80,9 @@ HOLD_SHARE = 0.2  # of the flights: held halfway
 FAULTS = ("glitch", "stuck", "drive")
 CAUGHT_WITHIN = 2.0  # s: a brake this soon after an injected fault is that fault caught
 MOTION_TIMEOUT = 30.0  # s: the most one goto or trajectory may take to end
+HELD_UP_SHARE = 0.5  # of the host's silence: a CPU freeze this long makes it the machine's
+HELD_UP_WINDOW = 3.0  # s before the brake reached the client: where that freeze may lie
+FREEZE_REPORTED = 0.02  # s: CPU freezes counted in the report
 
 
 class Soak:
@@ -183,11 +194,12 @@ class Soak:
             self._request(self.client.reset)
             self._request(self.client.enable)
 
-    def report(self, seconds: float) -> dict[str, Any]:
+    def report(self, seconds: float, freezes: FreezeWatch) -> dict[str, Any]:
+        """The figures of the module docstring, the brakes set beside the CPUs' freezes."""
         with self.lock:
             brakes = [(at, e) for at, e in self.events if e.get("event") == "brake"]
         by_trigger: dict[str, int] = {}
-        false, aftermath, caught = [], [], set()
+        false, aftermath, held_up, caught = [], [], [], set()
         for at, event in brakes:
             trigger = event["trigger"]
             by_trigger[trigger] = by_trigger.get(trigger, 0) + 1
@@ -196,10 +208,13 @@ class Soak:
                 None,
             )
             brake = {"trigger": trigger, "message": event.get("message")}
+            frozen = held_up_by(brake["message"] or "", at, freezes)
             if cause is not None:
                 caught.add(cause)
             elif not event["settled"]:
                 aftermath.append(brake)
+            elif frozen is not None:
+                held_up.append({**brake, "cpu_frozen_ms": round(frozen * 1e3, 1)})
             else:
                 false.append(brake)
         missed = [
@@ -214,11 +229,27 @@ class Soak:
             "false_brakes": len(false),
             "false": false,
             "aftermath": aftermath,
+            "held_up": held_up,
             "injected": len(self.injected),
             "caught": len(caught),
             "missed": missed,
+            "cpu_freezes": {
+                "count": sum(d >= FREEZE_REPORTED for _, _, d in freezes.freezes()),
+                "longest_ms": round(freezes.longest(-math.inf, math.inf) * 1e3, 1),
+            },
             "refusals": dict(self.refusals.most_common(5)),
         }
+
+
+def held_up_by(message: str, at: float, freezes: FreezeWatch) -> float | None:
+    """The CPU freeze (s) that held the host up, when `message` (a brake the client got at
+    `at`) is a drive's lost heartbeat the daemon says it sent none of for the consumer time,
+    and a CPU froze for HELD_UP_SHARE of that silence within HELD_UP_WINDOW before."""
+    silence = re.search(r"sent no heartbeat for ([\d.]+) ms", message)
+    if silence is None:
+        return None
+    longest = freezes.longest(at - HELD_UP_WINDOW, at)
+    return longest if longest >= HELD_UP_SHARE * float(silence[1]) / 1e3 else None
 
 
 def configs(tmp: Path, zenoh_port: int) -> tuple[Path, dict[str, Any]]:
@@ -244,19 +275,20 @@ def soak(minutes: float, load: int, seed: int, fault_every: float, workdir: Path
     hog = [sys.executable, "-c", "while True: pass"]
     hogs = [subprocess.Popen(hog) for _ in range(load)]
     try:
-        client = connect(zenoh_port, daemon)
-        wait_status(client, "idle", 30.0)
-        client.enable()
-        rng = random.Random(seed)
-        runner = Soak(client, sim.stdin, list(Robot.from_yaml(ROBOT).home.position), rng)
-        began = time.monotonic()
-        next_fault = began + (rng.expovariate(1.0 / fault_every) if fault_every else math.inf)
-        while time.monotonic() - began < 60.0 * minutes:
-            due = time.monotonic() >= next_fault
-            runner.fly(due)
-            if due:
-                next_fault = time.monotonic() + rng.expovariate(1.0 / fault_every)
-        report = runner.report(time.monotonic() - began)
+        with FreezeWatch() as freezes:
+            client = connect(zenoh_port, daemon)
+            wait_status(client, "idle", 30.0)
+            client.enable()
+            rng = random.Random(seed)
+            runner = Soak(client, sim.stdin, list(Robot.from_yaml(ROBOT).home.position), rng)
+            began = time.monotonic()
+            next_fault = began + (rng.expovariate(1.0 / fault_every) if fault_every else math.inf)
+            while time.monotonic() - began < 60.0 * minutes:
+                due = time.monotonic() >= next_fault
+                runner.fly(due)
+                if due:
+                    next_fault = time.monotonic() + rng.expovariate(1.0 / fault_every)
+            report = runner.report(time.monotonic() - began, freezes)
         client.close()
     finally:
         for proc in hogs:

@@ -433,6 +433,8 @@ EMCY_TEXTS: dict[int, str] = {
     0x8611: "following error",
 }
 
+HEARTBEAT_LOST = 0x8130  # EMCY: a consumed heartbeat (the host's: 0x1016) stopped
+
 # CiA 301 error register 0x1001 bits
 REGISTER_GENERIC = 0x01
 _REGISTER_BY_CLASS = {0x2: 0x02, 0x3: 0x04, 0x4: 0x08}  # current, voltage, temperature

@@ -68,7 +68,9 @@ import contextlib
 import math
 import struct
 import time
+from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Sequence
+from itertools import pairwise
 from operator import itemgetter
 
 import can
@@ -91,6 +93,7 @@ from drivers.cia402.codec import (
     EMCY_BASE,
     ERROR_CODE,
     HEARTBEAT_BASE,
+    HEARTBEAT_LOST,
     I32_MAX,
     I32_MIN,
     MAX_TORQUE,
@@ -203,8 +206,12 @@ class Cia402Driver(ActuatorDriver):
         self.od = self.plan.od
         self.clock: Callable[[], float] = time.monotonic  # paces the host heartbeat (start sets it)
         self._heartbeat = encode_heartbeat(config.profile.host_node, NmtState.OPERATIONAL)
-        self._heartbeat_period = config.host_heartbeat()[0]
+        self._heartbeat_period, self._consumer_time = config.host_heartbeat()
         self._next_heartbeat = -math.inf
+        # when the latest heartbeats went out, enough to span two consumer times: what a
+        # drive's "heartbeat lost" is judged against (_host_silence)
+        kept = math.ceil(2 * self._consumer_time / self._heartbeat_period) + 2
+        self._heartbeats_sent: deque[float] = deque(maxlen=kept)
         rated = config.rated_torque
         assert rated is not None  # DrivesConfig requires it for cia402
         # per mille of rated torque per newton along +l, per cable (a drum with a spool:
@@ -303,7 +310,25 @@ class Cia402Driver(ActuatorDriver):
         if now < self._next_heartbeat:
             return []
         self._next_heartbeat = now + self._heartbeat_period
+        self._heartbeats_sent.append(now)
         return [self._heartbeat]
+
+    def _host_silence(self, now: float) -> str:
+        """What this host's own record says of a drive's "heartbeat lost" (EMCY 0x8130)
+        arriving at `now`: the longest it sent no heartbeat over the two consumer times
+        before, and so whether the host was held up (as long as the consumer time: the
+        drive was right to stop) or sent them and the drive did not hear them (the bus,
+        its wiring, or the drive)."""
+        consumer = self._consumer_time
+        sent, since = [*self._heartbeats_sent, now], now - 2 * consumer
+        gap = max((b - a for a, b in pairwise(sent) if b >= since), default=0.0)
+        said = f"the drives' consumer time {consumer * 1e3:g} ms"
+        if gap >= consumer:
+            return f"this host sent no heartbeat for {gap * 1e3:.1f} ms ({said}): it was held up"
+        return (
+            f"this host's heartbeats went out at most {gap * 1e3:.1f} ms apart ({said}): "
+            "the drive did not hear them (the bus, its wiring, or the drive)"
+        )
 
     def commands(self, forces: Sequence[float]) -> list[can.Message]:
         if len(forces) != self.n:
@@ -522,6 +547,8 @@ class Cia402Driver(ActuatorDriver):
         else:
             status.state = DriveState.FAULT
             status.fault = f"{emcy_text(code)} (error register 0x{register:02X})"
+            if code == HEARTBEAT_LOST and self._heartbeats_sent:
+                status.fault += f"; {self._host_silence(now)}"
             status.fault_code = code
 
     def _on_heartbeat(self, i: int, can_id: int, data: bytearray, now: float) -> None:

@@ -106,6 +106,7 @@ from drivers.cia402.codec import (
     ERROR_CODE,
     ERROR_REGISTER,
     HEARTBEAT_BASE,
+    HEARTBEAT_LOST,
     I32_MAX,
     I32_MIN,
     MAX_TORQUE,
@@ -162,7 +163,6 @@ from drivers.cia402.statemachine import (
 from drivers.config import DrivesConfig
 
 RPDO_TIMEOUT = 0x8250
-HEARTBEAT_LOST = 0x8130
 ABORT_FAULT, ABORT_DISABLE_VOLTAGE, ABORT_QUICK_STOP = 1, 2, 3  # 0x6007 option codes
 _FAULTED = (State.FAULT, State.FAULT_REACTION_ACTIVE)
 _SDO_STATES = (NmtState.PRE_OPERATIONAL, NmtState.OPERATIONAL)

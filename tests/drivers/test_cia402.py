@@ -689,6 +689,39 @@ def test_emcy_heartbeat_and_fault_texts() -> None:
     assert status.state is DriveState.FAULT and "statusword reports FAULT" in status.fault
 
 
+def _heartbeat_lost_after(silence: float) -> str:
+    """The fault a drive's "heartbeat lost" EMCY (0x8130) leaves when this host ran its
+    cycle every 2 ms for a second, then sent nothing for `silence` s, then one more cycle."""
+    driver, now = host(), 0.0
+    driver.clock = lambda: now
+    while now < 1.0:
+        driver.cycle_start()
+        now += 0.002
+    now += silence
+    driver.cycle_start()
+    driver.receive(codec.encode_emcy(2, codec.HEARTBEAT_LOST, 0x11), now + 0.0005)
+    assert driver.status[1].fault_code == codec.HEARTBEAT_LOST
+    return driver.status[1].fault
+
+
+def test_a_lost_heartbeat_says_whether_this_host_was_held_up() -> None:
+    """EMCY 0x8130 says the drive heard no host heartbeat for its consumer time; the
+    driver's own record of the heartbeats it sent tells a held-up host (the drive was right
+    to stop) from one whose heartbeats went out and were not heard (the bus or the drive)."""
+    period, consumer = drives_config().host_heartbeat()
+    on_time = _heartbeat_lost_after(0.0)
+    assert on_time.startswith("EMCY 0x8130: life guard or heartbeat error (error register 0x11)")
+    apart = float(re.search(r"at most ([\d.]+) ms apart", on_time)[1])
+    assert apart == pytest.approx(period * 1e3, abs=2.0)
+    assert "the drive did not hear them" in on_time and f"{consumer * 1e3:g} ms" in on_time
+    held = _heartbeat_lost_after(consumer + 0.02)
+    silent = float(re.search(r"sent no heartbeat for ([\d.]+) ms", held)[1])
+    assert silent == pytest.approx((consumer + 0.02) * 1e3, abs=period * 1e3 + 2.0)
+    assert held.endswith("it was held up")
+    short = _heartbeat_lost_after(consumer / 2)  # a stall, shorter than the consumer time
+    assert "the drive did not hear them" in short
+
+
 def test_an_emcy_stays_a_fault_while_the_statusword_looks_healthy() -> None:
     """An EMCY (even one forged on the bus) is a fault until an error-reset EMCY: the
     next healthy statusword does not hide it before the daemon's safety check runs."""
