@@ -203,6 +203,16 @@ class Curve:
             return self._before
         raise ValueError(f"sample time must be a number, got {t!r}")
 
+    def segments(self) -> tuple[Array, Array, Array]:
+        """(start times (m,), tables (m, 6, 18), durations (m,)) of every segment in time
+        order, the blend's first: for a check over the whole curve at once (its jerk)."""
+        times = np.asarray(self._times, dtype=float) + self.shift
+        tables = np.asarray(self._tables, dtype=float).reshape(-1, 6, 18)
+        if self.blend is not None:
+            times = np.concatenate([[self.blend.first.t], times])
+            tables = np.concatenate([self.blend.table[None], tables])
+        return times[:-1], tables, np.diff(times)
+
     def packed(self) -> tuple[dict, Array]:
         """(header, data): the knot times, the segment tables and the start rotations
         in one float64 array; the rest (poses, shift, blend) in a small header."""

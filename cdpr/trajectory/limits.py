@@ -22,6 +22,7 @@ from cdpr.pose import Pose
 from cdpr.pose_limits import PoseLimits
 from cdpr.robot import Robot
 from cdpr.trajectory.core import Reference, Trajectory, TrajectoryError
+from cdpr.trajectory.jerk import jerk_violation
 
 WrenchCheck = Callable[[Pose, NDArray[np.float64], NDArray[np.float64]], str | None]
 CHUNK = 32  # sampled references checked together by a BatchCheck (~0.5 ms a batch)
@@ -58,6 +59,8 @@ class TrajectoryLimits(StrictModel):
     angular_speed: PositiveFloat = 2.0  # rad/s, |ω|
     linear_accel: PositiveFloat = 5.0  # m/s², |p̈|
     angular_accel: PositiveFloat = 10.0  # rad/s², |ω̇|
+    linear_jerk: PositiveFloat | None = None  # m/s³, |p⃛| (cdpr.trajectory.jerk); null: free
+    angular_jerk: PositiveFloat | None = None  # rad/s³, |ω̈|; null: free
     sample_period: PositiveFloat = 0.01  # s, validation step along the path
     max_waypoints: int = Field(MAX_WAYPOINTS, ge=2, le=MAX_WAYPOINTS)  # see MAX_WAYPOINTS
     max_duration: PositiveFloat = 3600.0  # s, bounds the validation work too
@@ -221,7 +224,8 @@ def validate(
 ) -> None:
     """Raise TrajectoryError on the first problem along the path, else return.
 
-    If given, every waypoint's pose is checked against `pose_limits` first (naming that
+    The jerk of every segment first, where limited (naming the segment's first waypoint).
+    If given, every waypoint's pose is checked against `pose_limits` next (naming that
     waypoint).  Then samples every limits.sample_period from the start and at every
     waypoint time: rate limits, `pose_limits`, cable lengths within `length_limits`
     (default the robot's [length_min, length_max]), and, if given,
@@ -273,6 +277,7 @@ def validation_steps(
     bounds = length_limits or LengthLimits(
         tuple(robot.length_min.tolist()), tuple(robot.length_max.tolist())
     )
+    _check_jerk(trajectory, limits, len(waypoints) - 1)
     if pose_limits is not None:
         for index, w in enumerate(waypoints):
             _check_pose(pose_limits, w.pose, index, f"at t={w.t:.6g} s")
@@ -293,6 +298,26 @@ def validation_steps(
             _check_batch(trajectory, workspace, pending)
         yield t
     _check_batch(trajectory, workspace, pending)
+
+
+def _check_jerk(trajectory: Trajectory, limits: TrajectoryLimits, segments: int) -> None:
+    """TrajectoryError naming the first of the first `segments` segments whose jerk
+    exceeds linear_jerk or angular_jerk (where set)."""
+    starts, tables, durations = trajectory.curve.segments()
+    bad = jerk_violation(
+        tables[:segments], durations[:segments], limits.linear_jerk, limits.angular_jerk
+    )
+    if bad is not None:
+        k, name, value = bad
+        unit = "m/s³" if name == "linear_jerk" else "rad/s³"
+        t0, t1 = starts[k], starts[k] + durations[k]
+        raise TrajectoryError(
+            name,
+            f"{value:.6g} {unit} exceeds the limit {getattr(limits, name):g} {unit} between "
+            f"t={t0:.6g} s and t={t1:.6g} s",
+            waypoint=trajectory.waypoint_index(float(t0)),
+            value=value,
+        )
 
 
 def _check_batch(
