@@ -24,6 +24,11 @@ its durations come to an independent time-optimal bound.
   speedup.<path>: the duration of the best constant-speed timing that the daemon's
   validation accepts (a trapezoid in path speed: the fastest cruise found by bisection,
   for the best of three ramps) over the planned one.
+- Jerk (--jerk): the standard paths above timed by time_path on reference8-cia402 as its
+  file sets the trajectory limits, and again with the jerk bounded (JERK: the config's
+  linear_jerk / angular_jerk where it sets them, else these): jerk_peak.<path> the largest
+  linear and angular jerk (m/s³, rad/s³, cdpr.trajectory.jerk) without and with the
+  bound, jerk_cost.<path> the bounded duration over the unbounded one.
 """
 
 from __future__ import annotations
@@ -43,6 +48,7 @@ from cdpr.path.timing import Timing, time_path
 from cdpr.pose import Pose
 from cdpr.trajectory import Trajectory, TrajectoryError
 from cdpr.trajectory.core import Waypoint
+from cdpr.trajectory.jerk import segment_jerks
 from cdpr.wrench_margin import wrench_length
 from daemon.cli.simulated import sim_section
 from daemon.config import load_config
@@ -216,12 +222,35 @@ def flown(config) -> dict[str, dict]:
     return out
 
 
+JERK = {"linear_jerk": 50.0, "angular_jerk": 100.0}  # m/s³, rad/s³ where the config sets none
+
+
+def jerk_figures(config) -> dict[str, dict]:
+    """The jerk keys (module docstring)."""
+    free = config.trajectory.model_copy(update={"linear_jerk": None, "angular_jerk": None})
+    bound = config.trajectory.model_copy(
+        update={k: getattr(config.trajectory, k) or v for k, v in JERK.items()}
+    )
+    out: dict[str, dict] = {"jerk_peak": {}, "jerk_cost": {}}
+    out["jerk_limits"] = {k: getattr(bound, k) for k in JERK}
+    for name, path in standard_paths(config).items():
+        timed = [time_path(path, config.robot, limits, Timing(MARGIN)) for limits in (free, bound)]
+        peaks = [segment_jerks(*t.curve.segments()[1:]) for t in timed]
+        out["jerk_peak"][name] = {
+            which: [round(float(p.max()), 1) for p in peak]
+            for which, peak in zip(("free", "bound"), peaks, strict=True)
+        }
+        out["jerk_cost"][name] = round(timed[1].duration / timed[0].duration, 3)
+    return out
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--json", action="store_true")
     parser.add_argument("--runs", type=int, default=5)
     parser.add_argument("--no-ratios", action="store_true", help="skip the convex bounds")
     parser.add_argument("--flown", action="store_true", help="fly the standard paths too")
+    parser.add_argument("--jerk", action="store_true", help="the jerk figures too")
     args = parser.parse_args()
     config = load_config(CONFIG)
     result = {"plan_ms": plan_ms(config, args.runs)}
@@ -229,6 +258,8 @@ def main() -> None:
         result["duration_ratio"] = duration_ratios(config)
     if args.flown:
         result.update(flown(config))
+    if args.jerk:
+        result.update(jerk_figures(config))
     if args.json:
         print(json.dumps(result))
     else:

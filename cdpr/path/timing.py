@@ -15,6 +15,15 @@ every dwell and every corner without a blend), with at every grid point along it
   cap), each cable's speed (cable_speed_bounds), the platform's linear and angular
   accelerations (each axis within the limit / sqrt(3): inside the limit's ball).
 
+Where the trajectory limits bound the jerk, each motion's time law is then averaged over
+a moving window (cdpr.path.time_law: a path jerk of at most the range of s'' over the
+window divided by its width), slowed down uniformly by the least factor that brings
+every grid point back inside the rows above (a slower time law lies between the average
+and rest, which every row holds), and further by the cube root of what its jerk
+(cdpr.trajectory.jerk) leaves above a limit: the path's curvature adds jerk that no
+window removes (speed cubed times the curvature's rate).  Of WIDTHS windows the one
+giving the shortest motion is taken.
+
 The result is a Trajectory through the grid's poses with their twists and accelerations,
 which the daemon validates as it validates a client's (daemon.service.path_planning).
 """
@@ -32,9 +41,11 @@ from numpy.typing import NDArray
 
 from cdpr.path.geometry import BlendedPath, path_coordinates
 from cdpr.path.model import Path, PathPoint
+from cdpr.path.time_law import AveragedLaw, TimeLaw
 from cdpr.pose import Pose
 from cdpr.robot import Robot
 from cdpr.trajectory.core import MIN_SEGMENT, Trajectory, TrajectoryError, Waypoint
+from cdpr.trajectory.jerk import segment_jerks
 from cdpr.trajectory.limits import TrajectoryLimits, cable_speed_bounds
 from cdpr.wrench_margin import facet_normals, rest_wrenches, wrench_length
 
@@ -52,6 +63,12 @@ BLEND_INTERVALS = 8  # grid intervals on a blend at least (_grid)
 # validation refuses what it finds over.  At this share the figure-eight's acceleration
 # still reaches 1.021 x the limit between validation's samples (bench/planning.py paths)
 LIMIT_SHARE = 0.98
+# jerk limits (cdpr.path.time_law): averaging windows from the first (at least MIN_WIDTH
+# s), WIDTHS of them each WIDEN times the last; the one that gives the shortest motion
+MIN_WIDTH = 0.005
+BENDING_SHARE = 0.8  # of a jerk limit: what the path's bending may take (_rows)
+WIDEN = 1.3
+WIDTHS = 6
 
 
 @dataclass(frozen=True)
@@ -140,16 +157,47 @@ def _time_motion(
         if speed is None or np.isnan(speed).any():
             raise _infeasible(geometry, grid, controllable, number)
         damping = speed
-    positions, rotations = model.positions, model.rotations
     # each knot between two intervals takes the mean of their accelerations: the quintic
     # between two knots given one interval's acceleration at one end and the next one's
     # at the other overshot the limits by 5 % (on blends, 1 cm grid)
     u = np.concatenate([[0.0], 0.5 * (sdd[:-1] + sdd[1:]), [0.0]])
     dt = 2.0 * np.diff(grid) / np.maximum(speed[:-1] + speed[1:], 1e-12)
     times = np.concatenate([[0.0], np.cumsum(dt)])
-    v, a = model.v, model.acc
+    out = _waypoints(model, times, speed, u)
+    if limits.linear_jerk is None and limits.angular_jerk is None:
+        return out
+    law = TimeLaw(grid, speed, sdd, times)
+    width, fastest = _first_width(model, speed, u, limits), None
+    for _ in range(WIDTHS):
+        times, speed, u = _averaged(law, width, grid, rows)
+        # what the average leaves above a jerk limit: slowed down uniformly (the jerk
+        # falls with the cube of the stretch; a slower time law stays feasible)
+        excess = _jerk_excess(_waypoints(model, times, speed, u), limits)
+        k = max(1.0, excess ** (1.0 / 3.0) * (1.0 + 1e-9))
+        out = _waypoints(model, times * k, speed / k, u / (k * k))
+        if fastest is None or out[-1].t < fastest[-1].t:
+            fastest = out
+        width *= WIDEN
+    return fastest
+
+
+def _jerk_excess(waypoints: list[Waypoint], limits: TrajectoryLimits) -> float:
+    """The largest ratio of the trajectory's jerk to its limit (those set)."""
+    linear, angular = segment_jerks(*Trajectory(waypoints).curve.segments()[1:])
+    ratios = [0.0]
+    if limits.linear_jerk is not None:
+        ratios.append(float(linear.max()) / limits.linear_jerk)
+    if limits.angular_jerk is not None:
+        ratios.append(float(angular.max()) / limits.angular_jerk)
+    return max(ratios)
+
+
+def _waypoints(model: _GridModel, times: Array, speed: Array, u: Array) -> list[Waypoint]:
+    """The motion's waypoints: the grid points reached at `times` with path speeds
+    `speed` and accelerations `u`, at rest at both ends (_spaced: the points kept)."""
+    positions, rotations, v, a = model.positions, model.rotations, model.v, model.acc
     out = []
-    last = len(grid) - 1
+    last = len(times) - 1
     for i in _spaced(times):
         pose = Pose.from_matrix(positions[i], rotations[i])
         if i in (0, last):
@@ -159,6 +207,37 @@ def _time_motion(
                 Waypoint(times[i], pose, v[i] * speed[i], v[i] * u[i] + a[i] * speed[i] ** 2)
             )
     return out
+
+
+def _first_width(model: _GridModel, speed: Array, u: Array, limits: TrajectoryLimits) -> float:
+    """The averaging window (s) a first try takes: each acceleration's largest swing
+    (twice its peak) over its jerk limit."""
+    accel = model.v * u[:, None] + model.acc * (speed**2)[:, None]
+    width = MIN_WIDTH
+    for limit, part in ((limits.linear_jerk, slice(0, 3)), (limits.angular_jerk, slice(3, 6))):
+        if limit is not None:
+            width = max(width, 2.0 * float(np.linalg.norm(accel[:, part], axis=1).max()) / limit)
+    return width
+
+
+def _averaged(
+    law: TimeLaw, width: float, grid: Array, rows: tuple[Array, Array, Array, Array]
+) -> tuple[Array, Array, Array]:
+    """(times, speeds, accelerations) at the grid points of `law` averaged over `width`
+    s (cdpr.path.time_law), slowed down uniformly by the least factor k that brings
+    every grid point's (u, x) back inside the timing's constraint rows: (u, x) / k^2 lies
+    between the average's and rest, which every row holds with room (c < 0)."""
+    averaged = AveragedLaw(law, width)
+    times = averaged.timed_at(grid)
+    _, speed, u = averaged.at(times)
+    a, b, c, xbound = rows
+    x = speed**2
+    need = a * u[:, None] + b * x[:, None]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratios = np.where(c < 0.0, need / -c, 0.0)
+        over = np.where(xbound[:, 1] > 0.0, x / xbound[:, 1], 0.0)
+    k = math.sqrt(max(1.0, float(ratios.max()), float(over.max())))
+    return times * k, speed / k, u / (k * k)
 
 
 def _spaced(times: Array) -> list[int]:
@@ -255,7 +334,8 @@ class _TensionConstraint(toppra.constraint.LinearConstraint):
 @dataclass(frozen=True)
 class _GridModel:
     """What the constraints need at each grid point (N of them), the same for every
-    pass: the poses, the path's rates per unit s (v = (p', w_s), acc = (p'', w_ss)),
+    pass: the poses, the path's rates per unit s (v = (p', w_s), acc = (p'', w_ss),
+    `third` their rate along the grid),
     the controller's model at twist v (Lambda, c, M, mu) and mu at rest, and the facet
     normals of the wrench zonotope (cdpr.wrench_margin.facet_normals: one per facet
     pair, zero where the subset spans no facet)."""
@@ -270,6 +350,7 @@ class _GridModel:
     mu: Array
     mu_rest: Array
     normals: Array
+    third: Array
 
     @classmethod
     def of(cls, path: BlendedPath, grid: Array, robot: Robot) -> _GridModel:
@@ -279,7 +360,8 @@ class _GridModel:
         terms = [robot.model_terms_at(*at) for at in zip(positions, flat, v, strict=True)]
         Lam, c, M, mu = (np.array(x) for x in zip(*terms, strict=True))
         mu_rest = -rest_wrenches(robot.platform, rotations)  # mu at zero twist
-        return cls(positions, rotations, v, acc, Lam, c, M, mu, mu_rest, facet_normals(Lam))
+        third = np.gradient(acc, grid, axis=0)  # the path's third derivative per unit s
+        return cls(positions, rotations, v, acc, Lam, c, M, mu, mu_rest, facet_normals(Lam), third)
 
 
 def _rows(
@@ -328,12 +410,17 @@ def _rows(
     a, b, c = (np.hstack(r) for r in rows)
     # speeds: the platform's (its cap), its turning, each cable's
     with np.errstate(divide="ignore"):
-        bounds = np.column_stack(
-            [
-                (LIMIT_SHARE * caps / np.linalg.norm(p1, axis=1)) ** 2,
-                (LIMIT_SHARE * limits.angular_speed / np.linalg.norm(w1, axis=1)) ** 2,
-                (LIMIT_SHARE * np.array(cable_speed_bounds(robot, limits)) / np.abs(lv)) ** 2,
-            ]
-        )
+        columns = [
+            (LIMIT_SHARE * caps / np.linalg.norm(p1, axis=1)) ** 2,
+            (LIMIT_SHARE * limits.angular_speed / np.linalg.norm(w1, axis=1)) ** 2,
+            (LIMIT_SHARE * np.array(cable_speed_bounds(robot, limits)) / np.abs(lv)) ** 2,
+        ]
+        # the jerk the path's bending adds at speed s' (its third derivative x s'^3): a
+        # share of each jerk limit
+        for limit, part in ((limits.linear_jerk, slice(0, 3)), (limits.angular_jerk, slice(3, 6))):
+            if limit is not None:
+                bending = np.linalg.norm(model.third[:, part], axis=1)
+                columns.append((BENDING_SHARE * limit / bending) ** (2.0 / 3.0))
+        bounds = np.column_stack(columns)
     xbound = np.column_stack([np.zeros(n), bounds.min(axis=1)])
     return a, b, c, xbound

@@ -1,0 +1,107 @@
+"""Jerk-limited path timing: the averaged time law (cdpr.path.time_law) held to scipy's
+quadrature and to finite differences; the standard paths timed under jerk limits keep
+them, pass the daemon's validation and an independent LP, and take only a little longer."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.integrate import quad
+
+from cdpr.path import Path, PathPoint
+from cdpr.path.time_law import AveragedLaw, TimeLaw
+from cdpr.path.timing import Timing, time_path
+from cdpr.trajectory.jerk import segment_jerks
+from daemon.service.planner import validate_as_the_daemon
+from tests.cdpr.test_path import lp_feasible, samples
+from tests.daemon_stack import config_for
+from tuning.scenarios import STANDARD_SET
+
+WIDTH = 0.2
+
+
+def bang_bang() -> TimeLaw:
+    """s = t² to 0.25 at t = 0.5 (s' = 1), then braking at 2 to rest at 0.5, t = 1."""
+    return TimeLaw(
+        np.array([0.0, 0.25, 0.5]), np.array([0.0, 1.0, 0.0]), np.array([2.0, -2.0]),
+        np.array([0.0, 0.5, 1.0]),
+    )  # fmt: skip
+
+
+def test_the_time_law_and_its_integral_against_quadrature() -> None:
+    law = bang_bang()
+    for t in (-0.3, 0.0, 0.2, 0.5, 0.77, 1.0, 1.4):
+        S, s, v = law.at(np.array([t]))
+        expected_s = t * t if 0 <= t <= 0.5 else 0.5 - (1 - t) ** 2 if 0.5 < t <= 1 else 0.5
+        assert s[0] == pytest.approx(0.0 if t < 0 else expected_s, abs=1e-15)
+        inside = [p for p in (0.5, 1.0) if p < t]
+        integral = quad(lambda x: law.at(np.array([x]))[1][0], 0.0, max(t, 0.0), points=inside)
+        assert S[0] == pytest.approx(integral[0], abs=1e-12)
+        h = 1e-6
+        rate = (law.at(np.array([t + h]))[1] - law.at(np.array([t - h]))[1]) / (2 * h)
+        if t not in (0.0, 0.5, 1.0):
+            assert v[0] == pytest.approx(rate[0], abs=1e-6)
+
+
+def test_the_average_is_the_window_s_mean_with_its_rates_and_bounded_jerk() -> None:
+    law = bang_bang()
+    averaged = AveragedLaw(law, WIDTH)
+    assert averaged.end == pytest.approx(1.0 + WIDTH)
+    times = np.linspace(0.0, averaged.end, 241)
+    s, rate, accel = averaged.at(times)
+    for t, value in zip(times[::20], s[::20], strict=True):
+        mean = quad(lambda x: law.at(np.array([x]))[1][0], t - WIDTH, t, limit=200)[0] / WIDTH
+        assert value == pytest.approx(mean, abs=1e-10)
+    h = 1e-6
+    up, down = averaged.at(times + h), averaged.at(times - h)
+    np.testing.assert_allclose(rate, (up[0] - down[0]) / (2 * h), atol=1e-6)
+    np.testing.assert_allclose(accel, (up[1] - down[1]) / (2 * h), atol=1e-5)
+    jerk = (up[2] - down[2]) / (2 * h)
+    assert np.abs(jerk).max() <= 4.0 / WIDTH * (1 + 1e-6)  # s'' swings from 2 to -2
+    # at rest with no acceleration at both ends, and never beyond the law's extremes
+    ends = averaged.at(np.array([0.0, averaged.end]))
+    np.testing.assert_allclose([e.tolist() for e in ends], [[0.0, 0.5], [0, 0], [0, 0]], atol=1e-12)
+    assert rate.max() <= 1.0 + 1e-12 and np.abs(accel).max() <= 2.0 + 1e-12
+
+
+def test_each_path_point_s_time_on_the_average_reaches_it() -> None:
+    averaged = AveragedLaw(bang_bang(), WIDTH)
+    points = np.concatenate([np.linspace(0.0, 0.05, 9), np.linspace(0.06, 0.5, 30)])
+    times = averaged.timed_at(points)
+    assert times[0] == 0.0 and times[-1] == averaged.end
+    np.testing.assert_allclose(averaged.at(times)[0], points, atol=1e-12)
+    assert np.all(np.diff(times) > 0.0)
+
+
+@pytest.fixture(scope="module")
+def cia402():
+    return config_for("cia402")
+
+
+@pytest.mark.parametrize(
+    ("name", "longer"), [("figure_eight", 2.5), ("vertical_lift", 1.1), ("edge_move", 1.1)]
+)
+def test_the_standard_paths_timed_under_jerk_limits_keep_them(
+    cia402, name: str, longer: float
+) -> None:
+    """Timed with the jerk bounded, each standard path's trajectory keeps the bounds,
+    passes the daemon's validation (its own limits) and an independent LP at its samples.
+    TOPP-RA alone gives hundreds of m/s³ where its path acceleration switches, and on the
+    figure-eight (174 poses with 5 cm blends: the bends change over millimetres) 10^5
+    m/s³; bounded, the lines take at most 10 % longer, the figure-eight 2.2x (what its
+    bends allow at 50 m/s³)."""
+    robot = cia402.robot
+    poses = [w.pose for w in STANDARD_SET[name](robot).waypoints]
+    blends = [0.0] + [0.05] * (len(poses) - 2) + [0.0]
+    path = Path(tuple(PathPoint(p, blend=b) for p, b in zip(poses, blends, strict=True)))
+    free = time_path(path, robot, cia402.trajectory, Timing(margin=5.0))
+    limits = cia402.trajectory.model_copy(update={"linear_jerk": 50.0, "angular_jerk": 100.0})
+    bound = time_path(path, robot, limits, Timing(margin=5.0))
+    linear, angular = segment_jerks(*bound.curve.segments()[1:])
+    assert linear.max() <= 50.0 and angular.max() <= 100.0
+    loose = segment_jerks(*free.curve.segments()[1:])
+    assert loose[0].max() > 50.0  # the bound did something
+    validate_as_the_daemon(bound, cia402)
+    for w in samples(bound, 200):
+        assert lp_feasible(robot, w, margin=4.0), f"t={w.t:.3f}: no tensions"
+    assert free.duration < bound.duration <= longer * free.duration
