@@ -15,7 +15,9 @@ payload estimate (`step_adaptation_off`, `step_ratio`); the inertia estimate on 
 elastic cables (`inertia`: the platform's inertia 1.5x the file's and 2 kg hung off its
 centre, holding 2 s and then turning about all three axes: the errors of the inertia's
 diagonal in %, of its products in kg m^2 and of the mass, the flight's and the hold's
-RMS with the inertia estimated and, under `inertia_off`, without); and the holding
+RMS with the inertia estimated and, under `inertia_off`, without; `inertia_latency`: the
+same with the commands taking effect INERTIA_LATENCY s late, the controller told); and the
+holding
 robot's response
 to a 50 N horizontal push (`disturbance`: peak error, 2 % settling time, the error left
 after 20 s, whether the peak exceeds the daemon's default tracking-error bound, and
@@ -45,6 +47,8 @@ from tuning.comparison import standard_set_figures as tracking
 from tuning.disturbance import release_response, step_response
 from tuning.scenarios import STANDARD_SET
 from tuning.tracking import run_tracking
+
+INERTIA_LATENCY = 5e-4  # s: the commands' latency of the `inertia_latency` figures
 
 
 def step_us(robot: Robot, spec: ControllerSpec, calls: int) -> dict[str, float]:
@@ -144,6 +148,7 @@ def main(argv: list[str] | None = None) -> int:
         results["disturbance"] = disturbance(robot, spec)
         results["disturbance_release"] = release_figures(robot, spec)
         results["inertia"] = inertia_figures(robot, spec)
+        results["inertia_latency"] = inertia_figures(robot, spec, INERTIA_LATENCY)
     if args.json:
         print(json.dumps(results))
         return 0
@@ -165,10 +170,12 @@ def main(argv: list[str] | None = None) -> int:
                 f"{'':14s} {payload}: rms {p['rms_mm']:.3f} mm hold {p['hold_mm']:.3f} mm  "
                 f"(adaptation off: rms {off['rms_mm']:.3f} mm hold {off['hold_mm']:.3f} mm)"
             )
-    if "inertia" in results:
-        i = results["inertia"]
+    for key in ("inertia", "inertia_latency"):
+        if key not in results:
+            continue
+        i = results[key]
         print(
-            f"inertia estimate: diagonal error {i['diagonal_error_pct']} %  products "
+            f"{key}: diagonal error {i['diagonal_error_pct']} %  products "
             f"{i['products_error']:.4f} kg m^2  mass {i['mass_error_pct']:.2f} %  rms "
             f"{i['rms_mm']:.3f} mm hold {i['hold_mm']:.3f} mm (inertia off: rms "
             f"{i['inertia_off']['rms_mm']:.3f} mm hold {i['inertia_off']['hold_mm']:.3f} mm)"

@@ -91,9 +91,15 @@ def payload_figures(robot: Robot, spec: ControllerSpec) -> dict[str, dict[str, A
 
 
 def _payload_run(
-    robot: Robot, trajectory: Trajectory, controller: ParallelController, config: PlantConfig
+    robot: Robot,
+    trajectory: Trajectory,
+    controller: ParallelController,
+    config: PlantConfig,
+    latency: float = 0.0,
 ) -> dict[str, float | str]:
-    result = run_tracking(robot, trajectory, controller, config, settle=HOLD, warm_up=WARM_UP)
+    result = run_tracking(
+        robot, trajectory, controller, config, settle=HOLD, warm_up=WARM_UP, latency=latency
+    )
     rec = result.recording
     flown = trajectory.shifted(WARM_UP)
     times = rec.t
@@ -117,23 +123,27 @@ def _rounded(figures: dict[str, Any]) -> dict[str, Any]:
 # 1.5x the file's and 2 kg hung 5 cm aside and 10 cm down (the centre of mass 15 mm off)
 INERTIA_PAYLOAD = {"mass": 2.0, "position": [0.05, 0.0, -0.1]}
 INERTIA_PLANT = {"mismatch": {"inertia_scale": 1.5, "payload": INERTIA_PAYLOAD}}
+LATENCY_STEP = 2.5e-4  # s: the plant step of a run with latency (a whole number of steps)
 
 
-def inertia_figures(robot: Robot, spec: ControllerSpec) -> dict[str, Any]:
+def inertia_figures(robot: Robot, spec: ControllerSpec, latency: float = 0.0) -> dict[str, Any]:
     """The payload estimate with the inertia (spec's adaptation, inertia on) on
     INERTIA_PLANT, holding the start pose for WARM_UP s and then turning about all three
     axes (tuning.scenarios.rotation_wobble): the error of the inertia's diagonal
     (`diagonal_error_pct`, per axis, % of the truth's), of its products (`products_error`,
     the largest, kg m^2) and of the mass (`mass_error_pct`), the RMS position error over
     the flight and the HOLD s after it (`rms_mm`, `hold_mm`), and those with the inertia
-    left at the file's (`inertia_off`)."""
-    config = parse_plant_config(INERTIA_PLANT)
+    left at the file's (`inertia_off`).  With a `latency` (s) the commands take effect
+    that late on a plant stepping LATENCY_STEP s, and the controller is told."""
+    plant = INERTIA_PLANT if not latency else {**INERTIA_PLANT, "step": LATENCY_STEP}
+    config = parse_plant_config(plant)
     truth = config.mismatch.apply(robot, np.random.default_rng()).platform
     out: dict[str, Any] = {}
     for inertia in (True, False):
         adaptation = spec.adaptation.model_copy(update={"enabled": True, "inertia": inertia})
         controller = ParallelController(robot, spec.model_copy(update={"adaptation": adaptation}))
-        flight = _payload_run(robot, rotation_wobble(robot), controller, config)
+        controller.set_latency(latency)
+        flight = _payload_run(robot, rotation_wobble(robot), controller, config, latency)
         if not inertia:
             out["inertia_off"] = flight
             continue
@@ -141,8 +151,9 @@ def inertia_figures(robot: Robot, spec: ControllerSpec) -> dict[str, Any]:
         assert estimate is not None
         error = estimate.platform.inertia - truth.inertia
         out = {
-            "diagonal_error_pct": np.round(100.0 * np.diag(error) / np.diag(truth.inertia), 2)
-            .tolist(),
+            "diagonal_error_pct": np.round(
+                100.0 * np.diag(error) / np.diag(truth.inertia), 2
+            ).tolist(),
             "products_error": round(float(np.abs(error[np.triu_indices(3, 1)]).max()), 4),
             "mass_error_pct": round(100.0 * (estimate.mass / truth.mass - 1.0), 3),
             **flight,

@@ -105,10 +105,11 @@ def run_tracking(
     rate_hz: float = 500.0,
     settle: float = 0.5,
     warm_up: float = 0.0,
+    latency: float = 0.0,
 ) -> TrackingResult:
     """Track `trajectory` with `controller` on a plant of `robot` (see module docstring),
     the controller holding the start pose for `warm_up` s before the trajectory (shifted
-    by that much) begins."""
+    by that much) begins, its commands applied `latency` s late (tuning.lockstep)."""
     plant = Plant(robot, config)
     start = start_pose(trajectory)
     plant.reset(start, equilibrium_tensions(plant.robot, start))
@@ -129,7 +130,7 @@ def run_tracking(
         return commands
 
     duration = trajectory.end_time - trajectory.start_time + warm_up + settle
-    recording = run_lockstep(plant, control, duration, rate_hz)
+    recording = run_lockstep(plant, control, duration, rate_hz, latency)
     return _figures(trajectory, recording, faults[0] if faults else "")
 
 
