@@ -134,8 +134,12 @@ def inertia_figures(robot: Robot, spec: ControllerSpec, latency: float = 0.0) ->
     the largest, kg m^2) and of the mass (`mass_error_pct`), the RMS position error over
     the flight and the HOLD s after it (`rms_mm`, `hold_mm`), and those with the inertia
     left at the file's (`inertia_off`).  With a `latency` (s) the commands take effect
-    that late on a plant stepping LATENCY_STEP s, and the controller is told."""
-    plant = INERTIA_PLANT if not latency else {**INERTIA_PLANT, "step": LATENCY_STEP}
+    that late on a plant stepping LATENCY_STEP s (its drives' rates still over a control
+    period, as at the default 1 ms step), and the controller is told."""
+    plant: dict[str, Any] = INERTIA_PLANT
+    if latency:
+        window = round(1.0 / (spec.rate_hz * LATENCY_STEP))
+        plant = {**plant, "step": LATENCY_STEP, "encoder": {"velocity_window_steps": window}}
     config = parse_plant_config(plant)
     truth = config.mismatch.apply(robot, np.random.default_rng()).platform
     out: dict[str, Any] = {}
