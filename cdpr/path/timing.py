@@ -163,9 +163,8 @@ def _time_motion(
     u = np.concatenate([[0.0], 0.5 * (sdd[:-1] + sdd[1:]), [0.0]])
     dt = 2.0 * np.diff(grid) / np.maximum(speed[:-1] + speed[1:], 1e-12)
     times = np.concatenate([[0.0], np.cumsum(dt)])
-    out = _waypoints(model, times, speed, u)
-    if limits.linear_jerk is None and limits.angular_jerk is None:
-        return out
+    if not _jerk_limits(limits):
+        return _waypoints(model, times, speed, u)
     law = TimeLaw(grid, speed, sdd, times)
     width, fastest = _first_width(model, speed, u, limits), None
     for _ in range(WIDTHS):
@@ -181,15 +180,16 @@ def _time_motion(
     return fastest
 
 
+def _jerk_limits(limits: TrajectoryLimits) -> list[tuple[int, float, slice]]:
+    """(0 linear / 1 angular, the limit, its twist components) of each jerk limit set."""
+    pairs = ((limits.linear_jerk, slice(0, 3)), (limits.angular_jerk, slice(3, 6)))
+    return [(k, limit, part) for k, (limit, part) in enumerate(pairs) if limit is not None]
+
+
 def _jerk_excess(waypoints: list[Waypoint], limits: TrajectoryLimits) -> float:
     """The largest ratio of the trajectory's jerk to its limit (those set)."""
-    linear, angular = segment_jerks(*Trajectory(waypoints).curve.segments()[1:])
-    ratios = [0.0]
-    if limits.linear_jerk is not None:
-        ratios.append(float(linear.max()) / limits.linear_jerk)
-    if limits.angular_jerk is not None:
-        ratios.append(float(angular.max()) / limits.angular_jerk)
-    return max(ratios)
+    jerks = segment_jerks(*Trajectory(waypoints).curve.segments()[1:])
+    return max(float(jerks[k].max()) / limit for k, limit, _ in _jerk_limits(limits))
 
 
 def _waypoints(model: _GridModel, times: Array, speed: Array, u: Array) -> list[Waypoint]:
@@ -214,9 +214,8 @@ def _first_width(model: _GridModel, speed: Array, u: Array, limits: TrajectoryLi
     (twice its peak) over its jerk limit."""
     accel = model.v * u[:, None] + model.acc * (speed**2)[:, None]
     width = MIN_WIDTH
-    for limit, part in ((limits.linear_jerk, slice(0, 3)), (limits.angular_jerk, slice(3, 6))):
-        if limit is not None:
-            width = max(width, 2.0 * float(np.linalg.norm(accel[:, part], axis=1).max()) / limit)
+    for _, limit, part in _jerk_limits(limits):
+        width = max(width, 2.0 * float(np.linalg.norm(accel[:, part], axis=1).max()) / limit)
     return width
 
 
@@ -417,10 +416,9 @@ def _rows(
         ]
         # the jerk the path's bending adds at speed s' (its third derivative x s'^3): a
         # share of each jerk limit
-        for limit, part in ((limits.linear_jerk, slice(0, 3)), (limits.angular_jerk, slice(3, 6))):
-            if limit is not None:
-                bending = np.linalg.norm(model.third[:, part], axis=1)
-                columns.append((BENDING_SHARE * limit / bending) ** (2.0 / 3.0))
+        for _, limit, part in _jerk_limits(limits):
+            bending = np.linalg.norm(model.third[:, part], axis=1)
+            columns.append((BENDING_SHARE * limit / bending) ** (2.0 / 3.0))
         bounds = np.column_stack(columns)
     xbound = np.column_stack([np.zeros(n), bounds.min(axis=1)])
     return a, b, c, xbound

@@ -4,10 +4,10 @@ Every segment is a quintic Hermite (cdpr.trajectory.core), so the acceleration i
 continuous and the jerk finite; a jerk limit bounds how fast it changes, which a drive
 feels as the slope of its torque.  Per segment the jerk is taken at JERK_SAMPLES + 1
 evenly spaced instants, ends included, as the change of the accelerations across a
-millionth of the segment around each (the linear one is the quintic's third derivative, a quadratic
-in time whose peak between two instants exceeds theirs by at most 1/8 of its change
-across them; the angular one is the rate of ω̇ = J_l θ̈ + J̇_l θ̇).  All segments of a
-trajectory at once, in numpy.
+millionth of the segment around each (the linear one is the quintic's third derivative,
+a quadratic in time whose peak between two instants exceeds theirs by at most 1/8 of its
+change across them; the angular one is the rate of ω̇ = J_l θ̈ + J̇_l θ̇).  All segments
+of a trajectory at once, in numpy.
 """
 
 from __future__ import annotations
@@ -23,6 +23,7 @@ JERK_SAMPLES = 8  # intervals per segment; the jerk is taken at their ends
 _FRACTIONS = np.linspace(0.0, 1.0, JERK_SAMPLES + 1)
 _STEP = 1e-6  # of a segment: the interval over which an acceleration's rate is taken
 _POWERS = np.arange(6.0)
+UNITS = {"linear_jerk": "m/s³", "angular_jerk": "rad/s³"}  # of the two limits
 
 
 def segment_jerks(tables: Array, durations: Array) -> tuple[Array, Array]:
@@ -47,9 +48,9 @@ def segment_jerks(tables: Array, durations: Array) -> tuple[Array, Array]:
 
 def jerk_violation(
     tables: Array, durations: Array, linear_jerk: float | None, angular_jerk: float | None
-) -> tuple[int, str, float] | None:
+) -> tuple[int, str, float, str] | None:
     """The first segment whose jerk exceeds a limit (None: not limited), as (segment,
-    limit name, value), else None."""
+    limit name, value, unit), else None."""
     if linear_jerk is None and angular_jerk is None:
         return None
     linear, angular = segment_jerks(tables, durations)
@@ -63,5 +64,5 @@ def jerk_violation(
         return None
     k = int(rows[0])
     if linear_jerk is not None and not linear[k] <= linear_jerk:
-        return k, "linear_jerk", float(linear[k])
-    return k, "angular_jerk", float(angular[k])
+        return k, "linear_jerk", float(linear[k]), UNITS["linear_jerk"]
+    return k, "angular_jerk", float(angular[k]), UNITS["angular_jerk"]

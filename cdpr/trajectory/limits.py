@@ -308,8 +308,7 @@ def _check_jerk(trajectory: Trajectory, limits: TrajectoryLimits, segments: int)
         tables[:segments], durations[:segments], limits.linear_jerk, limits.angular_jerk
     )
     if bad is not None:
-        k, name, value = bad
-        unit = "m/s³" if name == "linear_jerk" else "rad/s³"
+        k, name, value, unit = bad
         t0, t1 = starts[k], starts[k] + durations[k]
         raise TrajectoryError(
             name,

@@ -260,10 +260,7 @@ def _violation(
     if hit is not None:
         return hit[1:]
     jerk = jerk_violation(table, np.array([T]), limits.linear_jerk, limits.angular_jerk)
-    if jerk is None:
-        return None
-    _, name, value = jerk
-    return name, value, "m/s³" if name == "linear_jerk" else "rad/s³"
+    return None if jerk is None else jerk[1:]
 
 
 def _jerk_span(distance: float, jerk: float | None) -> float:
