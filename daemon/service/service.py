@@ -247,18 +247,20 @@ class Service:
         self.port.poll()
         if self._waiting:  # the previous cycle never completed: close it now
             self._close_waiting_cycle()
-        self._opened = now
         if self.driver.timing is Timing.SYNC:
             self._counts = [fb.count for fb in self.driver.feedback]
         self._waiting = True
+        # the cycle's instant is when its SYNC goes out, the drives latching then: the
+        # work above (a late cycle closed, a stall) may have held the tick up since `now`
+        self._opened = opened = time.monotonic()
         self._send(self.driver.cycle_start())
         if self._all_fresh():
-            self._run_cycle(now, deadline=False)
+            self._run_cycle(opened, deadline=False)
             return
         assert self._deadline is not None
-        self._deadline.arm(now + self.config.safety.feedback_deadline * self.period)
+        self._deadline.arm(opened + self.config.safety.feedback_deadline * self.period)
         if self.machine.moving and not self._busy:
-            self._prepare(now)
+            self._prepare(opened)
 
     def _prepare(self, now: float) -> None:
         """The controller's measurement-free work for the cycle opened at `now`, done

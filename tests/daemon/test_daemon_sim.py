@@ -13,6 +13,7 @@ import itertools
 import math
 import os
 import signal
+import sys
 import time
 from collections import Counter
 
@@ -391,6 +392,48 @@ def test_feedback_queued_when_the_wait_ends_counts_as_in_time() -> None:
             stack.sim.robot.silence(2, False)  # one miss, far below safety.stale_cycles
             assert service.stats.cycles == cycles + 1
             assert service.stats.deadline_misses == misses + 1
+
+    run(scenario())
+
+
+def test_a_tick_held_up_before_its_sync_goes_out_is_no_implausible_feedback() -> None:
+    """The drives latch their positions when the SYNC is on the bus, so the cycle's
+    instant is when it went out, not when the tick woke: a tick held up 25 ms before
+    its SYNC (the late cycle it closed first, a host's stall) while the cables run at
+    0.2 m/s would otherwise put the samples 25 ms after their instant, 5 mm past their
+    rates' account (CI: a false `implausible_feedback` brake in a flight, when the
+    answers beat the deadline armed from the stale instant)."""
+
+    async def scenario() -> None:
+        config = config_for("cia402")
+        async with Stack(config) as stack:
+            service = stack.service
+            await stack.enable()
+            reply = await stack.planner.command("goto", {"pose": _target(config, 0.2, 0.0, 0.0)})
+            assert reply["accepted"]
+            feedback = service.driver.feedback
+            fast = 0.2  # m/s of the fastest cable when the tick is held up
+            await stack.until(lambda: max(abs(fb.rate) for fb in feedback) > fast, 5.0)
+            poll, check = service.port.poll, service.trust.check
+            held: list[float] = []  # when the stall ended
+            instants: list[float] = []  # of the cycles judged after it
+
+            def held_up_poll() -> None:
+                if not held and sys._getframe(1).f_code.co_name == "_on_tick":
+                    time.sleep(0.025)
+                    held.append(time.monotonic())
+                poll()
+
+            def judged(lengths, rates, fresh, instant):
+                if held:
+                    instants.append(instant)
+                return check(lengths, rates, fresh, instant)
+
+            service.port.poll, service.trust.check = held_up_poll, judged
+            await stack.finish(reply)
+            assert held and instants, "the tick was never held up"
+            assert instants[0] >= held[0], "the held tick's cycle took the instant it woke at"
+            assert service.machine.fault is None
 
     run(scenario())
 
