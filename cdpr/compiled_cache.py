@@ -20,7 +20,12 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 # every file that compiles with numba (tests/cdpr/test_compiled_cache.py keeps it whole)
-SOURCES = ("cdpr/wrench_margin.py", "cdpr/interference.py", "tuning/workspace_map.py")
+SOURCES = (
+    "cdpr/wrench_margin.py",
+    "cdpr/interference.py",
+    "cdpr/path/reachability.py",
+    "tuning/workspace_map.py",
+)
 
 
 def source_digest(root: Path = ROOT) -> str:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -190,15 +189,6 @@ class Robot:
         cycle needs of the model.  Lambda is contiguous: a control cycle multiplies with
         it several times (see the cdpr.kinematics docstring)."""
         table, G = self._model(pose, twist)
-        return np.ascontiguousarray(table[:, :6]), table[:, 6], G[:6, :6], G[:6, 6]
-
-    def model_terms_at(
-        self, position: Sequence[float], rotation: Sequence[float], twist: ArrayLike
-    ) -> tuple[Array, Array, Array, Array]:
-        """model_terms at the pose with this position and rotation matrix (9 floats, row
-        by row): for callers that hold rotations as matrices (a path's grid), without a
-        quaternion in between."""
-        table, G = self._model_at(tuple(map(float, position)), list(map(float, rotation)), twist)
         return np.ascontiguousarray(table[:, :6]), table[:, 6], G[:6, :6], G[:6, 6]
 
     def _model(self, pose: Pose, twist: ArrayLike) -> tuple[Array, Array]:

@@ -20,9 +20,13 @@ _SMALL_ANGLE = 1e-4  # below this, use Taylor series (error < 1e-17 relative)
 
 
 def hat(w: ArrayLike) -> Vec:
-    """Skew matrix [w]x such that hat(w) @ v == cross(w, v)."""
-    x, y, z = (float(c) for c in np.asarray(w, dtype=float).reshape(3))
-    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+    """Skew matrix [w]x such that hat(w) @ v == cross(w, v); for vectors (..., 3) the
+    matrices (..., 3, 3)."""
+    w = np.asarray(w, dtype=float)
+    x, y, z = w[..., 0], w[..., 1], w[..., 2]
+    zero = np.zeros_like(x)
+    rows = [[zero, -z, y], [z, zero, -x], [-y, x, zero]]
+    return np.stack([np.stack(row, axis=-1) for row in rows], axis=-2)
 
 
 def vee(W: ArrayLike) -> Vec:
@@ -32,16 +36,15 @@ def vee(W: ArrayLike) -> Vec:
 
 
 def exp_so3(w: ArrayLike) -> Vec:
-    """Rotation matrix of the rotation vector w (Rodrigues, series near 0)."""
-    w = np.asarray(w, dtype=float).reshape(3)
-    theta2 = float(w @ w)
-    theta = math.sqrt(theta2)
-    if theta < _SMALL_ANGLE:
-        a = 1.0 - theta2 / 6.0
-        b = 0.5 - theta2 / 24.0
-    else:
-        a = math.sin(theta) / theta
-        b = (1.0 - math.cos(theta)) / theta2
+    """Rotation matrix of the rotation vector w (Rodrigues, series near 0); for vectors
+    (..., 3) the matrices (..., 3, 3)."""
+    w = np.asarray(w, dtype=float)
+    theta2 = np.einsum("...i,...i->...", w, w)[..., None, None]
+    theta = np.sqrt(theta2)
+    small = theta < _SMALL_ANGLE
+    safe = np.where(small, 1.0, theta)
+    a = np.where(small, 1.0 - theta2 / 6.0, np.sin(safe) / safe)
+    b = np.where(small, 0.5 - theta2 / 24.0, (1.0 - np.cos(safe)) / (safe * safe))
     W = hat(w)
     return np.eye(3) + a * W + b * (W @ W)
 
@@ -87,9 +90,7 @@ def quats_to_rotvecs(q: ArrayLike) -> Vec:
     s = np.sqrt(np.einsum("ij,ij->i", v, v))
     small = s < _SMALL_ANGLE
     with np.errstate(divide="ignore", invalid="ignore"):  # each branch where it is not used
-        k = np.where(
-            small, (2.0 / w) * (1.0 - s * s / (3.0 * w * w)), 2.0 * np.arctan2(s, w) / s
-        )
+        k = np.where(small, (2.0 / w) * (1.0 - s * s / (3.0 * w * w)), 2.0 * np.arctan2(s, w) / s)
     return k[:, None] * v
 
 
@@ -132,45 +133,35 @@ def quat_to_matrix(q: ArrayLike) -> Vec:
 
 
 def quat_from_matrix(R: ArrayLike) -> Vec:
-    """Unit quaternion (w >= 0) of a rotation matrix, by Shepperd's method."""
+    """Unit quaternion (w >= 0) of a rotation matrix, by Shepperd's method: from the
+    largest of 1 + trace and the diagonal's four signed sums; for matrices (..., 3, 3)
+    the quaternions (..., 4)."""
     R = np.asarray(R, dtype=float)
-    m00, m11, m22 = R[0, 0], R[1, 1], R[2, 2]
-    trace = m00 + m11 + m22
-    k = int(np.argmax([trace, m00, m11, m22]))
-    if k == 0:
-        r = math.sqrt(1.0 + trace)
-        q = [
-            0.5 * r,
-            (R[2, 1] - R[1, 2]) / (2 * r),
-            (R[0, 2] - R[2, 0]) / (2 * r),
-            (R[1, 0] - R[0, 1]) / (2 * r),
+    m = R.reshape(-1, 3, 3)
+    m00, m11, m22 = m[:, 0, 0], m[:, 1, 1], m[:, 2, 2]
+    s21, s02, s10 = m[:, 2, 1] - m[:, 1, 2], m[:, 0, 2] - m[:, 2, 0], m[:, 1, 0] - m[:, 0, 1]
+    p01, p02, p12 = m[:, 0, 1] + m[:, 1, 0], m[:, 0, 2] + m[:, 2, 0], m[:, 1, 2] + m[:, 2, 1]
+    sums = np.stack(
+        [1.0 + m00 + m11 + m22, 1.0 + m00 - m11 - m22, 1.0 - m00 + m11 - m22, 1.0 - m00 - m11 + m22]
+    )
+    k = np.argmax(sums, axis=0)
+    rows = np.arange(len(k))
+    r = np.sqrt(sums[k, rows])  # the chosen sum is at least 1
+    r2 = sums[k, rows]
+    candidates = np.stack(  # per k: (w, x, y, z) times 2 r, its own entry r / 2 times 2 r
+        [
+            np.stack([r2, s21, s02, s10]),
+            np.stack([s21, r2, p01, p02]),
+            np.stack([s02, p01, r2, p12]),
+            np.stack([s10, p02, p12, r2]),
         ]
-    elif k == 1:
-        r = math.sqrt(1.0 + m00 - m11 - m22)
-        q = [
-            (R[2, 1] - R[1, 2]) / (2 * r),
-            0.5 * r,
-            (R[0, 1] + R[1, 0]) / (2 * r),
-            (R[0, 2] + R[2, 0]) / (2 * r),
-        ]
-    elif k == 2:
-        r = math.sqrt(1.0 - m00 + m11 - m22)
-        q = [
-            (R[0, 2] - R[2, 0]) / (2 * r),
-            (R[0, 1] + R[1, 0]) / (2 * r),
-            0.5 * r,
-            (R[1, 2] + R[2, 1]) / (2 * r),
-        ]
-    else:
-        r = math.sqrt(1.0 - m00 - m11 + m22)
-        q = [
-            (R[1, 0] - R[0, 1]) / (2 * r),
-            (R[0, 2] + R[2, 0]) / (2 * r),
-            (R[1, 2] + R[2, 1]) / (2 * r),
-            0.5 * r,
-        ]
-    q = np.array(q, dtype=float)
-    return canonical_quat(q / np.linalg.norm(q))
+    )
+    q = candidates[k, :, rows] / (2.0 * r)[:, None]
+    q /= np.linalg.norm(q, axis=1)[:, None]
+    # canonical: the first non-zero component positive (w >= 0)
+    first = np.argmax(q != 0.0, axis=1)
+    q *= np.where(q[rows, first] < 0.0, -1.0, 1.0)[:, None]
+    return q.reshape((*R.shape[:-2], 4))
 
 
 def quat_mul4(

@@ -13,17 +13,22 @@ H''(0) = H''(1) = 0: |q'| is 1 at both ends and close to it between.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 from numpy.typing import NDArray
 
 from cdpr.pose import Pose
-from cdpr.so3 import exp_so3, log_so3
+from cdpr.so3 import exp_so3, quat_from_matrix, quats_to_rotvecs
 from cdpr.trajectory.core import TrajectoryError
 from cdpr.trajectory.rotation import angular_rates
 
 Array = NDArray[np.float64]
 
 _STRAIGHT = 1e-9  # |u_out - u_in| below this: the lines go on straight, no corner
+# m of path: a line between two blends shorter than this is rounding, none (a blend of
+# half a segment on each side leaves 1e-17 m, and grid points that coincide)
+_NO_LINE = 1e-9
 
 
 def _hermite(tau: Array, order: int) -> tuple[Array, Array, Array, Array]:
@@ -52,10 +57,12 @@ def _hermite(tau: Array, order: int) -> tuple[Array, Array, Array, Array]:
     )
 
 
-def path_coordinates(pose: Pose, origin: Array, length: float) -> Array:
-    """q = (position, l theta) of `pose`, theta the rotation vector of R origin^T and l
-    the moment `length` (module docstring)."""
-    return np.concatenate([pose.position, length * log_so3(pose.rotation @ origin.T)])
+def path_coordinates(poses: Sequence[Pose], origin: Array, length: float) -> Array:
+    """q = (position, l theta) of each of `poses` (N x 6), theta the rotation vector of
+    R origin^T and l the moment `length` (module docstring)."""
+    positions = np.array([pose.position_tuple for pose in poses])
+    turns = np.array([pose.rotation for pose in poses]) @ origin.T
+    return np.hstack([positions, length * quats_to_rotvecs(quat_from_matrix(turns))])
 
 
 class BlendedPath:
@@ -67,7 +74,11 @@ class BlendedPath:
     def __init__(self, poses: list[Pose], blends: list[float], length: float) -> None:
         self.length = length
         self.origin = poses[0].rotation
-        nodes = np.array([self._q(p) for p in poses])
+        nodes = path_coordinates(poses, self.origin, length)
+        if np.any(np.linalg.norm(nodes[:, 3:], axis=1) > 0.9 * np.pi * length):
+            raise TrajectoryError(
+                "path_rotation", "a motion turns the platform by nearly 180 deg or more"
+            )
         # parts: (s0, s1, kind, data): kind 0 a line (start, unit), 1 a blend (A, V0, B, V1)
         self._parts: list[tuple[float, float, int, tuple[Array, ...]]] = []
         self._segments: list[tuple[int, ...]] = []  # the segments (their end points) of each
@@ -87,7 +98,7 @@ class BlendedPath:
                         raise ValueError(f"pose {i}: a corner without a blend inside a motion")
                     end = nodes[i] - r * u_in
             run = float(np.linalg.norm(end - at))
-            if run > 0.0:
+            if run > _NO_LINE:
                 self._parts.append((s, s + run, 0, (at, u_in)))
                 self._segments.append((i,))
                 s += run
@@ -103,14 +114,13 @@ class BlendedPath:
                 at = end
         self.s_end = s
         self._starts = np.array([p[0] for p in self._parts])
-
-    def _q(self, pose: Pose) -> Array:
-        q = path_coordinates(pose, self.origin, self.length)
-        if np.linalg.norm(q[3:]) > 0.9 * np.pi * self.length:
-            raise TrajectoryError(
-                "path_rotation", "a motion turns the platform by nearly 180 deg or more"
-            )
-        return q
+        # the parts as arrays, for evaluating at many s at once: a line's data is
+        # (start, unit, 0, 0), a blend's its Hermite data
+        self._lines = np.array([kind == 0 for _, _, kind, _ in self._parts])
+        self._spans = np.array([s1 - s0 for s0, s1, _, _ in self._parts])
+        self._data = np.zeros((len(self._parts), 4, 6))
+        for k, (_, _, _, data) in enumerate(self._parts):
+            self._data[k, : len(data)] = data
 
     def segments(self, s: Array) -> list[tuple[int, ...]]:
         """At each path length s, the segments the path is on (each named by the pose it
@@ -137,23 +147,20 @@ class BlendedPath:
     def __call__(self, s: float | Array, order: int = 0) -> Array:
         scalar = np.ndim(s) == 0
         ss = np.clip(np.atleast_1d(np.asarray(s, dtype=float)), 0.0, self.s_end)
-        out = np.zeros((len(ss), 6))
         which = np.clip(np.searchsorted(self._starts, ss, side="right") - 1, 0, None)
-        for k in np.unique(which):
-            mask = which == k
-            s0, s1, kind, data = self._parts[k]
-            local = ss[mask] - s0
-            if kind == 0:
-                start, unit = data
-                if order == 0:
-                    out[mask] = start + local[:, None] * unit
-                elif order == 1:
-                    out[mask] = unit
-            else:
-                span = s1 - s0
-                basis = _hermite(local / span, order)
-                q = sum(b[:, None] * d for b, d in zip(basis, data, strict=True))
-                out[mask] = q / span**order
+        local = ss - self._starts[which]
+        data = self._data[which]
+        line = self._lines[which]
+        out = np.zeros((len(ss), 6))
+        if order == 0:
+            out[line] = data[line, 0] + local[line, None] * data[line, 1]
+        elif order == 1:
+            out[line] = data[line, 1]
+        blend = ~line
+        span = self._spans[which[blend], None]
+        basis = _hermite(local[blend] / span[:, 0], order)
+        points = data[blend]
+        out[blend] = sum(b[:, None] * points[:, j] for j, b in enumerate(basis)) / span**order
         return out[0] if scalar else out
 
     def eval(self, s: float | Array) -> Array:
@@ -172,7 +179,7 @@ class BlendedPath:
         w_ss) s'^2)."""
         q, dq, ddq = self(s, 0), self(s, 1), self(s, 2)
         theta, dtheta, ddtheta = (x[:, 3:] / self.length for x in (q, dq, ddq))
-        rotations = np.array([exp_so3(th) @ self.origin for th in theta])
+        rotations = exp_so3(theta) @ self.origin
         omega, omega_dot = angular_rates(theta.T, dtheta.T, ddtheta.T)
         return (
             q[:, :3],

@@ -34,16 +34,16 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-import toppra
-import toppra.algorithm
-import toppra.constraint
 from numpy.typing import NDArray
 
 from cdpr.path.geometry import BlendedPath, path_coordinates
 from cdpr.path.model import Path, PathPoint
+from cdpr.path.reachability import parameterize
 from cdpr.path.time_law import AveragedLaw, TimeLaw
 from cdpr.pose import Pose
+from cdpr.reference import model_terms
 from cdpr.robot import Robot
+from cdpr.so3 import quat_from_matrix
 from cdpr.trajectory.core import MIN_SEGMENT, Trajectory, TrajectoryError, Waypoint
 from cdpr.trajectory.jerk import segment_jerks
 from cdpr.trajectory.limits import TrajectoryLimits, cable_speed_bounds
@@ -66,7 +66,7 @@ LIMIT_SHARE = 0.98
 # jerk limits (cdpr.path.time_law): averaging windows from the first (at least MIN_WIDTH
 # s), WIDTHS of them each WIDEN times the last; the one that gives the shortest motion
 MIN_WIDTH = 0.005
-BENDING_SHARE = 0.8  # of a jerk limit: what the path's bending may take (_rows)
+BENDING_SHARE = 0.8  # of a jerk limit: what the path's bending may take (_speed_bounds)
 WIDEN = 1.3
 WIDTHS = 6
 
@@ -91,11 +91,8 @@ def time_path(
     waypoints: list[Waypoint] = []
     t = 0.0
     for number, motion in enumerate(_motions(path, length)):
-        timed = _time_motion(motion, robot, limits, timing, length, number)
-        if waypoints:
-            timed = timed[1:]  # the first is where the last motion rested
-        for w in timed:
-            waypoints.append(Waypoint(t + w.t, w.pose, w.twist, w.accel))
+        timed = _time_motion(motion, robot, limits, timing, length, number, t)
+        waypoints += timed[1:] if waypoints else timed  # the first is where the last rested
         t = waypoints[-1].t
         dwell = motion[-1].dwell
         if dwell > 0.0:
@@ -109,26 +106,28 @@ def _motions(path: Path, length: float) -> list[list[PathPoint]]:
     a blend; a point where the path goes on straight is no corner; points where the
     platform already is are dropped."""
     origin = path.points[0].pose.rotation
-    nodes, kept = [], []
-    for point in path.points:
-        theta_q = path_coordinates(point.pose, origin, length)
-        if nodes and np.allclose(theta_q, nodes[-1], atol=1e-12, rtol=0.0):
+    coordinates = path_coordinates([point.pose for point in path.points], origin, length)
+    # a point within 1e-12 of the one before it is where the platform already is
+    moves = np.abs(np.diff(coordinates, axis=0)).max(axis=1) > 1e-12
+    kept = [path.points[0]]
+    for point, moved in zip(path.points[1:], moves, strict=True):
+        if moved:
+            kept.append(point)
+        else:
             last = kept[-1]
             kept[-1] = PathPoint(last.pose, last.speed, last.blend, last.dwell + point.dwell)
-            continue
-        nodes.append(theta_q)
-        kept.append(point)
     if len(kept) < 2:
         raise TrajectoryError("path_infeasible", "the path goes nowhere: every pose is the first")
+    nodes = coordinates[np.concatenate([[True], moves])]
+    steps = np.diff(nodes, axis=0)
+    units = steps / np.linalg.norm(steps, axis=1)[:, None]
+    turns = np.linalg.norm(np.diff(units, axis=0), axis=1)  # at each interior point
     motions, current = [], [kept[0]]
     for i in range(1, len(kept)):
         current.append(kept[i])
         if i == len(kept) - 1:
             break
-        u_in = nodes[i] - nodes[i - 1]
-        u_out = nodes[i + 1] - nodes[i]
-        turns = np.linalg.norm(u_out / np.linalg.norm(u_out) - u_in / np.linalg.norm(u_in))
-        if kept[i].dwell > 0.0 or (kept[i].blend <= 0.0 and turns > 1e-9):
+        if kept[i].dwell > 0.0 or (kept[i].blend <= 0.0 and turns[i - 1] > 1e-9):
             motions.append(current)
             current = [kept[i]]
     motions.append(current)
@@ -142,20 +141,20 @@ def _time_motion(
     timing: Timing,
     length: float,
     number: int,
+    start: float,
 ) -> list[Waypoint]:
-    """One motion, rest to rest, timed (its own clock from 0)."""
+    """One motion, rest to rest, timed from `start` (s)."""
     geometry = BlendedPath([p.pose for p in motion], [p.blend for p in motion], length)
     grid = _grid(geometry, timing)
     caps = _speed_caps(geometry, motion, grid, limits)
     model = _GridModel.of(geometry, grid, robot)
+    rows = _Rows(model, robot, limits, timing.margin, caps)
     damping = np.zeros(len(grid))  # s' at which the winches' damping is taken
     for _ in range(2 if np.any(robot.k0) else 1):
-        rows = _rows(model, robot, limits, timing.margin, caps, damping)
-        constraint = _TensionConstraint(rows)
-        problem = toppra.algorithm.TOPPRA([constraint], geometry, gridpoints=grid)
-        sdd, speed, _, controllable = problem.compute_parameterization(0.0, 0.0, True)
-        if speed is None or np.isnan(speed).any():
-            raise _infeasible(geometry, grid, controllable, number)
+        c = rows.constant(damping)
+        sdd, speed, _, failed = parameterize(rows.a, rows.b, c, rows.xbound, grid)
+        if failed >= 0:
+            raise _infeasible(geometry, grid, failed, number)
         damping = speed
     # each knot between two intervals takes the mean of their accelerations: the quintic
     # between two knots given one interval's acceleration at one end and the next one's
@@ -164,16 +163,16 @@ def _time_motion(
     dt = 2.0 * np.diff(grid) / np.maximum(speed[:-1] + speed[1:], 1e-12)
     times = np.concatenate([[0.0], np.cumsum(dt)])
     if not _jerk_limits(limits):
-        return _waypoints(model, times, speed, u)
+        return _waypoints(model, start + times, speed, u)
     law = TimeLaw(grid, speed, sdd, times)
     width, fastest = _first_width(model, speed, u, limits), None
     for _ in range(WIDTHS):
-        times, speed, u = _averaged(law, width, grid, rows)
+        times, speed, u = _averaged(law, width, grid, (rows.a, rows.b, c, rows.xbound))
         # what the average leaves above a jerk limit: slowed down uniformly (the jerk
         # falls with the cube of the stretch; a slower time law stays feasible)
         excess = _jerk_excess(_waypoints(model, times, speed, u), limits)
         k = max(1.0, excess ** (1.0 / 3.0) * (1.0 + 1e-9))
-        out = _waypoints(model, times * k, speed / k, u / (k * k))
+        out = _waypoints(model, start + times * k, speed / k, u / (k * k))
         if fastest is None or out[-1].t < fastest[-1].t:
             fastest = out
         width *= WIDEN
@@ -195,18 +194,19 @@ def _jerk_excess(waypoints: list[Waypoint], limits: TrajectoryLimits) -> float:
 def _waypoints(model: _GridModel, times: Array, speed: Array, u: Array) -> list[Waypoint]:
     """The motion's waypoints: the grid points reached at `times` with path speeds
     `speed` and accelerations `u`, at rest at both ends (_spaced: the points kept)."""
-    positions, rotations, v, a = model.positions, model.rotations, model.v, model.acc
-    out = []
-    last = len(times) - 1
-    for i in _spaced(times):
-        pose = Pose.from_matrix(positions[i], rotations[i])
-        if i in (0, last):
-            out.append(Waypoint(times[i], pose, np.zeros(6), np.zeros(6)))
-        else:
-            out.append(
-                Waypoint(times[i], pose, v[i] * speed[i], v[i] * u[i] + a[i] * speed[i] ** 2)
-            )
-    return out
+    kept = _spaced(times)
+    v, a, s = model.v[kept], model.acc[kept], speed[kept, None]
+    twists = v * s
+    accels = v * u[kept, None] + a * s * s
+    twists[[0, -1]] = accels[[0, -1]] = 0.0
+    twists.flags.writeable = accels.flags.writeable = False  # the waypoints share their rows
+    positions = model.positions[kept].tolist()
+    quaternions = quat_from_matrix(model.rotations[kept]).tolist()
+    at = times[kept].tolist()
+    return [
+        Waypoint(t, Pose._from_unit(p, q), twist, accel)
+        for t, p, q, twist, accel in zip(at, positions, quaternions, twists, accels, strict=True)
+    ]
 
 
 def _first_width(model: _GridModel, speed: Array, u: Array, limits: TrajectoryLimits) -> float:
@@ -245,12 +245,14 @@ def _spaced(times: Array) -> list[int]:
     rest, where the path's grid is fine (END_SPLIT) or its poses close together, grid
     points come less than that apart in time; the quintic between the kept ones passes
     within micrometres of the others."""
-    kept = [0]
-    for i in range(1, len(times) - 1):
-        if times[i] - times[kept[-1]] >= MIN_SEGMENT:
+    at = times.tolist()
+    kept, last_kept = [0], at[0]
+    for i in range(1, len(at) - 1):
+        if at[i] - last_kept >= MIN_SEGMENT:
             kept.append(i)
-    last = len(times) - 1
-    if len(kept) > 1 and times[last] - times[kept[-1]] < MIN_SEGMENT:
+            last_kept = at[i]
+    last = len(at) - 1
+    if len(kept) > 1 and at[last] - last_kept < MIN_SEGMENT:
         kept.pop()
     return [*kept, last]
 
@@ -289,45 +291,17 @@ def _speed_caps(
     return np.array([min(caps[i] for i in pair) for pair in segments])
 
 
-def _infeasible(
-    geometry: BlendedPath, grid: Array, controllable: Array, number: int
-) -> TrajectoryError:
-    """Where the path cannot be timed: the first grid point whose controllable set is
-    empty (the path's tensions cannot be held there at any speed)."""
-    empty = [i for i, k in enumerate(controllable) if not np.all(np.isfinite(k)) or k[1] < k[0]]
-    i = empty[-1] if empty else 0
-    position = geometry(grid[i])[:3]
+def _infeasible(geometry: BlendedPath, grid: Array, stage: int, number: int) -> TrajectoryError:
+    """Where the path cannot be timed: the grid point whose speeds cannot be controlled
+    (the path's tensions cannot be held there at any speed)."""
+    position = geometry(grid[stage])[:3]
     where = ", ".join(f"{c:.3f}" for c in position)
     return TrajectoryError(
         "path_infeasible",
         f"motion {number}: no speed holds every cable within its tensions at "
-        f"{grid[i]:.3f} m along it (position {where} m): the wrench it needs lies outside "
-        "what the cables can give there",
+        f"{grid[stage]:.3f} m along it (position {where} m): the wrench it needs lies "
+        "outside what the cables can give there",
     )
-
-
-class _TensionConstraint(toppra.constraint.LinearConstraint):
-    """TOPP-RA's canonical linear constraint a u + b x + c <= 0 (F = I, g = 0, the same
-    at every grid point) for the tensions and accelerations, with the speed bounds on x
-    (module docstring): the rows `_rows` computed for the motion's grid."""
-
-    def __init__(self, rows: tuple[Array, Array, Array, Array]) -> None:
-        super().__init__()
-        self.rows = rows
-        self.identical = True
-
-    def compute_constraint_params(self, path, gridpoints, *args, **kwargs):
-        """The rows at each grid point i for its interval's (u, x), and the rows of point
-        i + 1 for the same u with x + 2 ds u there (TOPP-RA's interpolation scheme): a
-        knot's two one-sided accelerations are then both feasible at it, and so is their
-        mean, which the trajectory takes (_time_motion)."""
-        a, b, c, xbound = self.rows
-        twice = 2.0 * np.diff(gridpoints)[:, None]
-        a = np.hstack([a, np.vstack([a[1:] + twice * b[1:], a[-1:]])])
-        b = np.hstack([b, np.vstack([b[1:], b[-1:]])])
-        c = np.hstack([c, np.vstack([c[1:], c[-1:]])])
-        width = a.shape[1]
-        return a, b, c, np.eye(width), np.zeros(width), None, xbound
 
 
 @dataclass(frozen=True)
@@ -335,9 +309,10 @@ class _GridModel:
     """What the constraints need at each grid point (N of them), the same for every
     pass: the poses, the path's rates per unit s (v = (p', w_s), acc = (p'', w_ss),
     `third` their rate along the grid),
-    the controller's model at twist v (Lambda, c, M, mu) and mu at rest, and the facet
+    the controller's model at twist v (Lambda, c, M, mu) and mu at rest, the facet
     normals of the wrench zonotope (cdpr.wrench_margin.facet_normals: one per facet
-    pair, zero where the subset spans no facet)."""
+    pair, zero where the subset spans no facet) and each normal's product with each
+    cable's column of Lambda^T (`facet_cables`)."""
 
     positions: Array
     rotations: Array
@@ -349,76 +324,120 @@ class _GridModel:
     mu: Array
     mu_rest: Array
     normals: Array
+    facet_cables: Array
     third: Array
 
     @classmethod
     def of(cls, path: BlendedPath, grid: Array, robot: Robot) -> _GridModel:
         positions, rotations, p1, w1, p2, w2 = path.poses(grid)
         v, acc = np.hstack([p1, w1]), np.hstack([p2, w2])
-        flat = rotations.reshape(len(grid), 9)
-        terms = [robot.model_terms_at(*at) for at in zip(positions, flat, v, strict=True)]
-        Lam, c, M, mu = (np.array(x) for x in zip(*terms, strict=True))
+        Lam, c, M, mu = model_terms(robot, positions, rotations, v)
         mu_rest = -rest_wrenches(robot.platform, rotations)  # mu at zero twist
         third = np.gradient(acc, grid, axis=0)  # the path's third derivative per unit s
-        return cls(positions, rotations, v, acc, Lam, c, M, mu, mu_rest, facet_normals(Lam), third)
+        normals = facet_normals(Lam)
+        facet_cables = np.matmul(normals, np.swapaxes(Lam, 1, 2))  # c . a_j, facet by cable
+        return cls(
+            positions, rotations, v, acc, Lam, c, M, mu, mu_rest, normals, facet_cables, third
+        )
 
 
-def _rows(
-    model: _GridModel,
-    robot: Robot,
-    limits: TrajectoryLimits,
-    margin: float,
-    caps: Array,
-    damping: Array,
-) -> tuple[Array, Array, Array, Array]:
-    """(a, b, c, xbound) of the tension, acceleration and speed limits at every grid
-    point: rows a u + b x + c <= 0, x in xbound (module docstring)."""
-    m0, k0, t_min, f_max = robot.m0, robot.k0, robot.t_min, robot.force_max
-    Lam, v, acc, normals = model.Lam, model.v, model.acc, model.normals
-    lv = np.einsum("nkj,nj->nk", Lam, v)
-    la = np.einsum("nkj,nj->nk", Lam, acc)
-    # w = Lambda^T f0 - tau and the tension range, each as (u, x, 1) coefficients
-    g = (m0 * lv, m0 * (la + model.c), k0 * lv * damping[:, None])
-    tau_x = np.einsum("nij,nj->ni", model.M, acc) + model.mu - model.mu_rest
-    w = (
-        np.einsum("nkj,nk->nj", Lam, g[0]) - np.einsum("nij,nj->ni", model.M, v),
-        np.einsum("nkj,nk->nj", Lam, g[1]) - tau_x,
-        -model.mu_rest,
-    )
-    lo = t_min + margin
-    hi_c = g[2] + f_max - margin
-    mid = (0.5 * g[0], 0.5 * g[1], 0.5 * (lo + hi_c))
-    rad = (0.5 * g[0], 0.5 * g[1], 0.5 * (hi_c - lo))
-    e = np.einsum("nsj,nkj->nsk", normals, Lam)  # c . a_j for each facet and cable
-    ae = np.abs(e)
-    rows = []
-    for w_k, mid_k, rad_k, g_k in zip(w, mid, rad, g, strict=True):
-        cw = np.einsum("nsj,nj->ns", normals, w_k)
-        em = np.einsum("nsk,nk->ns", e, mid_k)
-        ar = np.einsum("nsk,nk->ns", ae, rad_k)
-        rows.append([cw - em - ar, em - cw - ar, -rad_k, g_k])  # facets, range open, g
-    rows[2][3] = rows[2][3] - f_max - t_min  # g - force_max <= t_min: the lower bound t_min
-    # accelerations, each axis within the limit / sqrt(3)
-    p1, w1, p2, w2 = v[:, :3], v[:, 3:], acc[:, :3], acc[:, 3:]
-    lin = LIMIT_SHARE * limits.linear_accel / math.sqrt(3.0)
-    ang = LIMIT_SHARE * limits.angular_accel / math.sqrt(3.0)
-    rows[0].append(np.hstack([p1, -p1, w1, -w1]))
-    rows[1].append(np.hstack([p2, -p2, w2, -w2]))
-    n = len(v)
-    rows[2].append(-np.hstack([np.full((n, 6), lin), np.full((n, 6), ang)]))
-    a, b, c = (np.hstack(r) for r in rows)
-    # speeds: the platform's (its cap), its turning, each cable's
+def _times(matrices: Array, vectors: Array) -> Array:
+    """Each matrix times its vector (N x r x k by N x k: N x r), as batched matmul."""
+    return np.matmul(matrices, vectors[:, :, None])[:, :, 0]
+
+
+def _transposed_times(matrices: Array, vectors: Array) -> Array:
+    """Each matrix's transpose times its vector (N x r x k by N x r: N x k)."""
+    return np.matmul(vectors[:, None, :], matrices)[:, 0, :]
+
+
+class _Rows:
+    """The rows a u + b x + c <= 0 and x in xbound of the tension, acceleration and speed
+    limits at every grid point (module docstring).  a, b and xbound depend on the path
+    alone; c also on the path speeds the winches' damping is taken at (`constant`).
+
+    A facet's two rows, with w = (w_u, w_x, w_1) the wrench's coefficients, e_j = c . a_j
+    its normal's product with each cable, and the tension range [lo, hi] (hi = g + f_max
+    - margin, g = (g_u, g_x, g_1) the winches' forces): c . w <= sum_j max(e_j lo_j, e_j
+    hi_j) and the same below, i.e. c . w - e+ . hi - e- . lo <= 0 and e+ . lo + e- . hi -
+    c . w <= 0, e+ and e- the positive and negative parts of e; in u and x, where lo = 0
+    and hi = g, these are c . w - e+ . g and e- . g - c . w."""
+
+    def __init__(
+        self,
+        model: _GridModel,
+        robot: Robot,
+        limits: TrajectoryLimits,
+        margin: float,
+        caps: Array,
+    ) -> None:
+        self.model, self.robot, self.margin = model, robot, margin
+        m0 = robot.m0
+        Lam, v, acc = model.Lam, model.v, model.acc
+        self.lv = lv = _times(Lam, v)
+        la = _times(Lam, acc)
+        g = np.stack([m0 * lv, m0 * (la + model.c)], axis=-1)  # (N, n, u/x)
+        tau_x = _times(model.M, acc) + model.mu - model.mu_rest
+        w = np.stack(
+            [
+                _transposed_times(Lam, g[:, :, 0]) - _times(model.M, v),
+                _transposed_times(Lam, g[:, :, 1]) - tau_x,
+            ],
+            axis=-1,
+        )
+        cw = np.matmul(model.normals, w)
+        self.positive = np.maximum(model.facet_cables, 0.0)
+        self.negative = np.minimum(model.facet_cables, 0.0)
+        above, below = np.matmul(self.positive, g), np.matmul(self.negative, g)
+        self.facets_1 = _times(model.normals, -model.mu_rest)  # c . w_1
+        # accelerations, each axis within the limit / sqrt(3)
+        p1, w1, p2, w2 = v[:, :3], v[:, 3:], acc[:, :3], acc[:, 3:]
+        self.accel_1 = np.concatenate(
+            [np.full(6, limits.linear_accel), np.full(6, limits.angular_accel)]
+        ) * (-LIMIT_SHARE / math.sqrt(3.0))
+        # facets (both sides), the range open (hi - lo > 0), g >= t_min, accelerations
+        self.a = np.hstack(
+            [cw[:, :, 0] - above[:, :, 0], below[:, :, 0] - cw[:, :, 0], -0.5 * g[:, :, 0],
+             g[:, :, 0], p1, -p1, w1, -w1]
+        )  # fmt: skip
+        self.b = np.hstack(
+            [cw[:, :, 1] - above[:, :, 1], below[:, :, 1] - cw[:, :, 1], -0.5 * g[:, :, 1],
+             g[:, :, 1], p2, -p2, w2, -w2]
+        )  # fmt: skip
+        self.xbound = _speed_bounds(model, robot, limits, caps, lv)
+
+    def constant(self, damping: Array) -> Array:
+        """c with the winches' damping taken at path speeds `damping` (one per point)."""
+        robot, margin = self.robot, self.margin
+        t_min, f_max = robot.t_min, robot.force_max
+        g_1 = robot.k0 * self.lv * damping[:, None]
+        lo = t_min + margin
+        hi = g_1 + f_max - margin
+        pos, neg = self.positive, self.negative
+        above = _times(pos, hi) + neg @ lo
+        below = pos @ lo + _times(neg, hi)
+        n = len(damping)
+        return np.hstack(
+            [self.facets_1 - above, below - self.facets_1, -0.5 * (hi - lo),
+             g_1 - f_max - t_min, np.broadcast_to(self.accel_1, (n, 12))]
+        )  # fmt: skip
+
+
+def _speed_bounds(
+    model: _GridModel, robot: Robot, limits: TrajectoryLimits, caps: Array, lv: Array
+) -> Array:
+    """xbound: [0, the least of the speed bounds on x = s'^2] at each grid point: the
+    platform's speed (its cap), its turning, each cable's speed, and the jerk the path's
+    bending adds at speed s' (its third derivative x s'^3), a share of each jerk limit."""
+    p1, w1 = model.v[:, :3], model.v[:, 3:]
     with np.errstate(divide="ignore"):
         columns = [
             (LIMIT_SHARE * caps / np.linalg.norm(p1, axis=1)) ** 2,
             (LIMIT_SHARE * limits.angular_speed / np.linalg.norm(w1, axis=1)) ** 2,
             (LIMIT_SHARE * np.array(cable_speed_bounds(robot, limits)) / np.abs(lv)) ** 2,
         ]
-        # the jerk the path's bending adds at speed s' (its third derivative x s'^3): a
-        # share of each jerk limit
         for _, limit, part in _jerk_limits(limits):
             bending = np.linalg.norm(model.third[:, part], axis=1)
             columns.append((BENDING_SHARE * limit / bending) ** (2.0 / 3.0))
         bounds = np.column_stack(columns)
-    xbound = np.column_stack([np.zeros(n), bounds.min(axis=1)])
-    return a, b, c, xbound
+    return np.column_stack([np.zeros(len(caps)), bounds.min(axis=1)])

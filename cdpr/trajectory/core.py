@@ -106,12 +106,26 @@ class Waypoint:
         object.__setattr__(self, "t", float(self.t))
         for name in ("twist", "accel"):
             raw = getattr(self, name)
-            if raw is not None:
+            if raw is not None and not _frozen_vector(raw):
                 arr = np.array(raw, dtype=float)
                 if arr.shape != (6,):
                     raise TrajectoryError("schema", f"{name} must have 6 components (v, ω)")
                 arr.setflags(write=False)
                 object.__setattr__(self, name, arr)
+
+
+def _frozen_vector(value: object) -> bool:
+    """A float 6-vector that nothing can change: read-only, and so is every array it
+    views, down to the one that owns the memory.  A waypoint keeps it as given (a path's
+    timing hands over thousands, rows of one read-only array), where any other value is
+    copied and frozen."""
+    if not (isinstance(value, np.ndarray) and value.shape == (6,) and value.dtype == np.float64):
+        return False
+    while value is not None:
+        if not isinstance(value, np.ndarray) or value.flags.writeable:
+            return False
+        value = value.base
+    return True
 
 
 class Reference(NamedTuple):

@@ -65,8 +65,8 @@ def path_timer(config: DaemonConfig, margin: float | None = None) -> Callable[[P
     chosen = config.workspace.margin if margin is None else margin
 
     def timed(path: Path) -> Trajectory:
-        # toppra, and the matplotlib it imports (1.7 s, log lines): at the first path
-        # timed, in the parse thread, never at the daemon's start
+        # the path timing's modules at the first path timed, in the parse thread, never
+        # at the daemon's start
         from cdpr.path.timing import Timing, time_path
 
         return time_path(path, config.robot, config.trajectory, Timing(margin=chosen))

@@ -121,3 +121,20 @@ def test_fast_dynamics_equals_reference(robot: Robot, offset, twist) -> None:
     np.testing.assert_allclose(M, ref.mass_matrix(robot, pose), rtol=0, atol=1e-12)
     np.testing.assert_allclose(mu, ref.bias_wrench(robot, pose, twist), rtol=0, atol=1e-10)
     np.testing.assert_allclose(robot.bias_wrench(pose, twist), mu, rtol=0, atol=0)
+
+
+def test_the_batched_model_is_the_fast_one_at_every_pose(robot: Robot) -> None:
+    """cdpr.reference.model_terms over many poses at once (the path timing's grid) gives
+    at each pose what Robot.model_terms gives for it alone."""
+    rng = np.random.default_rng(3)
+    poses = [
+        Pose.from_rotvec(robot.home.position + rng.uniform(-0.3, 0.3, 3), rng.uniform(-0.3, 0.3, 3))
+        for _ in range(25)
+    ]
+    twists = rng.normal(0.0, 0.5, (25, 6))
+    positions = np.array([p.position for p in poses])
+    rotations = np.array([p.rotation for p in poses])
+    batched = ref.model_terms(robot, positions, rotations, twists)
+    for k, (pose, twist) in enumerate(zip(poses, twists, strict=True)):
+        for ours, alone in zip(batched, robot.model_terms(pose, twist), strict=True):
+            np.testing.assert_allclose(ours[k], alone, rtol=0, atol=1e-10)

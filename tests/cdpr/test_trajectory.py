@@ -1118,3 +1118,22 @@ def test_a_packed_curve_samples_as_the_trajectory_it_came_from() -> None:
     assert (copy.start_time, copy.end_time) == (blended.start_time, blended.end_time)
     with pytest.raises(ValueError, match="9 knots cannot hold"):
         Curve.unpacked(header, data[:-1])
+
+
+def test_a_waypoint_never_shares_a_vector_someone_can_change() -> None:
+    """A waypoint copies and freezes a twist or accel given as a list or a writable array
+    (a change to the caller's array does not reach it); one that nothing can change (a
+    row of a read-only array, as the path timing hands over) it keeps as given."""
+    pose = Pose((0.0, 0.0, 1.0))
+    mine = np.ones(6)
+    w = Waypoint(0.0, pose, mine, [0.0] * 6)
+    mine[0] = 5.0
+    assert w.twist[0] == 1.0 and not w.twist.flags.writeable
+    assert not w.accel.flags.writeable
+    base = np.ones((2, 6))
+    view = base[0]
+    view.flags.writeable = False  # the base stays writable: still copied
+    assert Waypoint(0.0, pose, view).twist is not view
+    base.flags.writeable = False
+    shared = base[1]
+    assert Waypoint(0.0, pose, shared).twist is shared

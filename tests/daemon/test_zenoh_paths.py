@@ -150,9 +150,10 @@ def test_cdprd_send_path_and_gcode(
 
 
 def test_the_daemon_imports_the_path_timing_only_when_a_path_comes(config: DaemonConfig) -> None:
-    """toppra imports matplotlib (1.7 s and log lines at the daemon's start, which broke
-    the UML guest's log-length check): the daemon's processes and the timer itself do
-    not import it; the first path timed does."""
+    """matplotlib costs 1.7 s and log lines at the daemon's start (which broke the UML
+    guest's log-length check, when the path timing imported toppra and toppra imported
+    it): the daemon's processes and the path timer import neither; toppra is only the
+    tests' reference for the timing's passes (tests/cdpr/test_reachability.py)."""
     import subprocess
     import sys
 
