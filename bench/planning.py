@@ -6,6 +6,8 @@ its durations come to an independent time-optimal bound.
 - plan_ms.path_100: parse and time a 100-pose JSON path (a climbing square spiral,
   blended corners, 10 m) on config/reference8-cia402.yaml, median of N runs;
   plan_ms.gcode_2000: the same for a 2,000-line G-code file (a zig-zag, 1 cm blends).
+  The allocator reuses freed large blocks and the objects of the start-up are frozen,
+  as in the companion that times the daemon's paths (daemon.process.heap).
 - duration_ratio.<path>: TOPP-RA's duration (1 cm grid) / the optimum of the convex
   formulation of tuning.convex_timing (Verscheure et al. 2009, tensions as variables,
   2 mm grid), both with a 5 N tension margin on reference8 without the winches' damping
@@ -52,6 +54,7 @@ from cdpr.trajectory.jerk import segment_jerks
 from cdpr.wrench_margin import wrench_length
 from daemon.cli.simulated import sim_section
 from daemon.config import load_config
+from daemon.process.heap import freeze_start_up, reuse_freed_memory
 from daemon.service.planner import path_timer, validate_as_the_daemon
 from tuning.scenarios import STANDARD_SET
 from tuning.tracking import run_tracking
@@ -76,6 +79,8 @@ def zigzag(lines: int) -> str:
 
 
 def plan_ms(config, runs: int) -> dict[str, float]:
+    reuse_freed_memory()
+    freeze_start_up()
     robot, limits = config.robot, config.trajectory
     body, program = spiral(100), zigzag(2000)
     out = {}

@@ -18,8 +18,6 @@ from __future__ import annotations
 import math
 import re
 
-import numpy as np
-
 from cdpr.path.model import Path, PathPoint
 from cdpr.pose import Pose
 from cdpr.trajectory.core import TrajectoryError
@@ -37,7 +35,7 @@ def parse_gcode(
     """The path from `start` through every move of `text` (module docstring), each corner
     rounded by `blend` (m); TrajectoryError naming the line of the first problem."""
     limits = TrajectoryLimits() if limits is None else limits
-    position = np.asarray(start.position, dtype=float)
+    position = start.position_tuple
     points = [PathPoint(start)]
     scale, relative, motion, feed = _UNITS[21], False, None, None
     for number, raw in enumerate(text.splitlines(), start=1):
@@ -64,15 +62,18 @@ def parse_gcode(
         if motion is None:
             move = raw.strip()
             raise TrajectoryError("gcode", f"line {number}: a move before G0 or G1: {move!r}")
-        target = position.copy()
-        for k, axis in enumerate("XYZ"):
-            if axis in axes:
-                target[k] = (target[k] if relative else 0.0) + axes[axis] * scale
-        if np.array_equal(target, position):
+        target = tuple(
+            (at if relative else 0.0) + axes[axis] * scale if axis in axes else at
+            for at, axis in zip(position, "XYZ", strict=True)
+        )
+        if target == position:
             continue
+        if not all(map(math.isfinite, target)):
+            raise TrajectoryError("gcode", f"line {number}: the move leaves the numbers' range")
         position = target
         speed = feed if motion == 1 else None
-        points.append(PathPoint(Pose(position, start.quaternion), speed, blend))
+        # the start's orientation, already a checked unit quaternion; finite coordinates
+        points.append(PathPoint(Pose._from_unit(position, start.quaternion_tuple), speed, blend))
         if len(points) > limits.max_waypoints:
             raise TrajectoryError(
                 "max_waypoints", f"line {number}: more than {limits.max_waypoints} poses"

@@ -79,39 +79,36 @@ class BlendedPath:
             raise TrajectoryError(
                 "path_rotation", "a motion turns the platform by nearly 180 deg or more"
             )
+        steps = np.diff(nodes, axis=0)
+        norms = np.linalg.norm(steps, axis=1)
+        units = steps / norms[:, None]
+        radii = np.zeros(len(nodes))  # each corner's blend (none at the ends)
+        if len(nodes) > 2:
+            bent = np.linalg.norm(np.diff(units, axis=0), axis=1) > _STRAIGHT
+            half = 0.5 * np.minimum(norms[:-1], norms[1:])
+            radii[1:-1] = np.where(bent, np.minimum(np.asarray(blends[1:-1], float), half), 0.0)
+            unblended = np.flatnonzero(bent & ~(radii[1:-1] > 0.0))
+            if unblended.size:
+                raise ValueError(
+                    f"pose {unblended[0] + 1}: a corner without a blend inside a motion"
+                )
+        runs = norms - radii[:-1] - radii[1:]  # each line less the blends at its ends
         # parts: (s0, s1, kind, data): kind 0 a line (start, unit), 1 a blend (A, V0, B, V1)
         self._parts: list[tuple[float, float, int, tuple[Array, ...]]] = []
         self._segments: list[tuple[int, ...]] = []  # the segments (their end points) of each
-        s, at = 0.0, nodes[0]
-        for i in range(1, len(nodes)):
-            step = nodes[i] - nodes[i - 1]
-            u_in = step / np.linalg.norm(step)
-            end = nodes[i]
-            r = 0.0
-            if i + 1 < len(nodes):
-                ahead = nodes[i + 1] - nodes[i]
-                u_out = ahead / np.linalg.norm(ahead)
-                if np.linalg.norm(u_out - u_in) > _STRAIGHT:
-                    half = 0.5 * min(np.linalg.norm(step), np.linalg.norm(ahead))
-                    r = min(blends[i], half)
-                    if not r > 0.0:
-                        raise ValueError(f"pose {i}: a corner without a blend inside a motion")
-                    end = nodes[i] - r * u_in
-            run = float(np.linalg.norm(end - at))
+        s = 0.0
+        for i, (run, r) in enumerate(zip(runs.tolist(), radii[1:].tolist(), strict=True), 1):
+            u_in = units[i - 1]
             if run > _NO_LINE:
-                self._parts.append((s, s + run, 0, (at, u_in)))
+                self._parts.append((s, s + run, 0, (nodes[i - 1] + radii[i - 1] * u_in, u_in)))
                 self._segments.append((i,))
                 s += run
             if r > 0.0:
-                exit_ = nodes[i] + r * u_out
-                span = 2.0 * r
-                data = (end, span * u_in, exit_, span * u_out)
+                u_out, span = units[i], 2.0 * r
+                data = (nodes[i] - r * u_in, span * u_in, nodes[i] + r * u_out, span * u_out)
                 self._parts.append((s, s + span, 1, data))
                 self._segments.append((i, i + 1))
                 s += span
-                at = exit_
-            else:
-                at = end
         self.s_end = s
         self._starts = np.array([p[0] for p in self._parts])
         # the parts as arrays, for evaluating at many s at once: a line's data is
@@ -122,11 +119,15 @@ class BlendedPath:
         for k, (_, _, _, data) in enumerate(self._parts):
             self._data[k, : len(data)] = data
 
-    def segments(self, s: Array) -> list[tuple[int, ...]]:
-        """At each path length s, the segments the path is on (each named by the pose it
-        ends at): one on a line, the two it joins on a blend."""
-        which = np.clip(np.searchsorted(self._starts, s, side="right") - 1, 0, None)
-        return [self._segments[k] for k in which]
+    def part_at(self, s: Array) -> NDArray[np.intp]:
+        """The index of the part (parts(), part_segments) each path length s lies on."""
+        return np.clip(np.searchsorted(self._starts, s, side="right") - 1, 0, None)
+
+    @property
+    def part_segments(self) -> list[tuple[int, ...]]:
+        """The segments each part is on (each named by the pose it ends at): one for a
+        line, the two it joins for a blend."""
+        return self._segments
 
     def parts(self) -> list[tuple[float, float, bool]]:
         """The path's pieces in order: (s0, s1, True on a blend, False on a line)."""
@@ -147,7 +148,7 @@ class BlendedPath:
     def __call__(self, s: float | Array, order: int = 0) -> Array:
         scalar = np.ndim(s) == 0
         ss = np.clip(np.atleast_1d(np.asarray(s, dtype=float)), 0.0, self.s_end)
-        which = np.clip(np.searchsorted(self._starts, ss, side="right") - 1, 0, None)
+        which = self.part_at(ss)
         local = ss - self._starts[which]
         data = self._data[which]
         line = self._lines[which]

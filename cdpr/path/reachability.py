@@ -99,14 +99,15 @@ def _extreme(a, b, c, x_lo, x_hi, sign, order):
     """The highest (sign 1) or lowest (sign -1) x of a stage's program (its rows a u + b x
     + c <= 0, x in [x_lo, x_hi], |u| <= BOUND), NaN if it has none.  Seidel's
     algorithm: rows added in `order`; where the optimum so far violates one, the new
-    optimum lies on its line, bounded by the rows before it and the box.  The two rows
-    that bound the optimum move to the front of `order` for the next stage."""
+    optimum lies on its line, bounded by the rows before it and the box.  Each row that
+    moved the optimum moves to the front of `order` (the rows before it stay before the
+    ones after): the next stage, much like this one, meets it early, where a row that
+    moves the optimum costs a pass over fewer rows before it."""
     vu, vx = -sign * 1e-9, float(sign)  # the tie-break on u as toppra sets it
     if x_lo > x_hi:
         return np.nan
     cu = BOUND if vu > TINY else -BOUND
     cx = x_hi if vx > TINY else x_lo
-    line, bound = -1, -1
     for k in range(order.shape[0]):
         j = order[k]
         aj, bj, cj = a[j], b[j], c[j]
@@ -119,43 +120,25 @@ def _extreme(a, b, c, x_lo, x_hi, sign, order):
         du, dx = -bj, aj  # its direction
         t_lo, t_hi = _clip(pu, du, -BOUND, BOUND, -np.inf, np.inf)
         t_lo, t_hi = _clip(px, dx, x_lo, x_hi, t_lo, t_hi)
-        low_by, high_by = -1, -1
         for q in range(k):
             r = order[q]
             aq, bq, cq = a[r], b[r], c[r]
             den = aq * du + bq * dx
             val = aq * pu + bq * px + cq
             if den > TINY:
-                if -val / den < t_hi:
-                    t_hi, high_by = -val / den, r
+                t_hi = min(t_hi, -val / den)
             elif den < -TINY:
-                if -val / den > t_lo:
-                    t_lo, low_by = -val / den, r
+                t_lo = max(t_lo, -val / den)
             elif val > SMALL:
                 return np.nan  # parallel to the line and cut off from it
         if t_lo > t_hi:
             return np.nan
-        if vu * du + vx * dx > TINY:
-            t, by = t_hi, high_by
-        else:
-            t, by = t_lo, low_by
+        t = t_hi if vu * du + vx * dx > TINY else t_lo
         cu, cx = pu + t * du, px + t * dx
-        line, bound = j, by
-    _to_front(order, bound)
-    _to_front(order, line)
+        for q in range(k, 0, -1):  # a row that moved the optimum goes first next stage
+            order[q] = order[q - 1]
+        order[0] = j
     return cx
-
-
-@njit(cache=True)
-def _to_front(order, row):
-    """Move `row` (if any) to the front of `order`, keeping it a permutation."""
-    if row < 0:
-        return
-    for k in range(order.shape[0]):
-        if order[k] == row:
-            order[k] = order[0]
-            order[0] = row
-            return
 
 
 @njit(cache=True)

@@ -266,11 +266,15 @@ def _grid(path: BlendedPath, timing: Timing) -> Array:
     rest with no acceleration, which the trajectory's quintic between two grid points
     reaches by braking harder than TOPP-RA's last interval did (a speed 2 % over its cap
     there on a 1 cm grid)."""
-    pieces = [np.zeros(1)]
-    for s0, s1, blend in path.parts():
-        step = min(timing.step, (s1 - s0) / BLEND_INTERVALS) if blend else timing.line_step
-        pieces.append(np.linspace(s0, s1, max(1, math.ceil((s1 - s0) / step)) + 1)[1:])
-    grid = np.concatenate(pieces)
+    starts, ends, blends = (np.array(column) for column in zip(*path.parts(), strict=True))
+    spans = ends - starts
+    steps = np.where(blends, np.minimum(timing.step, spans / BLEND_INTERVALS), timing.line_step)
+    counts = np.maximum(1, np.ceil(spans / steps).astype(int))  # intervals on each part
+    part = np.repeat(np.arange(len(spans)), counts)
+    k = np.arange(len(part)) - np.repeat(np.cumsum(counts) - counts, counts) + 1
+    points = starts[part] + spans[part] * (k / counts[part])
+    points[np.cumsum(counts) - 1] = ends  # each part's end exactly
+    grid = np.concatenate([[0.0], points])
     if len(grid) <= MIN_INTERVALS:
         grid = np.linspace(0.0, path.s_end, MIN_INTERVALS + 1)
     first = np.linspace(grid[0], grid[1], END_SPLIT + 1)
@@ -287,8 +291,8 @@ def _speed_caps(
         limits.linear_speed if p.speed is None else min(p.speed, limits.linear_speed)
         for p in motion
     ]
-    segments = geometry.segments(grid)
-    return np.array([min(caps[i] for i in pair) for pair in segments])
+    per_part = np.array([min(caps[i] for i in pair) for pair in geometry.part_segments])
+    return per_part[geometry.part_at(grid)]
 
 
 def _infeasible(geometry: BlendedPath, grid: Array, stage: int, number: int) -> TrajectoryError:
@@ -407,18 +411,21 @@ class _Rows:
         self.xbound = _speed_bounds(model, robot, limits, caps, lv)
 
     def constant(self, damping: Array) -> Array:
-        """c with the winches' damping taken at path speeds `damping` (one per point)."""
+        """c with the winches' damping taken at path speeds `damping` (one per point):
+        the tension range [lo, hi] is [t_min + margin, g_1 + f_max - margin], g_1 the
+        damping force."""
         robot, margin = self.robot, self.margin
         t_min, f_max = robot.t_min, robot.force_max
         g_1 = robot.k0 * self.lv * damping[:, None]
-        lo = t_min + margin
-        hi = g_1 + f_max - margin
+        lo, top = t_min + margin, f_max - margin
         pos, neg = self.positive, self.negative
-        above = _times(pos, hi) + neg @ lo
-        below = pos @ lo + _times(neg, hi)
+        above, below = pos @ top + neg @ lo, pos @ lo + neg @ top
+        if np.any(g_1):
+            above += _times(pos, g_1)
+            below += _times(neg, g_1)
         n = len(damping)
         return np.hstack(
-            [self.facets_1 - above, below - self.facets_1, -0.5 * (hi - lo),
+            [self.facets_1 - above, below - self.facets_1, -0.5 * (g_1 + top - lo),
              g_1 - f_max - t_min, np.broadcast_to(self.accel_1, (n, 12))]
         )  # fmt: skip
 

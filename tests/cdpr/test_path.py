@@ -110,6 +110,11 @@ def test_gcode_moves_in_metres_with_feeds_as_speed_caps_and_dwells() -> None:
         ("G1 X1 F-3", "line 1: F-3 must be positive"),
         ("G1 X1e", "line 1: cannot read 'e'"),
         ("G21\nG90", "the program moves nowhere"),
+        pytest.param(
+            "G20 G91\n" + f"G1 X{'9' * 308}\n" * 100,
+            "line 72: the move leaves the numbers' range",
+            id="relative-moves-past-the-largest-float",
+        ),
     ],
 )
 def test_gcode_outside_the_subset_is_refused_naming_its_line(program: str, message: str) -> None:
