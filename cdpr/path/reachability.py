@@ -46,7 +46,7 @@ class Parameterization(NamedTuple):
     """The timed path: `u` (N path accelerations, one per interval), `speed` (N + 1 path
     speeds), the controllable sets `K` ((N + 1) x 2 squared speeds), and `failed`: the
     stage where no speed was controllable or the forward pass found no acceleration
-    (u and speed then NaN), -1 when none."""
+    (u and speed then NaN from that stage on), -1 when none."""
 
     u: Array
     speed: Array

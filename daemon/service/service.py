@@ -258,7 +258,11 @@ class Service:
             self._run_cycle(opened, deadline=False)
             return
         assert self._deadline is not None
-        self._deadline.arm(opened + self.config.safety.feedback_deadline * self.period)
+        # the wait ends on the ticks' grid, before the next tick: counted from the SYNC, a
+        # tick that first closed a late cycle pushed the deadline past the next tick, which
+        # then closed it again, and so on: no slack was left (a silent drive's commands,
+        # the SDO hold checks after a foreign NMT command went unserved)
+        self._deadline.arm(now + self.config.safety.feedback_deadline * self.period)
         if self.machine.moving and not self._busy:
             self._prepare(opened)
 
