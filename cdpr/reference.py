@@ -3,7 +3,8 @@
 Written straight from DESIGN §3 with vectors and block matrices, for the tests to
 hold the fast code equal to, and for readers who want the maths without unrolling.
 Batched over poses (N x ...): the path timing takes the model at a thousand grid points
-at once (`model_terms`, 14 us a pose where the scalar code's is 28 us one by one).
+at once (`model_terms`: 3.5 us a pose over a 1,200-point grid, where the scalar
+Robot.model_terms takes 26 us a pose, one by one).
 """
 
 from __future__ import annotations

@@ -146,8 +146,8 @@ def quat_from_matrix(R: ArrayLike) -> Vec:
     )
     k = np.argmax(sums, axis=0)
     rows = np.arange(len(k))
-    r = np.sqrt(sums[k, rows])  # the chosen sum is at least 1
-    r2 = sums[k, rows]
+    r2 = sums[k, rows]  # the chosen sum is at least 1
+    r = np.sqrt(r2)
     candidates = np.stack(  # per k: (w, x, y, z) times 2 r, its own entry r / 2 times 2 r
         [
             np.stack([r2, s21, s02, s10]),

@@ -375,7 +375,7 @@ class _Rows:
         margin: float,
         caps: Array,
     ) -> None:
-        self.model, self.robot, self.margin = model, robot, margin
+        self.robot = robot
         m0 = robot.m0
         Lam, v, acc = model.Lam, model.v, model.acc
         self.lv = lv = _times(Lam, v)
@@ -393,7 +393,11 @@ class _Rows:
         self.positive = np.maximum(model.facet_cables, 0.0)
         self.negative = np.minimum(model.facet_cables, 0.0)
         above, below = np.matmul(self.positive, g), np.matmul(self.negative, g)
-        self.facets_1 = _times(model.normals, -model.mu_rest)  # c . w_1
+        # c . w_1 and the tension range without damping, the same for both passes
+        self.facets_1 = _times(model.normals, -model.mu_rest)
+        self.lo, self.top = robot.t_min + margin, robot.force_max - margin
+        self.above_1 = self.positive @ self.top + self.negative @ self.lo
+        self.below_1 = self.positive @ self.lo + self.negative @ self.top
         # accelerations, each axis within the limit / sqrt(3)
         p1, w1, p2, w2 = v[:, :3], v[:, 3:], acc[:, :3], acc[:, 3:]
         self.accel_1 = np.concatenate(
@@ -414,19 +418,16 @@ class _Rows:
         """c with the winches' damping taken at path speeds `damping` (one per point):
         the tension range [lo, hi] is [t_min + margin, g_1 + f_max - margin], g_1 the
         damping force."""
-        robot, margin = self.robot, self.margin
-        t_min, f_max = robot.t_min, robot.force_max
+        robot, lo, top = self.robot, self.lo, self.top
         g_1 = robot.k0 * self.lv * damping[:, None]
-        lo, top = t_min + margin, f_max - margin
-        pos, neg = self.positive, self.negative
-        above, below = pos @ top + neg @ lo, pos @ lo + neg @ top
+        above, below = self.above_1, self.below_1
         if np.any(g_1):
-            above += _times(pos, g_1)
-            below += _times(neg, g_1)
+            above = above + _times(self.positive, g_1)
+            below = below + _times(self.negative, g_1)
         n = len(damping)
         return np.hstack(
             [self.facets_1 - above, below - self.facets_1, -0.5 * (g_1 + top - lo),
-             g_1 - f_max - t_min, np.broadcast_to(self.accel_1, (n, 12))]
+             g_1 - robot.force_max - robot.t_min, np.broadcast_to(self.accel_1, (n, 12))]
         )  # fmt: skip
 
 
