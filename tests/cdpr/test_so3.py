@@ -118,3 +118,25 @@ def test_liediff_convention_is_mixed_world_frame() -> None:
     w = np.array([0.1, 0.0, 0.0])  # a rotation about the WORLD x axis
     eta2 = Pose.from_matrix((1, 2, 0), so3.exp_so3(w) @ R1)
     np.testing.assert_allclose(liediff(eta1, eta2), [0, 2, 0, 0.1, 0, 0], atol=1e-15)
+
+
+def test_batched_rotations_match_scipy_and_the_single_call() -> None:
+    """exp_so3 and quat_from_matrix over an array of rotations (the path timing's grid)
+    give scipy's Rotation (an independent implementation) and what each gives alone:
+    random turns up to nearly pi, zero, one below the series' threshold and pi itself."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(11)
+    w = rng.normal(size=(500, 3))
+    w *= rng.uniform(0.0, 3.1, (500, 1)) / np.linalg.norm(w, axis=1)[:, None]
+    w[:3] = [[0.0, 0.0, 0.0], [1e-6, 0.0, 0.0], [np.pi, 0.0, 0.0]]
+    R = so3.exp_so3(w)
+    np.testing.assert_allclose(R, Rotation.from_rotvec(w).as_matrix(), atol=1e-14)
+    q = so3.quat_from_matrix(R)
+    theirs = Rotation.from_matrix(R).as_quat()[:, [3, 0, 1, 2]]  # scalar last there
+    theirs *= np.where(theirs[:, :1] < 0.0, -1.0, 1.0)
+    np.testing.assert_allclose(q[3:], theirs[3:], atol=1e-14)  # w > 0: one sign
+    np.testing.assert_allclose(np.abs(q[2]), [0.0, 1.0, 0.0, 0.0], atol=1e-15)  # pi
+    for k in (0, 1, 2, 250):
+        np.testing.assert_array_equal(R[k], so3.exp_so3(w[k]))
+        np.testing.assert_array_equal(q[k], so3.quat_from_matrix(R[k]))
