@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -40,11 +41,10 @@ from cdpr.path.geometry import BlendedPath, path_coordinates
 from cdpr.path.model import Path, PathPoint
 from cdpr.path.reachability import parameterize
 from cdpr.path.time_law import AveragedLaw, TimeLaw
-from cdpr.pose import Pose
 from cdpr.reference import model_terms
 from cdpr.robot import Robot
 from cdpr.so3 import quat_from_matrix
-from cdpr.trajectory.core import MIN_SEGMENT, Trajectory, TrajectoryError, Waypoint
+from cdpr.trajectory.core import MIN_SEGMENT, Trajectory, TrajectoryError
 from cdpr.trajectory.jerk import segment_jerks
 from cdpr.trajectory.limits import TrajectoryLimits, cable_speed_bounds
 from cdpr.wrench_margin import facet_normals, rest_wrenches, wrench_length
@@ -88,17 +88,29 @@ def time_path(
     "path_infeasible" naming the pose and the place where no timing holds the tensions."""
     timing = Timing() if timing is None else timing
     length = wrench_length(robot.geometry.attachments)
-    waypoints: list[Waypoint] = []
+    parts: list[_Knots] = []
     t = 0.0
     for number, motion in enumerate(_motions(path, length)):
         timed = _time_motion(motion, robot, limits, timing, length, number, t)
-        waypoints += timed[1:] if waypoints else timed  # the first is where the last rested
-        t = waypoints[-1].t
+        parts.append(timed if not parts else _Knots(*(a[1:] for a in timed)))  # the first
+        t = float(timed.times[-1])  # is where the last motion rested
         dwell = motion[-1].dwell
         if dwell > 0.0:
             t += dwell
-            waypoints.append(Waypoint(t, waypoints[-1].pose, np.zeros(6), np.zeros(6)))
-    return Trajectory(waypoints)
+            rest = np.zeros((1, 6))
+            parts.append(_Knots(np.array([t]), timed.positions[-1:], timed.quats[-1:], rest, rest))
+    return Trajectory.through(*(np.concatenate(column) for column in zip(*parts, strict=True)))
+
+
+class _Knots(NamedTuple):
+    """Timed grid points: times (n,), positions (n, 3), quaternions (n, 4), twists and
+    accelerations (n, 6), as Trajectory.through takes them."""
+
+    times: Array
+    positions: Array
+    quats: Array
+    twists: Array
+    accels: Array
 
 
 def _motions(path: Path, length: float) -> list[list[PathPoint]]:
@@ -142,7 +154,7 @@ def _time_motion(
     length: float,
     number: int,
     start: float,
-) -> list[Waypoint]:
+) -> _Knots:
     """One motion, rest to rest, timed from `start` (s)."""
     geometry = BlendedPath([p.pose for p in motion], [p.blend for p in motion], length)
     grid = _grid(geometry, timing)
@@ -163,17 +175,17 @@ def _time_motion(
     dt = 2.0 * np.diff(grid) / np.maximum(speed[:-1] + speed[1:], 1e-12)
     times = np.concatenate([[0.0], np.cumsum(dt)])
     if not _jerk_limits(limits):
-        return _waypoints(model, start + times, speed, u)
+        return _knots(model, start + times, speed, u)
     law = TimeLaw(grid, speed, sdd, times)
     width, fastest = _first_width(model, speed, u, limits), None
     for _ in range(WIDTHS):
         times, speed, u = _averaged(law, width, grid, (rows.a, rows.b, c, rows.xbound))
         # what the average leaves above a jerk limit: slowed down uniformly (the jerk
         # falls with the cube of the stretch; a slower time law stays feasible)
-        excess = _jerk_excess(_waypoints(model, times, speed, u), limits)
+        excess = _jerk_excess(_knots(model, times, speed, u), limits)
         k = max(1.0, excess ** (1.0 / 3.0) * (1.0 + 1e-9))
-        out = _waypoints(model, start + times * k, speed / k, u / (k * k))
-        if fastest is None or out[-1].t < fastest[-1].t:
+        out = _knots(model, start + times * k, speed / k, u / (k * k))
+        if fastest is None or out.times[-1] < fastest.times[-1]:
             fastest = out
         width *= WIDEN
     return fastest
@@ -185,28 +197,23 @@ def _jerk_limits(limits: TrajectoryLimits) -> list[tuple[int, float, slice]]:
     return [(k, limit, part) for k, (limit, part) in enumerate(pairs) if limit is not None]
 
 
-def _jerk_excess(waypoints: list[Waypoint], limits: TrajectoryLimits) -> float:
+def _jerk_excess(knots: _Knots, limits: TrajectoryLimits) -> float:
     """The largest ratio of the trajectory's jerk to its limit (those set)."""
-    jerks = segment_jerks(*Trajectory(waypoints).curve.segments()[1:])
+    jerks = segment_jerks(*Trajectory.through(*knots).curve.segments()[1:])
     return max(float(jerks[k].max()) / limit for k, limit, _ in _jerk_limits(limits))
 
 
-def _waypoints(model: _GridModel, times: Array, speed: Array, u: Array) -> list[Waypoint]:
-    """The motion's waypoints: the grid points reached at `times` with path speeds
-    `speed` and accelerations `u`, at rest at both ends (_spaced: the points kept)."""
+def _knots(model: _GridModel, times: Array, speed: Array, u: Array) -> _Knots:
+    """The motion's knots: the grid points reached at `times` with path speeds `speed`
+    and accelerations `u`, at rest at both ends (_spaced: the points kept)."""
     kept = _spaced(times)
     v, a, s = model.v[kept], model.acc[kept], speed[kept, None]
     twists = v * s
     accels = v * u[kept, None] + a * s * s
     twists[[0, -1]] = accels[[0, -1]] = 0.0
-    twists.flags.writeable = accels.flags.writeable = False  # the waypoints share their rows
-    positions = model.positions[kept].tolist()
-    quaternions = quat_from_matrix(model.rotations[kept]).tolist()
-    at = times[kept].tolist()
-    return [
-        Waypoint(t, Pose._from_unit(p, q), twist, accel)
-        for t, p, q, twist, accel in zip(at, positions, quaternions, twists, accels, strict=True)
-    ]
+    return _Knots(
+        times[kept], model.positions[kept], quat_from_matrix(model.rotations[kept]), twists, accels
+    )
 
 
 def _first_width(model: _GridModel, speed: Array, u: Array, limits: TrajectoryLimits) -> float:

@@ -30,7 +30,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.linalg import solveh_banded
 
-from cdpr.pose import Pose, liediff
+from cdpr.pose import QUATERNION_NORM_TOLERANCE, Pose, liediff
 from cdpr.so3 import quat_mul4, quats_to_rotvecs, rotate_quat_by_rotvec
 from cdpr.trajectory.rotation import angular_rates, left_jacobians
 
@@ -307,12 +307,26 @@ class Trajectory:
     """
 
     def __init__(self, waypoints: Sequence[Waypoint]) -> None:
-        wps = tuple(waypoints)
-        knots = _Knots(wps)
+        self._build(_Knots.of(tuple(waypoints)))
+
+    @classmethod
+    def through(
+        cls, times: Array, positions: Array, quaternions: Array, twists: Array, accels: Array
+    ) -> Trajectory:
+        """The trajectory through n knots given as arrays (times (n,), positions (n, 3),
+        unit quaternions (n, 4), twists and accels (n, 6), every rate given): what a
+        planner that computed them all hands over, with no Waypoint made per knot until
+        `waypoints` asks (a timed path has thousands).  Checked as waypoints are."""
+        out = cls.__new__(cls)
+        out._build(_Knots.of_arrays(times, positions, quaternions, twists, accels))
+        return out
+
+    def _build(self, knots: _Knots) -> None:
+        """The curve through `knots` (the constructors' common part)."""
         times, positions, quats = knots.times, knots.positions, knots.quats
         with np.errstate(all="ignore"):
             steps = _steps(positions, quats)
-            values = np.zeros((len(wps), 6))
+            values = np.zeros((len(times), 6))
             values[:, :3] = positions
             values[1:, 3:] = np.cumsum(steps[:, 3:], axis=0)
             twists, accels = _knot_rates(times, values, knots)
@@ -324,23 +338,23 @@ class Trajectory:
             raise TrajectoryError(
                 "finite", "the curve through these waypoints is not finite (values too large?)"
             )
-        # the waypoints and the curve as built: never changed, shared by shifted and
+        # the knots and the curve as built: never changed, shared by shifted and
         # blended copies
-        self._waypoints = wps
+        self._knots = knots
         self._rates = (twists, accels)
         self._curve = Curve(
             times.tolist(),
             list(tables),  # per segment; a list indexes faster than a 3-d array
-            [w.pose.quaternion_tuple for w in wps],
-            wps[0].pose,
-            wps[-1].pose,
+            list(map(tuple, quats.tolist())),
+            knots.pose(0),
+            knots.pose(len(times) - 1),
         )
         self._listed: tuple[Waypoint, ...] | None = None  # `waypoints`, made when asked
 
     def _moved(self, shift: float, blend: _Blend | None) -> Trajectory:
         """This trajectory with another time shift and blend (the segments are shared)."""
         out = Trajectory.__new__(Trajectory)
-        out._waypoints, out._rates = self._waypoints, self._rates
+        out._knots, out._rates = self._knots, self._rates
         out._curve = self._curve.placed(shift, blend)
         out._listed = None
         return out
@@ -352,7 +366,7 @@ class Trajectory:
 
     def __len__(self) -> int:
         """The number of waypoints (a blend's first one included)."""
-        return len(self._waypoints) + (self._curve.blend is not None)
+        return len(self._knots.times) + (self._curve.blend is not None)
 
     @property
     def waypoints(self) -> tuple[Waypoint, ...]:
@@ -361,7 +375,7 @@ class Trajectory:
         number, unlike `knot`, `len` and `sample`."""
         if self._listed is None:
             shift, blend = self._curve.shift, self._curve.blend
-            listed = self._waypoints
+            listed = self._knots.waypoints
             if shift != 0.0:
                 listed = tuple(Waypoint(w.t + shift, w.pose, w.twist, w.accel) for w in listed)
             self._listed = listed if blend is None else (blend.first, *listed)
@@ -377,9 +391,9 @@ class Trajectory:
             if index == 0:
                 return blend.first
             index -= 1
-        w = self._waypoints[index]
-        twists, accels = self._rates
-        return Waypoint(w.t + self._curve.shift, w.pose, twists[index], accels[index])
+        knots, (twists, accels) = self._knots, self._rates
+        t = float(knots.times[index]) + self._curve.shift
+        return Waypoint(t, knots.pose(index), twists[index], accels[index])
 
     @property
     def knots(self) -> tuple[Waypoint, ...]:
@@ -439,7 +453,7 @@ class Trajectory:
                 "times_increasing", f"the blend would last {h:.6g} s (< {MIN_SEGMENT:g} s)"
             )
         twists, accels = self._rates
-        step = liediff(first.pose, self._waypoints[0].pose)
+        step = liediff(first.pose, self._knots.pose(0))
         table = segment_table(first.pose, first.twist, first.accel, twists[0], accels[0], step, h)
         if not np.all(np.isfinite(table)):
             raise TrajectoryError("finite", "the blend into this trajectory is not finite")
@@ -469,31 +483,23 @@ class _Knots:
 
     The bounds on |t| and on the magnitudes keep every spline coefficient and every
     sample of an accepted trajectory finite.  The checks run on whole arrays; a waypoint
-    they flag is checked alone (_check_waypoint), which names its problem.
+    they flag is checked alone (_check_waypoint), which names its problem.  Built from
+    Waypoints (`of`) or from arrays (`of_arrays`: the Waypoints made when asked).
     """
 
-    def __init__(self, wps: tuple[Waypoint, ...]) -> None:
-        if len(wps) < 2:
-            raise TrajectoryError(
-                "min_waypoints", f"a trajectory needs at least 2 waypoints, got {len(wps)}"
-            )
-        for i, w in enumerate(wps):
-            if not isinstance(w, Waypoint):
-                raise TrajectoryError(
-                    "schema", f"expected a Waypoint, got {type(w).__name__}", waypoint=i
-                )
-        n = len(wps)
-        self.times = np.array([w.t for w in wps])
-        self.positions = np.array([w.pose.position_tuple for w in wps])
-        self.quats = np.array([w.pose.quaternion_tuple for w in wps])
+    def __init__(
+        self,
+        times: Array,
+        positions: Array,
+        quats: Array,
+        given: tuple[Array, Array, Array, Array],
+        listed: tuple[Waypoint, ...] | None,
+    ) -> None:
+        self.times, self.positions, self.quats = times, positions, quats
         # the given twists and accels (zero where not given), and where they are given
-        self.twists, self.accels = np.zeros((n, 6)), np.zeros((n, 6))
-        self.twist_given = np.array([w.twist is not None for w in wps])
-        self.accel_given = np.array([w.accel is not None for w in wps])
-        if self.twist_given.any():
-            self.twists[self.twist_given] = [w.twist for w in wps if w.twist is not None]
-        if self.accel_given.any():
-            self.accels[self.accel_given] = [w.accel for w in wps if w.accel is not None]
+        self.twists, self.accels, self.twist_given, self.accel_given = given
+        self._listed = listed
+        n = len(times)
         t = self.times
         with np.errstate(invalid="ignore"):
             good = np.abs(t) <= MAX_TIME
@@ -501,8 +507,91 @@ class _Knots:
             for vec in (self.positions, self.twists, self.accels):
                 good &= np.all(np.abs(vec) <= MAX_MAGNITUDE, axis=1)
         for i in np.flatnonzero(~good).tolist():
-            _check_waypoint(wps[i], i, wps[i - 1].t if i > 0 else -math.inf)
-        _check_at_rest(wps[-1], n - 1)
+            _check_waypoint(self.waypoint(i), i, float(t[i - 1]) if i > 0 else -math.inf)
+        _check_at_rest(self.waypoint(n - 1), n - 1)
+
+    @classmethod
+    def of(cls, wps: tuple[Waypoint, ...]) -> _Knots:
+        """The knots of these waypoints."""
+        _check_count(len(wps))
+        for i, w in enumerate(wps):
+            if not isinstance(w, Waypoint):
+                raise TrajectoryError(
+                    "schema", f"expected a Waypoint, got {type(w).__name__}", waypoint=i
+                )
+        n = len(wps)
+        twists, accels = np.zeros((n, 6)), np.zeros((n, 6))
+        twist_given = np.array([w.twist is not None for w in wps])
+        accel_given = np.array([w.accel is not None for w in wps])
+        if twist_given.any():
+            twists[twist_given] = [w.twist for w in wps if w.twist is not None]
+        if accel_given.any():
+            accels[accel_given] = [w.accel for w in wps if w.accel is not None]
+        return cls(
+            np.array([w.t for w in wps]),
+            np.array([w.pose.position_tuple for w in wps]),
+            np.array([w.pose.quaternion_tuple for w in wps]),
+            (twists, accels, twist_given, accel_given),
+            wps,
+        )
+
+    @classmethod
+    def of_arrays(
+        cls, times: Array, positions: Array, quats: Array, twists: Array, accels: Array
+    ) -> _Knots:
+        """The knots of these arrays (Trajectory.through), copied read-only; each
+        quaternion must be unit (it is stored normalised)."""
+        arrays = [np.array(a, dtype=float) for a in (times, positions, quats, twists, accels)]
+        times, positions, quats, twists, accels = arrays
+        n = len(times)
+        _check_count(n)
+        for name, a, width in (
+            ("positions", positions, 3), ("quaternions", quats, 4),
+            ("twists", twists, 6), ("accels", accels, 6),
+        ):  # fmt: skip
+            if a.shape != (n, width):
+                raise TrajectoryError("schema", f"{name} must be {n} x {width}, not {a.shape}")
+        with np.errstate(invalid="ignore"):
+            norms = np.linalg.norm(quats, axis=1)
+            wrong = np.flatnonzero(~(np.abs(norms - 1.0) <= QUATERNION_NORM_TOLERANCE))
+        if len(wrong):
+            i = int(wrong[0])
+            raise TrajectoryError(
+                "unit_quaternion",
+                f"quaternion {quats[i].tolist()} has norm {norms[i]:.9g}",
+                waypoint=i,
+                field=f"waypoints[{i}].quaternion",
+            )
+        quats /= norms[:, None]
+        for a in arrays:
+            a.setflags(write=False)
+        given = np.ones(n, dtype=bool)
+        return cls(times, positions, quats, (twists, accels, given, given), None)
+
+    @property
+    def waypoints(self) -> tuple[Waypoint, ...]:
+        """The knots as Waypoints (made on first use when built from arrays)."""
+        if self._listed is None:
+            self._listed = tuple(self.waypoint(i) for i in range(len(self.times)))
+        return self._listed
+
+    def waypoint(self, i: int) -> Waypoint:
+        """Knot i as a Waypoint, its twist and accel where given."""
+        if self._listed is not None:
+            return self._listed[i]
+        return Waypoint(float(self.times[i]), self.pose(i), self.twists[i], self.accels[i])
+
+    def pose(self, i: int) -> Pose:
+        """Knot i's pose."""
+        if self._listed is not None:
+            return self._listed[i].pose
+        return Pose._from_unit(self.positions[i].tolist(), self.quats[i].tolist())
+
+
+def _check_count(n: int) -> None:
+    """A trajectory has two waypoints at least."""
+    if n < 2:
+        raise TrajectoryError("min_waypoints", f"a trajectory needs at least 2 waypoints, got {n}")
 
 
 def _check_waypoint(w: Waypoint, i: int, previous: float) -> None:

@@ -259,6 +259,68 @@ def test_knots_hold_the_full_state() -> None:
         assert_same_state(again.sample(t), tr.sample(t), 1e-10)
 
 
+def knot_arrays(tr: Trajectory) -> list[np.ndarray]:
+    """(times, positions, quaternions, twists, accels) of a trajectory's knots."""
+    knots = tr.knots
+    return [
+        np.array([k.t for k in knots]),
+        np.array([k.pose.position for k in knots]),
+        np.array([k.pose.quaternion for k in knots]),
+        np.array([k.twist for k in knots]),
+        np.array([k.accel for k in knots]),
+    ]
+
+
+def test_a_trajectory_through_arrays_is_the_one_through_their_waypoints() -> None:
+    """Trajectory.through (a timed path's thousands of knots, no Waypoint made) builds the
+    curve Trajectory builds from the same knots as Waypoints; its waypoints, made when
+    asked, are those knots.  A quaternion given with w < 0 (the same rotation) or a
+    hair off unit is stored as a Pose stores it."""
+    tr = Trajectory(random_waypoints(31))
+    times, positions, quats, twists, accels = knot_arrays(tr)
+    signed = quats * np.where(np.arange(len(quats)) % 2, -1.0, 1.0)[:, None] * (1.0 + 1e-7)
+    through = Trajectory.through(times, positions, signed, twists, accels)
+    assert len(through) == len(tr) and through.duration == tr.duration
+    for t in inner_times(tr, 25):
+        assert_same_state(through.sample(t), tr.sample(t), 1e-12)
+    for made, knot in zip(through.waypoints, tr.knots, strict=True):
+        assert made.t == knot.t and made.pose.position_tuple == knot.pose.position_tuple
+        np.testing.assert_allclose(made.pose.quaternion, knot.pose.quaternion, rtol=0, atol=1e-15)
+        np.testing.assert_array_equal(made.twist, knot.twist)
+        np.testing.assert_array_equal(made.accel, knot.accel)
+    # the arrays are copied: changing the caller's afterwards changes nothing
+    twists[1] += 1.0
+    assert not np.array_equal(through.waypoints[1].twist, twists[1])
+
+
+def test_a_trajectory_through_arrays_names_a_bad_knot() -> None:
+    times, positions, quats, twists, accels = knot_arrays(Trajectory(random_waypoints(32)))
+
+    def refused(**change: np.ndarray) -> TrajectoryError:
+        given = {"times": times, "positions": positions, "quaternions": quats}
+        given |= {"twists": twists, "accels": accels} | change
+        with pytest.raises(TrajectoryError) as info:
+            Trajectory.through(**given)
+        return info.value
+
+    off_unit = quats.copy()
+    off_unit[2] *= 1.01
+    err = refused(quaternions=off_unit)
+    assert (err.waypoint, err.limit, err.field) == (2, "unit_quaternion", "waypoints[2].quaternion")
+    nan_twist = twists.copy()
+    nan_twist[3, 4] = np.nan
+    err = refused(twists=nan_twist)
+    assert (err.waypoint, err.limit, err.field) == (3, "finite", "waypoints[3].twist")
+    late = times.copy()
+    late[4] = late[3]
+    assert (refused(times=late).waypoint, refused(times=late).limit) == (4, "times_increasing")
+    moving = twists.copy()
+    moving[-1, 0] = 0.1
+    assert refused(twists=moving).limit == "end_at_rest"
+    assert refused(accels=accels[:, :3]).limit == "schema"
+    assert refused(times=times[:1], positions=positions[:1]).limit == "min_waypoints"
+
+
 def test_left_jacobian_is_the_derivative_of_exp() -> None:
     """exp(θ + ε δ) exp(θ)ᵀ ≈ exp(ε J_l(θ) δ), across the series/closed-form switch."""
     rng = np.random.default_rng(12)
