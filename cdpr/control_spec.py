@@ -75,6 +75,12 @@ class TensionSpec(StrictModel):
     """osqp: the tensions closest to the reference (a QP solved by OSQP); closed_form:
     Pott's closed-form method, cheaper but not optimal while a bound is active."""
     reference: PositiveFloat | None = None  # N, every cable; null: (t_min + force_max) / 2
+    floor: NonNegativeFloat = 5.0
+    """N above t_min the distribution keeps every cable where a distribution can (down to
+    t_min where none can): a winch's tension departs from its command by what its model
+    leaves out, and a cable commanded at t_min dips below it (reference8's standard
+    figure-eight flown in lock-step, t_min 20 N: 19.8 N at the least without a floor,
+    24.5 N with 5 N)."""
 
 
 MIN_ADAPTATION_TIME = 0.1  # s: a faster estimate would reach into the loop's own dynamics

@@ -88,7 +88,7 @@ def _pending(source: ReferenceSource, t: float) -> ReferenceSource:
 
 def tension_solver(robot: Robot, spec: ControllerSpec) -> TensionSolver:
     """The tension distribution the controller config asks for (method, reference)."""
-    limits = TensionLimits.from_robot(robot, spec.tension.reference)
+    limits = TensionLimits.from_robot(robot, spec.tension.reference, spec.tension.floor)
     return make_tension_solver(spec.tension.method, limits)
 
 

@@ -13,6 +13,11 @@ work in tension space, where the problem is a projection onto a box-bounded affi
 
 and report f = f0 − t.  (τ, f_b, f0) ∈ W exactly when ``solve`` returns feasible=True.
 
+With a tension floor (TensionLimits.floor > 0) the distribution first asks every cable
+for t_min + floor and only where no tensions meet that for t_min itself: a drive's
+cable tension departs from its command by the winch's unmodelled dynamics, and a cable
+commanded at t_min exactly dips below it.  W is still the set at t_min.
+
 Every answer is CHECKED before it is called feasible: with
 ``tol = rtol · max(max force_max, max t_hi)`` (rtol = 1e-6 by default: 0.6 mN on the
 600 N reference robot), the wrench residual ‖Λᵀ t − w‖∞ ≤ tol and
@@ -71,15 +76,18 @@ class TensionResult(NamedTuple):
 
 @dataclass(frozen=True, eq=False)
 class TensionLimits:
-    """Per-cable tension limits: t ≥ t_min, |f + f_b| ≤ force_max, reference tension t_ref.
+    """Per-cable tension limits: t ≥ t_min, |f + f_b| ≤ force_max, reference tension t_ref,
+    and the `floor` (N) above t_min the distribution keeps each cable where it can (module
+    docstring).
 
     Arrays of length n (converted to read-only float arrays).  Requires
-    0 ≤ t_min ≤ t_ref ≤ force_max and force_max > 0 for every cable.
+    0 ≤ t_min ≤ t_ref ≤ force_max, force_max > 0 for every cable and a finite floor ≥ 0.
     """
 
     t_min: Array
     force_max: Array
     t_ref: Array
+    floor: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("t_min", "force_max", "t_ref"):
@@ -98,6 +106,13 @@ class TensionLimits:
                 raise ValueError(f"TensionLimits.{name} has non-finite values: {a.tolist()}")
             a.setflags(write=False)
             object.__setattr__(self, name, a)
+        try:
+            floor = float(self.floor)
+        except (TypeError, ValueError):
+            floor = math.nan
+        if not (math.isfinite(floor) and floor >= 0.0):
+            raise ValueError(f"TensionLimits.floor must be a number >= 0, got {self.floor!r}")
+        object.__setattr__(self, "floor", floor)
         n = self.t_min.size
         for name in ("force_max", "t_ref"):
             m = getattr(self, name).size
@@ -126,7 +141,9 @@ class TensionLimits:
         return int(self.t_min.size)
 
     @classmethod
-    def from_robot(cls, robot: Robot, t_ref: ArrayLike | float | None = None) -> TensionLimits:
+    def from_robot(
+        cls, robot: Robot, t_ref: ArrayLike | float | None = None, floor: float = 0.0
+    ) -> TensionLimits:
         """Limits from the robot's actuators; t_ref defaults to mid-range (t_min + force_max)/2.
 
         A scalar t_ref applies to every cable.
@@ -139,7 +156,7 @@ class TensionLimits:
             ref = np.full(t_min.shape, float(t_ref))
         else:
             ref = np.asarray(t_ref, dtype=float)
-        return cls(t_min, force_max, ref)
+        return cls(t_min, force_max, ref, floor)
 
 
 class FactoredJacobian(NamedTuple):
@@ -181,6 +198,9 @@ def make_tension_solver(method: str, limits: TensionLimits, **options: Any) -> T
     )
 
 
+_Low = tuple[Array, list[float]]  # lower tension bounds, as an array and as a list
+
+
 class _Problem(NamedTuple):
     """One cycle's data in tension space."""
 
@@ -208,7 +228,10 @@ class _TensionSolverBase:
         self.n = limits.n
         self.rtol = float(rtol)
         self._t_min = limits.t_min
-        self._t_min_list = limits.t_min.tolist()
+        # the lower tension bounds to try, in order (array, list): t_min + floor first
+        # when there is a floor
+        bounds = [limits.t_min + limits.floor] if limits.floor > 0.0 else []
+        self._lows = [(b, b.tolist()) for b in (*bounds, limits.t_min)]
         self._f_max = limits.force_max
         self._t_ref = limits.t_ref
         self._f_scale = float(limits.force_max.max())
@@ -229,7 +252,11 @@ class _TensionSolverBase:
         numpy's floating-point warnings are silenced so they cannot turn into exceptions.
         """
         with np.errstate(all="ignore"):
-            return self._solve(jacobian, wrench, f_b, f0)
+            for low in self._lows:
+                result = self._solve(jacobian, wrench, f_b, f0, low)
+                if result.feasible:
+                    break
+            return result
 
     def factored(self, jacobian: ArrayLike) -> FactoredJacobian:
         """Λ with what the least-norm tensions need of it alone (FactoredJacobian), for
@@ -249,7 +276,9 @@ class _TensionSolverBase:
         wrench: ArrayLike,
         f_b: ArrayLike,
         f0: ArrayLike,
+        low: _Low,
     ) -> TensionResult:
+        """F with tensions at least `low` (one of _lows)."""
         raise NotImplementedError
 
     def _prepare(
@@ -258,9 +287,11 @@ class _TensionSolverBase:
         wrench: ArrayLike,
         f_b: ArrayLike,
         f0: ArrayLike,
+        low: _Low,
         out: tuple[Array, Array, Array] | None = None,
     ) -> _Problem | TensionResult:
-        """Validated tension-space data, or an infeasible result that needs no solver.
+        """Validated tension-space data with tensions at least `low`, or an infeasible
+        result that needs no solver.
 
         ``out`` = (w, t_lo, t_hi) buffers to compute into (OSQP's l and u), else new arrays.
         """
@@ -283,11 +314,12 @@ class _TensionSolverBase:
         # any NaN/inf input makes w or t_hi non-finite (inf * 0 is NaN): one test on the hot path
         if not math.isfinite(sum(w.tolist()) + sum(hi_list)):
             return self._non_finite(L, tau, fb, f0)
-        lo = np.maximum(self._t_min, g - f_max, out=lo_out)
-        if any(map(operator.lt, hi_list, self._t_min_list)):  # t_lo > t_hi somewhere
-            k = max(range(n), key=lambda i: self._t_min_list[i] - hi_list[i])
+        low_array, low_list = low
+        lo = np.maximum(low_array, g - f_max, out=lo_out)
+        if any(map(operator.lt, hi_list, low_list)):  # t_lo > t_hi somewhere
+            k = max(range(n), key=lambda i: low_list[i] - hi_list[i])
             reason = (
-                f"cable {k}: t_min {self._t_min_list[k]:.4g} N unreachable, the actuator holds "
+                f"cable {k}: t_min {low_list[k]:.4g} N unreachable, the actuator holds "
                 f"at most f0 + f_b + force_max = {hi_list[k]:.4g} N"
             )
             t = self._least_norm(L, w, factored)
@@ -478,8 +510,9 @@ class OsqpTensionSolver(_TensionSolverBase):
         wrench: ArrayLike,
         f_b: ArrayLike,
         f0: ArrayLike,
+        low: _Low,
     ) -> TensionResult:
-        p = self._prepare(jacobian, wrench, f_b, f0, self._out)
+        p = self._prepare(jacobian, wrench, f_b, f0, low, self._out)
         if type(p) is TensionResult:
             return p
         assert isinstance(p, _Problem)
@@ -630,15 +663,16 @@ class ClosedFormTensionSolver(_TensionSolverBase):
         wrench: ArrayLike,
         f_b: ArrayLike,
         f0: ArrayLike,
+        low: _Low,
     ) -> TensionResult:
-        p = self._prepare(jacobian, wrench, f_b, f0)
+        p = self._prepare(jacobian, wrench, f_b, f0, low)
         if type(p) is TensionResult:
             return p  # non-finite input: no method can do better
         assert isinstance(p, _Problem)
         result = self._pott(p)
         if result.feasible:
             return result
-        exact = self._exact._solve(jacobian, wrench, f_b, f0)
+        exact = self._exact._solve(jacobian, wrench, f_b, f0, low)
         if exact.feasible:
             return exact
         return exact._replace(reason=f"{exact.reason} (closed form: {result.reason})")

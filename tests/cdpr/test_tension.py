@@ -612,3 +612,54 @@ def test_a_factored_jacobian_gives_the_plain_solve(robot, solver_cls):
         outcomes.add((a.feasible, a.iterations > 0, a.reason[:12]))
     feasible = {f for f, _, _ in outcomes}
     assert feasible == {True, False} and len(outcomes) >= 4, outcomes
+
+
+@pytest.mark.parametrize("solver_cls", SOLVERS)
+def test_a_floor_keeps_every_cable_above_t_min_where_tensions_can_be(reference8, solver_cls):
+    """With a 5 N floor, a wrench that tensions at least t_min + 5 N can carry (scipy's LP)
+    gets the optimum over those; one that only tensions down to t_min can carry gets
+    what the solver without a floor gives (the optimum over [t_min, ...], a cable below
+    the floor); one that none can carry is infeasible, naming the limit.  Low reference
+    tensions, so the bounds are active in most cases; a fresh solver for each, so no
+    warm start carries over.  (OSQP without a floor misses 1 of these 300 wrenches, 0.44 N
+    inside W: the band below the floor is held to it, not to the LP.)"""
+    floor = 5.0
+    plain = TensionLimits.from_robot(reference8, t_ref=25.0)
+    floored = TensionLimits.from_robot(reference8, t_ref=25.0, floor=floor)
+    raised = TensionLimits(plain.t_min + floor, plain.force_max, plain.t_ref)  # for the LP
+    rng = np.random.default_rng(23)
+    cases = {"above the floor": 0, "below the floor": 0, "outside": 0}
+    for _ in range(300):
+        pose = Pose.from_rotvec(
+            reference8.home.position + rng.uniform(-0.3, 0.3, 3), rng.uniform(-0.3, 0.3, 3)
+        )
+        args = model_inputs(reference8, pose, rng.uniform(-1, 1, 6), rng.uniform(-15, 15, 6))
+        above, anywhere = lp_margin(*args, raised), lp_margin(*args, plain)
+        if min(abs(above), abs(anywhere)) < 1e-3:
+            continue  # within 1 mN of a boundary: either answer is right
+        result = solver_cls(floored).solve(*args)
+        if above > 0:
+            cases["above the floor"] += 1
+            assert_satisfies(result, *args, raised)
+            if solver_cls is OsqpTensionSolver:
+                assert_kkt_optimal(result.tensions, args[0], raised, *bounds(raised, *args[2:]))
+        elif anywhere > 0:
+            assert result.feasible is solver_cls(plain).solve(*args).feasible
+            if result.feasible:
+                cases["below the floor"] += 1
+                assert_satisfies(result, *args, plain)
+                assert result.tensions.min() < plain.t_min.min() + floor
+                if solver_cls is OsqpTensionSolver:
+                    lo, hi = bounds(plain, *args[2:])
+                    assert_kkt_optimal(result.tensions, args[0], plain, lo, hi)
+        else:
+            cases["outside"] += 1
+            assert not result.feasible
+            assert "t_min" in result.reason or "force_max" in result.reason, result.reason
+    assert min(cases.values()) >= 5, cases
+
+
+def test_a_floor_must_be_a_number_at_least_zero():
+    for bad in (-1.0, np.nan, "x"):
+        with pytest.raises(ValueError, match="floor must be a number >= 0"):
+            TensionLimits([20.0], [600.0], [300.0], bad)
