@@ -311,12 +311,18 @@ class Trajectory:
 
     @classmethod
     def through(
-        cls, times: Array, positions: Array, quaternions: Array, twists: Array, accels: Array
+        cls,
+        times: Array,
+        positions: Array,
+        quaternions: Array,
+        twists: Array | None = None,
+        accels: Array | None = None,
     ) -> Trajectory:
         """The trajectory through n knots given as arrays (times (n,), positions (n, 3),
-        unit quaternions (n, 4), twists and accels (n, 6), every rate given): what a
-        planner that computed them all hands over, with no Waypoint made per knot until
-        `waypoints` asks (a timed path has thousands).  Checked as waypoints are."""
+        unit quaternions (n, 4), twists and accels (n, 6) at every knot, or None: the
+        trajectory chooses them as for a Waypoint without them): what a planner or a
+        parser of thousands of knots hands over, with no Waypoint made per knot until
+        `waypoints` asks.  Checked as waypoints are."""
         out = cls.__new__(cls)
         out._build(_Knots.of_arrays(times, positions, quaternions, twists, accels))
         return out
@@ -537,13 +543,20 @@ class _Knots:
 
     @classmethod
     def of_arrays(
-        cls, times: Array, positions: Array, quats: Array, twists: Array, accels: Array
+        cls,
+        times: Array,
+        positions: Array,
+        quats: Array,
+        twists: Array | None,
+        accels: Array | None,
     ) -> _Knots:
         """The knots of these arrays (Trajectory.through), copied read-only; each
-        quaternion must be unit (it is stored normalised)."""
+        quaternion must be unit (it is stored normalised); rates None: not given."""
+        n = len(times)
+        given = [np.full(n, rates is not None) for rates in (twists, accels)]
+        twists, accels = (np.zeros((n, 6)) if r is None else r for r in (twists, accels))
         arrays = [np.array(a, dtype=float) for a in (times, positions, quats, twists, accels)]
         times, positions, quats, twists, accels = arrays
-        n = len(times)
         _check_count(n)
         for name, a, width in (
             ("positions", positions, 3), ("quaternions", quats, 4),
@@ -565,8 +578,7 @@ class _Knots:
         quats /= norms[:, None]
         for a in arrays:
             a.setflags(write=False)
-        given = np.ones(n, dtype=bool)
-        return cls(times, positions, quats, (twists, accels, given, given), None)
+        return cls(times, positions, quats, (twists, accels, *given), None)
 
     @property
     def waypoints(self) -> tuple[Waypoint, ...]:
@@ -579,7 +591,9 @@ class _Knots:
         """Knot i as a Waypoint, its twist and accel where given."""
         if self._listed is not None:
             return self._listed[i]
-        return Waypoint(float(self.times[i]), self.pose(i), self.twists[i], self.accels[i])
+        twist = self.twists[i] if self.twist_given[i] else None
+        accel = self.accels[i] if self.accel_given[i] else None
+        return Waypoint(float(self.times[i]), self.pose(i), twist, accel)
 
     def pose(self, i: int) -> Pose:
         """Knot i's pose."""

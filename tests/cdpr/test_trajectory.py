@@ -454,6 +454,34 @@ def test_parse_rejects_non_increasing_times() -> None:
     assert (err.waypoint, err.limit, err.value) == (2, "times_increasing", 1.0)
 
 
+def test_plain_waypoints_read_in_bulk_make_the_trajectory_one_by_one_would() -> None:
+    """Waypoints all of the plain form go to Trajectory.through as arrays; one written
+    otherwise (a position object) sends every one through Waypoint: the same curve, the
+    same waypoints, and the same error named at the same waypoint."""
+    rng = np.random.default_rng(41)
+    plain = []
+    for k in range(30):
+        q = rng.normal(size=4)
+        q /= np.linalg.norm(q)
+        q *= 1.0 + 1e-8  # within the unit tolerance, normalised on parsing
+        quaternion = dict(zip("wxyz", q.tolist(), strict=True))
+        plain.append({"t": 0.5 * k, "position": rng.uniform(-1, 1, 3).tolist(),
+                      "quaternion": quaternion})  # fmt: skip
+    x, y, z = plain[3]["position"]
+    mixed = [*plain[:3], {**plain[3], "position": {"x": x, "y": y, "z": z}}, *plain[4:]]
+    bulk, single = parse_trajectory(doc(*plain)), parse_trajectory(doc(*mixed))
+    assert bulk._knots._listed is None and single._knots._listed is not None  # the two routes
+    for t in np.linspace(-0.5, 15.0, 97):
+        assert_same_state(bulk.sample(float(t)), single.sample(float(t)), 1e-12)
+    for a, b in zip(bulk.waypoints, single.waypoints, strict=True):
+        assert (a.t, a.twist, a.accel) == (b.t, None, None)
+        assert a.pose.position_tuple == b.pose.position_tuple
+        np.testing.assert_allclose(a.pose.quaternion, b.pose.quaternion, rtol=0, atol=1e-15)
+    late = [*plain[:7], {**plain[7], "t": plain[6]["t"]}, *plain[8:]]
+    errors = [rejected(doc(*late)), rejected(doc(*late[:3], mixed[3], *late[4:]))]
+    assert errors[0].args == errors[1].args and errors[0].waypoint == 7
+
+
 def test_parse_rejects_too_many_waypoints() -> None:
     limits = TrajectoryLimits(max_waypoints=5)
     err = rejected(doc(*(wp(float(i)) for i in range(6))), limits)
