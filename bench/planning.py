@@ -5,7 +5,8 @@ its durations come to an independent time-optimal bound.
 
 - plan_ms.path_100: parse and time a 100-pose JSON path (a climbing square spiral,
   blended corners, 10 m) on config/reference8-cia402.yaml, median of N runs;
-  plan_ms.gcode_2000: the same for a 2,000-line G-code file (a zig-zag, 1 cm blends).
+  plan_ms.gcode_2000: the same for a 2,000-line G-code file (a zig-zag, 1 cm blends);
+  plan_ms.path_100_jerk: path_100 with the jerk bounded (JERK, below).
   The allocator reuses freed large blocks and the objects of the start-up are frozen,
   as in the companion that times the daemon's paths (daemon.process.heap).
 - duration_ratio.<path>: TOPP-RA's duration (1 cm grid) / the optimum of the convex
@@ -24,8 +25,10 @@ its durations come to an independent time-optimal bound.
   force_max in tension_range_n), tracking_rms_mm.<path> (true position against the
   reference), fault.<path> (empty when the controller never gave up), and
   speedup.<path>: the duration of the best constant-speed timing that the daemon's
-  validation accepts (a trapezoid in path speed: the fastest cruise found by bisection,
-  for the best of three ramps) over the planned one.
+  validation accepts (a trapezoid in path speed, or its ramps' acceleration a raised
+  cosine: the fastest cruise found by bisection, for the best of six ramps) over the
+  planned one.
+- --bound-jerk: the flown paths timed (and validated) with the jerk bounded as below.
 - Jerk (--jerk): the standard paths above timed by time_path on reference8-cia402 as its
   file sets the trajectory limits, and again with the jerk bounded (JERK: the config's
   linear_jerk / angular_jerk where it sets them, else these): jerk_peak.<path> the largest
@@ -37,6 +40,7 @@ from __future__ import annotations
 
 import argparse
 import copy
+import itertools
 import json
 import time
 
@@ -48,8 +52,8 @@ from cdpr.path import Path, PathPoint, parse_gcode, parse_path
 from cdpr.path.geometry import BlendedPath
 from cdpr.path.timing import Timing, time_path
 from cdpr.pose import Pose
-from cdpr.trajectory import Trajectory, TrajectoryError
-from cdpr.trajectory.core import Waypoint
+from cdpr.so3 import quat_from_matrix
+from cdpr.trajectory import Trajectory, TrajectoryError, TrajectoryLimits
 from cdpr.trajectory.jerk import segment_jerks
 from cdpr.wrench_margin import wrench_length
 from daemon.cli.simulated import sim_section
@@ -61,6 +65,7 @@ from tuning.tracking import run_tracking
 
 CONFIG = REFERENCE8.parent.parent / "reference8-cia402.yaml"
 MARGIN = 5.0
+JERK = {"linear_jerk": 50.0, "angular_jerk": 100.0}  # m/s³, rad/s³ where the config sets none
 
 
 def spiral(n: int) -> dict:
@@ -78,20 +83,27 @@ def zigzag(lines: int) -> str:
     return "\n".join(rows)
 
 
+def jerk_bounded(limits: TrajectoryLimits) -> TrajectoryLimits:
+    """`limits` with the jerk bounded: JERK where they set no jerk limit."""
+    return limits.model_copy(update={k: getattr(limits, k) or v for k, v in JERK.items()})
+
+
 def plan_ms(config, runs: int) -> dict[str, float]:
     reuse_freed_memory()
     freeze_start_up()
     robot, limits = config.robot, config.trajectory
+    jerk = jerk_bounded(limits)
     body, program = spiral(100), zigzag(2000)
     out = {}
-    for name, make in (
-        ("path_100", lambda: parse_path(body, limits)),
-        ("gcode_2000", lambda: parse_gcode(program, robot.home, 0.01, limits)),
+    for name, make, timed_within in (
+        ("path_100", lambda: parse_path(body, limits), limits),
+        ("gcode_2000", lambda: parse_gcode(program, robot.home, 0.01, limits), limits),
+        ("path_100_jerk", lambda: parse_path(body, jerk), jerk),
     ):
         times = []
         for _ in range(runs):
             began = time.perf_counter()
-            time_path(make(), robot, limits, Timing(margin=MARGIN))
+            time_path(make(), robot, timed_within, Timing(margin=MARGIN))
             times.append(time.perf_counter() - began)
         out[name] = round(1e3 * float(np.median(times)), 1)
     return out
@@ -148,39 +160,45 @@ def star(segments: int) -> str:
     return "\n".join(rows)
 
 
-def constant_speed(path: Path, length: float, speed: float, accel: float) -> Trajectory:
-    """`path` (one motion) flown at path speed `speed` (m/s of path), reached and left at
-    path acceleration `accel`: a trapezoid in path speed, sampled every 1 cm of path."""
+def constant_speed(
+    path: Path, length: float, speed: float, accel: float, smooth: bool = False
+) -> Trajectory:
+    """`path` (one motion) flown at path speed `speed` (m/s of path), reached and left
+    at path acceleration `accel`: at once (a trapezoid in path speed) or, `smooth`, along
+    a raised cosine peaking at `accel` (no step in acceleration: a path jerk of at most
+    pi accel^2 / (2 speed)); sampled in time, 1 cm of path apart at most."""
     geometry = BlendedPath([p.pose for p in path.points], [p.blend for p in path.points], length)
     total = geometry.s_end
-    speed = min(speed, float(np.sqrt(accel * total)))  # a triangle when it never cruises
-    ramp_s, ramp_t = speed**2 / (2.0 * accel), speed / accel
-    cruise_t = (total - 2.0 * ramp_s) / speed
-    s = np.linspace(0.0, total, max(int(np.ceil(total / 0.01)), 2) + 1)
-    t = np.where(
-        s < ramp_s,
-        np.sqrt(2.0 * s / accel),
-        np.where(
-            s <= total - ramp_s,
-            ramp_t + (s - ramp_s) / speed,
-            2.0 * ramp_t + cruise_t - np.sqrt(2.0 * np.maximum(total - s, 0.0) / accel),
-        ),
-    )
-    sd = np.minimum(np.minimum(accel * t, speed), accel * (t[-1] - t))
-    sdd = np.where(s < ramp_s, accel, np.where(s <= total - ramp_s, 0.0, -accel))
-    positions, rotations, p1, w1, p2, w2 = geometry.poses(s)
-    v, a = np.hstack([p1, w1]), np.hstack([p2, w2])
-    last = len(s) - 1
-    waypoints = [
-        Waypoint(
-            float(t[i]),
-            Pose.from_matrix(positions[i], rotations[i]),
-            np.zeros(6) if i in (0, last) else v[i] * sd[i],
-            np.zeros(6) if i in (0, last) else v[i] * sdd[i] + a[i] * sd[i] ** 2,
+    # the ramp's share of the speed's square it takes in path, then its duration
+    reach = 1.0 if smooth else 0.5
+    speed = min(speed, float(np.sqrt(accel * total / (2.0 * reach))))  # never cruises
+    ramp_t = (2.0 if smooth else 1.0) * speed / accel
+    ramp_s = reach * speed**2 / accel
+    end = 2.0 * ramp_t + (total - 2.0 * ramp_s) / speed
+    t = np.linspace(0.0, end, max(int(np.ceil(end * speed / 0.01)), 2) + 1)
+
+    def up(tau: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(s, s', s'') on the ramp up, tau s into it."""
+        if not smooth:
+            return 0.5 * accel * tau**2, accel * tau, np.full_like(tau, accel)
+        w = 2.0 * np.pi / ramp_t
+        k = speed / ramp_t
+        return (
+            k * (0.5 * tau**2 - (1.0 - np.cos(w * tau)) / w**2),
+            k * (tau - np.sin(w * tau) / w),
+            k * (1.0 - np.cos(w * tau)),
         )
-        for i in range(len(s))
-    ]
-    return Trajectory(waypoints)
+
+    rising, falling = up(np.minimum(t, ramp_t)), up(np.clip(end - t, 0.0, ramp_t))
+    cruise = ramp_s + speed * (t - ramp_t)
+    s = np.where(t <= ramp_t, rising[0], np.where(t < end - ramp_t, cruise, total - falling[0]))
+    sd = np.where(t <= ramp_t, rising[1], np.where(t < end - ramp_t, speed, falling[1]))
+    sdd = np.where(t <= ramp_t, rising[2], np.where(t < end - ramp_t, 0.0, -falling[2]))
+    positions, rotations, p1, w1, p2, w2 = geometry.poses(np.clip(s, 0.0, total))
+    v, a = np.hstack([p1, w1]), np.hstack([p2, w2])
+    twists, accels = v * sd[:, None], v * sdd[:, None] + a * (sd**2)[:, None]
+    twists[[0, -1]] = accels[[0, -1]] = 0.0
+    return Trajectory.through(t, positions, quat_from_matrix(rotations), twists, accels)
 
 
 def best_constant_speed(path: Path, config) -> float:
@@ -188,18 +206,18 @@ def best_constant_speed(path: Path, config) -> float:
     validation accepts (module docstring)."""
     length = wrench_length(config.robot.geometry.attachments)
     best = np.inf
-    for share in (0.25, 0.5, 1.0):
+    for share, smooth in itertools.product((0.25, 0.5, 1.0), (False, True)):
         accel = share * config.trajectory.linear_accel
         lo, hi = 0.0, 2.0 * config.trajectory.linear_speed
         for _ in range(14):
             mid = 0.5 * (lo + hi)
             try:
-                validate_as_the_daemon(constant_speed(path, length, mid, accel), config)
+                validate_as_the_daemon(constant_speed(path, length, mid, accel, smooth), config)
                 lo = mid
             except TrajectoryError:
                 hi = mid
         if lo > 0.0:
-            best = min(best, constant_speed(path, length, lo, accel).duration)
+            best = min(best, constant_speed(path, length, lo, accel, smooth).duration)
     return best
 
 
@@ -227,15 +245,10 @@ def flown(config) -> dict[str, dict]:
     return out
 
 
-JERK = {"linear_jerk": 50.0, "angular_jerk": 100.0}  # m/s³, rad/s³ where the config sets none
-
-
 def jerk_figures(config) -> dict[str, dict]:
     """The jerk keys (module docstring)."""
     free = config.trajectory.model_copy(update={"linear_jerk": None, "angular_jerk": None})
-    bound = config.trajectory.model_copy(
-        update={k: getattr(config.trajectory, k) or v for k, v in JERK.items()}
-    )
+    bound = jerk_bounded(config.trajectory)
     out: dict[str, dict] = {"jerk_peak": {}, "jerk_cost": {}}
     out["jerk_limits"] = {k: getattr(bound, k) for k in JERK}
     for name, path in standard_paths(config).items():
@@ -256,8 +269,13 @@ def main() -> None:
     parser.add_argument("--no-ratios", action="store_true", help="skip the convex bounds")
     parser.add_argument("--flown", action="store_true", help="fly the standard paths too")
     parser.add_argument("--jerk", action="store_true", help="the jerk figures too")
+    parser.add_argument(
+        "--bound-jerk", action="store_true", help="fly the paths timed with the jerk bounded"
+    )
     args = parser.parse_args()
     config = load_config(CONFIG)
+    if args.bound_jerk:
+        config.trajectory = jerk_bounded(config.trajectory)
     result = {"plan_ms": plan_ms(config, args.runs)}
     if not args.no_ratios:
         result["duration_ratio"] = duration_ratios(config)

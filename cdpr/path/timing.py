@@ -217,12 +217,15 @@ def _knots(model: _GridModel, times: Array, speed: Array, u: Array) -> _Knots:
 
 
 def _first_width(model: _GridModel, speed: Array, u: Array, limits: TrajectoryLimits) -> float:
-    """The averaging window (s) a first try takes: each acceleration's largest swing
-    (twice its peak) over its jerk limit."""
+    """The averaging window (s) a first try takes: each acceleration's peak over its jerk
+    limit, the window that turns a step from rest to the peak into a ramp at the limit
+    (a swing from one peak to the other needs twice that: the wider windows tried next,
+    and the slowdown for what a window leaves, cover it; starting at twice, the standard
+    paths took 2-14 % longer)."""
     accel = model.v * u[:, None] + model.acc * (speed**2)[:, None]
     width = MIN_WIDTH
     for _, limit, part in _jerk_limits(limits):
-        width = max(width, 2.0 * float(np.linalg.norm(accel[:, part], axis=1).max()) / limit)
+        width = max(width, float(np.linalg.norm(accel[:, part], axis=1).max()) / limit)
     return width
 
 
