@@ -88,21 +88,21 @@ def time_path(
     "path_infeasible" naming the pose and the place where no timing holds the tensions."""
     timing = Timing() if timing is None else timing
     length = wrench_length(robot.geometry.attachments)
-    parts: list[_Knots] = []
+    parts: list[_Timed] = []
     t = 0.0
     for number, motion in enumerate(_motions(path, length)):
         timed = _time_motion(motion, robot, limits, timing, length, number, t)
-        parts.append(timed if not parts else _Knots(*(a[1:] for a in timed)))  # the first
+        parts.append(timed if not parts else _Timed(*(a[1:] for a in timed)))  # the first
         t = float(timed.times[-1])  # is where the last motion rested
         dwell = motion[-1].dwell
         if dwell > 0.0:
             t += dwell
             rest = np.zeros((1, 6))
-            parts.append(_Knots(np.array([t]), timed.positions[-1:], timed.quats[-1:], rest, rest))
+            parts.append(_Timed(np.array([t]), timed.positions[-1:], timed.quats[-1:], rest, rest))
     return Trajectory.through(*(np.concatenate(column) for column in zip(*parts, strict=True)))
 
 
-class _Knots(NamedTuple):
+class _Timed(NamedTuple):
     """Timed grid points: times (n,), positions (n, 3), quaternions (n, 4), twists and
     accelerations (n, 6), as Trajectory.through takes them."""
 
@@ -154,7 +154,7 @@ def _time_motion(
     length: float,
     number: int,
     start: float,
-) -> _Knots:
+) -> _Timed:
     """One motion, rest to rest, timed from `start` (s)."""
     geometry = BlendedPath([p.pose for p in motion], [p.blend for p in motion], length)
     grid = _grid(geometry, timing)
@@ -177,18 +177,17 @@ def _time_motion(
     if not _jerk_limits(limits):
         return _knots(model, start + times, speed, u)
     law = TimeLaw(grid, speed, sdd, times)
-    width, fastest = _first_width(model, speed, u, limits), None
+    width, fastest, end = _first_width(model, speed, u, limits), None, math.inf
     for _ in range(WIDTHS):
         times, speed, u = _averaged(law, width, grid, (rows.a, rows.b, c, rows.xbound))
         # what the average leaves above a jerk limit: slowed down uniformly (the jerk
         # falls with the cube of the stretch; a slower time law stays feasible)
         excess = _jerk_excess(_knots(model, times, speed, u), limits)
         k = max(1.0, excess ** (1.0 / 3.0) * (1.0 + 1e-9))
-        out = _knots(model, start + times * k, speed / k, u / (k * k))
-        if fastest is None or out.times[-1] < fastest.times[-1]:
-            fastest = out
+        if start + times[-1] * k < end:  # the knots of the fastest only, made once
+            fastest, end = (start + times * k, speed / k, u / (k * k)), start + times[-1] * k
         width *= WIDEN
-    return fastest
+    return _knots(model, *fastest)
 
 
 def _jerk_limits(limits: TrajectoryLimits) -> list[tuple[int, float, slice]]:
@@ -197,13 +196,13 @@ def _jerk_limits(limits: TrajectoryLimits) -> list[tuple[int, float, slice]]:
     return [(k, limit, part) for k, (limit, part) in enumerate(pairs) if limit is not None]
 
 
-def _jerk_excess(knots: _Knots, limits: TrajectoryLimits) -> float:
+def _jerk_excess(knots: _Timed, limits: TrajectoryLimits) -> float:
     """The largest ratio of the trajectory's jerk to its limit (those set)."""
     jerks = segment_jerks(*Trajectory.through(*knots).curve.segments()[1:])
     return max(float(jerks[k].max()) / limit for k, limit, _ in _jerk_limits(limits))
 
 
-def _knots(model: _GridModel, times: Array, speed: Array, u: Array) -> _Knots:
+def _knots(model: _GridModel, times: Array, speed: Array, u: Array) -> _Timed:
     """The motion's knots: the grid points reached at `times` with path speeds `speed`
     and accelerations `u`, at rest at both ends (_spaced: the points kept)."""
     kept = _spaced(times)
@@ -211,7 +210,7 @@ def _knots(model: _GridModel, times: Array, speed: Array, u: Array) -> _Knots:
     twists = v * s
     accels = v * u[kept, None] + a * s * s
     twists[[0, -1]] = accels[[0, -1]] = 0.0
-    return _Knots(
+    return _Timed(
         times[kept], model.positions[kept], quat_from_matrix(model.rotations[kept]), twists, accels
     )
 
