@@ -6,7 +6,10 @@ theta_d = liediff(eta_r, eta) (the erratum of DESIGN §3: actual minus requested
 single-actuator controller on each of the 6 tangent components, the command wrench
 tau_c = M alpha_c + mu, the back-EMF part f_b = k0 Lambda(eta_r) phi_r, the no-load
 forces f0 = m0 (Lambda alpha_c + c), the tension distribution f_p = F(tau_c, f_b, f0)
-(not in W: infeasible, the daemon brakes), and the commands f_c = f_p + f_b.
+(not in W: infeasible, the daemon brakes), and the commands f_c = f_p + f_b.  With elastic
+cables the drums also move the cables' stretch as the tensions change: the rate the
+reference's own tensions give it (cdpr.stretch_rate) is added to the drums' rates before
+the twist is taken from them, and its winch damping to f_b.
 
 Part of a cycle needs no measurement: the reference sample, the forward-kinematics
 guess and its linearisation, f_b and, with model_at = "reference", Lambda, c, M, mu and
@@ -39,6 +42,7 @@ from cdpr.pose import Pose, liediff, liediff6, retract
 from cdpr.robot import Robot
 from cdpr.so3 import quat_to_r9
 from cdpr.stretch import ComplianceScale
+from cdpr.stretch_rate import TensionRate, stretch_time
 from cdpr.tension import FactoredJacobian, TensionLimits, TensionSolver, make_tension_solver
 from cdpr.trajectory import Reference, WrenchCheck
 from cdpr.wrench_observer import WrenchObserver
@@ -131,9 +135,10 @@ class _Prepared(NamedTuple):
     reference: Reference  # at t: what the measurement is compared with
     ahead: Reference  # at t + lead: what the command is for
     guess: Linearisation  # forward kinematics' first linearisation, at the guess
-    f_b: Array
+    f_b: Array  # with the winches' share of the cables' stretching (cdpr.stretch_rate)
     model: tuple[Array, Array, Array, Array] | None  # (Lambda, c, M, mu) at `ahead`
     factored: FactoredJacobian | None  # model's Lambda for the tension distribution
+    stretch_rate: Array | None  # m/s the drums move beyond the cables (None: at rest)
 
 
 class ParallelController:
@@ -167,6 +172,12 @@ class ParallelController:
         self.lead = spec.lead(drive_lag)  # s: see set_latency
         self.loop = spec.linear_controller().discretise(self.period, 6, spec.discretisation)
         self.tension = tension_solver(robot, spec)
+        # the reference's own tensions (cdpr.stretch_rate), solved apart: a solver that
+        # warm-starts from its last problem keeps the commands' to itself
+        self._reference_tension = tension_solver(robot, spec)
+        at_home = robot.cable_lengths(robot.home)
+        lag = stretch_time(robot.m0, at_home, robot.compliance, drive_lag)
+        self._tension_rate = TensionRate(lag)
         self._at_reference = spec.model_at == "reference"
         self._differentiate = spec.velocity == "differentiate"
         self._smoothing = self.period / (spec.velocity_filter + self.period)
@@ -190,6 +201,8 @@ class ParallelController:
         self._pose = pose
         self._twist = _ZERO6.copy()
         self._tensions = static_tensions(self.robot, self.tension, pose)
+        self._drums = self.robot.cable_lengths(pose)  # the last measured drum lengths
+        self._tension_rate.clear()
         self._rate_bias = [0.0] * 6  # floats: see _measure_twist
         self._drive_twist = [0.0] * 6  # the last twist from the drives' rates (at rest)
         self._prepared: _Prepared | None = None
@@ -242,25 +255,39 @@ class ParallelController:
         terms = self._terms
         if terms is None or terms[0] is not ahead or terms[1] is not robot.platform:
             terms = self._terms = (ahead, robot.platform, self._reference_terms(ahead))
-        f_b, model, factored = terms[2]
-        self._prepared = _Prepared(t, ref, ahead, guess, f_b, model, factored)
+        f_b, model, factored, tensions = terms[2]
+        stretch_rate = self._tension_rate.add(t + self.lead, tensions)
+        if stretch_rate is not None:  # the drums move the stretch too: the winches' share
+            stretch_rate = self._drums * robot.compliance * self.stretch.scale * stretch_rate
+            f_b = f_b - robot.k0 * stretch_rate
+        self._prepared = _Prepared(t, ref, ahead, guess, f_b, model, factored, stretch_rate)
         self.stretch.update(self.period)
 
     def _reference_terms(
         self, ahead: Reference
-    ) -> tuple[Array, tuple[Array, Array, Array, Array] | None, FactoredJacobian | None]:
-        """What the command for reference `ahead` needs of it alone: f_b and, with
-        model_at = "reference", the model terms and the tension distribution's factor of
-        their Lambda.  Read-only arrays: a reference at rest reuses them every cycle."""
+    ) -> tuple[
+        Array, tuple[Array, Array, Array, Array] | None, FactoredJacobian | None, Array | None
+    ]:
+        """What the command for reference `ahead` needs of it alone: f_b, with
+        model_at = "reference" the model terms and the tension distribution's factor of
+        their Lambda, and for elastic cables the tensions the reference needs (None: not
+        in W).  Read-only arrays: a reference at rest reuses them every cycle."""
         robot = self.robot
         model = robot.model_terms(ahead.pose, ahead.twist) if self._at_reference else None
         Lam_r = model[0] if model is not None else robot.jacobian(ahead.pose)
         f_b = robot.k0 * Lam_r.dot(ahead.twist)  # ndarray.dot: see the cdpr.kinematics docstring
         factored = self.tension.factored(Lam_r) if model is not None else None
-        for array in (f_b, *(model or ()), *(factored or ())):
+        tensions = None
+        if self._stretch_corrected:
+            Lam, c, M, mu = model or robot.model_terms(ahead.pose, ahead.twist)
+            accel = ahead.accel
+            f0 = robot.m0 * (Lam.dot(accel) + c)
+            result = self._reference_tension.solve(factored or Lam, M.dot(accel) + mu, f_b, f0)
+            tensions = result.tensions if result.feasible else None
+        for array in (f_b, *(model or ()), *(factored or ()), tensions):
             if array is not None:
                 array.setflags(write=False)
-        return f_b, model, factored
+        return f_b, model, factored, tensions
 
     def set_payload(self, mass: float, center_of_mass: tuple[float, ...]) -> None:
         """Use this platform mass (kg) and centre of mass (m, platform frame) from now on
@@ -365,13 +392,14 @@ class ParallelController:
             return self._fault(ref, self._pose, 0.0, self.observer.fault)
         # the encoders measure the drums; the last planned tensions stretch the cables
         lengths = np.asarray(lengths, dtype=float)
+        self._drums = lengths.copy()  # the caller may reuse its array
         stretched_by = self._tensions
         fk = robot.forward_kinematics(self.stretch.stretched(lengths, stretched_by), guess)
         if not fk.converged:
             return self._fault(ref, fk.pose, fk.residual, f"forward kinematics: {fk.reason}")
         self.stretch.observe(lengths, self._tensions, fk)
         pose = fk.pose
-        twist = self._measure_twist(pose, fk, length_rates, interval)
+        twist = self._measure_twist(pose, fk, length_rates, interval, prepared.stretch_rate)
         if not math.isfinite(sum(twist.tolist())):  # NaN or inf in it
             return self._fault(ref, pose, fk.residual, "non-finite twist from the drives' rates")
         self._pose, self._twist = pose, twist
@@ -431,7 +459,12 @@ class ParallelController:
         return elapsed if 0.0 < elapsed < math.inf else self.period
 
     def _measure_twist(
-        self, pose: Pose, fk: FKResult, length_rates: ArrayLike, interval: float
+        self,
+        pose: Pose,
+        fk: FKResult,
+        length_rates: ArrayLike,
+        interval: float,
+        stretch_rate: Array | None,
     ) -> Array:
         """phi = Lambda^+ l' (least squares, with forward kinematics' Lambda and its
         normal-equations factor) corrected for cable stretch, or filtered differences of
@@ -439,7 +472,9 @@ class ParallelController:
 
         Drums report l', but a stretching cable's length also moves with its tension
         (L' = l' (1 + t/EA) + l t'/EA), a large error for a tilting platform whose
-        internal forces swing.  The low-frequency part of that difference is taken from
+        internal forces swing, or a lift that changes every tension.  The part the
+        reference's own tensions explain, `stretch_rate` (l t'/EA, cdpr.stretch_rate), is
+        added to the rates; the low-frequency part of what remains is taken from
         the poses (which are stretch-corrected) through a low-pass of time constant
         velocity_filter: a complementary filter, quiet like the drives' rates at high
         frequency and consistent with the poses at low frequency.  The poses' difference
@@ -450,6 +485,8 @@ class ParallelController:
             raw = liediff(self._pose, pose) / interval
             return self._twist + self._smoothing * (raw - self._twist)
         rates = np.asarray(length_rates, dtype=float).reshape(-1)
+        if stretch_rate is not None:
+            rates = rates + stretch_rate
         if fk.normal_factor is None:  # singular normal equations
             return np.full(6, np.nan)
         drive, _ = dpotrs(fk.normal_factor, rates.dot(fk.jacobian))
