@@ -23,8 +23,8 @@ from numpy.typing import NDArray
 
 Array = NDArray[np.float64]
 
-_NEWTON = 4  # refinements of each knot's time (timed_at)
-_TABLE = 64  # table points per window width for the first guess of a knot's time
+_NEWTON = 6  # refinements of each knot's time (timed_at)
+_TABLE = 16  # table points per window width for the first guess of a knot's time
 
 
 class TimeLaw:

@@ -21,8 +21,11 @@ window divided by its width), slowed down uniformly by the least factor that bri
 every grid point back inside the rows above (a slower time law lies between the average
 and rest, which every row holds), and further by the cube root of what its jerk
 (cdpr.trajectory.jerk) leaves above a limit: the path's curvature adds jerk that no
-window removes (speed cubed times the curvature's rate).  Of WIDTHS windows the one
-giving the shortest motion is taken.
+window removes (speed cubed times the curvature's rate).  The windows widen by WIDEN,
+up to WIDTHS of them and until two in a row give a longer motion than the shortest so
+far (the standard paths' durations against the width fall, then rise, with a dip on the
+figure-eight's); the one giving the shortest motion is taken.  The jerk of each window
+is estimated from its knots (_jerk_estimate), the one taken measured on its trajectory.
 
 The result is a Trajectory through the grid's poses with their twists and accelerations,
 which the daemon validates as it validates a client's (daemon.service.path_planning).
@@ -44,8 +47,8 @@ from cdpr.path.time_law import AveragedLaw, TimeLaw
 from cdpr.reference import model_terms
 from cdpr.robot import Robot
 from cdpr.so3 import quat_from_matrix
-from cdpr.trajectory.core import MIN_SEGMENT, Trajectory, TrajectoryError
-from cdpr.trajectory.jerk import segment_jerks
+from cdpr.trajectory.core import MIN_SEGMENT, Trajectory, TrajectoryError, knot_steps
+from cdpr.trajectory.jerk import JERK_SAMPLES, segment_jerks
 from cdpr.trajectory.limits import TrajectoryLimits, cable_speed_bounds
 from cdpr.wrench_margin import facet_normals, rest_wrenches, wrench_length
 
@@ -69,6 +72,7 @@ MIN_WIDTH = 0.005
 BENDING_SHARE = 0.8  # of a jerk limit: what the path's bending may take (_speed_bounds)
 WIDEN = 1.3
 WIDTHS = 6
+_JERK_INSTANTS = np.linspace(0.0, 1.0, JERK_SAMPLES + 1)  # of a segment
 
 
 @dataclass(frozen=True)
@@ -178,16 +182,34 @@ def _time_motion(
         return _knots(model, start + times, speed, u)
     law = TimeLaw(grid, speed, sdd, times)
     width, fastest, end = _first_width(model, speed, u, limits), None, math.inf
+    longer = 0  # windows in a row that gave a longer motion than the fastest
     for _ in range(WIDTHS):
         times, speed, u = _averaged(law, width, grid, (rows.a, rows.b, c, rows.xbound))
-        # what the average leaves above a jerk limit: slowed down uniformly (the jerk
-        # falls with the cube of the stretch; a slower time law stays feasible)
-        excess = _jerk_excess(_knots(model, times, speed, u), limits)
-        k = max(1.0, excess ** (1.0 / 3.0) * (1.0 + 1e-9))
-        if start + times[-1] * k < end:  # the knots of the fastest only, made once
-            fastest, end = (start + times * k, speed / k, u / (k * k)), start + times[-1] * k
+        # what the average leaves above a jerk limit, estimated: slowed down uniformly
+        # (the jerk falls with the cube of the stretch; a slower time law stays feasible)
+        k = _stretch(_jerk_estimate(model, times, speed, u, limits))
+        if times[-1] * k < end:
+            fastest, end, longer = (times, speed, u, k), times[-1] * k, 0
+        else:
+            longer += 1
+            if longer == 2:
+                break
         width *= WIDEN
-    return _knots(model, *fastest)
+    times, speed, u, k = fastest
+    knots = _knots(model, start + times * k, speed / k, u / (k * k))
+    if not np.any(model.v[:, 3:]):  # the platform does not turn: the estimate is exact
+        return knots
+    # the fastest window's trajectory measured: stretched by what it really leaves
+    exact = _stretch(k**3 * _jerk_excess(knots, limits))
+    if exact == k:
+        return knots
+    return _knots(model, start + times * exact, speed / exact, u / (exact * exact))
+
+
+def _stretch(excess: float) -> float:
+    """The uniform slowdown that brings a jerk `excess` times its limit within it (and
+    1e-6 below: the estimate and cdpr.trajectory.jerk's differences agree to 1e-9)."""
+    return max(1.0, excess ** (1.0 / 3.0) * (1.0 + 1e-6))
 
 
 def _jerk_limits(limits: TrajectoryLimits) -> list[tuple[int, float, slice]]:
@@ -210,8 +232,37 @@ def _knots(model: _GridModel, times: Array, speed: Array, u: Array) -> _Timed:
     twists = v * s
     accels = v * u[kept, None] + a * s * s
     twists[[0, -1]] = accels[[0, -1]] = 0.0
-    return _Timed(
-        times[kept], model.positions[kept], quat_from_matrix(model.rotations[kept]), twists, accels
+    return _Timed(times[kept], model.positions[kept], model.quats[kept], twists, accels)
+
+
+def _jerk_estimate(
+    model: _GridModel, times: Array, speed: Array, u: Array, limits: TrajectoryLimits
+) -> float:
+    """The largest ratio of jerk to its limit (those set) of the quintics _knots would
+    put through the grid points at `times`, without building them (a trajectory's build
+    and its jerk took 12 ms a window on a 100-pose path): the linear part exactly (the
+    positions' quintic Hermite, the jerk at cdpr.trajectory.jerk's instants), the angular
+    part as the third derivative of the rotation vector's quintic between the knots
+    (exact about one fixed axis: the left Jacobian's terms are left out).  Where the
+    platform turns, the window chosen by it is measured on its trajectory (_time_motion)."""
+    kept = _spaced(times)
+    s, v, a = speed[kept, None], model.v[kept], model.acc[kept]
+    twists, accels = v * s, v * u[kept, None] + a * s * s
+    twists[[0, -1]] = accels[[0, -1]] = 0.0
+    h = np.diff(times[kept])[:, None]
+    V0, V1, A0, A1 = twists[:-1], twists[1:], accels[:-1], accels[1:]
+    D = knot_steps(model.positions[kept], model.quats[kept])
+    c3 = (20.0 * D - (8.0 * V1 + 12.0 * V0) * h - (3.0 * A0 - A1) * h**2) / (2.0 * h**3)
+    c4 = (-30.0 * D + (14.0 * V1 + 16.0 * V0) * h + (3.0 * A0 - 2.0 * A1) * h**2) / (2.0 * h**4)
+    c5 = (12.0 * D - 6.0 * (V1 + V0) * h - (A0 - A1) * h**2) / (2.0 * h**5)
+    tau = h * _JERK_INSTANTS  # (m, k)
+    jerk = (
+        6.0 * c3[:, None]
+        + (24.0 * c4[:, None] + 60.0 * c5[:, None] * tau[..., None]) * tau[..., None]
+    )
+    return max(
+        float(np.linalg.norm(jerk[..., part], axis=2).max()) / limit
+        for _, limit, part in _jerk_limits(limits)
     )
 
 
@@ -320,8 +371,8 @@ def _infeasible(geometry: BlendedPath, grid: Array, stage: int, number: int) -> 
 @dataclass(frozen=True)
 class _GridModel:
     """What the constraints need at each grid point (N of them), the same for every
-    pass: the poses, the path's rates per unit s (v = (p', w_s), acc = (p'', w_ss),
-    `third` their rate along the grid),
+    pass: the poses (rotations as matrices and quaternions), the path's rates per unit
+    s (v = (p', w_s), acc = (p'', w_ss), `third` their rate along the grid),
     the controller's model at twist v (Lambda, c, M, mu) and mu at rest, the facet
     normals of the wrench zonotope (cdpr.wrench_margin.facet_normals: one per facet
     pair, zero where the subset spans no facet) and each normal's product with each
@@ -329,6 +380,7 @@ class _GridModel:
 
     positions: Array
     rotations: Array
+    quats: Array
     v: Array
     acc: Array
     Lam: Array
@@ -349,9 +401,11 @@ class _GridModel:
         third = np.gradient(acc, grid, axis=0)  # the path's third derivative per unit s
         normals = facet_normals(Lam)
         facet_cables = np.matmul(normals, np.swapaxes(Lam, 1, 2))  # c . a_j, facet by cable
+        quats = quat_from_matrix(rotations)
         return cls(
-            positions, rotations, v, acc, Lam, c, M, mu, mu_rest, normals, facet_cables, third
-        )
+            positions, rotations, quats, v, acc, Lam, c, M, mu, mu_rest, normals, facet_cables,
+            third,
+        )  # fmt: skip
 
 
 def _times(matrices: Array, vectors: Array) -> Array:

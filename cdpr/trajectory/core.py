@@ -331,7 +331,7 @@ class Trajectory:
         """The curve through `knots` (the constructors' common part)."""
         times, positions, quats = knots.times, knots.positions, knots.quats
         with np.errstate(all="ignore"):
-            steps = _steps(positions, quats)
+            steps = knot_steps(positions, quats)
             values = np.zeros((len(times), 6))
             values[:, :3] = positions
             values[1:, 3:] = np.cumsum(steps[:, 3:], axis=0)
@@ -654,7 +654,7 @@ def _check_at_rest(last: Waypoint, i: int) -> None:
             )
 
 
-def _steps(positions: Array, quats: Array) -> Array:
+def knot_steps(positions: Array, quats: Array) -> Array:
     """liediff from each pose to the next, (n - 1, 6), of n positions and quaternions."""
     (w1, x1, y1, z1), (w2, x2, y2, z2) = quats[:-1].T, quats[1:].T
     rotations = np.stack(quat_mul4(w2, x2, y2, z2, w1, -x1, -y1, -z1), axis=1)

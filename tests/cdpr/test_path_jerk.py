@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.integrate import quad
 
-from cdpr.path import Path, PathPoint
+from cdpr.path import Path, PathPoint, timing
 from cdpr.path.time_law import AveragedLaw, TimeLaw
 from cdpr.path.timing import Timing, time_path
 from cdpr.trajectory.jerk import segment_jerks
@@ -105,3 +105,40 @@ def test_the_standard_paths_timed_under_jerk_limits_keep_them(
     for w in samples(bound, 200):
         assert lp_feasible(robot, w, margin=4.0), f"t={w.t:.3f}: no tensions"
     assert free.duration < bound.duration <= longer * free.duration
+
+
+@pytest.mark.parametrize(
+    ("name", "linear_jerk", "angular_jerk", "within"),
+    [("vertical_lift", 50.0, 100.0, 1e-6), ("figure_eight", 50.0, 1e9, 1e-6),
+     ("edge_move", 1e9, 10.0, 1e-6), ("figure_eight", 1e9, 10.0, 1e-5)],
+    ids=["lift", "figure_eight_linear", "edge_move_angular", "figure_eight_angular"],
+)  # fmt: skip
+def test_the_window_search_s_jerk_estimate_is_the_trajectory_s_jerk(
+    cia402, name: str, linear_jerk: float, angular_jerk: float, within: float,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:  # fmt: skip
+    """The averaging windows are compared by a jerk estimated from the knots (no
+    trajectory built); on every window tried it is the jerk segment_jerks measures on
+    the trajectory those knots make: to rounding the linear one and the angular one
+    about one axis (the edge move's turn), the figure-eight's to 2e-6 (the left
+    Jacobian's terms the estimate leaves out).  A limit of 1e9 leaves the other one
+    measured alone."""
+    robot = cia402.robot
+    poses = [w.pose for w in STANDARD_SET[name](robot).waypoints]
+    blends = [0.0] + [0.05] * (len(poses) - 2) + [0.0]
+    path = Path(tuple(PathPoint(p, blend=b) for p, b in zip(poses, blends, strict=True)))
+    jerks = {"linear_jerk": linear_jerk, "angular_jerk": angular_jerk}
+    limits = cia402.trajectory.model_copy(update=jerks)
+    windows = []
+    estimate = timing._jerk_estimate
+
+    def recorded(model, times, speed, u, limits):
+        value = estimate(model, times, speed, u, limits)
+        windows.append((value, timing._jerk_excess(timing._knots(model, times, speed, u), limits)))
+        return value
+
+    monkeypatch.setattr(timing, "_jerk_estimate", recorded)
+    time_path(path, robot, limits, Timing(margin=5.0))
+    assert len(windows) >= 3  # the search widens until two in a row are longer
+    for value, exact in windows:
+        assert value == pytest.approx(exact, rel=within)
