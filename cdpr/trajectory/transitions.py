@@ -36,7 +36,7 @@ from cdpr.trajectory.core import (
     segment_table,
 )
 from cdpr.trajectory.double_s import DoubleS
-from cdpr.trajectory.jerk import jerk_violation
+from cdpr.trajectory.jerk import jerk_violation, segment_jerks
 from cdpr.trajectory.limits import TrajectoryLimits, first_rate_violation, rate_violation
 
 MIN_BLEND = 1e-3  # s: the shortest transition (a goto to where the reference already is)
@@ -112,13 +112,41 @@ def _double_s(
     for t in sorted({t for *_, profile in moves for t in profile.boundaries()}):
         if t - kept[-1] >= MIN_SEGMENT and duration - t >= MIN_SEGMENT:
             kept.append(t)
-    waypoints = []
+    states = []
     for t in kept:
         state = np.zeros((3, 6))  # the step so far, the twist, the accel
         for part, axis, profile in moves:
             state[:, part] = np.outer(profile.at(t), axis)
-        waypoints.append(Waypoint(start + t, retract(pose, state[0]), state[1], state[2]))
-    return Trajectory([*waypoints, Waypoint(start + duration, target)])
+        states.append((t, retract(pose, state[0]), state[1], state[2]))
+    trajectory = _through(states, start, duration, target, 1.0)
+    # a phase shorter than MIN_SEGMENT has no waypoint of its own, and the quintic across
+    # it passes the jerk limit by a few millionths: slowed down by what it leaves (the
+    # jerk falls with the cube of the stretch)
+    linear, angular = segment_jerks(*trajectory.curve.segments()[1:])
+    excess = max(
+        float(jerks.max()) / limit
+        for jerks, limit in ((linear, limits.linear_jerk), (angular, limits.angular_jerk))
+        if limit is not None
+    )
+    if excess <= 1.0:
+        return trajectory
+    return _through(states, start, duration, target, excess ** (1.0 / 3.0) * (1.0 + 1e-6))
+
+
+def _through(
+    states: list[tuple[float, Pose, np.ndarray, np.ndarray]],
+    start: float,
+    duration: float,
+    target: Pose,
+    stretch: float,
+) -> Trajectory:
+    """The trajectory from `start` through (t, pose, twist, accel) `states` to rest at
+    `target` at `duration`, its time stretched by `stretch` (>= 1)."""
+    waypoints = [
+        Waypoint(start + t * stretch, pose, twist / stretch, accel / stretch**2)
+        for t, pose, twist, accel in states
+    ]
+    return Trajectory([*waypoints, Waypoint(start + duration * stretch, target)])
 
 
 def approach(

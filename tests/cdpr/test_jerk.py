@@ -179,3 +179,18 @@ def test_transitions_from_any_state_of_motion_keep_the_jerk_limits(seed: int, sp
 def test_a_jerk_limited_approach_passes_validation(reference8: Robot) -> None:
     tr = approach(moving_state(3, 0.8), planned(4), JERKY)
     list(validation_steps(tr, reference8, JERKY, segments=1))  # the blend, where it lies
+
+
+def test_a_goto_whose_profile_has_a_phase_too_short_for_a_waypoint_keeps_the_jerk_limit() -> None:
+    """A double-S phase shorter than MIN_SEGMENT gets no waypoint of its own, and the
+    quintic across it passed the jerk limit by a few millionths (0.3 m at 1 m/s, 5 m/s²,
+    50 m/s³: 50.0002 m/s³, which the daemon's validation refused in its own goto): the
+    profile is slowed down by what it leaves.  Validation's measure on 0.01-0.6 m."""
+    limits = TrajectoryLimits(linear_speed=1.0, linear_accel=5.0, linear_jerk=50.0)
+    start = Pose.from_rotvec(HOME, (0.0, 0.0, 0.0))
+    for distance in np.linspace(0.01, 0.6, 60):
+        target = Pose.from_rotvec(HOME + np.array([distance, 0.0, 0.0]), (0.0, 0.0, 0.0))
+        tr = goto(at_rest(start), target, limits)
+        linear, _ = segment_jerks(*tr.curve.segments()[1:])
+        assert linear.max() <= 50.0, f"{distance:.3f} m: {linear.max()} m/s³"
+        assert_arrives_at_rest(tr, target)

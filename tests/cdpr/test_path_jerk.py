@@ -94,7 +94,8 @@ def test_the_standard_paths_timed_under_jerk_limits_keep_them(
     poses = [w.pose for w in STANDARD_SET[name](robot).waypoints]
     blends = [0.0] + [0.05] * (len(poses) - 2) + [0.0]
     path = Path(tuple(PathPoint(p, blend=b) for p, b in zip(poses, blends, strict=True)))
-    free = time_path(path, robot, cia402.trajectory, Timing(margin=5.0))
+    unbounded = {"linear_jerk": None, "angular_jerk": None}
+    free = time_path(path, robot, cia402.trajectory.model_copy(update=unbounded), Timing(5.0))
     limits = cia402.trajectory.model_copy(update={"linear_jerk": 50.0, "angular_jerk": 100.0})
     bound = time_path(path, robot, limits, Timing(margin=5.0))
     linear, angular = segment_jerks(*bound.curve.segments()[1:])

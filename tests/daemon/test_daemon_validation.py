@@ -26,7 +26,7 @@ from daemon.service.api import CommandError
 from daemon.service.safety import SafetyState
 from daemon.service.service import Service
 from tests.conftest import ROBOTS, load_robot
-from tests.daemon_stack import Stack, config_for
+from tests.daemon_stack import Stack, config_for, jerk_free
 from tests.loopback import free_port
 
 pytestmark = pytest.mark.timeout(60)
@@ -85,7 +85,8 @@ def test_a_trajectory_into_the_floor_is_rejected_naming_the_waypoint() -> None:
 
 def test_a_goto_through_the_fence_is_rejected() -> None:
     async def scenario() -> None:
-        async with Stack(config_for("cia402", safety=FENCE)) as stack:
+        config = config_for("cia402", safety=FENCE, trajectory=jerk_free("cia402"))
+        async with Stack(config) as stack:
             await stack.enable()
             target = _home(stack.config, dz=0.5)  # z = 1.75
             err = await _refused(stack, stack.planner.command("goto", {"pose": target}))
@@ -124,7 +125,7 @@ def test_a_goto_near_a_cable_length_limit_is_rejected() -> None:
 
 def test_a_turn_beyond_tilt_max_is_rejected() -> None:
     async def scenario() -> None:
-        async with Stack(config_for("cia402")) as stack:
+        async with Stack(config_for("cia402", trajectory=jerk_free("cia402"))) as stack:
             await stack.enable()
             home = _home(stack.config)
             turned = _home(stack.config, rotvec=(0.8, 0.0, 0.0))
@@ -338,7 +339,9 @@ def test_over_zenoh_put_query_and_goto_are_rejected_with_the_waypoint_and_limit(
 
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
-    config = config_for("cia402", safety=FENCE, zenoh={"listen": [endpoint]})
+    config = config_for(
+        "cia402", safety=FENCE, zenoh={"listen": [endpoint]}, trajectory=jerk_free("cia402")
+    )
     floor = _into_the_floor(config).as_dict()
     prefix = config.zenoh.key_prefix(config.robot.name)
 
