@@ -42,7 +42,9 @@ def stretch_time(m0: Array, lengths: Array, compliance: Array, drive_lag: float)
 
 class TensionRate:
     """The reference's tensions through a first-order lag of `time_constant` (s), and
-    their rate."""
+    their rate.  Kept as the gap between input and lagged output, the lag's rate times
+    the time constant: for tensions linear between two instants h apart, the gap
+    becomes change (tau / h) (1 - e^(-h / tau)) + gap e^(-h / tau)."""
 
     def __init__(self, time_constant: float) -> None:
         if not time_constant > 0.0:
@@ -55,33 +57,30 @@ class TensionRate:
         taken as followed already."""
         self._time = -math.inf
         self._input: Array | None = None
-        self._lagged: Array | None = None
+        self._gap: Array | None = None  # None: settled (zero)
 
     def add(self, time: float, tensions: Array | None) -> Array | None:
         """The reference's tensions for `time` (s): the lagged tensions' rate t' (N/s)
         then, or None where it is zero (the same input array as last time, the lag caught
         up with it: a reference at rest reuses its terms).  None for tensions None (the
         reference's wrench is not in W: the history restarts) and for a time before the
-        last (restarts too); the same time again is taken as no time passed."""
-        if tensions is None or time < self._time or self._lagged is None:
+        last (restarts too); the same time again is taken as a step."""
+        previous = self._input
+        if tensions is None or previous is None or time < self._time:
             self.clear()
             if tensions is not None:
-                self._time, self._input, self._lagged = time, tensions, tensions
+                self._time, self._input = time, tensions
             return None
-        lagged = self._lagged
-        if tensions is self._input and lagged is tensions:  # settled at rest
-            self._time = time
-            return None
-        # exact for tensions linear between the instants: a ramp's rate is its slope
-        tau, elapsed = self.time_constant, time - self._time
-        decay = math.exp(-elapsed / tau)
-        change = tensions - self._input
-        ramp = change * (tau / elapsed) if elapsed > 0.0 else 0.0 * change
-        lagged = tensions - ramp + (lagged - self._input + ramp) * decay
+        elapsed, tau = time - self._time, self.time_constant
         self._time, self._input = time, tensions
-        gap = tensions - lagged
-        if float(np.abs(gap).max()) < SETTLED:
-            self._lagged = tensions
+        if tensions is previous and self._gap is None:  # settled at rest
             return None
-        self._lagged = lagged
-        return gap / self.time_constant
+        decay = math.exp(-elapsed / tau)
+        gap = (tensions - previous) * ((tau / elapsed) * (1.0 - decay) if elapsed > 0.0 else 1.0)
+        if self._gap is not None:
+            gap += self._gap * decay
+        if float(gap.dot(gap)) < SETTLED * SETTLED:
+            self._gap = None
+            return None
+        self._gap = gap
+        return gap / tau

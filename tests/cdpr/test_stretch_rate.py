@@ -95,11 +95,10 @@ def _lift_rms(config: DaemonConfig, jerk_bounded: bool, stretch_rate: bool) -> f
     """RMS tracking error (mm) of a 1 m vertical lift from below home, rest to rest, timed
     by the daemon's path timer (with the jerk bounded at 50 m/s^3, or not), flown in
     lock-step; `stretch_rate` False flies the controller as it was without it."""
-    trajectory_limits = config.trajectory
-    if jerk_bounded:
-        trajectory_limits = trajectory_limits.model_copy(
-            update={"linear_jerk": 50.0, "angular_jerk": 100.0}
-        )
+    jerks = (50.0, 100.0) if jerk_bounded else (None, None)
+    trajectory_limits = config.trajectory.model_copy(
+        update=dict(zip(("linear_jerk", "angular_jerk"), jerks, strict=True))
+    )
     timed = copy.copy(config)
     timed.trajectory = trajectory_limits
     home = config.robot.home
