@@ -639,10 +639,12 @@ class Service:
         self._require(SafetyState.BRAKED, "reset")
         if any(f.trigger is Trigger.IMPLAUSIBLE_FEEDBACK for f in self.faults):
             # judged afresh like the first lengths at start-up: trusted again if they fit
-            # one pose and stayed within the step bounds (a cable still off stays a fault)
+            # one pose and stayed within the step bounds (a cable still off stays a fault);
+            # waited for also where none was ever trusted (a reset right after homing)
+            judged = self.trust.first_judgements
             self.trust.retrust()
             waited = 0
-            while self.trust.retrusting and waited < RETRUST_CYCLES:
+            while self.trust.first_judgements == judged and waited < RETRUST_CYCLES:
                 await asyncio.sleep(self.period)
                 waited += 1
             # no complete set came (a silent drive, say): nothing was judged, and the

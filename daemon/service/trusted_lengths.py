@@ -149,6 +149,7 @@ class TrustedLengths:
         self._set_at = -math.inf  # the instant of the last set trusted (whole or in part)
         self._first = True  # the next complete set is checked without history
         self._next_attempt = -math.inf
+        self.first_judgements = 0  # complete sets judged like the first (a reset waits)
         self._failed: list[Implausible] = []  # the last failed first set, while it stands
         self._basis: list[list[float]] = []  # rows N_k of the left null space of Lambda
         self._inverse_norms = [0.0] * n  # 1 / |N_k| (0: cable not observable)
@@ -431,6 +432,7 @@ class TrustedLengths:
             return self._failed
         if not all(fresh) or not all(map(math.isfinite, [*lengths, *rates])):
             return self._failed
+        self.first_judgements += 1
         flagged = []
         for k in range(self.n):
             problem = self._per_cable(k, lengths[k], rates[k], instant, own_rate=False)
