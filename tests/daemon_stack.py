@@ -128,10 +128,11 @@ def config_for(protocol: str, **overrides: object) -> DaemonConfig:
 
 
 def jerk_free(protocol: str) -> dict:
-    """The example config's trajectory section without its jerk limits: a goto is then
-    one rest-to-rest segment whose waypoint 1 is its target (for the tests that name the
-    waypoint where a refused goto or trajectory breaks a limit; with the jerk bounded a
-    goto is the double-S profile's seven segments)."""
+    """The example config's trajectory section without jerk limits (should it set them):
+    a goto is then one rest-to-rest segment whose waypoint 1 is its target (for the tests
+    that name the waypoint where a refused goto or trajectory breaks a limit; with the
+    jerk bounded a goto is the double-S profile's seven segments)."""
     section = dict(yaml.safe_load(DRIVER_CONFIGS[protocol].read_text())["trajectory"])
-    del section["linear_jerk"], section["angular_jerk"]
+    section.pop("linear_jerk", None)
+    section.pop("angular_jerk", None)
     return section
