@@ -48,7 +48,7 @@ from cdpr.reference import model_terms
 from cdpr.robot import Robot
 from cdpr.so3 import quat_from_matrix
 from cdpr.trajectory.core import MIN_SEGMENT, Trajectory, TrajectoryError, knot_steps
-from cdpr.trajectory.jerk import JERK_SAMPLES, segment_jerks
+from cdpr.trajectory.jerk import JERK_SAMPLES, jerk_excess, jerk_stretch
 from cdpr.trajectory.limits import TrajectoryLimits, cable_speed_bounds
 from cdpr.wrench_margin import facet_normals, rest_wrenches, wrench_length
 
@@ -187,7 +187,7 @@ def _time_motion(
         times, speed, u = _averaged(law, width, grid, (rows.a, rows.b, c, rows.xbound))
         # what the average leaves above a jerk limit, estimated: slowed down uniformly
         # (the jerk falls with the cube of the stretch; a slower time law stays feasible)
-        k = _stretch(_jerk_estimate(model, times, speed, u, limits))
+        k = jerk_stretch(_jerk_estimate(model, times, speed, u, limits))
         if times[-1] * k < end:
             fastest, end, longer = (times, speed, u, k), times[-1] * k, 0
         else:
@@ -200,16 +200,10 @@ def _time_motion(
     if not np.any(model.v[:, 3:]):  # the platform does not turn: the estimate is exact
         return knots
     # the fastest window's trajectory measured: stretched by what it really leaves
-    exact = _stretch(k**3 * _jerk_excess(knots, limits))
+    exact = jerk_stretch(k**3 * _jerk_excess(knots, limits))
     if exact == k:
         return knots
     return _knots(model, start + times * exact, speed / exact, u / (exact * exact))
-
-
-def _stretch(excess: float) -> float:
-    """The uniform slowdown that brings a jerk `excess` times its limit within it (and
-    1e-6 below: the estimate and cdpr.trajectory.jerk's differences agree to 1e-9)."""
-    return max(1.0, excess ** (1.0 / 3.0) * (1.0 + 1e-6))
 
 
 def _jerk_limits(limits: TrajectoryLimits) -> list[tuple[int, float, slice]]:
@@ -220,8 +214,7 @@ def _jerk_limits(limits: TrajectoryLimits) -> list[tuple[int, float, slice]]:
 
 def _jerk_excess(knots: _Timed, limits: TrajectoryLimits) -> float:
     """The largest ratio of the trajectory's jerk to its limit (those set)."""
-    jerks = segment_jerks(*Trajectory.through(*knots).curve.segments()[1:])
-    return max(float(jerks[k].max()) / limit for k, limit, _ in _jerk_limits(limits))
+    return jerk_excess(Trajectory.through(*knots), limits.linear_jerk, limits.angular_jerk)
 
 
 def _knots(model: _GridModel, times: Array, speed: Array, u: Array) -> _Timed:
@@ -245,13 +238,10 @@ def _jerk_estimate(
     part as the third derivative of the rotation vector's quintic between the knots
     (exact about one fixed axis: the left Jacobian's terms are left out).  Where the
     platform turns, the window chosen by it is measured on its trajectory (_time_motion)."""
-    kept = _spaced(times)
-    s, v, a = speed[kept, None], model.v[kept], model.acc[kept]
-    twists, accels = v * s, v * u[kept, None] + a * s * s
-    twists[[0, -1]] = accels[[0, -1]] = 0.0
-    h = np.diff(times[kept])[:, None]
-    V0, V1, A0, A1 = twists[:-1], twists[1:], accels[:-1], accels[1:]
-    D = knot_steps(model.positions[kept], model.quats[kept])
+    knots = _knots(model, times, speed, u)
+    h = np.diff(knots.times)[:, None]
+    V0, V1, A0, A1 = knots.twists[:-1], knots.twists[1:], knots.accels[:-1], knots.accels[1:]
+    D = knot_steps(knots.positions, knots.quats)
     c3 = (20.0 * D - (8.0 * V1 + 12.0 * V0) * h - (3.0 * A0 - A1) * h**2) / (2.0 * h**3)
     c4 = (-30.0 * D + (14.0 * V1 + 16.0 * V0) * h + (3.0 * A0 - 2.0 * A1) * h**2) / (2.0 * h**4)
     c5 = (12.0 * D - 6.0 * (V1 + V0) * h - (A0 - A1) * h**2) / (2.0 * h**5)

@@ -12,10 +12,15 @@ of a trajectory at once, in numpy.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 from numpy.typing import NDArray
 
 from cdpr.trajectory.rotation import angular_rates
+
+if TYPE_CHECKING:
+    from cdpr.trajectory.core import Trajectory
 
 Array = NDArray[np.float64]
 
@@ -44,6 +49,28 @@ def segment_jerks(tables: Array, durations: Array) -> tuple[Array, Array]:
         (np.linalg.norm(linear[1] - linear[0], axis=2) / rate).max(axis=1),
         (np.linalg.norm(angular[1] - angular[0], axis=2) / rate).max(axis=1),
     )
+
+
+def jerk_excess(
+    trajectory: Trajectory, linear_jerk: float | None, angular_jerk: float | None
+) -> float:
+    """The largest ratio of `trajectory`'s jerk to its limit (those set; 0 with none)."""
+    linear, angular = segment_jerks(*trajectory.curve.segments()[1:])
+    return max(
+        (
+            float(jerks.max()) / limit
+            for jerks, limit in ((linear, linear_jerk), (angular, angular_jerk))
+            if limit is not None
+        ),
+        default=0.0,
+    )
+
+
+def jerk_stretch(excess: float) -> float:
+    """The uniform stretch of time (>= 1) that brings a jerk `excess` times its limit
+    within it, and 1e-6 below (the jerk falls with the cube of the stretch; estimates
+    and segment_jerks' differences agree to 1e-9)."""
+    return max(1.0, excess ** (1.0 / 3.0) * (1.0 + 1e-6))
 
 
 def jerk_violation(

@@ -36,7 +36,7 @@ from cdpr.trajectory.core import (
     segment_table,
 )
 from cdpr.trajectory.double_s import DoubleS
-from cdpr.trajectory.jerk import jerk_violation, segment_jerks
+from cdpr.trajectory.jerk import jerk_excess, jerk_stretch, jerk_violation
 from cdpr.trajectory.limits import TrajectoryLimits, first_rate_violation, rate_violation
 
 MIN_BLEND = 1e-3  # s: the shortest transition (a goto to where the reference already is)
@@ -122,15 +122,10 @@ def _double_s(
     # a phase shorter than MIN_SEGMENT has no waypoint of its own, and the quintic across
     # it passes the jerk limit by a few millionths: slowed down by what it leaves (the
     # jerk falls with the cube of the stretch)
-    linear, angular = segment_jerks(*trajectory.curve.segments()[1:])
-    excess = max(
-        float(jerks.max()) / limit
-        for jerks, limit in ((linear, limits.linear_jerk), (angular, limits.angular_jerk))
-        if limit is not None
-    )
+    excess = jerk_excess(trajectory, limits.linear_jerk, limits.angular_jerk)
     if excess <= 1.0:
         return trajectory
-    return _through(states, start, duration, target, excess ** (1.0 / 3.0) * (1.0 + 1e-6))
+    return _through(states, start, duration, target, jerk_stretch(excess))
 
 
 def _through(
