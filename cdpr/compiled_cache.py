@@ -23,7 +23,9 @@ ROOT = Path(__file__).resolve().parent.parent
 SOURCES = (
     "cdpr/wrench_margin.py",
     "cdpr/interference.py",
+    "cdpr/path/jerk_estimate.py",
     "cdpr/path/reachability.py",
+    "cdpr/path/time_law.py",
     "tuning/workspace_map.py",
 )
 

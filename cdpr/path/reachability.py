@@ -71,6 +71,21 @@ def parameterize(A: Array, B: Array, C: Array, X: Array, grid: Array) -> Paramet
 
 
 @njit(cache=True)
+def load_factor(A: Array, B: Array, C: Array, u: Array, x: Array) -> float:
+    """The largest (A[i] u_i + B[i] x_i) / -C[i] over the rows with C < 0 of every grid
+    point i (0 if none): a timing (u, x) scaled by 1 / that factor (u and x both, a
+    slower time law) holds those rows with equality at worst."""
+    worst = 0.0
+    for i in range(A.shape[0]):
+        ui, xi = u[i], x[i]
+        for r in range(A.shape[1]):
+            c = C[i, r]
+            if c < 0.0:
+                worst = max(worst, (A[i, r] * ui + B[i, r] * xi) / -c)
+    return worst
+
+
+@njit(cache=True)
 def _stage(A, B, C, i, delta, k_lo, k_hi, a, b, c):
     """Stage i's rows into a, b, c: point i's, point i + 1's at x + 2 d u, then x + 2 d u
     <= k_hi and x + 2 d u >= k_lo (module docstring)."""

@@ -41,8 +41,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cdpr.path.geometry import BlendedPath, path_coordinates
+from cdpr.path.jerk_estimate import jerk_peaks
 from cdpr.path.model import Path, PathPoint
-from cdpr.path.reachability import parameterize
+from cdpr.path.reachability import load_factor, parameterize
 from cdpr.path.time_law import AveragedLaw, TimeLaw
 from cdpr.reference import model_terms
 from cdpr.robot import Robot
@@ -232,28 +233,14 @@ def _jerk_estimate(
     model: _GridModel, times: Array, speed: Array, u: Array, limits: TrajectoryLimits
 ) -> float:
     """The largest ratio of jerk to its limit (those set) of the quintics _knots would
-    put through the grid points at `times`, without building them (a trajectory's build
-    and its jerk took 12 ms a window on a 100-pose path): the linear part exactly (the
-    positions' quintic Hermite, the jerk at cdpr.trajectory.jerk's instants), the angular
-    part as the third derivative of the rotation vector's quintic between the knots
-    (exact about one fixed axis: the left Jacobian's terms are left out).  Where the
-    platform turns, the window chosen by it is measured on its trajectory (_time_motion)."""
+    put through the grid points at `times`, without building them (cdpr.path.
+    jerk_estimate: the linear part exact, the angular part exact about one fixed axis).
+    Where the platform turns, the window chosen by it is measured on its trajectory
+    (_time_motion)."""
     knots = _knots(model, times, speed, u)
-    h = np.diff(knots.times)[:, None]
-    V0, V1, A0, A1 = knots.twists[:-1], knots.twists[1:], knots.accels[:-1], knots.accels[1:]
-    D = knot_steps(knots.positions, knots.quats)
-    c3 = (20.0 * D - (8.0 * V1 + 12.0 * V0) * h - (3.0 * A0 - A1) * h**2) / (2.0 * h**3)
-    c4 = (-30.0 * D + (14.0 * V1 + 16.0 * V0) * h + (3.0 * A0 - 2.0 * A1) * h**2) / (2.0 * h**4)
-    c5 = (12.0 * D - 6.0 * (V1 + V0) * h - (A0 - A1) * h**2) / (2.0 * h**5)
-    tau = h * _JERK_INSTANTS  # (m, k)
-    jerk = (
-        6.0 * c3[:, None]
-        + (24.0 * c4[:, None] + 60.0 * c5[:, None] * tau[..., None]) * tau[..., None]
-    )
-    return max(
-        float(np.linalg.norm(jerk[..., part], axis=2).max()) / limit
-        for _, limit, part in _jerk_limits(limits)
-    )
+    steps = knot_steps(knots.positions, knots.quats)
+    peaks = jerk_peaks(knots.times, steps, knots.twists, knots.accels, _JERK_INSTANTS)
+    return max(peaks[k] / limit for k, limit, _ in _jerk_limits(limits))
 
 
 def _first_width(model: _GridModel, speed: Array, u: Array, limits: TrajectoryLimits) -> float:
@@ -281,11 +268,9 @@ def _averaged(
     _, speed, u = averaged.at(times)
     a, b, c, xbound = rows
     x = speed**2
-    need = a * u[:, None] + b * x[:, None]
     with np.errstate(divide="ignore", invalid="ignore"):
-        ratios = np.where(c < 0.0, need / -c, 0.0)
         over = np.where(xbound[:, 1] > 0.0, x / xbound[:, 1], 0.0)
-    k = math.sqrt(max(1.0, float(ratios.max()), float(over.max())))
+    k = math.sqrt(max(1.0, load_factor(a, b, c, u, x), float(over.max())))
     return times * k, speed / k, u / (k * k)
 
 

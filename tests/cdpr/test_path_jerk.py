@@ -73,6 +73,27 @@ def test_each_path_point_s_time_on_the_average_reaches_it() -> None:
     assert np.all(np.diff(times) > 0.0)
 
 
+def test_on_a_long_path_each_point_s_time_reaches_it_to_rounding() -> None:
+    """200 m in 20,000 intervals, a 2,000-line part's size: the integral of s from 0
+    grows to ~10^4 m s, whose rounding stalled Newton's method on the difference of two
+    such integrals; each point's time puts the window's mean on the point (scipy's
+    quadrature over the window, at every 500th point)."""
+    rng = np.random.default_rng(3)
+    n, width = 20_000, 0.05
+    grid = np.linspace(0.0, 200.0, n + 1)
+    speeds = np.concatenate([[0.0], rng.uniform(0.2, 1.5, n - 1), [0.0]])
+    dt = 2.0 * np.diff(grid) / (speeds[:-1] + speeds[1:])
+    law = TimeLaw(grid, speeds, np.diff(speeds) / dt, np.concatenate([[0.0], np.cumsum(dt)]))
+    averaged = AveragedLaw(law, width)
+    times = averaged.timed_at(grid)
+    assert times[0] == 0.0 and times[-1] == averaged.end and np.all(np.diff(times) > 0.0)
+    for k in range(500, n, 500):
+        t = times[k]
+        inside = law.t[(law.t > t - width) & (law.t < t)]
+        mean = quad(lambda x: law.at(np.array([x]))[1][0], t - width, t, points=inside)[0]
+        assert mean / width == pytest.approx(grid[k], abs=1e-9), k
+
+
 @pytest.fixture(scope="module")
 def cia402():
     return config_for("cia402")

@@ -16,7 +16,7 @@ import toppra.constraint
 from cdpr.path import Path, PathPoint, parse_gcode, parse_path
 from cdpr.path import timing as path_timing
 from cdpr.path.geometry import BlendedPath
-from cdpr.path.reachability import parameterize
+from cdpr.path.reachability import load_factor, parameterize
 from cdpr.wrench_margin import wrench_length
 from tests.daemon_stack import config_for
 from tuning.scenarios import STANDARD_SET
@@ -165,3 +165,14 @@ def test_a_path_the_cables_cannot_hold_fails_where_toppras_sets_end() -> None:
     assert ours.failed >= 0
     assert np.isnan(ours.speed).all()
     assert np.isnan(K[ours.failed]).all() and not np.isnan(K[ours.failed + 1 :]).any()
+
+
+def test_the_load_factor_is_the_largest_share_of_a_row_s_room() -> None:
+    """load_factor against numpy on random rows, some with C >= 0 (never binding at
+    rest: left out), and 0 where no row has room to share."""
+    rng = np.random.default_rng(11)
+    A, B, C = (rng.normal(size=(50, 30)) for _ in range(3))
+    u, x = rng.normal(size=50), rng.uniform(0.0, 2.0, 50)
+    need = (A * u[:, None] + B * x[:, None]) / -C
+    assert load_factor(A, B, C, u, x) == pytest.approx(need[C < 0.0].max(), rel=1e-15)
+    assert load_factor(A, B, np.abs(C), u, x) == 0.0
