@@ -10,7 +10,6 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 from daemon.cli.simulated import InProcessSimulator
 from daemon.config import DaemonConfig, load_config
@@ -125,14 +124,3 @@ class Stack:
 def config_for(protocol: str, **overrides: object) -> DaemonConfig:
     """An example config, with top-level sections replaced by `overrides`."""
     return load_config(DRIVER_CONFIGS[protocol], lambda data: data.update(overrides))
-
-
-def jerk_free(protocol: str) -> dict:
-    """The example config's trajectory section without jerk limits (should it set them):
-    a goto is then one rest-to-rest segment whose waypoint 1 is its target (for the tests
-    that name the waypoint where a refused goto or trajectory breaks a limit; with the
-    jerk bounded a goto is the double-S profile's seven segments)."""
-    section = dict(yaml.safe_load(DRIVER_CONFIGS[protocol].read_text())["trajectory"])
-    section.pop("linear_jerk", None)
-    section.pop("angular_jerk", None)
-    return section

@@ -78,6 +78,7 @@ from daemon.cli.run_cmd import report as report_config
 from tuning.calibration import AnchorDistance
 
 if TYPE_CHECKING:
+    from cdpr.trajectory import Trajectory
     from daemon.cli.calibration_round import CalibrationRound
     from daemon.config import DaemonConfig
     from daemon.interface.client import CdprClient, RequestError
@@ -87,6 +88,7 @@ SPEED = 0.2  # m/s (and rad/s) of the moves between poses
 MOVE_MIN = 1.5  # s: the shortest move
 MIN_POSES = 8  # below this the command refuses before flying
 DITHER = 2e-4  # m: the loop flown about each pose while its state is averaged
+DITHER_STEPS = 7  # moves of the loop: to each of the six corners and back
 LEASE = 5.0  # s: the lease on the payload freeze and the observer hold (daemon.service.lease)
 RENEW_PERIOD = 1.0  # s between its renewals while flying
 SCALE_MISMATCH = 0.05  # a measured distance this far (relative) from the file's: a mistake
@@ -434,7 +436,9 @@ def _fly(config: DaemonConfig, args: argparse.Namespace, path: Path) -> Calibrat
             calibration_round = kept
         try:
             with _file_model(client, robot), progress_line("calibrate", args.progress) as line:
-                _record_poses(client, calibration_round, path, args.dwell, args.average, line)
+                _record_poses(
+                    client, calibration_round, path, (args.dwell, args.average), config, line
+                )
         except (RequestError, CalibrationError) as exc:
             why = _refused(exc) if isinstance(exc, RequestError) else str(exc)
             raise CalibrationError(f"{why}\n{_kept_note(robot, calibration_round, path)}") from None
@@ -592,8 +596,8 @@ def _record_poses(
     client: CdprClient,
     calibration_round: CalibrationRound,
     path: Path,
-    dwell: float,
-    average: float,
+    times: tuple[float, float],
+    config: DaemonConfig,
     line: ProgressLine,
 ) -> None:
     """Move slowly to each pose of the round not yet flown (a rest-to-rest trajectory at
@@ -601,12 +605,14 @@ def _record_poses(
     average the state over the dither loop there (the module docstring), and keep it in
     the round and in `path`; a pose the daemon refuses to go to (the way leaves the
     wrench set, say) is skipped.  The daemon braking ends the flight at once, a
-    CalibrationError naming the brake's trigger and message.  `line` shows the poses
-    recorded of the round's."""
+    CalibrationError naming the brake's trigger and message.  `times`: (dwell, average),
+    s; `line` shows the poses recorded of the round's."""
     from cdpr.trajectory import Trajectory, Waypoint
     from daemon.interface.client import RequestError
     from tuning.calibration import Sample
 
+    dwell, average = times
+    dither = dither_amplitude(average, config.trajectory.linear_jerk)
     rows: list[tuple[float, list[float], list[float]]] = []
     latest: list[Pose] = []
     faults: list[dict[str, Any] | None] = []
@@ -675,7 +681,7 @@ def _record_poses(
             here = target
             with lock:
                 rows.clear()
-            _dither(client, target, average)
+            _dither(client, target, average, dither)
             wait(average, k)
             with lock:
                 recent = list(rows)
@@ -698,23 +704,41 @@ def _record_poses(
         subscriber.undeclare()
 
 
-def _dither(client: CdprClient, pose: Pose, duration: float) -> None:
-    """Send a loop of DITHER about `pose` (at rest there) lasting `duration`: through
-    +-DITHER along each axis in turn and back, at rest at each corner (the daemon
-    validates a transition's first segment as a trajectory of its own, which must end
-    at rest).  If the daemon refuses it the platform stays at rest, averaged as it is."""
-    from cdpr.trajectory import Trajectory, Waypoint
-    from daemon.interface.client import RequestError
+def dither_amplitude(duration: float, linear_jerk: float | None) -> float:
+    """The dither loop's amplitude (m): DITHER, or less where the trajectory limits'
+    linear jerk allows less in `duration` (each of its DITHER_STEPS moves, up to sqrt(2)
+    amplitudes from corner to corner, a rest-to-rest quintic whose jerk peaks at 60 d /
+    T^3; the limit's share 0.99)."""
+    if linear_jerk is None:
+        return DITHER
+    step = duration / DITHER_STEPS
+    return min(DITHER, 0.99 * linear_jerk * step**3 / (60.0 * math.sqrt(2.0)))
 
-    steps = [np.zeros(3)] + [DITHER * sign * axis for sign in (1, -1) for axis in np.eye(3)]
-    dt = duration / len(steps)
+
+def dither_loop(pose: Pose, duration: float, amplitude: float) -> Trajectory:
+    """A loop of `amplitude` about `pose` (at rest there) lasting `duration`: through
+    +-amplitude along each axis in turn and back, at rest at each corner (the daemon
+    validates a transition's first segment as a trajectory of its own, which must end
+    at rest)."""
+    from cdpr.trajectory import Trajectory, Waypoint
+
+    steps = [np.zeros(3)] + [amplitude * sign * axis for sign in (1, -1) for axis in np.eye(3)]
+    dt = duration / DITHER_STEPS
     rest = np.zeros(6)
     waypoints = [
         Waypoint(k * dt, Pose(pose.position + step, pose.quaternion_tuple), rest, rest)
         for k, step in enumerate(steps)
     ]
+    return Trajectory([*waypoints, Waypoint(duration, pose)])
+
+
+def _dither(client: CdprClient, pose: Pose, duration: float, amplitude: float) -> None:
+    """Send the dither_loop; if the daemon refuses it the platform stays at rest,
+    averaged as it is."""
+    from daemon.interface.client import RequestError
+
     try:
-        client.send_trajectory(Trajectory([*waypoints, Waypoint(duration, pose)]))
+        client.send_trajectory(dither_loop(pose, duration, amplitude))
     except RequestError as exc:
         if exc.code != "rejected":
             raise

@@ -32,6 +32,7 @@ from cdpr.trajectory import (
     WrenchCheck,
     approach_steps,
     check_start_delay,
+    check_target,
     goto_steps,
     stop_steps,
     validate,
@@ -356,7 +357,7 @@ class Planner:
         async def plan(current: Reference, begin: float) -> Trajectory:
             return await link.run_steps(goto_steps(current, target, limits, start=begin))
 
-        return await self._plan_and_follow(plan, "goto", owner=owner)
+        return await self._plan_and_follow(plan, "goto", owner=owner, target=target)
 
     async def _validate(
         self,
@@ -383,6 +384,23 @@ class Planner:
         except TrajectoryError as exc:
             raise rejection(what, exc) from None
 
+    def _check_target(
+        self, target: Pose, what: str, pose_limits: PoseLimits, length_limits: LengthLimits
+    ) -> None:
+        """CommandError "rejected" if resting at `target` breaks a limit (check_target)."""
+        try:
+            check_target(
+                target,
+                self.robot,
+                self.config.trajectory,
+                self._wrench_check,
+                pose_limits,
+                length_limits,
+                self._workspace(),
+            )
+        except TrajectoryError as exc:
+            raise rejection(what, exc) from None
+
     def _workspace(self) -> WorkspaceCheck:
         """The workspace check (daemon.config.workspace) for the platform as the core
         last published it: the payload estimate's mass and centre of mass, else the
@@ -401,6 +419,7 @@ class Planner:
         validate: Literal["all", "blend", "none"] = "all",
         attempts: int = 3,
         owner: Claim | Motion | None = None,
+        target: Pose | None = None,
     ) -> dict[str, Any]:
         """A transition from the current reference, planned to begin `lead` seconds
         ahead, validated and handed to the core; planned again if the core's reference
@@ -411,7 +430,8 @@ class Planner:
         inside the validation pose limits, or no further out than where the transition
         starts (it may start outside them).  `owner`: the claim the transition runs for
         (a motion of its own, taken when the core takes it: daemon.service.motion), the
-        procedure it is a step of, or None (a hold)."""
+        procedure it is a step of, or None (a hold).  `target`: where it ends at rest,
+        checked before the way to it (check_target: a goto names its target's problem)."""
         holds = self._holds
         link = self.link
         for _ in range(attempts):
@@ -428,6 +448,8 @@ class Planner:
                 reach = self.config.reference_lengths.widened_to(
                     self.robot.cable_lengths(begins).tolist()
                 )
+                if target is not None:
+                    self._check_target(target, what, inside, reach)
                 if validate == "blend":  # its end may be moving: checked in place
                     await self._validate(planned, f"{what}'s approach", inside, reach, segments=1)
                 else:

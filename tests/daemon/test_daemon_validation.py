@@ -26,7 +26,7 @@ from daemon.service.api import CommandError
 from daemon.service.safety import SafetyState
 from daemon.service.service import Service
 from tests.conftest import ROBOTS, load_robot
-from tests.daemon_stack import Stack, config_for, jerk_free
+from tests.daemon_stack import Stack, config_for
 from tests.loopback import free_port
 
 pytestmark = pytest.mark.timeout(60)
@@ -85,13 +85,15 @@ def test_a_trajectory_into_the_floor_is_rejected_naming_the_waypoint() -> None:
 
 def test_a_goto_through_the_fence_is_rejected() -> None:
     async def scenario() -> None:
-        config = config_for("cia402", safety=FENCE, trajectory=jerk_free("cia402"))
+        config = config_for("cia402", safety=FENCE)
         async with Stack(config) as stack:
             await stack.enable()
             target = _home(stack.config, dz=0.5)  # z = 1.75
             err = await _refused(stack, stack.planner.command("goto", {"pose": target}))
-            assert err.details == {"limit": "workspace_max", "waypoint": 1, "value": 1.75}
-            assert "goto rejected: waypoint 1: workspace_max: position z = 1.7500 m" in err.reason
+            # the target named, not a waypoint of the goto's own profile
+            assert err.details == {"limit": "workspace_max", "value": 1.75}
+            assert err.reason.startswith("goto rejected: workspace_max: position z = 1.7500 m")
+            assert err.reason.endswith(" at the target")
             # with the platform's top below the fence less the tracking margin it goes
             # (its top corners 0.3 m above p, the margin 20 mm + 0.41 m x 0.05 rad)
             reply = await stack.planner.command("goto", {"pose": _home(stack.config, dz=0.005)})
@@ -125,7 +127,7 @@ def test_a_goto_near_a_cable_length_limit_is_rejected() -> None:
 
 def test_a_turn_beyond_tilt_max_is_rejected() -> None:
     async def scenario() -> None:
-        async with Stack(config_for("cia402", trajectory=jerk_free("cia402"))) as stack:
+        async with Stack(config_for("cia402")) as stack:
             await stack.enable()
             home = _home(stack.config)
             turned = _home(stack.config, rotvec=(0.8, 0.0, 0.0))
@@ -135,7 +137,8 @@ def test_a_turn_beyond_tilt_max_is_rejected() -> None:
             assert err.details["value"] == pytest.approx(0.8)
             assert "rotation 45.84 deg from home exceeds" in err.reason
             err = await _refused(stack, stack.planner.command("goto", {"pose": turned}))
-            assert (err.details["limit"], err.details["waypoint"]) == ("tilt_max", 1)
+            assert err.details["limit"] == "tilt_max" and "waypoint" not in err.details
+            assert err.reason.endswith(" at the target")
 
     run(scenario())
 
@@ -323,7 +326,7 @@ def test_enabled_outside_the_margin_it_may_move_back_in_but_not_further_out() ->
             service = stack.service
             lower = _home(config, dz=-0.245)  # the lower corners at 0.705
             err = await _refused(stack, stack.planner.command("goto", {"pose": lower}))
-            assert (err.details["limit"], err.details["waypoint"]) == ("workspace_min", 1)
+            assert err.details["limit"] == "workspace_min" and "waypoint" not in err.details
             here = service.controller.source.sample(service.now()).pose
             trajectory = Trajectory([Waypoint(0.0, here), Waypoint(1.0, _home(config))])
             err = await _refused(stack, stack.planner.submit_trajectory(trajectory, None))
@@ -339,9 +342,7 @@ def test_over_zenoh_put_query_and_goto_are_rejected_with_the_waypoint_and_limit(
 
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
-    config = config_for(
-        "cia402", safety=FENCE, zenoh={"listen": [endpoint]}, trajectory=jerk_free("cia402")
-    )
+    config = config_for("cia402", safety=FENCE, zenoh={"listen": [endpoint]})
     floor = _into_the_floor(config).as_dict()
     prefix = config.zenoh.key_prefix(config.robot.name)
 
@@ -383,14 +384,13 @@ def test_over_zenoh_put_query_and_goto_are_rejected_with_the_waypoint_and_limit(
         return result
 
     result = run(scenario())
-    for name, waypoint, limit, value in (
-        ("query", 2, "workspace_min", -0.5),
-        ("goto", 1, "workspace_max", 1.75),
-    ):
-        error = result[name]
-        assert error["code"] == "rejected", error
-        assert (error["waypoint"], error["limit"], error["value"]) == (waypoint, limit, value)
-        assert f"waypoint {waypoint}: {limit}" in error["reason"]
+    query, goto = result["query"], result["goto"]
+    assert query["code"] == goto["code"] == "rejected", (query, goto)
+    assert (query["waypoint"], query["limit"], query["value"]) == (2, "workspace_min", -0.5)
+    assert "waypoint 2: workspace_min" in query["reason"]
+    assert "waypoint" not in goto and (goto["limit"], goto["value"]) == ("workspace_max", 1.75)
+    assert "goto rejected: workspace_max" in goto["reason"], goto
+    assert goto["reason"].endswith(" at the target"), goto
     put = [e for e in result["events"] if e.get("id") == "put"]
     assert [e["event"] for e in put] == ["trajectory_rejected"]
     assert (put[0]["error"]["waypoint"], put[0]["error"]["limit"]) == (2, "workspace_min")

@@ -39,11 +39,14 @@ def run(coro):
 
 
 def circle(n: int) -> Trajectory:
-    """n waypoints 10 ms apart: a 5 cm circle about home every 10 s, home to home."""
+    """n waypoints 10 ms apart: a 5 cm circle about home every 10 s on average, home to
+    home, its pace eased in and out (u - sin(2 pi u) / 2 pi) so that it starts and ends
+    at rest within the configs' jerk limits."""
     loops = max(1, round(n / 1000))
     waypoints = []
     for k in range(n):
-        angle = 2.0 * math.pi * loops * k / (n - 1)
+        u = k / (n - 1)
+        angle = 2.0 * math.pi * loops * (u - math.sin(2.0 * math.pi * u) / (2.0 * math.pi))
         waypoints.append(
             {
                 "t": 0.01 * k,
