@@ -291,7 +291,16 @@ def validation_steps(
     for t in np.union1d(grid, knots).tolist():
         ref = trajectory.sample(t)
         try:
-            _check_sample(trajectory, robot, limits, wrench_check, pose_limits, bounds, t, ref)
+            _check_reference(
+                robot,
+                limits,
+                wrench_check,
+                pose_limits,
+                bounds,
+                ref,
+                trajectory.waypoint_index(t),
+                f"at t={t:.6g} s",
+            )
         except TrajectoryError:
             _check_batch(trajectory, workspace, pending)  # an earlier sample's problem first
             raise
@@ -349,29 +358,6 @@ def _first_refusal(workspace: BatchCheck, refs: list[Reference]) -> BatchRefusal
     positions = np.array([r.pose.position_tuple for r in refs])
     rotations = np.array([r.pose.rotation for r in refs])
     return workspace.first_refusal(positions, rotations)
-
-
-def _check_sample(
-    trajectory: Trajectory,
-    robot: Robot,
-    limits: TrajectoryLimits,
-    wrench_check: WrenchCheck | None,
-    pose_limits: PoseLimits | None,
-    bounds: LengthLimits,
-    t: float,
-    ref: Reference,
-) -> None:
-    """Raise TrajectoryError if the sample `ref` at time t breaks a limit."""
-    _check_reference(
-        robot,
-        limits,
-        wrench_check,
-        pose_limits,
-        bounds,
-        ref,
-        trajectory.waypoint_index(t),
-        f"at t={t:.6g} s",
-    )
 
 
 def check_target(

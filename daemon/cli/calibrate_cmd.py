@@ -436,8 +436,9 @@ def _fly(config: DaemonConfig, args: argparse.Namespace, path: Path) -> Calibrat
             calibration_round = kept
         try:
             with _file_model(client, robot), progress_line("calibrate", args.progress) as line:
+                dither = dither_amplitude(args.average, config.trajectory.linear_jerk)
                 _record_poses(
-                    client, calibration_round, path, (args.dwell, args.average), config, line
+                    client, calibration_round, path, args.dwell, args.average, dither, line
                 )
         except (RequestError, CalibrationError) as exc:
             why = _refused(exc) if isinstance(exc, RequestError) else str(exc)
@@ -596,8 +597,9 @@ def _record_poses(
     client: CdprClient,
     calibration_round: CalibrationRound,
     path: Path,
-    times: tuple[float, float],
-    config: DaemonConfig,
+    dwell: float,
+    average: float,
+    dither: float,
     line: ProgressLine,
 ) -> None:
     """Move slowly to each pose of the round not yet flown (a rest-to-rest trajectory at
@@ -605,14 +607,12 @@ def _record_poses(
     average the state over the dither loop there (the module docstring), and keep it in
     the round and in `path`; a pose the daemon refuses to go to (the way leaves the
     wrench set, say) is skipped.  The daemon braking ends the flight at once, a
-    CalibrationError naming the brake's trigger and message.  `times`: (dwell, average),
-    s; `line` shows the poses recorded of the round's."""
+    CalibrationError naming the brake's trigger and message.  `dither`: the loop's
+    amplitude (dither_amplitude); `line` shows the poses recorded of the round's."""
     from cdpr.trajectory import Trajectory, Waypoint
     from daemon.interface.client import RequestError
     from tuning.calibration import Sample
 
-    dwell, average = times
-    dither = dither_amplitude(average, config.trajectory.linear_jerk)
     rows: list[tuple[float, list[float], list[float]]] = []
     latest: list[Pose] = []
     faults: list[dict[str, Any] | None] = []
