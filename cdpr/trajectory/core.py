@@ -145,11 +145,24 @@ class Reference(NamedTuple):
 
 
 class _Blend(NamedTuple):
-    """A segment joined before a trajectory's own first waypoint (Trajectory.after_blend)."""
+    """Segments joined before a trajectory's own first waypoint (Trajectory.after_blend):
+    segment k from leads[k] to the next lead, the last into the trajectory's start."""
 
-    first: Waypoint  # its start, twist and accel given
-    table: Array
-    quat: tuple[float, ...]
+    leads: tuple[Waypoint, ...]  # each with its time, pose, twist and accel given
+    tables: tuple[Array, ...]
+    quats: tuple[tuple[float, ...], ...]
+
+    def shifted(self, dt: float) -> _Blend:
+        """The same segments, every lead's time moved by dt."""
+        leads = tuple(Waypoint(w.t + dt, w.pose, w.twist, w.accel) for w in self.leads)
+        return self._replace(leads=leads)
+
+    def segment(self, t: float) -> int:
+        """The lead whose segment holds t (the first for times before it)."""
+        k = len(self.leads) - 1
+        while k > 0 and self.leads[k].t > t:
+            k -= 1
+        return k
 
 
 class Curve:
@@ -177,9 +190,9 @@ class Curve:
         self.shift = shift
         self.blend = blend
         self.body_start = times[0] + shift
-        self.start_time = self.body_start if blend is None else blend.first.t
+        self.start_time = self.body_start if blend is None else blend.leads[0].t
         self.end_time = times[-1] + shift
-        self._before = Reference(first if blend is None else blend.first.pose, _ZERO6, _ZERO6)
+        self._before = Reference(first if blend is None else blend.leads[0].pose, _ZERO6, _ZERO6)
         self._after = Reference(last, _ZERO6, _ZERO6)
 
     def placed(self, shift: float, blend: _Blend | None) -> Curve:
@@ -212,7 +225,8 @@ class Curve:
         if t >= self.start_time:  # in the blend
             blend = self.blend
             assert blend is not None
-            return evaluate_segment(blend.table, blend.quat, t - blend.first.t)
+            k = blend.segment(t)
+            return evaluate_segment(blend.tables[k], blend.quats[k], t - blend.leads[k].t)
         if t < self.start_time:
             return self._before
         raise ValueError(f"sample time must be a number, got {t!r}")
@@ -223,8 +237,8 @@ class Curve:
         times = np.asarray(self._times, dtype=float) + self.shift
         tables = np.asarray(self._tables, dtype=float).reshape(-1, 6, 18)
         if self.blend is not None:
-            times = np.concatenate([[self.blend.first.t], times])
-            tables = np.concatenate([self.blend.table[None], tables])
+            times = np.concatenate([[w.t for w in self.blend.leads], times])
+            tables = np.concatenate([np.stack(self.blend.tables), tables])
         return times[:-1], tables, np.diff(times)
 
     def packed(self) -> tuple[dict, Array]:
@@ -372,7 +386,8 @@ class Trajectory:
 
     def __len__(self) -> int:
         """The number of waypoints (a blend's first one included)."""
-        return len(self._knots.times) + (self._curve.blend is not None)
+        blend = self._curve.blend
+        return len(self._knots.times) + (0 if blend is None else len(blend.leads))
 
     @property
     def waypoints(self) -> tuple[Waypoint, ...]:
@@ -384,7 +399,7 @@ class Trajectory:
             listed = self._knots.waypoints
             if shift != 0.0:
                 listed = tuple(Waypoint(w.t + shift, w.pose, w.twist, w.accel) for w in listed)
-            self._listed = listed if blend is None else (blend.first, *listed)
+            self._listed = listed if blend is None else (*blend.leads, *listed)
         return self._listed
 
     def knot(self, index: int) -> Waypoint:
@@ -394,9 +409,9 @@ class Trajectory:
             raise IndexError(f"knot {index} of a trajectory of {len(self)} waypoints")
         blend = self._curve.blend
         if blend is not None:
-            if index == 0:
-                return blend.first
-            index -= 1
+            if index < len(blend.leads):
+                return blend.leads[index]
+            index -= len(blend.leads)
         knots, (twists, accels) = self._knots, self._rates
         t = float(knots.times[index]) + self._curve.shift
         return Waypoint(t, knots.pose(index), twists[index], accels[index])
@@ -426,7 +441,8 @@ class Trajectory:
         curve = self._curve
         k = curve.segment(t)
         if curve.blend is not None:
-            k = k + 1 if t >= curve.body_start else 0
+            leads = len(curve.blend.leads)
+            k = k + leads if t >= curve.body_start else curve.blend.segment(t)
         return min(max(k, 0), len(self) - 1)
 
     def sample(self, t: float) -> Reference:
@@ -439,31 +455,34 @@ class Trajectory:
         if not math.isfinite(dt):
             raise ValueError(f"time shift must be finite, got {dt!r}")
         blend = self._curve.blend
-        if blend is not None:
-            w = blend.first
-            blend = blend._replace(first=Waypoint(w.t + dt, w.pose, w.twist, w.accel))
-        return self._moved(self._curve.shift + dt, blend)
+        return self._moved(self._curve.shift + dt, None if blend is None else blend.shifted(dt))
 
-    def after_blend(self, first: Waypoint, shift: float) -> Trajectory:
-        """This trajectory shifted by `shift`, preceded by one segment from `first` (its
-        pose, twist and accel all given) into its start state.  The segments already
-        built are reused: the cost is one segment whatever the length."""
-        if first.twist is None or first.accel is None:
-            raise ValueError("the blend's first waypoint needs its twist and accel")
+    def after_blend(self, leads: Sequence[Waypoint], shift: float) -> Trajectory:
+        """This trajectory shifted by `shift`, preceded by a segment from each of `leads`
+        (their poses, twists and accels all given) to the next, the last into its start
+        state.  The segments already built are reused: the cost is that of the leads'
+        segments whatever the length."""
+        if any(w.twist is None or w.accel is None for w in leads) or not leads:
+            raise ValueError("a blend needs its leads, each with its twist and accel")
         if self._curve.blend is not None:
             raise ValueError("this trajectory begins with a blend already")
         out = self.shifted(shift)
-        h = out._curve.body_start - first.t
-        if not h >= MIN_SEGMENT:
-            raise TrajectoryError(
-                "times_increasing", f"the blend would last {h:.6g} s (< {MIN_SEGMENT:g} s)"
-            )
         twists, accels = self._rates
-        step = liediff(first.pose, self._knots.pose(0))
-        table = segment_table(first.pose, first.twist, first.accel, twists[0], accels[0], step, h)
-        if not np.all(np.isfinite(table)):
+        ends = [(w.t, w.pose, w.twist, w.accel) for w in leads[1:]]
+        ends.append((out._curve.body_start, self._knots.pose(0), twists[0], accels[0]))
+        tables = []
+        for w, (t, pose, twist, accel) in zip(leads, ends, strict=True):
+            h = t - w.t
+            if not h >= MIN_SEGMENT:
+                raise TrajectoryError(
+                    "times_increasing", f"the blend would last {h:.6g} s (< {MIN_SEGMENT:g} s)"
+                )
+            step = liediff(w.pose, pose)
+            tables.append(segment_table(w.pose, w.twist, w.accel, twist, accel, step, h))
+        if not np.all(np.isfinite(tables)):
             raise TrajectoryError("finite", "the blend into this trajectory is not finite")
-        return self._moved(out._curve.shift, _Blend(first, table, first.pose.quaternion_tuple))
+        quats = tuple(w.pose.quaternion_tuple for w in leads)
+        return self._moved(out._curve.shift, _Blend(tuple(leads), tuple(tables), quats))
 
     def as_dict(self) -> dict:
         """Interface form (JSON / YAML ready), the inverse of parse_trajectory."""

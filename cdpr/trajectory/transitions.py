@@ -38,6 +38,7 @@ from cdpr.trajectory.core import (
 from cdpr.trajectory.double_s import DoubleS
 from cdpr.trajectory.jerk import jerk_excess, jerk_stretch, jerk_violation
 from cdpr.trajectory.limits import TrajectoryLimits, first_rate_violation, rate_violation
+from cdpr.trajectory.rotation import angular_rates
 
 MIN_BLEND = 1e-3  # s: the shortest transition (a goto to where the reference already is)
 _PEAK_SPEED = 15.0 / 8.0  # max of s'(τ) for the minimum-jerk s = 10τ³ - 15τ⁴ + 6τ⁵
@@ -48,6 +49,7 @@ _SAMPLES = np.arange(1, _CHECKS) / _CHECKS  # the interior samples, as fractions
 _GROW = 1.25  # candidate durations grow geometrically from a lower bound ...
 _BISECTIONS = 12  # ... then the first feasible one is refined
 _MARGIN = 1.02  # final duration stretch: headroom for peaks between the samples
+_SHARE = 1.0 - 1e-6  # of a limit a profile or ramp plans to: rounding keeps its peaks below
 
 Result = TypeVar("Result")
 Steps = Generator[None, None, Result]
@@ -77,9 +79,9 @@ def goto_steps(
     resting = not (np.any(current.twist) or np.any(current.accel))
     if resting and (profiled := _double_s(current.pose, target, limits, start)) is not None:
         return profiled
-    T = yield from _blend_duration(current, end, limits)
-    first = Waypoint(start, current.pose, current.twist, current.accel)
-    return Trajectory([first, Waypoint(start + T, target)])
+    leads, T = yield from _ramp_first(current, limits, lambda s: _blend_duration(s, end, limits))
+    leads = _placed(leads, start)
+    return Trajectory([*leads, Waypoint(leads[-1].t + T, target)])
 
 
 def _double_s(
@@ -101,8 +103,7 @@ def _double_s(
             continue
         if jerk is None:
             return None
-        share = 1.0 - 1e-6  # the peaks sit exactly at the limits: keep rounding below
-        profile = DoubleS.fastest(distance, speed * share, accel * share, jerk * share)
+        profile = DoubleS.fastest(distance, speed * _SHARE, accel * _SHARE, jerk * _SHARE)
         moves.append((part, step[part] / distance, profile))
     if not moves:
         return None
@@ -164,10 +165,10 @@ def approach_steps(
     end = Reference(knot.pose, knot.twist, knot.accel)
     if current.same_as(end):
         return trajectory if start is None else trajectory.shifted(start - trajectory.start_time)
-    T = yield from _blend_duration(current, end, limits)
-    t0 = trajectory.start_time - T if start is None else start
-    first = Waypoint(t0, current.pose, current.twist, current.accel)
-    return trajectory.after_blend(first, t0 + T - trajectory.start_time)
+    leads, T = yield from _ramp_first(current, limits, lambda s: _blend_duration(s, end, limits))
+    span = leads[-1].t + T
+    t0 = trajectory.start_time - span if start is None else start
+    return trajectory.after_blend(_placed(leads, t0), t0 + span - trajectory.start_time)
 
 
 def stop_steps(
@@ -180,7 +181,17 @@ def stop_steps(
     accel) to zero, carries it: twist T/2 + accel T²/12 in the chart of the segment.  The
     segment is then that cubic's integral (its fifth-power term is zero), so each
     coordinate's speed keeps its sign unless the reference is already braking hard; a
-    fixed rest pose nearer than that makes the shortest segment overshoot and come back."""
+    fixed rest pose nearer than that makes the shortest segment overshoot and come back.
+    A reference still accelerating may leave no such duration (below it the jerk, above
+    it the speed is too high): its acceleration is then first brought to zero
+    (_ramp_first)."""
+    leads, (T, rest) = yield from _ramp_first(current, limits, lambda s: _stop(s, limits))
+    leads = _placed(leads, start)
+    return Trajectory([*leads, Waypoint(leads[-1].t + T, rest)])
+
+
+def _stop(current: Reference, limits: TrajectoryLimits) -> Steps[tuple[float, Pose]]:
+    """stop_steps's one segment to rest: its duration and the rest pose."""
     _check_rates(current, "current reference", limits)
 
     def rest(T: float) -> tuple[Reference, np.ndarray]:
@@ -196,8 +207,80 @@ def stop_steps(
     spin = float(np.linalg.norm(current.twist[3:]))
     lower = max(MIN_BLEND, 1.5 * speed / limits.linear_accel, 1.5 * spin / limits.angular_accel)
     T = yield from _shortest(violation, lower, limits)
-    first = Waypoint(start, current.pose, current.twist, current.accel)
-    return Trajectory([first, Waypoint(start + T, rest(T)[0].pose)])
+    return T, rest(T)[0].pose
+
+
+def _ramp_first(
+    current: Reference, limits: TrajectoryLimits, plan: Callable[[Reference], Steps[Result]]
+) -> Steps[tuple[list[Waypoint], Result]]:
+    """The waypoints a transition leads with (times from 0: the current state, then
+    perhaps a ramp's end) and `plan`'s one segment from the last of them.
+
+    `plan(current)` first; where no duration of that segment keeps the limits, a ramp
+    that brings the current acceleration linearly to zero at the jerk limits, and `plan`
+    from its end.  A reference accelerating hard (a double-S goto's first phase) leaves
+    one segment no duration at all: shorter ones break the jerk limit, longer ones carry
+    its acceleration on past the speed limit.  The ramp's speed moves along a line from
+    the current twist to its end's, so it keeps the speed limit where its end does; if
+    planning from there fails too, the first error stands."""
+    first = Waypoint(0.0, current.pose, current.twist, current.accel)
+    try:
+        return [first], (yield from plan(current))
+    except TrajectoryError as direct:
+        ramps = _ramps(current, limits)
+        if not ramps:
+            raise
+        end = ramps[-1]
+        try:
+            return [first, *ramps], (yield from plan(Reference(end.pose, end.twist, end.accel)))
+        except TrajectoryError:
+            raise direct from None
+
+
+def _ramps(current: Reference, limits: TrajectoryLimits) -> list[Waypoint]:
+    """Where the acceleration, brought linearly to zero at the jerk limits, leaves the
+    reference (times from 0): the linear and the angular part each ramps for as long as
+    its own jerk limit needs (MIN_BLEND at least), so a waypoint where the sooner one
+    ends and one where the other does (one where they end together; none if nothing
+    accelerates).  Each part is a cubic in each segment's chart, as a double-S profile's
+    jerk phase: from inside a double-S's first phase its speed ends where the profile's
+    would, at most its peak (its jerk a millionth below the limit, as the profile's)."""
+    accel = current.accel
+    if not np.any(accel):
+        return []
+    parts = (slice(0, 3), slice(3, 6))
+    ends = [MIN_BLEND, MIN_BLEND]  # when each part's acceleration reaches zero
+    # the angular jerk in the world differs from the chart's by the rotation's curvature
+    # terms (3e-6 of it on a turn at 1.2 rad/s): a little more room there
+    shares = (_SHARE, 1.0 - 1e-4)
+    for k, jerk in enumerate((limits.linear_jerk, limits.angular_jerk)):
+        if jerk is not None:
+            norm = float(np.linalg.norm(accel[parts[k]]))
+            ends[k] = max(MIN_BLEND, norm / (jerk * shares[k]))
+    leads, state, t = [], current, 0.0
+    for end in sorted(set(ends)):
+        h = end - t
+        step, rate, rate_dot = np.zeros(6), np.zeros(6), np.zeros(6)
+        for part, part_end in zip(parts, ends, strict=True):
+            v, a = state.twist[part], state.accel[part]
+            jerk = -a / (part_end - t) if part_end > t else 0.0 * a  # to zero at part_end
+            step[part] = v * h + a * (h * h / 2.0) + jerk * (h**3 / 6.0)
+            rate[part] = v + a * h + jerk * (h * h / 2.0)
+            rate_dot[part] = a + jerk * h
+        omega, omega_dot = angular_rates(step[3:], rate[3:], rate_dot[3:])
+        state = Reference(
+            retract(state.pose, step),
+            np.array([*rate[:3], *omega]),
+            np.array([*rate_dot[:3], *omega_dot]),
+        )
+        t = end
+        leads.append(Waypoint(t, state.pose, state.twist, state.accel))
+    return leads
+
+
+def _placed(leads: list[Waypoint], start: float) -> list[Waypoint]:
+    """`leads` (times from 0) moved to begin at `start`."""
+    return [Waypoint(start + w.t, w.pose, w.twist, w.accel) for w in leads]
 
 
 def _check_rates(state: Reference, name: str, limits: TrajectoryLimits) -> None:
