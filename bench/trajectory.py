@@ -2,7 +2,10 @@
 
 Prints per-call median and p99 in microseconds of: `Trajectory.sample()` on a
 20-waypoint trajectory at 1 kHz cycle times (`sample`), building that trajectory from
-its dict form (`parse`), and validating it against the default limits (`validate`).
+its dict form (`parse`), and validating it against the default limits (`validate`); and
+planning a hold (`hold`: stop_steps) and a goto home (`goto_moving`) from each of
+MOVING_STATES states along a 0.34 m goto with the jerk bounded (the trajectory limits of
+config/reference8-cia402.yaml), a third of them in its first phase, where a ramp leads.
 
     python bench/trajectory.py [--json] [--calls N]
 """
@@ -12,12 +15,27 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from pathlib import Path
 
 import numpy as np
 from timing import REFERENCE8, per_call_us, print_timings
 
 from cdpr import Pose, Robot
-from cdpr.trajectory import Trajectory, TrajectoryLimits, Waypoint, parse_trajectory, validate
+from cdpr.trajectory import (
+    Reference,
+    Trajectory,
+    TrajectoryLimits,
+    Waypoint,
+    goto,
+    parse_trajectory,
+    run_steps,
+    stop_steps,
+    validate,
+)
+from daemon.config import load_config
+
+CONFIGS = Path(__file__).resolve().parent.parent / "config"
+MOVING_STATES = 30  # along the goto the hold and goto_moving plans start from
 
 
 def reference_trajectory(robot: Robot, n_waypoints: int = 20, seed: int = 1) -> Trajectory:
@@ -42,15 +60,38 @@ def sample_us(trajectory: Trajectory, calls: int, rate_hz: float = 1000.0) -> di
     return per_call_us(lambda i: trajectory.sample(times[i % len(times)]), calls)
 
 
+def moving_states(robot: Robot, limits: TrajectoryLimits) -> list[Reference]:
+    """MOVING_STATES reference states along a goto 0.3 m in x and 0.15 m in z across home."""
+    home = robot.home
+    side = np.array([0.15, 0.0, 0.075])
+    behind, ahead = Pose(home.position - side), Pose(home.position + side)
+    flight = goto(Reference(behind, np.zeros(6), np.zeros(6)), ahead, limits)
+    times = np.linspace(0.0, flight.end_time, MOVING_STATES + 2)[1:-1]
+    return [flight.sample(float(t)) for t in times]
+
+
 def results(calls: int) -> dict[str, dict[str, float]]:
     robot = Robot.from_yaml(REFERENCE8)
     trajectory = reference_trajectory(robot)
     limits = TrajectoryLimits()
     data = trajectory.as_dict()
+    shipped = load_config(CONFIGS / "reference8-cia402.yaml").trajectory
+    states = moving_states(robot, shipped)
+    home = Pose(robot.home.position)
     return {
         "sample": sample_us(trajectory, calls),
         "parse": per_call_us(lambda i: parse_trajectory(data, limits), max(calls // 100, 20)),
         "validate": per_call_us(lambda i: validate(trajectory, robot, limits), 5),
+        "hold": per_call_us(
+            lambda i: run_steps(stop_steps(states[i % MOVING_STATES], shipped)),
+            3 * MOVING_STATES,
+            warm_up=MOVING_STATES,
+        ),
+        "goto_moving": per_call_us(
+            lambda i: goto(states[i % MOVING_STATES], home, shipped),
+            3 * MOVING_STATES,
+            warm_up=MOVING_STATES,
+        ),
     }
 
 

@@ -380,6 +380,13 @@ class Trajectory:
         return out
 
     @property
+    def lead_segments(self) -> int:
+        """The segments after_blend joined before the trajectory's own first waypoint
+        (0 if none)."""
+        blend = self._curve.blend
+        return 0 if blend is None else len(blend.leads)
+
+    @property
     def curve(self) -> Curve:
         """What `sample` evaluates: the segments, the time shift and the blend."""
         return self._curve

@@ -9,7 +9,10 @@ rest where the jerk is limited is instead the fastest double-S profile along the
 and the geodesic (cdpr.trajectory.double_s: time-optimal within the speed, acceleration
 and jerk limits; the minimum-jerk quintic takes 1.23x as long where the jerk binds, 1.2x
 where the acceleration does, up to 1.875x at the speed limit), a waypoint at each of its
-phase boundaries.
+phase boundaries.  Where no duration of the one segment keeps the limits (a reference
+accelerating hard with the jerk bounded: shorter segments break the jerk limit, longer
+ones carry the acceleration past the speed limit), the acceleration is first ramped to
+zero at the jerk limits, and the segment follows from there (_ramp_first).
 
 The search checks a few dozen candidate durations, 127 samples each.  `goto_steps` and
 `approach_steps` are the same functions as generators that yield after every candidate
@@ -47,8 +50,9 @@ _PEAK_JERK = 60.0  # max of |s'''(τ)|, at both ends
 _CHECKS = 128  # samples per candidate duration
 _SAMPLES = np.arange(1, _CHECKS) / _CHECKS  # the interior samples, as fractions of it
 _GROW = 1.25  # candidate durations grow geometrically from a lower bound ...
-_BISECTIONS = 12  # ... then the first feasible one is refined
+_BISECTIONS = 6  # ... then the first feasible one is refined to 0.4 % (below _MARGIN)
 _MARGIN = 1.02  # final duration stretch: headroom for peaks between the samples
+_DIRECT_LONGEST = 10.0  # s: a segment from an accelerating reference tried up to this long
 _SHARE = 1.0 - 1e-6  # of a limit a profile or ramp plans to: rounding keeps its peaks below
 
 Result = TypeVar("Result")
@@ -79,7 +83,7 @@ def goto_steps(
     resting = not (np.any(current.twist) or np.any(current.accel))
     if resting and (profiled := _double_s(current.pose, target, limits, start)) is not None:
         return profiled
-    leads, T = yield from _ramp_first(current, limits, lambda s: _blend_duration(s, end, limits))
+    leads, T = yield from _ramp_first(current, limits, lambda s, lim: _blend_duration(s, end, lim))
     leads = _placed(leads, start)
     return Trajectory([*leads, Waypoint(leads[-1].t + T, target)])
 
@@ -165,7 +169,7 @@ def approach_steps(
     end = Reference(knot.pose, knot.twist, knot.accel)
     if current.same_as(end):
         return trajectory if start is None else trajectory.shifted(start - trajectory.start_time)
-    leads, T = yield from _ramp_first(current, limits, lambda s: _blend_duration(s, end, limits))
+    leads, T = yield from _ramp_first(current, limits, lambda s, lim: _blend_duration(s, end, lim))
     span = leads[-1].t + T
     t0 = trajectory.start_time - span if start is None else start
     return trajectory.after_blend(_placed(leads, t0), t0 + span - trajectory.start_time)
@@ -185,7 +189,7 @@ def stop_steps(
     A reference still accelerating may leave no such duration (below it the jerk, above
     it the speed is too high): its acceleration is then first brought to zero
     (_ramp_first)."""
-    leads, (T, rest) = yield from _ramp_first(current, limits, lambda s: _stop(s, limits))
+    leads, (T, rest) = yield from _ramp_first(current, limits, lambda s, lim: _stop(s, lim))
     leads = _placed(leads, start)
     return Trajectory([*leads, Waypoint(leads[-1].t + T, rest)])
 
@@ -211,54 +215,69 @@ def _stop(current: Reference, limits: TrajectoryLimits) -> Steps[tuple[float, Po
 
 
 def _ramp_first(
-    current: Reference, limits: TrajectoryLimits, plan: Callable[[Reference], Steps[Result]]
+    current: Reference,
+    limits: TrajectoryLimits,
+    plan: Callable[[Reference, TrajectoryLimits], Steps[Result]],
 ) -> Steps[tuple[list[Waypoint], Result]]:
     """The waypoints a transition leads with (times from 0: the current state, then
-    perhaps a ramp's end) and `plan`'s one segment from the last of them.
+    perhaps a ramp's end) and `plan`'s one segment from the last of them, within `limits`.
 
-    `plan(current)` first; where no duration of that segment keeps the limits, a ramp
-    that brings the current acceleration linearly to zero at the jerk limits, and `plan`
-    from its end.  A reference accelerating hard (a double-S goto's first phase) leaves
-    one segment no duration at all: shorter ones break the jerk limit, longer ones carry
-    its acceleration on past the speed limit.  The ramp's speed moves along a line from
-    the current twist to its end's, so it keeps the speed limit where its end does; if
-    planning from there fails too, the first error stands."""
+    `plan` from the current state first; where no duration of that segment keeps the
+    limits, a ramp that brings the current acceleration linearly to zero at the jerk
+    limits, and `plan` from its end.  A reference accelerating hard (a double-S goto's
+    first phase) leaves one segment no duration at all: shorter ones break the jerk
+    limit, longer ones carry its acceleration on past the speed limit, so that first
+    attempt searches durations up to _DIRECT_LONGEST only where a ramp could follow (a
+    hold plans while the robot moves on).  The ramp's speed moves along a line from the
+    current twist to its end's, so it keeps the speed limit where its end does.  If both
+    fail, the first is searched over every duration the limits allow, and its error
+    stands."""
     first = Waypoint(0.0, current.pose, current.twist, current.accel)
-    try:
-        return [first], (yield from plan(current))
-    except TrajectoryError as direct:
-        ramps = _ramps(current, limits)
-        if not ramps:
-            raise
-        end = ramps[-1]
+    if np.any(current.accel):  # a ramp can follow
+        longest = min(limits.max_duration, _DIRECT_LONGEST)
         try:
-            return [first, *ramps], (yield from plan(Reference(end.pose, end.twist, end.accel)))
+            return [first], (
+                yield from plan(current, limits.model_copy(update={"max_duration": longest}))
+            )
         except TrajectoryError:
-            raise direct from None
+            pass
+        try:
+            ramps = _ramps(current, limits)
+            end = ramps[-1]
+            return [first, *ramps], (
+                yield from plan(Reference(end.pose, end.twist, end.accel), limits)
+            )
+        except TrajectoryError:
+            pass
+    return [first], (yield from plan(current, limits))
 
 
 def _ramps(current: Reference, limits: TrajectoryLimits) -> list[Waypoint]:
     """Where the acceleration, brought linearly to zero at the jerk limits, leaves the
     reference (times from 0): the linear and the angular part each ramps for as long as
     its own jerk limit needs (MIN_BLEND at least), so a waypoint where the sooner one
-    ends and one where the other does (one where they end together; none if nothing
-    accelerates).  Each part is a cubic in each segment's chart, as a double-S profile's
-    jerk phase: from inside a double-S's first phase its speed ends where the profile's
-    would, at most its peak (its jerk a millionth below the limit, as the profile's)."""
+    ends and one where the other does (one where they end together or one has none).
+    Each part is a cubic in each segment's chart, as a double-S profile's jerk phase:
+    from inside a double-S's first phase its speed ends where the profile's would, at
+    most its peak (its jerk a millionth below the limit, as the profile's)."""
     accel = current.accel
-    if not np.any(accel):
-        return []
     parts = (slice(0, 3), slice(3, 6))
-    ends = [MIN_BLEND, MIN_BLEND]  # when each part's acceleration reaches zero
-    # the angular jerk in the world differs from the chart's by the rotation's curvature
-    # terms (3e-6 of it on a turn at 1.2 rad/s): a little more room there
-    shares = (_SHARE, 1.0 - 1e-4)
-    for k, jerk in enumerate((limits.linear_jerk, limits.angular_jerk)):
-        if jerk is not None:
-            norm = float(np.linalg.norm(accel[parts[k]]))
-            ends[k] = max(MIN_BLEND, norm / (jerk * shares[k]))
+    # when each part's acceleration reaches zero (0: it has none); the angular jerk in
+    # the world differs from the chart's by the rotation's curvature terms (3e-6 of it
+    # on a turn at 1.2 rad/s): a little more room there
+    ends = [0.0, 0.0]
+    for k, (jerk, share) in enumerate(
+        ((limits.linear_jerk, _SHARE), (limits.angular_jerk, 1.0 - 1e-4))
+    ):
+        norm = float(np.linalg.norm(accel[parts[k]]))
+        if norm > 0.0:
+            ends[k] = MIN_BLEND if jerk is None else max(MIN_BLEND, norm / (jerk * share))
+    # no segment shorter than MIN_SEGMENT: a part ending just before the other ramps on
+    # with it (its jerk a little lower)
+    last = max(ends)
+    ends = [last if 0.0 < last - end < MIN_SEGMENT else end for end in ends]
     leads, state, t = [], current, 0.0
-    for end in sorted(set(ends)):
+    for end in sorted(set(ends) - {0.0}):
         h = end - t
         step, rate, rate_dot = np.zeros(6), np.zeros(6), np.zeros(6)
         for part, part_end in zip(parts, ends, strict=True):

@@ -50,7 +50,8 @@ if TYPE_CHECKING:
 
 STATUS_REPLIES = ("status", "enable", "disable", "brake", "reset")  # the core replies its status
 PLANNING_LEAD = 0.05  # s ahead of now a planned transition begins (planning takes time)
-HOLD_LEAD = 0.01  # the same for a hold: a stop plans in a few ms and should not wait
+HOLD_LEAD = 0.01  # the same for a hold, which should not wait: from a moving reference
+# it plans in ~13 ms (bench/trajectory.py `hold`); one that comes late is planned again
 MIN_LEAD = 0.005  # s: the least lead tried again after a plan came too late
 SETTLE_ATTEMPTS = 3  # plans of an approach that begins later, from the state it begins at
 HOLD_ATTEMPTS = 6  # a hold is never refused for want of time: it tries with longer leads
@@ -451,7 +452,8 @@ class Planner:
                 if target is not None:
                     self._check_target(target, what, inside, reach)
                 if validate == "blend":  # its end may be moving: checked in place
-                    await self._validate(planned, f"{what}'s approach", inside, reach, segments=1)
+                    leads = max(planned.lead_segments, 1)  # a ramp's too (transitions)
+                    await self._validate(planned, f"{what}'s approach", inside, reach, leads)
                 else:
                     await self._validate(planned, what, inside, reach)
             if self._holds != holds and what != "hold":

@@ -1216,7 +1216,10 @@ def test_holds_gotos_and_approaches_from_anywhere_in_a_jerk_limited_goto() -> No
 
 
 def test_without_the_ramp_those_states_had_no_transition(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(transitions, "_ramps", lambda current, limits: [])
+    def no_ramp(current: Reference, limits: TrajectoryLimits) -> list[Waypoint]:
+        raise TrajectoryError("ramp", "no ramp")
+
+    monkeypatch.setattr(transitions, "_ramps", no_ramp)
     refused = 0
     for current in states_along_a_double_s_goto():
         try:
