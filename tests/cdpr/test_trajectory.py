@@ -1261,17 +1261,26 @@ def test_goto_half_a_turn(angle: float) -> None:
         np.testing.assert_allclose(ref.accel, fd_accel(tr, t), atol=1e-4)
 
 
-def test_a_packed_curve_samples_as_the_trajectory_it_came_from() -> None:
+@pytest.mark.parametrize("leads", [1, 2])
+def test_a_packed_curve_samples_as_the_trajectory_it_came_from(leads: int) -> None:
     """The real-time core samples a curve unpacked from one array (no rebuilding): the
-    same reference as the trajectory, blend and time shift included, at every time."""
+    same reference as the trajectory, blend and time shift included, at every time (a
+    blend of one segment, or of two: a ramp's end between)."""
     body = Trajectory(random_waypoints(7, n=9))
     first = Waypoint(
         body.start_time - 0.8,
         Pose.from_rotvec([0.1, -0.2, 1.1], [0.0, 0.1, 0.0]),
         np.array([0.05, 0.0, 0.0, 0.0, 0.0, 0.02]),
+        np.array([0.3, 0.0, 0.0, 0.0, 0.0, 0.0]),
+    )
+    ramped = Waypoint(
+        body.start_time - 0.5,
+        Pose.from_rotvec([0.12, -0.2, 1.1], [0.0, 0.1, 0.01]),
+        np.array([0.1, 0.0, 0.0, 0.0, 0.0, 0.02]),
         np.zeros(6),
     )
-    blended = body.after_blend([first], 0.3).shifted(12.5)
+    blended = body.after_blend([first, ramped][:leads], 0.3).shifted(12.5)
+    assert blended.lead_segments == leads and len(blended) == 9 + leads
     header, data = blended.curve.packed()
     copy = Curve.unpacked(header, data.copy())
     times = np.linspace(blended.start_time - 1.0, blended.end_time + 1.0, 500)
