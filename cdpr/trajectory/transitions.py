@@ -54,6 +54,9 @@ _BISECTIONS = 6  # ... then the first feasible one is refined to 0.4 % (below _M
 _MARGIN = 1.02  # final duration stretch: headroom for peaks between the samples
 _DIRECT_LONGEST = 10.0  # s: a segment from an accelerating reference tried up to this long
 _SHARE = 1.0 - 1e-6  # of a limit a profile or ramp plans to: rounding keeps its peaks below
+# of the angular jerk limit a ramp plans to: the world's jerk differs from the chart's by
+# the rotation's curvature terms (3e-6 of it on a turn at 1.2 rad/s)
+_ANGULAR_RAMP_SHARE = 1.0 - 1e-4
 
 Result = TypeVar("Result")
 Steps = Generator[None, None, Result]
@@ -262,12 +265,9 @@ def _ramps(current: Reference, limits: TrajectoryLimits) -> list[Waypoint]:
     most its peak (its jerk a millionth below the limit, as the profile's)."""
     accel = current.accel
     parts = (slice(0, 3), slice(3, 6))
-    # when each part's acceleration reaches zero (0: it has none); the angular jerk in
-    # the world differs from the chart's by the rotation's curvature terms (3e-6 of it
-    # on a turn at 1.2 rad/s): a little more room there
-    ends = [0.0, 0.0]
+    ends = [0.0, 0.0]  # when each part's acceleration reaches zero (0: it has none)
     for k, (jerk, share) in enumerate(
-        ((limits.linear_jerk, _SHARE), (limits.angular_jerk, 1.0 - 1e-4))
+        ((limits.linear_jerk, _SHARE), (limits.angular_jerk, _ANGULAR_RAMP_SHARE))
     ):
         norm = float(np.linalg.norm(accel[parts[k]]))
         if norm > 0.0:
@@ -282,7 +282,7 @@ def _ramps(current: Reference, limits: TrajectoryLimits) -> list[Waypoint]:
         step, rate, rate_dot = np.zeros(6), np.zeros(6), np.zeros(6)
         for part, part_end in zip(parts, ends, strict=True):
             v, a = state.twist[part], state.accel[part]
-            jerk = -a / (part_end - t) if part_end > t else 0.0 * a  # to zero at part_end
+            jerk = -a / (part_end - t) if part_end > t else 0.0  # a reaches 0 at part_end
             step[part] = v * h + a * (h * h / 2.0) + jerk * (h**3 / 6.0)
             rate[part] = v + a * h + jerk * (h * h / 2.0)
             rate_dot[part] = a + jerk * h
