@@ -229,12 +229,14 @@ def test_the_inertia_converges_on_elastic_cables_and_stays_without_rotation(
 ) -> None:
     """Reference8's EA 1e5 cables, the platform's inertia `scale` times the file's and 2 kg
     hung 5 cm aside and 10 cm down (the centre of mass 15 mm off, the inertia about it
-    changed with it): turning about all three axes, the inertia's diagonal within 10 % and
-    its products within 0.015 kg m^2 of the truth (measured: x and y within 1 %, z, the
-    least excited, within 7 %: the cables' damping, which the robot file does not
-    describe; products within 0.007; the estimate from the planned forces was off by up to
-    47 %), the mass within 0.5 % and the centre of mass within 2 mm.  Then a vertical lift
-    and a hold (no rotation) leave the inertia exactly where it is."""
+    changed with it): turning about all three axes, the inertia's x and y diagonal within
+    3 %, z (the least excited) within 12 %, and its products within 0.015 kg m^2 of the
+    truth (measured: x and y within 1.7 %, z +3.0 % and +10.3 %, the same within 1.9 % at
+    latencies up to 1.5 ms: the cables' damping, which the robot file does not describe,
+    is ~3-5 % of that, the rest z's weak excitation; products within 0.007; the estimate
+    from the planned forces was off by up to 47 %), the mass within 0.5 % and the centre of
+    mass within 2 mm.  Then a vertical lift and a hold (no rotation) leave the inertia
+    exactly where it is."""
     payload = {"mass": 2.0, "position": [0.05, 0.0, -0.1]}
     plant = parse_plant_config({"mismatch": {"inertia_scale": scale, "payload": payload}})
     truth = plant.mismatch.apply(reference8, np.random.default_rng()).platform
@@ -244,8 +246,10 @@ def test_the_inertia_converges_on_elastic_cables_and_stays_without_rotation(
     estimate = controller.payload
     assert estimate is not None
     inertia = estimate.platform.inertia.copy()
-    np.testing.assert_allclose(np.diag(inertia), np.diag(truth.inertia), rtol=0.1)
-    assert np.abs(inertia - truth.inertia).max() < 0.015, inertia - truth.inertia
+    error = np.diag(inertia) / np.diag(truth.inertia) - 1.0
+    assert np.all(np.abs(error) < [0.03, 0.03, 0.12]), error
+    products = (inertia - truth.inertia)[np.triu_indices(3, 1)]
+    assert np.abs(products).max() < 0.015, products
     assert estimate.mass == pytest.approx(truth.mass, rel=0.005)
     assert math.dist(estimate.center_of_mass, truth.center_of_mass) < 2e-3
     lift = STANDARD_SET["vertical_lift"](reference8)
@@ -254,6 +258,32 @@ def test_the_inertia_converges_on_elastic_cables_and_stays_without_rotation(
         result = run_tracking(reference8, trajectory, controller, plant, settle=1.0)
         assert result.fault == ""
         np.testing.assert_allclose(estimate.platform.inertia, inertia, rtol=0.0, atol=1e-12)
+
+
+@pytest.mark.slow  # three flights, ~14 s
+def test_the_inertia_estimate_does_not_move_with_a_known_latency(reference8: Robot) -> None:
+    """The commands 0, 0.5 and 1 ms late (the controller told), the platform's inertia 0.7x
+    the file's on stiff cables: the three estimates of each diagonal entry within 2 % of
+    each other and 6 % of the truth (measured: z 5.0 / 3.7 / 4.5 %; with the force taken
+    at the measurement instant, where the latency put it in the ripple of the cycle's
+    command landing, -1.0 / 3.8 / 6.0 %)."""
+    robot = _without_stretch(reference8)
+    truth = np.diag(robot.platform.inertia) * 0.7
+    estimates = []
+    for latency in (0.0, 5e-4, 1e-3):  # a plant step that lands the commands that late
+        plant = parse_plant_config({
+            "cable": {"stiffness": 1e7}, "substeps": 10, "mismatch": {"inertia_scale": 0.7},
+            "step": 2.5e-4, "encoder": {"velocity_window_steps": 8},
+        })  # fmt: skip
+        controller = ParallelController(robot, INERTIA)
+        controller.set_latency(latency)
+        result = run_tracking(robot, rotation_wobble(robot), controller, plant, settle=0.5,
+                              latency=latency)  # fmt: skip
+        assert result.fault == ""
+        estimates.append(np.diag(controller.payload.platform.inertia) / truth - 1.0)
+    errors = np.array(estimates)
+    assert np.all(errors.max(axis=0) - errors.min(axis=0) < 0.02), errors
+    assert np.all(np.abs(errors) < 0.06), errors
 
 
 def test_pure_translation_leaves_the_inertia_the_files(reference8: Robot) -> None:
@@ -266,20 +296,32 @@ def test_pure_translation_leaves_the_inertia_the_files(reference8: Robot) -> Non
     assert controller.payload.mass == pytest.approx(11.0, rel=0.01)
 
 
-@pytest.mark.parametrize("latency", [0.0, 0.0013, 0.0047])
-def test_the_drives_force_follows_the_commands_through_latency_and_lag(latency: float) -> None:
-    """drive_force_weights against the first-order lag stepped exactly over 0.1 ms: the
-    commands held from `latency` after their cycle's instant; the force at each instant
-    within 0.01 N (the neglected tail: 1e-6 of a command)."""
-    period, lag, fine = 0.002, 0.002, 1e-4
+@pytest.mark.parametrize("lag", [0.002, 0.0])
+@pytest.mark.parametrize("latency", [0.0, 0.0005, 0.0013, 0.0047])
+def test_the_drives_force_follows_the_commands_through_latency_and_lag(
+    latency: float, lag: float
+) -> None:
+    """drive_force_weights against the first-order lag stepped exactly over 0.01 ms: the
+    commands held from `latency` after their cycle's instant, the force's mean over the
+    period centred on each instant within 0.01 N (the neglected tail: 1e-6 of a command;
+    the mean by the midpoint rule)."""
+    period, fine = 0.002, 1e-5
     commands = np.random.default_rng(1).uniform(-300.0, 300.0, 60)
-    weights = drive_force_weights(period, lag, latency)
-    force, steps = 0.0, round(period / fine)
-    for k in range(1, len(commands)):
-        for i in range(steps):  # from instant k - 1 to k, in steps of `fine`
-            t = (k - 1) * period + (i + 0.5) * fine
-            held = commands[math.floor((t - latency) / period)] if t >= latency else 0.0
-            force = held + (force - held) * math.exp(-fine / lag)
-        if k > len(weights) + 2:
-            before = commands[k - 1 :: -1][: len(weights)]  # the newest first
-            assert weights.dot(before) == pytest.approx(force, abs=0.01), k
+    weights, newest = drive_force_weights(period, lag, latency)
+    steps = round(period / fine)
+    t = (np.arange(len(commands) * steps) + 0.5) * fine  # midpoints of the fine steps
+    cycle = np.floor((t - latency) / period).astype(int)
+    held = np.where(t >= latency, commands[cycle.clip(0)], 0.0)
+    force, f = np.empty_like(t), 0.0  # the force at each midpoint, f at each step's end
+    half, whole = (math.exp(-fine / (2 * lag)), math.exp(-fine / lag)) if lag else (0.0, 0.0)
+    for i, h in enumerate(held):
+        force[i] = h + (f - h) * half
+        f = h + (f - h) * whole
+    checked = 0
+    for k in range(len(weights) + 1, len(commands) - 1):
+        inside = np.abs(t - k * period) < 0.5 * period
+        mean = float(np.mean(force[inside]))
+        used = commands[k + newest :: -1][: len(weights)]  # the newest first
+        assert weights.dot(used) == pytest.approx(mean, abs=0.01), k
+        checked += 1
+    assert checked > 20
