@@ -156,6 +156,9 @@ class StateMachine:
         return self.moving or self.state is SafetyState.PRETENSION
 
 
+STALE_HISTORY = 1.0  # s of cycles whose missed feedback a brake reports
+
+
 class SafetyMonitor:
     """The per-cycle brake triggers, configured from the daemon config."""
 
@@ -165,6 +168,11 @@ class SafetyMonitor:
         self.heartbeat_timeout = config.drives.heartbeat_timeout
         self.pose_limits = config.pose_limits
         self.stale = [0] * config.robot.n_cables
+        # which drives missed their feedback in each of the last second's cycles (a bit
+        # per drive), and in how many of them: a brake names them (`missed_feedback`)
+        self._missed = [0] * max(1, round(config.controller.rate_hz * STALE_HISTORY))
+        self._missed_at = 0
+        self._missed_counts = [0] * config.robot.n_cables
         # the length limits as plain floats, for the per-cycle test (`_length_violations`)
         self._length_bounds = list(
             zip(self.robot.length_min.tolist(), self.robot.length_max.tolist(), strict=True)
@@ -246,11 +254,14 @@ class SafetyMonitor:
         """Count consecutive cycles without feedback per actuator; the fault names the
         first drive over the limit and how many others are silent with it (one silent
         drive points at it or its cable, all of them at the bus or the host)."""
-        limit, over = self.limits.stale_cycles, []
+        limit, over, missed = self.limits.stale_cycles, [], 0
         for k, ok in enumerate(fresh):
             self.stale[k] = 0 if ok else self.stale[k] + 1
+            if not ok:
+                missed |= 1 << k
             if self.stale[k] >= limit:
                 over.append(k)
+        self._remember_missed(missed)
         if not over:
             return None
         first = over[0]
@@ -260,6 +271,24 @@ class SafetyMonitor:
             f"drive {first}: no feedback for {self.stale[first]} consecutive cycles "
             f"(limit {limit}){others}",
         )
+
+    def _remember_missed(self, missed: int) -> None:
+        """This cycle's drives without fresh feedback (bit k: drive k) in the history."""
+        i = self._missed_at
+        gone, self._missed[i] = self._missed[i], missed
+        self._missed_at = (i + 1) % len(self._missed)
+        if gone == missed:
+            return
+        counts = self._missed_counts
+        for k in range(len(counts)):
+            counts[k] += ((missed >> k) & 1) - ((gone >> k) & 1)
+
+    def missed_feedback(self) -> list[dict[str, int]]:
+        """The drives that missed their feedback in any of the last STALE_HISTORY s of
+        cycles, and in how many (`drive`, `cycles`): one drive answering late leaves its
+        length carried forward into forward kinematics, which a brake on tracking or
+        plausibility should be read beside."""
+        return [{"drive": k, "cycles": n} for k, n in enumerate(self._missed_counts) if n]
 
     def bus_error(self, now: float, what: str, bus_off: bool = False) -> Fault | None:
         """Record one bus error (error frame, failed send or receive); the bus fault if
@@ -334,4 +363,12 @@ class SafetyMonitor:
 
 
 # drive states in which a drive produces no commanded force (its power stage is off)
+def missed_text(missed: list[dict[str, int]]) -> str:
+    """`missed_feedback` for a brake's log line ("" if no drive missed any)."""
+    if not missed:
+        return ""
+    drives = ", ".join(f"drive {m['drive']} ({m['cycles']} cycles)" for m in missed)
+    return f"; feedback missed within {STALE_HISTORY:g} s: {drives}"
+
+
 _UNPOWERED = (DriveState.READY, DriveState.DISABLED, DriveState.UNKNOWN)

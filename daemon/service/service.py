@@ -46,7 +46,14 @@ from daemon.service.hold_report import HoldReport, hold_summary
 from daemon.service.homing import LengthOffsets
 from daemon.service.planner import PLANNING_LEAD
 from daemon.service.rest_check import judge
-from daemon.service.safety import Fault, SafetyMonitor, SafetyState, StateMachine, Trigger
+from daemon.service.safety import (
+    Fault,
+    SafetyMonitor,
+    SafetyState,
+    StateMachine,
+    Trigger,
+    missed_text,
+)
 from daemon.service.trusted_lengths import Implausible, TrustedLengths, cable_accel_bound
 from drivers.base import ActuatorDriver, DriverError, Feedback, FrameError, Timing
 from drivers.bus import CAN_ERR_BUSOFF
@@ -511,8 +518,11 @@ class Service:
         self._end_pretension(fault.message)
         if braked:
             deliberate = fault.trigger in (Trigger.SIGTERM, Trigger.COMMAND)
-            log.log(logging.WARNING if deliberate else logging.ERROR, fault.line())
-            self._emit({"event": "brake", "trigger": fault.trigger.value, "message": fault.message})
+            level = logging.WARNING if deliberate else logging.ERROR
+            missed = self.monitor.missed_feedback()
+            log.log(level, fault.line() + missed_text(missed))
+            self._emit({"event": "brake", "trigger": fault.trigger.value, "message": fault.message,
+                        "missed_feedback": missed})  # fmt: skip
 
     def _report_hold(self) -> None:
         """An event when the drives' answers to the brake change the verdict (whether

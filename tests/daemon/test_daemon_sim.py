@@ -121,6 +121,8 @@ def test_silent_node_brakes_on_stale_feedback(protocol: str) -> None:
     async def scenario() -> None:
         async with Stack(config_for(protocol)) as stack:
             service = stack.service
+            events: list[dict] = []
+            service.subscribe(events.append)
             await stack.enable()
             cycles = service.stats.cycles
             stack.sim.robot.silence(5)
@@ -129,6 +131,10 @@ def test_silent_node_brakes_on_stale_feedback(protocol: str) -> None:
             assert service.stats.cycles - cycles <= limit + 2
             assert _braked_by(stack) in (Trigger.STALE_FEEDBACK, Trigger.HEARTBEAT_LOST)
             assert "drive 5" in service.machine.fault.message
+            # the brake names the drive that missed its feedback, and in how many cycles
+            (brake,) = [e for e in events if e["event"] == "brake"]
+            missed = {m["drive"]: m["cycles"] for m in brake["missed_feedback"]}
+            assert missed.get(5, 0) >= limit - 1, brake
             positions, lowest = await stack.watch(0.4)
             _assert_no_fall(positions, lowest)
             with pytest.raises(CommandError, match="faults persist"):

@@ -13,12 +13,14 @@ from hypothesis import strategies as st
 from cdpr.controller import ParallelController
 from daemon.config import load_config
 from daemon.service.safety import (
+    STALE_HISTORY,
     Fault,
     SafetyMonitor,
     SafetyState,
     StateMachine,
     TransitionError,
     Trigger,
+    missed_text,
 )
 from drivers.base import DriveState, Feedback, NodeStatus
 
@@ -115,6 +117,31 @@ def test_stale_feedback_counts_consecutive_cycles(config) -> None:
         fault = together.check_freshness([k not in (2, 6, 7) for k in range(n)])
     assert fault is not None
     assert fault.message.startswith("drive 2: no feedback") and "drives 6, 7 too" in fault.message
+
+
+def test_a_brake_names_the_drives_that_missed_feedback_within_the_last_second(config) -> None:
+    """missed_feedback: per drive, the cycles of the last STALE_HISTORY s it missed its
+    feedback in (an isolated miss too, far below stale_cycles); older ones age out."""
+    monitor = SafetyMonitor(config)
+    n, window = config.robot.n_cables, round(config.controller.rate_hz * STALE_HISTORY)
+    assert monitor.missed_feedback() == []
+    monitor.check_freshness([k != 3 for k in range(n)])
+    for _ in range(5):
+        monitor.check_freshness([True] * n)
+    monitor.check_freshness([k not in (3, 6) for k in range(n)])
+    assert monitor.missed_feedback() == [{"drive": 3, "cycles": 2}, {"drive": 6, "cycles": 1}]
+    assert missed_text(monitor.missed_feedback()) == (
+        "; feedback missed within 1 s: drive 3 (2 cycles), drive 6 (1 cycles)"
+    )
+    for _ in range(window - 6):  # the first miss is now a second old
+        monitor.check_freshness([True] * n)
+    assert monitor.missed_feedback() == [{"drive": 3, "cycles": 1}, {"drive": 6, "cycles": 1}]
+    for _ in range(5):
+        monitor.check_freshness([True] * n)
+    assert len(monitor.missed_feedback()) == 2
+    monitor.check_freshness([True] * n)  # and the second
+    assert monitor.missed_feedback() == []
+    assert missed_text([]) == ""
 
 
 def test_bus_errors_within_one_second(config) -> None:
