@@ -155,6 +155,11 @@ class DrivesConfig(StrictModel):
     nodes: node id of each cable's drive (402: 1..127; ODrive: 0..63).
     gear_ratio: motor revolutions per drum revolution.
     counts_per_rev: encoder increments per motor revolution (ODrive reports turns: 1).
+    encoder_cpr: the encoder's increments per motor revolution behind a position the
+      drives report in turns (ODrive: the encoder's CPR, e.g. 8192); null: counts_per_rev.
+      The feedback tolerance's quantisation (daemon.config.feedback_tolerance).
+    encoder_noise: RMS noise of one reported length (m), measured with the cables at
+      rest; the feedback tolerance allows six standard deviations of it.
     direction: +1 when a positive motor rotation pays cable out.
     length_offset: cable length (m) at motor position 0 (set by homing).
     rated_torque: motor rated torque (N·m), the 402 torque unit is its per-mille (0x6076).
@@ -188,6 +193,8 @@ class DrivesConfig(StrictModel):
     nodes: list[Annotated[int, Field(ge=0, le=127)]]
     gear_ratio: PositiveFloat = 1.0
     counts_per_rev: PositiveFloat = 1.0
+    encoder_cpr: PositiveFloat | None = None
+    encoder_noise: Annotated[float, Field(ge=0.0, le=0.01)] = 0.0
     direction: Direction | list[Direction] = 1
     length_offset: FiniteFloat | list[FiniteFloat] = 0.0
     rated_torque: PositiveFloat | None = None

@@ -98,6 +98,13 @@ def config_summary(
         f"drives: {d.protocol} nodes {d.nodes}, brake {d.brake.value}, "
         f"watchdog {d.watchdog_timeout * 1e3:g} ms"
     )
+    tolerance = config.feedback_tolerance
+    summary["feedback_tolerance"] = {
+        "total_m": tolerance.total, "quantisation_m": tolerance.quantisation,
+        "noise_m": tolerance.noise, "stretch_m": tolerance.stretch,
+        "configured": tolerance.configured is not None,
+    }  # fmt: skip
+    lines.append(tolerance.describe())
     loads: dict[str, float] = {}
     rate = config.controller.rate_hz
     if d.protocol == "cia402":  # what a dead daemon leaves behind (checked at load)

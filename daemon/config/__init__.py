@@ -43,6 +43,7 @@ from cdpr.trajectory import (
     tracked_length_limits,
 )
 from daemon.config.environment_config import EnvironmentConfig, environment_of
+from daemon.config.feedback_tolerance import FeedbackTolerance, feedback_tolerance
 from daemon.config.ros2_config import Ros2Settings
 from daemon.config.view_config import ViewConfig
 from daemon.config.watchdog_drift import DriftBound, check_drift, drift_bounds
@@ -82,7 +83,13 @@ class SafetyConfig(StrictModel):
       (daemon.service.trusted_lengths); it must exceed what the trajectory limits allow.
     feedback_tolerance: encoder noise, quantisation and cable stretch allowed between two
       samples (m): the allowance beyond max_cable_speed, and the most one cable may
-      disagree with the pose the others give.
+      disagree with the pose the others give.  "auto": derived from the encoders'
+      increments, drives.encoder_noise and the stretch of unplanned_tension
+      (daemon.config.feedback_tolerance; `cdprd check-config` prints it); a number
+      replaces that, but not below the increments alone.
+    unplanned_tension: the most a cable's tension may change between two samples beyond
+      what the controller planned (N: a hand on the platform, the drives' force error);
+      the cables' stretch (robot file's cable_stiffness) turns it into length.
     companion_hang: seconds the companion process (zenoh, planning, recording) may stay
       silent before the core kills and restarts it.
     companion_lost: seconds a moving robot goes on (its trajectory, then holding) without
@@ -107,7 +114,8 @@ class SafetyConfig(StrictModel):
     feedback_deadline: Fraction = 0.5
     bus_errors_max: Annotated[int, Field(ge=0)] = 5
     max_cable_speed: PositiveFloat = 3.0
-    feedback_tolerance: PositiveFloat = 1e-3
+    feedback_tolerance: PositiveFloat | Literal["auto"] = "auto"
+    unplanned_tension: Annotated[float, Field(gt=0.0, le=1e4)] = 8.0
     bus_lost_exit: Annotated[float, Field(gt=0.0, le=60.0)] = 1.0
     companion_hang: Annotated[float, Field(ge=0.2, le=60.0)] = 1.0
     companion_lost: Annotated[float, Field(gt=0.0, le=3600.0)] = 10.0
@@ -278,6 +286,14 @@ class DaemonConfig:
             self.watchdog_drift = drift_bounds(robot, self.drives.nodes, raw.trajectory, detection)
         # the buses of `can:` (one, or a list), the first the only one in a single-bus config
         self.buses: list[CanConfig] = can_buses(raw.can, self.drives, source)
+        configured = raw.safety.feedback_tolerance
+        try:
+            self.feedback_tolerance: FeedbackTolerance = feedback_tolerance(
+                robot, self.drives, raw.safety.unplanned_tension,
+                None if configured == "auto" else configured,
+            )  # fmt: skip
+        except ConfigError as exc:
+            raise exc.within(source) from None
         self.safety = raw.safety
         self.trajectory = raw.trajectory
         self.zenoh: ZenohSettings = validate_section(ZenohSettings, raw.zenoh, source, "zenoh")

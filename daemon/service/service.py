@@ -129,20 +129,21 @@ class Service:
             robot,
             config.drives.nodes,
             max_speed=config.safety.max_cable_speed,
-            tolerance=config.safety.feedback_tolerance,
+            tolerance=config.feedback_tolerance.total,
             slack=2.0 * self.period + 0.01,
             rest_tensions=static_tensions(robot, self.controller.tension, robot.home),
             max_accel=cable_accel_bound(
                 config.trajectory, robot.geometry.attachments, min(config.reference_lengths.lower)
             ),
             stretch=self.controller.stretch,
+            shortest=min(config.reference_lengths.lower),
         )
         # the length offsets in force (homing, calibration) and whether each still holds
         self.offsets = LengthOffsets(
             [s.length_offset for s in config.drives.scalings_for(robot)],
             config.drives.nodes,
             silent_cycles=math.ceil(config.drives.heartbeat_timeout / self.period),
-            tolerance=config.safety.feedback_tolerance,
+            tolerance=config.feedback_tolerance.total,
         )
         self.identity = robot_identity(robot, config.drives)  # what stored offsets must match
         self._load_offsets()

@@ -37,8 +37,11 @@ Lambda; one cable off by e leaves N N^T e_k e, largest on that cable when normal
 residual |N_k . N^T d| / |N_k| exceeds the tolerance is inconsistent.  Cables whose rows
 N_k are parallel cannot be told apart this way (reference8 pairs them in two groups of
 four at home): the message names every cable that disagrees as much.  N is linearised at
-a recent measured pose (`follow_pose`), again once the pose moved REFRESH_DISTANCE; the
-change is usually one cycle's, so cable stretch and the linearisation barely enter.
+a recent measured pose (`follow_pose`), again once the pose moved REFRESH_DISTANCE: its
+rows have turned by up to REFRESH_DISTANCE over the `shortest` cable since, and read up
+to that share of a rigid change as residual, which the check allows beside the tolerance
+(reference8, flying 4 mm a cycle: up to 58 um; 3 % of the change at its shortest cable).
+The change is usually one cycle's, so cable stretch barely enters.
 After a gap between trusted sets (a stalled host, lost frames) it is not: the linear
 check errs with the square of the change (reference8, measured: about d^2 / 1 m for a
 largest cable change d, 0.76 mm at 28 mm, 3.0 mm at 57 mm), which braked flights on
@@ -83,7 +86,7 @@ from cdpr.stretch import ComplianceScale
 from cdpr.trajectory.limits import TrajectoryLimits
 
 RETRY = 0.1  # s between attempts to trust a first set after one failed
-REFRESH_DISTANCE = 0.05  # m (or rad) the pose may move before N is linearised again
+REFRESH_DISTANCE = 0.01  # m (or rad) the pose may move before N is linearised again
 # x feedback_tolerance: the largest change of a cable the linear consistency check judges
 # alone (module docstring); at 1 mm, a 1 cm change, where it errs by 0.1 mm on reference8
 LINEAR_REACH = 10.0
@@ -130,6 +133,7 @@ class TrustedLengths:
         rest_tensions: Sequence[float],
         max_accel: float = 0.0,
         stretch: ComplianceScale | None = None,
+        shortest: float = math.inf,
     ) -> None:
         self.robot = robot
         self.n = n = robot.n_cables
@@ -141,6 +145,8 @@ class TrustedLengths:
         self.slack = slack
         self.max_accel = max_accel
         self.linear_reach = LINEAR_REACH * tolerance  # m of change judged linearly alone
+        # of a change, what N linearised up to REFRESH_DISTANCE away may read as residual
+        self.motion_share = REFRESH_DISTANCE / shortest
         self.rest_tensions = np.asarray(rest_tensions, dtype=float)
         self.stretch = ComplianceScale(robot) if stretch is None else stretch
         self.held = [math.nan] * n
@@ -193,13 +199,16 @@ class TrustedLengths:
             return flagged
         residuals = self._residuals(change)
         largest = max(residuals, default=0.0)
-        if largest > self.tolerance and self._far(change, instant):
-            residuals = self._second_look(change, instant) or residuals
-            largest = max(residuals)
-        if largest > self.tolerance:
+        moved = max(map(abs, change))
+        allowed = self.tolerance + self.motion_share * moved  # and the linearisation's
+        if largest > allowed and self._far(moved, instant):
+            looked = self._second_look(change, instant)
+            if looked is not None:  # exact: the tolerance alone
+                residuals, largest, allowed = looked, max(looked), self.tolerance
+        if largest > allowed:
             worst = residuals.index(largest)
             if all(f.cable != worst for f in flagged):
-                flagged.append(self._disagrees(worst, lengths[worst], residuals))
+                flagged.append(self._disagrees(worst, lengths[worst], residuals, allowed))
             return flagged
         if not flagged:  # the usual cycle: the whole set is trusted
             held[:] = lengths
@@ -373,12 +382,12 @@ class TrustedLengths:
             out.append(abs(r) * scale)
         return out
 
-    def _far(self, change: Sequence[float], instant: float) -> bool:
-        """A change too large for the linear check alone, and no second look failed
-        within RETRY."""
+    def _far(self, moved: float, instant: float) -> bool:
+        """A change (its largest cable's, `moved` m) too large for the linear check
+        alone, and no second look failed within RETRY."""
         if instant < self._next_look or self._pose is None:
             return False
-        return max(map(abs, change)) > self.linear_reach
+        return moved > self.linear_reach
 
     def _second_look(self, change: Sequence[float], instant: float) -> list[float] | None:
         """The consistency residuals of a long change, from the least-squares poses of
@@ -402,9 +411,11 @@ class TrustedLengths:
             self._next_look = instant + RETRY
         return residuals
 
-    def _disagrees(self, k: int, x: float, residuals: list[float], why: str = "") -> Implausible:
-        """Cable k disagrees most with the pose the others give; names the cables that
-        disagree as much (the geometry cannot tell them apart)."""
+    def _disagrees(
+        self, k: int, x: float, residuals: list[float], allowed: float, why: str = ""
+    ) -> Implausible:
+        """Cable k disagrees most with the pose the others give, by more than `allowed`
+        (m); names the cables that disagree as much (the geometry cannot tell them apart)."""
         largest = residuals[k]
         alike = [
             f"{j} (node {self.nodes[j]})"
@@ -413,8 +424,11 @@ class TrustedLengths:
         ]
         reason = (
             f"length {x:.4f} m disagrees by {largest * 1e3:.2f} mm with the pose the other "
-            f"cables give (feedback_tolerance {self.tolerance * 1e3:.2f} mm)" + why
+            f"cables give (feedback_tolerance {self.tolerance * 1e3:.2f} mm"
         )
+        if allowed > self.tolerance:
+            reason += f" + {(allowed - self.tolerance) * 1e3:.2f} mm for the linearisation"
+        reason += ")" + why
         if alike:
             reason += f"; drives {', '.join(alike)} disagree as much: the geometry cannot tell"
             reason += " them apart"
@@ -456,7 +470,9 @@ class TrustedLengths:
             residuals = self._residuals((stretched - robot.cable_lengths(fk.pose)).tolist())
             worst = residuals.index(max(residuals))
             why = f"; the lengths fit no pose ({fk.reason})"
-            flagged.append(self._disagrees(worst, float(lengths[worst]), residuals, why))
+            flagged.append(
+                self._disagrees(worst, float(lengths[worst]), residuals, self.tolerance, why)
+            )
             self._pose = None  # the next attempt starts from home, not from a failed fit
         self._failed = flagged
         self._next_attempt = instant + RETRY
