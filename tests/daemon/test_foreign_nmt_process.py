@@ -109,7 +109,11 @@ def test_another_node_s_command_ends_in_a_confirmed_hold(
             finally:
                 intruder.shutdown()
             status = wait_status(client, "braked", 10.0)
-            assert status["fault"]["trigger"] in ("drive_fault", "stale_feedback"), status
+            # the drives' report of the state (their heartbeat), their silence, or, when
+            # idle axes drop the platform before the next heartbeat says so, its weight
+            # as a wrench the model does not explain (seen on a fast host, every run)
+            triggers = ("drive_fault", "stale_feedback", "external_wrench")
+            assert status["fault"]["trigger"] in triggers, status
             time.sleep(0.3)  # a brake at speed comes to rest
             start = truth(truth_log)[-1]
             status = wait_confirmed(client, 10.0)
