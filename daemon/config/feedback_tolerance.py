@@ -51,7 +51,7 @@ class FeedbackTolerance:
         return self.quantisation + self.noise + self.stretch
 
     def describe(self) -> str:
-        """One line for check-config and the start-up log."""
+        """One line for check-config."""
         terms = (
             f"quantisation {self.quantisation * 1e3:.3f} + noise {self.noise * 1e3:.3f} + "
             f"stretch {self.stretch * 1e3:.3f} mm"

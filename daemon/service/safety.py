@@ -362,7 +362,6 @@ class SafetyMonitor:
         return None
 
 
-# drive states in which a drive produces no commanded force (its power stage is off)
 def missed_text(missed: list[dict[str, int]]) -> str:
     """`missed_feedback` for a brake's log line ("" if no drive missed any)."""
     if not missed:
@@ -371,4 +370,5 @@ def missed_text(missed: list[dict[str, int]]) -> str:
     return f"; feedback missed within {STALE_HISTORY:g} s: {drives}"
 
 
+# drive states in which a drive produces no commanded force (its power stage is off)
 _UNPOWERED = (DriveState.READY, DriveState.DISABLED, DriveState.UNKNOWN)

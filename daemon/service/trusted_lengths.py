@@ -199,12 +199,14 @@ class TrustedLengths:
             return flagged
         residuals = self._residuals(change)
         largest = max(residuals, default=0.0)
-        moved = max(map(abs, change))
-        allowed = self.tolerance + self.motion_share * moved  # and the linearisation's
-        if largest > allowed and self._far(moved, instant):
-            looked = self._second_look(change, instant)
-            if looked is not None:  # exact: the tolerance alone
-                residuals, largest, allowed = looked, max(looked), self.tolerance
+        allowed = self.tolerance
+        if largest > allowed:  # and the linearisation's share of the change
+            moved = max(map(abs, change))
+            allowed += self.motion_share * moved
+            if largest > allowed and self._far(moved, instant):
+                looked = self._second_look(change, instant)
+                if looked is not None:  # exact: the tolerance alone
+                    residuals, largest, allowed = looked, max(looked), self.tolerance
         if largest > allowed:
             worst = residuals.index(largest)
             if all(f.cable != worst for f in flagged):
