@@ -142,6 +142,7 @@ class ActuatorOverrides(StrictModel):
     length_max: PositiveFloat | None = None  # m, this cable's; null: actuator.length_max
     t_min: NonNegativeFloat | None = None  # N, this cable's; null: actuator.t_min
     cable_stiffness: PositiveFloat | None = None  # N, this cable's EA; null: actuator's
+    cable_damping: NonNegativeFloat | None = None  # N s, this cable's; null: actuator's
     cable_diameter: PositiveFloat | None = None  # m, this cable's; null: actuator's
     spool: SpoolSpec | None = None  # this cable's drum buildup; null: actuator.spool
 
@@ -159,6 +160,10 @@ class ActuatorSpec(StrictModel):
     t_min: minimum cable tension kept by the tension distribution, N.
     cable_stiffness: EA of the cable (N per unit strain) for the stretch correction of
       the encoder lengths, l_geometric = l_drum (1 + t / EA); None: inextensible.
+    cable_damping: the cable's internal damping D (N s per unit strain rate: t = EA e +
+      D e'), so its strain follows the tension with the lag D / EA (100 on EA 1e5: 1 ms);
+      the payload estimate takes the stretch through it.  None: no lag.  Needs
+      cable_stiffness.
     cable_diameter: the cable's diameter (m): two cables closer than the mean of their
       diameters interfere (cdpr.interference); None: the spool's, else 4 mm.
     spool: the drum's radius growing with the cable wound on (SpoolSpec); None: constant.
@@ -172,6 +177,7 @@ class ActuatorSpec(StrictModel):
     length_max: PositiveFloat
     t_min: NonNegativeFloat
     cable_stiffness: PositiveFloat | None = None
+    cable_damping: NonNegativeFloat | None = None
     cable_diameter: PositiveFloat | None = None
     spool: SpoolSpec | None = None
 
@@ -190,6 +196,11 @@ class ActuatorSpec(StrictModel):
             )
         if self.t_min >= self.force_max:
             raise ValueError(f"t_min ({self.t_min}) must be below force_max ({self.force_max})")
+        if self.cable_damping is not None and self.cable_stiffness is None:
+            raise ValueError(
+                f"cable_damping ({self.cable_damping} N s) needs cable_stiffness: an "
+                "inextensible cable has no strain to damp"
+            )
         spool = self.spool
         if spool is not None and spool.wound_at_zero < self.length_max:
             raise ValueError(

@@ -31,7 +31,10 @@ that their means are their values at t_k (a longer mean of the force, the triang
 SPAN cycles that l'' is, was not: under ~300 N of internal force the tensions' curvature
 while the platform turns read as 2.5 % on y), and y = Lambda(eta)^T t at the
 measured pose moved by the stretch these tensions cause beyond the planned ones (which
-forward kinematics applied).  The sample waits SPAN cycles for its data.  The motion is
+forward kinematics applied), the strain following the tensions D / EA late (the robot
+file's cable_damping: t - (D / EA) t', t' from the forces of the cycles either side;
+without it reference8's 1 ms read as z +10 % at 0.7x the file's inertia, x -3 % at
+1.5x).  The sample waits SPAN cycles for its data.  The motion is
 the reference's at t_k: the true acceleration differs by the tracking error's, which
 averages out over the window.  From the planned forces instead (the force lag, the
 back-EMF of the reference's rates, the stretch of the planned tensions) the ~0.2 N m of
@@ -244,6 +247,7 @@ class PayloadEstimate:
         self._robot = robot
         self._m0, self._k0 = robot.m0, robot.k0
         self._elastic = bool(np.any(robot.compliance > 0.0))
+        self._strain_lag = robot.strain_lag if np.any(robot.strain_lag > 0.0) else None
         self.period = period
         self._lag = drive_lag
         self._recent: deque[tuple] = deque()
@@ -304,8 +308,9 @@ class PayloadEstimate:
     def set_latency(self, latency: float) -> None:
         """The time (s) from a measurement to its command reaching the drives."""
         self._weights, self._newest = drive_force_weights(self.period, self._lag, latency)
-        # a sample: SPAN cycles either side of it, and its window's commands
-        oldest = self._newest - len(self._weights) + 1
+        # a sample: SPAN cycles either side of it, and its window's commands (one cycle
+        # more either side for the force's rate)
+        oldest = self._newest - len(self._weights)
         self._recent = deque(self._recent, maxlen=SPAN + 1 + max(SPAN, -oldest))
 
     def update(self) -> bool:
@@ -349,7 +354,7 @@ class PayloadEstimate:
         # the drive's force over the period centred on the sample: the commands that act
         # in it (the newest first), weighted
         newest = -1 - SPAN + self._newest
-        force = self._weights.dot([recent[newest - j][6] for j in range(len(self._weights))])
+        force = self._mean_force(recent, newest)
         # the drives' rates are means over the period before their measurement
         rate = 0.5 * (rates + recent[-SPAN][5])
         span = SPAN * self.period
@@ -358,11 +363,21 @@ class PayloadEstimate:
         # (through the drive's lag too: k0 (l' - lag l'')) and the drum's inertia
         tension = force - self._k0 * rate - (self._m0 - self._k0 * self._lag) * accel
         if self._elastic and fk.normal_factor is not None:  # by these tensions' stretch
+            stretched = tension
+            if self._strain_lag is not None:  # which the strain follows D / EA late
+                later, earlier = (self._mean_force(recent, newest + d) for d in (1, -1))
+                tension_rate = 0.5 * (later - earlier) / self.period - self._k0 * accel
+                stretched = tension - self._strain_lag * tension_rate
             stretch = lengths * self._robot.compliance  # stretched_by: scaled already
-            change = stretch * (-tension * scale - stretched_by)
+            change = stretch * (-stretched * scale - stretched_by)
             moved, _ = dpotrs(fk.normal_factor, change.dot(fk.jacobian))
             pose = retract(pose, moved)
         return pose, tension, reference
+
+    def _mean_force(self, recent: deque[tuple], newest: int) -> Array:
+        """The drives' force over the period centred on a cycle whose newest command acting
+        in it is recent[newest] (drive_force_weights)."""
+        return self._weights.dot([recent[newest - j][6] for j in range(len(self._weights))])
 
     def _solve(self) -> bool:
         if self._weight == 0.0:

@@ -69,6 +69,8 @@ class Robot:
         self.compliance = np.array(
             [0.0 if a.cable_stiffness is None else 1.0 / a.cable_stiffness for a in self.actuators]
         )
+        # s: how far each cable's strain lags its tension (damping / EA)
+        self.strain_lag = self.compliance * [a.cable_damping or 0.0 for a in self.actuators]
         self.home = Pose(spec.home.position, spec.home.quaternion.as_tuple())
         self.poses = {"home": self.home} | {
             name: Pose(p.position, p.quaternion.as_tuple()) for name, p in spec.poses.items()

@@ -61,6 +61,11 @@ def test_example_robots_load(robot: Robot) -> None:
             "cables.0.pulley.axis: pulley axis must be a unit vector; its norm is 0",
         ),
         (lambda d: d.update(cables=d["cables"][:5]), "cables: List should have at least 6 items"),
+        (
+            lambda d: d["actuator"].pop("cable_stiffness"),
+            "actuator: cable_damping (100.0 N s) needs cable_stiffness",
+        ),
+        (lambda d: d["actuator"].update(cable_damping=-1), "actuator.cable_damping: Input should"),
         (lambda d: d.update(name="has space"), "name: String should match pattern"),
     ],
 )
@@ -76,6 +81,18 @@ def test_per_cable_override_applies_to_that_cable_only(data: dict) -> None:
     robot = Robot.from_dict(data)
     assert robot.m0[2] == 3.0 and robot.force_max[2] == 900.0
     assert robot.m0[1] == 1.9 and robot.force_max[1] == 600.0
+
+
+def test_the_strain_lags_the_tension_by_damping_over_stiffness(data: dict) -> None:
+    """The strain lag D / EA per cable: the defaults', a cable's own damping, none where the
+    cable has no damping."""
+    data["cables"][1]["actuator"] = {"cable_damping": 300.0}
+    data["cables"][2]["actuator"] = {"cable_damping": 0.0}
+    lag = Robot.from_dict(data).strain_lag
+    np.testing.assert_allclose(lag, [1e-3, 3e-3, 0.0, 1e-3, 1e-3, 1e-3, 1e-3, 1e-3], rtol=1e-12)
+    data["actuator"].pop("cable_damping")
+    del data["cables"][1]["actuator"]
+    np.testing.assert_array_equal(Robot.from_dict(data).strain_lag, 0.0)
 
 
 def test_home_outside_length_limits_is_rejected(data: dict) -> None:

@@ -19,7 +19,7 @@ from cdpr.single_actuator import pid
 from cdpr.trajectory import Trajectory, Waypoint
 from sim_bus.plant.config import parse_plant_config
 from tests.conftest import load_robot
-from tuning.comparison import HOLD, PAYLOADS, WARM_UP, payload_figures
+from tuning.comparison import HOLD, PAYLOADS, WARM_UP, inertia_figures, payload_figures
 from tuning.scenarios import STANDARD_SET, rotation_wobble
 from tuning.tracking import run_tracking
 
@@ -195,10 +195,12 @@ def test_the_integral_hands_over_only_what_it_holds() -> None:
 
 
 def _without_stretch(robot: Robot) -> Robot:
-    """`robot` with rigid cables (no cable_stiffness): for a plant of stiff cables."""
+    """`robot` with rigid cables (no cable_stiffness, no damping): for a plant of stiff
+    cables."""
     data = robot.spec.model_dump(exclude_none=True)
     for actuator in [data["actuator"]] + [cable["actuator"] for cable in data["cables"]]:
         actuator.pop("cable_stiffness", None)
+        actuator.pop("cable_damping", None)
     return Robot.from_dict(data)
 
 
@@ -230,13 +232,12 @@ def test_the_inertia_converges_on_elastic_cables_and_stays_without_rotation(
     """Reference8's EA 1e5 cables, the platform's inertia `scale` times the file's and 2 kg
     hung 5 cm aside and 10 cm down (the centre of mass 15 mm off, the inertia about it
     changed with it): turning about all three axes, the inertia's x and y diagonal within
-    3 %, z (the least excited) within 12 %, and its products within 0.015 kg m^2 of the
-    truth (measured: x and y within 1.7 %, z +3.0 % and +10.3 %, the same within 1.9 % at
-    latencies up to 1.5 ms: the cables' damping, which the robot file does not describe,
-    is ~3-5 % of that, the rest z's weak excitation; products within 0.007; the estimate
-    from the planned forces was off by up to 47 %), the mass within 0.5 % and the centre of
-    mass within 2 mm.  Then a vertical lift and a hold (no rotation) leave the inertia
-    exactly where it is."""
+    3 %, z (the least excited) within 7 %, and its products within 0.01 kg m^2 of the
+    truth (measured: x and y within 1.6 %, z +4.8 % and -0.4 %, products within 0.006; with
+    the cables' damping left out of the robot file, so the stretch taken without its 1 ms
+    lag, z +10.3 % and +3.0 %; from the planned forces the estimate was off by up to 47 %),
+    the mass within 0.5 % and the centre of mass within 2 mm.  Then a vertical lift and a
+    hold (no rotation) leave the inertia exactly where it is."""
     payload = {"mass": 2.0, "position": [0.05, 0.0, -0.1]}
     plant = parse_plant_config({"mismatch": {"inertia_scale": scale, "payload": payload}})
     truth = plant.mismatch.apply(reference8, np.random.default_rng()).platform
@@ -247,9 +248,9 @@ def test_the_inertia_converges_on_elastic_cables_and_stays_without_rotation(
     assert estimate is not None
     inertia = estimate.platform.inertia.copy()
     error = np.diag(inertia) / np.diag(truth.inertia) - 1.0
-    assert np.all(np.abs(error) < [0.03, 0.03, 0.12]), error
+    assert np.all(np.abs(error) < [0.03, 0.03, 0.07]), error
     products = (inertia - truth.inertia)[np.triu_indices(3, 1)]
-    assert np.abs(products).max() < 0.015, products
+    assert np.abs(products).max() < 0.01, products
     assert estimate.mass == pytest.approx(truth.mass, rel=0.005)
     assert math.dist(estimate.center_of_mass, truth.center_of_mass) < 2e-3
     lift = STANDARD_SET["vertical_lift"](reference8)
@@ -284,6 +285,17 @@ def test_the_inertia_estimate_does_not_move_with_a_known_latency(reference8: Rob
     errors = np.array(estimates)
     assert np.all(errors.max(axis=0) - errors.min(axis=0) < 0.02), errors
     assert np.all(np.abs(errors) < 0.06), errors
+
+
+@pytest.mark.slow  # the bench's two flights at a 0.25 ms plant step, ~4 s
+def test_the_benchs_inertia_figure_with_half_a_millisecond_of_latency(reference8: Robot) -> None:
+    """bench/controller.py's `inertia_latency` (the commands 0.5 ms late, the controller
+    told; elastic cables, inertia 1.5x the file's, 2 kg off-centre): the diagonal within
+    2.5 % (measured -1.27 / 0.22 / -1.91 %; -2.98 / -0.42 / 1.86 % with the cables' strain
+    taken without its damping lag)."""
+    figures = inertia_figures(reference8, ControllerSpec(), 5e-4)
+    assert figures["fault"] == ""
+    assert np.all(np.abs(figures["diagonal_error_pct"]) < 2.5), figures
 
 
 def test_pure_translation_leaves_the_inertia_the_files(reference8: Robot) -> None:
