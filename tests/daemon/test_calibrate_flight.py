@@ -46,7 +46,7 @@ class Bench:
     """The daemon processes (`cdprd run --sim`, the truth from sim.robot) a user restarts
     on each corrected file, and at the end the simulator as a process of its own."""
 
-    def __init__(self, tmp_path: Path, move: float, seed: int) -> None:
+    def __init__(self, tmp_path: Path, move: float, seed: int, drum_scale: float = 1.0) -> None:
         rng = np.random.default_rng(seed)
         self.tmp = tmp_path
         self.zenoh = free_port()
@@ -60,7 +60,10 @@ class Bench:
         self.data["sim"]["plant"] = {
             "cable": {"stiffness": self.true.actuators[0].cable_stiffness},
             "encoder": {"counts_per_metre": 1.0e5, "noise_std": 0.0},
-            "mismatch": {"encoder_offsets": self.encoder_offsets.tolist()},
+            "mismatch": {
+                "encoder_offsets": self.encoder_offsets.tolist(),
+                "drum_radius_scale": drum_scale,
+            },
         }
         self.data["zenoh"]["state_rate_hz"] = 250.0  # the states calibrate averages
         # three processes and TCP relays beside other work at the end: patient drives
@@ -109,9 +112,14 @@ class Bench:
         assert run.returncode == 0, run.stdout + run.stderr
         processes.wait_status(self.client, "hold", 10.0)
 
+    def scale_distance(self) -> tuple[str, str]:
+        """`--scale-distance` as a user measures it: the true anchors of cables 0 and 5."""
+        anchors = np.asarray(self.true.geometry.anchors)
+        return "--scale-distance", f"0,5,{float(np.linalg.norm(anchors[0] - anchors[5]))!r}"
+
     def calibrate(self, output: Path, *options: str) -> dict:
         run = cdprd(
-            "calibrate", "--config", str(self.config), "--no-scale", "--json",
+            "calibrate", "--config", str(self.config), "--json",
             "--output", str(output), *options, *self.connection, timeout=900.0,
         )  # fmt: skip
         assert run.returncode == 0, run.stderr[-3000:]
@@ -146,15 +154,18 @@ def fly_calibration(
     tmp_path: Path,
     move: float,
     rounds: list[tuple[str, ...]],
-    anchors_within: float = 1e-3,
-    offsets_within: float = 0.2e-3,
-    reached_within: float = 0.5e-3,
+    anchors_within: float,
+    offsets_within: float,
+    reached_within: float,
+    drum_scale: float = 1.0,
 ) -> None:
-    """Home, calibrate in `rounds` (each restarting the daemon on the last file), check
-    the written file and offsets against the truth (the issue's bounds by default; EA
-    within 10 %), then fly the true platform with the corrected file to two poses, each
+    """Home, calibrate in `rounds` (each restarting the daemon on the last file; with the
+    scale measured between two true anchors where the drums are `drum_scale` x the file's,
+    else without), check the written file and offsets against the truth (EA within 10 %),
+    then fly the true platform with the corrected file to two poses 0.3 m from home, each
     reached within `reached_within`."""
-    bench = Bench(tmp_path, move, seed=16)
+    bench = Bench(tmp_path, move, seed=16, drum_scale=drum_scale)
+    scale = bench.scale_distance() if drum_scale != 1.0 else ("--no-scale",)
     try:
         bench.start(ROBOTS / "reference8.yaml")
         homed = cdprd("home", *bench.connection)
@@ -165,7 +176,7 @@ def fly_calibration(
                 bench.start(model)  # the offsets stored by the last calibration apply
             bench.enable()
             model = tmp_path / f"calibrated-{k + 1}.yaml"
-            report = bench.calibrate(model, *options)
+            report = bench.calibrate(model, *scale, *options)
         corrected = Robot.from_yaml(model)
         anchor = bench.anchor_errors(corrected)
         offset = np.abs(np.array(report["offsets"]) - bench.true_offsets())
@@ -183,10 +194,11 @@ def fly_calibration(
         bench.start_on_simulator(model)
         bench.enable()
         frame = model_frame(bench.true, corrected)
-        for offset_xyz in ([0.2, -0.15, 0.1], [-0.2, 0.1, -0.15]):
-            target = corrected.home.position + np.array(offset_xyz)
-            assert cdprd("goto", *map(str, target), *bench.connection).returncode == 0
-            time.sleep(2.5)
+        for direction in ([0.2, -0.15, 0.1], [-0.2, 0.1, -0.15]):
+            target = corrected.home.position + 0.3 * np.array(direction) / np.linalg.norm(direction)
+            went = cdprd("goto", *map(str, target), "--wait", *bench.connection)
+            assert went.returncode == 0, went.stderr
+            time.sleep(1.0)  # settled
             reached = frame.to_model(bench.true_pose()).position
             off = np.linalg.norm(reached - target)
             print(f"goto {target}: the true platform {off * 1e3:.3f} mm off")
@@ -199,21 +211,15 @@ def fly_calibration(
 @pytest.mark.long
 @pytest.mark.timeout(900)
 def test_calibration_through_the_daemon_finds_the_true_robot(tmp_path: Path) -> None:
-    """The issue's case: every anchor 20 mm off, encoder zeros anywhere within a drum
-    turn, EA 0.6 x: home, calibrate close to home (30 poses), restart on that file,
-    calibrate over the workspace (80 poses); anchors within 1 mm, offsets within 0.2 mm,
-    EA within 10 %, and the true platform goes where the calibrated daemon sends it."""
-    fly_calibration(
-        tmp_path,
-        0.02,
-        [
-            ("--poses", "30", "--reach", "0.3", "0.3", "0.22"),
-            (
-                "--poses",
-                "80",
-            ),
-        ],
-    )
+    """The issue's case: every anchor 20 mm off, the drums 1.01 x the file's (without a
+    scale reference the written robot would be 1 % small: anchors ~25 mm off), encoder
+    zeros anywhere within a drum turn, EA 0.6 x: home, calibrate close to home (30 poses),
+    restart on that file, calibrate over the workspace (80 poses), each round given the
+    distance between two anchors; anchors within 0.3 mm, offsets within 0.2 mm, EA within
+    10 %, and the true platform within 0.3 mm of where the calibrated daemon sends it,
+    0.3 m from home."""
+    rounds = [("--poses", "30", "--reach", "0.3", "0.3", "0.22"), ("--poses", "80")]
+    fly_calibration(tmp_path, 0.02, rounds, 0.3e-3, 0.2e-3, 0.3e-3, drum_scale=1.01)
 
 
 # m: how far the true platform may end from a goto's target on the one round's file.  The
