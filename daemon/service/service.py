@@ -30,6 +30,7 @@ from cdpr.pretension import Pretension, ramp_target
 from cdpr.trajectory import Reference
 from cdpr.trajectory.core import Curve
 from daemon.config import DaemonConfig
+from daemon.config.feedback_tolerance import NoiseWatch
 from daemon.service.api import CommandError
 from daemon.service.bus_port import Buses, open_port
 from daemon.service.calibration_state import (
@@ -146,6 +147,7 @@ class Service:
             tolerance=config.feedback_tolerance.total,
         )
         self.identity = robot_identity(robot, config.drives)  # what stored offsets must match
+        self._noise = NoiseWatch(config.feedback_tolerance, config.drives.nodes)
         self._load_offsets()
         self._trajectory: Curve | None = None
         self._scheduled: list[Curve] = []  # accepted, beginning later, by start time
@@ -1014,6 +1016,10 @@ class Service:
                 f"by {spread[k] * 1e3:.2f} mm over {HOME_SAMPLES} cycles (at rest: below "
                 f"{REST_SPREAD * 1e3:g} mm)",
             )
+        noisy = self._noise.take(lengths)
+        if noisy is not None:
+            log.warning("%s: %s", what, noisy["message"])
+            self._emit(noisy)
         return lengths
 
     async def in_slack(self, steps: Generator[Any, None, Result]) -> Result:
