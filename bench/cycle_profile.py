@@ -16,7 +16,8 @@ children.  The wrappers cost `wrapper_ns` each (measured) and the parents carry
 `p99_us` is the service's own compute time (CycleStats, what `cdprd demo` prints),
 measured in a window before the wrappers go in.  `state_snapshot_us`: Service.state(),
 which the companion host takes at zenoh.state_rate_hz on the core (in the slack, not
-in a cycle, but on its CPU).  `simulator_us_per_cycle`: the in-process simulator's
+in a cycle, but on its CPU), and the cycle statistics' summary it takes afresh once a
+second.  `simulator_us_per_cycle`: the in-process simulator's
 callbacks, CPU time per cycle (in the process's CPU, in no cycle).
 
 --cprofile N profiles the instrumented window instead with cProfile and prints its
@@ -183,17 +184,22 @@ def wrapper_ns() -> float:
     return round(costs[1] - costs[0], 1)
 
 
-def snapshot_us(service: Service, calls: int = 50) -> dict[str, float]:
-    """Median and p99 of Service.state(): the snapshot the companion publishes at
-    zenoh.state_rate_hz, in the cycle's slack but on the core's CPU (its cycle
-    statistics summarise the rings of the cycles since the measurement began: 10^4
-    samples each at most, where a long-running daemon's are)."""
-    clock, samples = time.perf_counter_ns, []
-    for _ in range(calls):
-        start = clock()
-        service.state()
-        samples.append(clock() - start)
-    return _summary(np.array(samples, dtype=float))
+def snapshot_us(service: Service, calls: int = 50) -> dict[str, dict[str, float]]:
+    """Median and p99 of Service.state(), the snapshot the companion publishes at
+    zenoh.state_rate_hz, in the cycle's slack but on the core's CPU (`state`: with the
+    cycle statistics' summaries as kept for up to a second), and of those summaries
+    taken afresh, as once a second (`cycle_summary`: the rings of the cycles since the
+    measurement began, 10^4 samples each at most, where a long-running daemon's are)."""
+    clock = time.perf_counter_ns
+    out = {}
+    for name, call in (("state", service.state), ("cycle_summary", service.stats.summary)):
+        samples = []
+        for _ in range(calls):
+            start = clock()
+            call()
+            samples.append(clock() - start)
+        out[name] = _summary(np.array(samples, dtype=float))
+    return out
 
 
 def profiled(profiler: cProfile.Profile, owner: Any, attribute: str) -> None:

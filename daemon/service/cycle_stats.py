@@ -70,16 +70,27 @@ class CycleStats:
         self.deadline_misses = 0  # feedback incomplete at the deadline, once out of INIT
         self.overruns = 0  # whole periods skipped (timer expirations > 1)
         self.bus_errors = 0
+        self._rings: tuple[int, dict[str, dict[str, float]]] | None = None  # (cycles, summaries)
 
-    def summary(self) -> dict[str, object]:
+    def summary(self, max_age: int | None = None) -> dict[str, object]:
+        """The counters, and the rings' median, p99 and max: those summarised now, or
+        up to `max_age` cycles ago (the published state takes them once a second: four
+        rings of 10^4 samples cost ~0.5 ms a time on a small vCPU, 2.8 % of a core at
+        50 Hz)."""
+        rings = self._rings
+        if rings is None or max_age is None or not 0 <= self.cycles - rings[0] <= max_age:
+            summaries = {
+                "jitter": self.jitter.summary_us(),
+                "compute": self.compute.summary_us(),
+                "prepare": self.prepare.summary_us(),
+                "latency": self.latency.summary_us(),
+            }
+            rings = self._rings = (self.cycles, summaries)
         return {
             "rate_hz": self.rate_hz,
             "cycles": self.cycles,
             "deadline_misses": self.deadline_misses,
             "overruns": self.overruns,
             "bus_errors": self.bus_errors,
-            "jitter": self.jitter.summary_us(),
-            "compute": self.compute.summary_us(),
-            "prepare": self.prepare.summary_us(),
-            "latency": self.latency.summary_us(),
+            **rings[1],
         }

@@ -1255,7 +1255,7 @@ class Service:
             "lengths": self.offsets.read([fb.length for fb in feedback]),
             "rates": [fb.rate for fb in feedback],
             "cycle": {
-                **self.stats.summary(),
+                **self.stats.summary(max_age=round(self.stats.rate_hz)),  # once a second
                 "gc": self.collector.stats.summary(),
                 "command_lead_us": round(self.controller.lead * 1e6, 1),
             },

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from daemon.service.cycle_stats import Ring
+from daemon.service.cycle_stats import CycleStats, Ring
 
 
 @pytest.mark.parametrize("count", [1, 2, 7, 100, 10_000, 12_345])
@@ -55,3 +55,24 @@ def test_summary_equals_the_full_sorts_and_leaves_the_ring_in_order(count: int) 
     before = ring.values().copy()
     assert ring.summary_us() == _sorted_summary_us(before)
     np.testing.assert_array_equal(ring.values(), before)
+
+
+def test_the_published_summary_is_at_most_max_age_cycles_old() -> None:
+    """The counters are always current; the rings' summaries are taken again once
+    `max_age` cycles have passed since the last (the published state: once a second),
+    and every time without it."""
+    stats = CycleStats(500.0)
+    stats.compute.add(1e-4)
+    stats.cycles = 1
+    assert stats.summary(max_age=500)["compute"]["p50_us"] == 100.0
+    stats.compute.add(3e-4)
+    stats.cycles, stats.deadline_misses = 501, 2
+    kept = stats.summary(max_age=500)
+    assert kept["compute"]["p50_us"] == 100.0 and kept["deadline_misses"] == 2
+    assert kept["cycles"] == 501
+    assert stats.summary()["compute"]["p50_us"] == 200.0
+    stats.compute.add(5e-4)
+    stats.cycles = 502
+    assert stats.summary(max_age=500)["compute"]["p50_us"] == 200.0
+    stats.cycles = 1002
+    assert stats.summary(max_age=500)["compute"]["p50_us"] == 300.0
