@@ -64,4 +64,4 @@ class JointSpaceController:
         if self._error.shape[0] > 1:
             self._error[1] = np.asarray(length_rates, dtype=float) - rate_r
         a = self.loop.step(self._error)
-        return -static.tensions + self.cable_mass * (accel_r + a) + robot.k0 * rate_r
+        return -static.tensions + self.cable_mass * (accel_r + a) + robot.drag(rate_r)

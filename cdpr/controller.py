@@ -4,7 +4,8 @@ One object per robot.  Each cycle: sample the reference, forward kinematics from
 measured lengths, the twist from the measured rates, the pose error
 theta_d = liediff(eta_r, eta) (the erratum of DESIGN §3: actual minus requested), the
 single-actuator controller on each of the 6 tangent components, the command wrench
-tau_c = M alpha_c + mu, the back-EMF part f_b = k0 Lambda(eta_r) phi_r, the no-load
+tau_c = M alpha_c + mu, the back-EMF part f_b = k0 Lambda(eta_r) phi_r (and the robot
+file's Coulomb friction along those cable rates, cdpr.friction), the no-load
 forces f0 = m0 (Lambda alpha_c + c), the tension distribution f_p = F(tau_c, f_b, f0)
 (not in W: infeasible, the daemon brakes), and the commands f_c = f_p + f_b.  With elastic
 cables the drums also move the cables' stretch as the tensions change: the rate the
@@ -275,7 +276,7 @@ class ParallelController:
         robot = self.robot
         model = robot.model_terms(ahead.pose, ahead.twist) if self._at_reference else None
         Lam_r = model[0] if model is not None else robot.jacobian(ahead.pose)
-        f_b = robot.k0 * Lam_r.dot(ahead.twist)  # ndarray.dot: see the cdpr.kinematics docstring
+        f_b = robot.drag(Lam_r.dot(ahead.twist))  # ndarray.dot: see cdpr.kinematics
         factored = self.tension.factored(Lam_r) if model is not None else None
         tensions = None
         if self._stretch_corrected:
@@ -520,7 +521,7 @@ def wrench_check(robot: Robot, tension: TensionSolver) -> WrenchCheck:
     def check(pose: Pose, twist: Array, accel: Array) -> str | None:
         Lam, c, M, mu = robot.model_terms(pose, twist)
         result = tension.solve(
-            Lam, M @ accel + mu, robot.k0 * (Lam @ twist), robot.m0 * (Lam @ accel + c)
+            Lam, M @ accel + mu, robot.drag(Lam @ twist), robot.m0 * (Lam @ accel + c)
         )
         return None if result.feasible else f"wrench not in W: {result.reason}"
 

@@ -143,6 +143,7 @@ class ActuatorOverrides(StrictModel):
     t_min: NonNegativeFloat | None = None  # N, this cable's; null: actuator.t_min
     cable_stiffness: PositiveFloat | None = None  # N, this cable's EA; null: actuator's
     cable_damping: NonNegativeFloat | None = None  # N s, this cable's; null: actuator's
+    friction: NonNegativeFloat | None = None  # N, this winch's; null: actuator's
     cable_diameter: PositiveFloat | None = None  # m, this cable's; null: actuator's
     spool: SpoolSpec | None = None  # this cable's drum buildup; null: actuator.spool
 
@@ -164,6 +165,9 @@ class ActuatorSpec(StrictModel):
       D e'), so its strain follows the tension with the lag D / EA (100 on EA 1e5: 1 ms);
       the payload estimate takes the stretch through it.  None: no lag.  Needs
       cable_stiffness.
+    friction: the winch's Coulomb friction in cable coordinates (N, against the drum's
+      motion; `cdprd tune` identifies it): the controller adds it along the reference's
+      cable rates (cdpr.friction).  None: none.
     cable_diameter: the cable's diameter (m): two cables closer than the mean of their
       diameters interfere (cdpr.interference); None: the spool's, else 4 mm.
     spool: the drum's radius growing with the cable wound on (SpoolSpec); None: constant.
@@ -178,6 +182,7 @@ class ActuatorSpec(StrictModel):
     t_min: NonNegativeFloat
     cable_stiffness: PositiveFloat | None = None
     cable_damping: NonNegativeFloat | None = None
+    friction: NonNegativeFloat | None = None
     cable_diameter: PositiveFloat | None = None
     spool: SpoolSpec | None = None
 

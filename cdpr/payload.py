@@ -360,8 +360,9 @@ class PayloadEstimate:
         span = SPAN * self.period
         accel = (recent[-1][3] - 2.0 * lengths + recent[-1 - 2 * SPAN][3]) / (span * span)
         # minus the cables' tensions (the commands' sign): the force less the back-EMF
-        # (through the drive's lag too: k0 (l' - lag l'')) and the drum's inertia
-        tension = force - self._k0 * rate - (self._m0 - self._k0 * self._lag) * accel
+        # (through the drive's lag too: k0 (l' - lag l'')), the friction and the drum's
+        # inertia
+        tension = force - self._robot.drag(rate) - (self._m0 - self._k0 * self._lag) * accel
         if self._elastic and fk.normal_factor is not None:  # by these tensions' stretch
             stretched = tension
             if self._strain_lag is not None:  # which the strain follows D / EA late

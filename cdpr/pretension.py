@@ -223,7 +223,7 @@ class Pretension:
         pull = spec.wind_force
         error = rates + spec.wind_speed  # > 0: winding in slower than wind_speed
         self._integral = np.clip(self._integral + self._ki * error * h, -pull, pull)
-        feed = self.robot.k0 * spec.wind_speed
+        feed = self.robot.drag(np.full(self.robot.n_cables, spec.wind_speed))
         forces = np.clip(-(feed + self._kp * error + self._integral), -pull, pull)
         moved = np.abs(lengths - self._band) > spec.taut_band
         self._band[moved] = lengths[moved]

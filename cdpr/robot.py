@@ -25,6 +25,7 @@ from cdpr.forward_kinematics import (
     linearise,
     solve_forward_kinematics,
 )
+from cdpr.friction import friction_direction
 from cdpr.kinematics import CableGeometry, to_array
 from cdpr.pose import Pose
 from cdpr.so3 import quat_to_r9
@@ -71,6 +72,8 @@ class Robot:
         )
         # s: how far each cable's strain lags its tension (damping / EA)
         self.strain_lag = self.compliance * [a.cable_damping or 0.0 for a in self.actuators]
+        self.friction = np.array([a.friction or 0.0 for a in self.actuators])  # N, Coulomb
+        self._frictional = bool(np.any(self.friction > 0.0))
         self.home = Pose(spec.home.position, spec.home.quaternion.as_tuple())
         self.poses = {"home": self.home} | {
             name: Pose(p.position, p.quaternion.as_tuple()) for name, p in spec.poses.items()
@@ -144,6 +147,14 @@ class Robot:
         R = quat_to_r9(*pose.quaternion_tuple)
         phi = _twist_list(twist)
         return np.array(self.geometry.evaluate(pose.position_tuple, R, phi, jacobian=False))
+
+    def drag(self, rates: Array) -> Array:
+        """The force (N, commands' sign) the winches add to move their drums at `rates`
+        (m/s): the back-EMF k0 l' and the Coulomb friction against the motion
+        (cdpr.friction)."""
+        if self._frictional:
+            return self.k0 * rates + self.friction * friction_direction(rates)
+        return self.k0 * rates
 
     def stretched_lengths(self, drum_lengths: ArrayLike, tensions: ArrayLike) -> Array:
         """Geometric cable lengths from the lengths the drums paid out, under `tensions`

@@ -10,9 +10,9 @@ load of known mass (none, hanging, or clamped).  Linearised at rest, it predicts
 length l(t) from the command f_c(t) as sent: the commands are held from the moment they
 left the host, and the prediction is read at each feedback sample's stamp, so the
 loop's own delays are part of the data rather than of the model.  The Coulomb friction
-F_c is a force against the drum's measured speed (smoothed, its sign softened below
-SPEED_FLOOR), so the model stays linear in its input: left out, 2 N of it made k0 three
-times too large with a tight-looking confidence.  scipy's least squares fits m0, k0,
+F_c is a force against the drum's measured speed (smoothed, its sign softened as
+cdpr.friction softens it), so the model stays linear in its input: left out, 2 N of it
+made k0 three times too large with a tight-looking confidence.  scipy's least squares fits m0, k0,
 tau, F_c (and D, a constant force bias and the starting length) to the measured
 lengths; each parameter's confidence is 1.96 standard errors from the Jacobian at the
 optimum, widened for the residual's lag-1 autocorrelation (an AR(1) residual's
@@ -38,6 +38,7 @@ from numpy.typing import NDArray
 from scipy import optimize, signal
 
 from cdpr.description import ActuatorSpec
+from cdpr.friction import friction_direction
 from sim_bus.plant.config import ActuatorModelConfig, CableConfig, PlantConfig
 from sim_bus.plant.rig import SingleActuatorRig
 from tuning.experiment import Load
@@ -45,10 +46,12 @@ from tuning.experiment import Load
 Array = NDArray[np.float64]
 GRID = 5e-4  # s: the simulation grid of the prediction
 NAMES = ("m0", "k0", "lag", "cable_damping", "bias", "friction")
-SPEED_FLOOR = 5e-3  # m/s: below it the friction's sign is softened (tanh), noise is no motion
 SMOOTHING = 0.01  # s: the window (Savitzky-Golay, quadratic) of the measured speed
 RANGE = 20.0  # the fitted m0, k0, lag and damping lie within this factor of the guess
 FRICTION_GUESS = 0.1  # N: where the friction's fit starts (inside its bound, >= 0)
+# N: a fitted friction this large is the winch's (frictionless simulated winches fit
+# below 0.05 N), so `cdprd tune` writes it into the robot file's actuator block
+FRICTION_FOUND = 0.2
 # the lag-1 autocorrelation of the residual beyond which the fit is said to miss part of
 # the dynamics: on the simulator's winches 0.03-0.77 without friction or noise (free,
 # hanging, clamped), 0.92-0.96 with 0.5-2 N of Coulomb friction (fitted) or with force
@@ -171,14 +174,14 @@ def segment_residuals(
 
 def _motion(data: dict[str, Array]) -> Array:
     """sgn(l') at each sample, softened: tanh of the measured speed (a quadratic
-    Savitzky-Golay derivative over SMOOTHING) over SPEED_FLOOR."""
+    Savitzky-Golay derivative over SMOOTHING), as cdpr.friction softens it."""
     t, length = data["sample_t"], data["length"]
     step = float(np.median(np.diff(t)))
     window = max(5, 2 * round(SMOOTHING / step / 2) + 1)
     if len(length) <= window:
         return np.zeros(len(length))
     speed = signal.savgol_filter(length, window, 2, deriv=1, delta=step)
-    return np.tanh(speed / SPEED_FLOOR)
+    return friction_direction(speed)
 
 
 def fitted_lengths(setup: Setup, model: Identified, data: dict[str, Array]) -> Array:

@@ -167,7 +167,7 @@ def _time_motion(
     model = _GridModel.of(geometry, grid, robot)
     rows = _Rows(model, robot, limits, timing.margin, caps)
     damping = np.zeros(len(grid))  # s' at which the winches' damping is taken
-    for _ in range(2 if np.any(robot.k0) else 1):
+    for _ in range(2 if np.any(robot.k0) or np.any(robot.friction) else 1):
         c = rows.constant(damping)
         sdd, speed, _, failed = parameterize(rows.a, rows.b, c, rows.xbound, grid)
         if failed >= 0:
@@ -455,9 +455,9 @@ class _Rows:
     def constant(self, damping: Array) -> Array:
         """c with the winches' damping taken at path speeds `damping` (one per point):
         the tension range [lo, hi] is [t_min + margin, g_1 + f_max - margin], g_1 the
-        damping force."""
+        damping force (back-EMF and friction: Robot.drag)."""
         robot, lo, top = self.robot, self.lo, self.top
-        g_1 = robot.k0 * self.lv * damping[:, None]
+        g_1 = robot.drag(self.lv * damping[:, None])
         above, below = self.above_1, self.below_1
         if np.any(g_1):
             above = above + _times(self.positive, g_1)

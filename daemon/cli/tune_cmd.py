@@ -26,9 +26,10 @@ simulated time instead (fast, deterministic).
 --json prints one object: drive, load {mass, clamped}, experiment {seconds, frames,
 samples, latency, transit, abort}, model {m0, k0, lag, cable_damping, confidence,
 residual_rms, response_rms, friction, residual_correlation, misfit}, actuator (the robot
-file's block), actuator_model (sim.plant.actuator), friction (sim.plant.friction), gains
-{kp, ki, kd, derivative_filter, bandwidth, ok, modal_mass_range, modal_loops [{mass,
-settling_time, overshoot, poles}]}, controller (the config section), plot (the --plot
+file's block; its friction where the fit found at least 0.2 N), actuator_model
+(sim.plant.actuator), friction (sim.plant.friction), gains {kp, ki, kd,
+derivative_filter, bandwidth, ok, modal_mass_range, modal_loops [{mass, settling_time,
+overshoot, poles}]}, controller (the config section), plot (the --plot
 file), checks (--check-loads: per load {load, mass, settling_time, overshoot,
 predicted_settling_time, predicted_overshoot, abort}). After an abort of the
 identification: {drive, abort, reason}.
@@ -339,6 +340,8 @@ async def _on_bus(
 def _report(
     drive: int, request: Request, result: Run, gains: Design, modal: tuple, rate: float
 ) -> dict[str, Any]:
+    from tuning.identify import FRICTION_FOUND
+
     model = result.model
     assert model is not None
     return {
@@ -364,7 +367,12 @@ def _report(
             "residual_correlation": model.residual_correlation,
             "misfit": model.misfit(),
         },
-        "actuator": {"m0": round(model.m0, 4), "k0": round(model.k0, 3)},
+        "actuator": {
+            "m0": round(model.m0, 4),
+            "k0": round(model.k0, 3),
+            # the robot file's friction, which the controller compensates, where found
+            **({"friction": round(model.friction, 3)} if model.friction >= FRICTION_FOUND else {}),
+        },
         "actuator_model": {"c": [round(model.lag, 6)]},
         "friction": {"coulomb": round(model.friction, 3)},
         "gains": {

@@ -66,6 +66,7 @@ def test_example_robots_load(robot: Robot) -> None:
             "actuator: cable_damping (100.0 N s) needs cable_stiffness",
         ),
         (lambda d: d["actuator"].update(cable_damping=-1), "actuator.cable_damping: Input should"),
+        (lambda d: d["actuator"].update(friction=float("nan")), "actuator.friction: Input should"),
         (lambda d: d.update(name="has space"), "name: String should match pattern"),
     ],
 )

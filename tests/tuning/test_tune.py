@@ -151,17 +151,19 @@ def test_tune_lockstep_identifies_the_true_robots_winch(
     config.write_text(yaml.safe_dump(data))
     args = ["tune", "--config", str(config), "--sim", "--lockstep", "--drive", "3"]
     assert main([*args, "--duration", "8", "--json"]) == 0
-    model = json.loads(capsys.readouterr().out)["model"]
+    out = json.loads(capsys.readouterr().out)
     for name, true in TRUE.items():
-        assert model[name] == pytest.approx(true, rel=0.05), name
+        assert out["model"][name] == pytest.approx(true, rel=0.05), name
+    assert "friction" not in out["actuator"]  # a frictionless winch has none written
 
 
 @pytest.mark.slow  # over 10 s of the default run's 10 minutes
 def test_tune_prints_the_friction_and_warns_of_a_misfit(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    """A winch with 2 N of Coulomb friction: `cdprd tune` prints the friction for
-    sim.plant and a warning naming the misfit; its results still stand (exit 0)."""
+    """A winch with 2 N of Coulomb friction: `cdprd tune` writes the friction into the
+    robot file's actuator block (which the controller compensates) and for sim.plant,
+    and a warning naming the misfit; its results still stand (exit 0)."""
     config = tune_config(tmp_path)
     data = yaml.safe_load(config.read_text())
     data["sim"]["plant"]["friction"] = {"coulomb": 2.0}
@@ -171,10 +173,13 @@ def test_tune_prints_the_friction_and_warns_of_a_misfit(
     captured = capsys.readouterr()
     out = json.loads(captured.out)
     assert out["friction"]["coulomb"] == pytest.approx(2.0, rel=0.2)
+    assert out["actuator"]["friction"] == out["friction"]["coulomb"]
     assert out["model"]["misfit"] and "warning: the fit's residual is not noise" in captured.err
     assert main(args) == 0
     printed = capsys.readouterr().out
     assert "Coulomb friction" in printed and "coulomb: " in printed
+    block = printed.split("robot file, actuator block:")[1].split("simulator /")[0]
+    assert "  friction: " in block, block
 
 
 @pytest.mark.slow  # over 5 s of the default run's 10 minutes
