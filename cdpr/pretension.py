@@ -126,6 +126,8 @@ class Pretension:
         self.settled_lengths: Array | None = None  # mean over settle (phase done)
         self._kp = SPEED_BANDWIDTH * robot.m0
         self._ki = INTEGRAL_RATIO * self._kp
+        # the winches' drag at the winding speed (back-EMF and friction), fed forward
+        self._feed = robot.drag(np.full(robot.n_cables, spec.wind_speed))
         self._integral = np.zeros(n)  # N, the servo's pull beyond its feed-forward
         self._band = self.lengths_at_start.copy()  # each cable's length when it last moved
         self._since = np.zeros(n)  # when each cable last left its band
@@ -223,8 +225,7 @@ class Pretension:
         pull = spec.wind_force
         error = rates + spec.wind_speed  # > 0: winding in slower than wind_speed
         self._integral = np.clip(self._integral + self._ki * error * h, -pull, pull)
-        feed = self.robot.drag(np.full(self.robot.n_cables, spec.wind_speed))
-        forces = np.clip(-(feed + self._kp * error + self._integral), -pull, pull)
+        forces = np.clip(-(self._feed + self._kp * error + self._integral), -pull, pull)
         moved = np.abs(lengths - self._band) > spec.taut_band
         self._band[moved] = lengths[moved]
         self._since[moved] = t

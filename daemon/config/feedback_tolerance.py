@@ -17,16 +17,16 @@ disagree with one rigid motion of the platform by three things the config descri
   not explain: sqrt(sum (L_max,k / EA_k)^2) times it.
 
 An explicit safety.feedback_tolerance (m) replaces the sum, but not below the
-quantisation alone, which every sample may reach.
+quantisation alone, which every sample may reach.  On reference8 (EA 1e5 N, cables up to
+4.2 m, 15 um increments, 8 N unplanned) the sum is 0.99 mm, the 1 mm the checks were
+tuned and soaked with; stiffer cables or finer encoders tighten it, coarse ones widen it.
 
 drives.encoder_noise is a figure the builder measured once; the daemon measures it again
 whenever it samples the platform at rest (home, pretension, the rest checks:
 `measured_noise`, each drive's spread beyond one increment's jitter, which the
 quantisation term covers) and says when the tolerance in use is below what that noise
 needs (`NoiseWatch`).  It does not widen the tolerance itself: a failing encoder's
-noise must not buy itself room.  On reference8 (EA 1e5 N, cables up to
-4.2 m, 15 um increments, 8 N unplanned) the sum is 0.99 mm, the 1 mm the checks were
-tuned and soaked with; stiffer cables or finer encoders tighten it, coarse ones widen it.
+noise must not buy itself room.
 """
 
 from __future__ import annotations

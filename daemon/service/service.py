@@ -994,15 +994,16 @@ class Service:
             feedback = self.driver.feedback
             lengths.append([fb.length for fb in feedback])
             rates.append([fb.rate for fb in feedback])
-        reported = np.isfinite(lengths).all(axis=0) & np.isfinite(rates).all(axis=0)
+        samples = np.asarray(lengths)
+        reported = np.isfinite(samples).all(axis=0) & np.isfinite(rates).all(axis=0)
         if not reported.all():
             raise CommandError(
                 "invalid_state", f"{what}: no feedback from drive {int(np.argmin(reported))}"
             )
         t = np.arange(HOME_SAMPLES) * self.period
         t -= t.mean()
-        trend = np.abs(t.dot(np.asarray(lengths) - np.mean(lengths, axis=0)) / t.dot(t))
-        spread = np.ptp(lengths, axis=0)
+        trend = np.abs(t.dot(samples - samples.mean(axis=0)) / t.dot(t))
+        spread = np.ptp(samples, axis=0)
         k = int(np.argmax(trend))
         node = self.offsets.nodes
         if trend[k] > REST_RATE:
@@ -1020,7 +1021,7 @@ class Service:
                 f"by {spread[k] * 1e3:.2f} mm over {HOME_SAMPLES} cycles (at rest: below "
                 f"{REST_SPREAD * 1e3:g} mm)",
             )
-        noisy = self._noise.take(lengths)
+        noisy = self._noise.take(samples)
         if noisy is not None:
             log.warning("%s: %s", what, noisy["message"])
             self._emit(noisy)
