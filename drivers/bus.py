@@ -99,6 +99,15 @@ class IdFilter:
         return kept
 
 
+def by_channel(frames: Iterable[can.Message]) -> dict[str, list[can.Message]]:
+    """`frames` grouped by the bus their `channel` names, in order within each bus: what
+    goes out in one write per bus (FrameIO.send_all)."""
+    groups: dict[str, list[can.Message]] = {}
+    for frame in frames:
+        groups.setdefault(frame.channel, []).append(frame)  # type: ignore[arg-type]
+    return groups
+
+
 def stamp_age(stamp: float, wall: float) -> float:
     """How long before the wall-clock time `wall` a frame stamped `stamp` (wall clock)
     arrived: never negative (a stamp from the future), at most MAX_FRAME_AGE (a bad one)."""
@@ -146,6 +155,12 @@ class FrameIO:
     def send(self, frame: can.Message) -> None:
         self.bus.send(frame, timeout=0.0)
 
+    def send_all(self, frames: list[can.Message]) -> None:
+        """Send `frames` in order (a cycle's: its SYNC, or its commands); this base, one
+        `send` each.  A failure raises as `send` does, frames before it may be out."""
+        for frame in frames:
+            self.send(frame)
+
     def drain(self, limit: int | None = None) -> list[can.Message]:
         """The frames queued now, oldest first, without blocking: at most `limit` where
         frames are read one at a time (this base, SocketcanIO); a bus that hands over
@@ -162,8 +177,20 @@ class FrameIO:
 
 
 class DrainingIO(FrameIO):
-    """A bus with its own `drain()` (the loop bus, the fault-injecting bus): its whole
-    queue in one call, bounded by the bus (the loop bus's receive queue)."""
+    """A bus with its own `drain()` (the loop bus, the fault-injecting bus, the pair
+    bus): its whole queue in one call, bounded by the bus (the loop bus's receive
+    queue); and its own `send_all` where it has one (the pair bus: one system call and
+    one wake-up of the reader for a cycle's frames, where a frame each woke it for each)."""
+
+    def __init__(self, bus: can.BusABC) -> None:
+        super().__init__(bus)
+        self._send_all = getattr(bus, "send_all", None)
+
+    def send_all(self, frames: list[can.Message]) -> None:
+        if self._send_all is None:
+            super().send_all(frames)
+        else:
+            self._send_all(frames)
 
     def drain(self, limit: int | None = None) -> list[can.Message]:
         return self.bus.drain()  # type: ignore[attr-defined]
@@ -233,9 +260,15 @@ class SocketcandIO(FrameIO):
         return self._socket.fileno()
 
     def send(self, frame: can.Message) -> None:
-        line = convert_can_message_to_ascii_message(frame).encode("ascii")
+        self.send_all([frame])
+
+    def send_all(self, frames: list[can.Message]) -> None:
+        """The frames' messages in one write (one system call and one TCP segment)."""
+        lines = b"".join(
+            convert_can_message_to_ascii_message(frame).encode("ascii") for frame in frames
+        )
         try:
-            self._socket.sendall(line)
+            self._socket.sendall(lines)
         except BlockingIOError:
             raise BusGone("the socketcand server stopped reading (send buffer full)") from None
         except OSError as exc:

@@ -30,6 +30,7 @@ from typing import TextIO
 import can
 
 from cdpr import ConfigError
+from drivers.gc_policy import CollectorPolicy
 from sim_bus.bus.busload import BusLoadMeter
 from sim_bus.bus.frame_faults import FaultyBus, parse_frame_faults
 from sim_bus.bus.pairbus import PairBus
@@ -197,7 +198,9 @@ async def simulate(setup: SimSetup, args: argparse.Namespace) -> int:
         raise
     robot = VirtualRobot(setup.robot, setup.drives, setup.sim.plant, setup.sim.rig)
     meters = {c.bus_name: BusLoadMeter(c.bitrate) for c in setup.buses}
-    runner = SimulatorRunner(robot, device, meters, setup.sim.wake(setup.drives))
+    runner = SimulatorRunner(
+        robot, device, meters, setup.sim.wake(setup.drives), collector=CollectorPolicy()
+    )
     for kind, cable, at in args.fault:
         runner.at(at, fault_action(robot, kind, cable))
     server = None

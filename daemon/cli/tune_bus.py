@@ -5,7 +5,7 @@ The cycle is the daemon's (daemon.service.service): the timer opens it (SYNC whe
 protocol has one), it runs the moment the drive's fresh feedback is in, or at the
 feedback deadline with what came, and sends the experiment's command
 (tuning.experiment: its limits and aborts are the same as in simulated time); garbage
-is collected after the commands, as the daemon does (daemon.service.gc_policy).  After
+is collected after the commands, as the daemon does (drivers.gc_policy).  After
 start-up and until enabled, and once braked, every cycle sends the driver's keep-alives
 so that the drive's watchdog stays fed.  The run ends braked: at the experiment's end,
 on its abort, or when the bus is lost (then nothing can be sent, and the drive's own
@@ -33,10 +33,10 @@ import can
 
 from daemon.process.recording import frame_stamp
 from daemon.service.bus_port import BusPort
-from daemon.service.gc_policy import CollectorPolicy
 from drivers.base import ActuatorDriver, BrakeMode, DriverError, Timing
 from drivers.bus import stamp_age
 from drivers.clock import PeriodicTimer
+from drivers.gc_policy import CollectorPolicy
 from tuning.experiment import Abort, WinchExperiment
 
 STARTUP_TIMEOUT = 5.0  # s for the drive to come up (the daemon's)

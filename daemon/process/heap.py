@@ -15,7 +15,7 @@ The collector's full collections scan every live object; the companion holds ~23
 after start-up (modules, compiled kernels), and the 20,000 waypoints of a 2,000-line
 G-code path set off collections that doubled their making (240 ms against 116 ms with
 the start-up frozen).  `freeze_start_up` moves what exists to the permanent generation
-(gc.freeze), as the core does (daemon.service.gc_policy).
+(gc.freeze), as the core does (drivers.gc_policy).
 """
 
 from __future__ import annotations

@@ -22,7 +22,7 @@ what failed and what to allow; the core then runs on without it.
   a cycle woken by its timer could wait that long for the GIL: `cdprd demo` flew at
   0.23-1.07 mm RMS with 140 overruns, and at 0.09-0.10 mm with 0.2 ms.
 - Garbage collection is not done here: the service's CollectorPolicy
-  (daemon/service/gc_policy.py) collects before the first cycle, then freezes the
+  (drivers/gc_policy.py) collects before the first cycle, then freezes the
   start-up heap and turns automatic collection off.
 
 A cycle that never ends at SCHED_FIFO would keep everything else off its CPUs.  The

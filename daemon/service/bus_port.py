@@ -37,7 +37,7 @@ from collections.abc import Callable, Iterable, Mapping
 import can
 
 from drivers.base import ActuatorDriver, DriverError
-from drivers.bus import FRAMES_PER_PASS, BusWatch, IdFilter, frame_io, gone
+from drivers.bus import FRAMES_PER_PASS, BusWatch, IdFilter, by_channel, frame_io, gone
 from drivers.multibus import MultiBusDriver
 
 log = logging.getLogger(__name__)
@@ -188,13 +188,22 @@ class BusPort:
 
     def send(self, message: can.Message) -> None:
         """Send one frame; a failure is counted and reported, never raised."""
+        self.send_all([message])
+
+    def send_all(self, frames: list[can.Message]) -> None:
+        """Send `frames` in order, in one write where the bus allows (FrameIO.send_all);
+        a failure is counted once and reported, never raised, and none of the frames is
+        reported sent (`on_sent`), even those that went out before it."""
+        if not frames:
+            return
         try:
-            self._io.send(message)
+            self._io.send_all(frames)
         except (can.CanError, OSError) as exc:
             self._failed("send", exc)
             return
         if self.on_sent is not None:
-            self.on_sent(message)
+            for frame in frames:
+                self.on_sent(frame)
 
     def _failed(self, action: str, exc: Exception) -> None:
         """A send or receive raised `exc`: log it, then report it as lost or transient."""
@@ -304,6 +313,12 @@ class MultiBusPort:
     def send(self, message: can.Message) -> None:
         """Send one frame on the bus its `channel` names."""
         self.ports[message.channel].send(message)  # type: ignore[index]
+
+    def send_all(self, frames: list[can.Message]) -> None:
+        """Send `frames`, each on the bus its `channel` names, in order on each bus: one
+        BusPort.send_all per bus."""
+        for name, sent in by_channel(frames).items():
+            self.ports[name].send_all(sent)
 
     @property
     def lost(self) -> str | None:

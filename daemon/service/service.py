@@ -42,7 +42,6 @@ from daemon.service.calibration_state import (
 from daemon.service.command_lead import LatencyMedian
 from daemon.service.cycle_stats import CycleStats
 from daemon.service.flight_stats import FlightStats
-from daemon.service.gc_policy import CollectorPolicy
 from daemon.service.hold_report import HoldReport, hold_summary
 from daemon.service.homing import LengthOffsets
 from daemon.service.planner import PLANNING_LEAD
@@ -60,6 +59,7 @@ from drivers.base import ActuatorDriver, DriverError, Feedback, FrameError, Timi
 from drivers.bus import CAN_ERR_BUSOFF
 from drivers.clock import DeadlineTimer, PeriodicTimer
 from drivers.factory import make_driver
+from drivers.gc_policy import CollectorPolicy
 
 log = logging.getLogger("cdprd")
 
@@ -571,8 +571,7 @@ class Service:
         self.stop(Trigger.BUS_LOST, EXIT_BUS_LOST)
 
     def _send(self, frames: list[can.Message]) -> None:
-        for frame in frames:
-            self.port.send(frame)
+        self.port.send_all(frames)
 
     def _emit(self, event: dict[str, Any]) -> None:
         event.setdefault("t", self.now())

@@ -11,7 +11,8 @@ eight drives; a stream queues by bytes (SEND_BUFFER).  A full buffer is an error
 once, never a wait.
 
 `drain()` returns every queued frame; `fileno()` is readable while any is queued (for
-loop.add_reader).  The peer's end closing, or a send it cannot take (its process
+loop.add_reader).  `send_all` writes several frames at once (what a cycle sends: the
+reader wakes once for them).  The peer's end closing, or a send it cannot take (its process
 stopped reading), is `BusGone`.  Classic CAN only: an FD frame is refused (ValueError).
 """
 
@@ -90,7 +91,14 @@ class PairBus(can.BusABC):
         return self._sock.fileno()
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
-        record = encode(msg, time.time())
+        self.send_all([msg])
+
+    def send_all(self, msgs: list[can.Message]) -> None:
+        """The frames in one write, stamped alike: a cycle's frames wake the reader once."""
+        if not msgs:
+            return
+        sent_at = time.time()
+        record = b"".join([encode(msg, sent_at) for msg in msgs])
         try:
             sent = self._sock.send(record)
         except BlockingIOError:
@@ -126,8 +134,9 @@ class PairBus(can.BusABC):
                     raise BusGone(f"{self.channel}: the other process closed its end")
                 break  # the end again on the next read
             data += chunk
-            if limit is not None:
-                want -= len(chunk)
+            if len(chunk) < want:  # all there was: another recv would only say so
+                break
+            want -= len(chunk)
         whole = len(data) - len(data) % FRAME.size
         self._rest = data[whole:]
         channel = self.channel

@@ -9,7 +9,7 @@ from collections.abc import Iterator
 
 import pytest
 
-from daemon.service.gc_policy import CollectorPolicy
+from drivers.gc_policy import CollectorPolicy
 
 
 class Node:
