@@ -327,9 +327,17 @@ class Cia402Drive(VirtualDrive):
         }
         self._rpdos: dict[int, Rpdo] = {}  # by COB-ID
         self.tpdos: list[Tpdo] = []
-        for comm in (*range(0x1400, 0x1600), *range(0x1800, 0x1A00)):
-            cob = self.values.get((comm, 1))
-            if cob is None or cob & PDO_INVALID:
+        # the PDOs' communication parameters in the dictionary (RPDOs' 0x1400-0x15FF,
+        # then TPDOs' 0x1800-0x19FF): a scan of every index cost 130 us, and an SDO write
+        # (several per drive while the daemon enables) redoes this
+        comms = sorted(
+            index
+            for index, sub in self.values
+            if sub == 1 and (0x1400 <= index < 0x1600 or 0x1800 <= index < 0x1A00)
+        )
+        for comm in comms:
+            cob = self.values[(comm, 1)]
+            if cob & PDO_INVALID:
                 continue
             count = self.values.get((comm + 0x200, 0), 0)
             keys = [
