@@ -26,7 +26,7 @@ from daemon.config import check_workspace
 from daemon.config.watchdog_drift import FORMULA
 from daemon.config.zenoh_config import answers, taken
 from drivers.cia402.profile import plans as drive_plans
-from sim_bus.bus.cycle_frames import bus_cycles
+from sim_bus.bus.cycle_frames import SIMULATED_BUS, bus_cycles
 
 if TYPE_CHECKING:
     from daemon.cli.gain_check import GainCheck
@@ -106,6 +106,8 @@ def config_summary(
     }  # fmt: skip
     lines.append(tolerance.describe())
     loads: dict[str, float] = {}
+    answered: dict[str, float] = {}  # s the feedback takes on each bus
+    late: list[str] = []
     rate = config.controller.rate_hz
     if d.protocol == "cia402":  # what a dead daemon leaves behind (checked at load)
         plan = next(iter(drive_plans(d).values()))
@@ -134,16 +136,19 @@ def config_summary(
             f"drift before a drive notices ({FORMULA}; limit {limit * 1e3:g} mm):",
             *(f"  {bound.text()}" for bound in config.watchdog_drift),
         ]
-        loads = {bus.name: bus.load(rate) for bus in bus_cycles(d, robot, config.buses)}
+        cycles = bus_cycles(d, robot, config.buses)
+        loads = {bus.name: bus.load(rate) for bus in cycles}
+        answered = {bus.name: bus.feedback_time() for bus in cycles}
+    deadline = config.safety.feedback_deadline / rate
     summary["buses"] = []
     for c in config.buses:
         nodes = list(d.nodes)
         if len(config.buses) > 1:
             nodes = [n for n, b in zip(d.nodes, d.bus_names(), strict=True) if b == c.bus_name]
-        load = loads.get(c.bus_name)
+        load, feedback = loads.get(c.bus_name), answered.get(c.bus_name)
         summary["buses"].append(
             {"name": c.bus_name, "interface": c.interface, "channel": c.channel,
-             "bitrate": c.bitrate, "nodes": nodes, "load": load}
+             "bitrate": c.bitrate, "nodes": nodes, "load": load, "feedback_s": feedback}
         )  # fmt: skip
         where = f"bus: {c.interface} {c.channel} at {c.bitrate} bit/s"
         if len(config.buses) > 1:
@@ -151,6 +156,20 @@ def config_summary(
         if load is not None:
             where += f", load {load * 100:.1f} % at {rate:g} Hz (worst-case stuffing)"
         lines.append(where)
+        if feedback is not None:
+            lines.append(
+                f"  feedback on the bus {feedback * 1e6:.0f} us after each SYNC (the SYNC and "
+                f"the drives' answers, worst-case stuffing), deadline {deadline * 1e6:.0f} us"
+            )
+            if feedback >= deadline and c.interface != SIMULATED_BUS:
+                late.append(
+                    f"safety.feedback_deadline: the SYNC and the drives' answers on bus "
+                    f"{c.bus_name} take {feedback * 1e6:.0f} us of bus time (worst-case "
+                    f"stuffing) and the deadline is {deadline * 1e6:.0f} us, before the "
+                    "drives' own reaction: the feedback can be late every cycle, and the "
+                    "daemon brakes on stale feedback; raise safety.feedback_deadline, lower "
+                    "controller.rate_hz, or spread the drives over more buses"
+                )
     summary["controller"] = {"rate_hz": rate, "model_at": config.controller.model_at}
     lines.append(
         f"controller: {rate:g} Hz, model at {config.controller.model_at}; home pose in W: yes"
@@ -164,7 +183,7 @@ def config_summary(
     listen = list(config.zenoh.listen_endpoints)
     summary["zenoh"] = {"prefix": prefix, "listen": listen}
     lines.append(f"zenoh: prefix {prefix}, listening on {', '.join(listen)}")
-    warnings = [
+    warnings = late + [
         f"zenoh: {endpoint} is taken on this host now: `cdprd run` would stop with "
         "'Address already in use' (a zenoh router, rmw_zenohd too, takes 7447 by "
         "default): listen on a free port (zenoh.listen), or connect to the router "

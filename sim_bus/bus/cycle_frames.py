@@ -24,6 +24,10 @@ from drivers.factory import make_driver
 from drivers.multibus import MultiBusDriver
 from sim_bus.bus.busload import Stuffing, cycle_load
 
+# the simulator's bus (python-can interface name, pyproject's entry point): it takes no
+# bus time, so a cycle's frames fit however many there are
+SIMULATED_BUS = "cdprd_loop"
+
 
 @dataclass(frozen=True)
 class BusCycle:
@@ -35,6 +39,15 @@ class BusCycle:
     cycle: list[can.Message]
     drive_heartbeats: float  # frames per second (1 data byte each)
     drives: DrivesConfig  # the host heartbeat's period
+    feedback: list[can.Message]  # the SYNC and the drives' TPDOs on it
+
+    def feedback_time(self, stuffing: Stuffing = "worst") -> float:
+        """Seconds the SYNC and every drive's answers to it occupy the bus: the earliest
+        the last answer can be in after the SYNC starts, however fast the drives answer
+        (the drives' own reaction comes on top)."""
+        return cycle_load(self.feedback, 1.0, self.bitrate, stuffing).bits_per_cycle / (
+            self.bitrate
+        )
 
     def bits_per_cycle(self, stuffing: Stuffing = "worst") -> float:
         """The bits of one cycle's frames (heartbeats not included)."""
@@ -89,13 +102,14 @@ def bus_cycles(drives: DrivesConfig, robot: Robot, buses: Sequence[CanConfig]) -
         forces = [100.0] * part.n
         part.cycle_start()  # the first cycle: the host heartbeat, the control RPDOs
         part.commands(forces)
-        frames = [*part.cycle_start(), *part.commands(forces)]
-        for node in part.nodes:
-            frames += [
-                message(layout.cob_id(node), bytes(layout.struct.size))
-                for layout in part.plan.tpdos
-                if layout.on_sync
-            ]
+        sync = part.cycle_start()
+        answers = [
+            message(layout.cob_id(node), bytes(layout.struct.size))
+            for node in part.nodes
+            for layout in part.plan.tpdos
+            if layout.on_sync
+        ]
+        frames = [*sync, *part.commands(forces), *answers]
         beats = part.n / drives.heartbeat_period
-        out.append(BusCycle(name, bitrates[name], frames, beats, drives))
+        out.append(BusCycle(name, bitrates[name], frames, beats, drives, [*sync, *answers]))
     return out

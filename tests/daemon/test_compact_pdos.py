@@ -11,6 +11,7 @@ from pathlib import Path
 
 import can
 import pytest
+import yaml
 
 from cdpr import ConfigError
 from daemon.cli import main
@@ -158,3 +159,32 @@ def test_configs_the_compact_layout_cannot_serve_are_named() -> None:
         r"a PDO carries at most 8 \(bus can0\)",
     ):
         two_bus(nodes=[1, 2, 3, 4, 5, 1, 2, 3], bus=five)
+
+
+def test_check_config_warns_where_the_feedback_cannot_come_by_the_deadline(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The SYNC and the four drives' answers of each bus take 435 us of a 1 Mbit/s bus
+    at worst (ISO 11898-1 frame bits, worst-case stuffing: SYNC 47 + 8 stuff bits, each
+    4-byte position TPDO 79 + 16), before any drive has reacted: a deadline shorter than
+    that is named on real buses; the simulator's bus, which takes no time, is not."""
+    bits = (47 + (34 - 1) // 4) + 4 * (47 + 32 + (34 + 32 - 1) // 4)
+    for bus in bus_cycles(two_bus().drives, two_bus().robot, two_bus().buses):
+        assert bus.feedback_time() == pytest.approx(bits / 1e6)
+    data = yaml.safe_load(TWO_BUS.read_text())
+    data["robot"] = str((TWO_BUS.parent / data["robot"]).resolve())
+    warned = {}
+    for interface, deadline in (("socketcan", 0.4), ("socketcan", 0.5), ("cdprd_loop", 0.4)):
+        for bus in data["can"]:
+            bus.update(interface=interface, channel=bus["name"])
+        data["safety"]["feedback_deadline"] = deadline
+        path = tmp_path / f"{interface}-{deadline}.yaml"
+        path.write_text(yaml.safe_dump(data))
+        assert main(["check-config", str(path)]) == 0
+        out = capsys.readouterr().out
+        assert f"feedback on the bus {bits} us after each SYNC" in out
+        warned[interface, deadline] = [line for line in out.splitlines() if "bus time" in line]
+    assert len(warned["socketcan", 0.4]) == 2  # both buses, named with the figures
+    assert "on bus can1 take 435 us of bus time" in warned["socketcan", 0.4][1]
+    assert "the deadline is 400 us" in warned["socketcan", 0.4][1]
+    assert warned["socketcan", 0.5] == [] and warned["cdprd_loop", 0.4] == []
