@@ -157,3 +157,29 @@ def test_bus_fd_refuses_what_is_not_a_stream_pairs_end(tmp_path: Path) -> None:
     assert run.returncode == 1
     assert "--bus-fd: 2 given for the config's 1 buses" in run.stderr, run.stderr
     assert "Traceback" not in run.stderr
+
+
+def test_a_cycles_frames_go_out_in_one_write_and_arrive_in_order() -> None:
+    """send_all writes the frames as one record string (one system call: the reader
+    wakes once for them), stamped alike; frame_io's send_all uses it."""
+    raw, other = bus_pair()
+    sender = PairBus(other, "a")
+    try:
+        frames = _frames()
+        before = time.time()
+        frame_io(sender).send_all(frames)
+        after = time.time()
+        data = raw.recv(1 << 16)
+        assert len(data) == FRAME.size * len(frames)  # all of it at once
+        stamps = {
+            FRAME.unpack(data[k : k + FRAME.size])[0] for k in range(0, len(data), FRAME.size)
+        }
+        assert len(stamps) == 1 and before <= stamps.pop() <= after
+        raw.sendall(data)  # back through the pair: the same frames, in order
+        got = sender.drain()
+        assert [m.arbitration_id for m in got] == [m.arbitration_id for m in frames]
+        sender.send_all([])  # nothing to write: no record, no error
+        assert select.select([raw], [], [], 0.05)[0] == []
+    finally:
+        raw.close()
+        sender.shutdown()
