@@ -1,6 +1,7 @@
-"""Where a control cycle's time goes: the real daemon.service.service.Service on the
-in-process simulator's loop bus (the core as `cdprd run --sim` runs it, without the
-companion), enabled and flying gotos back and forth, its parts timed per cycle.
+"""Where a control cycle's time goes: the real daemon.service.service.Service with the
+simulator in a process of its own on socket-pair buses (the core as `cdprd run --sim`
+runs it, without the companion; at 1 kHz bench/loop.py's two-bus config), enabled and
+flying gotos back and forth, its parts timed per cycle.
 
     python bench/cycle_profile.py [--json] [--seconds 6] [--rate 500] [--protocol cia402]
                                   [--cprofile N]
@@ -17,8 +18,8 @@ children.  The wrappers cost `wrapper_ns` each (measured) and the parents carry
 measured in a window before the wrappers go in.  `state_snapshot_us`: Service.state(),
 which the companion host takes at zenoh.state_rate_hz on the core (in the slack, not
 in a cycle, but on its CPU), and the cycle statistics' summary it takes afresh once a
-second.  `simulator_us_per_cycle`: the in-process simulator's
-callbacks, CPU time per cycle (in the process's CPU, in no cycle).
+second.  `core_us_per_cycle`: the core process's CPU time per cycle in the instrumented
+window (the wrappers' cost in it), `simulator_us_per_cycle` the simulator process's.
 
 --cprofile N profiles the instrumented window instead with cProfile and prints its
 top N functions by own time (no per-part table: cProfile's overhead distorts it).
@@ -32,6 +33,8 @@ import asyncio
 import cProfile
 import json
 import pstats
+import shutil
+import tempfile
 import time
 from collections import defaultdict
 from collections.abc import Callable
@@ -39,17 +42,16 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from timing import SimulatorTime
+from loop import process_cpu_seconds, rate_config
 
 from cdpr import Pose
 from cdpr.trajectory.core import Curve
-from daemon.cli.simulated import InProcessSimulator
-from daemon.config import DaemonConfig, check_workspace, load_config
+from daemon.cli.simulated import ProcessSimulator
+from daemon.config import check_workspace
 from daemon.service.planner import LocalLink, Planner
 from daemon.service.safety import SafetyState
 from daemon.service.service import Service
 
-CONFIGS = Path(__file__).resolve().parent.parent / "config"
 SETTLE = 0.5  # s enabled before measuring
 AMPLITUDE = 0.15  # m: the gotos go this far either side of home in x (and half in z)
 
@@ -214,15 +216,6 @@ def profiled(profiler: cProfile.Profile, owner: Any, attribute: str) -> None:
     setattr(owner, attribute, calls)
 
 
-def profile_config(protocol: str, rate_hz: float) -> DaemonConfig:
-    def edit(data: dict) -> None:
-        data["controller"]["rate_hz"] = rate_hz
-        data["drives"]["feedback_rate_hz"] = rate_hz
-        data["logging"] = {"level": "warning"}
-
-    return load_config(CONFIGS / f"reference8-{protocol}.yaml", edit)
-
-
 async def fly(service: Service, planner: Planner, seconds: float) -> int:
     """Gotos back and forth across home for `seconds`; how many were flown."""
     home = service.robot.home
@@ -240,10 +233,10 @@ async def fly(service: Service, planner: Planner, seconds: float) -> int:
 def measure(protocol: str, rate_hz: float, seconds: float, top: int) -> dict[str, Any]:
     """Enable, settle, fly `seconds` plain (the service's own figures), then `seconds`
     with every part wrapped (or, with `top`, under cProfile)."""
-    config = profile_config(protocol, rate_hz)
+    folder = Path(tempfile.mkdtemp(prefix="cdprd-profile-"))
+    config, path = rate_config(protocol, rate_hz, folder)
     check_workspace(config)  # the planner's compiled check, loaded before the cycle runs
-    sim = InProcessSimulator(config)
-    simulator = SimulatorTime(sim.runner)
+    sim = ProcessSimulator(config, path, truth=False)
     out: dict[str, Any] = {"rate_hz": rate_hz, "protocol": protocol}
 
     async def profile(service: Service) -> None:
@@ -278,18 +271,25 @@ def measure(protocol: str, rate_hz: float, seconds: float, top: int) -> dict[str
                 owner, attribute = where(service)
                 if owner is not None:
                     spans.wrap(owner, attribute, part)
-            simulator.reset()
+            assert sim.process is not None
+            simulated, core = process_cpu_seconds(sim.process.pid), time.process_time()
             out["gotos_instrumented"] = await fly(service, planner, seconds)
+            cycles = max(spans.cycles, 1)
             out["cycles_instrumented"] = spans.cycles
-            out["wrapped_calls_per_cycle"] = round(spans.calls / max(spans.cycles, 1), 1)
+            out["wrapped_calls_per_cycle"] = round(spans.calls / cycles, 1)
             out["parts"] = spans.table()
-            out["simulator_us_per_cycle"] = round(simulator.ns / 1e3 / max(spans.cycles, 1), 1)
+            out["core_us_per_cycle"] = round((time.process_time() - core) * 1e6 / cycles, 1)
+            simulated = process_cpu_seconds(sim.process.pid) - simulated
+            out["simulator_us_per_cycle"] = round(simulated * 1e6 / cycles, 1)
         out["state_snapshot_us"] = snapshot_us(service)
         fault = service.machine.fault  # what braked the robot, if it did
         out["braked"] = int(fault is not None)
         out["fault"] = "" if fault is None else f"{fault.trigger.value}: {fault.message}"
 
-    asyncio.run(sim.serve(companion=False, after_start=profile))
+    try:
+        asyncio.run(sim.serve(companion=False, after_start=profile))
+    finally:
+        shutil.rmtree(folder)
     return out
 
 

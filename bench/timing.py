@@ -74,35 +74,3 @@ async def ordinary_child(*args: str) -> dict[str, Any]:
     if child.returncode != 0:
         raise SystemExit(f"{' '.join(args[:2])} failed ({child.returncode}): {text[-500:]}")
     return json.loads(text.splitlines()[-1])  # the last line: a flooder says it floods
-
-
-class SimulatorTime:
-    """The CPU time of an in-process simulator's callbacks (its timer and its bus
-    readers: sim_bus.runner.SimulatorRunner), so that a bench can tell the core's cost
-    from the simulator's in one process.  Wrap before the runner starts (it binds its
-    timer callback then); thread CPU time, so a callback preempted midway counts only
-    what it ran."""
-
-    def __init__(self, runner: Any) -> None:
-        self.ns = 0
-        self.callbacks = 0
-        clock = time.thread_time_ns
-        for name in ("_on_tick", "_drain_lane"):
-            method = getattr(runner, name)
-
-            def timed(*args: Any, _method: Callable[..., Any] = method) -> None:
-                start = clock()
-                try:
-                    _method(*args)
-                finally:
-                    self.ns += clock() - start
-                    self.callbacks += 1
-
-            setattr(runner, name, timed)
-
-    def reset(self) -> None:
-        """Count from now."""
-        self.ns = self.callbacks = 0
-
-    def seconds(self) -> float:
-        return self.ns / 1e9

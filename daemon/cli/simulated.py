@@ -202,11 +202,14 @@ class ProcessSimulator:
                 await process.wait()
         await asyncio.gather(*self._readers)
 
-    async def serve(self, *, after_start: ServiceHook | None = None) -> int:
-        """daemon.process.app.serve() on the simulator process's buses; the exit code."""
+    async def serve(self, *, companion: bool = True, after_start: ServiceHook | None = None) -> int:
+        """daemon.process.app.serve() on the simulator process's buses (`companion`:
+        as serve's); the exit code."""
         await self.start()
         try:
-            return await serve(self.config, self.daemon_bus, after_start=after_start)
+            return await serve(
+                self.config, self.daemon_bus, companion=companion, after_start=after_start
+            )
         finally:
             await self.stop()
             buses = self.daemon_bus
