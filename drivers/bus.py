@@ -101,7 +101,7 @@ class IdFilter:
 
 def by_channel(frames: Iterable[can.Message]) -> dict[str, list[can.Message]]:
     """`frames` grouped by the bus their `channel` names, in order within each bus: what
-    goes out in one write per bus (FrameIO.send_all)."""
+    goes out together on each bus (FrameIO.send_all where the bus batches)."""
     groups: dict[str, list[can.Message]] = {}
     for frame in frames:
         groups.setdefault(frame.channel, []).append(frame)  # type: ignore[arg-type]
@@ -152,14 +152,12 @@ class FrameIO:
             return -1
         return fd if isinstance(fd, int) else -1
 
+    # whether `send_all` writes a cycle's frames at once (one system call, one wake-up of
+    # the reader); where not, the callers send frame by frame, each failure on its own
+    batches = False
+
     def send(self, frame: can.Message) -> None:
         self.bus.send(frame, timeout=0.0)
-
-    def send_all(self, frames: list[can.Message]) -> None:
-        """Send `frames` in order (a cycle's: its SYNC, or its commands); this base, one
-        `send` each.  A failure raises as `send` does, frames before it may be out."""
-        for frame in frames:
-            self.send(frame)
 
     def drain(self, limit: int | None = None) -> list[can.Message]:
         """The frames queued now, oldest first, without blocking: at most `limit` where
@@ -184,13 +182,11 @@ class DrainingIO(FrameIO):
 
     def __init__(self, bus: can.BusABC) -> None:
         super().__init__(bus)
-        self._send_all = getattr(bus, "send_all", None)
+        self.batches = callable(getattr(bus, "send_all", None))
 
     def send_all(self, frames: list[can.Message]) -> None:
-        if self._send_all is None:
-            super().send_all(frames)
-        else:
-            self._send_all(frames)
+        """`frames` in one write (only where `batches`); a failure raises as `send` does."""
+        self.bus.send_all(frames)  # type: ignore[attr-defined]
 
     def drain(self, limit: int | None = None) -> list[can.Message]:
         return self.bus.drain()  # type: ignore[attr-defined]
@@ -258,6 +254,8 @@ class SocketcandIO(FrameIO):
 
     def fileno(self) -> int:
         return self._socket.fileno()
+
+    batches = True
 
     def send(self, frame: can.Message) -> None:
         self.send_all([frame])

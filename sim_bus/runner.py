@@ -174,8 +174,9 @@ class SimulatorRunner:
 
     def _send(self, frames: list[can.Message]) -> None:
         """Each frame onto its bus, the only one or the one its `channel` names: a bus's
-        frames in one write where it allows (FrameIO.send_all), as the drives' answers to
-        one SYNC; a failed write counts once in `send_errors`."""
+        frames in one write where it batches (FrameIO.batches), as the drives' answers to
+        one SYNC, a failed write counting once in `send_errors`; elsewhere frame by frame,
+        each failure counted."""
         if not frames:
             return
         if self._only is not None:
@@ -185,10 +186,22 @@ class SimulatorRunner:
             self._send_on(self.lanes[name], sent)
 
     def _send_on(self, lane: Lane, frames: list[can.Message]) -> None:
-        try:
-            lane.io.send_all(frames)
-        except (can.CanError, OSError):
-            self.send_errors += 1
+        io = lane.io
+        if io.batches:
+            try:
+                io.send_all(frames)
+            except (can.CanError, OSError):
+                self.send_errors += 1
+                return
+            sent = frames
         else:
-            if lane.meter is not None:
-                lane.meter.add_many(frames)
+            sent = []
+            for frame in frames:
+                try:
+                    io.send(frame)
+                except (can.CanError, OSError):
+                    self.send_errors += 1
+                else:
+                    sent.append(frame)
+        if lane.meter is not None:
+            lane.meter.add_many(sent)

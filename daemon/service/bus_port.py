@@ -188,12 +188,23 @@ class BusPort:
 
     def send(self, message: can.Message) -> None:
         """Send one frame; a failure is counted and reported, never raised."""
-        self.send_all([message])
+        try:
+            self._io.send(message)
+        except (can.CanError, OSError) as exc:
+            self._failed("send", exc)
+            return
+        if self.on_sent is not None:
+            self.on_sent(message)
 
     def send_all(self, frames: list[can.Message]) -> None:
-        """Send `frames` in order, in one write where the bus allows (FrameIO.send_all);
-        a failure is counted once and reported, never raised, and none of the frames is
-        reported sent (`on_sent`), even those that went out before it."""
+        """Send `frames` in order: in one write where the bus takes a cycle's frames at
+        once (FrameIO.batches), a failure then counted and reported once and none of them
+        reported sent (`on_sent`); elsewhere frame by frame as `send`, each failure its own
+        (SocketCAN: a full transmit queue refuses one frame, the next may go)."""
+        if not self._io.batches:
+            for frame in frames:
+                self.send(frame)
+            return
         if not frames:
             return
         try:

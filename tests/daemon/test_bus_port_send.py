@@ -49,3 +49,35 @@ def test_a_failed_write_counts_once_and_sends_none_of_its_frames() -> None:
     assert port.lost is not None and "closed its end" in port.lost
     assert errors == []  # a gone bus is reported as lost, not as a transient error
     bus.shutdown()
+
+
+class _RefusingBus(can.BusABC):
+    """A bus that sends frame by frame (as SocketCAN) and refuses frames on `refused`, as
+    a full transmit queue refuses one frame while the next may go."""
+
+    def __init__(self, refused: int) -> None:
+        super().__init__(channel="refusing")
+        self.refused = refused
+        self.sent: list[int] = []
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        if msg.arbitration_id == self.refused:
+            raise can.CanOperationError("Failed to transmit: No buffer space available")
+        self.sent.append(msg.arbitration_id)
+
+    def _recv_internal(self, timeout: float | None) -> tuple[None, bool]:
+        return None, False
+
+
+def test_a_frame_by_frame_bus_sends_the_rest_after_a_refused_frame() -> None:
+    bus = _RefusingBus(refused=0x201)
+    errors: list[str] = []
+    port = BusPort(bus, lambda frames, now: None)
+    port.on_error = errors.append
+    sent: list[int] = []
+    port.on_sent = lambda msg: sent.append(msg.arbitration_id)
+    port.send_all([_frame(0x80), _frame(0x201), _frame(0x202), _frame(0x201)])
+    assert bus.sent == [0x80, 0x202] and sent == [0x80, 0x202]
+    assert port.failures == 2 and len(errors) == 2  # each refused frame, as the bus saw it
+    assert port.lost is None
+    bus.shutdown()
