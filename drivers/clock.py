@@ -105,13 +105,16 @@ class PeriodicTimer(_TimerFd):
             raise ValueError(f"timer period must be positive, not {period}")
         super().__init__()
         self.period = period
-        first = time.monotonic() + period if start is None else start
         try:
-            self._set(first, period)
+            self.restart(time.monotonic() + period if start is None else start)
         except OSError:
             self.close()
             raise
-        self.start = first
+
+    def restart(self, start: float) -> None:
+        """Fire at monotonic time `start`, then every period from there."""
+        self._set(start, self.period)
+        self.start = start
 
     def last_expiry(self, now: float) -> float:
         """The monotonic time of the latest expiry at or before `now` (a wake-up's

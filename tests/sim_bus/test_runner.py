@@ -5,6 +5,7 @@ before the simulator read it, as a real drive on its own processor does."""
 from __future__ import annotations
 
 import asyncio
+import math
 import time
 from types import SimpleNamespace
 
@@ -105,3 +106,55 @@ def test_the_simulator_process_collects_garbage_between_frames_as_the_core_does(
     assert not running and frozen > 0
     assert collections >= 1
     assert gc.isenabled() and gc.get_freeze_count() == 0
+
+
+def test_syncs_next_to_the_plants_steps_hold_the_clock_back_so_they_come_half_a_step_in() -> None:
+    """SYNCs stamped just after the simulator's step boundaries (where the wake-up that
+    steps the plant is in their way): after REPHASE_AFTER of them, every cable at rest,
+    the clock is held back by less than a step (never forward) so that they come half a
+    step in; SYNCs there leave it alone; while a cable moves it is never moved."""
+    from sim_bus.bus.loopbus import LoopBus
+    from sim_bus.runner import REPHASE_AFTER, SimulatorRunner
+
+    async def scenario() -> list[float]:
+        sim = InProcessSimulator(config_for("cia402"))
+        bus = LoopBus(channel="cdprd-phase-test")
+        runner = SimulatorRunner(sim.robot, bus)
+        runner.start()
+        step = sim.robot.plant.config.step
+        epochs = []  # the simulator's time 0 on this host's clock, after each SYNC
+
+        def syncs(phase: float) -> None:
+            first = (math.floor(runner.t / step) - 2 * REPHASE_AFTER) * step
+            for k in range(REPHASE_AFTER):
+                at = first + (k + phase) * step  # in the past: a SYNC read late
+                stamp = time.time() - time.monotonic() + runner.monotonic(at)
+                sync = can.Message(arbitration_id=SYNC_ID, is_extended_id=False, timestamp=stamp)
+                runner._handle([sync], runner.lanes[None])
+                epochs.append(runner.monotonic(0.0))
+
+        try:
+            assert all(drive.rate == 0.0 for drive in sim.robot.drives)
+            syncs(0.05)  # just after a boundary: held back 0.55 step at the last
+            syncs(0.5)
+            syncs(0.9)  # just before one: held back 0.4 step
+            sim.robot.drives[3].rate = 0.01  # a cable moves
+            syncs(0.1)
+            assert runner._timer is not None  # it wakes on the new steps' boundaries:
+            woken = (runner._timer.start - runner.monotonic(0.0)) / step
+            assert woken == pytest.approx(round(woken), abs=1e-6)
+            return [e / step for e in epochs]
+        finally:
+            runner.close()
+            bus.shutdown()
+            sim.close()
+
+    # a stamp goes between the wall and monotonic clocks, read a moment apart: within
+    # 0.05 step (the phases above are 0.15 step or more from the tolerance's edges)
+    epochs = np.array(asyncio.run(scenario()))
+    moves = np.diff(epochs)
+    n = REPHASE_AFTER
+    assert moves[n - 2] == pytest.approx(0.55, abs=0.05)
+    assert moves[3 * n - 2] == pytest.approx(0.4, abs=0.05)
+    others = np.delete(moves, [n - 2, 3 * n - 2])
+    assert np.abs(others).max() < 0.05
