@@ -532,15 +532,17 @@ class FlyPathServer:
     # -- goals ----------------------------------------------------------------------------
 
     def _finish(self, goal: _Goal, status: int, message: str) -> None:
-        """`goal` ends with `status`: its waiting results answered, the status published,
-        its result kept RESULT_TIMEOUT s."""
+        """`goal` ends with `status`: the status published, then its waiting results
+        answered (so that a client that has the result and then joins the transient-local
+        status topic gets the terminal list, not the one before it: answered first, a
+        late subscription could come between the two), its result kept RESULT_TIMEOUT s."""
         goal.status, goal.message = status, message
         if self._current is goal:
             self._current = None
+        self._publish_status()
         waiting, goal.waiting = goal.waiting, []
         for query, key, request in waiting:
             self._answer_result(query, key, request, goal)
-        self._publish_status()
         log.info(
             "ROS 2 action %s: goal %s ended (status %d): %s", self.name, goal.ident, status, message
         )

@@ -430,6 +430,41 @@ def test_a_status_subscription_that_joins_late_gets_the_last_list() -> None:
     assert size == 16 and sequence >= 3  # the empty list, EXECUTING, SUCCEEDED before it
 
 
+def test_a_goal_that_ends_publishes_its_status_before_it_answers_the_results_waiting() -> None:
+    """A client that has the result and then joins the status topic must find the goal
+    terminal there: the status is put before the waiting get_result is answered (the
+    other way round, a late subscription between the two got EXECUTING: a CI failure of
+    the test above under load)."""
+    from daemon.interface import ros2_action
+
+    events: list[tuple[str, Any]] = []
+
+    class Query:
+        def reply(self, key: str, payload: bytes, attachment: bytes) -> None:
+            events.append(("result", key))
+
+        def drop(self) -> None:
+            pass
+
+    class Status:
+        def put(self, msg: Any) -> None:
+            events.append(("status", [x.status for x in msg.status_list]))
+
+    server = ros2_action.FlyPathServer(ROS2, None, None, 1 << 20, None)  # type: ignore[arg-type]
+    server._status = Status()
+    server._loop = asyncio.new_event_loop()
+    try:
+        goal = ros2_action._Goal(bytes(16), "fly_path#0", 0, accepted=True, status=EXECUTING)
+        server._remember(goal)
+        request = ros2_wire.Attachment(1, 0, bytes(16))
+        server._pending.take(request)
+        goal.waiting.append((Query(), "fly_path/_action/get_result", request))
+        server._finish(goal, SUCCEEDED, "done")
+    finally:
+        server._loop.close()
+    assert events == [("status", [SUCCEEDED]), ("result", "fly_path/_action/get_result")]
+
+
 @pytest.mark.parametrize(
     ("flown", "reason"),
     [
