@@ -19,7 +19,7 @@ wake-up that steps the plant (some 0.2 ms of CPU for eight drives, up to 0.6 ms)
 over before they arrive, never in their way.  Where a daemon's SYNCs come is set by when
 it started, so once REPHASE_AFTER SYNCs in a row came within a quarter step of a
 boundary, and while no cable moves (so no drive can tell), the simulator's clock is held
-back by less than a step to put them there, once for each such run.
+back by less than a step to put them there (again if they drift off later).
 
 On several buses (given by name, one meter each): frames read from a bus are tagged with
 its name (`channel`) before the drives see them, and each frame sent goes on the bus its
@@ -39,7 +39,7 @@ from dataclasses import dataclass
 import can
 
 from drivers.bus import BusWatch, FrameIO, by_channel, frame_io, gone
-from drivers.cia402.codec import SYNC_ID
+from drivers.cia402.codec import is_sync
 from drivers.clock import PeriodicTimer
 from drivers.gc_policy import CollectorPolicy
 from sim_bus.bus.busload import BusLoadMeter
@@ -183,7 +183,7 @@ class SimulatorRunner:
             # future (a stepped clock) or none at all: now
             at = min(msg.timestamp - offset if msg.timestamp else now, now)
             out.extend(self.robot.handle(msg, at))
-            if msg.arbitration_id == SYNC_ID and not msg.is_extended_id:
+            if is_sync(msg):
                 self._watch_phase(at)
         self._send(out)
         if self.collector is not None:

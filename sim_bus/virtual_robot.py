@@ -27,7 +27,7 @@ import numpy as np
 
 from cdpr import ConfigError, Robot
 from drivers.base import Actuation, Scaling, VirtualDrive
-from drivers.cia402.codec import SYNC_ID
+from drivers.cia402.codec import is_sync
 from drivers.config import DrivesConfig
 from sim_bus.config import RigConfig
 from sim_bus.plant import Plant, PlantConfig
@@ -169,7 +169,7 @@ class VirtualRobot:
         answer."""
         out = self.advance_to(t)
         now = self.plant.time
-        if t > now and message.arbitration_id == SYNC_ID and not message.is_extended_id:
+        if t > now and is_sync(message):
             self._measure(t - now)  # the drives latch at the SYNC's instant, between steps
         drives, silent = self.drives, self.silent
         for k in self._hearing(message):

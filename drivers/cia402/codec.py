@@ -320,6 +320,11 @@ def encode_sync() -> can.Message:
     return message(SYNC_ID)
 
 
+def is_sync(msg: can.Message) -> bool:
+    """Whether `msg` is a SYNC by its id (standard, 0x080); its data are decode_sync's."""
+    return msg.arbitration_id == SYNC_ID and not msg.is_extended_id
+
+
 def decode_sync(data: bytes | bytearray) -> None:
     """A SYNC has no data or a 1-byte counter (1..240)."""
     if len(data) > 1:
