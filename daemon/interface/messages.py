@@ -138,7 +138,13 @@ class TrajectoryMessage:
     path: bool = False
 
 
-def decode_json(payload: bytes, max_bytes: int) -> Any:
+def no_checkpoint() -> None:
+    """decode_json's default checkpoint: nothing to pause for."""
+
+
+def decode_json(
+    payload: bytes, max_bytes: int, checkpoint: Callable[[], None] = no_checkpoint
+) -> Any:
     """Strict JSON: size-limited, UTF-8, no NaN/Infinity tokens, nesting within Python's
     recursion limit.
 
@@ -151,7 +157,8 @@ def decode_json(payload: bytes, max_bytes: int) -> Any:
     A C decoder holds the GIL for a whole call, so a payload above ONE_PIECE_JSON_BYTES
     is decoded piece by piece: containers are walked here, each value of at most
     JSON_PIECE characters goes to the standard library's C decoder at once, and a string
-    or number longer than that is refused.
+    or number longer than that is refused; `checkpoint` is called before each value (the
+    parse thread pauses there: daemon.interface.zenoh_io).
     """
     check_size(len(payload), max_bytes)
     if len(payload) <= ONE_PIECE_JSON_BYTES and not (_long_integer(payload) or _deep(payload)):
@@ -161,7 +168,7 @@ def decode_json(payload: bytes, max_bytes: int) -> Any:
         text = payload.decode("utf-8")
         if len(payload) <= ONE_PIECE_JSON_BYTES:
             return _DECODER.decode(text)
-        return _decode_in_pieces(text)
+        return _decode_in_pieces(text, checkpoint)
     except RecursionError:
         raise CommandError("bad_request", "JSON nested too deeply") from None
     except UnicodeDecodeError as exc:
@@ -170,12 +177,14 @@ def decode_json(payload: bytes, max_bytes: int) -> Any:
         raise CommandError("bad_request", f"invalid JSON: {exc}") from None
 
 
-def _decode_in_pieces(text: str) -> Any:
-    """json.loads(text), handing the C decoder at most JSON_PIECE characters at a time."""
+def _decode_in_pieces(text: str, checkpoint: Callable[[], None] = no_checkpoint) -> Any:
+    """json.loads(text), handing the C decoder at most JSON_PIECE characters at a time,
+    calling `checkpoint` before each."""
     size = len(text)
     stack: list[list[Any]] = []  # [container, the key of the value being read (objects)]
     pos = _skip_space(text, 0)
     while True:
+        checkpoint()
         value, end = _value_in_piece(text, pos)
         if end >= 0:
             pos = end

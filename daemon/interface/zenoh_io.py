@@ -29,7 +29,8 @@ the loop would wait for the GIL up to the switch interval (5 ms) and, on a loade
 for a CPU. So it pauses every PARSE_SLICE (a profile hook, _Yielding: cdpr's parser has
 no points to pause at), runs below the loop's OS priority, uses at most PARSE_SHARE of a
 core in a long flood, and long JSON is decoded in pieces
-(daemon.interface.messages.decode_json) so that no single C call holds the GIL long. The
+(daemon.interface.messages.decode_json, which pauses between them itself) so that no
+single C call holds the GIL long. The
 ROS 2 bridge on this session parses its trajectories in the same thread, within the same
 budget (run_parser): a flood of Paths costs the loop no more than a flood of JSON. Of
 the commands that wait for the drives or for planning (enable, reset, goto:
@@ -46,6 +47,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import ctypes
 import functools
 import inspect
 import logging
@@ -54,7 +56,7 @@ import sys
 import threading
 import time
 from collections import Counter, deque
-from collections.abc import Awaitable, Callable, Mapping
+from collections.abc import Awaitable, Callable, Iterator, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any, Generic, TypeGuard, TypeVar
@@ -76,6 +78,7 @@ from daemon.interface.messages import (
     encode,
     error_body,
     jsonable,
+    no_checkpoint,
     parse_waypoints,
     reply_error,
     reply_ok,
@@ -95,7 +98,9 @@ _ONE_AT_A_TIME = ("enable", "reset", "goto", "identify_payload", "home", "preten
 MAX_COMMAND_BYTES = 16 * 1024  # commands are small: decoding one on a zenoh thread is short
 PARSE_SLICE = 2e-4  # s: the parse thread works at most about this long at a time,
 PARSE_PAUSE = 1e-5  # s: then sleeps at least this long (see _Yielding)
-PARSE_NICE = 5  # and runs below the loop's OS priority (see _lower_priority)
+PARSE_NICE = 5  # and runs below the loop's OS priority (see _set_up_parse_thread)
+PARSE_TIMER_SLACK_NS = 1000  # how late its pauses may end (Linux's default: 50,000)
+PR_SET_TIMERSLACK = 29  # <linux/prctl.h>
 PARSE_SHARE = 0.25  # of one core: what the parse thread may use in a long flood, after
 PARSE_BURST = 0.5  # s of CPU time it may use at once (a planner never notices the limit)
 DECODE_ON_ARRIVAL_BYTES = 8 * 1024  # a trajectory this small is decoded (<= ~0.1 ms) and
@@ -246,18 +251,33 @@ class _Yielding:
     parse thread computes; cdpr's parser has no points to pause at.  So at every
     function call and return in the parse thread this hook checks the clock and, after
     PARSE_SLICE of work, sleeps: the loop, if it waits, gets the GIL and a CPU meanwhile.
+    Code that has points to pause at calls `checkpoint` there itself with the hook off
+    (`unhooked`): a hook called at every call doubles the time of a long JSON decode.
     """
 
     def __init__(self, stop: threading.Event) -> None:
         self._since = time.perf_counter()
         self._stop = stop
 
-    def __call__(self, _frame: object, _event: str, _arg: object) -> None:
+    def checkpoint(self, *_hooked: object) -> None:
+        """Sleep PARSE_PAUSE if PARSE_SLICE has gone by since the last pause; stop the
+        parse if asked to.  Also the hook itself (frame, event, arg: unused)."""
         if time.perf_counter() - self._since > PARSE_SLICE:
             if self._stop.is_set():
                 raise _ParseStopped
             time.sleep(PARSE_PAUSE)
             self._since = time.perf_counter()
+
+    __call__ = checkpoint
+
+    @contextlib.contextmanager
+    def unhooked(self) -> Iterator[Callable[[], None]]:
+        """The hook off meanwhile, for code that calls the checkpoint it gives itself."""
+        sys.setprofile(None)
+        try:
+            yield self.checkpoint
+        finally:
+            sys.setprofile(self)
 
 
 def _shutting_down(item: _Message) -> tuple[str | None, CommandError]:
@@ -266,15 +286,19 @@ def _shutting_down(item: _Message) -> tuple[str | None, CommandError]:
     return ident, CommandError("busy", "the daemon is shutting down")
 
 
-def _lower_priority() -> None:
+def _set_up_parse_thread() -> None:
     """Run the calling thread at nice PARSE_NICE (Linux: the nice value is per thread), so
     that the kernel favours the loop (3:1 at nice 5) whenever both want a CPU.  Not the
     lowest priority: at nice 19 a host's ordinary CPU-bound processes starved it (the
     first figure-eight took 3.9 s to accept beside two of them, against 0.28 s at 5;
-    parsing is CPU-limited by PARSE_SHARE anyway)."""
+    parsing is CPU-limited by PARSE_SHARE anyway).  And with a timer slack of
+    PARSE_TIMER_SLACK (also per thread): at Linux's default of 50 us each PARSE_PAUSE
+    slept ~65 us, a third of a slice (10,000 waypoints: ~2,000 pauses)."""
     if sys.platform.startswith("linux"):  # elsewhere the nice value is the process's
         with contextlib.suppress(OSError):
             os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), PARSE_NICE)
+        with contextlib.suppress(AttributeError, OSError):
+            ctypes.CDLL(None).prctl(PR_SET_TIMERSLACK, PARSE_TIMER_SLACK_NS, 0, 0, 0)
 
 
 class ZenohInterface:
@@ -359,7 +383,7 @@ class ZenohInterface:
         )
         self._events = _Inbox(loop, depth, self._put_event)
         self._parser = ThreadPoolExecutor(
-            1, thread_name_prefix="cdprd-trajectory-parse", initializer=_lower_priority
+            1, thread_name_prefix="cdprd-trajectory-parse", initializer=_set_up_parse_thread
         )
         conf = build_zenoh_config(self.settings, self.prefix, self.ingress_limits)
         try:
@@ -545,10 +569,13 @@ class ZenohInterface:
         raw = _Raw(payload.to_bytes(), path)
         return self._decode_head(raw) if _decoded_on_arrival(len(raw.data)) else raw
 
-    def _decode_head(self, raw: _Raw) -> TrajectoryMessage | tuple[str | None, CommandError]:
-        """The JSON decoded and the message's head checked; or (the id if known, why not)."""
+    def _decode_head(
+        self, raw: _Raw, checkpoint: Callable[[], None] = no_checkpoint
+    ) -> TrajectoryMessage | tuple[str | None, CommandError]:
+        """The JSON decoded (decode_json: `checkpoint` between pieces) and the message's
+        head checked; or (the id if known, why not)."""
         try:
-            data = decode_json(raw.data, self.settings.max_message_bytes)
+            data = decode_json(raw.data, self.settings.max_message_bytes, checkpoint)
         except CommandError as exc:
             return None, exc
         try:
@@ -597,8 +624,12 @@ class ZenohInterface:
     # -- parsing: in the parse thread, or on the loop for the smallest ---------------------
 
     def _parse_payload(self, payload: _Raw) -> _Parsed:
-        """A whole message, from its bytes."""
-        head = self._decode_head(payload)
+        """A whole message, from its bytes (in the parse thread: decode_json pauses
+        between pieces itself, the profile hook off meanwhile)."""
+        hook = sys.getprofile()
+        assert isinstance(hook, _Yielding), "parsed outside the parse thread's budget"
+        with hook.unhooked() as checkpoint:
+            head = self._decode_head(payload, checkpoint)
         return head if isinstance(head, tuple) else self._parse_waypoints(head)
 
     def _parse_waypoints(self, message: TrajectoryMessage) -> _Parsed:

@@ -291,6 +291,29 @@ def test_the_c_decoder_never_gets_a_long_piece(monkeypatch: pytest.MonkeyPatch) 
     assert seen and max(seen) <= JSON_PIECE
 
 
+def test_long_json_calls_its_checkpoint_before_each_value_and_stops_where_it_raises() -> None:
+    """The parse thread pauses between pieces (decode_json's checkpoint): called before
+    each value it reads, and what the checkpoint raises stops the decode there."""
+    body = {"waypoints": [waypoint(0.1 * k) for k in range(3000)]}
+    payload = json.dumps(body).encode()
+    calls: list[None] = []
+    assert decode_json(payload, 1 << 22, lambda: calls.append(None)) == body
+    assert len(calls) >= len(body["waypoints"])
+
+    class StoppedError(Exception):
+        pass
+
+    def stop_at_the_tenth() -> None:
+        calls.append(None)
+        if len(calls) == 10:
+            raise StoppedError
+
+    calls.clear()
+    with pytest.raises(StoppedError):
+        decode_json(payload, 1 << 22, stop_at_the_tenth)
+    assert len(calls) == 10
+
+
 def test_head_then_waypoints_is_the_whole_message() -> None:
     """The head keeps the id and start apart; the waypoints parse as cdpr parses them."""
     limits = TrajectoryLimits(max_waypoints=50)

@@ -8,6 +8,7 @@ config never enables multicast or gossip; the CLI client's exit codes.
 from __future__ import annotations
 
 import asyncio
+import ctypes
 import itertools
 import json
 import math
@@ -39,8 +40,9 @@ from daemon.config.zenoh_config import (
     client_zenoh_config,
     is_local,
 )
+from daemon.interface import zenoh_io
 from daemon.interface.client import CdprClient, ClientError, RequestError, UnreachableError
-from daemon.interface.messages import decode_trajectory
+from daemon.interface.messages import JSON_PIECE, decode_trajectory
 from daemon.interface.ros2_bridge import Ros2Bridge, ingress_limits
 from daemon.interface.zenoh_io import PARSE_SHARE, ZenohInterface
 from daemon.service.api import Claim, CommandError
@@ -55,6 +57,7 @@ TRAJECTORY = {
         {"t": 2.0, "position": [0.1, 0.0, 1.3], "quaternion": IDENTITY},
     ],
 }
+PR_GET_TIMERSLACK = 30  # <linux/prctl.h>
 WAIT = 10.0  # s: upper bound on every wait for the other side (never reached when healthy)
 
 
@@ -565,6 +568,82 @@ def test_closing_stops_a_parse_thread_waiting_for_budget() -> None:
     for thread in set(_parse_threads()) - before:
         thread.join(WAIT)
         assert not thread.is_alive(), "the parse thread outlived close()"
+
+
+def test_a_long_trajectory_is_decoded_with_the_hook_off_pausing_between_pieces(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The parse thread decodes long JSON with its profile hook off (a hook called at
+    every call doubles the decode), the decoder calling the thread's pause checkpoint
+    between pieces instead; the waypoints after it parse with the hook back on."""
+    seen: list[tuple[object, object, int]] = []
+    original_decode, original_parse = zenoh_io.decode_json, zenoh_io.parse_waypoints
+
+    def decode_json(payload: bytes, limit: int, checkpoint: Callable[[], None]) -> Any:
+        calls = [0]
+
+        def counted() -> None:
+            calls[0] += 1
+            checkpoint()
+
+        data = original_decode(payload, limit, counted)
+        seen.append((sys.getprofile(), getattr(checkpoint, "__self__", None), calls[0]))
+        return data
+
+    def parse_waypoints(*args: Any) -> Any:
+        seen.append((type(sys.getprofile()), None, 0))
+        return original_parse(*args)
+
+    monkeypatch.setattr(zenoh_io, "decode_json", decode_json)
+    monkeypatch.setattr(zenoh_io, "parse_waypoints", parse_waypoints)
+    waypoints = [waypoint_at(0.5 * k) for k in range(1000)]
+    message = json.dumps({**TRAJECTORY, "id": "long", "waypoints": waypoints})
+    assert len(message) > zenoh_io.DECODE_ON_ARRIVAL_BYTES + JSON_PIECE  # decoded in pieces
+    served = Running(StandIn())
+    try:
+        with served.session() as session:
+            session.put(f"{PREFIX}/trajectory", message)
+            wait_until(lambda: any(c[0] == "trajectory" for c in served.handler.calls), "it")
+    finally:
+        served.stop()
+    (hook, owner, calls), (parse_hook, _, _) = seen
+    assert hook is None and isinstance(owner, zenoh_io._Yielding)
+    assert calls > len(waypoints)  # before every waypoint's value at least
+    assert parse_hook is zenoh_io._Yielding
+
+
+def test_the_pause_checkpoint_stops_a_parse_once_the_interface_closes() -> None:
+    stop = threading.Event()
+    pausing = zenoh_io._Yielding(stop)
+    sys.setprofile(pausing)
+    try:
+        with pausing.unhooked() as checkpoint:
+            assert sys.getprofile() is None
+            checkpoint()  # within its slice: nothing to do
+            stop.set()
+            time.sleep(2 * zenoh_io.PARSE_SLICE)
+            with pytest.raises(zenoh_io._ParseStopped):
+                checkpoint()
+            stop.clear()  # the hook is back on below
+        assert sys.getprofile() is pausing
+    finally:
+        sys.setprofile(None)
+
+
+def test_the_parse_thread_pauses_with_a_short_timer_slack() -> None:
+    """Its pauses end within ~PARSE_TIMER_SLACK_NS (Linux: per thread; its default of
+    50 us made each 10 us pause ~65 us)."""
+    got: list[int] = []
+
+    def set_up_and_read() -> None:
+        zenoh_io._set_up_parse_thread()
+        got.append(ctypes.CDLL(None).prctl(PR_GET_TIMERSLACK, 0, 0, 0, 0))
+
+    thread = threading.Thread(target=set_up_and_read)
+    thread.start()
+    thread.join(WAIT)
+    assert got == [zenoh_io.PARSE_TIMER_SLACK_NS]
+    assert ctypes.CDLL(None).prctl(PR_GET_TIMERSLACK, 0, 0, 0, 0) != got[0]  # this thread's
 
 
 def test_a_stalled_loop_keeps_queues_bounded_and_busy_replies_immediate() -> None:
