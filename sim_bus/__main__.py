@@ -9,8 +9,10 @@ device and frame faults on a schedule (or device faults typed on standard input 
 report) as one JSON line every TRUTH_PERIOD s, flushed at once, for tests and
 experiments that must see what really moved: {"t": simulated s, "monotonic": that instant
 on this host's monotonic clock (s), "position": [x, y, z], "quaternion": {"w", "x", "y",
-"z"}, "lowest_tension": N, "tensions": [N, ...]}.  `--bus-fd` runs it on inherited socket
-pairs (sim_bus.bus.pairbus) instead of the config's buses: `cdprd demo`'s simulator.
+"z"}, "lowest_tension": N, "tensions": [N, ...], "latest_wake_up_ms": how late its latest
+wake-up since the last line came (sim_bus.runner.HELD_UP or more: the host did not run
+it)}.  `--bus-fd` runs it on inherited socket pairs (sim_bus.bus.pairbus) instead of the
+config's buses: `cdprd demo`'s simulator.
 """
 
 from __future__ import annotations
@@ -272,6 +274,7 @@ async def log_truth(runner: SimulatorRunner, out: TextIO, stop: asyncio.Event) -
                 "quaternion": {"w": w, "x": x, "y": y, "z": z},
                 "lowest_tension": float(tensions.min()),
                 "tensions": tensions.tolist(),
+                "latest_wake_up_ms": runner.take_latest_wake_up() * 1e3,
             }
             out.write(json.dumps(line) + "\n")
             out.flush()

@@ -51,6 +51,7 @@ SYNC_PHASE = 0.5  # of a plant step after a step boundary: where SYNCs are best 
 PHASE_TOLERANCE = 0.25  # of a step either side of it: close enough
 REPHASE_AFTER = 5  # SYNCs in a row outside it before the clock is held back
 REST_RATE = 1e-4  # m/s: no drive's cable moves faster, so a held-back clock goes unseen
+HELD_UP = 0.01  # s: a wake-up this late means the host did not run the simulator (logged)
 
 
 @dataclass
@@ -93,6 +94,8 @@ class SimulatorRunner:
         self._off_phase = 0  # SYNCs in a row that came outside SYNC_PHASE's tolerance
         self.send_errors = 0
         self.receive_errors = 0
+        self.held_up = 0  # wake-ups HELD_UP late or more
+        self._latest = 0.0  # s: the latest wake-up since take_latest_wake_up()
 
     @property
     def t(self) -> float:
@@ -105,12 +108,12 @@ class SimulatorRunner:
     def start(self) -> None:
         loop = asyncio.get_running_loop()
         self._loop = loop
+        if self.collector is not None:
+            gc.collect()  # now, before any drive waits for an answer (or the clock runs)
+            self.collector.start()
         self._t0 = time.monotonic() - self.robot.t
         self._timer = PeriodicTimer(self.wake_period)
         loop.add_reader(self._timer.fileno(), self._on_tick)
-        if self.collector is not None:
-            gc.collect()  # now, before any drive waits for an answer
-            self.collector.start()
         for lane in self.lanes.values():
             lane.watch = BusWatch(
                 lane.io,
@@ -133,8 +136,13 @@ class SimulatorRunner:
                 lane.watch = None
 
     def _on_tick(self) -> None:
-        if self._timer is None or not self._timer.expirations():
+        timer = self._timer
+        if timer is None:
             return
+        expired = timer.expirations()
+        if not expired:
+            return
+        self._note_lateness(timer, expired)
         t = self.t
         # frames sent before now acted when they were sent: first, at their times
         self._drain()
@@ -143,6 +151,23 @@ class SimulatorRunner:
             self._send(self._schedule.pop(0)[1]())
         if self.collector is not None:
             self.collector.after_cycle()
+
+    def _note_lateness(self, timer: PeriodicTimer, expired: int) -> None:
+        """How late this wake-up came (from the first of the `expired` steps it serves):
+        HELD_UP or more is a host that did not run this process (or a vCPU not run), and
+        meanwhile no drive answered: the daemon sees missed feedback that real drives, on
+        processors of their own, would not have caused.  Counted and logged."""
+        now = time.monotonic()
+        late = now - timer.last_expiry(now) + (expired - 1) * timer.period
+        self._latest = max(self._latest, late)
+        if late >= HELD_UP:
+            self.held_up += 1
+            log.warning("simulator: woken %.1f ms late (the host did not run it)", late * 1e3)
+
+    def take_latest_wake_up(self) -> float:
+        """The latest (s) a wake-up came since the last call (the truth log's)."""
+        latest, self._latest = self._latest, 0.0
+        return latest
 
     def _drain(self) -> None:
         """Take what every bus has queued to the drives."""

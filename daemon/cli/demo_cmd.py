@@ -6,17 +6,19 @@ takes the control cycle's CPU); the daemon starts held, and a zenoh client on lo
 — the same client module a planner uses — enables it and sends a figure-eight with a
 ±10° wobble.  At the end it prints the tracking error of the SIMULATED platform (truth,
 not the daemon's estimate: the simulator's true pose every 20 ms against the reference
-the controller followed at that instant), the cable tensions and the cycle timing, and
-optionally plots them.
+the controller followed at that instant), the cable tensions, the cycle timing and how
+often this host held the simulator's process up (its drives then answer late, and the
+figures show the host as much as the robot), and optionally plots them.
 
 --json prints one object on stdout (the live-view line goes to stderr): robot, cables,
 protocol, rate_hz, zenoh, trajectory {shape, duration_s, peak_speed_m_s, wobble_deg},
 tracking_error {definition, rms_mm, max_mm, orientation_rms_deg, orientation_max_deg},
 tensions {min_n, max_n, slack_events}, cycle (the daemon's cycle statistics: cycles,
 deadline_misses, overruns, bus_errors, and p50_us/p99_us/max_us of jitter, compute,
-prepare and latency, feedback->command), final_state, telemetry, plot, drawing (the
-files written, or null).  A demo that ends not holding or off by RMS 5 mm or more exits
-1 with its figures; one that did not complete prints {"error": ...} and exits 1.
+prepare and latency, feedback->command), simulator {definition, held_up,
+latest_wake_up_ms}, final_state, telemetry, plot, drawing (the files written, or null).
+A demo that ends not holding or off by RMS 5 mm or more exits 1 with its figures; one
+that did not complete prints {"error": ...} and exits 1.
 Like `analyze`, this command imports sim_bus (the documented exception, DESIGN §2).
 """
 
@@ -55,6 +57,11 @@ WOBBLE_DEG = 10.0  # its tilt, +-
 TRACKING_ERROR = (
     "the simulated platform's true pose (the simulator's, every 20 ms) against the "
     "reference the controller followed at the same instant, while the trajectory runs"
+)
+HELD_UP = (
+    "the 20 ms windows of the flight in which the simulator's process woke 10 ms late or "
+    "more (sim_bus.runner.HELD_UP): this host did not run it, and its drives answered that "
+    "late, as real drives on processors of their own would not"
 )
 
 
@@ -156,7 +163,8 @@ async def _demo(config: DaemonConfig, path: Path, plot: str | None, as_json: boo
         reason = "no control cycle while the trajectory ran"
         print_error("failed", reason, as_json, prefix="demo")
         return EXIT_FAILED
-    summary, lines = _report(config, result, figures, trajectory.duration)
+    held = _held_up(simulator.truth, result["t0"], start, start + trajectory.duration)
+    summary, lines = _report(config, result, figures, held, trajectory.duration)
     written: dict[str, str | None] = {"telemetry": None, "plot": plot, "drawing": None}
     if config.recording.telemetry:
         written["telemetry"] = str(_latest_recording(Path(config.recording.telemetry)))
@@ -219,6 +227,20 @@ def _truth_samples(
     return samples
 
 
+def _held_up(truth: list[dict], t0: float, start: float, end: float) -> dict[str, Any]:
+    """How the host held the simulator up between daemon times `start` and `end` (the
+    truth log's latest_wake_up_ms; `t0`: the daemon's clock origin): HELD_UP's windows
+    and the latest wake-up."""
+    from sim_bus.runner import HELD_UP as LATE
+
+    late = [r["latest_wake_up_ms"] for r in truth if start <= r["monotonic"] - t0 <= end]
+    return {
+        "definition": HELD_UP,
+        "held_up": sum(1 for ms in late if ms >= LATE * 1e3),
+        "latest_wake_up_ms": round(max(late, default=0.0), 1),
+    }
+
+
 def _summary(samples, t0: float, t1: float) -> TrackingFigures | None:
     """Tracking error of the true platform against the reference while tracking."""
     from tuning.tracking import tracking_figures
@@ -230,7 +252,11 @@ def _summary(samples, t0: float, t1: float) -> TrackingFigures | None:
 
 
 def _report(
-    config: DaemonConfig, result: dict[str, Any], f: TrackingFigures, duration: float
+    config: DaemonConfig,
+    result: dict[str, Any],
+    f: TrackingFigures,
+    held: dict[str, Any],
+    duration: float,
 ) -> tuple[dict[str, Any], list[str]]:
     """The run's figures by key (--json), and the lines a person reads, each built
     beside its figures."""
@@ -261,6 +287,7 @@ def _report(
             "slack_events": f.slack_events,
         },
         "cycle": stats,
+        "simulator": held,
         "final_state": result["state"],
     }
     lines = [
@@ -276,6 +303,9 @@ def _report(
         f"{stats['compute']['p99_us']:.0f} us, feedback->command p50/p99 "
         f"{stats['latency']['p50_us']:.0f}/{stats['latency']['p99_us']:.0f} us, "
         f"deadline misses {stats['deadline_misses']}, overruns {stats['overruns']}",
+        f"simulator held up by this host in {held['held_up']} of the flight's 20 ms windows "
+        f"(latest wake-up {held['latest_wake_up_ms']:.1f} ms late)"
+        + (": the figures show the host as much as the robot" if held["held_up"] else ""),
         f"final state: {result['state']}",
     ]
     return summary, lines
