@@ -39,7 +39,6 @@ from dataclasses import dataclass
 import can
 
 from drivers.bus import BusWatch, FrameIO, by_channel, frame_io, gone
-from drivers.cia402.codec import is_sync
 from drivers.clock import PeriodicTimer
 from drivers.gc_policy import CollectorPolicy
 from sim_bus.bus.busload import BusLoadMeter
@@ -208,7 +207,7 @@ class SimulatorRunner:
             # future (a stepped clock) or none at all: now
             at = min(msg.timestamp - offset if msg.timestamp else now, now)
             out.extend(self.robot.handle(msg, at))
-            if is_sync(msg):
+            if self.robot.is_sync(msg):
                 self._watch_phase(at)
         self._send(out)
         if self.collector is not None:

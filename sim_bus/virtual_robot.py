@@ -164,12 +164,17 @@ class VirtualRobot:
                     out.extend(self._from(k, frames))
         return out
 
+    def is_sync(self, message: can.Message) -> bool:
+        """Whether `message` is a SYNC to these drives: CiA 402 drives latch on one; to
+        ODrives the same id (0x080) is node 4's command 0."""
+        return self.protocol == "cia402" and is_sync(message)
+
     def handle(self, message: can.Message, t: float) -> list[can.Message]:
         """Deliver one bus frame at time `t` to every drive on its bus; the frames they
         answer."""
         out = self.advance_to(t)
         now = self.plant.time
-        if t > now and is_sync(message):
+        if t > now and self.is_sync(message):
             self._measure(t - now)  # the drives latch at the SYNC's instant, between steps
         drives, silent = self.drives, self.silent
         for k in self._hearing(message):

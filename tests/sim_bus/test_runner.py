@@ -93,6 +93,19 @@ def test_a_wake_up_the_host_held_up_is_counted_logged_and_in_the_truth_log(
     assert any("ms late (the host did not run it)" in r.getMessage() for r in caplog.records)
 
 
+@pytest.mark.parametrize(("protocol", "sync"), [("cia402", True), ("odrive", False)])
+def test_only_cia402_drives_take_id_0x080_for_a_sync(protocol: str, sync: bool) -> None:
+    """To ODrives a standard 0x080 frame is node 4's command 0, never a SYNC to latch on
+    or to rephase the clock by; an extended 0x080 is a SYNC to no one."""
+    sim = InProcessSimulator(config_for(protocol))
+    try:
+        robot = sim.robot
+        assert robot.is_sync(can.Message(arbitration_id=SYNC_ID, is_extended_id=False)) is sync
+        assert not robot.is_sync(can.Message(arbitration_id=SYNC_ID, is_extended_id=True))
+    finally:
+        sim.close()
+
+
 def test_the_status_line_names_failed_sends_and_receives_only_when_there_are_some() -> None:
     runner = SimpleNamespace(send_errors=0, receive_errors=0)
     assert failure_note(runner) == ""
