@@ -93,7 +93,6 @@ class SimulatorRunner:
         self._off_phase = 0  # SYNCs in a row that came outside SYNC_PHASE's tolerance
         self.send_errors = 0
         self.receive_errors = 0
-        self.held_up = 0  # wake-ups HELD_UP late or more
         self._latest = 0.0  # s: the latest wake-up since take_latest_wake_up()
 
     @property
@@ -155,12 +154,11 @@ class SimulatorRunner:
         """How late this wake-up came (from the first of the `expired` steps it serves):
         HELD_UP or more is a host that did not run this process (or a vCPU not run), and
         meanwhile no drive answered: the daemon sees missed feedback that real drives, on
-        processors of their own, would not have caused.  Counted and logged."""
+        processors of their own, would not have caused.  Logged."""
         now = time.monotonic()
         late = now - timer.last_expiry(now) + (expired - 1) * timer.period
         self._latest = max(self._latest, late)
         if late >= HELD_UP:
-            self.held_up += 1
             log.warning("simulator: woken %.1f ms late (the host did not run it)", late * 1e3)
 
     def take_latest_wake_up(self) -> float:

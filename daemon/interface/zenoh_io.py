@@ -30,13 +30,13 @@ for a CPU. So it pauses every PARSE_SLICE (a profile hook, _Yielding: cdpr's par
 no points to pause at), runs below the loop's OS priority, uses at most PARSE_SHARE of a
 core in a long flood, and long JSON is decoded in pieces
 (daemon.interface.messages.decode_json, which pauses between them itself) so that no
-single C call holds the GIL long. The
-ROS 2 bridge on this session parses its trajectories in the same thread, within the same
-budget (run_parser): a flood of Paths costs the loop no more than a flood of JSON. Of
-the commands that wait for the drives or for planning (enable, reset, goto:
-_ONE_AT_A_TIME) one runs at a time; another one meanwhile is answered "busy" and never
-started. A hold, which plans its stop for a few ms, is never turned away, nor is a
-request that preempts (it replaces what runs: daemon.service.motion).
+single C call holds the GIL long. The ROS 2 bridge on this session parses its
+trajectories in the same thread, within the same budget (run_parser): a flood of Paths
+costs the loop no more than a flood of JSON. Of the commands that wait for the drives or
+for planning (enable, reset, goto: _ONE_AT_A_TIME) one runs at a time; another one
+meanwhile is answered "busy" and never started. A hold, which plans its stop for a few
+ms, is never turned away, nor is a request that preempts (it replaces what runs:
+daemon.service.motion).
 
 One queryable serves cmd/** (rather than one per command) so that an unknown command gets
 a clear error reply, and so that a wildcard query (cmd/*) is refused instead of running
@@ -292,7 +292,7 @@ def _set_up_parse_thread() -> None:
     lowest priority: at nice 19 a host's ordinary CPU-bound processes starved it (the
     first figure-eight took 3.9 s to accept beside two of them, against 0.28 s at 5;
     parsing is CPU-limited by PARSE_SHARE anyway).  And with a timer slack of
-    PARSE_TIMER_SLACK (also per thread): at Linux's default of 50 us each PARSE_PAUSE
+    PARSE_TIMER_SLACK_NS (also per thread): at Linux's default of 50 us each PARSE_PAUSE
     slept ~65 us, a third of a slice (10,000 waypoints: ~2,000 pauses)."""
     if sys.platform.startswith("linux"):  # elsewhere the nice value is the process's
         with contextlib.suppress(OSError):

@@ -64,33 +64,31 @@ def test_a_sync_read_late_is_taken_at_the_moment_it_was_sent() -> None:
     assert taken[0] == pytest.approx(sent, abs=0.01)  # read at sent + 0.05 or later
 
 
-def test_a_wake_up_the_host_held_up_is_counted_logged_and_in_the_truth_log(
+def test_a_wake_up_the_host_held_up_is_logged_and_in_the_truth_log(
     caplog: pytest.LogCaptureFixture,
 ) -> None:
-    """The loop held up 60 ms: the next wake-up comes that late, which the runner counts
-    (held_up), logs, and gives the truth log once (take_latest_wake_up)."""
+    """The loop held up 60 ms: the next wake-up comes that late, which the runner logs
+    and gives the truth log once (take_latest_wake_up)."""
     from sim_bus.runner import HELD_UP
 
-    async def scenario() -> tuple[int, float, float]:
+    async def scenario() -> tuple[float, float]:
         sim = InProcessSimulator(config_for("cia402"))
         sim.start()
         try:
             await asyncio.sleep(0.05)
             sim.runner.take_latest_wake_up()
-            before = sim.runner.held_up
             time.sleep(0.06)  # this process held up
             await asyncio.sleep(0.01)
-            latest = sim.runner.take_latest_wake_up()
-            return sim.runner.held_up - before, latest, sim.runner.take_latest_wake_up()
+            return sim.runner.take_latest_wake_up(), sim.runner.take_latest_wake_up()
         finally:
             sim.close()
 
     with caplog.at_level("WARNING", logger="sim_bus.runner"):
-        held, latest, again = asyncio.run(scenario())
-    assert held >= 1  # (a loaded host may hold it up again)
+        latest, again = asyncio.run(scenario())
     assert latest >= 0.055 and latest >= HELD_UP
     assert again < latest  # taken: the next read starts afresh
-    assert any("ms late (the host did not run it)" in r.getMessage() for r in caplog.records)
+    late = [r.getMessage() for r in caplog.records if "(the host did not run it)" in r.getMessage()]
+    assert late and max(float(m.split()[2]) for m in late) >= 55.0, late
 
 
 @pytest.mark.parametrize(("protocol", "sync"), [("cia402", True), ("odrive", False)])
