@@ -25,6 +25,9 @@ counters; and what the flooder sent and got back.  Mixes (what the puts are):
     all      all of these, interleaved (40 % valid, 40 % hostile, 10 % parse, ...)
     refused  all but what the service would accept (parse and hostile), so that the
              robot keeps tracking its own trajectory: the interface's costs alone
+    long     valid 10,000-waypoint trajectories (1.7 MB), each sent as a query: how long
+             the daemon takes to accept one (parsed, validated, planned, acknowledged:
+             "reply_s") and what it costs the cycle meanwhile (at --rate 0.5, say)
 
     python bench/flood.py [--json] [--seconds 5] [--rate 2000] [--mix refused] [--limit HZ]
 
@@ -65,7 +68,12 @@ from drivers.clock import PeriodicTimer
 CONFIG = Path(__file__).resolve().parent.parent / "config" / "reference8-cia402.yaml"
 PREFIX = "cdpr/flood"
 HOME = (0.0, 0.0, 1.25)
-MIXES = ("parse", "valid", "large", "hostile", "all", "refused")
+MIXES = ("parse", "valid", "large", "hostile", "all", "refused", "long")
+LONG_WAYPOINTS = 10_000  # the default max_waypoints
+# radius (m), period (s) and waypoint spacing (s) of the circles the service accepts: they
+# start at speed (3 mm/s), within the reference configs' jerk limit (50 m/s^3; 5 cm in
+# 10 s needed 61 m/s^3 to leave rest in the first 0.1 s, and was refused)
+GENTLE = (0.03, 60.0, 0.1)
 
 
 # A query waits in the daemon's queue (16 deep, and undecoded ones weighing at most two of
@@ -114,7 +122,7 @@ def messages(mix: str, max_bytes: int) -> list[tuple[str, bytes]]:
         {"t": 1.0, "position": [HOME[0] + 0.01, HOME[1], HOME[2]], "quaternion": identity},
     ]
     valid = {"version": 1, "waypoints": near}
-    large = {"version": 1, "waypoints": circle(100, 0.05, 10.0, 0.1)}
+    large = {"version": 1, "waypoints": circle(100, *GENTLE)}
     hostile = [
         b"not json",
         b'{"waypoints": [NaN]}',
@@ -133,6 +141,7 @@ def messages(mix: str, max_bytes: int) -> list[tuple[str, bytes]]:
         "hostile": hostile,
         "oversize": [b" " * (max_bytes + 1)],
         "big": [b'{"waypoints": [' + b"0.123456789, " * ((max_bytes - 64) // 13) + b"0]}"],
+        "long": [json.dumps({"version": 1, "waypoints": circle(LONG_WAYPOINTS, *GENTLE)}).encode()],
     }
     counts = {
         "parse": {"parse": 1},
@@ -141,6 +150,7 @@ def messages(mix: str, max_bytes: int) -> list[tuple[str, bytes]]:
         "hostile": {"hostile": 14, "oversize": 1, "big": 1},
         "all": {"valid": 40, "parse": 10, "large": 2, "hostile": 40, "oversize": 1, "big": 1},
         "refused": {"parse": 40, "hostile": 60, "oversize": 1, "big": 1},
+        "long": {"long": 1},
     }[mix]
     out = [
         (kind, kinds[kind][k % len(kinds[kind])]) for kind, n in counts.items() for k in range(n)
@@ -159,7 +169,7 @@ def flooder(endpoint: str, prefix: str, seconds: float, rate: float, mix: str) -
     from daemon.config.zenoh_config import client_zenoh_config
 
     round_ = messages(mix, 2 * 1024 * 1024)
-    accepting = mix in ("valid", "large", "all")  # else the service accepts nothing
+    accepting = mix in ("valid", "large", "all", "long")  # else the service accepts nothing
     asked = next(p for k, p in messages("valid" if accepting else "parse", 1024))
     queries = [
         ("cmd/status", None),
@@ -168,8 +178,12 @@ def flooder(endpoint: str, prefix: str, seconds: float, rate: float, mix: str) -
         ("cmd/goto", b'{"position": [0, 0, NaN]}'),
     ]
     replies: dict[int, list[str]] = {}
+    asked_at: dict[int, float] = {}
+    waited: list[float] = []  # s from a trajectory query to its reply
 
     def on_reply(i: int, reply: zenoh.Reply) -> None:
+        if not replies[i] and i in asked_at:
+            waited.append(time.monotonic() - asked_at[i])
         sample = reply.ok if reply.ok is not None else reply.err
         try:
             body = json.loads(sample.payload.to_bytes())
@@ -184,6 +198,8 @@ def flooder(endpoint: str, prefix: str, seconds: float, rate: float, mix: str) -
         def ask(key: str, body: bytes | None) -> None:
             i = len(replies)
             replies[i] = []
+            if key == "trajectory":
+                asked_at[i] = time.monotonic()
             session.get(
                 f"{prefix}/{key}", lambda r: on_reply(i, r), payload=body, timeout=REPLY_TIMEOUT
             )
@@ -200,10 +216,13 @@ def flooder(endpoint: str, prefix: str, seconds: float, rate: float, mix: str) -
         while (now := time.monotonic() - start) < seconds:
             while n < now * rate and time.monotonic() - start < seconds:
                 kind, payload = round_[n % len(round_)]
-                publisher.put(payload)
+                if kind == "long":
+                    ask("trajectory", payload)
+                else:
+                    publisher.put(payload)
                 sent[kind] += 1
                 n += 1
-                if n % 10 == 0:
+                if n % 10 == 0 and kind != "long":
                     ask(*queries[len(replies) % len(queries)])
             time.sleep(0.001)
         elapsed = time.monotonic() - start
@@ -219,6 +238,11 @@ def flooder(endpoint: str, prefix: str, seconds: float, rate: float, mix: str) -
         "queries": len(replies),
         "replies": dict(codes),
         "replies_per_query": dict(Counter(len(r) for r in replies.values())),
+        "reply_s": {
+            "trajectory_queries": len(waited),
+            "median": round(float(np.median(waited)), 3) if waited else None,
+            "max": round(max(waited), 3) if waited else None,
+        },
     }
 
 

@@ -11,7 +11,7 @@ experiments that must see what really moved: {"t": simulated s, "monotonic": tha
 on this host's monotonic clock (s), "position": [x, y, z], "quaternion": {"w", "x", "y",
 "z"}, "lowest_tension": N, "tensions": [N, ...], "latest_wake_up_ms": how late its latest
 wake-up since the last line came (sim_bus.runner.HELD_UP or more: the host did not run
-it)}.  `--bus-fd` runs it on inherited socket pairs (sim_bus.bus.pairbus) instead of the
+this process)}.  `--bus-fd` runs it on inherited socket pairs (sim_bus.bus.pairbus) instead of the
 config's buses: `cdprd demo`'s simulator.
 """
 

@@ -50,7 +50,7 @@ SYNC_PHASE = 0.5  # of a plant step after a step boundary: where SYNCs are best 
 PHASE_TOLERANCE = 0.25  # of a step either side of it: close enough
 REPHASE_AFTER = 5  # SYNCs in a row outside it before the clock is held back
 REST_RATE = 1e-4  # m/s: no drive's cable moves faster, so a held-back clock goes unseen
-HELD_UP = 0.01  # s: a wake-up this late means the host did not run the simulator (logged)
+HELD_UP = 0.01  # s: a wake-up this late: the simulator was held up (logged)
 
 
 @dataclass
@@ -152,14 +152,17 @@ class SimulatorRunner:
 
     def _note_lateness(self, timer: PeriodicTimer, expired: int) -> None:
         """How late this wake-up came (from the first of the `expired` steps it serves):
-        HELD_UP or more is a host that did not run this process (or a vCPU not run), and
-        meanwhile no drive answered: the daemon sees missed feedback that real drives, on
-        processors of their own, would not have caused.  Logged."""
+        HELD_UP or more is a host that did not run this process (or its vCPU), or other
+        work on the loop it shares (in process), and meanwhile no drive answered: the
+        daemon sees missed feedback that real drives, on processors of their own, would
+        not have caused.  Logged."""
         now = time.monotonic()
         late = now - timer.last_expiry(now) + (expired - 1) * timer.period
         self._latest = max(self._latest, late)
         if late >= HELD_UP:
-            log.warning("simulator: woken %.1f ms late (the host did not run it)", late * 1e3)
+            log.warning(
+                "simulator: woken %.1f ms late (held up: its drives answered late)", late * 1e3
+            )
 
     def take_latest_wake_up(self) -> float:
         """The latest (s) a wake-up came since the last call (the truth log's)."""
