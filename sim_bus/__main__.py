@@ -200,8 +200,9 @@ async def simulate(setup: SimSetup, args: argparse.Namespace) -> int:
         raise
     robot = VirtualRobot(setup.robot, setup.drives, setup.sim.plant, setup.sim.rig)
     meters = {c.bus_name: BusLoadMeter(c.bitrate) for c in setup.buses}
+    wake = setup.sim.wake(setup.drives)
     runner = SimulatorRunner(
-        robot, device, meters, setup.sim.wake(setup.drives), collector=CollectorPolicy()
+        robot, device, meters, wake, collector=CollectorPolicy(), own_process=True
     )
     for kind, cable, at in args.fault:
         runner.at(at, fault_action(robot, kind, cable))
