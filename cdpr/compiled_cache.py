@@ -21,6 +21,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 # every file that compiles with numba (tests/cdpr/test_compiled_cache.py keeps it whole)
 SOURCES = (
+    "cdpr/compiled_model.py",
     "cdpr/wrench_margin.py",
     "cdpr/interference.py",
     "cdpr/path/jerk_estimate.py",

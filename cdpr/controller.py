@@ -45,7 +45,7 @@ from cdpr.so3 import quat_to_r9
 from cdpr.stretch import ComplianceScale
 from cdpr.stretch_rate import TensionRate, stretch_time
 from cdpr.tension import FactoredJacobian, TensionLimits, TensionSolver, make_tension_solver
-from cdpr.trajectory import Reference, WrenchCheck
+from cdpr.trajectory import Reference
 from cdpr.wrench_observer import WrenchObserver
 
 Array = NDArray[np.float64]
@@ -511,18 +511,3 @@ class ParallelController:
             nan_n, False, reason, ref, pose, nan6, residual, nan6, nan6, nan6,
             nan_n, nan_n, nan_n, nan_n,
         )  # fmt: skip
-
-
-def wrench_check(robot: Robot, tension: TensionSolver) -> WrenchCheck:
-    """A trajectory check (DESIGN §7): is the wrench the controller would need to follow
-    (pose, twist, accel) exactly — steps 7–10 with α_c = α_r — in W?  None if it is,
-    else the reason."""
-
-    def check(pose: Pose, twist: Array, accel: Array) -> str | None:
-        Lam, c, M, mu = robot.model_terms(pose, twist)
-        result = tension.solve(
-            Lam, M @ accel + mu, robot.drag(Lam @ twist), robot.m0 * (Lam @ accel + c)
-        )
-        return None if result.feasible else f"wrench not in W: {result.reason}"
-
-    return check

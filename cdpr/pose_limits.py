@@ -15,11 +15,17 @@ from dataclasses import dataclass, field, replace
 from typing import NamedTuple
 
 import numpy as np
+from numpy.typing import NDArray
 
 from cdpr.body import Environment, PlatformBody, crossed
 from cdpr.pose import Pose
 
+BoolArray = NDArray[np.bool_]
+
 ROUNDING = 1e-9  # m or rad kept in addition to any margin: rounding of the checks themselves
+# how far inside each bound a batch screen (`clear`) wants a sample, in m, rad or relative
+# to the bound: batch arithmetic rounds differently from the scalar check, by ~1e-15
+SCREEN_MARGIN = 1e-9
 
 
 class PoseViolation(NamedTuple):
@@ -92,6 +98,26 @@ class PoseLimits:
         ):
             return None if inside else self._body_violation(pose, body, False)
         return self._body_violation(pose, body, True)
+
+    def clear(self, positions: NDArray[np.float64], quaternions: NDArray[np.float64]) -> BoolArray:
+        """Which poses (positions N x 3, unit quaternions N x 4) certainly pass
+        `violation`, by its own quick tests (the reference point, or every corner the
+        body's reach allows, inside the box; the tilt), SCREEN_MARGIN m or rad inside
+        each bound.  False means
+        only that `violation` must decide (near a face, near an obstacle)."""
+        reach = 0.0 if self.body is None else self.body.reach * (1.0 + self.turn)
+        inside = np.all(
+            (positions >= np.add(self.lower, reach + SCREEN_MARGIN))
+            & (positions <= np.subtract(self.upper, reach + SCREEN_MARGIN)),
+            axis=1,
+        )
+        cosine = np.minimum(1.0, np.abs(quaternions @ np.asarray(self.home, dtype=float)))
+        inside &= 2.0 * np.arccos(cosine) <= self.tilt_max - SCREEN_MARGIN
+        if self.body is not None and not self.environment.empty:
+            near = self.environment.near
+            for i in np.flatnonzero(inside).tolist():
+                inside[i] = not near(positions[i].tolist(), self.margin[0] + reach)
+        return inside
 
     def _body_violation(
         self, pose: Pose, body: PlatformBody, environment: bool

@@ -87,18 +87,23 @@ class WorkspaceCheck:
     def margins(self, placed: Placed, payload: float = 0.0, parallel: bool = False) -> Array:
         """The capacity margin (N) at each pose, with `payload` (kg) more at the centre of
         mass; on this thread (the daemon), or on every core (`parallel`: the map)."""
-        needed = rest_wrenches(self.platform, placed.rotations, payload, self._com)
-        return self.wrenches.margins(placed.jacobians, needed, parallel=parallel)
+        return self._margins(placed.jacobians, placed.rotations, payload, parallel)
 
-    def first_refusal(self, positions: ArrayLike, rotations: ArrayLike) -> BatchRefusal | None:
-        """The first of the poses whose cables touch or whose margin falls short, else None."""
-        placed = place(self.robot, positions, rotations)
+    def first_refusal(
+        self, positions: ArrayLike, rotations: ArrayLike, jacobians: ArrayLike | None = None
+    ) -> BatchRefusal | None:
+        """The first of the poses whose cables touch or whose margin falls short, else None
+        (`jacobians`: Lambda at the poses where the caller has them, N x n x 6, with the
+        rotations N x 3 x 3)."""
+        if jacobians is None or self.interference:
+            placed = place(self.robot, positions, rotations)
+            jacobians, rotations = placed.jacobians, placed.rotations
         touching = (
             self.touches.any(placed.starts, placed.ends, placed.rotations, parallel=False)
             if self.interference
-            else np.zeros(len(placed.starts), np.bool_)
+            else np.zeros(len(jacobians), np.bool_)
         )
-        short = self.margins(placed) < self.margin
+        short = self._margins(jacobians, rotations) < self.margin
         bad = np.flatnonzero(touching | short)
         if not len(bad):
             return None
@@ -107,15 +112,25 @@ class WorkspaceCheck:
             found = self.touches.first(placed.starts[i], placed.ends[i], placed.rotations[i])
             assert found is not None
             return BatchRefusal(i, "workspace.interference", self.touches.describe(found))
-        return BatchRefusal(i, "workspace.margin", self._short(placed, i))
+        return BatchRefusal(i, "workspace.margin", self._short(jacobians[i], rotations[i]))
+
+    def _margins(
+        self,
+        jacobians: ArrayLike,
+        rotations: ArrayLike,
+        payload: float = 0.0,
+        parallel: bool = False,
+    ) -> Array:
+        needed = rest_wrenches(self.platform, rotations, payload, self._com)
+        return self.wrenches.margins(jacobians, needed, parallel=parallel)
 
     @property
     def _com(self) -> tuple[float, float, float]:
         return self.platform.center_of_mass
 
-    def _short(self, placed: Placed, i: int) -> str:
-        needed = rest_wrenches(self.platform, placed.rotations[i : i + 1])[0]
-        found = self.wrenches.margin(placed.jacobians[i], needed)
+    def _short(self, jacobian: Array, rotation: Array) -> str:
+        needed = rest_wrenches(self.platform, rotation[None])[0]
+        found = self.wrenches.margin(jacobian, needed)
         bounds = ", ".join(
             f"cable {k} at {'force_max' if up else 't_min'}"
             for k, up in zip(found.at_limit, found.upper, strict=True)

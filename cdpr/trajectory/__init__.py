@@ -6,9 +6,17 @@ trajectory against rate, pose, cable-length and wrench limits before it runs, an
 / `goto` build jump-free transitions from the current reference.
 """
 
-from cdpr.trajectory.core import SCHEMA_VERSION, Reference, Trajectory, TrajectoryError, Waypoint
+from cdpr.trajectory.core import (
+    SCHEMA_VERSION,
+    Reference,
+    Samples,
+    Trajectory,
+    TrajectoryError,
+    Waypoint,
+)
 from cdpr.trajectory.limits import (
     LengthLimits,
+    Screened,
     TrajectoryLimits,
     WrenchCheck,
     cable_speed_bounds,
@@ -33,6 +41,8 @@ __all__ = [
     "SCHEMA_VERSION",
     "LengthLimits",
     "Reference",
+    "Samples",
+    "Screened",
     "Trajectory",
     "TrajectoryError",
     "TrajectoryLimits",

@@ -31,7 +31,13 @@ from numpy.typing import NDArray
 from scipy.linalg import solveh_banded
 
 from cdpr.pose import QUATERNION_NORM_TOLERANCE, Pose, liediff
-from cdpr.so3 import quat_mul4, quats_to_rotvecs, rotate_quat_by_rotvec
+from cdpr.so3 import (
+    quat_mul4,
+    quats_to_matrices,
+    quats_to_rotvecs,
+    rotate_quat_by_rotvec,
+    rotate_quats_by_rotvecs,
+)
 from cdpr.trajectory.rotation import angular_rates, left_jacobians
 
 Array = NDArray[np.float64]
@@ -144,6 +150,18 @@ class Reference(NamedTuple):
         )
 
 
+class Samples(NamedTuple):
+    """The references at many times as arrays (Curve.sample_many): what a check of a
+    batch of samples reads."""
+
+    times: Array  # (N,)
+    positions: Array  # (N, 3)
+    quaternions: Array  # (N, 4), w first
+    rotations: Array  # (N, 3, 3)
+    twists: Array  # (N, 6)
+    accels: Array  # (N, 6)
+
+
 class _Blend(NamedTuple):
     """Segments joined before a trajectory's own first waypoint (Trajectory.after_blend):
     segment k from leads[k] to the next lead, the last into the trajectory's start."""
@@ -184,8 +202,12 @@ class Curve:
         last: Pose,
         shift: float = 0.0,
         blend: _Blend | None = None,
+        arrays: tuple[Array, Array, Array] | None = None,
     ) -> None:
         self._times, self._tables, self._quats = times, tables, quats
+        # the same as arrays (times (m + 1,), tables (m, 6, 18), quats (m, 4)) for
+        # sample_many; made at the first call when not given
+        self._arrays = arrays
         self._first, self._last = first, last
         self.shift = shift
         self.blend = blend
@@ -197,7 +219,10 @@ class Curve:
 
     def placed(self, shift: float, blend: _Blend | None) -> Curve:
         """The same segments with another time shift and blend."""
-        return Curve(self._times, self._tables, self._quats, self._first, self._last, shift, blend)
+        return Curve(
+            self._times, self._tables, self._quats, self._first, self._last, shift, blend,
+            self._arrays,
+        )  # fmt: skip
 
     def segment(self, t: float) -> int:
         """The last knot of the segments at or before t (-1 before the first), as a
@@ -230,6 +255,52 @@ class Curve:
         if t < self.start_time:
             return self._before
         raise ValueError(f"sample time must be a number, got {t!r}")
+
+    def sample_many(self, times: Array) -> Samples:
+        """sample() at many times (ascending or not) at once: the samples inside the
+        segments evaluated together (a validation's batch, ~1 us a sample against ~10 one
+        by one), those before, after or in the blend one by one."""
+        t = np.asarray(times, dtype=float)
+        count = len(t)
+        positions, quaternions = np.empty((count, 3)), np.empty((count, 4))
+        twists, accels = np.empty((count, 6)), np.empty((count, 6))
+        inside = (t >= self.body_start) & (t < self.end_time)
+        rows = np.flatnonzero(inside)
+        if rows.size:
+            knots, tables, quats = self._as_arrays()
+            at = t[rows]
+            k = self._segments_of(at, knots)
+            tau = at - (knots[k] + self.shift)
+            t2 = tau * tau
+            t3 = t2 * tau
+            powers = np.stack([np.ones_like(tau), tau, t2, t3, t3 * tau, t3 * t2], axis=1)
+            y = np.einsum("ni,nij->nj", powers, tables[k])  # as evaluate_segment's rows
+            positions[rows] = y[:, :3]
+            quaternions[rows] = rotate_quats_by_rotvecs(quats[k], y[:, 3:6])
+            omega, omega_dot = angular_rates(y[:, 3:6].T, y[:, 9:12].T, y[:, 15:18].T)
+            twists[rows, :3], accels[rows, :3] = y[:, 6:9], y[:, 12:15]
+            twists[rows, 3:], accels[rows, 3:] = np.stack(omega, 1), np.stack(omega_dot, 1)
+        for i in np.flatnonzero(~inside).tolist():
+            ref = self.sample(float(t[i]))
+            positions[i], quaternions[i] = ref.pose.position_tuple, ref.pose.quaternion_tuple
+            twists[i], accels[i] = ref.twist, ref.accel
+        return Samples(t, positions, quaternions, quats_to_matrices(quaternions), twists, accels)
+
+    def _segments_of(self, t: Array, knots: Array) -> NDArray[np.intp]:
+        """segment(t) for an array of times inside the segments."""
+        shift, last = self.shift, len(knots) - 1
+        k = np.searchsorted(knots, t - shift, side="right") - 1
+        k = np.where((k < last) & (knots[np.minimum(k + 1, last)] + shift <= t), k + 1, k)
+        return np.where((k >= 0) & (knots[np.maximum(k, 0)] + shift > t), k - 1, k)
+
+    def _as_arrays(self) -> tuple[Array, Array, Array]:
+        if self._arrays is None:
+            self._arrays = (
+                np.asarray(self._times, dtype=float),
+                np.asarray(self._tables, dtype=float).reshape(-1, 6, 18),
+                np.asarray(self._quats, dtype=float).reshape(-1, 4),
+            )
+        return self._arrays
 
     def segments(self) -> tuple[Array, Array, Array]:
         """(start times (m,), tables (m, 6, 18), durations (m,)) of every segment in time
@@ -266,14 +337,17 @@ class Curve:
         if n < 2 or data.shape != (n + (n - 1) * (_TABLE_SIZE + 4),):
             raise ValueError(f"a packed curve of {n} knots cannot hold {data.shape} values")
         tables_end = n + (n - 1) * _TABLE_SIZE
+        tables = data[n:tables_end].reshape(n - 1, 6, 18)
+        quats = data[tables_end:].reshape(n - 1, 4)
         return cls(
             _Floats(data[:n]),
-            data[n:tables_end].reshape(n - 1, 6, 18),
-            _Rows(data[tables_end:].reshape(n - 1, 4)),
+            tables,
+            _Rows(quats),
             header["first"],
             header["last"],
             float(header["shift"]),
             header["blend"],
+            (data[:n], tables, quats),
         )
 
 
@@ -368,6 +442,7 @@ class Trajectory:
             list(map(tuple, quats.tolist())),
             knots.pose(0),
             knots.pose(len(times) - 1),
+            arrays=(times, tables, quats[:-1]),
         )
         self._listed: tuple[Waypoint, ...] | None = None  # `waypoints`, made when asked
 
@@ -455,6 +530,10 @@ class Trajectory:
     def sample(self, t: float) -> Reference:
         """(η_r, φ_r, α_r) at time t: evaluates only the segment holding t."""
         return self._curve.sample(t)
+
+    def sample_many(self, times: Array) -> Samples:
+        """sample() at many times at once, as arrays (Curve.sample_many)."""
+        return self._curve.sample_many(times)
 
     def shifted(self, dt: float) -> Trajectory:
         """The same trajectory with every time moved by dt (e.g. to start "now")."""

@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
-from typing import Annotated, NamedTuple, Protocol
+from typing import Annotated, NamedTuple, Protocol, runtime_checkable
 
 import numpy as np
 from numpy.typing import NDArray
@@ -19,14 +19,36 @@ from pydantic import Field
 
 from cdpr.description import PositiveFloat, StrictModel
 from cdpr.pose import Pose
-from cdpr.pose_limits import PoseLimits
+from cdpr.pose_limits import SCREEN_MARGIN, PoseLimits
+from cdpr.reference import cable_segments
 from cdpr.robot import Robot
-from cdpr.trajectory.core import Reference, Trajectory, TrajectoryError
+from cdpr.trajectory.core import Reference, Samples, Trajectory, TrajectoryError
 from cdpr.trajectory.jerk import jerk_violation
 
 WrenchCheck = Callable[[Pose, NDArray[np.float64], NDArray[np.float64]], str | None]
-CHUNK = 32  # sampled references checked together by a BatchCheck (~0.5 ms a batch)
+# samples checked together, a step each: sampled, screened (~0.4 ms), by a BatchCheck
+# (~0.6 ms); fewer cost more per sample (numpy's calls), more hold an event loop longer
+CHUNK = 256
 JERK_CHUNK = 128  # segments whose jerk is checked at once (~1 ms)
+
+
+class Screened(NamedTuple):
+    """A batch of samples screened (WrenchScreen): which certainly pass the wrench check,
+    their cable lengths (N x n) and Jacobians (N x n x 6)."""
+
+    clear: NDArray[np.bool_]
+    lengths: NDArray[np.float64]
+    jacobians: NDArray[np.float64]
+
+
+@runtime_checkable
+class WrenchScreen(Protocol):
+    """A wrench check that also screens a batch (cdpr.controller.ModelWrenchCheck)."""
+
+    def screen(self, samples: Samples) -> Screened:
+        """Which samples certainly pass the check (False: the check must decide), with
+        the model's lengths and Jacobians at them."""
+        ...
 
 
 class BatchRefusal(NamedTuple):
@@ -41,8 +63,13 @@ class BatchCheck(Protocol):
     """A check of many poses at once (cdpr.workspace_check.WorkspaceCheck)."""
 
     def first_refusal(
-        self, positions: NDArray[np.float64], rotations: NDArray[np.float64]
-    ) -> BatchRefusal | None: ...
+        self,
+        positions: NDArray[np.float64],
+        rotations: NDArray[np.float64],
+        jacobians: NDArray[np.float64] | None = None,
+    ) -> BatchRefusal | None:
+        """The first pose refused, else None (`jacobians`: Lambda at the poses, if known)."""
+        ...
 
 
 # The most waypoints a trajectory may have, and the highest max_waypoints a config may
@@ -95,11 +122,8 @@ def first_rate_violation(
     """rate_violation over samples at once (rows of `twists` and `accels`, k x 6): the
     first sample exceeding a limit and the first limit it exceeds, as (row, limit name,
     value, unit), else None."""
-    sources = (twists, accels)
-    sizes = np.stack(
-        [np.linalg.norm(sources[which][:, part], axis=1) for _, _, which, part in _RATES], axis=1
-    )
-    bad = ~(sizes <= [getattr(limits, name) for name, *_ in _RATES])  # NaN fails too
+    sizes = _rate_sizes(twists, accels)
+    bad = ~(sizes <= _rate_limits(limits))  # NaN fails too
     rows = np.flatnonzero(bad.any(axis=1))
     if rows.size == 0:
         return None
@@ -107,6 +131,18 @@ def first_rate_violation(
     col = int(bad[row].argmax())
     name, unit, _, _ = _RATES[col]
     return row, name, float(sizes[row, col]), unit
+
+
+def _rate_sizes(twists: NDArray[np.float64], accels: NDArray[np.float64]) -> NDArray[np.float64]:
+    """|v|, |ω|, |p̈|, |ω̇| of each sample (k x 4, _RATES' order)."""
+    sources = (twists, accels)
+    return np.stack(
+        [np.linalg.norm(sources[which][:, part], axis=1) for _, _, which, part in _RATES], axis=1
+    )
+
+
+def _rate_limits(limits: TrajectoryLimits) -> list[float]:
+    return [getattr(limits, name) for name, *_ in _RATES]
 
 
 def sampled_pose_limits(path: PoseLimits, limits: TrajectoryLimits) -> PoseLimits:
@@ -150,6 +186,15 @@ class LengthLimits:
             if not lo <= ell <= hi:
                 return k, ell, lo, hi
         return None
+
+    def clear(self, lengths: NDArray[np.float64]) -> NDArray[np.bool_]:
+        """Which rows of `lengths` (N x n) certainly pass `violation`: every cable
+        SCREEN_MARGIN m inside its bounds (batch arithmetic rounds differently)."""
+        return np.all(
+            (lengths >= np.add(self.lower, SCREEN_MARGIN))
+            & (lengths <= np.subtract(self.upper, SCREEN_MARGIN)),
+            axis=1,
+        )
 
     def widened_to(self, lengths: Sequence[float]) -> LengthLimits:
         """The smallest bounds holding these and `lengths`: a transition may not go
@@ -231,9 +276,9 @@ def validate(
     every limits.sample_period from the start and at every waypoint time: rate limits,
     `pose_limits`, cable lengths within `length_limits` (default the robot's
     [length_min, length_max]), and, if given, ``wrench_check(pose, twist, accel)`` (None
-    when the wrench is in W, else a reason), and `workspace`'s checks (run on CHUNK
-    samples at once).  The waypoint index reported for a sample is that of the segment
-    holding the failing instant.
+    when the wrench is in W, else a reason), and `workspace`'s checks (validation_steps
+    says how the samples are batched).  The waypoint index reported for a sample is that
+    of the segment holding the failing instant.
     """
     steps = validation_steps(
         trajectory, robot, limits, wrench_check, pose_limits, length_limits, workspace=workspace
@@ -252,10 +297,15 @@ def validation_steps(
     segments: int | None = None,
     workspace: BatchCheck | None = None,
 ) -> Iterator[float]:
-    """`validate` one step at a time: yields each checked waypoint's and sample's time once
-    it passed (the `workspace` check runs on every CHUNK samples, and before a problem
-    found later is raised), so a caller sharing an event loop with a control cycle can
-    pause between.
+    """`validate` one step at a time (each under a millisecond), so that a caller sharing
+    an event loop with a control cycle can pause between: yields the time reached (a
+    waypoint's, a sample's) after each step.
+
+    The samples go CHUNK at a time: evaluated together (Trajectory.sample_many), screened
+    together (each check's batch form, SCREEN_MARGIN inside its bounds, the wrench by a
+    WrenchScreen: a few microseconds a sample), the few the screen cannot clear checked
+    one by one as `validate` describes, then the `workspace` check on the chunk (before a
+    problem found in it is raised, so the first problem along the path is named).
     `segments`: only the first that many segments (a transition into a trajectory already
     validated), whose end need not be at rest."""
     if segments is None:
@@ -286,29 +336,52 @@ def validation_steps(
     yield from _jerk_steps(trajectory, limits, len(waypoints) - 1)
     steps = math.floor(duration / limits.sample_period)
     grid = trajectory.start_time + limits.sample_period * np.arange(steps + 1)
-    knots = [w.t for w in waypoints]
-    pending: list[tuple[float, Reference]] = []  # passed, not yet checked by `workspace`
-    for t in np.union1d(grid, knots).tolist():
-        ref = trajectory.sample(t)
-        try:
-            _check_reference(
-                robot,
-                limits,
-                wrench_check,
-                pose_limits,
-                bounds,
-                ref,
-                trajectory.waypoint_index(t),
-                f"at t={t:.6g} s",
-            )
-        except TrajectoryError:
-            _check_batch(trajectory, workspace, pending)  # an earlier sample's problem first
-            raise
-        pending.append((t, ref))
-        if len(pending) == CHUNK:
-            _check_batch(trajectory, workspace, pending)
-        yield t
-    _check_batch(trajectory, workspace, pending)
+    times = np.union1d(grid, [w.t for w in waypoints])
+    for first in range(0, len(times), CHUNK):
+        samples = trajectory.sample_many(times[first : first + CHUNK])
+        yield float(samples.times[0])
+        clear, jacobians = _screen(samples, robot, limits, wrench_check, pose_limits, bounds)
+        for i in np.flatnonzero(~clear).tolist():  # the scalar checks decide, in order
+            t = float(samples.times[i])
+            try:
+                _check_reference(
+                    robot,
+                    limits,
+                    wrench_check,
+                    pose_limits,
+                    bounds,
+                    trajectory.sample(t),
+                    trajectory.waypoint_index(t),
+                    f"at t={t:.6g} s",
+                )
+            except TrajectoryError:
+                _check_batch(trajectory, workspace, samples, jacobians, i)  # earlier ones first
+                raise
+            yield t
+        _check_batch(trajectory, workspace, samples, jacobians, len(samples.times))
+        yield float(samples.times[-1])
+
+
+def _screen(
+    samples: Samples,
+    robot: Robot,
+    limits: TrajectoryLimits,
+    wrench_check: WrenchCheck | None,
+    pose_limits: PoseLimits | None,
+    bounds: LengthLimits,
+) -> tuple[NDArray[np.bool_], NDArray[np.float64] | None]:
+    """Which samples certainly pass _check_reference, each check's batch form at once
+    (SCREEN_MARGIN inside every bound; the rest are checked one by one), and the
+    Jacobians at them where the wrench screen computed them."""
+    ceilings = np.multiply(_rate_limits(limits), 1.0 - SCREEN_MARGIN)
+    clear = np.all(_rate_sizes(samples.twists, samples.accels) <= ceilings, axis=1)
+    if pose_limits is not None:
+        clear &= pose_limits.clear(samples.positions, samples.quaternions)
+    if isinstance(wrench_check, WrenchScreen):
+        screened = wrench_check.screen(samples)
+        return clear & screened.clear & bounds.clear(screened.lengths), screened.jacobians
+    clear &= bounds.clear(cable_segments(robot, samples.positions, samples.rotations)[0])
+    return clear & (wrench_check is None), None
 
 
 def _jerk_steps(trajectory: Trajectory, limits: TrajectoryLimits, segments: int) -> Iterator[float]:
@@ -338,26 +411,26 @@ def _jerk_steps(trajectory: Trajectory, limits: TrajectoryLimits, segments: int)
 
 
 def _check_batch(
-    trajectory: Trajectory, workspace: BatchCheck | None, pending: list[tuple[float, Reference]]
+    trajectory: Trajectory,
+    workspace: BatchCheck | None,
+    samples: Samples,
+    jacobians: NDArray[np.float64] | None,
+    count: int,
 ) -> None:
-    """Raise TrajectoryError for the first of the `pending` samples `workspace` refuses;
-    empty `pending` either way."""
-    batch = pending[:]
-    pending.clear()
-    if workspace is None or not batch:
+    """Raise TrajectoryError for the first of the first `count` samples `workspace`
+    refuses."""
+    if workspace is None or not count:
         return
-    refused = _first_refusal(workspace, [ref for _, ref in batch])
+    refused = workspace.first_refusal(
+        samples.positions[:count],
+        samples.rotations[:count],
+        None if jacobians is None else jacobians[:count],
+    )
     if refused is not None:
-        t = batch[refused.index][0]
+        t = float(samples.times[refused.index])
         raise TrajectoryError(
             refused.limit, f"{refused.detail} at t={t:.6g} s", waypoint=trajectory.waypoint_index(t)
         )
-
-
-def _first_refusal(workspace: BatchCheck, refs: list[Reference]) -> BatchRefusal | None:
-    positions = np.array([r.pose.position_tuple for r in refs])
-    rotations = np.array([r.pose.rotation for r in refs])
-    return workspace.first_refusal(positions, rotations)
 
 
 def check_target(
@@ -378,7 +451,11 @@ def check_target(
     _check_reference(
         robot, limits, wrench_check, pose_limits, length_limits, ref, None, "at the target"
     )
-    refused = None if workspace is None else _first_refusal(workspace, [ref])
+    refused = (
+        None
+        if workspace is None
+        else workspace.first_refusal(np.array([ref.pose.position_tuple]), ref.pose.rotation[None])
+    )
     if refused is not None:
         raise TrajectoryError(refused.limit, f"{refused.detail} at the target")
 

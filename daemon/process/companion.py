@@ -39,7 +39,7 @@ from daemon.process.ordinary import drop_inherited_realtime
 from daemon.process.recording import CanRecorder, TelemetryRecorder
 from daemon.process.recording_files import file_limits
 from daemon.process.systemd import Notifier, Progress, run_watchdog
-from daemon.service.planner import Planner, path_timer
+from daemon.service.planner import Planner, daemon_wrench_check, path_timer
 from daemon.service.safety import Fault, Trigger
 
 if TYPE_CHECKING:
@@ -72,8 +72,9 @@ def main(argv: list[str] | None = None) -> int:
         return wire.OTHER_CODE
     configure_logging(level)
     _announce_start_up_check(sock)
-    try:  # compiles (or loads) the workspace check before the core's hang timer runs
-        check_workspace(config)
+    try:  # compiles (or loads) the workspace check and the wrench check's screen before
+        check_workspace(config)  # the core's hang timer runs
+        daemon_wrench_check(config)
     except ConfigError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
@@ -82,12 +83,13 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _announce_start_up_check(sock: socket.socket) -> None:
-    """Tell the core and systemd that the workspace check is being compiled or loaded:
-    both then wait up to wire.STARTING_LIMIT for "ready", not the seconds imports take."""
+    """Tell the core and systemd that the workspace and wrench checks are being compiled
+    or loaded: both then wait up to wire.STARTING_LIMIT for "ready", not the seconds
+    imports take."""
     if not warm_up.is_warm():
         log.info(
-            "compiling the workspace check (numba's cache is cold after an install or "
-            "upgrade): up to minutes on a small computer, once"
+            "compiling the workspace and wrench checks (numba's cache is cold after an "
+            "install or upgrade): up to minutes on a small computer, once"
         )
     wire.send(sock, ("starting",))
     Notifier().notify(f"EXTEND_TIMEOUT_USEC={int(wire.STARTING_LIMIT * 1e6)}")

@@ -20,7 +20,7 @@ import time
 from collections.abc import Awaitable, Callable, Generator
 from typing import TYPE_CHECKING, Any, Literal, Protocol, TypeVar
 
-from cdpr.controller import tension_solver, wrench_check
+from cdpr.controller import tension_solver
 from cdpr.path import Path
 from cdpr.pose import Pose
 from cdpr.pose_limits import PoseLimits
@@ -78,7 +78,10 @@ def path_timer(config: DaemonConfig, margin: float | None = None) -> Callable[[P
 
 def daemon_wrench_check(config: DaemonConfig) -> WrenchCheck:
     """The wrench check the daemon validates trajectories with: the controller's model
-    and its tension distribution (cdpr.controller)."""
+    and its tension distribution (cdpr.wrench_check; imported here, where the workspace
+    check is loaded too: compiled, and the real-time core loads no numba)."""
+    from cdpr.wrench_check import wrench_check
+
     return wrench_check(config.robot, tension_solver(config.robot, config.controller))
 
 
@@ -157,8 +160,9 @@ class Planner:
     forwarded to the core; implements daemon.service.api.DaemonHandler.
 
     Building one loads the compiled workspace check (daemon.config.check_workspace: about
-    a second the first time in a process): where a control cycle runs in the same
-    process (the tests' in-process stacks), build it, or call check_workspace, first."""
+    a second the first time in a process) and the wrench check's compiled screen
+    (cdpr.wrench_check): where a control cycle runs in the same process (the tests'
+    in-process stacks), build it first."""
 
     def __init__(self, config: DaemonConfig, link: CoreLink) -> None:
         self.config = config

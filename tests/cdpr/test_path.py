@@ -157,12 +157,12 @@ def cia402():
 
 def lp_feasible(robot: Robot, w: Waypoint, margin: float) -> bool:
     """An independent LP (HiGHS): tensions within the controller's range less `margin`
-    that give the wrench the controller's model needs at w (cdpr.controller.wrench_check's
-    quantities)."""
+    that give the wrench the controller's model needs at w (cdpr.wrench_check's
+    quantities, the winches' drag with its friction)."""
     Lam, c, M, mu = robot.model_terms(w.pose, w.twist)
     tau = M @ w.accel + mu
     f0 = robot.m0 * (Lam @ w.accel + c)
-    g = f0 + robot.k0 * (Lam @ w.twist)
+    g = f0 + robot.drag(Lam @ w.twist)
     lo = np.maximum(robot.t_min, g - robot.force_max) + margin
     hi = g + robot.force_max - margin
     if np.any(lo > hi):

@@ -838,8 +838,14 @@ def test_the_first_segments_alone_are_checked_where_they_lie(reference8: Robot) 
     is, naming its waypoint."""
     tr = line(reference8, [0.0, 2.0, 4.0, 6.0, 6.5, 9.0], [0.0, 0.02, 0.04, 0.06, 0.56, 0.56])
     assert np.any(tr.knot(1).twist)
-    times = list(validation_steps(tr, reference8, LIMITS, segments=1))
-    assert times[0] == 0.0 and times[-1] == 2.0 and len(times) == 201  # every 10 ms
+    checked: list[float] = []
+
+    def record(pose: Pose, twist: np.ndarray, accel: np.ndarray) -> None:
+        checked.append(pose.position[0])  # a wrench check with no batch screen: every sample
+
+    times = list(validation_steps(tr, reference8, LIMITS, record, segments=1))
+    assert times[0] == 0.0 and times[-1] == 2.0
+    assert len(checked) == 201  # every 10 ms
     assert list(validation_steps(tr, reference8, LIMITS, segments=3))[-1] == 6.0
     with pytest.raises(TrajectoryError) as info:
         list(validation_steps(tr, reference8, LIMITS, segments=4))

@@ -126,7 +126,9 @@ class Above:
     def __init__(self, z: float) -> None:
         self.z = z
 
-    def first_refusal(self, positions: np.ndarray, rotations: np.ndarray) -> BatchRefusal | None:
+    def first_refusal(
+        self, positions: np.ndarray, rotations: np.ndarray, jacobians: np.ndarray | None = None
+    ) -> BatchRefusal | None:
         high = np.flatnonzero(positions[:, 2] > self.z)
         return None if not len(high) else BatchRefusal(int(high[0]), "test.above", "too high")
 

@@ -16,6 +16,7 @@ import signal
 import sys
 import time
 from collections import Counter
+from collections.abc import Generator
 
 import can
 import numpy as np
@@ -532,11 +533,23 @@ def test_trajectories_accepted_while_moving_keep_the_reference_continuous() -> N
 
 
 def test_a_hold_drops_the_plans_under_way() -> None:
+    """A hold while a goto is planned and validated: each of its step runs starts 50 ms
+    late, as on a computer whose planning spans many cycles' slack (here a goto's few
+    hundred samples are validated within one)."""
+
     async def scenario() -> None:
         config = config_for("cia402")
         async with Stack(config) as stack:
             service = stack.service
             await stack.enable()
+            link = stack.planner.link
+            run_steps = link.run_steps
+
+            async def slowly(steps: Generator) -> object:
+                await asyncio.sleep(0.05)
+                return await run_steps(steps)
+
+            link.run_steps = slowly
             pending = asyncio.ensure_future(
                 stack.planner.command("goto", {"pose": _target(config, 0.2, 0.0, 0.0)})
             )
