@@ -2,7 +2,10 @@
 
 Prints per-call median and p99 in microseconds of: `Trajectory.sample()` on a
 20-waypoint trajectory at 1 kHz cycle times (`sample`), building that trajectory from
-its dict form (`parse`), and validating it against the default limits (`validate`); and
+its dict form (`parse`), and validating it against the default limits (`validate`);
+validating a LONG_WAYPOINTS trajectory (0.1 s apart: 1,000 s of motion, ~110,000
+samples) as the daemon validates a client's, wrench set and workspace margin included
+(`validate_long`, config/reference8-cia402.yaml); and
 planning a hold (`hold`: stop_steps) and a goto home (`goto_moving`) from each of
 MOVING_STATES states along a 0.34 m goto with the jerk bounded (the trajectory limits of
 config/reference8-cia402.yaml), a third of them in its first phase, where a ramp leads.
@@ -33,9 +36,11 @@ from cdpr.trajectory import (
     validate,
 )
 from daemon.config import load_config
+from daemon.service.planner import validate_as_the_daemon
 
 CONFIGS = Path(__file__).resolve().parent.parent / "config"
 MOVING_STATES = 30  # along the goto the hold and goto_moving plans start from
+LONG_WAYPOINTS = 10_000  # the default max_waypoints
 
 
 def reference_trajectory(robot: Robot, n_waypoints: int = 20, seed: int = 1) -> Trajectory:
@@ -52,6 +57,18 @@ def reference_trajectory(robot: Robot, n_waypoints: int = 20, seed: int = 1) -> 
             for k in range(n_waypoints)
         ]
     )
+
+
+def long_trajectory(robot: Robot, n_waypoints: int = LONG_WAYPOINTS) -> Trajectory:
+    """n waypoints 0.1 s apart on a 3 cm circle about home, once a minute, with a slow
+    yaw (bench/flood.py's long mix, as arrays)."""
+    angle = 2.0 * np.pi * np.arange(n_waypoints) * 0.1 / 60.0
+    positions = robot.home.position + 0.03 * np.column_stack(
+        [np.sin(angle), 1.0 - np.cos(angle), np.zeros(n_waypoints)]
+    )
+    yaw = 0.05 * np.sin(angle)
+    quaternions = np.column_stack([np.cos(yaw / 2), 0 * yaw, 0 * yaw, np.sin(yaw / 2)])
+    return Trajectory.through(0.1 * np.arange(n_waypoints), positions, quaternions)
 
 
 def sample_us(trajectory: Trajectory, calls: int, rate_hz: float = 1000.0) -> dict[str, float]:
@@ -75,13 +92,16 @@ def results(calls: int) -> dict[str, dict[str, float]]:
     trajectory = reference_trajectory(robot)
     limits = TrajectoryLimits()
     data = trajectory.as_dict()
-    shipped = load_config(CONFIGS / "reference8-cia402.yaml").trajectory
+    config = load_config(CONFIGS / "reference8-cia402.yaml")
+    shipped = config.trajectory
     states = moving_states(robot, shipped)
+    long = long_trajectory(robot)
     home = Pose(robot.home.position)
     return {
         "sample": sample_us(trajectory, calls),
         "parse": per_call_us(lambda i: parse_trajectory(data, limits), max(calls // 100, 20)),
         "validate": per_call_us(lambda i: validate(trajectory, robot, limits), 5),
+        "validate_long": per_call_us(lambda i: validate_as_the_daemon(long, config), 3, 1),
         "hold": per_call_us(
             lambda i: run_steps(stop_steps(states[i % MOVING_STATES], shipped)),
             3 * MOVING_STATES,

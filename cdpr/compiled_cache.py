@@ -27,6 +27,7 @@ SOURCES = (
     "cdpr/path/jerk_estimate.py",
     "cdpr/path/reachability.py",
     "cdpr/path/time_law.py",
+    "cdpr/trajectory/compiled_curve.py",
     "tuning/workspace_map.py",
 )
 

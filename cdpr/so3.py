@@ -57,18 +57,6 @@ def rotvec_to_quat4(wx: float, wy: float, wz: float) -> tuple[float, float, floa
     return (math.cos(0.5 * theta), s * wx, s * wy, s * wz)
 
 
-def rotate_quats_by_rotvecs(q: ArrayLike, w: ArrayLike) -> Vec:
-    """rotate_quat_by_rotvec for each row: exp(w_i) * q_i, renormalised (N x 4 from
-    quaternions N x 4 and rotation vectors N x 3)."""
-    q, w = np.asarray(q, dtype=float), np.asarray(w, dtype=float)
-    theta = np.sqrt(np.einsum("ij,ij->i", w, w))
-    small = theta < _SMALL_ANGLE
-    safe = np.where(small, 1.0, theta)
-    s = np.where(small, 0.5 - theta * theta / 48.0, np.sin(0.5 * safe) / safe)
-    product = np.stack(quat_mul4(np.cos(0.5 * theta), *(s * w.T), *q.T), axis=1)
-    return product / np.linalg.norm(product, axis=1)[:, None]
-
-
 def quats_to_matrices(q: ArrayLike) -> Vec:
     """Rotation matrices (N x 3 x 3) of unit quaternions (N x 4, w first)."""
     q = np.asarray(q, dtype=float)

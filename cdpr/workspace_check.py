@@ -87,7 +87,8 @@ class WorkspaceCheck:
     def margins(self, placed: Placed, payload: float = 0.0, parallel: bool = False) -> Array:
         """The capacity margin (N) at each pose, with `payload` (kg) more at the centre of
         mass; on this thread (the daemon), or on every core (`parallel`: the map)."""
-        return self._margins(placed.jacobians, placed.rotations, payload, parallel)
+        needed = rest_wrenches(self.platform, placed.rotations, payload, self._com)
+        return self.wrenches.margins(placed.jacobians, needed, parallel=parallel)
 
     def first_refusal(
         self, positions: ArrayLike, rotations: ArrayLike, jacobians: ArrayLike | None = None
@@ -103,7 +104,8 @@ class WorkspaceCheck:
             if self.interference
             else np.zeros(len(jacobians), np.bool_)
         )
-        short = self._margins(jacobians, rotations) < self.margin
+        needed = rest_wrenches(self.platform, rotations, 0.0, self._com)
+        short = self.wrenches.short_of(jacobians, needed, self.margin)
         bad = np.flatnonzero(touching | short)
         if not len(bad):
             return None
@@ -113,16 +115,6 @@ class WorkspaceCheck:
             assert found is not None
             return BatchRefusal(i, "workspace.interference", self.touches.describe(found))
         return BatchRefusal(i, "workspace.margin", self._short(jacobians[i], rotations[i]))
-
-    def _margins(
-        self,
-        jacobians: ArrayLike,
-        rotations: ArrayLike,
-        payload: float = 0.0,
-        parallel: bool = False,
-    ) -> Array:
-        needed = rest_wrenches(self.platform, rotations, payload, self._com)
-        return self.wrenches.margins(jacobians, needed, parallel=parallel)
 
     @property
     def _com(self) -> tuple[float, float, float]:

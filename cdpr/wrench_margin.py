@@ -358,6 +358,70 @@ def _margins_between(
         out[p] = margin_kernel(As[p], ws[p], lo, hi, combos, v, work)[0]
 
 
+@njit(cache=True)
+def margin_bound_kernel(
+    A: Array,
+    w: Array,
+    lo: Array,
+    hi: Array,
+    work: tuple[Array, Array, Array, Array, Array, Array, Array, Array, NDArray[np.int64]],
+) -> float:
+    """A lower bound of margin_kernel's margin, without its facets (~0.2 us against ~2):
+    the least-norm tensions about the middle of [lo, hi], t* = t_mid + A^T G^-1 (w -
+    A t_mid) (G = A A^T), give w, and t* + A^T G^-1 e gives w + e, inside [lo, hi] while
+    |e| <= r = min_j slack_j / |column j of G^-1 A| (slack_j = t*_j's distance to its
+    nearer bound): the ball of radius r about w lies in W.  -inf where t* leaves the box
+    (no bound) or G is singular."""
+    m, n = A.shape
+    G, L, X, vectors = work[2], work[3], work[4], work[7]
+    _gram(A, G)
+    if not _cholesky(G, L):
+        return -np.inf
+    y = vectors[0, :m]
+    for i in range(m):
+        s = w[i]
+        for j in range(n):
+            s -= A[i, j] * 0.5 * (lo[j] + hi[j])
+        y[i] = s
+    _solve(L, y)
+    X[:, :] = A
+    _solve_columns(L, X)
+    bound = np.inf
+    for j in range(n):
+        t = 0.5 * (lo[j] + hi[j])
+        norm2 = 0.0
+        for i in range(m):
+            t += A[i, j] * y[i]
+            norm2 += X[i, j] * X[i, j]
+        slack = min(t - lo[j], hi[j] - t)
+        if slack < 0.0:
+            return -np.inf
+        if norm2 > 0.0:
+            bound = min(bound, slack / math.sqrt(norm2))
+    return bound
+
+
+@njit(cache=True)
+def _short_of(
+    As: Array,
+    ws: Array,
+    lo: Array,
+    hi: Array,
+    combos: NDArray[np.int64],
+    required: float,
+    out: NDArray[np.bool_],
+) -> None:
+    """out[p]: pose p's margin is below `required`, the exact margin computed only where
+    the bound does not reach it."""
+    work = margin_scratch(As.shape[1], As.shape[2])
+    v = np.empty(combos.shape[1])
+    for p in range(As.shape[0]):
+        if margin_bound_kernel(As[p], ws[p], lo, hi, work) >= required:
+            out[p] = False
+        else:
+            out[p] = margin_kernel(As[p], ws[p], lo, hi, combos, v, work)[0] < required
+
+
 @njit(cache=True, parallel=True)
 def _margins(
     As: Array, ws: Array, lo: Array, hi: Array, combos: NDArray[np.int64], out: Array
@@ -488,15 +552,30 @@ class WrenchMargin:
     def margins(self, jacobians: ArrayLike, wrenches: ArrayLike, parallel: bool = True) -> Array:
         """Margins (N) of many poses: Jacobians (N x n x dof), wrenches (N x dof); on
         every core, or on this thread only (`parallel` False: inside the daemon)."""
-        J = np.asarray(jacobians, dtype=float)
-        A = np.ascontiguousarray(np.swapaxes(J, 1, 2) * self.scale[:, None])
-        w = np.ascontiguousarray(np.asarray(wrenches, dtype=float) * self.scale)
+        A, w = self._scaled(jacobians, wrenches)
         out = np.empty(len(A))
         if parallel:
             _margins(A, w, self.t_lo, self.t_hi, self.combos, out)
         else:
             _margins_between(A, w, self.t_lo, self.t_hi, self.combos, out, 0, len(A))
         return out
+
+    def short_of(
+        self, jacobians: ArrayLike, wrenches: ArrayLike, required: float
+    ) -> NDArray[np.bool_]:
+        """Which poses' margins fall below `required` (N), on this thread: the exact
+        margin only where margin_bound_kernel's bound does not reach it (near W's edge;
+        most poses of a path are not)."""
+        A, w = self._scaled(jacobians, wrenches)
+        out = np.empty(len(A), np.bool_)
+        _short_of(A, w, self.t_lo, self.t_hi, self.combos, float(required), out)
+        return out
+
+    def _scaled(self, jacobians: ArrayLike, wrenches: ArrayLike) -> tuple[Array, Array]:
+        """(A, w) of each pose in the units the margin is in: moments / length."""
+        J = np.asarray(jacobians, dtype=float)
+        A = np.ascontiguousarray(np.swapaxes(J, 1, 2) * self.scale[:, None])
+        return A, np.ascontiguousarray(np.asarray(wrenches, dtype=float) * self.scale)
 
 
 def rest_wrenches(

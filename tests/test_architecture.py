@@ -233,3 +233,22 @@ def test_the_documented_folder_map_matches_the_tree() -> None:
     assert all((ROOT / folder).is_dir() for folder in named), sorted(
         f for f in named if not (ROOT / f).is_dir()
     )
+
+
+def test_the_real_time_core_loads_no_numba() -> None:
+    """The core's process (daemon.process.app, the service, the controller, the curves it
+    samples) imports no numba: its import and kernels are the companion's (the checks
+    compiled for validation, cdpr.wrench_check, cdpr.trajectory.compiled_curve)."""
+    import subprocess
+    import sys
+
+    probe = (
+        "import sys\n"
+        "import daemon.process.app, daemon.service.service, daemon.service.planner\n"
+        "import cdpr.controller, cdpr.trajectory\n"
+        "print(sorted(m for m in sys.modules if m == 'numba' or m.startswith('numba.'))[:3])\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", probe], cwd=ROOT, capture_output=True, text=True, check=True
+    )
+    assert out.stdout.strip() == "[]"

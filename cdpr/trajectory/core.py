@@ -36,7 +36,6 @@ from cdpr.so3 import (
     quats_to_matrices,
     quats_to_rotvecs,
     rotate_quat_by_rotvec,
-    rotate_quats_by_rotvecs,
 )
 from cdpr.trajectory.rotation import angular_rates, left_jacobians
 
@@ -258,32 +257,33 @@ class Curve:
 
     def sample_many(self, times: Array) -> Samples:
         """sample() at many times (ascending or not) at once: the samples inside the
-        segments evaluated together (a validation's batch, ~1 us a sample against ~10 one
-        by one), those before, after or in the blend one by one."""
+        segments evaluated by a compiled loop (cdpr.trajectory.compiled_curve, imported
+        here: the real-time core samples one time a cycle and loads no numba), those
+        before, after or in the blend one by one."""
+        from cdpr.trajectory.compiled_curve import evaluate_segments
+
         t = np.asarray(times, dtype=float)
         count = len(t)
         positions, quaternions = np.empty((count, 3)), np.empty((count, 4))
         twists, accels = np.empty((count, 6)), np.empty((count, 6))
         inside = (t >= self.body_start) & (t < self.end_time)
-        rows = np.flatnonzero(inside)
-        if rows.size:
+        if inside.all():
             knots, tables, quats = self._as_arrays()
-            at = t[rows]
-            k = self._segments_of(at, knots)
-            tau = at - (knots[k] + self.shift)
-            t2 = tau * tau
-            t3 = t2 * tau
-            powers = np.stack([np.ones_like(tau), tau, t2, t3, t3 * tau, t3 * t2], axis=1)
-            y = np.einsum("ni,nij->nj", powers, tables[k])  # as evaluate_segment's rows
-            positions[rows] = y[:, :3]
-            quaternions[rows] = rotate_quats_by_rotvecs(quats[k], y[:, 3:6])
-            omega, omega_dot = angular_rates(y[:, 3:6].T, y[:, 9:12].T, y[:, 15:18].T)
-            twists[rows, :3], accels[rows, :3] = y[:, 6:9], y[:, 12:15]
-            twists[rows, 3:], accels[rows, 3:] = np.stack(omega, 1), np.stack(omega_dot, 1)
-        for i in np.flatnonzero(~inside).tolist():
-            ref = self.sample(float(t[i]))
-            positions[i], quaternions[i] = ref.pose.position_tuple, ref.pose.quaternion_tuple
-            twists[i], accels[i] = ref.twist, ref.accel
+            k = self._segments_of(t, knots)
+            tau = t - (knots[k] + self.shift)
+            evaluate_segments(tables, quats, k, tau, positions, quaternions, twists, accels)
+        else:
+            rows = np.flatnonzero(inside)
+            part = self.sample_many(t[rows]) if rows.size else None
+            for i in range(count):
+                if part is None or not inside[i]:
+                    ref = self.sample(float(t[i]))
+                    positions[i] = ref.pose.position_tuple
+                    quaternions[i] = ref.pose.quaternion_tuple
+                    twists[i], accels[i] = ref.twist, ref.accel
+            if part is not None:
+                positions[rows], quaternions[rows] = part.positions, part.quaternions
+                twists[rows], accels[rows] = part.twists, part.accels
         return Samples(t, positions, quaternions, quats_to_matrices(quaternions), twists, accels)
 
     def _segments_of(self, t: Array, knots: Array) -> NDArray[np.intp]:

@@ -22,7 +22,7 @@ from cdpr.pose import Pose
 from cdpr.pose_limits import SCREEN_MARGIN, PoseLimits
 from cdpr.reference import cable_segments
 from cdpr.robot import Robot
-from cdpr.trajectory.core import Reference, Samples, Trajectory, TrajectoryError
+from cdpr.trajectory.core import Reference, Samples, Trajectory, TrajectoryError, Waypoint
 from cdpr.trajectory.jerk import jerk_violation
 
 WrenchCheck = Callable[[Pose, NDArray[np.float64], NDArray[np.float64]], str | None]
@@ -330,9 +330,7 @@ def validation_steps(
         tuple(robot.length_min.tolist()), tuple(robot.length_max.tolist())
     )
     if pose_limits is not None:
-        for index, w in enumerate(waypoints):
-            _check_pose(pose_limits, w.pose, index, f"at t={w.t:.6g} s")
-            yield w.t
+        yield from _waypoint_steps(pose_limits, waypoints)
     yield from _jerk_steps(trajectory, limits, len(waypoints) - 1)
     steps = math.floor(duration / limits.sample_period)
     grid = trajectory.start_time + limits.sample_period * np.arange(steps + 1)
@@ -382,6 +380,19 @@ def _screen(
         return clear & screened.clear & bounds.clear(screened.lengths), screened.jacobians
     clear &= bounds.clear(cable_segments(robot, samples.positions, samples.rotations)[0])
     return clear & (wrench_check is None), None
+
+
+def _waypoint_steps(pose_limits: PoseLimits, waypoints: Sequence[Waypoint]) -> Iterator[float]:
+    """TrajectoryError naming the first waypoint whose pose breaks `pose_limits`: CHUNK
+    at a time, screened together (PoseLimits.clear), the rest checked one by one."""
+    for first in range(0, len(waypoints), CHUNK):
+        chunk = waypoints[first : first + CHUNK]
+        positions = np.array([w.pose.position_tuple for w in chunk])
+        quaternions = np.array([w.pose.quaternion_tuple for w in chunk])
+        for i in np.flatnonzero(~pose_limits.clear(positions, quaternions)).tolist():
+            w = chunk[i]
+            _check_pose(pose_limits, w.pose, first + i, f"at t={w.t:.6g} s")
+        yield chunk[-1].t
 
 
 def _jerk_steps(trajectory: Trajectory, limits: TrajectoryLimits, segments: int) -> Iterator[float]:

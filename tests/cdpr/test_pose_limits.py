@@ -216,16 +216,19 @@ def test_between_the_samples_the_path_stays_inside(reference8: Robot, zs, angles
 
 
 def test_validation_yields_while_it_checks_the_waypoints(reference8: Robot) -> None:
-    """The pose of each waypoint is checked one step at a time (a long trajectory must not
-    hold the event loop): one step per waypoint before the first sample."""
+    """The waypoints' poses are checked CHUNK at a time, a step each (a long trajectory
+    must not hold the event loop), before the first sample."""
     from cdpr.trajectory import validation_steps
+    from cdpr.trajectory.limits import CHUNK
 
+    count = 2 * CHUNK + 1
     tr = Trajectory(
-        [Waypoint(0.1 * k, at(HOME + np.array([0.001 * k, 0.0, 0.0]))) for k in range(50)]
+        [Waypoint(0.1 * k, at(HOME + np.array([0.0001 * k, 0.0, 0.0]))) for k in range(count)]
     )
     steps = list(validation_steps(tr, reference8, LIMITS, None, BOX))
     plain = list(validation_steps(tr, reference8, LIMITS))
-    assert len(steps) == len(plain) + 50
+    assert len(steps) == len(plain) + 3
+    assert steps[:3] == [tr.waypoints[CHUNK - 1].t, tr.waypoints[2 * CHUNK - 1].t, tr.end_time]
 
 
 def test_a_start_too_far_ahead_is_refused() -> None:

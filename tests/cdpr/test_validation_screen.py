@@ -132,22 +132,25 @@ def blended(robot: Robot) -> Trajectory:
 
 def test_samples_in_a_batch_are_the_samples_one_by_one(reference8: Robot) -> None:
     """Before the start, in the blend, on the segments (and on their knots) and after the
-    end; the curve as built and as carried between processes (packed, unpacked)."""
-    trajectory = blended(reference8)
-    curve = trajectory.curve
-    knots = [w.t for w in trajectory.waypoints]
-    times = np.concatenate(
-        [[curve.start_time - 1.0], np.linspace(curve.start_time, curve.end_time + 0.5, 401), knots]
-    )
-    unpacked = Curve.unpacked(*curve.packed())
-    for source in (curve, unpacked):
-        batch = source.sample_many(times)
-        for i, t in enumerate(times.tolist()):
-            one = curve.sample(t)
-            np.testing.assert_allclose(batch.positions[i], one.pose.position, atol=1e-14)
-            np.testing.assert_allclose(batch.rotations[i], one.pose.rotation, atol=1e-14)
-            np.testing.assert_allclose(batch.twists[i], one.twist, atol=1e-13)
-            np.testing.assert_allclose(batch.accels[i], one.accel, atol=1e-12)
+    end, turns within and beyond the rotation rates' series; the curve as built and as
+    carried between processes (packed, unpacked)."""
+    home = reference8.home.position
+    turn = Pose.from_rotvec(home, np.array([0.3, -0.5, 1.1]))  # 1.25 rad: past the series
+    turning = Trajectory([Waypoint(0.0, Pose(home)), Waypoint(2.0, turn)])
+    for trajectory in (blended(reference8), turning):
+        curve = trajectory.curve
+        knots = [w.t for w in trajectory.waypoints]
+        ends = (curve.start_time, curve.end_time + 0.5)
+        times = np.concatenate([[curve.start_time - 1.0], np.linspace(*ends, 401), knots])
+        unpacked = Curve.unpacked(*curve.packed())
+        for source in (curve, unpacked):
+            batch = source.sample_many(times)
+            for i, t in enumerate(times.tolist()):
+                one = curve.sample(t)
+                np.testing.assert_allclose(batch.positions[i], one.pose.position, atol=1e-14)
+                np.testing.assert_allclose(batch.rotations[i], one.pose.rotation, atol=1e-14)
+                np.testing.assert_allclose(batch.twists[i], one.twist, atol=1e-13)
+                np.testing.assert_allclose(batch.accels[i], one.accel, atol=1e-12)
 
 
 def test_the_pose_and_length_screens_clear_only_what_the_checks_pass(reference8: Robot) -> None:

@@ -168,3 +168,29 @@ def test_bad_limits_are_refused_naming_them() -> None:
         WrenchMargin(np.full(8, 5.0), np.full(8, 4.0), 1.0)
     with pytest.raises(ValueError, match="5 cables cannot"):
         WrenchMargin(np.ones(5), np.full(5, 4.0), 1.0)
+
+
+def test_the_bound_never_exceeds_the_margin_and_short_of_is_the_margins_verdict(
+    reference8: Robot,
+) -> None:
+    """margin_bound_kernel's ball lies in W: never above the exact margin (and within a
+    factor of it for most poses, or it would spare nothing); short_of(required) says
+    exactly what margins() < required says, at thresholds across the margins found."""
+    from cdpr.wrench_margin import margin_bound_kernel, margin_scratch
+
+    robot = reference8
+    model = WrenchMargin(robot.t_min, robot.force_max, wrench_length(robot.geometry.attachments))
+    jacobians, wrenches = _random_poses(robot, 300, seed=7)
+    margins = model.margins(jacobians, wrenches, parallel=False)
+    A, w = model._scaled(jacobians, wrenches)
+    work = margin_scratch(A.shape[1], A.shape[2])
+    bounds = np.array(
+        [margin_bound_kernel(A[p], w[p], model.t_lo, model.t_hi, work) for p in range(len(A))]
+    )
+    assert np.all(bounds <= margins + 1e-9)
+    inside = margins > 0.0
+    assert np.median(bounds[inside] / margins[inside]) > 0.3
+    for required in (-5.0, 0.0, 5.0, float(np.median(margins)), 200.0):
+        assert model.short_of(jacobians, wrenches, required).tolist() == (
+            margins < required
+        ).tolist()
