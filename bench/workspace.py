@@ -18,8 +18,8 @@ speed and the daemon's per-sample check.
   (reference8's: no interference check, its crossed pairs being idealised), the volume
   and worst margin.
 - per_sample_us: the daemon's check (cdpr.workspace_check.WorkspaceCheck.first_refusal)
-  with the interference check on (the default), on 128 samples at once, as validation
-  runs it, per sample (median of 50 batches).
+  with the interference check on (the default), on CHUNK samples at once, as validation
+  runs it (cdpr.trajectory.limits.CHUNK), per sample (median of up to 50 batches).
 """
 
 from __future__ import annotations
@@ -35,6 +35,7 @@ from timing import REFERENCE8
 
 from cdpr import Robot
 from cdpr.so3 import quat_to_matrix
+from cdpr.trajectory.limits import CHUNK
 from cdpr.workspace_check import WorkspaceCheck, place
 from cdpr.wrench_margin import rest_wrenches
 from daemon.config import load_config
@@ -139,13 +140,13 @@ def interference_agreement(robot: Robot, check: WorkspaceCheck, poses: tuple) ->
 
 def per_sample_us(robot: Robot, check: WorkspaceCheck, poses: tuple) -> float:
     positions, rotations, _ = poses
-    check.first_refusal(positions[:128], rotations[:128])  # compiled or loaded
+    check.first_refusal(positions[:CHUNK], rotations[:CHUNK])  # compiled or loaded
     times = []
-    for b in range(50):
-        span = slice(128 * b, 128 * (b + 1))
+    for b in range(min(50, len(positions) // CHUNK)):
+        span = slice(CHUNK * b, CHUNK * (b + 1))
         start = time.perf_counter()
         check.first_refusal(positions[span], rotations[span])
-        times.append((time.perf_counter() - start) / 128)
+        times.append((time.perf_counter() - start) / CHUNK)
     return float(np.median(times) * 1e6)
 
 
