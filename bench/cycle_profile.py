@@ -47,8 +47,7 @@ from loop import process_cpu_seconds, rate_config
 from cdpr import Pose
 from cdpr.trajectory.core import Curve
 from daemon.cli.simulated import ProcessSimulator
-from daemon.config import check_workspace
-from daemon.service.planner import LocalLink, Planner
+from daemon.service.planner import LocalLink, Planner, load_checks
 from daemon.service.safety import SafetyState
 from daemon.service.service import Service
 
@@ -235,7 +234,7 @@ def measure(protocol: str, rate_hz: float, seconds: float, top: int) -> dict[str
     with every part wrapped (or, with `top`, under cProfile)."""
     folder = Path(tempfile.mkdtemp(prefix="cdprd-profile-"))
     config, path = rate_config(protocol, rate_hz, folder)
-    check_workspace(config)  # the planner's compiled check, loaded before the cycle runs
+    load_checks(config)  # the planner's compiled checks, loaded before the cycle runs
     sim = ProcessSimulator(config, path, truth=False)
     out: dict[str, Any] = {"rate_hz": rate_hz, "protocol": protocol}
 

@@ -58,9 +58,9 @@ from timing import free_endpoint, ordinary_child
 
 from cdpr.trajectory import parse_trajectory
 from daemon.cli.simulated import InProcessSimulator
-from daemon.config import check_workspace, load_config
+from daemon.config import load_config
 from daemon.service.cycle_stats import CycleStats
-from daemon.service.planner import LocalLink, Planner
+from daemon.service.planner import LocalLink, Planner, load_checks
 from daemon.service.safety import SafetyState
 from daemon.service.service import Service
 from drivers.clock import PeriodicTimer
@@ -306,7 +306,7 @@ async def measure(seconds: float, rate: float, mix: str, limit: float | None) ->
             data["zenoh"]["ingress_limits_hz"] = {"trajectory": limit, "cmd/*": limit}
 
     config = load_config(CONFIG, edit)
-    check_workspace(config)  # the planner's compiled check, loaded before the cycle runs
+    load_checks(config)  # the planner's compiled checks, loaded before the cycle runs
     prefix = config.zenoh.key_prefix(config.robot.name)
     out: dict[str, Any] = {}
 

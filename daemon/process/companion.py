@@ -28,7 +28,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
 
 from cdpr import ConfigError
-from daemon.config import DaemonConfig, check_workspace
+from daemon.config import DaemonConfig
 from daemon.process import warm_up, wire
 from daemon.process.app import ignore_stop_signals
 from daemon.process.companion_link import OtherCodeError, RemoteLink, greeted
@@ -39,7 +39,7 @@ from daemon.process.ordinary import drop_inherited_realtime
 from daemon.process.recording import CanRecorder, TelemetryRecorder
 from daemon.process.recording_files import file_limits
 from daemon.process.systemd import Notifier, Progress, run_watchdog
-from daemon.service.planner import Planner, daemon_wrench_check, path_timer
+from daemon.service.planner import Planner, load_checks, path_timer
 from daemon.service.safety import Fault, Trigger
 
 if TYPE_CHECKING:
@@ -72,9 +72,8 @@ def main(argv: list[str] | None = None) -> int:
         return wire.OTHER_CODE
     configure_logging(level)
     _announce_start_up_check(sock)
-    try:  # compiles (or loads) the workspace check and the wrench check's screen before
-        check_workspace(config)  # the core's hang timer runs
-        daemon_wrench_check(config)
+    try:
+        load_checks(config)  # compiled or loaded before the core's hang timer runs
     except ConfigError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1

@@ -85,6 +85,16 @@ def daemon_wrench_check(config: DaemonConfig) -> WrenchCheck:
     return wrench_check(config.robot, tension_solver(config.robot, config.controller))
 
 
+def load_checks(config: DaemonConfig) -> None:
+    """Load the compiled checks a Planner validates with (numba compiles them on a cold
+    cache: seconds to minutes), where nothing waits on this thread yet: the workspace
+    check (check_workspace: ConfigError if home lies outside the workspace) and the
+    wrench check's screen.  A process running a control cycle calls it before the cycle
+    runs; the companion before the core's hang timer does."""
+    check_workspace(config)
+    daemon_wrench_check(config)
+
+
 def validate_as_the_daemon(trajectory: Trajectory, config: DaemonConfig) -> None:
     """Validate `trajectory` as the daemon validates a client's (rates, poses, cable
     lengths, the wrench set, the workspace), for the robot at rest in its configured
