@@ -29,6 +29,7 @@ from cdpr.trajectory import (
     Reference,
     Trajectory,
     TrajectoryError,
+    Waypoint,
     WrenchCheck,
     approach_steps,
     check_start_delay,
@@ -86,13 +87,15 @@ def daemon_wrench_check(config: DaemonConfig) -> WrenchCheck:
 
 
 def load_checks(config: DaemonConfig) -> None:
-    """Load the compiled checks a Planner validates with (numba compiles them on a cold
-    cache: seconds to minutes), where nothing waits on this thread yet: the workspace
-    check (check_workspace: ConfigError if home lies outside the workspace) and the
-    wrench check's screen.  A process running a control cycle calls it before the cycle
-    runs; the companion before the core's hang timer does."""
+    """Load the compiled kernels validation runs (numba compiles them on a cold cache:
+    seconds to minutes), where nothing waits on this thread yet, by validating a moment
+    at rest at home as the daemon validates a client's trajectory; ConfigError if home
+    lies outside the workspace (check_workspace).  A process running a control cycle
+    calls it (or builds its Planner) before the cycle runs; the companion before the
+    core's hang timer does."""
     check_workspace(config)
-    daemon_wrench_check(config)
+    home = config.robot.home
+    validate_as_the_daemon(Trajectory([Waypoint(0.0, home), Waypoint(0.1, home)]), config)
 
 
 def validate_as_the_daemon(trajectory: Trajectory, config: DaemonConfig) -> None:
@@ -169,18 +172,16 @@ class Planner:
     """Hold, goto and trajectories planned and validated here, the other commands
     forwarded to the core; implements daemon.service.api.DaemonHandler.
 
-    Building one loads the compiled workspace check (daemon.config.check_workspace: about
-    a second the first time in a process) and the wrench check's compiled screen
-    (cdpr.wrench_check): where a control cycle runs in the same process (the tests'
-    in-process stacks), build it first."""
+    Building one loads the compiled kernels validation runs (load_checks: about a second
+    the first time in a process): where a control cycle runs in the same process (the
+    tests' in-process stacks), build it first."""
 
     def __init__(self, config: DaemonConfig, link: CoreLink) -> None:
         self.config = config
         self.robot = config.robot
         self.link = link
         self._wrench_check = daemon_wrench_check(config)
-        # the home pose in the workspace; compiles the check now, not in a validation
-        check_workspace(config)
+        load_checks(config)  # compiled now, not in a validation sharing a cycle's loop
         self._holds = 0  # hold commands so far: plans under way when one came are dropped
         # homing's offsets and the drives that lost theirs, kept in the state directory
         robot = config.robot
