@@ -201,11 +201,11 @@ class Curve:
         last: Pose,
         shift: float = 0.0,
         blend: _Blend | None = None,
-        arrays: tuple[Array, Array, Array] | None = None,
+        *,
+        arrays: tuple[Array, Array, Array],
     ) -> None:
         self._times, self._tables, self._quats = times, tables, quats
-        # the same as arrays (times (m + 1,), tables (m, 6, 18), quats (m, 4)) for
-        # sample_many; made at the first call when not given
+        # the same as arrays (times (m + 1,), tables (m, 6, 18), quats (m, 4)): sample_many's
         self._arrays = arrays
         self._first, self._last = first, last
         self.shift = shift
@@ -220,7 +220,7 @@ class Curve:
         """The same segments with another time shift and blend."""
         return Curve(
             self._times, self._tables, self._quats, self._first, self._last, shift, blend,
-            self._arrays,
+            arrays=self._arrays,
         )  # fmt: skip
 
     def segment(self, t: float) -> int:
@@ -268,7 +268,7 @@ class Curve:
         twists, accels = np.empty((count, 6)), np.empty((count, 6))
         inside = (t >= self.body_start) & (t < self.end_time)
         if inside.all():
-            knots, tables, quats = self._as_arrays()
+            knots, tables, quats = self._arrays
             k = self._segments_of(t, knots)
             tau = t - (knots[k] + self.shift)
             evaluate_segments(tables, quats, k, tau, positions, quaternions, twists, accels)
@@ -292,15 +292,6 @@ class Curve:
         k = np.searchsorted(knots, t - shift, side="right") - 1
         k = np.where((k < last) & (knots[np.minimum(k + 1, last)] + shift <= t), k + 1, k)
         return np.where((k >= 0) & (knots[np.maximum(k, 0)] + shift > t), k - 1, k)
-
-    def _as_arrays(self) -> tuple[Array, Array, Array]:
-        if self._arrays is None:
-            self._arrays = (
-                np.asarray(self._times, dtype=float),
-                np.asarray(self._tables, dtype=float).reshape(-1, 6, 18),
-                np.asarray(self._quats, dtype=float).reshape(-1, 4),
-            )
-        return self._arrays
 
     def segments(self) -> tuple[Array, Array, Array]:
         """(start times (m,), tables (m, 6, 18), durations (m,)) of every segment in time
@@ -347,7 +338,7 @@ class Curve:
             header["last"],
             float(header["shift"]),
             header["blend"],
-            (data[:n], tables, quats),
+            arrays=(data[:n], tables, quats),
         )
 
 
