@@ -3,7 +3,7 @@ independently of cdpr.path.timing's TOPP-RA and its facets: the convex formulati
 Verscheure, Demeulenaere, Swevers, De Schutter and Diehl (2009, "Time-optimal path
 tracking for robots: a convex optimization approach") with the tensions themselves as
 variables at every grid point.  b = s'^2 at grid points, a = s'' between them, the
-controller's model (cdpr.controller.wrench_check's quantities: tau = M accel + mu,
+controller's model (cdpr.wrench_check's quantities: tau = M accel + mu,
 f0 = m0 (Lambda accel + c)) Lambda^T t = Lambda^T f0 - tau with t within [max(t_min,
 f0 - force_max), f0 + force_max] less `margin`, the same speed and acceleration limits,
 and the time sum 2 ds / (sqrt(b_i) + sqrt(b_i+1)) minimised as a second-order cone

@@ -2,7 +2,7 @@
 2018, the `toppra` package) on each motion of the path (rest to rest: the path is cut at
 every dwell and every corner without a blend), with at every grid point along it:
 
-- the wrench the controller's model needs (cdpr.controller.wrench_check: the platform's
+- the wrench the controller's model needs (cdpr.wrench_check: the platform's
   and the winches' inertia, M(q) (q' s'' + q'' s'^2) + mu, the winches' m0 (Lambda
   accel + c)) inside what the cables can give, every tension kept `margin` N inside
   [t_min, f0 + f_b + force_max].  With u = s'' and x = s'^2 the wrench and the tension

@@ -43,7 +43,7 @@ class Screened(NamedTuple):
 
 @runtime_checkable
 class WrenchScreen(Protocol):
-    """A wrench check that also screens a batch (cdpr.controller.ModelWrenchCheck)."""
+    """A wrench check that also screens a batch (cdpr.wrench_check.ModelWrenchCheck)."""
 
     def screen(self, samples: Samples) -> Screened:
         """Which samples certainly pass the check (False: the check must decide), with
