@@ -26,8 +26,9 @@ from cdpr.trajectory.core import Reference, Samples, Trajectory, TrajectoryError
 from cdpr.trajectory.jerk import jerk_violation
 
 WrenchCheck = Callable[[Pose, NDArray[np.float64], NDArray[np.float64]], str | None]
-# samples checked together, a step each: sampled, screened (~0.4 ms), by a BatchCheck
-# (~0.6 ms); fewer cost more per sample (numpy's calls), more hold an event loop longer
+# samples checked together, a step each: sampled (~0.15 ms), screened (~0.35 ms), by a
+# BatchCheck (~0.35 ms); fewer cost more per sample (numpy's calls), more hold an event
+# loop longer
 CHUNK = 256
 JERK_CHUNK = 128  # segments whose jerk is checked at once (~1 ms)
 
@@ -334,7 +335,8 @@ def validation_steps(
     yield from _jerk_steps(trajectory, limits, len(waypoints) - 1)
     steps = math.floor(duration / limits.sample_period)
     grid = trajectory.start_time + limits.sample_period * np.arange(steps + 1)
-    times = np.union1d(grid, [w.t for w in waypoints])
+    times = np.union1d(grid, [w.t for w in waypoints])  # ~1.5 ms at 10,000 waypoints
+    yield float(times[0])
     for first in range(0, len(times), CHUNK):
         samples = trajectory.sample_many(times[first : first + CHUNK])
         yield float(samples.times[0])
@@ -356,6 +358,7 @@ def validation_steps(
                 _check_batch(trajectory, workspace, samples, jacobians, i)  # earlier ones first
                 raise
             yield t
+        yield float(samples.times[-1])
         _check_batch(trajectory, workspace, samples, jacobians, len(samples.times))
         yield float(samples.times[-1])
 
