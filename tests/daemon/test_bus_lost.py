@@ -25,11 +25,11 @@ import yaml
 
 from cdpr import Pose
 from daemon.cli.simulated import InProcessSimulator
-from daemon.config import DaemonConfig, check_workspace
+from daemon.config import DaemonConfig
 from daemon.interface.client import CdprClient
 from daemon.process.app import ServiceHook
 from daemon.process.logsetup import configure_logging
-from daemon.service.planner import LocalLink, Planner
+from daemon.service.planner import LocalLink, Planner, load_checks
 from daemon.service.safety import SafetyState
 from daemon.service.service import EXIT_BUS_LOST, Service
 from sim_bus.bus import loopbus
@@ -109,7 +109,7 @@ def test_loop_bus_link_down_brakes_reports_and_exits(
 ) -> None:
     monkeypatch.setenv("NOTIFY_SOCKET", str(notify.path))
     config = config_for(protocol, zenoh={"listen": [f"tcp/127.0.0.1:{free_port()}"]})
-    check_workspace(config)  # the planner's compiled check, loaded before the cycle runs
+    load_checks(config)  # the planner's compiled checks, loaded before the cycle runs
     events: list[dict] = []
     seen: dict[str, object] = {}
 

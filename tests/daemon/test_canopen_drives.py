@@ -32,8 +32,8 @@ import yaml
 from cdpr.controller import ParallelController
 from cdpr.pose import Pose, retract
 from daemon.cli.simulated import sim_section
-from daemon.config import DaemonConfig, check_workspace, load_config
-from daemon.service.planner import LocalLink, Planner
+from daemon.config import DaemonConfig, load_config
+from daemon.service.planner import LocalLink, Planner, load_checks
 from daemon.service.safety import SafetyState
 from daemon.service.service import Service
 from sim_bus.plant import Plant, equilibrium_tensions
@@ -157,9 +157,9 @@ def canopen_config(channel: str) -> DaemonConfig:
         data.setdefault("safety", {}).update(SAFETY)
 
     config = load_config(DRIVER_CONFIGS["cia402"], edit)
-    # the planner's compiled check, loaded now: loading it (about a second, holding the
+    # the planner's compiled checks, loaded now: loading them (about a second, holding the
     # interpreter) while canopen's drive threads run would starve them
-    check_workspace(config)
+    load_checks(config)
     return config
 
 

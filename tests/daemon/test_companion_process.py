@@ -288,7 +288,9 @@ def test_code_upgraded_under_the_running_daemon_stops_it_when_the_companion_rest
     log = tmp_path / "daemon.log"
     daemon = start_daemon(config, "--sim", log=log, cwd=tree)
     try:
-        with connect(zenoh, daemon) as client:
+        # the copy's numba cache is cold: the companion compiles the validation's kernels
+        # before it answers (22 s on this host, alone)
+        with connect(zenoh, daemon, timeout=120.0) as client:
             wait_status(client, "idle", 10.0)
             client.enable()
             wait_status(client, "hold", 5.0)

@@ -222,6 +222,7 @@ def test_a_start_ahead_while_moving_waits_for_the_motion_and_never_jumps() -> No
             service = stack.service
             refs = record_references(service)
             await stack.enable()
+            await asyncio.sleep(0.05)  # a few cycles in HOLD (a goto is planned within one)
             goto = await stack.planner.command("goto", {"pose": _home(config, dx=0.3)})  # 2.25 s
             goto_end = time.time() + goto["end"] - service.now()  # on the wall clock
             # a short approach (~0.2 s) from the goto's target: to start just after the
