@@ -53,6 +53,7 @@ from pathlib import Path
 from typing import Any
 
 import can
+import numpy as np
 from flood import LagProbe, cycle_figures
 from timing import free_endpoint, ordinary_child
 
@@ -68,6 +69,7 @@ CONFIG = ROOT / "config" / "reference8-cia402.yaml"
 PREFIX = "cdpr/stall"
 HOME = (0.0, 0.0, 1.25)
 SPACING = 0.01  # s between waypoints
+RAMP = 1.0  # s over which a circle's pace eases in and out
 FLOOD_IDS = range(0x6E0, 0x6F0)  # SDO requests to nodes 0x60-0x6F: no drive here uses them
 DEFAULT_SIZES = {"trajectory": [1000, 5000, 10000], "junk": [2_000_000], "can-flood": [30000]}
 AFTER = 1.0  # s measured after the input was answered (or sent)
@@ -76,11 +78,17 @@ QUIET = 3.0  # s of the quiet reference (size 0), about a 10,000-waypoint messag
 
 def circle_trajectory(n: int) -> dict[str, Any]:
     """n waypoints SPACING apart: a 5 cm circle about home every 10 s with a slow yaw,
-    beginning and ending at home at rest."""
+    beginning and ending at home at rest, its pace eased in and out over RAMP seconds
+    (within the reference configs' jerk limit: a circle at full pace from the first
+    waypoint asks 6,000 m/s^3 of the first 10 ms, and is refused)."""
     loops = max(1, round(n * SPACING / 10.0))
+    t = SPACING * np.arange(n)
+    ease = np.clip(np.minimum(t, t[-1] - t) / RAMP, 0.0, 1.0)
+    pace = ease**3 * (10.0 - 15.0 * ease + 6.0 * ease**2)  # smootherstep: 0 to 1 and back
+    travelled = np.concatenate([[0.0], np.cumsum(0.5 * (pace[1:] + pace[:-1]))])
+    angles = 2.0 * math.pi * loops * travelled / travelled[-1]
     waypoints = []
-    for k in range(n):
-        angle = 2.0 * math.pi * loops * k / (n - 1)
+    for k, angle in enumerate(angles.tolist()):
         yaw = 0.05 * math.sin(angle)
         waypoints.append(
             {
@@ -93,8 +101,6 @@ def circle_trajectory(n: int) -> dict[str, Any]:
                 "quaternion": {"w": math.cos(yaw / 2), "x": 0.0, "y": 0.0, "z": math.sin(yaw / 2)},
             }
         )
-    waypoints[-1]["position"] = list(HOME)
-    waypoints[-1]["quaternion"] = {"w": 1.0, "x": 0.0, "y": 0.0, "z": 0.0}
     return {"version": 1, "id": f"circle-{n}", "waypoints": waypoints}
 
 
