@@ -1,6 +1,6 @@
 """The model compiled (numba): cable lengths, Lambda, c and the platform's M_p, mu_p at
 a pose, for loops over many samples that numpy would spend in per-call overhead (a
-trajectory validation's screen, cdpr.sample_screen: ~1 ms of numpy calls a batch
+trajectory validation's screen, cdpr.wrench_check: ~1 ms of numpy calls a batch
 whatever its size, against a few microseconds here).
 
 The same maths as the scalar hot path (cdpr.kinematics, cdpr.dynamics) and the numpy

@@ -103,8 +103,8 @@ class PoseLimits:
         """Which poses (positions N x 3, unit quaternions N x 4) certainly pass
         `violation`, by its own quick tests (the reference point, or every corner the
         body's reach allows, inside the box; the tilt), SCREEN_MARGIN m or rad inside
-        each bound.  False means
-        only that `violation` must decide (near a face, near an obstacle)."""
+        each bound.  False means only that `violation` must decide (near a face, near an
+        obstacle)."""
         reach = 0.0 if self.body is None else self.body.reach * (1.0 + self.turn)
         inside = np.all(
             (positions >= np.add(self.lower, reach + SCREEN_MARGIN))

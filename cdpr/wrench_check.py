@@ -25,9 +25,8 @@ class ModelWrenchCheck:
     """A trajectory check (DESIGN §7): is the wrench the controller would need to follow
     (pose, twist, accel) exactly — steps 7–10 with α_c = α_r — in W?  Called: None if
     it is, else the reason.  `screen`: the same question for a batch of samples, as far
-    as a batch can answer it.  Building one loads the compiled screen (numba compiles it
-    on a cold cache: seconds), so that a validation sharing a control cycle's event loop
-    does not."""
+    as a batch can answer it (compiled: load it with daemon.service.planner.load_checks
+    before a validation shares a control cycle's event loop)."""
 
     def __init__(self, robot: Robot, tension: TensionSolver) -> None:
         self.robot, self.tension = robot, tension
@@ -37,10 +36,6 @@ class ModelWrenchCheck:
             [robot.m0, robot.k0, robot.friction, limits.t_min, limits.force_max, limits.t_ref]
         )
         self._margin = SCREEN_MARGIN * float(limits.force_max.max())  # N
-        # the compiled screen loaded (compiled, on a cold cache) now, not in a validation
-        home, rest = robot.home, np.zeros((1, 6))
-        self.screen(Samples(np.zeros(1), home.position[None], np.array([home.quaternion]),
-                            home.rotation[None], rest, rest))  # fmt: skip
 
     def __call__(self, pose: Pose, twist: Array, accel: Array) -> str | None:
         robot = self.robot

@@ -273,15 +273,13 @@ class Curve:
             tau = t - (knots[k] + self.shift)
             evaluate_segments(tables, quats, k, tau, positions, quaternions, twists, accels)
         else:
+            for i in np.flatnonzero(~inside).tolist():
+                ref = self.sample(float(t[i]))
+                positions[i], quaternions[i] = ref.pose.position_tuple, ref.pose.quaternion_tuple
+                twists[i], accels[i] = ref.twist, ref.accel
             rows = np.flatnonzero(inside)
-            part = self.sample_many(t[rows]) if rows.size else None
-            for i in range(count):
-                if part is None or not inside[i]:
-                    ref = self.sample(float(t[i]))
-                    positions[i] = ref.pose.position_tuple
-                    quaternions[i] = ref.pose.quaternion_tuple
-                    twists[i], accels[i] = ref.twist, ref.accel
-            if part is not None:
+            if rows.size:
+                part = self.sample_many(t[rows])
                 positions[rows], quaternions[rows] = part.positions, part.quaternions
                 twists[rows], accels[rows] = part.twists, part.accels
         return Samples(t, positions, quaternions, quats_to_matrices(quaternions), twists, accels)

@@ -1,13 +1,14 @@
 """Numba's kernels compiled before the first path arrives, in a process of their own.
 
 The path timing and the trajectory validation run compiled kernels (cdpr.wrench_margin,
-cdpr.interference, cdpr.compiled_model) that numba compiles at their first call and
-keeps in its on-disk cache (cdpr.compiled_cache).  In a fresh install, or after an
-upgrade whose sources changed the cache's key, the first path a client sends was timed
-in ~14 s on this 2-vCPU host, most of it compiling, where a warm cache takes 0.3 s.  The
-companion therefore starts this module once per cache (`start`), at idle priority, to
-time and validate a short path on the daemon's robot: the cache is then warm for the
-companion's own first path, and a `warm` file in the keyed cache directory says so.
+cdpr.interference, cdpr.compiled_model, cdpr.trajectory.compiled_curve) that numba
+compiles at their first call and keeps in its on-disk cache (cdpr.compiled_cache).  In
+a fresh install, or after an upgrade whose sources changed the cache's key, the first
+path a client sends was timed in ~14 s on this 2-vCPU host, most of it compiling, where
+a warm cache takes 0.3 s.  The companion therefore starts this module once per cache
+(`start`), at idle priority, to time and validate a short path on the daemon's robot:
+the cache is then warm for the companion's own first path, and a `warm` file in the
+keyed cache directory says so.
 
 `python -m daemon.process.warm_up CONFIG`: exits 0 once the kernels are cached.
 """
