@@ -21,7 +21,11 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 # every file that compiles with numba (tests/cdpr/test_compiled_cache.py keeps it whole)
 SOURCES = (
+    "cdpr/compiled_linalg.py",
     "cdpr/compiled_model.py",
+    "cdpr/forward_kinematics.py",
+    "cdpr/kinematics.py",
+    "cdpr/so3.py",  # its scalar functions are compiled from the kernels that call them
     "cdpr/wrench_margin.py",
     "cdpr/interference.py",
     "cdpr/path/jerk_estimate.py",

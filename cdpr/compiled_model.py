@@ -1,12 +1,10 @@
-"""The model compiled (numba): cable lengths, Lambda, c and the platform's M_p, mu_p at
-a pose, for loops over many samples that numpy would spend in per-call overhead (a
-trajectory validation's screen, cdpr.wrench_check: ~1 ms of numpy calls a batch
-whatever its size, against a few microseconds here).
+"""The platform's M_p, mu_p compiled (numba), and the wrench screen of many samples that
+numpy would spend in per-call overhead (a trajectory validation's batches,
+cdpr.wrench_check: ~1 ms of numpy calls a batch whatever its size, against a few
+microseconds here).
 
-The same maths as the scalar hot path (cdpr.kinematics, cdpr.dynamics) and the numpy
-reference (cdpr.reference), which the tests hold it equal to.  The cables come as one
-array (`cable_array`): per row the anchor a_k, the attachment b_k, the pulley radius
-(0: none) and its swivel axis.
+The same maths as cdpr.dynamics and the numpy reference (cdpr.reference), which the
+tests hold it equal to; the cables' part is cdpr.kinematics' kernel (its `rows`).
 """
 
 from __future__ import annotations
@@ -18,26 +16,14 @@ from numba import njit
 from numpy.typing import NDArray
 
 from cdpr.compiled_cache import key_numba_cache
+from cdpr.compiled_linalg import cholesky, cholesky_solve, gram
 from cdpr.dynamics import PlatformInertia
 from cdpr.friction import SPEED_FLOOR
-from cdpr.kinematics import CableGeometry
-from cdpr.wrench_margin import _cholesky, _gram, _solve
+from cdpr.kinematics import cable_rows, rotation
 
 key_numba_cache()  # before the first @njit(cache=True): its cache keyed by the sources
 
 Array = NDArray[np.float64]
-
-
-def cable_array(geometry: CableGeometry) -> Array:
-    """(n, 10) rows [a_k, b_k, pulley radius (0: none), pulley axis] for the kernels."""
-    rows = np.zeros((geometry.n, 10))
-    rows[:, :3] = geometry.anchors
-    rows[:, 3:6] = geometry.attachments
-    for k, pulley in enumerate(geometry.pulleys):
-        if pulley is not None:
-            rows[k, 6] = pulley[0]
-            rows[k, 7:] = pulley[1]
-    return rows
 
 
 def platform_array(platform: PlatformInertia) -> Array:
@@ -45,78 +31,6 @@ def platform_array(platform: PlatformInertia) -> Array:
     return np.array(
         [platform.mass, *platform.center_of_mass, *platform.inertia_about_p, *platform.gravity]
     )
-
-
-@njit(cache=True)
-def cable_rows(cables: Array, p: Array, R: Array, phi: Array, table: Array, lengths: Array) -> None:
-    """At position p (3,), rotation R (3, 3) and twist phi (6,): table (n, 7) rows
-    [u_k, r_k x u_k, c_k] (Lambda and c) and lengths (n,) (cdpr.kinematics)."""
-    vx, vy, vz, wx, wy, wz = phi[0], phi[1], phi[2], phi[3], phi[4], phi[5]
-    for k in range(cables.shape[0]):
-        bx, by, bz = cables[k, 3], cables[k, 4], cables[k, 5]
-        rx = R[0, 0] * bx + R[0, 1] * by + R[0, 2] * bz
-        ry = R[1, 0] * bx + R[1, 1] * by + R[1, 2] * bz
-        rz = R[2, 0] * bx + R[2, 1] * by + R[2, 2] * bz
-        dx = p[0] + rx - cables[k, 0]
-        dy = p[1] + ry - cables[k, 1]
-        dz = p[2] + rz - cables[k, 2]
-        # attachment velocity xd = v + w x r, centripetal acceleration w x (w x r)
-        wrx = wy * rz - wz * ry
-        wry = wz * rx - wx * rz
-        wrz = wx * ry - wy * rx
-        xdx, xdy, xdz = vx + wrx, vy + wry, vz + wrz
-        rp = cables[k, 6]
-        if rp == 0.0:
-            length = math.sqrt(dx * dx + dy * dy + dz * dz)
-            inv = 1.0 / length
-            ux, uy, uz = dx * inv, dy * inv, dz * inv
-            ud = ux * xdx + uy * xdy + uz * xdz
-            quad = (xdx * xdx + xdy * xdy + xdz * xdz - ud * ud) * inv
-        else:
-            length, ux, uy, uz, quad = _pulley(cables[k], dx, dy, dz, xdx, xdy, xdz)
-        centripetal = ux * (wy * wrz - wz * wry) + uy * (wz * wrx - wx * wrz)
-        centripetal += uz * (wx * wry - wy * wrx)
-        table[k, 0], table[k, 1], table[k, 2] = ux, uy, uz
-        table[k, 3] = ry * uz - rz * uy
-        table[k, 4] = rz * ux - rx * uz
-        table[k, 5] = rx * uy - ry * ux
-        table[k, 6] = centripetal + quad
-        lengths[k] = length
-
-
-@njit(cache=True)
-def _pulley(
-    cable: Array, dx: float, dy: float, dz: float, xdx: float, xdy: float, xdz: float
-) -> tuple[float, float, float, float, float]:
-    """(length, u, xd^T H xd) of a cable over its pulley, d = B - a (cdpr.kinematics'
-    pulley_length_direction and pulley_curvature)."""
-    rp, zx, zy, zz = cable[6], cable[7], cable[8], cable[9]
-    along = dx * zx + dy * zy + dz * zz
-    ex, ey, ez = dx - along * zx, dy - along * zy, dz - along * zz
-    rho = math.sqrt(ex * ex + ey * ey + ez * ez)
-    if rho < 1e-12:  # B on the swivel axis: any perpendicular direction
-        ax, ay, az = (1.0, 0.0, 0.0) if abs(zx) < 0.9 else (0.0, 1.0, 0.0)
-        dot = ax * zx + ay * zy + az * zz
-        ax, ay, az = ax - dot * zx, ay - dot * zy, az - dot * zz
-        norm = math.sqrt(ax * ax + ay * ay + az * az)
-        xx, xy, xz = ax / norm, ay / norm, az / norm
-        rho = 1e-12
-    else:
-        xx, xy, xz = ex / rho, ey / rho, ez / rho
-    wx_, wz_ = rho - rp, along
-    wnorm = math.sqrt(wx_ * wx_ + wz_ * wz_)
-    free = math.sqrt(max(wnorm * wnorm - rp * rp, 0.0))
-    theta_p = math.atan2(wz_, wx_) + math.acos(min(1.0, rp / wnorm))
-    s, c = math.sin(theta_p), math.cos(theta_p)
-    length = rp * (math.pi - theta_p) + free
-    ux, uy, uz = s * xx - c * zx, s * xy - c * zy, s * xz - c * zz
-    # the radial direction at the leave point, and the normal of the pulley plane
-    npx, npy, npz = c * xx + s * zx, c * xy + s * zy, c * xz + s * zz
-    nx, ny, nz = zy * xz - zz * xy, zz * xx - zx * xz, zx * xy - zy * xx
-    a = npx * xdx + npy * xdy + npz * xdz
-    b = nx * xdx + ny * xdy + nz * xdz
-    quad = a * a / free + (ux * xx + uy * xy + uz * xz) / rho * b * b
-    return length, ux, uy, uz, quad
 
 
 @njit(cache=True)
@@ -160,6 +74,37 @@ def platform_rows(platform: Array, R: Array, phi: Array, out: Array) -> None:
     out[3, 6] = wy * hz - wz * hy + mcz * gy - mcy * gz
     out[4, 6] = wz * hx - wx * hz + mcx * gz - mcz * gx
     out[5, 6] = wx * hy - wy * hx + mcy * gx - mcx * gy
+
+
+@njit(cache=True)
+def model_rows(
+    cables: Array,
+    platform: Array,
+    m0: Array,
+    p: tuple[float, float, float],
+    q: tuple[float, float, float, float],
+    phi: tuple[float, ...],
+    table: Array,
+    G: Array,
+) -> None:
+    """At position p, unit quaternion q and twist phi: table (n, 7) = [Lambda | c] and
+    G (7, 7) = [Lambda | c]^T diag(m0) [Lambda | c] plus [M_p | mu_p] in its first 6
+    rows, so that G[:6, :6] = M and G[:6, 6] = mu (cdpr.robot.Robot.model_terms)."""
+    n = cables.shape[0]
+    R, lengths, Mp = np.empty((3, 3)), np.empty(n), np.empty((6, 7))
+    rotation(q, R)
+    cable_rows(cables, p, R, phi, table, lengths)
+    platform_rows(platform, R, phi, Mp)
+    for a in range(7):
+        for b in range(a + 1):
+            s = 0.0
+            for k in range(n):
+                s += m0[k] * table[k, a] * table[k, b]
+            G[a, b] = s
+            G[b, a] = s
+    for i in range(6):
+        for j in range(7):
+            G[i, j] += Mp[i, j]
 
 
 @njit(cache=True)
@@ -211,11 +156,11 @@ def wrench_screen(
             for k in range(n):
                 acc -= table[k, a] * t_ref[k]
             x[a] = acc
-        _gram(table[:, :6].T, G)
-        if not _cholesky(G, L):
+        gram(table[:, :6].T, G)
+        if not cholesky(G, L):
             clear[s] = False
             continue
-        _solve(L, x)
+        cholesky_solve(L, x)
         inside = True
         for k in range(n):
             tension, rate, la = t_ref[k], 0.0, table[k, 6]

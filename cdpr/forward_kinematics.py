@@ -9,20 +9,24 @@ The solver never raises on a bad measurement (NaN, impossible lengths): it retur
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
-from numpy.typing import ArrayLike
-from scipy.linalg.lapack import dposv, dpotrf, dpotrs
+from numba import njit
+from numpy.typing import ArrayLike, NDArray
 
-from cdpr.kinematics import CableGeometry, to_array
+from cdpr.compiled_cache import key_numba_cache
+from cdpr.compiled_linalg import cholesky, cholesky_solve, gram
+from cdpr.kinematics import AT_REST, CableGeometry, pose_rows
 from cdpr.pose import Pose
-from cdpr.so3 import quat_to_r9, rotate_quat_by_rotvec
+from cdpr.so3 import quat_mul4, rotvec_to_quat4
 
-_LM_START = 1e-4
-_LM_GIVE_UP = 1e12
+key_numba_cache()  # before the first @njit(cache=True): its cache keyed by the sources
+
+Array = NDArray[np.float64]
+_rotvec_to_quat4 = njit(cache=True)(rotvec_to_quat4)  # so3's, callable from the kernels
+_quat_mul4 = njit(cache=True)(quat_mul4)
 
 
 class FKResult(NamedTuple):
@@ -47,27 +51,21 @@ class FKResult(NamedTuple):
 
 class Linearisation(NamedTuple):
     """What forward kinematics' first evaluation at `guess` needs of the guess alone
-    (linearise): L(guess), Lambda(guess) (contiguous), its Gram matrix and that matrix's
-    Cholesky factor (upper triangle; None where singular).  A control cycle computes it
-    while the measured lengths are on their way; they then enter only through
-    Lambda^T (L - l)."""
+    (linearise): L(guess), Lambda(guess) (contiguous) and the Cholesky factor of its
+    Gram matrix (the kernels' form, cdpr.compiled_linalg.cholesky; None where
+    singular).  A control cycle computes it while the measured lengths are on their
+    way; they then enter only through Lambda^T (L - l)."""
 
     guess: Pose
     lengths: np.ndarray
     jacobian: np.ndarray
-    gram: np.ndarray
     factor: np.ndarray | None
 
 
 def linearise(geometry: CableGeometry, guess: Pose) -> Linearisation:
     """The measurement-free part of Y(l)'s first evaluation at `guess` (Linearisation)."""
-    q = guess.quaternion_tuple
-    table = to_array(geometry.evaluate(guess.position_tuple, quat_to_r9(*q)))
-    table = table.reshape(geometry.n, 7)
-    J = np.ascontiguousarray(table[:, :6])
-    gram = J.T.dot(J)  # ndarray.dot: see the cdpr.kinematics docstring
-    factor, info = dpotrf(gram)
-    return Linearisation(guess, table[:, 6].copy(), J, gram, None if info else factor)
+    lengths, J, L, ok = _linearise(geometry.rows, guess.position_tuple, guess.quaternion_tuple)
+    return Linearisation(guess, lengths, J, L if ok else None)
 
 
 @dataclass(frozen=True)
@@ -89,153 +87,218 @@ def solve_forward_kinematics(
     Gauss-Newton while it reduces the cost, Levenberg-Marquardt damping when a step
     does not.  A Gauss-Newton step shorter than step_tolerance (m, or rad) ends the
     iteration without a further evaluation: convergence is quadratic there, so the
-    remaining error is of the order of the step squared.  Each evaluation forms the
-    n x 7 table [Lambda | L - l] and its Gram matrix, which holds Lambda^T Lambda,
-    Lambda^T e and |e|^2 at once.
+    remaining error is of the order of the step squared.  Below _CHORD_BELOW a step
+    reuses the last Jacobian and its factor (a chord step needs only the lengths).
+    The iteration is one compiled kernel (_fit).
     """
     start = None
     if type(guess) is Linearisation:
         start, guess = guess, guess.guess
     n = geometry.n
     measured = np.asarray(lengths, dtype=float).ravel()
-    m = measured.tolist()
-    if len(m) != n:
-        raise ValueError(f"expected {n} cable lengths, got {len(m)}")
+    if measured.shape[0] != n:
+        raise ValueError(f"expected {n} cable lengths, got {measured.shape[0]}")
     # a NaN or inf among them; finite lengths sum to inf only when absurdly large, and
     # those fail the residual check
-    if not math.isfinite(sum(m)):
-        for k, length in enumerate(m):
+    if not math.isfinite(measured.sum()):
+        for k, length in enumerate(measured.tolist()):
             if not math.isfinite(length):
                 reason = f"non-finite length {length} at cable {k}"
                 return FKResult(guess, math.inf, 0, False, reason)
-    evaluate = geometry.evaluate
-    tolerance2 = settings.step_tolerance**2
-    p = guess.position_tuple
-    q = guess.quaternion_tuple
-    # the linearisation at (p, q): Lambda, Lambda^T Lambda, Lambda^T e and |e|^2
+    if not (measured.flags.c_contiguous and measured.flags.writeable):
+        measured = measured.copy()  # the one array type _fit is compiled for
     if start is None:
-        table = to_array(evaluate(p, quat_to_r9(*q), measured=m)).reshape(n, 7)
-        S = table.T.dot(table)  # ndarray.dot: see the cdpr.kinematics docstring
-        J, gram, g, cost = table[:, :6], S[:6, :6], S[:6, 6], float(S[6, 6])
-        factor = None
+        kind, lengths0, J0, L0 = _COLD, _NO_LENGTHS, _NO_JACOBIAN, _NO_FACTOR
     else:
-        e = start.lengths - measured
-        J, gram, factor = start.jacobian, start.gram, start.factor
-        g, cost = e.dot(J), float(e.dot(e))
-    lam = 0.0
-    for it in range(1, settings.max_iterations + 1):
-        if factor is not None:  # the prepared linearisation's, undamped
-            chol = factor
-            x, info = dpotrs(chol, g)
-            factor = None
-        else:
-            if lam:
-                A = gram.copy()
-                A[_DIAG] *= 1.0 + lam
-            else:
-                A = gram
-            chol, x, info = dposv(A, g)
-        if info != 0:  # singular normal equations: damp harder
-            lam = max(lam * 10.0, _LM_START)
-            if lam > _LM_GIVE_UP:
-                reason = "singular Jacobian"
-                return _result(p, q, cost, it, n, reason, settings, guess, J)
-            continue
-        dx, dy, dz, wx, wy, wz = x.tolist()
-        step2 = _longer2(dx * dx + dy * dy + dz * dz, wx * wx + wy * wy + wz * wz)
-        p_new = [p[0] - dx, p[1] - dy, p[2] - dz]
-        q_new = rotate_quat_by_rotvec(q, -wx, -wy, -wz)
-        if not lam and step2 < tolerance2:
-            # linearised cost after the step: |e|^2 - g . A^-1 g
-            cost_new = cost - float(g.dot(x))
-            return _result(p_new, q_new, cost_new, it, n, "", settings, guess, J, chol)
-        if not lam and step2 < _CHORD_BELOW2:
-            # quadratic regime: one more step with this factorisation and Jacobian needs
-            # only the lengths; its error is ~ step x next step, far below tolerance
-            done = _chord_finish(geometry, m, p_new, q_new, J, chol, tolerance2)
-            if done is not None:
-                p_new, q_new, chord_cost = done
-                return _result(p_new, q_new, chord_cost, it + 1, n, "", settings, guess, J, chol)
-        table = to_array(evaluate(p_new, quat_to_r9(*q_new), measured=m)).reshape(n, 7)
-        S_new = table.T.dot(table)
-        cost_new = float(S_new[6, 6])
-        if cost_new <= cost or not math.isfinite(cost):
-            p, q, cost = p_new, q_new, cost_new
-            J, gram, g = table[:, :6], S_new[:6, :6], S_new[:6, 6]
-            lam = lam * 0.1 if lam > _LM_START else 0.0
-            if step2 < tolerance2:
-                return _result(p, q, cost, it, n, "", settings, guess, J)
-        else:
-            lam = max(lam * 10.0, _LM_START)
-            if lam > _LM_GIVE_UP:
-                reason = "no descent direction"
-                return _result(p, q, cost, it, n, reason, settings, guess, J)
-    reason = f"no convergence in {settings.max_iterations} iterations"
-    iterations = settings.max_iterations
-    return _result(p, q, cost, iterations, n, reason, settings, guess, J)
-
-
-def _chord_finish(
-    geometry: CableGeometry,
-    meas: list[float],
-    p: list[float],
-    q: tuple[float, float, float, float],
-    jacobian: np.ndarray,
-    chol: np.ndarray,
-    tolerance2: float,
-) -> tuple[list[float], tuple[float, float, float, float], float] | None:
-    """A simplified-Newton step reusing the last Jacobian (Lambda of the last
-    linearisation) and its Cholesky factor.  Returns the final (p, q, linearised
-    cost), or None if the step is not yet short (tolerance2 is the squared step
-    tolerance)."""
-    residuals = geometry.evaluate(p, quat_to_r9(*q), jacobian=False, measured=meas)
-    g = np.array(residuals).dot(jacobian)  # Lambda^T e
-    x, info = dpotrs(chol, g)
-    if info != 0:
-        return None
-    dx, dy, dz, wx, wy, wz = x.tolist()
-    if _longer2(dx * dx + dy * dy + dz * dz, wx * wx + wy * wy + wz * wz) >= tolerance2:
-        return None
-    p_new = [p[0] - dx, p[1] - dy, p[2] - dz]
-    q_new = rotate_quat_by_rotvec(q, -wx, -wy, -wz)
-    return p_new, q_new, sum([r * r for r in residuals]) - float(g.dot(x))
-
-
-_CHORD_BELOW2 = 1e-4**2  # squared step length below which the chord finish is tried
-
-
-def _longer2(translation2: float, rotation2: float) -> float:
-    """The squared step length, max(|dp|^2, |dw|^2) (builtin max is slower for 2 floats)."""
-    return translation2 if translation2 > rotation2 else rotation2
-
-
-_DIAG = np.diag_indices(6)
-
-
-def _result(
-    p: Sequence[float],
-    q: tuple[float, float, float, float],
-    cost: float,
-    iterations: int,
-    n: int,
-    reason: str,
-    settings: FKSettings,
-    fallback: Pose,
-    jacobian: np.ndarray,
-    factor: np.ndarray | None = None,
-) -> FKResult:
-    """The FKResult.  `factor` is the Cholesky factor of the normal equations of
-    `jacobian` when the caller has it (an undamped last step), else it is computed here."""
+        kind = _FACTORED if start.factor is not None else _LINEARISED
+        lengths0, J0 = start.lengths, start.jacobian
+        L0 = _NO_FACTOR if start.factor is None else start.factor
+    status, iterations, cost, p, q, J, U, factored = _fit(
+        geometry.rows, measured, guess.position_tuple, guess.quaternion_tuple,
+        kind, lengths0, J0, L0, settings.max_iterations, settings.step_tolerance**2,
+    )  # fmt: skip
     residual = math.sqrt(max(cost, 0.0) / n) if math.isfinite(cost) else math.inf
+    p, q = p.tolist(), q.tolist()
     if not (math.isfinite(sum(p)) and math.isfinite(sum(q))):
-        return FKResult(fallback, math.inf, iterations, False, "diverged to non-finite values")
-    if not reason and residual > settings.max_residual:
+        return FKResult(guess, math.inf, iterations, False, "diverged to non-finite values")
+    if status == _SINGULAR:
+        reason = "singular Jacobian"
+    elif status == _NO_DESCENT:
+        reason = "no descent direction"
+    elif status == _NO_CONVERGENCE:
+        reason = f"no convergence in {settings.max_iterations} iterations"
+    elif residual > settings.max_residual:
         reason = (
             f"length residual {residual:.3g} m exceeds max_residual {settings.max_residual:.3g} m"
         )
-    if reason:
-        return FKResult(Pose._from_unit(p, q), residual, iterations, False, reason)
-    if factor is None:
-        factor, info = dpotrf(jacobian.T @ jacobian)
-        factor = None if info else factor
-    return FKResult(Pose._from_unit(p, q), residual, iterations, True, "", jacobian, factor)
+    else:
+        factor = U if factored else None
+        return FKResult(Pose._from_unit(p, q), residual, iterations, True, "", J, factor)
+    return FKResult(Pose._from_unit(p, q), residual, iterations, False, reason)
+
+
+_LM_START = 1e-4
+_LM_GIVE_UP = 1e12
+_CHORD_BELOW2 = 1e-4**2  # squared step length below which the chord finish is tried
+# how _fit starts: from the guess, or its linearisation with or without a factor
+_COLD, _LINEARISED, _FACTORED = 0, 1, 2
+# how _fit ends
+_CONVERGED, _SINGULAR, _NO_DESCENT, _NO_CONVERGENCE = 0, 1, 2, 3
+_NO_LENGTHS, _NO_JACOBIAN, _NO_FACTOR = np.empty(0), np.empty((0, 6)), np.empty((6, 6))
+
+
+@njit(cache=True)
+def _linearise(
+    cables: Array, p: tuple[float, float, float], q: tuple[float, float, float, float]
+) -> tuple[Array, Array, Array, bool]:
+    """(L, Lambda, the factor of Lambda^T Lambda, whether it is positive definite)."""
+    n = cables.shape[0]
+    table, lengths = np.empty((n, 7)), np.empty(n)
+    pose_rows(cables, p, q, AT_REST, table, lengths)
+    J = np.ascontiguousarray(table[:, :6])
+    G, L = np.empty((6, 6)), np.zeros((6, 6))
+    gram(J.T, G)
+    return lengths, J, L, cholesky(G, L)
+
+
+@njit(cache=True)
+def _step(p: Array, q: Array, x: Array, p_new: Array, q_new: Array) -> float:
+    """(p_new, q_new) = (p - dx, exp(-dw) q) for the step x = (dx, dw); its squared
+    length max(|dx|^2, |dw|^2)."""
+    p_new[0], p_new[1], p_new[2] = p[0] - x[0], p[1] - x[1], p[2] - x[2]
+    aw, ax, ay, az = _rotvec_to_quat4(-x[3], -x[4], -x[5])
+    w, a, b, c = _quat_mul4(aw, ax, ay, az, q[0], q[1], q[2], q[3])
+    scale = 1.0 / math.sqrt(w * w + a * a + b * b + c * c)
+    q_new[0], q_new[1], q_new[2], q_new[3] = w * scale, a * scale, b * scale, c * scale
+    translation2 = x[0] * x[0] + x[1] * x[1] + x[2] * x[2]
+    return max(translation2, x[3] * x[3] + x[4] * x[4] + x[5] * x[5])
+
+
+@njit(cache=True)
+def _residuals(
+    cables: Array, p: Array, q: Array, measured: Array, table: Array, e: Array
+) -> float:
+    """table = [Lambda | c] and e = L - measured at (p, q); |e|^2."""
+    pose_rows(cables, (p[0], p[1], p[2]), (q[0], q[1], q[2], q[3]), AT_REST, table, e)
+    cost = 0.0
+    for k in range(e.shape[0]):
+        e[k] -= measured[k]
+        cost += e[k] * e[k]
+    return cost
+
+
+@njit(cache=True)
+def _fit(
+    cables: Array,
+    measured: Array,
+    p0: tuple[float, float, float],
+    q0: tuple[float, float, float, float],
+    kind: int,
+    lengths0: Array,
+    J0: Array,
+    L0: Array,
+    max_iterations: int,
+    tolerance2: float,
+) -> tuple[int, int, float, Array, Array, Array, Array, bool]:
+    """Gauss-Newton / Levenberg-Marquardt from (p0, q0) (solve_forward_kinematics; with
+    kind _LINEARISED or _FACTORED its lengths, Lambda and factor there).  Returns
+    (status, iterations, |e|^2 (linearised after the last step), p, q, Lambda at the
+    last linearisation, the upper Cholesky factor U of its Lambda^T Lambda as LAPACK's
+    dpotrf leaves it, whether U is one)."""
+    n = cables.shape[0]
+    p, q = np.array(p0), np.array(q0)
+    p_new, q_new, p_chord, q_chord = np.empty(3), np.empty(4), np.empty(3), np.empty(4)
+    table, e = np.empty((n, 7)), np.empty(n)
+    J, G, A = np.empty((n, 6)), np.empty((6, 6)), np.empty((6, 6))
+    L, g, x, g_chord = np.zeros((6, 6)), np.empty(6), np.empty(6), np.empty(6)
+    factored = False
+    if kind == _COLD:
+        cost = _residuals(cables, p, q, measured, table, e)
+        J[:, :] = table[:, :6]
+    else:
+        J[:, :] = J0
+        cost = 0.0
+        for k in range(n):
+            e[k] = lengths0[k] - measured[k]
+            cost += e[k] * e[k]
+        if kind == _FACTORED:
+            L[:, :] = L0
+            factored = True
+    gram(J.T, G)
+    _project(J, e, g)
+    lam = 0.0
+    for it in range(1, max_iterations + 1):
+        if factored:  # the prepared linearisation's, undamped
+            factored = False
+        else:
+            A[:, :] = G
+            if lam:
+                for i in range(6):
+                    A[i, i] *= 1.0 + lam
+            if not cholesky(A, L):  # singular normal equations: damp harder
+                lam = max(lam * 10.0, _LM_START)
+                if lam > _LM_GIVE_UP:
+                    return _SINGULAR, it, cost, p, q, J, L, False
+                continue
+        x[:] = g
+        cholesky_solve(L, x)
+        step2 = _step(p, q, x, p_new, q_new)
+        if not lam and step2 < tolerance2:
+            # linearised cost after the step: |e|^2 - g . A^-1 g
+            return _CONVERGED, it, cost - _dot(g, x), p_new, q_new, J, _upper(L), True
+        cost_new = _residuals(cables, p_new, q_new, measured, table, e)
+        if not lam and step2 < _CHORD_BELOW2:
+            # quadratic regime: one more step with this factor and Jacobian needs only
+            # the lengths; its error is ~ step x next step, far below tolerance
+            _project(J, e, g_chord)
+            x[:] = g_chord
+            cholesky_solve(L, x)
+            if _step(p_new, q_new, x, p_chord, q_chord) < tolerance2:
+                cost_chord = cost_new - _dot(g_chord, x)
+                return _CONVERGED, it + 1, cost_chord, p_chord, q_chord, J, _upper(L), True
+        if cost_new <= cost or not math.isfinite(cost):
+            p[:] = p_new
+            q[:] = q_new
+            cost = cost_new
+            J[:, :] = table[:, :6]
+            gram(J.T, G)
+            _project(J, e, g)
+            lam = lam * 0.1 if lam > _LM_START else 0.0
+            if step2 < tolerance2:
+                if cholesky(G, L):
+                    return _CONVERGED, it, cost, p, q, J, _upper(L), True
+                return _CONVERGED, it, cost, p, q, J, L, False
+        else:
+            lam = max(lam * 10.0, _LM_START)
+            if lam > _LM_GIVE_UP:
+                return _NO_DESCENT, it, cost, p, q, J, L, False
+    return _NO_CONVERGENCE, max_iterations, cost, p, q, J, L, False
+
+
+@njit(cache=True)
+def _dot(a: Array, b: Array) -> float:
+    s = 0.0
+    for i in range(a.shape[0]):
+        s += a[i] * b[i]
+    return s
+
+
+@njit(cache=True)
+def _project(J: Array, e: Array, g: Array) -> None:
+    """g = J^T e."""
+    for a in range(6):
+        s = 0.0
+        for k in range(e.shape[0]):
+            s += J[k, a] * e[k]
+        g[a] = s
+
+
+@njit(cache=True)
+def _upper(L: Array) -> Array:
+    """The upper factor U = L^T (U^T U = G, LAPACK's layout) of cholesky's L."""
+    U = np.zeros((6, 6))
+    for i in range(6):
+        U[i, i] = 1.0 / L[i, i]
+        for j in range(i):
+            U[j, i] = L[i, j]
+    return U

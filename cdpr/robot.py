@@ -9,6 +9,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from cdpr.body import PlatformBody
+from cdpr.compiled_model import model_rows, platform_array
 from cdpr.description import (
     ActuatorSpec,
     ConfigError,
@@ -26,7 +27,7 @@ from cdpr.forward_kinematics import (
     solve_forward_kinematics,
 )
 from cdpr.friction import friction_direction
-from cdpr.kinematics import CableGeometry, to_array
+from cdpr.kinematics import CableGeometry
 from cdpr.pose import Pose
 from cdpr.so3 import quat_to_r9
 
@@ -59,8 +60,8 @@ class Robot:
             spec.gravity,
         )
         self.m0 = np.array([a.m0 for a in self.actuators])
-        # sqrt(m0_k) for each entry of a flat n x 7 table (1-d: cheaper than broadcasting)
-        self._sqrt_m0_flat = np.repeat(np.sqrt(self.m0), 7)
+        self._m0 = np.array(self.m0, dtype=float)  # the kernels' own copy
+        self._platform_rows = (self.platform, platform_array(self.platform))
         self.k0 = np.array([a.k0 for a in self.actuators])
         self.t_min = np.array([a.t_min for a in self.actuators])
         self.force_max = np.array([a.force_max for a in self.actuators])
@@ -81,6 +82,18 @@ class Robot:
         fk = spec.forward_kinematics
         self.fk_settings = FKSettings(fk.max_iterations, fk.step_tolerance, fk.max_residual)
         self._check_home()
+        self._load_kernels()
+
+    def _load_kernels(self) -> None:
+        """Call every compiled kernel a control cycle runs, once, where a robot is built:
+        numba loads each from its cache (or, cold, compiles it) at its first call, which
+        must not be a cycle's (0.25 s from the cache on this host; seconds to compile)."""
+        home = self.home
+        lengths = self.cable_lengths(home)
+        self.forward_kinematics(lengths, self.linearise_at(home))
+        self.forward_kinematics(lengths, home)
+        self.model_terms(home, _ZERO_TWIST)
+        self.bias_accel(home, _ZERO_TWIST)
 
     @classmethod
     def from_dict(cls, data: Any, source: str = "robot", key: str = "") -> Robot:
@@ -131,22 +144,21 @@ class Robot:
 
     def cable_lengths(self, pose: Pose) -> Array:
         """L(eta): cable lengths (m)."""
-        return self._table(pose)[:, 6].copy()
+        return self.geometry.table(pose.position_tuple, pose.quaternion_tuple)[1]
 
     def jacobian(self, pose: Pose) -> Array:
         """Lambda(eta), n x 6, with l_dot = Lambda phi."""
-        return self._table(pose)[:, :6].copy()
+        return self.lengths_and_jacobian(pose)[1]
 
     def lengths_and_jacobian(self, pose: Pose) -> tuple[Array, Array]:
-        """L(eta) and Lambda(eta) in one pass."""
-        table = self._table(pose)
-        return table[:, 6].copy(), table[:, :6].copy()
+        """L(eta) and Lambda(eta) (contiguous) in one pass."""
+        table, lengths = self.geometry.table(pose.position_tuple, pose.quaternion_tuple)
+        return lengths, np.ascontiguousarray(table[:, :6])
 
     def bias_accel(self, pose: Pose, twist: ArrayLike) -> Array:
         """c(eta, phi) with l_ddot = Lambda alpha + c."""
-        R = quat_to_r9(*pose.quaternion_tuple)
-        phi = _twist_list(twist)
-        return np.array(self.geometry.evaluate(pose.position_tuple, R, phi, jacobian=False))
+        phi = _twist_tuple(twist)
+        return self.geometry.table(pose.position_tuple, pose.quaternion_tuple, phi)[0][:, 6].copy()
 
     def drag(self, rates: Array) -> Array:
         """The force (N, commands' sign) the winches add to move their drums at `rates`
@@ -166,12 +178,6 @@ class Robot:
         """The inverse of stretched_lengths: what the drums pay out for geometric
         `lengths` under `tensions`."""
         return np.asarray(lengths, dtype=float) / (1.0 + self.compliance * np.asarray(tensions))
-
-    def _table(self, pose: Pose) -> Array:
-        """n x 7 table [Lambda | L]."""
-        R = quat_to_r9(*pose.quaternion_tuple)
-        flat = self.geometry.evaluate(pose.position_tuple, R)
-        return to_array(flat).reshape(self.geometry.n, 7)
 
     def forward_kinematics(
         self, lengths: ArrayLike, guess: Pose | Linearisation | None = None
@@ -205,22 +211,17 @@ class Robot:
         return np.ascontiguousarray(table[:, :6]), table[:, 6], G[:6, :6], G[:6, 6]
 
     def _model(self, pose: Pose, twist: ArrayLike) -> tuple[Array, Array]:
-        """The n x 7 table [Lambda | c] and a 7 x 7 matrix whose first 6 rows are [M | mu]."""
-        return self._model_at(pose.position_tuple, quat_to_r9(*pose.quaternion_tuple), twist)
-
-    def _model_at(self, position: tuple, R: list[float], twist: ArrayLike) -> tuple[Array, Array]:
-        """_model at a position and a rotation matrix (9 floats, row by row)."""
-        phi = _twist_list(twist)
+        """The n x 7 table [Lambda | c] and a 7 x 7 matrix whose first 6 rows are [M | mu]:
+        [Lambda | c]^T diag(m0) [Lambda | c] holds Lambda^T D Lambda and Lambda^T D c, to
+        which [M_p | mu_p] is added (one compiled kernel, cdpr.compiled_model)."""
+        if self._platform_rows[0] is not self.platform:  # a payload estimate took over
+            self._platform_rows = (self.platform, platform_array(self.platform))
         n = self.geometry.n
-        flat = self.geometry.evaluate(position, R, phi)
-        flat += self.platform.mass_and_bias(R, phi)  # [M_p | mu_p], 6 x 7
-        data = to_array(flat)
-        table = data[: 7 * n].reshape(n, 7)
-        # rows [Lambda_k | c_k] scaled by sqrt(m0_k): their Gram matrix holds
-        # Lambda^T D Lambda and Lambda^T D c; the platform part is added to it
-        scaled = (data[: 7 * n] * self._sqrt_m0_flat).reshape(n, 7)
-        G = scaled.T.dot(scaled)
-        G[:6] += data[7 * n :].reshape(6, 7)
+        table, G = np.empty((n, 7)), np.empty((7, 7))
+        model_rows(
+            self.geometry.rows, self._platform_rows[1], self._m0,
+            pose.position_tuple, pose.quaternion_tuple, _twist_tuple(twist), table, G,
+        )  # fmt: skip
         return table, G
 
     def mass_matrix(self, pose: Pose) -> Array:
@@ -282,8 +283,9 @@ class Robot:
 _ZERO_TWIST = (0.0,) * 6
 
 
-def _twist_list(twist: ArrayLike) -> list[float]:
-    phi = twist.tolist() if isinstance(twist, np.ndarray) else [float(c) for c in twist]
+def _twist_tuple(twist: ArrayLike) -> tuple[float, ...]:
+    """A twist as the kernels take it: a tuple of 6 floats."""
+    phi = tuple(twist.tolist() if isinstance(twist, np.ndarray) else [float(c) for c in twist])
     if len(phi) != 6 or not isinstance(phi[0], float):
         raise ValueError(f"a twist is 6 numbers (v, omega), got {twist!r}")
     return phi

@@ -38,7 +38,6 @@ from scipy.linalg.lapack import dpotrs
 from cdpr.forward_kinematics import FKResult, solve_forward_kinematics
 from cdpr.pose import Pose
 from cdpr.robot import Robot
-from cdpr.so3 import quat_to_r9
 
 Array = NDArray[np.float64]
 
@@ -122,12 +121,7 @@ class ComplianceScale:
         pd2 = float(projected.dot(projected))
         if not pd2 > IDENTIFIABLE * float(d.dot(d)):
             return None
-        pose = fk.pose
-        measured = (lengths + self.scale * d).tolist()
-        residual = robot.geometry.evaluate(
-            pose.position_tuple, quat_to_r9(*pose.quaternion_tuple), jacobian=False,
-            measured=measured,
-        )  # fmt: skip
+        residual = robot.cable_lengths(fk.pose) - (lengths + self.scale * d)
         return float(d.dot(residual)) / pd2
 
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from cdpr.compiled_model import cable_array, platform_array, wrench_screen
+from cdpr.compiled_model import platform_array, wrench_screen
 from cdpr.pose import Pose
 from cdpr.pose_limits import SCREEN_MARGIN
 from cdpr.robot import Robot
@@ -31,7 +31,7 @@ class ModelWrenchCheck:
     def __init__(self, robot: Robot, tension: TensionSolver) -> None:
         self.robot, self.tension = robot, tension
         limits = tension.limits
-        self._cables = cable_array(robot.geometry)
+        self._cables = robot.geometry.rows
         self._actuators = np.array(
             [robot.m0, robot.k0, robot.friction, limits.t_min, limits.force_max, limits.t_ref]
         )

@@ -34,6 +34,7 @@ from numba import njit, prange
 from numpy.typing import ArrayLike, NDArray
 
 from cdpr.compiled_cache import key_numba_cache
+from cdpr.compiled_linalg import cholesky, cholesky_solve, gram
 from cdpr.dynamics import PlatformInertia
 
 key_numba_cache()  # before the first @njit(cache=True): its cache keyed by the sources
@@ -157,41 +158,6 @@ def _det(M: Array) -> float:
 
 
 @njit(cache=True)
-def _cholesky(G: Array, L: Array) -> bool:
-    """G = L L^T into L, with 1 / L_ii on its diagonal (the solves multiply by it);
-    False unless G is positive definite."""
-    m = G.shape[0]
-    for i in range(m):
-        for j in range(i + 1):
-            s = G[i, j]
-            for q in range(j):
-                s -= L[i, q] * L[j, q]
-            if i == j:
-                if s <= 0.0:
-                    return False
-                L[i, i] = 1.0 / math.sqrt(s)
-            else:
-                L[i, j] = s * L[j, j]
-    return True
-
-
-@njit(cache=True)
-def _solve(L: Array, z: Array) -> None:
-    """z = (L L^T)^-1 z in place (L from _cholesky): forward, then back substitution."""
-    m = L.shape[0]
-    for i in range(m):
-        s = z[i]
-        for q in range(i):
-            s -= L[i, q] * z[q]
-        z[i] = s * L[i, i]
-    for i in range(m - 1, -1, -1):
-        s = z[i]
-        for q in range(i + 1, m):
-            s -= L[q, i] * z[q]
-        z[i] = s * L[i, i]
-
-
-@njit(cache=True)
 def margin_scratch(
     m: int, n: int
 ) -> tuple[Array, Array, Array, Array, Array, Array, Array, Array, NDArray[np.int64]]:
@@ -209,19 +175,6 @@ def margin_scratch(
         np.empty((4, max(m, n))),
         np.empty(m + n, np.int64),
     )
-
-
-@njit(cache=True)
-def _gram(M: Array, out: Array) -> None:
-    """out = M M^T (symmetric: each pair of rows once)."""
-    rows, cols = M.shape
-    for a in range(rows):
-        for b in range(a + 1):
-            s = 0.0
-            for q in range(cols):
-                s += M[a, q] * M[b, q]
-            out[a, b] = s
-            out[b, a] = s
 
 
 @njit(cache=True)
@@ -267,17 +220,17 @@ def margin_kernel(
     m, n = A.shape
     R, K, G, L, X, H, KT, vectors, pivots = work
     full = _kernel(A, R, K, pivots)
-    _gram(A, G)
-    if not (full and _cholesky(G, L)):
+    gram(A, G)
+    if not (full and cholesky(G, L)):
         return -np.inf, -1, 0.0
     # t_p = A^T G^-1 w (the least-norm tensions giving w), then delta = t_p - t_mid
     y = vectors[0, :m]
     y[:] = w
-    _solve(L, y)
+    cholesky_solve(L, y)
     # X = G^-1 A, so that c = X v and |c|^2 = v^T H v with H = X^T X (n x n)
     X[:, :] = A
     _solve_columns(L, X)
-    _gram(X.T, H)
+    gram(X.T, H)
     delta = vectors[1, :n]
     half = vectors[2, :n]
     for j in range(n):
@@ -375,8 +328,8 @@ def margin_bound_kernel(
     (no bound) or G is singular."""
     m, n = A.shape
     G, L, X, vectors = work[2], work[3], work[4], work[7]
-    _gram(A, G)
-    if not _cholesky(G, L):
+    gram(A, G)
+    if not cholesky(G, L):
         return -np.inf
     y = vectors[0, :m]
     for i in range(m):
@@ -384,7 +337,7 @@ def margin_bound_kernel(
         for j in range(n):
             s -= A[i, j] * 0.5 * (lo[j] + hi[j])
         y[i] = s
-    _solve(L, y)
+    cholesky_solve(L, y)
     X[:, :] = A
     _solve_columns(L, X)
     bound = np.inf
@@ -451,8 +404,8 @@ def _normals_between(
         out[p] = 0.0
         if not _kernel(A, R, K, pivots):
             continue
-        _gram(A, G)
-        if not _cholesky(G, L):
+        gram(A, G)
+        if not cholesky(G, L):
             continue
         X[:, :] = A
         _solve_columns(L, X)  # G^-1 A: c = X v

@@ -66,7 +66,7 @@ class Plant:
         self._cb = platform.center_of_mass
         self._inertia = tuple(platform.inertia.reshape(9).tolist())
         self._inertia_inv = tuple(np.linalg.inv(platform.inertia).reshape(9).tolist())
-        self._evaluate = true.geometry.evaluate
+        self._geometry = true.geometry
         self._disturbance = disturbance or _constant_or_step(config.disturbance)
         self._h = config.substep
         self._steps = 0
@@ -101,7 +101,7 @@ class Plant:
             phi[2] + wx * cy - wy * cx,
         ]
         self._wb = list(_rotate_t(R, (wx, wy, wz)))
-        table = self._evaluate(pose.position.tolist(), R)
+        table = self._table(pose.position_tuple, q)
         rows = list(zip(*[iter(table)] * 7, strict=False))
         rates = [sum(a * b for a, b in zip(row[:6], phi, strict=True)) for row in rows]
         self.winches.hold(table[6::7], np.asarray(tensions, float).tolist(), rates)
@@ -225,6 +225,12 @@ class Plant:
         )
         self.winches.advance(tensions)
 
+    def _table(self, position: tuple, q: tuple) -> list[float]:
+        """Per cable [u, r x u, l] (stride 7, flat) at a position and unit quaternion."""
+        table, lengths = self._geometry.table(position, q)
+        table[:, 6] = lengths
+        return table.ravel().tolist()
+
     def _forces(self, t: float | None = None) -> tuple:
         """Geometry, tensions and the non-gravity wrench (force, torque about p) now."""
         R = r00, r01, r02, r10, r11, r12, r20, r21, r22 = quat_to_r9(*self._q)
@@ -243,8 +249,8 @@ class Plant:
         vx = vc[0] - (wy * cz - wz * cy)
         vy = vc[1] - (wz * cx - wx * cz)
         vz = vc[2] - (wx * cy - wy * cx)
-        position = [xc[0] - cx, xc[1] - cy, xc[2] - cz]
-        table = self._evaluate(position, R)
+        position = (xc[0] - cx, xc[1] - cy, xc[2] - cz)
+        table = self._table(position, self._q)
         tensions, (fx, fy, fz, tx, ty, tz) = self.winches.pull(table, (vx, vy, vz, wx, wy, wz))
         if self._disturbance is not None:
             dfx, dfy, dfz, dtx, dty, dtz = self._disturbance(self.time if t is None else t)

@@ -68,12 +68,13 @@ def test_lengths_at_home_are_the_geometric_distances(reference8: Robot) -> None:
 def test_pulley_adds_the_wrapped_arc() -> None:
     """A cable running up the axis into a 0.1 m pulley and straight down beside it wraps
     half the pulley: l = pi r + the vertical drop, leaving at 2 r from the axis."""
-    from cdpr.kinematics import pulley_length_direction
+    from cdpr.kinematics import CableGeometry
 
     r = 0.1
-    length, ux, uy, uz, _ = pulley_length_direction(2 * r, 0.0, -1.0, (r, 0.0, 0.0, 1.0))
-    assert length == pytest.approx(np.pi * r + 1.0, abs=1e-12)
-    np.testing.assert_allclose([ux, uy, uz], [0, 0, -1], atol=1e-12)
+    geometry = CableGeometry(np.zeros((1, 3)), np.zeros((1, 3)), [(r, (0.0, 0.0, 1.0))])
+    table, lengths = geometry.table((2 * r, 0.0, -1.0), (1.0, 0.0, 0.0, 0.0))
+    assert lengths[0] == pytest.approx(np.pi * r + 1.0, abs=1e-12)
+    np.testing.assert_allclose(table[0, :3], [0, 0, -1], atol=1e-12)
 
 
 def test_stretch_correction_inverts_the_cable_law(reference8: Robot) -> None:

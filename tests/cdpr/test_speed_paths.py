@@ -11,7 +11,6 @@ from scipy.linalg.lapack import dpotrs
 
 from cdpr import Pose, Robot, liediff, reference, retract
 from cdpr.description import load_yaml
-from cdpr.kinematics import to_array
 from cdpr.pose import liediff6
 from cdpr.single_actuator import pid
 from cdpr.so3 import quat_to_matrix
@@ -29,17 +28,6 @@ def random_poses(
         )
         for _ in range(count)
     ]
-
-
-@pytest.mark.parametrize("count", [1, 6, 8, 56, 98])
-def test_to_array_is_np_array(count: int) -> None:
-    rng = np.random.default_rng(1)
-    values = rng.normal(size=count).tolist()
-    a = to_array(values)
-    np.testing.assert_array_equal(a, np.array(values))
-    assert a.dtype == np.float64 and a.shape == (count,)
-    a[0] = 1.0  # writable, like np.array's result
-    assert a.flags.aligned
 
 
 def test_liediff6_is_liediff(reference8: Robot) -> None:

@@ -1,0 +1,66 @@
+"""Small dense linear algebra for the compiled kernels (numba), where a LAPACK call from
+Python would cost more than the 6 x 6 work itself: a Cholesky factor (with the inverse
+of its diagonal, which the solves multiply by), its solve, a Gram matrix.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+from numpy.typing import NDArray
+
+from cdpr.compiled_cache import key_numba_cache
+
+key_numba_cache()  # before the first @njit(cache=True): its cache keyed by the sources
+
+Array = NDArray[np.float64]
+
+
+@njit(cache=True)
+def cholesky(G: Array, L: Array) -> bool:
+    """G = L L^T into L, with 1 / L_ii on its diagonal (the solves multiply by it);
+    False unless G is positive definite."""
+    m = G.shape[0]
+    for i in range(m):
+        for j in range(i + 1):
+            s = G[i, j]
+            for q in range(j):
+                s -= L[i, q] * L[j, q]
+            if i == j:
+                if s <= 0.0:
+                    return False
+                L[i, i] = 1.0 / math.sqrt(s)
+            else:
+                L[i, j] = s * L[j, j]
+    return True
+
+
+@njit(cache=True)
+def cholesky_solve(L: Array, z: Array) -> None:
+    """z = (L L^T)^-1 z in place (L from cholesky): forward, then back substitution."""
+    m = L.shape[0]
+    for i in range(m):
+        s = z[i]
+        for q in range(i):
+            s -= L[i, q] * z[q]
+        z[i] = s * L[i, i]
+    for i in range(m - 1, -1, -1):
+        s = z[i]
+        for q in range(i + 1, m):
+            s -= L[q, i] * z[q]
+        z[i] = s * L[i, i]
+
+
+@njit(cache=True)
+def gram(M: Array, out: Array) -> None:
+    """out = M M^T (symmetric: each pair of rows once)."""
+    rows, cols = M.shape
+    for a in range(rows):
+        for b in range(a + 1):
+            s = 0.0
+            for q in range(cols):
+                s += M[a, q] * M[b, q]
+            out[a, b] = s
+            out[b, a] = s
