@@ -44,8 +44,14 @@ from typing import TYPE_CHECKING, Any, NamedTuple, Protocol
 import numpy as np
 import osqp
 import scipy.sparse as sp
+from numba import njit
 from numpy.typing import ArrayLike, NDArray
-from scipy.linalg.lapack import dposv, dpotrf, dpotrs
+from scipy.linalg.lapack import dposv
+
+from cdpr.compiled_cache import key_numba_cache
+from cdpr.compiled_linalg import cholesky, cholesky_solve, gram
+
+key_numba_cache()  # before the first @njit(cache=True): its cache keyed by the sources
 
 if TYPE_CHECKING:
     from cdpr.robot import Robot
@@ -161,8 +167,9 @@ class TensionLimits:
 
 class FactoredJacobian(NamedTuple):
     """A Jacobian Λ (contiguous, n × 6) with what the least-norm tensions need of it
-    alone: the Cholesky factor of ΛᵀΛ (upper triangle; None where singular) and t_refᵀΛ.
-    From a solver's ``factored``; its ``solve`` takes it in place of Λ."""
+    alone: the Cholesky factor of ΛᵀΛ (cdpr.compiled_linalg.cholesky's; None where
+    singular) and t_refᵀΛ.  From a solver's ``factored``; its ``solve`` takes it in
+    place of Λ."""
 
     jacobian: Array
     factor: Array | None
@@ -237,6 +244,20 @@ class _TensionSolverBase:
         self._f_scale = float(limits.force_max.max())
         self._nan = np.full(self.n, np.nan)
         self._nan.setflags(write=False)
+        self._shortcut = True  # whether the least-norm tensions are tried first (_inside)
+        # writable copies for the kernel (a read-only array is another type to numba)
+        self._kernel_lows = [np.array(low) for low, _ in self._lows]
+        self._kernel_f_max, self._kernel_t_ref = np.array(self._f_max), np.array(self._t_ref)
+        self._load_kernels()
+
+    def _load_kernels(self) -> None:
+        """Call the kernels solve() runs, once, here: numba loads (or compiles) each at
+        its first call, which must not be a control cycle's."""
+        J = np.eye(self.n, 6)
+        factored = self._factor(J)
+        self._least_norm(J, np.zeros(6), factored)
+        zero = np.zeros(self.n)
+        self._inside(factored, np.zeros(6), zero, zero, self._kernel_lows[0])
 
     def solve(
         self,
@@ -250,13 +271,18 @@ class _TensionSolverBase:
 
         Raises ValueError only for wrong shapes; NaN/inf give an infeasible result, and
         numpy's floating-point warnings are silenced so they cannot turn into exceptions.
+        Most cycles end in _inside: the least-norm tensions meet every bound.
         """
-        with np.errstate(all="ignore"):
-            for low in self._lows:
+        for low, kernel_low in zip(self._lows, self._kernel_lows, strict=True):
+            if self._shortcut:
+                inside = self._inside(jacobian, wrench, f_b, f0, kernel_low)
+                if inside is not None:
+                    return inside
+            with np.errstate(all="ignore"):
                 result = self._solve(jacobian, wrench, f_b, f0, low)
-                if result.feasible:
-                    break
-            return result
+            if result.feasible:
+                break
+        return result
 
     def factored(self, jacobian: ArrayLike) -> FactoredJacobian:
         """Λ with what the least-norm tensions need of it alone (FactoredJacobian), for
@@ -267,8 +293,43 @@ class _TensionSolverBase:
 
     def _factor(self, L: Array) -> FactoredJacobian:
         """factored() of a checked, contiguous Λ."""
-        factor, info = dpotrf(L.T.dot(L))
-        return FactoredJacobian(L, None if info else factor, self._t_ref.dot(L))
+        factor = np.zeros((6, 6))
+        positive = _gram_factor(_kernel_array(L, (self.n, 6)), factor)
+        return FactoredJacobian(L, factor if positive else None, self._t_ref.dot(L))
+
+    def _inside(
+        self,
+        jacobian: ArrayLike | FactoredJacobian,
+        wrench: ArrayLike,
+        f_b: ArrayLike,
+        f0: ArrayLike,
+        low: Array,
+    ) -> TensionResult | None:
+        """The answer when the least-norm tensions about t_ref meet every bound with
+        tensions at least `low` (checked as _check checks: then they are the QP's
+        optimum, and Pott's method's first solve); None for the method's own path to
+        decide (a bound active, a non-finite or singular input, a wrong shape)."""
+        n = self.n
+        if type(jacobian) is FactoredJacobian:
+            J, C = jacobian.jacobian, jacobian.factor
+            if C is not None:  # read-only, kept for a reference at rest
+                C = _kernel_array(C, (6, 6))
+        else:
+            J, C = jacobian, None
+        J = _kernel_array(J, (n, 6))
+        tau, fb, f0 = _kernel_array(wrench, (6,)), _kernel_array(f_b, (n,)), _kernel_array(f0, (n,))
+        if J is None or tau is None or fb is None or f0 is None:
+            return None
+        t = np.empty(n)
+        factored = C is not None
+        if not _inside(J, C if factored else _NO_FACTOR, factored, self._kernel_t_ref, tau,
+                       fb, f0, low, self._kernel_f_max, self._f_scale, self.rtol, t):  # fmt: skip
+            return None
+        self._answered_inside(t)
+        return TensionResult(f0 - t, t, True, "", 0)
+
+    def _answered_inside(self, t: Array) -> None:
+        """What a method keeps of an answer _inside gave (OSQP: its next warm start)."""
 
     def _solve(
         self,
@@ -374,13 +435,106 @@ class _TensionSolverBase:
             factored = self._factor(L)
         rhs = w - factored.t_ref_dot
         if factored.factor is not None:
-            x, info = dpotrs(factored.factor, rhs)
-            if not info:
-                return self._t_ref + L.dot(x)
+            cholesky_solve(_kernel_array(factored.factor, (6, 6)), rhs)
+            return self._t_ref + L.dot(rhs)
         return self._t_ref + np.linalg.lstsq(L.T, rhs, rcond=None)[0]
 
     def _result(self, p: _Problem, t: Array, reason: str, iterations: int) -> TensionResult:
         return TensionResult(p.f0 - t, t, not reason, reason, iterations)
+
+
+def _kernel_array(x: ArrayLike, shape: tuple[int, ...]) -> Array | None:
+    """x as the kernels take it (float64, contiguous, writable: one type to numba, a copy
+    if need be), or None if it is not numbers of that shape (_checked then says so)."""
+    if type(x) is not np.ndarray or x.dtype is not _F64:
+        try:
+            x = np.array(x, dtype=float)
+        except (TypeError, ValueError):
+            return None
+    if x.shape != shape:
+        return None
+    flags = x.flags
+    return x if flags.c_contiguous and flags.writeable else np.array(x)
+
+
+_NO_FACTOR = np.zeros((6, 6))
+
+
+@njit(cache=True)
+def _gram_factor(J: Array, C: Array) -> bool:
+    """C = the Cholesky factor of J^T J (cdpr.compiled_linalg.cholesky); False where it
+    is singular."""
+    G = np.empty((6, 6))
+    gram(J.T, G)
+    return cholesky(G, C)
+
+
+@njit(cache=True)
+def _inside(
+    J: Array,
+    C: Array,
+    factored: bool,
+    t_ref: Array,
+    tau: Array,
+    f_b: Array,
+    f0: Array,
+    low: Array,
+    f_max: Array,
+    f_scale: float,
+    rtol: float,
+    t: Array,
+) -> bool:
+    """t = the least-norm tensions about t_ref with J^T t = w = J^T f0 - tau (C: the
+    factor of J^T J when `factored`, else computed here); True when every tension lies
+    in [t_lo, t_hi] (t_lo = max(low, f0 + f_b - f_max), t_hi = f0 + f_b + f_max) and the
+    wrench holds, within tol = rtol max(f_scale, max t_hi) as _check's; False also for
+    anything not finite, t_lo > t_hi or a singular J^T J."""
+    n = J.shape[0]
+    w = np.empty(6)
+    top = f_scale
+    total = 0.0  # any NaN or inf input makes w or a t_hi non-finite (inf * 0 is NaN)
+    for k in range(n):
+        hi = f0[k] + f_b[k] + f_max[k]
+        if not hi >= low[k]:  # unreachable
+            return False
+        top = max(top, hi)
+        total += hi
+    for a in range(6):
+        s = -tau[a]
+        for k in range(n):
+            s += f0[k] * J[k, a]
+        w[a] = s
+        total += s
+    if not math.isfinite(total):
+        return False
+    if not factored:
+        C = np.zeros((6, 6))
+        if not _gram_factor(J, C):
+            return False
+    x = np.empty(6)
+    for a in range(6):
+        s = w[a]
+        for k in range(n):
+            s -= t_ref[k] * J[k, a]
+        x[a] = s
+    cholesky_solve(C, x)
+    tol = rtol * top
+    for k in range(n):
+        s = t_ref[k]
+        for a in range(6):
+            s += J[k, a] * x[a]
+        t[k] = s
+        g = f0[k] + f_b[k]
+        lo = max(low[k], g - f_max[k])
+        if not (lo - s <= tol and s - (g + f_max[k]) <= tol):
+            return False
+    for a in range(6):
+        s = -w[a]
+        for k in range(n):
+            s += t[k] * J[k, a]
+        if not abs(s) <= tol:
+            return False
+    return True
 
 
 def _checked(x: ArrayLike, shape: tuple[int, ...], name: str) -> Array:
@@ -459,7 +613,7 @@ class OsqpTensionSolver(_TensionSolverBase):
         interior_shortcut: bool = True,
     ) -> None:
         super().__init__(limits, rtol)
-        self.interior_shortcut = interior_shortcut
+        self.interior_shortcut = self._shortcut = interior_shortcut
         n = self.n
         self._eps = (float(eps_abs), float(eps_rel))
         self._refine_eps = float(refine_eps)
@@ -522,12 +676,6 @@ class OsqpTensionSolver(_TensionSolverBase):
         if type(p) is TensionResult:
             return p
         assert isinstance(p, _Problem)
-        if self.interior_shortcut:
-            t = self._least_norm(p.L, p.w, p.factored)
-            if not self._check(p, t):
-                # no bound active: the equality-constrained optimum is the QP's optimum
-                self._warm_start(t)
-                return TensionResult(p.f0 - t, t, True, "", 0)
         self._Ax[:, :6] = p.L
         self._u[:6] = p.w  # l[:6] = w, l[6:] = t_lo and u[6:] = t_hi are written by _prepare
         x, status, polish, iterations = self._run()
@@ -562,6 +710,9 @@ class OsqpTensionSolver(_TensionSolverBase):
                 x = self._least_norm(p.L, p.w, p.factored)
         self._warm_start(self._t_ref)  # not from a diverged iterate
         return TensionResult(p.f0 - x, x, False, reason, iterations)
+
+    def _answered_inside(self, t: Array) -> None:
+        self._warm_start(t)
 
     def _warm_start(self, t: Array) -> None:
         """Start the next OSQP run from tensions t (duals zero).  Passed on only when
