@@ -136,6 +136,7 @@ def load_or_exit(path: str, edit: Callable[[dict], None] | None = None) -> Daemo
 
 
 def run_command(args: argparse.Namespace) -> int:
+    _announce_cold_cache()
     config = load_or_exit(args.config, interface_edit(args))
     try:
         configure_logging(args.log_level or config.logging.level)
@@ -150,6 +151,24 @@ def run_command(args: argparse.Namespace) -> int:
     except RuntimeError as exc:  # its process did not start
         print(f"error: {exc}", file=sys.stderr)
         return 1
+
+
+def _announce_cold_cache() -> None:
+    """On a cold numba cache (the first start after an install or upgrade) the robot's
+    kernels compile as its config loads (cdpr.robot.Robot._load_kernels: ~19 s on this
+    2-vCPU host, longer on a small computer), before the companion can extend systemd's
+    start timeout: the core extends it itself, and says why it waits."""
+    from daemon.process import warm_up, wire
+    from daemon.process.systemd import Notifier
+
+    if warm_up.is_warm():
+        return
+    print(
+        "cdprd: compiling the control cycle's kernels (numba's cache is cold after an "
+        "install or upgrade): once, up to minutes on a small computer",
+        file=sys.stderr,
+    )
+    Notifier().notify(f"EXTEND_TIMEOUT_USEC={int(wire.STARTING_LIMIT * 1e6)}")
 
 
 async def _run(config: DaemonConfig, sim: Path | None) -> int:

@@ -217,3 +217,24 @@ def test_watchdog_rejects_a_non_positive_interval(path_socket):
     _, address = path_socket
     with pytest.raises(ValueError, match="interval"):
         asyncio.run(run_watchdog(Notifier({"NOTIFY_SOCKET": address}), lambda: True, interval=0))
+
+
+def test_run_extends_the_start_timeout_before_a_cold_cache_compiles(
+    path_socket, monkeypatch, capsys
+):
+    """`cdprd run` on a cold numba cache (first start after an install or upgrade): the
+    robot's kernels compile while its config loads, before the companion exists to extend
+    systemd's start timeout, so the core extends it itself and says why; on a warm cache
+    it sends nothing."""
+    from daemon.cli import run_cmd
+    from daemon.process import warm_up, wire
+
+    sock, address = path_socket
+    monkeypatch.setenv("NOTIFY_SOCKET", address)
+    monkeypatch.setattr(warm_up, "is_warm", lambda: False)
+    run_cmd._announce_cold_cache()
+    assert _fields(sock) == [f"EXTEND_TIMEOUT_USEC={int(wire.STARTING_LIMIT * 1e6)}"]
+    assert "compiling the control cycle's kernels" in capsys.readouterr().err
+    monkeypatch.setattr(warm_up, "is_warm", lambda: True)
+    run_cmd._announce_cold_cache()
+    assert _drain(sock) == []
