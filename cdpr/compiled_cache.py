@@ -26,7 +26,9 @@ SOURCES = (
     "cdpr/forward_kinematics.py",
     "cdpr/kinematics.py",
     "cdpr/so3.py",  # its scalar functions are compiled from the kernels that call them
+    "cdpr/stretch.py",
     "cdpr/tension.py",
+    "cdpr/wrench_observer.py",
     "cdpr/wrench_margin.py",
     "cdpr/interference.py",
     "cdpr/path/jerk_estimate.py",

@@ -9,13 +9,28 @@ import math
 
 import numpy as np
 from numba import njit
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from cdpr.compiled_cache import key_numba_cache
 
 key_numba_cache()  # before the first @njit(cache=True): its cache keyed by the sources
 
 Array = NDArray[np.float64]
+F64 = np.dtype(np.float64)  # float64 arrays share one dtype object
+
+
+def kernel_array(x: ArrayLike, shape: tuple[int, ...]) -> Array | None:
+    """x as the kernels take it (float64, contiguous, writable: one type to numba, a copy
+    if need be), or None if it is not numbers of that shape (the caller then says why)."""
+    if type(x) is not np.ndarray or x.dtype is not F64:
+        try:
+            x = np.array(x, dtype=float)
+        except (TypeError, ValueError):
+            return None
+    if x.shape != shape:
+        return None
+    flags = x.flags
+    return x if flags.c_contiguous and flags.writeable else np.array(x)
 
 
 @njit(cache=True)
@@ -64,3 +79,20 @@ def gram(M: Array, out: Array) -> None:
                 s += M[a, q] * M[b, q]
             out[a, b] = s
             out[b, a] = s
+
+
+@njit(cache=True)
+def upper_solve(U: Array, z: Array) -> None:
+    """z = (U^T U)^-1 z in place for an upper Cholesky factor U as LAPACK's dpotrf
+    leaves it (cdpr.forward_kinematics.FKResult.normal_factor): dpotrs in a kernel."""
+    m = U.shape[0]
+    for i in range(m):
+        s = z[i]
+        for q in range(i):
+            s -= U[q, i] * z[q]
+        z[i] = s / U[i, i]
+    for i in range(m - 1, -1, -1):
+        s = z[i]
+        for q in range(i + 1, m):
+            s -= U[i, q] * z[q]
+        z[i] = s / U[i, i]

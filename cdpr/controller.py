@@ -46,6 +46,7 @@ from cdpr.stretch import ComplianceScale
 from cdpr.stretch_rate import TensionRate, stretch_time
 from cdpr.tension import FactoredJacobian, TensionLimits, TensionSolver, make_tension_solver
 from cdpr.trajectory import Reference
+from cdpr.trajectory.core import evaluate_segment
 from cdpr.wrench_observer import WrenchObserver
 
 Array = NDArray[np.float64]
@@ -186,6 +187,8 @@ class ParallelController:
         self.stretch = ComplianceScale(robot)  # the cables' EA as identified (cdpr.stretch)
         self._observer_held = False  # hold_observer(): kept by reset()
         self._error = np.zeros((self.loop.Dd.shape[1], 6))
+        # numba loads the trajectories' kernel at its first call: here, not in a cycle
+        evaluate_segment(np.zeros((6, 18)), (1.0, 0.0, 0.0, 0.0), 0.0)
         self.reset(robot.home)
 
     def reset(self, pose: Pose) -> None:

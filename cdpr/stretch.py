@@ -32,12 +32,17 @@ from collections.abc import Callable
 from dataclasses import replace
 
 import numpy as np
+from numba import njit
 from numpy.typing import ArrayLike, NDArray
-from scipy.linalg.lapack import dpotrs
 
+from cdpr.compiled_cache import key_numba_cache
+from cdpr.compiled_linalg import kernel_array, upper_solve
 from cdpr.forward_kinematics import FKResult, solve_forward_kinematics
+from cdpr.kinematics import AT_REST, pose_rows
 from cdpr.pose import Pose
 from cdpr.robot import Robot
+
+key_numba_cache()  # before the first @njit(cache=True): its cache keyed by the sources
 
 Array = NDArray[np.float64]
 
@@ -55,6 +60,10 @@ class ComplianceScale:
         self.robot = robot
         self.scale = 1.0
         self._elastic = bool(np.any(robot.compliance > 0.0))
+        self._compliance = np.array(robot.compliance, dtype=float)  # the kernel's own copy
+        if self._elastic:  # numba loads the kernel at its first call: here, not in a cycle
+            self._step(robot.cable_lengths(robot.home), np.ones(robot.n_cables),
+                       robot.forward_kinematics(robot.cable_lengths(robot.home)))  # fmt: skip
         self._observed: tuple[ArrayLike, ArrayLike, FKResult] | None = None
 
     @property
@@ -110,19 +119,54 @@ class ComplianceScale:
         not converge far enough to have a Jacobian or s is not identifiable)."""
         if not self._elastic or fk.jacobian is None or fk.normal_factor is None:
             return None
-        robot = self.robot
-        lengths = np.asarray(lengths, dtype=float)
-        d = lengths * robot.compliance * np.asarray(tensions, dtype=float)
-        J = fk.jacobian
-        x, info = dpotrs(fk.normal_factor, d.dot(J))
-        if info != 0:
-            return None
-        projected = d - J.dot(x)
-        pd2 = float(projected.dot(projected))
-        if not pd2 > IDENTIFIABLE * float(d.dot(d)):
-            return None
-        residual = robot.cable_lengths(fk.pose) - (lengths + self.scale * d)
-        return float(d.dot(residual)) / pd2
+        n = self.robot.n_cables
+        pose = fk.pose
+        step = _scale_step(
+            self.robot.geometry.rows, pose.position_tuple, pose.quaternion_tuple,
+            kernel_array(lengths, (n,)), self._compliance, kernel_array(tensions, (n,)),
+            kernel_array(fk.jacobian, (n, 6)), kernel_array(fk.normal_factor, (6, 6)),
+            self.scale,
+        )  # fmt: skip
+        return None if math.isnan(step) else step
+
+
+@njit(cache=True)
+def _scale_step(
+    cables: Array,
+    p: tuple[float, float, float],
+    q: tuple[float, float, float, float],
+    lengths: Array,
+    compliance: Array,
+    tensions: Array,
+    J: Array,
+    U: Array,
+    scale: float,
+) -> float:
+    """ds = (d . r) / |P d|^2 at the pose (p, q) (module docstring: d = l t / EA, P d
+    its part out of range(Lambda) by the normal equations' factor U, r = L(pose) - l -
+    s d); NaN where |P d|^2 <= IDENTIFIABLE |d|^2 (s not identifiable)."""
+    n = lengths.shape[0]
+    d, x = np.empty(n), np.zeros(6)
+    for k in range(n):
+        d[k] = lengths[k] * compliance[k] * tensions[k]
+        for a in range(6):
+            x[a] += d[k] * J[k, a]
+    upper_solve(U, x)
+    pd2 = dd = 0.0
+    for k in range(n):
+        projected = d[k]
+        for a in range(6):
+            projected -= J[k, a] * x[a]
+        pd2 += projected * projected
+        dd += d[k] * d[k]
+    if not pd2 > IDENTIFIABLE * dd:
+        return math.nan
+    table, geometric = np.empty((n, 7)), np.empty(n)
+    pose_rows(cables, p, q, AT_REST, table, geometric)
+    along = 0.0
+    for k in range(n):
+        along += d[k] * (geometric[k] - (lengths[k] + scale * d[k]))
+    return along / pd2
 
 
 def _bounded(scale: float) -> float:

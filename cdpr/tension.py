@@ -49,7 +49,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.linalg.lapack import dposv
 
 from cdpr.compiled_cache import key_numba_cache
-from cdpr.compiled_linalg import cholesky, cholesky_solve, gram
+from cdpr.compiled_linalg import F64, cholesky, cholesky_solve, gram, kernel_array
 
 key_numba_cache()  # before the first @njit(cache=True): its cache keyed by the sources
 
@@ -63,7 +63,6 @@ DEFAULT_RTOL = 1e-6  # check tolerance relative to the force scale (see module d
 _RANK_RTOL = 1e-6  # Cholesky pivot ratio below which a (reduced) Jacobian counts as rank deficient
 _CERT_RTOL = 1e-3  # certificate entries this small relative to the largest are not named
 _COMPONENTS = ("force x", "force y", "force z", "torque x", "torque y", "torque z")
-_F64 = np.dtype(np.float64)
 
 
 class TensionResult(NamedTuple):
@@ -294,7 +293,7 @@ class _TensionSolverBase:
     def _factor(self, L: Array) -> FactoredJacobian:
         """factored() of a checked, contiguous Λ."""
         factor = np.zeros((6, 6))
-        positive = _gram_factor(_kernel_array(L, (self.n, 6)), factor)
+        positive = _gram_factor(kernel_array(L, (self.n, 6)), factor)
         return FactoredJacobian(L, factor if positive else None, self._t_ref.dot(L))
 
     def _inside(
@@ -313,11 +312,11 @@ class _TensionSolverBase:
         if type(jacobian) is FactoredJacobian:
             J, C = jacobian.jacobian, jacobian.factor
             if C is not None:  # read-only, kept for a reference at rest
-                C = _kernel_array(C, (6, 6))
+                C = kernel_array(C, (6, 6))
         else:
             J, C = jacobian, None
-        J = _kernel_array(J, (n, 6))
-        tau, fb, f0 = _kernel_array(wrench, (6,)), _kernel_array(f_b, (n,)), _kernel_array(f0, (n,))
+        J = kernel_array(J, (n, 6))
+        tau, fb, f0 = kernel_array(wrench, (6,)), kernel_array(f_b, (n,)), kernel_array(f0, (n,))
         if J is None or tau is None or fb is None or f0 is None:
             return None
         t = np.empty(n)
@@ -435,26 +434,12 @@ class _TensionSolverBase:
             factored = self._factor(L)
         rhs = w - factored.t_ref_dot
         if factored.factor is not None:
-            cholesky_solve(_kernel_array(factored.factor, (6, 6)), rhs)
+            cholesky_solve(kernel_array(factored.factor, (6, 6)), rhs)
             return self._t_ref + L.dot(rhs)
         return self._t_ref + np.linalg.lstsq(L.T, rhs, rcond=None)[0]
 
     def _result(self, p: _Problem, t: Array, reason: str, iterations: int) -> TensionResult:
         return TensionResult(p.f0 - t, t, not reason, reason, iterations)
-
-
-def _kernel_array(x: ArrayLike, shape: tuple[int, ...]) -> Array | None:
-    """x as the kernels take it (float64, contiguous, writable: one type to numba, a copy
-    if need be), or None if it is not numbers of that shape (_checked then says so)."""
-    if type(x) is not np.ndarray or x.dtype is not _F64:
-        try:
-            x = np.array(x, dtype=float)
-        except (TypeError, ValueError):
-            return None
-    if x.shape != shape:
-        return None
-    flags = x.flags
-    return x if flags.c_contiguous and flags.writeable else np.array(x)
 
 
 _NO_FACTOR = np.zeros((6, 6))
@@ -539,7 +524,7 @@ def _inside(
 
 def _checked(x: ArrayLike, shape: tuple[int, ...], name: str) -> Array:
     """x as a float64 array of the given shape; ValueError naming the argument otherwise."""
-    if type(x) is not np.ndarray or x.dtype is not _F64:  # float64 arrays share one dtype
+    if type(x) is not np.ndarray or x.dtype is not F64:
         try:
             x = np.asarray(x, dtype=float)
         except (TypeError, ValueError) as exc:

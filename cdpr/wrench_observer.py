@@ -61,7 +61,13 @@ import math
 from collections import deque
 
 import numpy as np
+from numba import njit
 from numpy.typing import NDArray
+
+from cdpr.compiled_cache import key_numba_cache
+from cdpr.compiled_linalg import kernel_array
+
+key_numba_cache()  # before the first @njit(cache=True): its cache keyed by the sources
 
 Array = NDArray[np.float64]
 
@@ -97,16 +103,22 @@ class WrenchObserver:
         # the release (module docstring): None, let go at `gain` only
         self.release_gain = None if release_hz is None else _gain(release_hz, period)
         self.force_max, self.torque_max = force_max, torque_max
-        # force then torque, each with the floor below which no release is looked for
-        self._parts = (
-            ((slice(0, 3), RELEASE_FLOOR * force_max), (slice(3, 6), RELEASE_FLOOR * torque_max))
-            if size == 6
-            else ((slice(0, size), RELEASE_FLOOR * force_max),)
+        # force then torque (their ends), each with the floor below which no release is
+        # looked for
+        self._size = size
+        self._ends = np.array([3, 6] if size == 6 else [size], dtype=np.int64)
+        self._floors = RELEASE_FLOOR * np.array(
+            [force_max, torque_max] if size == 6 else [force_max], dtype=float
         )
         self.estimate = np.zeros(size)
         self.fault = ""
         self._nets: deque[Array] = deque(maxlen=math.ceil(max_delay / period) + 2)
         self.clear()
+        # numba loads the kernel at its first call: here, where the controller is built,
+        # not in a cycle (on scratch arrays)
+        zero = np.zeros(size)
+        _observe(np.eye(size), zero, zero, zero, period, self.gain, 0.0, True, self._ends,
+                 self._floors, zero.copy(), zero.copy(), zero.copy())  # fmt: skip
 
     def clear(self) -> None:
         """Forget the motion and the estimate (on enable: the platform is at rest)."""
@@ -158,28 +170,14 @@ class WrenchObserver:
             if release_gain is not None:
                 release_gain = _gain(self.release_hz, interval)
             period = interval
-        change = mass_matrix.dot(twist - before) / period
-        wrench = change - acted
-        if release_gain is not None:
-            self._fast += release_gain * (wrench - self._fast)
-            if resting and self._released():
-                gain = release_gain
-        self._stage += gain * (wrench - self._stage)
-        self.estimate += gain * (self._stage - self.estimate)
+        size = self._size
+        _observe(
+            kernel_array(mass_matrix, (size, size)), kernel_array(twist, (size,)),
+            kernel_array(before, (size,)), kernel_array(acted, (size,)), period, gain,
+            -1.0 if release_gain is None else release_gain, resting, self._ends, self._floors,
+            self._fast, self._stage, self.estimate,
+        )  # fmt: skip
         self.fault = self._beyond()
-
-    def _released(self) -> bool:
-        """The fast stage has dropped below half the estimate along it, in the force or
-        the torque, where the estimate is above its floor: the wrench is going."""
-        fast, estimate = self._fast.tolist(), self.estimate.tolist()  # 6 floats: scalar
-        for part, floor in self._parts:
-            e = estimate[part]
-            size = sum(v * v for v in e)
-            if size > floor * floor:
-                along = sum(f * v for f, v in zip(fast[part], e, strict=True))
-                if along < RELEASE_DROP * size:
-                    return True
-        return False
 
     def take_over(self, change: Array) -> None:
         """The model's bias wrench changed by `change` (a payload estimate): what it now
@@ -204,3 +202,57 @@ class WrenchObserver:
                 f"disturbance_observer.torque_max {self.torque_max:g} N·m"
             )
         return ""
+
+
+@njit(cache=True)
+def _observe(
+    M: Array,
+    twist: Array,
+    before: Array,
+    acted: Array,
+    period: float,
+    gain: float,
+    release_gain: float,
+    resting: bool,
+    ends: NDArray[np.int64],
+    floors: Array,
+    fast: Array,
+    stage: Array,
+    estimate: Array,
+) -> None:
+    """One update of the stages (WrenchObserver.update) in place: the wrench M (twist -
+    before) / period - acted; the release stage `fast` at release_gain (negative: none),
+    whose drop while `resting` switches both stages to it (_released); then `stage` and
+    `estimate` at `gain`."""
+    size = twist.shape[0]
+    wrench = np.empty(size)
+    for i in range(size):
+        s = 0.0
+        for j in range(size):
+            s += M[i, j] * (twist[j] - before[j])
+        wrench[i] = s / period - acted[i]
+    if release_gain >= 0.0:
+        for i in range(size):
+            fast[i] += release_gain * (wrench[i] - fast[i])
+        if resting and _released(fast, estimate, ends, floors):
+            gain = release_gain
+    for i in range(size):
+        stage[i] += gain * (wrench[i] - stage[i])
+        estimate[i] += gain * (stage[i] - estimate[i])
+
+
+@njit(cache=True)
+def _released(fast: Array, estimate: Array, ends: NDArray[np.int64], floors: Array) -> bool:
+    """The fast stage has dropped below half the estimate along it, in the force or the
+    torque (the parts up to each of `ends`), where the estimate is above its floor: the
+    wrench is going."""
+    start = 0
+    for p in range(ends.shape[0]):
+        size2 = along = 0.0
+        for i in range(start, ends[p]):
+            size2 += estimate[i] * estimate[i]
+            along += fast[i] * estimate[i]
+        if size2 > floors[p] * floors[p] and along < RELEASE_DROP * size2:
+            return True
+        start = ends[p]
+    return False

@@ -30,13 +30,14 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.linalg import solveh_banded
 
+from cdpr.compiled_linalg import kernel_array
 from cdpr.pose import QUATERNION_NORM_TOLERANCE, Pose, liediff
 from cdpr.so3 import (
     quat_mul4,
     quats_to_matrices,
     quats_to_rotvecs,
-    rotate_quat_by_rotvec,
 )
+from cdpr.trajectory.compiled_curve import evaluate_segments, segment_sample
 from cdpr.trajectory.rotation import angular_rates, left_jacobians
 
 Array = NDArray[np.float64]
@@ -258,10 +259,7 @@ class Curve:
     def sample_many(self, times: Array) -> Samples:
         """sample() at many times (ascending or not) at once: the samples inside the
         segments evaluated by a compiled loop (cdpr.trajectory.compiled_curve, imported
-        here: the real-time core samples one time a cycle and loads no numba), those
-        before, after or in the blend one by one."""
-        from cdpr.trajectory.compiled_curve import evaluate_segments
-
+        the same kernel as sample's), those before, after or in the blend one by one."""
         t = np.asarray(times, dtype=float)
         count = len(t)
         positions, quaternions = np.empty((count, 3)), np.empty((count, 4))
@@ -864,14 +862,10 @@ def segment_rates(table: Array, taus: Array) -> tuple[Array, Array]:
     return twists, accels
 
 
-def evaluate_segment(table: Array, q0: tuple[float, ...], tau: float) -> Reference:
+def evaluate_segment(table: Array, q0: Sequence[float], tau: float) -> Reference:
     """The reference at τ seconds into a segment (`table` from segment_table, start
-    rotation q0).  One product of the powers of τ with the table gives the values, rates
-    and accels of [p, θ] together."""
-    t2 = tau * tau
-    t3 = t2 * tau
-    y = np.array((1.0, tau, t2, t3, t3 * tau, t3 * t2)).dot(table).tolist()
-    q = rotate_quat_by_rotvec(q0, y[3], y[4], y[5])
-    omega, omega_dot = angular_rates(y[3:6], y[9:12], y[15:18])
-    rates = np.array(y[6:9] + omega + y[12:15] + omega_dot)  # twist and accel: one conversion
-    return Reference(Pose._from_unit(y[:3], q), rates[:6], rates[6:])
+    rotation q0), by the compiled kernel (cdpr.trajectory.compiled_curve): one product
+    of the powers of τ with the table gives the values, rates and accels of [p, θ]
+    together."""
+    y = segment_sample(kernel_array(table, (6, 18)), q0[0], q0[1], q0[2], q0[3], tau)
+    return Reference(Pose._from_unit(y[:3].tolist(), y[3:7].tolist()), y[7:13], y[13:])

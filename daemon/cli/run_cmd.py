@@ -164,8 +164,8 @@ def _announce_cold_cache() -> None:
     if warm_up.is_warm():
         return
     print(
-        "cdprd: compiling the control cycle's kernels (numba's cache is cold after an "
-        "install or upgrade): once, up to minutes on a small computer",
+        "cdprd: numba's cache has not been warmed up since the install or upgrade: the "
+        "control cycle's kernels may compile now (once, up to minutes on a small computer)",
         file=sys.stderr,
     )
     Notifier().notify(f"EXTEND_TIMEOUT_USEC={int(wire.STARTING_LIMIT * 1e6)}")

@@ -234,7 +234,7 @@ def test_run_extends_the_start_timeout_before_a_cold_cache_compiles(
     monkeypatch.setattr(warm_up, "is_warm", lambda: False)
     run_cmd._announce_cold_cache()
     assert _fields(sock) == [f"EXTEND_TIMEOUT_USEC={int(wire.STARTING_LIMIT * 1e6)}"]
-    assert "compiling the control cycle's kernels" in capsys.readouterr().err
+    assert "the control cycle's kernels may compile now" in capsys.readouterr().err
     monkeypatch.setattr(warm_up, "is_warm", lambda: True)
     run_cmd._announce_cold_cache()
     assert _drain(sock) == []
