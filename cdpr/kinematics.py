@@ -17,6 +17,10 @@ costs ~1 us against ~7 us for the same loop in scalar Python, whose per-float wo
 numpy's per-call overhead dominated the cycle at this size.  The kernels are loaded
 from numba's cache (cdpr.compiled_cache) when a robot is built, before any cycle runs.
 A readable numpy reference lives in cdpr.reference and the tests hold the two equal.
+
+Around the kernels the hot paths (the controller, the tension distribution) multiply
+small arrays with ndarray.dot, which costs about half of the @ operator's matmul-ufunc
+dispatch, and keep operands contiguous (a product copies a strided operand every time).
 """
 
 from __future__ import annotations
@@ -104,7 +108,7 @@ def pose_rows(
 @njit(cache=True)
 def cable_rows(cables: Array, p: Array, R: Array, phi: Array, table: Array, lengths: Array) -> None:
     """At position p (3,), rotation R (3, 3) and twist phi (6,): table (n, 7) rows
-    [u_k, r_k x u_k, c_k] (Lambda and c) and lengths (n,) (cdpr.kinematics)."""
+    [u_k, r_k x u_k, c_k] (Lambda and c) and lengths (n,) (the module docstring)."""
     vx, vy, vz, wx, wy, wz = phi[0], phi[1], phi[2], phi[3], phi[4], phi[5]
     for k in range(cables.shape[0]):
         bx, by, bz = cables[k, 3], cables[k, 4], cables[k, 5]
@@ -142,8 +146,8 @@ def cable_rows(cables: Array, p: Array, R: Array, phi: Array, table: Array, leng
 def _pulley(
     cable: Array, dx: float, dy: float, dz: float, xdx: float, xdy: float, xdz: float
 ) -> tuple[float, float, float, float, float]:
-    """(length, u, xd^T H xd) of a cable over its pulley, d = B - a (cdpr.kinematics'
-    pulley_length_direction and pulley_curvature)."""
+    """(length, u, xd^T H xd) of a cable over its pulley, d = B - a: the wrap arc and
+    the free segment, and the Hessian term of the module docstring."""
     rp, zx, zy, zz = cable[6], cable[7], cable[8], cable[9]
     along = dx * zx + dy * zy + dz * zz
     ex, ey, ez = dx - along * zx, dy - along * zy, dz - along * zz
