@@ -87,9 +87,9 @@ def solve_forward_kinematics(
     Gauss-Newton while it reduces the cost, Levenberg-Marquardt damping when a step
     does not.  A Gauss-Newton step shorter than step_tolerance (m, or rad) ends the
     iteration without a further evaluation: convergence is quadratic there, so the
-    remaining error is of the order of the step squared.  Below _CHORD_BELOW a step
-    reuses the last Jacobian and its factor (a chord step needs only the lengths).
-    The iteration is one compiled kernel (_fit).
+    remaining error is of the order of the step squared.  Below 1e-4 (m, rad;
+    _CHORD_BELOW2 is its square) a step reuses the last Jacobian and its factor (a
+    chord step needs only the lengths).  The iteration is one compiled kernel (_fit).
     """
     start = None
     if type(guess) is Linearisation:
