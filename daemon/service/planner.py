@@ -79,8 +79,8 @@ def path_timer(config: DaemonConfig, margin: float | None = None) -> Callable[[P
 
 def daemon_wrench_check(config: DaemonConfig) -> WrenchCheck:
     """The wrench check the daemon validates trajectories with: the controller's model
-    and its tension distribution (cdpr.wrench_check; imported here, where the workspace
-    check is loaded too: compiled, and the real-time core loads no numba)."""
+    and its tension distribution (cdpr.wrench_check; imported here, with the workspace
+    check: the validation's kernels are the companion's, not the real-time core's)."""
     from cdpr.wrench_check import wrench_check
 
     return wrench_check(config.robot, tension_solver(config.robot, config.controller))
