@@ -157,18 +157,18 @@ def _announce_cold_cache() -> None:
     """On a cold numba cache (the first start after an install or upgrade) the robot's
     kernels compile as its config loads (cdpr.robot.Robot._load_kernels: ~19 s on this
     2-vCPU host, longer on a small computer), before the companion can extend systemd's
-    start timeout: the core extends it itself, and says why it waits."""
+    start timeout: the core extends it itself and says why in STATUS= (stderr stays the
+    config's errors alone)."""
     from daemon.process import warm_up, wire
     from daemon.process.systemd import Notifier
 
     if warm_up.is_warm():
         return
-    print(
-        "cdprd: numba's cache has not been warmed up since the install or upgrade: the "
-        "control cycle's kernels may compile now (once, up to minutes on a small computer)",
-        file=sys.stderr,
+    Notifier().notify(
+        f"EXTEND_TIMEOUT_USEC={int(wire.STARTING_LIMIT * 1e6)}",
+        "STATUS=numba's cache is not warmed up since the install or upgrade: the control "
+        "cycle's kernels may compile now (once, up to minutes on a small computer)",
     )
-    Notifier().notify(f"EXTEND_TIMEOUT_USEC={int(wire.STARTING_LIMIT * 1e6)}")
 
 
 async def _run(config: DaemonConfig, sim: Path | None) -> int:

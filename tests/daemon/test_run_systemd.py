@@ -150,10 +150,14 @@ def test_notifications_over_a_run_and_sigterm(tmp_path: Path, notify: NotifySock
         if field.startswith("STATUS=")
     ]
     assert any(i < ready for i, _ in statuses), "no STATUS= progress before READY=1"
-    # the start-up check (numba compiling on a cold cache) gets more than TimeoutStartSec
+    # the start-up check (numba compiling on a cold cache) gets more than TimeoutStartSec:
+    # from the companion, and from the core too when the cache's warm-up marker is missing
     extend = [i for i, (_, batch) in enumerate(messages) if batch[0].startswith("EXTEND_")]
-    assert len(extend) == 1 and extend[0] < ready, messages
-    assert messages[extend[0]][1] == [f"EXTEND_TIMEOUT_USEC={int(wire.STARTING_LIMIT * 1e6)}"]
+    assert 1 <= len(extend) <= 2 and extend[-1] < ready, messages
+    assert all(
+        messages[i][1][0] == f"EXTEND_TIMEOUT_USEC={int(wire.STARTING_LIMIT * 1e6)}"
+        for i in extend
+    ), messages
     assert any("idle" in text and "reference8" in text for _, text in statuses), statuses
     # STATUS= follows the safety state while running, the braking fault included
     after_ready = [text.split(";")[0] for i, text in statuses if ready <= i]

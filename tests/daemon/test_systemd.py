@@ -219,13 +219,11 @@ def test_watchdog_rejects_a_non_positive_interval(path_socket):
         asyncio.run(run_watchdog(Notifier({"NOTIFY_SOCKET": address}), lambda: True, interval=0))
 
 
-def test_run_extends_the_start_timeout_before_a_cold_cache_compiles(
-    path_socket, monkeypatch, capsys
-):
+def test_run_extends_the_start_timeout_before_a_cold_cache_compiles(path_socket, monkeypatch):
     """`cdprd run` on a cold numba cache (first start after an install or upgrade): the
     robot's kernels compile while its config loads, before the companion exists to extend
-    systemd's start timeout, so the core extends it itself and says why; on a warm cache
-    it sends nothing."""
+    systemd's start timeout, so the core extends it itself and says why in STATUS=; on a
+    warm cache it sends nothing."""
     from daemon.cli import run_cmd
     from daemon.process import warm_up, wire
 
@@ -233,8 +231,9 @@ def test_run_extends_the_start_timeout_before_a_cold_cache_compiles(
     monkeypatch.setenv("NOTIFY_SOCKET", address)
     monkeypatch.setattr(warm_up, "is_warm", lambda: False)
     run_cmd._announce_cold_cache()
-    assert _fields(sock) == [f"EXTEND_TIMEOUT_USEC={int(wire.STARTING_LIMIT * 1e6)}"]
-    assert "the control cycle's kernels may compile now" in capsys.readouterr().err
+    extend, status = _fields(sock)
+    assert extend == f"EXTEND_TIMEOUT_USEC={int(wire.STARTING_LIMIT * 1e6)}"
+    assert status.startswith("STATUS=") and "kernels may compile now" in status
     monkeypatch.setattr(warm_up, "is_warm", lambda: True)
     run_cmd._announce_cold_cache()
     assert _drain(sock) == []
