@@ -17,7 +17,6 @@ from numpy.typing import NDArray
 
 from cdpr.compiled_cache import key_numba_cache
 from cdpr.compiled_linalg import cholesky, cholesky_solve, gram
-from cdpr.dynamics import PlatformInertia
 from cdpr.friction import SPEED_FLOOR
 from cdpr.kinematics import cable_rows, rotation
 
@@ -26,16 +25,10 @@ key_numba_cache()  # before the first @njit(cache=True): its cache keyed by the 
 Array = NDArray[np.float64]
 
 
-def platform_array(platform: PlatformInertia) -> Array:
-    """(16,) [m, c_b, I_pb row-major, g] for platform_rows."""
-    return np.array(
-        [platform.mass, *platform.center_of_mass, *platform.inertia_about_p, *platform.gravity]
-    )
-
-
 @njit(cache=True)
 def platform_rows(platform: Array, R: Array, phi: Array, out: Array) -> None:
-    """out (6, 7) = [M_p | mu_p] at rotation R and twist phi (cdpr.dynamics)."""
+    """out (6, 7) = [M_p | mu_p] at rotation R and twist phi (cdpr.dynamics; `platform`
+    is PlatformInertia.rows)."""
     m = platform[0]
     cx = R[0, 0] * platform[1] + R[0, 1] * platform[2] + R[0, 2] * platform[3]
     cy = R[1, 0] * platform[1] + R[1, 1] * platform[2] + R[1, 2] * platform[3]

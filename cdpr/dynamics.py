@@ -40,6 +40,8 @@ class PlatformInertia:
         cb = np.array(self.center_of_mass)
         about_p = self.inertia + self.mass * (cb @ cb * np.eye(3) - np.outer(cb, cb))
         self._I_p = tuple(about_p.reshape(9).tolist())  # I_pb, see the module docstring
+        # [m, c_b, I_pb row-major, g]: what the compiled kernels take (cdpr.compiled_model)
+        self.rows = np.array([self.mass, *self.center_of_mass, *self._I_p, *self.gravity])
 
     @property
     def inertia_about_p(self) -> tuple[float, ...]:

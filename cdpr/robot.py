@@ -9,7 +9,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from cdpr.body import PlatformBody
-from cdpr.compiled_model import model_rows, platform_array
+from cdpr.compiled_model import model_rows
 from cdpr.description import (
     ActuatorSpec,
     ConfigError,
@@ -61,7 +61,6 @@ class Robot:
         )
         self.m0 = np.array([a.m0 for a in self.actuators])
         self._m0 = np.array(self.m0, dtype=float)  # the kernels' own copy
-        self._platform_rows = (self.platform, platform_array(self.platform))
         self.k0 = np.array([a.k0 for a in self.actuators])
         self.t_min = np.array([a.t_min for a in self.actuators])
         self.force_max = np.array([a.force_max for a in self.actuators])
@@ -214,12 +213,10 @@ class Robot:
         """The n x 7 table [Lambda | c] and a 7 x 7 matrix whose first 6 rows are [M | mu]:
         [Lambda | c]^T diag(m0) [Lambda | c] holds Lambda^T D Lambda and Lambda^T D c, to
         which [M_p | mu_p] is added (one compiled kernel, cdpr.compiled_model)."""
-        if self._platform_rows[0] is not self.platform:  # a payload estimate took over
-            self._platform_rows = (self.platform, platform_array(self.platform))
         n = self.geometry.n
         table, G = np.empty((n, 7)), np.empty((7, 7))
         model_rows(
-            self.geometry.rows, self._platform_rows[1], self._m0,
+            self.geometry.rows, self.platform.rows, self._m0,
             pose.position_tuple, pose.quaternion_tuple, _twist_tuple(twist), table, G,
         )  # fmt: skip
         return table, G

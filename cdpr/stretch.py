@@ -62,8 +62,8 @@ class ComplianceScale:
         self._elastic = bool(np.any(robot.compliance > 0.0))
         self._compliance = np.array(robot.compliance, dtype=float)  # the kernel's own copy
         if self._elastic:  # numba loads the kernel at its first call: here, not in a cycle
-            self._step(robot.cable_lengths(robot.home), np.ones(robot.n_cables),
-                       robot.forward_kinematics(robot.cable_lengths(robot.home)))  # fmt: skip
+            at_home = robot.cable_lengths(robot.home)
+            self._step(at_home, np.ones(robot.n_cables), robot.forward_kinematics(at_home))
         self._observed: tuple[ArrayLike, ArrayLike, FKResult] | None = None
 
     @property

@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from cdpr.compiled_model import platform_array, wrench_screen
+from cdpr.compiled_model import wrench_screen
 from cdpr.pose import Pose
 from cdpr.pose_limits import SCREEN_MARGIN
 from cdpr.robot import Robot
@@ -58,7 +58,7 @@ class ModelWrenchCheck:
         lengths, jacobians = np.empty((count, n)), np.empty((count, n, 6))
         wrench_screen(
             samples.positions, samples.rotations, samples.twists, samples.accels,
-            self._cables, platform_array(robot.platform), self._actuators, self._margin,
+            self._cables, robot.platform.rows, self._actuators, self._margin,
             clear, lengths, jacobians,
         )  # fmt: skip
         return Screened(clear, lengths, jacobians)

@@ -13,7 +13,7 @@ import pytest
 
 from cdpr import Pose, Robot, reference
 from cdpr.body import Environment, Plane
-from cdpr.compiled_model import platform_array, platform_rows
+from cdpr.compiled_model import platform_rows
 from cdpr.control_spec import ControllerSpec
 from cdpr.controller import tension_solver
 from cdpr.kinematics import cable_rows
@@ -55,7 +55,7 @@ def test_the_compiled_model_is_the_references(robot: Robot) -> None:
     s = random_samples(robot, 200, seed=1)
     Lam, c, M, mu = reference.model_terms(robot, s.positions, s.rotations, s.twists)
     lengths = reference.cable_segments(robot, s.positions, s.rotations)[0]
-    cables, platform = robot.geometry.rows, platform_array(robot.platform)
+    cables, platform = robot.geometry.rows, robot.platform.rows
     n = robot.n_cables
     table, length, rows = np.empty((n, 7)), np.empty(n), np.empty((6, 7))
     for i in range(len(s.times)):
