@@ -25,6 +25,7 @@ import time
 
 import can
 
+from drivers.base import bus_frame
 from drivers.bus import BusGone
 
 FRAME = struct.Struct("<dIBB8s")  # sent at (s, wall clock), id, flags, dlc, data
@@ -63,16 +64,15 @@ def encode(msg: can.Message, sent: float) -> bytes:
 def decode(datagram: bytes, channel: str) -> can.Message:
     sent, arbitration_id, flags, dlc, data = FRAME.unpack(datagram)
     remote = bool(flags & REMOTE)
-    return can.Message(
+    return bus_frame(
+        arbitration_id,
+        b"" if remote else data[:dlc],
         timestamp=sent,
-        arbitration_id=arbitration_id,
-        is_extended_id=bool(flags & EXTENDED),
-        is_remote_frame=remote,
-        is_error_frame=bool(flags & ERROR),
-        dlc=dlc,
-        data=b"" if remote else data[:dlc],
         channel=channel,
-        check=False,
+        extended=bool(flags & EXTENDED),
+        remote=remote,
+        error=bool(flags & ERROR),
+        dlc=dlc,
     )
 
 

@@ -81,7 +81,14 @@ from typing import NamedTuple
 import can
 from canopen.objectdictionary import ODArray, ODRecord, ODVariable
 
-from drivers.base import Actuation, BrakeMode, FrameCounters, Scaling, VirtualDrive
+from drivers.base import (
+    Actuation,
+    BrakeMode,
+    FrameCounters,
+    Scaling,
+    VirtualDrive,
+    data_frame,
+)
 from drivers.cia402.codec import (
     ABORT_CONNECTION_OPTION,
     ABORT_DEVICE_STATE,
@@ -541,7 +548,7 @@ class Cia402Drive(VirtualDrive):
 
     def _transmit(self, tpdo: Tpdo, data: bytes, now: float) -> can.Message:
         self._sent[tpdo.cob] = (data, now)
-        return can.Message(arbitration_id=tpdo.cob, data=data, is_extended_id=False)
+        return data_frame(tpdo.cob, data)
 
     def _reader(self, key: tuple[int, int]) -> Callable[[], int]:
         """What reads a mapped object's value when its TPDO goes out: its live source, or
