@@ -17,6 +17,10 @@ cycles, and `braked` (1 if the robot braked during the measurement) with `fault`
 trigger and message.  `core_cpu_fraction` is the core process's share of a CPU (what a
 robot's computer pays for the cycle), `simulator_cpu_fraction` the simulator process's
 (what real drives do in their own hardware).
+`simulator_late_per_1e4`: the SYNCs the simulator's process answered after the feedback
+deadline per 10^4 cycles (its truth log's late_answers), each a miss real drives would not
+have caused: of `misses_per_1e4`, the simulator's share (CiA 402; ODrive feedback is
+streamed, and counts none).
 `timer_floor_misses_per_1e4` is the host's share, measured in the same conditions:
 overruns of a bare timerfd loop at the same priority and load that does nothing else
 (a vCPU not run for a few ms misses periods whatever runs on it).
@@ -221,9 +225,11 @@ def measure(
             cpu = (time.process_time() - cpu0) / wall
             simulated = (process_cpu_seconds(sim.process.pid) - simulated0) / wall
             out.update(figures(service, rate_hz, cpu, simulated))
+            late = late_answers(sim.truth, wall0, wall0 + wall)
+            out["simulator_late_per_1e4"] = round(1e4 * late / max(service.stats.cycles, 1), 2)
             busy.stop()
 
-        sim = ProcessSimulator(config, path, truth=False)
+        sim = ProcessSimulator(config, path)  # its truth log counts its late answers
         try:
             asyncio.run(sim.serve(after_start=hold_and_measure))
         finally:
@@ -231,6 +237,12 @@ def measure(
     if view:
         out["view_messages"], out["ros2_messages"] = viewed if len(viewed) == 2 else (0, 0)
     return out
+
+
+def late_answers(truth: list[dict], start: float, end: float) -> int:
+    """The SYNCs the simulator answered after the feedback deadline between monotonic
+    `start` and `end` (its truth log's lines, each counting those since the last)."""
+    return sum(r["late_answers"] for r in truth if start < r["monotonic"] <= end)
 
 
 def figures(service: Service, rate_hz: float, cpu: float, simulator: float) -> dict[str, float]:

@@ -11,8 +11,10 @@ experiments that must see what really moved: {"t": simulated s, "monotonic": tha
 on this host's monotonic clock (s), "position": [x, y, z], "quaternion": {"w", "x", "y",
 "z"}, "lowest_tension": N, "tensions": [N, ...], "latest_wake_up_ms": how late its latest
 wake-up since the last line came (sim_bus.runner.HELD_UP or more: the host did not run
-this process)}.  `--bus-fd` runs it on inherited socket pairs (sim_bus.bus.pairbus) instead of the
-config's buses: `cdprd demo`'s simulator.
+this process), "slowest_answer_ms": the longest a SYNC waited for its answers to leave
+since then, "late_answers": how many SYNCs were answered after --answer-deadline since
+then (SimulatorRunner.take_answers)}.  `--bus-fd` runs it on inherited socket pairs
+(sim_bus.bus.pairbus) instead of the config's buses: `cdprd demo`'s simulator.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ import asyncio
 import contextlib
 import json
 import logging
+import math
 import os
 import signal
 import socket
@@ -107,6 +110,14 @@ def fault_action(robot: VirtualRobot, kind: str, cable: int) -> Callable[[], lis
     return act
 
 
+def _seconds(text: str) -> float:
+    """A duration in seconds: finite and not negative (argparse's error otherwise)."""
+    value = float(text)
+    if not 0.0 <= value < math.inf:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a duration >= 0 s")
+    return value
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m sim_bus", description=__doc__)
     parser.add_argument(
@@ -153,6 +164,14 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="FILE",
         type=argparse.FileType("w", encoding="utf-8"),
         help=f"write the platform's true pose as JSON lines every {TRUTH_PERIOD} s",
+    )
+    parser.add_argument(
+        "--answer-deadline",
+        type=_seconds,
+        default=0.0,
+        metavar="SECONDS",
+        help="count SYNCs answered more than SECONDS after they went out (the host's "
+        "feedback deadline) in the truth log's late_answers (0: not counted)",
     )
     parser.add_argument("--duration", type=float, default=0.0, help="stop after SECONDS (0: run)")
     parser.add_argument("--report-every", type=float, default=5.0, help="bus-load report period")
@@ -202,7 +221,13 @@ async def simulate(setup: SimSetup, args: argparse.Namespace) -> int:
     meters = {c.bus_name: BusLoadMeter(c.bitrate) for c in setup.buses}
     wake = setup.sim.wake(setup.drives)
     runner = SimulatorRunner(
-        robot, device, meters, wake, collector=CollectorPolicy(), own_process=True
+        robot,
+        device,
+        meters,
+        wake,
+        collector=CollectorPolicy(),
+        own_process=True,
+        answer_deadline=args.answer_deadline,
     )
     for kind, cable, at in args.fault:
         runner.at(at, fault_action(robot, kind, cable))
@@ -268,6 +293,7 @@ async def log_truth(runner: SimulatorRunner, out: TextIO, stop: asyncio.Event) -
             pose = plant.pose
             w, x, y, z = pose.quaternion.tolist()
             tensions = plant.tensions
+            slowest_answer, late_answers = runner.take_answers()
             line = {
                 "t": plant.time,
                 "monotonic": runner.monotonic(plant.time),
@@ -276,6 +302,8 @@ async def log_truth(runner: SimulatorRunner, out: TextIO, stop: asyncio.Event) -
                 "lowest_tension": float(tensions.min()),
                 "tensions": tensions.tolist(),
                 "latest_wake_up_ms": runner.take_latest_wake_up() * 1e3,
+                "slowest_answer_ms": slowest_answer * 1e3,
+                "late_answers": late_answers,
             }
             out.write(json.dumps(line) + "\n")
             out.flush()

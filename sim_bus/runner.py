@@ -77,6 +77,7 @@ class SimulatorRunner:
         wake_period: float | None = None,
         collector: CollectorPolicy | None = None,
         own_process: bool = False,
+        answer_deadline: float = 0.0,
     ) -> None:
         self.robot = robot
         self.collector = collector
@@ -99,6 +100,11 @@ class SimulatorRunner:
         self.send_errors = 0
         self.receive_errors = 0
         self._latest = 0.0  # s: the latest wake-up since take_latest_wake_up()
+        # s after a SYNC went out that the host waits for its feedback (0: not counted):
+        # SYNCs answered later count in `late_answers` (take_answers)
+        self.answer_deadline = answer_deadline
+        self._slowest_answer = 0.0  # s: since take_answers()
+        self._late_answers = 0
 
     @property
     def t(self) -> float:
@@ -173,6 +179,25 @@ class SimulatorRunner:
         latest, self._latest = self._latest, 0.0
         return latest
 
+    def take_answers(self) -> tuple[float, int]:
+        """Since the last call (the truth log's): the longest a SYNC waited here for the
+        drives' answers to leave (s, from its stamp: when the host sent it, or when this
+        host's bus took it in), and how many SYNCs were answered after
+        `answer_deadline`, too late for the host's cycle: deadline misses this process
+        caused, which real drives, on processors of their own, would not have."""
+        taken = self._slowest_answer, self._late_answers
+        self._slowest_answer, self._late_answers = 0.0, 0
+        return taken
+
+    def _note_answers(self, stamps: list[float]) -> None:
+        """The answers to the SYNCs stamped `stamps` (wall clock) have just left."""
+        answered = time.time()
+        for stamp in stamps:
+            waited = answered - stamp
+            self._slowest_answer = max(self._slowest_answer, waited)
+            if 0.0 < self.answer_deadline < waited:
+                self._late_answers += 1
+
     def _drain(self) -> None:
         """Take what every bus has queued to the drives."""
         for lane in self.lanes.values():
@@ -206,6 +231,7 @@ class SimulatorRunner:
         out, now = [], self.t
         # a frame's stamp (wall clock, as SocketCAN's) on the simulated clock
         offset = time.time() - time.monotonic() + self._t0
+        syncs = []
         for msg in frames:
             # what a drive latches on a SYNC is the state when the SYNC was on the bus,
             # also when this process was held up before reading it; a stamp from the
@@ -214,7 +240,11 @@ class SimulatorRunner:
             out.extend(self.robot.handle(msg, at))
             if self.robot.is_sync(msg):
                 self._watch_phase(at)
+                if msg.timestamp:
+                    syncs.append(msg.timestamp)
         self._send(out)
+        if syncs:
+            self._note_answers(syncs)
         if self.collector is not None:
             self.collector.after_cycle()
 

@@ -16,7 +16,8 @@ tracking_error {definition, rms_mm, max_mm, orientation_rms_deg, orientation_max
 tensions {min_n, max_n, slack_events}, cycle (the daemon's cycle statistics: cycles,
 deadline_misses, overruns, bus_errors, and p50_us/p99_us/max_us of jitter, compute,
 prepare and latency, feedback->command), simulator {definition, held_up,
-latest_wake_up_ms}, final_state, telemetry, plot, drawing (the files written, or null).
+latest_wake_up_ms, late_answers, slowest_answer_ms}, final_state, telemetry, plot,
+drawing (the files written, or null).
 A demo that ends not holding or off by RMS 5 mm or more exits 1 with its figures; one
 that did not complete prints {"error": ...} and exits 1.
 Like `analyze`, this command imports sim_bus (the documented exception, DESIGN §2).
@@ -58,10 +59,14 @@ TRACKING_ERROR = (
     "the simulated platform's true pose (the simulator's, every 20 ms) against the "
     "reference the controller followed at the same instant, while the trajectory runs"
 )
-HELD_UP = (
-    "the 20 ms windows of the flight in which the simulator's process woke 10 ms late or "
-    "more (sim_bus.runner.HELD_UP): this host did not run it, and its drives answered that "
-    "late, as real drives on processors of their own would not"
+SIMULATOR = (
+    "held_up: the 20 ms windows of the flight in which the simulator's process woke 10 ms "
+    "late or more (sim_bus.runner.HELD_UP): this host did not run it, and its drives "
+    "answered that late, as real drives on processors of their own would not; "
+    "late_answers: the SYNCs of the whole run (as the cycle's deadline_misses) whose "
+    "answers left the simulator after the daemon's feedback deadline, each a deadline "
+    "miss the simulator's process caused; slowest_answer_ms: the longest a SYNC waited "
+    "there for its answers"
 )
 
 
@@ -163,7 +168,7 @@ async def _demo(config: DaemonConfig, path: Path, plot: str | None, as_json: boo
         reason = "no control cycle while the trajectory ran"
         print_error("failed", reason, as_json, prefix="demo")
         return EXIT_FAILED
-    held = _held_up(simulator.truth, result["t0"], start, start + trajectory.duration)
+    held = _simulator_figures(simulator.truth, result["t0"], start, start + trajectory.duration)
     summary, lines = _report(config, result, figures, held, trajectory.duration)
     written: dict[str, str | None] = {"telemetry": None, "plot": plot, "drawing": None}
     if config.recording.telemetry:
@@ -227,17 +232,22 @@ def _truth_samples(
     return samples
 
 
-def _held_up(truth: list[dict], t0: float, start: float, end: float) -> dict[str, Any]:
+def _simulator_figures(
+    truth: list[dict], t0: float, start: float, end: float
+) -> dict[str, Any]:
     """How the host held the simulator up between daemon times `start` and `end` (the
     truth log's latest_wake_up_ms; `t0`: the daemon's clock origin): HELD_UP's windows
-    and the latest wake-up."""
+    and the latest wake-up; and over the whole run, the SYNCs it answered after the
+    daemon's deadline and the slowest answer (SIMULATOR defines them)."""
     from sim_bus.runner import HELD_UP as LATE
 
     late = [r["latest_wake_up_ms"] for r in truth if start <= r["monotonic"] - t0 <= end]
     return {
-        "definition": HELD_UP,
+        "definition": SIMULATOR,
         "held_up": sum(1 for ms in late if ms >= LATE * 1e3),
         "latest_wake_up_ms": round(max(late, default=0.0), 1),
+        "late_answers": sum(r["late_answers"] for r in truth),
+        "slowest_answer_ms": round(max((r["slowest_answer_ms"] for r in truth), default=0.0), 2),
     }
 
 
@@ -306,6 +316,9 @@ def _report(
         f"simulator held up by this host in {held['held_up']} of the flight's 20 ms windows "
         f"(latest wake-up {held['latest_wake_up_ms']:.1f} ms late)"
         + (": the figures show the host as much as the robot" if held["held_up"] else ""),
+        f"simulator answered {held['late_answers']} SYNCs after the feedback deadline "
+        f"(slowest {held['slowest_answer_ms']:.2f} ms): deadline misses of this host's "
+        "making, not the robot's",
         f"final state: {result['state']}",
     ]
     return summary, lines

@@ -142,7 +142,8 @@ class ProcessSimulator:
         fds = [end.fileno() for end in self._theirs]
         argv = ["-m", "sim_bus", "--config", str(self._path)]
         if self._truth:
-            argv += ["--truth-log", "-"]
+            deadline = self.config.safety.feedback_deadline / self.config.controller.rate_hz
+            argv += ["--truth-log", "-", "--answer-deadline", repr(deadline)]
         for fd in fds:
             argv += ["--bus-fd", str(fd)]
         self.process = process = await asyncio.create_subprocess_exec(

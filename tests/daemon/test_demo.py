@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 from mcap.reader import make_reader
 
-from daemon.cli.demo_cmd import _held_up
+from daemon.cli.demo_cmd import _simulator_figures
 from daemon.process.recording import CYCLE_TOPIC
 from tests.loopback import free_port
 
@@ -45,6 +45,7 @@ def test_demo_flies_the_figure_eight_and_ends_holding(tmp_path: Path) -> None:
     assert rms < 2.0, out
     assert "slack events 0" in out and "final state: hold" in out
     assert "simulator held up by this host in " in out
+    assert re.search(r"simulator answered \d+ SYNCs after the feedback deadline", out), out
     assert plot.stat().st_size > 10_000
     drawing = tmp_path / "demo-3d.png"
     assert f"3-D view at the largest tension written to {drawing}" in out
@@ -65,10 +66,21 @@ def test_the_demo_counts_the_windows_of_its_flight_in_which_the_host_held_the_si
     None
 ):
     """From the truth log (daemon time = monotonic - t0): windows before and after the
-    flight do not count; 10 ms late or more does, 9.9 ms does not."""
+    flight do not count; 10 ms late or more does, 9.9 ms does not.  The SYNCs answered
+    after the deadline count over the whole run, as the cycle's deadline misses do."""
     t0 = 100.0
     late = {0.5: 50.0, 1.0: 0.2, 1.02: 12.0, 1.04: 9.9, 1.06: 10.0, 3.5: 80.0}
-    truth = [{"monotonic": t0 + t, "latest_wake_up_ms": ms} for t, ms in late.items()]
-    held = _held_up(truth, t0, 1.0, 3.0)
+    answers = {0.5: (3.5, 2), 1.0: (0.3, 0), 1.02: (1.2, 1), 3.5: (0.4, 0)}
+    truth = [
+        {
+            "monotonic": t0 + t,
+            "latest_wake_up_ms": ms,
+            "slowest_answer_ms": answers.get(t, (0.2, 0))[0],
+            "late_answers": answers.get(t, (0.2, 0))[1],
+        }
+        for t, ms in late.items()
+    ]
+    held = _simulator_figures(truth, t0, 1.0, 3.0)
     assert held["held_up"] == 2 and held["latest_wake_up_ms"] == 12.0
+    assert held["late_answers"] == 3 and held["slowest_answer_ms"] == 3.5
     assert "did not run it" in held["definition"]

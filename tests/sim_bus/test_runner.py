@@ -64,6 +64,38 @@ def test_a_sync_read_late_is_taken_at_the_moment_it_was_sent() -> None:
     assert taken[0] == pytest.approx(sent, abs=0.01)  # read at sent + 0.05 or later
 
 
+def test_syncs_answered_after_the_hosts_deadline_are_counted_and_the_slowest_kept() -> None:
+    """The loop held up 0.2 s after a SYNC went out: its answers leave that late, past a
+    0.1 s deadline (a deadline miss the simulator's process caused); a SYNC read at once
+    is answered in time.  take_answers gives each window's figures once."""
+
+    async def scenario() -> list[tuple[float, int]]:
+        sim = InProcessSimulator(config_for("cia402"))
+        sim.runner.answer_deadline = 0.1
+        sim.start()
+        windows = []
+        try:
+            await asyncio.sleep(0.02)
+            sim.runner.take_answers()
+            sync = can.Message(arbitration_id=SYNC_ID, is_extended_id=False)
+            sim.daemon_bus.send(sync)
+            time.sleep(0.2)  # this process held up: the SYNC waits to be read
+            await asyncio.sleep(0.02)
+            windows.append(sim.runner.take_answers())
+            sim.daemon_bus.send(sync)
+            await asyncio.sleep(0.02)
+            windows.append(sim.runner.take_answers())
+            windows.append(sim.runner.take_answers())
+            return windows
+        finally:
+            sim.close()
+
+    (held, held_late), (prompt, prompt_late), (none, none_late) = asyncio.run(scenario())
+    assert held >= 0.2 and held_late == 1
+    assert 0.0 < prompt < 0.1 and prompt_late == 0
+    assert none == 0.0 and none_late == 0
+
+
 @pytest.mark.parametrize("own_process", [True, False])
 def test_a_wake_up_the_host_held_up_is_measured_and_logged_in_a_process_of_its_own(
     own_process: bool, caplog: pytest.LogCaptureFixture
