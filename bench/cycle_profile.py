@@ -19,7 +19,10 @@ measured in a window before the wrappers go in.  `state_snapshot_us`: Service.st
 which the companion host takes at zenoh.state_rate_hz on the core (in the slack, not
 in a cycle, but on its CPU), and the cycle statistics' summary it takes afresh once a
 second.  `core_us_per_cycle`: the core process's CPU time per cycle in the instrumented
-window (the wrappers' cost in it), `simulator_us_per_cycle` the simulator process's.
+window (the wrappers' cost in it), `simulator_us_per_cycle` the simulator process's;
+`idle_core_us_per_cycle` the core's before the robot is enabled (drives up, no
+controller: the SYNC, the feedback's decoding and checks, the keep-alive frames and the
+event loop), the floor under any controller.
 
 --cprofile N profiles the instrumented window instead with cProfile and prints its
 top N functions by own time (no per-part table: cProfile's overhead distorts it).
@@ -52,6 +55,7 @@ from daemon.service.safety import SafetyState
 from daemon.service.service import Service
 
 SETTLE = 0.5  # s enabled before measuring
+IDLE_SECONDS = 3.0  # s the core's CPU is measured with the drives up and nothing enabled
 AMPLITUDE = 0.15  # m: the gotos go this far either side of home in x (and half in z)
 
 # (part, parent, where: the service -> (object or class, method name; an object None
@@ -246,6 +250,11 @@ def measure(protocol: str, rate_hz: float, seconds: float, top: int) -> dict[str
 
     async def profile(service: Service) -> None:
         planner = Planner(config, LocalLink(service))
+        await asyncio.sleep(SETTLE)
+        cycles, core = service.stats.cycles, time.process_time()
+        await asyncio.sleep(IDLE_SECONDS)  # the drives up, the robot not enabled
+        idle = time.process_time() - core
+        out["idle_core_us_per_cycle"] = round(idle * 1e6 / (service.stats.cycles - cycles), 1)
         await service.command("enable", {})
         fresh = type(service.stats)(rate_hz)  # allocated before the measurement
         await asyncio.sleep(SETTLE)
