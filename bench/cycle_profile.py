@@ -253,8 +253,10 @@ def measure(protocol: str, rate_hz: float, seconds: float, top: int) -> dict[str
         await asyncio.sleep(SETTLE)
         cycles, core = service.stats.cycles, time.process_time()
         await asyncio.sleep(IDLE_SECONDS)  # the drives up, the robot not enabled
-        idle = time.process_time() - core
-        out["idle_core_us_per_cycle"] = round(idle * 1e6 / (service.stats.cycles - cycles), 1)
+        idle, ran = time.process_time() - core, service.stats.cycles - cycles
+        if ran == 0:
+            raise SystemExit(f"no cycle ran in {IDLE_SECONDS} s with the drives up")
+        out["idle_core_us_per_cycle"] = round(idle * 1e6 / ran, 1)
         await service.command("enable", {})
         fresh = type(service.stats)(rate_hz)  # allocated before the measurement
         await asyncio.sleep(SETTLE)

@@ -235,28 +235,46 @@ def test_the_documented_folder_map_matches_the_tree() -> None:
     )
 
 
-def test_the_real_time_core_compiles_nothing_once_its_robot_is_built() -> None:
-    """The core's kernels (kinematics, forward kinematics, the model terms) are loaded
-    when its robot is built (Robot._load_kernels): a goto flown lock-step after that,
-    with the simulator's plant, adds no compiled signature to any kernel, so no cycle
-    waits on numba.  In a fresh interpreter, so that nothing else warmed them."""
+def _signatures_added(setup: str, action: str) -> str:
+    """Run `setup`, then `action`, in a fresh interpreter (nothing else warmed the
+    kernels): "True {...}", the kernels of cdpr and sim_bus that gained a compiled
+    signature in `action` (True: setup loaded some)."""
     import subprocess
     import sys
 
     probe = (
         "import sys\n"
-        "import numpy as np\n"
         "from numba.core.registry import CPUDispatcher\n"
+        "def compiled():\n"
+        "    return {(m.__name__, name): len(f.signatures) for m in list(sys.modules.values())\n"
+        "            if (m.__name__ or '').startswith(('cdpr', 'sim_bus'))\n"
+        "            for name, f in vars(m).items() if isinstance(f, CPUDispatcher)}\n"
+        f"{setup}"
+        "before = compiled()\n"
+        f"{action}"
+        "after = compiled()\n"
+        "print(sum(before.values()) > 0, {k: v for k, v in after.items() if before.get(k) != v})\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", probe], cwd=ROOT, capture_output=True, text=True, check=False
+    )
+    assert out.returncode == 0, out.stderr
+    return out.stdout.strip()
+
+
+def test_the_real_time_core_compiles_nothing_once_its_robot_is_built() -> None:
+    """The core's kernels (kinematics, forward kinematics, the model terms) are loaded
+    when its robot is built (Robot._load_kernels): a goto flown lock-step after that,
+    with the simulator's plant, adds no compiled signature to any kernel, so no cycle
+    waits on numba."""
+    setup = (
+        "import numpy as np\n"
         "from cdpr import Pose\n"
         "from cdpr.controller import ParallelController\n"
         "from cdpr.trajectory import Reference, TrajectoryLimits, goto\n"
         "from sim_bus.plant import Plant, equilibrium_tensions\n"
         "from tests.conftest import load_robot\n"
         "from tuning.lockstep import run_lockstep\n"
-        "def compiled():\n"
-        "    return {(m.__name__, name): len(f.signatures) for m in list(sys.modules.values())\n"
-        "            if (m.__name__ or '').startswith(('cdpr', 'sim_bus'))\n"
-        "            for name, f in vars(m).items() if isinstance(f, CPUDispatcher)}\n"
         "robot = load_robot('reference8')\n"
         "home = robot.home\n"
         "plant = Plant(robot)\n"
@@ -266,13 +284,36 @@ def test_the_real_time_core_compiles_nothing_once_its_robot_is_built() -> None:
         "target = Pose(home.position + np.array([0.1, 0.0, 0.05]), home.quaternion)\n"
         "rest = Reference(home, np.zeros(6), np.zeros(6))\n"
         "controller.follow(goto(rest, target, TrajectoryLimits()))\n"
-        "before = compiled()\n"
-        "run_lockstep(plant, lambda t, l, r: controller.step(t, l, r).commands, 0.3, 500)\n"
-        "after = compiled()\n"
-        "print(sum(before.values()) > 0, {k: v for k, v in after.items() if before.get(k) != v})\n"
     )
-    out = subprocess.run(
-        [sys.executable, "-c", probe], cwd=ROOT, capture_output=True, text=True, check=False
+    action = "run_lockstep(plant, lambda t, l, r: controller.step(t, l, r).commands, 0.3, 500)\n"
+    assert _signatures_added(setup, action) == "True {}"
+
+
+def test_the_companion_compiles_nothing_for_a_client_s_trajectory() -> None:
+    """The companion loads the validation's kernels before the core's hang timer runs
+    (planner.load_checks, from a trajectory of Waypoints); a client's trajectory, parsed
+    from its interface form as zenoh hands it over (arrays, read-only knots) and
+    validated as the daemon validates one, adds no compiled signature: numba compiling
+    a new array type there took the companion's event loop seconds on a slow host
+    (the UML guest: killed as silent).  With rates given at one waypoint the parser
+    takes the Waypoint path; it adds none either."""
+    setup = (
+        "from daemon.config import load_config\n"
+        "from daemon.service.planner import load_checks, validate_as_the_daemon\n"
+        "from cdpr.trajectory.parse import parse_trajectory\n"
+        "from tests.processes import CONFIG\n"
+        "config = load_config(CONFIG)\n"
+        "load_checks(config)\n"
+        "x, y, z = config.robot.home.position.tolist()\n"
+        "def point(t, dx, **rates):\n"
+        "    return {'t': t, 'position': [x + dx, y, z],\n"
+        "            'quaternion': {'w': 1.0, 'x': 0.0, 'y': 0.0, 'z': 0.0}, **rates}\n"
+        "plain = [point(0.0, 0.0), point(1.0, 0.03), point(2.0, 0.05)]\n"
+        "still = {'linear': [0, 0, 0], 'angular': [0, 0, 0]}\n"
+        "rated = [point(0.0, 0.0, twist=still), point(2.0, -0.04)]\n"
     )
-    assert out.returncode == 0, out.stderr
-    assert out.stdout.strip() == "True {}"
+    action = (
+        "for waypoints in (plain, rated):\n"
+        "    validate_as_the_daemon(parse_trajectory({'waypoints': waypoints}), config)\n"
+    )
+    assert _signatures_added(setup, action) == "True {}"
