@@ -1,8 +1,9 @@
 """The demo's planner: a process of its own that flies one trajectory over zenoh.
 
-    python -m daemon.cli.demo_flight  < {"endpoint": ..., "trajectory": {...}}
+    python -m daemon.cli.demo_flight  < {"endpoint": ..., "trajectory": {...}, "settle": s}
 
-`cdprd demo` starts it once the daemon is up; it enables the robot, sends the
+`cdprd demo` starts it once the daemon is up; it enables the robot, lets the platform
+settle in its hold for `settle` seconds (daemon.cli.demo_cmd.SETTLE), sends the
 trajectory through the client module (as any planner would), waits for its end and
 prints {"start": ..., "reply": ...} as JSON.
 """
@@ -19,10 +20,11 @@ from daemon.interface.client import CdprClient
 from daemon.process.ordinary import drop_inherited_realtime
 
 
-def fly(endpoint: str, trajectory: Trajectory) -> dict[str, Any]:
-    """Enable, send the trajectory, wait until it no longer tracks."""
+def fly(endpoint: str, trajectory: Trajectory, settle: float) -> dict[str, Any]:
+    """Enable, hold `settle` seconds, send the trajectory, wait until it no longer tracks."""
     with CdprClient(connect=endpoint, timeout=5.0) as client:
         client.enable()
+        time.sleep(settle)
         sent = time.monotonic()
         reply = client.send_trajectory(trajectory)
         deadline = sent + trajectory.duration + 10.0
@@ -37,4 +39,5 @@ def fly(endpoint: str, trajectory: Trajectory) -> dict[str, Any]:
 if __name__ == "__main__":
     drop_inherited_realtime()
     request = json.loads(sys.stdin.read())
-    print(json.dumps(fly(request["endpoint"], parse_trajectory(request["trajectory"]))))
+    trajectory = parse_trajectory(request["trajectory"])
+    print(json.dumps(fly(request["endpoint"], trajectory, float(request["settle"]))))
