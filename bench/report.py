@@ -58,6 +58,7 @@ BENCHES = (
     Bench("trajectory"),
     Bench("controller", ("--skip-tracking",)),
     Bench("loop", ("--seconds", "6")),
+    Bench("io_floor"),
     Bench("simulator"),
     Bench("zenoh_io"),
     Bench("planning", ("--no-ratios", "--runs", "5")),
