@@ -14,9 +14,12 @@ ways of waiting:
 - `plain`: one thread blocking in the timerfd's read and in poll() on the buses.
 
 Per way: the core's CPU per cycle (time.process_time: user and system) and the cycles
-that did not get every answer before their deadline.  Compare with bench/cycle_profile.py's
-`idle_core_us_per_cycle` (the daemon's core, nothing enabled) and the 0.15 of a core
-issue 30 asks of the whole cycle at 1 kHz (150 us a cycle).
+that did not get every answer before their deadline.  And `tick_us`: the CPU of the
+tick alone, a SCHED_FIFO thread blocking in the periodic timerfd's read and doing
+nothing else (what one wake-up costs on this host; the cycle above has several).
+Compare with bench/cycle_profile.py's `idle_core_us_per_cycle` (the daemon's core,
+nothing enabled) and the 0.15 of a core issue 30 asks of the whole cycle at 1 kHz
+(150 us a cycle).
 
     python bench/io_floor.py [--json] [--seconds 5] [--rate 1000] [--buses 2] [--drives 8]
 """
@@ -149,6 +152,25 @@ def run_plain(cycle: Cycle, seconds: float) -> Window:
                 cycle.take(by_fd[fd], deadline)
 
 
+def tick_cost(rate: float, seconds: float) -> float:
+    """CPU us per wake-up of a thread that only waits for the periodic timerfd's ticks."""
+    with contextlib.suppress(OSError):
+        os.sched_setaffinity(0, {0})
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(50))
+    timer = PeriodicTimer(1.0 / rate)
+    try:
+        os.set_blocking(timer.fileno(), True)
+        ticks, end, begin = 0, time.monotonic() + seconds, time.process_time()
+        while time.monotonic() < end:
+            os.read(timer.fileno(), 8)
+            ticks += 1
+        return round((time.process_time() - begin) * 1e6 / ticks, 1)
+    finally:
+        timer.close()
+        with contextlib.suppress(OSError):
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+
+
 def measure(way: str, rate: float, seconds: float, buses: int, drives_n: int) -> dict:
     pairs = [bus_pair() for _ in range(buses)]
     child = os.fork()
@@ -193,6 +215,7 @@ def main() -> None:
     out = {"rate_hz": args.rate, "buses": args.buses, "drives": args.drives}
     for way in ("asyncio", "plain"):
         out[way] = measure(way, args.rate, args.seconds, args.buses, args.drives)
+    out["tick_us"] = tick_cost(args.rate, args.seconds)
     if args.json:
         print(json.dumps(out))
         return
@@ -202,6 +225,7 @@ def main() -> None:
             f"{way:8s} {f['core_us_per_cycle']:7.1f} us of CPU a cycle, "
             f"{f['missed_deadlines']} missed deadlines of {f['cycles']} cycles"
         )
+    print(f"tick     {out['tick_us']:7.1f} us of CPU a wake-up of the timer alone")
 
 
 if __name__ == "__main__":
