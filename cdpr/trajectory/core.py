@@ -429,10 +429,10 @@ class Trajectory:
             list(map(tuple, quats.tolist())),
             knots.pose(0),
             knots.pose(len(times) - 1),
-            # quats copied writable: the kernels' one array type whichever way the knots
-            # came (of_arrays leaves them read-only, another type to numba, which would
+            # the start rotations as the kernels take them whichever way the knots came
+            # (of_arrays leaves them read-only, another type to numba, which would
             # compile at a client's first trajectory, in the companion's event loop)
-            arrays=(times, tables, quats[:-1].copy()),
+            arrays=(times, tables, kernel_array(quats[:-1], (len(times) - 1, 4))),
         )
         self._listed: tuple[Waypoint, ...] | None = None  # `waypoints`, made when asked
 
