@@ -34,14 +34,17 @@ import os
 import select
 import socket
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 
+from daemon.config import RealtimeConfig
+from daemon.process.realtime import enter_realtime, leave_realtime
 from drivers.clock import DeadlineTimer, PeriodicTimer
 from sim_bus.bus.pairbus import FRAME, bus_pair
 
 SYNC_ID, TPDO_BASE, RPDO_BASE = 0x080, 0x180, 0x200
 DEADLINE = 0.8  # of a period: the daemon's default safety.feedback_deadline
 SETTLE = 0.5  # s before measuring
+CORE = RealtimeConfig(priority=50, cpus=(0,), lock_memory=False)  # the core's priority
 # (CPU s at the end, (CPU s, cycles, misses) at the start, cycles, misses at the end)
 Window = tuple[float, tuple[float, int, int], int, int]
 
@@ -105,9 +108,8 @@ class Cycle:
 
 
 def run_asyncio(cycle: Cycle, seconds: float) -> Window:
-    async def main() -> Window:
+    async def main(timer: PeriodicTimer, deadline: DeadlineTimer) -> Window:
         loop = asyncio.get_running_loop()
-        timer, deadline = PeriodicTimer(cycle.period), DeadlineTimer()
 
         def tick() -> None:
             if timer.expirations():
@@ -122,53 +124,56 @@ def run_asyncio(cycle: Cycle, seconds: float) -> Window:
         await asyncio.sleep(seconds)
         return time.process_time(), start, cycle.cycles, cycle.misses
 
-    return asyncio.run(main())
+    with PeriodicTimer(cycle.period) as timer, DeadlineTimer() as deadline:
+        return asyncio.run(main(timer, deadline))
 
 
 def run_plain(cycle: Cycle, seconds: float) -> Window:
-    timer, deadline = PeriodicTimer(cycle.period), DeadlineTimer()
-    os.set_blocking(timer.fileno(), True)
-    by_fd = {end.fileno(): end for end in cycle.ends}
-    poller = select.poll()
-    for fd in by_fd:
-        poller.register(fd, select.POLLIN)
-    begin = time.monotonic()
-    start = None
-    while True:
-        os.read(timer.fileno(), 8)  # the tick
-        now = time.monotonic()
-        if start is None and now >= begin + SETTLE:
-            start = (time.process_time(), cycle.cycles, cycle.misses)
-        if now >= begin + SETTLE + seconds:
-            return time.process_time(), start, cycle.cycles, cycle.misses
-        cycle.open(deadline)
-        due = now + DEADLINE * cycle.period
-        while cycle.waiting:
-            left = due - time.monotonic()
-            ready = poller.poll(max(left, 0.0) * 1e3) if left > 0 else []
-            if not ready:
-                break
-            for fd, _ in ready:
-                cycle.take(by_fd[fd], deadline)
+    with PeriodicTimer(cycle.period) as timer, DeadlineTimer() as deadline:
+        os.set_blocking(timer.fileno(), True)
+        by_fd = {end.fileno(): end for end in cycle.ends}
+        poller = select.poll()
+        for fd in by_fd:
+            poller.register(fd, select.POLLIN)
+        begin = time.monotonic()
+        start = None
+        while True:
+            os.read(timer.fileno(), 8)  # the tick
+            now = time.monotonic()
+            if start is None and now >= begin + SETTLE:
+                start = (time.process_time(), cycle.cycles, cycle.misses)
+            if now >= begin + SETTLE + seconds:
+                return time.process_time(), start, cycle.cycles, cycle.misses
+            cycle.open(deadline)
+            due = now + DEADLINE * cycle.period
+            while cycle.waiting:
+                left = due - time.monotonic()
+                ready = poller.poll(max(left, 0.0) * 1e3) if left > 0 else []
+                if not ready:
+                    break
+                for fd, _ in ready:
+                    cycle.take(by_fd[fd], deadline)
+
+
+@contextlib.contextmanager
+def as_the_core() -> Iterator[None]:
+    """This process scheduled as the core (CORE, where permitted), then as before."""
+    state = enter_realtime(CORE)
+    try:
+        yield
+    finally:
+        leave_realtime(state)
 
 
 def tick_cost(rate: float, seconds: float) -> float:
     """CPU us per wake-up of a thread that only waits for the periodic timerfd's ticks."""
-    with contextlib.suppress(OSError):
-        os.sched_setaffinity(0, {0})
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(50))
-    timer = PeriodicTimer(1.0 / rate)
-    try:
+    with as_the_core(), PeriodicTimer(1.0 / rate) as timer:
         os.set_blocking(timer.fileno(), True)
         ticks, end, begin = 0, time.monotonic() + seconds, time.process_time()
         while time.monotonic() < end:
             os.read(timer.fileno(), 8)
             ticks += 1
         return round((time.process_time() - begin) * 1e6 / ticks, 1)
-    finally:
-        timer.close()
-        with contextlib.suppress(OSError):
-            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
 
 
 def measure(way: str, rate: float, seconds: float, buses: int, drives_n: int) -> dict:
@@ -181,16 +186,12 @@ def measure(way: str, rate: float, seconds: float, buses: int, drives_n: int) ->
         os._exit(0)
     for _, drive_end in pairs:
         drive_end.close()
-    with contextlib.suppress(OSError):
-        os.sched_setaffinity(0, {0})
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(50))
     try:
         cycle = Cycle([c for c, _ in pairs], drives_n // buses, 1.0 / rate)
         runner: Callable = run_asyncio if way == "asyncio" else run_plain
-        end, (begin, cycles0, misses0), cycles, misses = runner(cycle, seconds)
+        with as_the_core():
+            end, (begin, cycles0, misses0), cycles, misses = runner(cycle, seconds)
     finally:
-        with contextlib.suppress(OSError):
-            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
         for core_end, _ in pairs:
             core_end.close()
         os.waitpid(child, 0)
