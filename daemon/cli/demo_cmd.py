@@ -55,12 +55,12 @@ if TYPE_CHECKING:
 
 DEFAULT_CONFIG = Path(__file__).resolve().parents[2] / "config" / "reference8-cia402.yaml"
 PEAK_SPEED = 0.5  # m/s: the figure-eight's
+WOBBLE_DEG = 10.0  # its tilt, +-
 # s the platform holds after enable before the trajectory goes out: the enable's own
 # transient (the loop closing on the platform where the brake left it: up to ~0.3 mm,
 # over in ~0.5 s) is then over.  Sent at once, its tail fell into the flight's first
 # moments by however long the validation took, and the figure ranged 0.03-0.06 mm RMS.
 SETTLE = 1.0
-WOBBLE_DEG = 10.0  # its tilt, +-
 TRACKING_ERROR = (
     "the simulated platform's true pose (the simulator's, every 20 ms) against the "
     "reference the controller followed at the same instant, while the trajectory runs "
