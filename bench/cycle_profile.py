@@ -151,26 +151,32 @@ class Spans:
         self.current.clear()
 
     def table(self) -> dict[str, dict[str, Any]]:
-        """Per part: its parent, median / p99 / mean us per cycle; and per parent with
-        timed children, the rest it spent outside them."""
+        """Per part: its parent, median / p99 / mean us per cycle and its mean over the
+        slowest 1 % of cycles (`tail_us`: what the cycle's p99 is made of); and per parent
+        with timed children, the rest it spent outside them."""
         out: dict[str, dict[str, Any]] = {}
         arrays = {part: np.array(values, dtype=float) for part, values in self.per_cycle.items()}
+        cycle = arrays["cycle"]
+        slowest = cycle >= np.percentile(cycle, 99)
         timed = [part for part in PARENT if part in arrays and arrays[part].any()]
         for part in timed:
-            out[part] = {"parent": PARENT[part], **_summary(arrays[part])}
+            out[part] = {"parent": PARENT[part], **_summary(arrays[part], slowest)}
             children = [arrays[c] for c in timed if PARENT[c] == part]
             if children:
                 rest = arrays[part] - np.sum(children, axis=0)
-                out[f"{part} (rest)"] = {"parent": part, **_summary(rest)}
+                out[f"{part} (rest)"] = {"parent": part, **_summary(rest, slowest)}
         return out
 
 
-def _summary(ns: np.ndarray) -> dict[str, float]:
-    return {
+def _summary(ns: np.ndarray, slowest: np.ndarray | None = None) -> dict[str, float]:
+    out = {
         "p50_us": round(float(np.median(ns)) / 1e3, 1),
         "p99_us": round(float(np.percentile(ns, 99)) / 1e3, 1),
         "mean_us": round(float(ns.mean()) / 1e3, 1),
     }
+    if slowest is not None:
+        out["tail_us"] = round(float(ns[slowest].mean()) / 1e3, 1)
+    return out
 
 
 def wrapper_ns() -> float:
@@ -329,7 +335,8 @@ def main() -> None:
         return
     parts = out.pop("parts")
     print(json.dumps(out))
-    print(f"{'part':34s} {'p50 us':>8s} {'p99 us':>8s} {'mean us':>8s}")
+    columns = ("p50_us", "p99_us", "mean_us", "tail_us")
+    print(f"{'part':34s}" + "".join(f"{c.replace('_', ' '):>9s}" for c in columns))
     for part, row in parts.items():
         depth = 0
         parent = row["parent"]
@@ -337,7 +344,7 @@ def main() -> None:
             depth += 1
             parent = PARENT.get(parent)
         label = "  " * depth + part
-        print(f"{label:34s} {row['p50_us']:8.1f} {row['p99_us']:8.1f} {row['mean_us']:8.1f}")
+        print(f"{label:34s}" + "".join(f"{row[c]:9.1f}" for c in columns))
 
 
 if __name__ == "__main__":

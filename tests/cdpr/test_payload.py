@@ -344,3 +344,34 @@ def test_the_drives_force_follows_the_commands_through_latency_and_lag(
         assert weights.dot(used) == pytest.approx(mean, abs=0.01), k
         checked += 1
     assert checked > 20
+
+
+@pytest.mark.parametrize("lag", [0.0, 0.0005, 0.002, 0.005])
+@pytest.mark.parametrize("latency", [0.0, 0.0003, 0.0013, 0.0047])
+def test_the_force_weights_are_the_lags_integrals_by_scipy(latency: float, lag: float) -> None:
+    """Each command's share of the period's mean force (drive_force_weights' closed form)
+    against scipy.integrate.quad of the first-order lag's response to that command held
+    for its period, at 1 kHz: the same to 1e-9 of a command."""
+    from scipy.integrate import quad
+
+    period = 0.001
+    half = 0.5 * period
+    weights, newest = drive_force_weights(period, lag, latency)
+
+    def response(u: float, a: float, b: float) -> float:
+        if u < a:
+            return 0.0
+        if lag == 0.0:
+            return 1.0 if u < b else 0.0
+        rise = 1.0 - math.exp(-(u - a) / lag)
+        return rise if u < b else rise - (1.0 - math.exp(-(u - b) / lag))
+
+    shares = []
+    for i in range(len(weights)):
+        a = (newest - i) * period + latency
+        kinks = [x for x in (a, a + period) if -half < x < half]
+        value, _ = quad(response, -half, half, args=(a, a + period), points=kinks or None,
+                        epsabs=1e-15, epsrel=1e-12)  # fmt: skip
+        shares.append(value / period)
+    expected = np.array(shares) / sum(shares)
+    np.testing.assert_allclose(weights, expected, rtol=0, atol=1e-9)
