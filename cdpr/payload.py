@@ -65,7 +65,6 @@ mass and centre of mass with their standard deviations (at rest the inertia show
 
 from __future__ import annotations
 
-import itertools
 import math
 from collections import deque
 from collections.abc import Sequence
