@@ -1,7 +1,7 @@
 """Flying with a cable stiffness the robot file has wrong.
 
 `EnabledAtRest` wraps the controller so that a lock-step run enables as the daemon does
-(Service._measured_pose): the first cycle's lengths, measured at rest, give the pose and
+(Service.measured_pose): the first cycle's lengths, measured at rest, give the pose and
 the cables' stiffness estimate (cdpr.stretch) before the controller flies.
 `stiffness_sweep` runs the standard trajectories on plants whose true EA is a multiple
 of the robot file's `cable_stiffness`, and reports per run whether it flew (the fault

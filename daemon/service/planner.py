@@ -342,7 +342,8 @@ class Planner:
     async def _home(self, name: str, args: dict[str, Any]) -> dict[str, Any]:
         """The core homes (home, or pretension at its end) and applies the offsets;
         they are stored here, also those of a pretension that aborted after its homing
-        (the core keeps them in force, its refusal carries them: Service._finish_pretension)."""
+        (the core keeps them in force, its refusal carries them:
+        daemon.service.pretension_run.PretensionRun.finish)."""
         try:
             result = await self.link.command(name, args)
         except CommandError as exc:

@@ -12,12 +12,13 @@ only checks that the reference they were planned from still stands, and follows 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import gc
 import logging
 import math
 import os
 import time
-from collections.abc import Awaitable, Callable, Generator
+from collections.abc import Awaitable, Callable, Generator, Iterator
 from typing import Any, TypeVar
 
 import can
@@ -25,8 +26,7 @@ import numpy as np
 
 from cdpr import Pose
 from cdpr.controller import ControlOutput, ParallelController, static_tensions
-from cdpr.homing import homed_offsets
-from cdpr.pretension import Pretension, ramp_target
+from cdpr.pretension import Pretension
 from cdpr.trajectory import Reference
 from cdpr.trajectory.core import Curve
 from daemon.config import DaemonConfig
@@ -45,7 +45,9 @@ from daemon.service.flight_stats import FlightStats
 from daemon.service.hold_report import HoldReport, hold_summary
 from daemon.service.homing import LengthOffsets
 from daemon.service.planner import PLANNING_LEAD
-from daemon.service.rest_check import judge
+from daemon.service.pretension_run import pretension
+from daemon.service.procedure import CycleProcedure
+from daemon.service.rest import home, position_text, rest_refusal
 from daemon.service.safety import (
     Fault,
     SafetyMonitor,
@@ -54,7 +56,12 @@ from daemon.service.safety import (
     Trigger,
     missed_text,
 )
-from daemon.service.trusted_lengths import Implausible, TrustedLengths, cable_accel_bound
+from daemon.service.trusted_lengths import (
+    RETRUST_CYCLES,
+    Implausible,
+    TrustedLengths,
+    cable_accel_bound,
+)
 from drivers.base import ActuatorDriver, DriverError, Feedback, FrameError, Timing
 from drivers.bus import CAN_ERR_BUSOFF
 from drivers.clock import DeadlineTimer, PeriodicTimer
@@ -68,12 +75,6 @@ log = logging.getLogger("cdprd")
 # SDO exchanges, 5 s in a slow virtual machine, well under a second on a real bus
 STARTUP_TIMEOUT = 30.0
 SLACK_MARGIN = 3e-4  # s before a tick at which background work stops (> its longest step)
-RETRUST_CYCLES = 50  # cycles a reset waits for a complete set to judge afresh
-HOME_SAMPLES = 50  # cycles of feedback homing averages, each checked for rest
-REST_RATE = 2e-3  # m/s: a cable moving faster is not at rest (homing is refused)
-REST_SPREAD = 5e-4  # m: nor one whose length varies more over the samples
-REST_SETTLE = 3.0  # s the cables may take to come to rest once the drives hold them
-FORCE_READINGS = 10  # of the drives' measured forces, averaged for the rest check
 EXIT_BUS_LOST = os.EX_UNAVAILABLE  # 69, sysexits' "service unavailable": the bus is gone
 EventSink = Callable[[dict[str, Any]], None]
 Result = TypeVar("Result")
@@ -113,7 +114,7 @@ class Service:
         self._stopped: asyncio.Event | None = None
         self._exit_code = 0
         self._exit_timer: asyncio.TimerHandle | None = None  # the exit after a lost bus
-        self._busy = False  # an enable or reset sequence is talking to the drives
+        self._busy = False  # a sequence is talking to the drives (drives_busy)
         # cycle bookkeeping
         self._waiting = False
         self._opened = 0.0
@@ -147,7 +148,7 @@ class Service:
             tolerance=config.feedback_tolerance.total,
         )
         self.identity = robot_identity(robot, config.drives)  # what stored offsets must match
-        self._noise = NoiseWatch(config.feedback_tolerance, config.drives.nodes)
+        self.noise = NoiseWatch(config.feedback_tolerance, config.drives.nodes)
         self._load_offsets()
         self._trajectory: Curve | None = None
         self._scheduled: list[Curve] = []  # accepted, beginning later, by start time
@@ -155,18 +156,12 @@ class Service:
         self.last_output = None
         self.last_output_t = math.nan  # the cycle time last_output was computed for
         self.faults: list[Fault] = []  # conditions active at the last check
-        # the last pretension (cdpr.pretension; published while it runs and after), and
-        # its command waiting for it to end (in HOLD, or braked)
+        # the procedure the cycle drives (daemon.service.procedure), the last one started,
+        # and the last pretension (cdpr.pretension; published while it runs and after)
+        self.procedure: CycleProcedure | None = None
         self.pretension: Pretension | None = None
-        self._pretension_waiter: asyncio.Future[None] | None = None
-        self._pretension_cycles = 0  # cycles waited for the homed lengths to be judged
-        self.loop_close_step: float | None = None  # N, the largest force change at close
-        self._close_forces: np.ndarray | None = None  # the last before it, until measured
         self.brakes = 0  # brake() calls: a sequence that waited sees whether one came
         self.hold_report = HoldReport()  # whether the drives confirm the brake
-        self._pretension_name = "home"  # its pose's name
-        self._pretension_changes: list[float] = []  # mm, the offsets' changes at its homing
-        # (empty until it has homed)
         self.collector = CollectorPolicy()
         self._extrapolation_limit = 2.0 / config.drives.feedback_rate_hz
         self._silence_limit = config.safety.stale_cycles * self.period
@@ -205,7 +200,7 @@ class Service:
             self.brake(Fault(Trigger.STARTUP, f"drives did not start: {why}"))
             return
         self.machine.go("started")
-        self._emit({"event": "state", "state": "idle", "why": "drives started"})
+        self.emit({"event": "state", "state": "idle", "why": "drives started"})
         self.collector.start()
 
     async def wait_stopped(self) -> int:
@@ -219,7 +214,7 @@ class Service:
         if self.machine.powered or self.machine.state is SafetyState.INIT:
             self.brake(Fault(trigger, "stop requested: braking before exit"))
         else:
-            self._send(self.driver.brake(self._hold_lengths(), self.config.drives.brake))
+            self.send(self.driver.brake(self.hold_lengths(), self.config.drives.brake))
         self._exit_code = self._exit_code or exit_code
         if self._stopped is not None:
             self._stopped.set()
@@ -263,7 +258,7 @@ class Service:
         # the cycle's instant is when its SYNC goes out, the drives latching then: the
         # work above (a late cycle closed, a stall) may have held the tick up since `now`
         self._opened = opened = time.monotonic()
-        self._send(self.driver.cycle_start())
+        self.send(self.driver.cycle_start())
         if self._all_fresh():
             self._run_cycle(opened, deadline=False)
             return
@@ -341,8 +336,9 @@ class Service:
         for drive, why in self.offsets.watch(self.driver.status, feedback, fresh):
             node = self.offsets.nodes[drive]
             log.error("drive %d (node %d): length offset lost: %s", drive, node, why)
-            self._emit({"event": "offset_lost", "drive": drive, "why": why})
-        winding = self.pretension is not None and self.pretension.active
+            self.emit({"event": "offset_lost", "drive": drive, "why": why})
+        procedure = self.procedure
+        winding = procedure is not None and procedure.winding
         judge = self.trust.track if winding else self.trust.check
         implausible = self._second_answers(feedback, judge(lengths, rates, fresh, instant))
         faults = [Fault(Trigger.IMPLAUSIBLE_FEEDBACK, f.message()) for f in implausible]
@@ -361,10 +357,10 @@ class Service:
             self.brake(faults[0])
         elif self.machine.moving and not self._busy:
             output = self._control(lengths, rates)
-        elif state is SafetyState.PRETENSION:
-            self._pretension_cycle(lengths, rates)
+        elif state is SafetyState.PRETENSION and procedure is not None:
+            procedure.cycle(instant - self.t0, lengths, rates)
         elif state is not SafetyState.INIT:
-            self._send(self.driver.keepalive())
+            self.send(self.driver.keepalive())
             if state is SafetyState.BRAKED:
                 self._report_hold()
         sent = time.monotonic()  # the cycle's frames are out
@@ -445,11 +441,9 @@ class Service:
         `rates` passed the plausibility checks (an implausible one brakes instead).
         The output whose commands went out, None if it braked instead."""
         t = self._opened - self.t0
-        pretension = self.pretension
-        if pretension is not None and pretension.phase == "unload":
-            pretension.unload(self.controller, t)
-            if pretension.phase == "closed":
-                self._end_pretension()
+        procedure = self.procedure
+        if procedure is not None:
+            procedure.before_step(t)
         try:
             output = self.controller.step(t, lengths, rates)
         except Exception as exc:
@@ -462,9 +456,6 @@ class Service:
             self._tell_listeners(output)  # before the brake, which changes the state
             self.brake(fault)
             return None
-        if self._close_forces is not None:  # the first command after pretension
-            self.loop_close_step = float(np.abs(output.commands - self._close_forces).max())
-            self._close_forces = None
         try:
             # plain floats: numpy scalars make the driver's per-drive arithmetic slow
             frames = self.driver.commands(output.commands.tolist())
@@ -472,7 +463,9 @@ class Service:
             self._tell_listeners(output)
             self.brake(Fault(Trigger.NAN, str(exc)))
             return None
-        self._send(frames)
+        self.send(frames)
+        if procedure is not None:
+            procedure.after_commands(output.commands)
         return output
 
     def _follow_up(self, output: ControlOutput, sent: float) -> None:
@@ -491,14 +484,14 @@ class Service:
             self._flight = FlightStats()
             if self.machine.state is SafetyState.HOLD:
                 self.machine.go("track")
-                self._emit({"event": "state", "why": "trajectory started"})
+                self.emit({"event": "state", "why": "trajectory started"})
         trajectory = self._trajectory
         if self.machine.state is SafetyState.TRACKING and trajectory is not None:
             self._flight.add(self.monitor.tracking_errors, output)
             if t >= trajectory.end_time:
                 self._trajectory = None
                 self.machine.go("finish")
-                self._emit({"event": "trajectory_done", "t": t, **self._flight.summary()})
+                self.emit({"event": "trajectory_done", "t": t, **self._flight.summary()})
 
     def _tell_listeners(self, output: ControlOutput) -> None:
         """The cycle listeners' (time, output) of the cycle opened at `self._opened`."""
@@ -515,16 +508,17 @@ class Service:
         braked = self.machine.brake(fault, supersede)
         self.brakes += 1
         self.hold_report.forget()
-        self._send(self.driver.brake(self._hold_lengths(), self.config.drives.brake))
+        self.send(self.driver.brake(self.hold_lengths(), self.config.drives.brake))
         self._trajectory = None
         self._scheduled.clear()
-        self._end_pretension(fault.message)
+        if self.procedure is not None:
+            self.procedure.end(fault.message)
         if braked:
             deliberate = fault.trigger in (Trigger.SIGTERM, Trigger.COMMAND)
             level = logging.WARNING if deliberate else logging.ERROR
             missed = self.monitor.missed_feedback()
             log.log(level, fault.line() + missed_text(missed))
-            self._emit({"event": "brake", "trigger": fault.trigger.value, "message": fault.message,
+            self.emit({"event": "brake", "trigger": fault.trigger.value, "message": fault.message,
                         "missed_feedback": missed})  # fmt: skip
 
     def _report_hold(self) -> None:
@@ -537,9 +531,9 @@ class Service:
             log.error("brake not confirmed: %s", "; ".join(event["unconfirmed"]))
         else:
             log.info("brake confirmed by every drive")
-        self._emit(event)
+        self.emit(event)
 
-    def _hold_lengths(self) -> list[float]:
+    def hold_lengths(self) -> list[float]:
         """The last trusted lengths (NaN for a cable never trusted: no drive was
         enabled then, and the driver keeps it so)."""
         return self.offsets.write(self.trust.held)
@@ -570,10 +564,10 @@ class Service:
         )
         self.stop(Trigger.BUS_LOST, EXIT_BUS_LOST)
 
-    def _send(self, frames: list[can.Message]) -> None:
+    def send(self, frames: list[can.Message]) -> None:
         self.port.send_all(frames)
 
-    def _emit(self, event: dict[str, Any]) -> None:
+    def emit(self, event: dict[str, Any]) -> None:
         event.setdefault("t", self.now())
         event.setdefault("state", self.machine.state.value)
         for sink in self._events:
@@ -600,27 +594,28 @@ class Service:
         unhomed = self.offsets.refusal()
         if unhomed is not None:
             raise CommandError("invalid_state", f"cannot enable: {unhomed}")
-        pose = self._measured_pose()  # refused where the FK residual is too large
+        pose = self.measured_pose()  # refused where the FK residual is too large
         holding = -static_tensions(self.robot, self.controller.tension, pose)
-        self._busy = True
-        try:
-            await self.driver.enable(self.port, self._hold_lengths(), holding.tolist())
-            # the drives hold their positions until the first torque command: the
-            # tensions they measure must hold the platform at the pose the offsets say
-            refusal = await self._rest_refusal(pose, "enable")
-        except DriverError as exc:
-            self.brake(Fault(Trigger.DRIVE_FAULT, f"enable failed: {exc}"))
-            raise CommandError("drive_error", f"enable failed: {exc}") from None
-        except CommandError:  # never at rest
-            self._send(self.driver.brake(self._hold_lengths(), self.config.drives.brake))
-            raise
-        finally:
-            self._busy = False
+        with self.drives_busy():
+            try:
+                await self.driver.enable(self.port, self.hold_lengths(), holding.tolist())
+                # the drives hold their positions until the first torque command: the
+                # tensions they measure must hold the platform at the pose the offsets say
+                refusal = await rest_refusal(self, pose, "enable")
+            except DriverError as exc:
+                self.brake(Fault(Trigger.DRIVE_FAULT, f"enable failed: {exc}"))
+                raise CommandError("drive_error", f"enable failed: {exc}") from None
+            except CommandError:  # never at rest
+                self.send(self.driver.brake(self.hold_lengths(), self.config.drives.brake))
+                raise
         if self.machine.state is not SafetyState.IDLE:  # braked meanwhile
             raise CommandError("invalid_state", f"enable aborted: {self.machine.fault.line()}")
         if refusal is not None:
-            self._send(self.driver.brake(self._hold_lengths(), self.config.drives.brake))
-            why = f"the stored length offsets put the platform at {_position(pose)}, but {refusal}"
+            self.send(self.driver.brake(self.hold_lengths(), self.config.drives.brake))
+            why = (
+                f"the stored length offsets put the platform at {position_text(pose)}, "
+                f"but {refusal}"
+            )
             log.error("enable refused: %s", why)
             raise CommandError(
                 "invalid_state",
@@ -628,19 +623,20 @@ class Service:
                 "home), or an undeclared payload or a push acts on the platform",
             )
         self.controller.reset(pose)
-        self._source_version += 1
+        self.source_changed()
         self.machine.go("enable")
-        self._emit({"event": "state", "why": "enabled"})
+        self.emit({"event": "state", "why": "enabled"})
         return self.status()
 
     def _disable(self, args: dict[str, Any]) -> dict[str, Any]:
         self._require_moving("disable")
-        self._send(self.driver.brake(self._hold_lengths(), self.config.drives.brake))
+        self.send(self.driver.brake(self.hold_lengths(), self.config.drives.brake))
         self._trajectory = None
         self._scheduled.clear()
-        self._end_pretension("disabled")
+        if self.procedure is not None:
+            self.procedure.end("disabled")
         self.machine.go("disable")
-        self._emit({"event": "state", "why": "disabled"})
+        self.emit({"event": "state", "why": "disabled"})
         return self.status()
 
     def _brake_command(self, args: dict[str, Any]) -> dict[str, Any]:
@@ -669,23 +665,37 @@ class Service:
                 "invalid_state",
                 "cannot reset while faults persist: " + "; ".join(f.message for f in causes),
             )
-        self._busy = True
-        try:
-            await self.driver.reset_faults(self.port)
-        except DriverError as exc:
-            raise CommandError("drive_error", f"fault reset failed: {exc}") from None
-        finally:
-            self._busy = False
+        with self.drives_busy():
+            try:
+                await self.driver.reset_faults(self.port)
+            except DriverError as exc:
+                raise CommandError("drive_error", f"fault reset failed: {exc}") from None
         await asyncio.sleep(3 * self.period)  # let fresh feedback and heartbeats arrive
         try:
             self.machine.reset(self.faults)
         except Exception as exc:
             raise CommandError("invalid_state", str(exc)) from None
-        self._emit({"event": "state", "why": "reset"})
+        self.emit({"event": "state", "why": "reset"})
         return self.status()
 
     def _status(self, args: dict[str, Any]) -> dict[str, Any]:
         return self.status()
+
+    @contextlib.contextmanager
+    def drives_busy(self) -> Iterator[None]:
+        """While a sequence talks to the drives (enable, reset, a rest check): the
+        cycle sends no controller commands, and every command but status and brake is
+        refused."""
+        self._busy = True
+        try:
+            yield
+        finally:
+            self._busy = False
+
+    def source_changed(self) -> None:
+        """The controller's reference source changed (enable, a new trajectory, a closed
+        loop): plans made from the old one are refused (follow_planned's "moved")."""
+        self._source_version += 1
 
     def _load_offsets(self) -> None:
         """The stored offsets (state_dir), if any, in place of drives.length_offset; an
@@ -702,329 +712,6 @@ class Service:
         if state is not None:
             self.offsets.adopt(state)
             log.info("length offsets from %s (%s)", path, state.method)
-
-    async def _home(self, args: dict[str, Any]) -> dict[str, Any]:
-        """Set every cable's length offset so that the lengths read equal the model's at
-        the named resting pose (cdpr.homing), once the platform is seen at rest over
-        HOME_SAMPLES cycles.  Only while the drives are not following forces (IDLE or
-        BRAKED): the controller's lengths must not jump under it."""
-        state = self.machine.state
-        if state not in (SafetyState.IDLE, SafetyState.BRAKED):
-            raise CommandError(
-                "invalid_state", f"cannot home while {state.value} (needs idle or braked)"
-            )
-        name, pose = self._named_pose("home", args)
-        self._busy = True
-        try:
-            samples = await self._rest_samples()
-            if self.driver.measures_force:
-                await self._home_rest_check(name, pose, np.mean(samples, axis=0).tolist())
-                samples = await self._rest_samples()  # where the brake holds it now
-        finally:
-            self._busy = False
-        lengths = np.mean(samples, axis=0)
-        tensions = static_tensions(self.robot, self.controller.tension, pose)
-        configured = np.array(self.offsets.configured)
-        offsets = homed_offsets(
-            self.robot, pose, tensions, self.controller.stretch.scale, lengths, configured
-        )
-        method = f"home at pose {name}"
-        changes = self.offsets.set(offsets.tolist(), method, time.time())
-        self.trust.shift(changes)
-        moved = [round(c * 1e3, 2) for c in changes]
-        log.info("homed at pose %s: offsets changed by %s mm", name, moved)
-        self._emit({"event": "homed", "pose": name})
-        return {
-            "offsets": self.offsets.offsets,
-            "changes_mm": [c * 1e3 for c in changes],
-            "method": method,
-            "time": self.offsets.time,
-            "pose": name,
-        }
-
-    async def _home_rest_check(self, name: str, pose: Pose, lengths: list[float]) -> None:
-        """CommandError unless the platform can be resting at `pose`: the drives hold
-        `lengths` (driver lengths, where they are at rest) while they measure the
-        tensions, which must hold the platform at `pose` (daemon.service.rest_check);
-        then the brake, at the trusted lengths or, for a cable with none (braked on
-        implausible feedback), where its drive holds it now: a drive without a length
-        would be switched off, and without a holding brake its drum would free-wheel."""
-        brakes = self.brakes
-        trusted = self._hold_lengths()
-        held = [h if math.isfinite(h) else x for h, x in zip(trusted, lengths, strict=True)]
-        try:
-            await self.driver.enable(self.port, lengths, [0.0] * self.n)
-            refusal = await self._rest_refusal(pose, "home")
-        except DriverError as exc:
-            raise CommandError(
-                "drive_error", f"home: the drives cannot hold to measure the tensions: {exc}"
-            ) from None
-        finally:
-            if self.brakes == brakes:  # a brake meanwhile sent its own frames
-                self._send(self.driver.brake(held, self.config.drives.brake))
-        if self.brakes != brakes:
-            raise CommandError("invalid_state", f"home aborted: {self.machine.fault.line()}")
-        if refusal is not None:
-            log.error("home at pose %s refused: %s", name, refusal)
-            raise CommandError(
-                "rejected", f"home: the platform is not resting at pose {name!r}: {refusal}"
-            )
-
-    async def _rest_refusal(self, pose: Pose, what: str) -> str | None:
-        """With every drive holding its position: once the cables are at rest, why the
-        tensions the drives measure cannot hold the platform at `pose`
-        (daemon.service.rest_check); None if they can, or if the drives measure no force
-        (the FK residual is then the only check, as the log says)."""
-        if not self.driver.measures_force:
-            log.warning(
-                "%s: the drives measure no force: the pose is not checked by the "
-                "tensions at rest, only by the FK residual",
-                what,
-            )
-            return None
-        end = self.now() + REST_SETTLE
-        while True:  # the hold takes the load from the brake: the cables settle first
-            try:
-                await self._rest_samples(what)
-                break
-            except CommandError:
-                if self.now() > end:
-                    raise
-        forces = []  # averaged: one reading catches the hold's servo mid-correction
-        for _ in range(FORCE_READINGS):
-            forces.append(await self.driver.measured_forces(self.port))
-            await asyncio.sleep(self.period)
-        forces = np.mean(forces, axis=0).tolist()
-        safety = self.config.safety
-        residual, refusal = judge(self.robot, pose, forces, safety.rest_force, safety.rest_torque)
-        log.info("%s: rest check at %s: %s", what, _position(pose), residual.text())
-        return refusal
-
-    def _named_pose(self, what: str, args: dict[str, Any]) -> tuple[str, Pose]:
-        """The robot file's pose args["pose_name"] (default home) and its name;
-        CommandError naming the poses there are for an unknown one."""
-        name = str(args.get("pose_name") or "home")
-        pose = self.robot.poses.get(name)
-        if pose is None:
-            raise CommandError(
-                "bad_request",
-                f"{what}: no pose {name!r} in the robot file "
-                f"(poses: {', '.join(self.robot.poses)})",
-                field="pose",
-            )
-        return name, pose
-
-    # -- pretension (cdpr.pretension) ---------------------------------------------------
-
-    async def _pretension(self, args: dict[str, Any]) -> dict[str, Any]:
-        """Bring the platform resting on a fixture at the robot file's pose (args
-        "pose_name", default home) from slack cables to the position loop: the drives
-        enabled in force, cdpr.pretension's wind, ramp and settle in the cycle, homing at
-        the pose with the settled lengths, the loop closed bumplessly (`_pretension_cycle`).
-        From IDLE, or BRAKED where the only conditions are lengths that fit no pose (slack
-        cables at start-up).  The reply comes when the loop has closed (HOLD; the fixture's
-        share of the weight is then handed over for unload_time); CommandError naming the
-        reason if it aborted (braked)."""
-        state = self.machine.state
-        if state not in (SafetyState.IDLE, SafetyState.BRAKED):
-            raise CommandError(
-                "invalid_state", f"cannot pretension while {state.value} (needs idle or braked)"
-            )
-        blocking = [f for f in self.faults if f.trigger is not Trigger.IMPLAUSIBLE_FEEDBACK]
-        if blocking:
-            raise CommandError(
-                "invalid_state", "cannot pretension: " + "; ".join(f.message for f in blocking)
-            )
-        name, pose = self._named_pose("pretension", args)
-        raw = [fb.length for fb in self.driver.feedback]
-        if not all(map(math.isfinite, raw)):
-            raise CommandError("invalid_state", "pretension: no feedback from every drive yet")
-        spec, solver = self.config.pretension, self.controller.tension
-        try:
-            target = ramp_target(self.robot, solver, pose, spec.carry)
-            pretension = Pretension(
-                self.robot, spec, pose, target, self.controller.stretch.scale,
-                self.offsets.read(raw),
-            )  # fmt: skip
-        except ValueError as exc:
-            raise CommandError("rejected", f"pretension at pose {name}: {exc}") from None
-        brakes = self.brakes
-        self._busy = True
-        try:
-            await self.driver.enable(self.port, raw, pretension.forces.tolist())
-        except DriverError as exc:
-            self.brake(Fault(Trigger.DRIVE_FAULT, f"pretension: enable failed: {exc}"))
-            raise CommandError("drive_error", f"pretension: enable failed: {exc}") from None
-        finally:
-            self._busy = False
-        if self.brakes != brakes:  # braked meanwhile (maybe braked again)
-            raise CommandError("invalid_state", f"pretension aborted: {self.machine.fault.line()}")
-        self.pretension, self._pretension_cycles, self.loop_close_step = pretension, 0, None
-        self._pretension_name, self._pretension_changes = name, []
-        assert self._loop is not None
-        done = self._pretension_waiter = self._loop.create_future()
-        self.machine.pretension()
-        self._emit({"event": "state", "why": f"pretension at pose {name}"})
-        # the rest runs to its end even if the caller goes away (a cancelled command
-        # would leave the robot in PRETENSION, the loop never closed)
-        finish = asyncio.ensure_future(self._finish_pretension(done, pretension, name))
-        return await asyncio.shield(finish)
-
-    async def _finish_pretension(
-        self, done: asyncio.Future[None], pretension: Pretension, name: str
-    ) -> dict[str, Any]:
-        """Pretension after the drives enabled: once homed (or braked), close the loop,
-        wait for the first cycle in HOLD, and reply (or CommandError naming the abort).
-        Aborted after its homing (braked before the loop closed), the offsets it homed
-        stay in force: they were found at rest on the fixture, as `home` finds them, and
-        changing them under the brake would move the lengths it holds.  The refusal
-        carries them ("offsets", "method") for the planner to store: the next start-up
-        must read the offsets that were in force."""
-        await done  # homed, and the homed lengths trusted; or braked
-        if self.machine.state is SafetyState.PRETENSION:
-            self._close_loop(pretension)
-        for _ in range(RETRUST_CYCLES):  # the first cycle in HOLD measures the step
-            if self.loop_close_step is not None or not self.machine.moving:
-                break
-            await asyncio.sleep(self.period)
-        if not self.machine.moving:
-            fault = self.machine.fault
-            why = fault.line() if fault is not None else self.machine.state.value
-            offsets = self.offsets
-            homed = bool(self._pretension_changes) and offsets.refusal() is None
-            kept = {"offsets": offsets.offsets, "method": offsets.method} if homed else {}
-            raise CommandError("rejected", f"pretension aborted: {why}", **kept)
-        offsets = self.offsets
-        return {
-            **self.status(),
-            "offsets": offsets.offsets,
-            "changes_mm": self._pretension_changes,
-            "method": offsets.method,
-            "time": offsets.time,
-            "pose": name,
-            "loop_close_step_n": self.loop_close_step,
-        }
-
-    def _pretension_cycle(self, lengths: list[float], rates: list[float]) -> None:
-        """One cycle of PRETENSION: cdpr.pretension's forces while it winds, ramps and
-        settles; then homing at its pose, and once the homed lengths are trusted (one
-        pose, `_run_cycle`'s check) the command is woken to close the loop."""
-        p = self.pretension
-        assert p is not None
-        t = self._opened - self.t0
-        if p.active:
-            try:
-                p.step(t, lengths, rates)
-            except Exception as exc:
-                log.exception("pretension step raised")
-                self.brake(Fault(Trigger.CONTROLLER_EXCEPTION, f"{type(exc).__name__}: {exc}"))
-                return
-            if p.fault is not None:
-                self.brake(Fault(Trigger.PRETENSION, p.fault))
-                return
-            if p.phase == "done":
-                self._pretension_home(p)
-        try:
-            self._send(self.driver.commands(p.forces))
-        except FrameError as exc:
-            self.brake(Fault(Trigger.NAN, str(exc)))
-            return
-        if p.phase != "done":
-            return
-        if not self.trust.retrusting:
-            self._end_pretension()  # the command closes the loop (off the cycle)
-            return
-        self._pretension_cycles += 1
-        if self._pretension_cycles > RETRUST_CYCLES:
-            self.brake(Fault(Trigger.PRETENSION, "the homed lengths were never judged"))
-
-    def _close_loop(self, p: Pretension) -> None:
-        """The pretension's end: the pose measured from the homed lengths under its
-        tensions (as enable does), the loop closed there with the fixture's share preset
-        (Pretension.close); the next cycle is the controller's, and `_control` measures
-        how far its commands differ from the last ones (loop_close_step)."""
-        try:
-            pose = self._measured_pose(lambda pose: p.planned)
-        except CommandError as exc:
-            self.brake(Fault(Trigger.PRETENSION, f"after homing: {exc.reason}"))
-            return
-        self._close_forces = p.forces.copy()
-        p.close(self.controller, pose, self.now())
-        self._source_version += 1
-        self.machine.go("tensioned")
-        self._emit({"event": "state", "why": "pretension done: position loop closed"})
-
-    def _pretension_home(self, p: Pretension) -> None:
-        """Home at the pretension's pose with its settled lengths and tensions."""
-        assert p.settled_lengths is not None
-        driver = np.array(self.offsets.write(p.settled_lengths.tolist()))
-        offsets = homed_offsets(
-            self.robot, p.pose, p.planned, self.controller.stretch.scale, driver,
-            np.array(self.offsets.configured),
-        )  # fmt: skip
-        name = self._pretension_name
-        changes = self.offsets.set(offsets.tolist(), f"pretension at pose {name}", time.time())
-        self.trust.shift(changes)
-        self._pretension_changes = [c * 1e3 for c in changes]
-        log.info("pretension at pose %s: homed, offsets changed by %s mm", name,
-                 [round(c * 1e3, 2) for c in changes])  # fmt: skip
-        self._emit({"event": "homed", "pose": name})
-
-    def _end_pretension(self, why: str = "") -> None:
-        """Wake the pretension command (closed, braked, disabled)."""
-        waiter, self._pretension_waiter = self._pretension_waiter, None
-        if waiter is not None and not waiter.done():
-            waiter.set_result(None)
-        p = self.pretension
-        if why and p is not None and p.phase not in ("closed", "aborted"):
-            p.phase, p.fault = "aborted", p.fault or why
-        if why:
-            self._close_forces = None
-
-    async def _rest_samples(self, what: str = "home") -> list[list[float]]:
-        """HOME_SAMPLES cycles of driver lengths; CommandError naming the drive if any
-        moves (its lengths' trend above REST_RATE, or their spread above REST_SPREAD:
-        the trend, a least-squares slope over the samples, not the reported rates, whose
-        mean carries each rate's own noise: 20 um of encoder noise differenced over 2 ms
-        read as 2.5 mm/s) or reports nothing."""
-        lengths, rates = [], []
-        for _ in range(HOME_SAMPLES):
-            await asyncio.sleep(self.period)
-            feedback = self.driver.feedback
-            lengths.append([fb.length for fb in feedback])
-            rates.append([fb.rate for fb in feedback])
-        samples = np.asarray(lengths)
-        reported = np.isfinite(samples).all(axis=0) & np.isfinite(rates).all(axis=0)
-        if not reported.all():
-            raise CommandError(
-                "invalid_state", f"{what}: no feedback from drive {int(np.argmin(reported))}"
-            )
-        t = np.arange(HOME_SAMPLES) * self.period
-        t -= t.mean()
-        trend = np.abs(t.dot(samples - samples.mean(axis=0)) / t.dot(t))
-        spread = np.ptp(samples, axis=0)
-        k = int(np.argmax(trend))
-        node = self.offsets.nodes
-        if trend[k] > REST_RATE:
-            raise CommandError(
-                "invalid_state",
-                f"{what}: the platform is not at rest: drive {k} (node {node[k]}) moves at "
-                f"{trend[k] * 1e3:.2f} mm/s over {HOME_SAMPLES} cycles (at rest: below "
-                f"{REST_RATE * 1e3:g} mm/s)",
-            )
-        k = int(np.argmax(spread))
-        if spread[k] > REST_SPREAD:
-            raise CommandError(
-                "invalid_state",
-                f"{what}: the platform is not at rest: drive {k} (node {node[k]}) length varied "
-                f"by {spread[k] * 1e3:.2f} mm over {HOME_SAMPLES} cycles (at rest: below "
-                f"{REST_SPREAD * 1e3:g} mm)",
-            )
-        noisy = self._noise.take(samples)
-        if noisy is not None:
-            log.warning("%s: %s", what, noisy["message"])
-            self._emit(noisy)
-        return lengths
 
     async def in_slack(self, steps: Generator[Any, None, Result]) -> Result:
         """Run a step generator (validation, transition planning: a Planner on this loop)
@@ -1110,13 +797,13 @@ class Service:
         self._follow(trajectory)
         if self.machine.state is SafetyState.TRACKING:
             self.machine.go("hold")
-        self._emit({"event": "state", "why": "hold"})
+        self.emit({"event": "state", "why": "hold"})
         return {"accepted": True, "what": what}
 
     def _follow(self, trajectory: Curve) -> None:
         """The controller follows `trajectory` from its start: a new source version."""
         self.controller.follow(trajectory, at=trajectory.start_time)
-        self._source_version += 1
+        self.source_changed()
 
     def _run(self, trajectory: Curve, what: str) -> dict[str, Any]:
         """Follow a validated trajectory (planned from the current reference) from its
@@ -1132,7 +819,7 @@ class Service:
             self._flight = FlightStats()
             if self.machine.state is SafetyState.HOLD:
                 self.machine.go("track")
-                self._emit({"event": "state", "why": f"{what} accepted"})
+                self.emit({"event": "state", "why": f"{what} accepted"})
         return {
             "accepted": True,
             "what": what,
@@ -1154,7 +841,7 @@ class Service:
                 "invalid_state", f"cannot {action} while {self.machine.state.value} (enable first)"
             )
 
-    def _measured_pose(self, tensions_at: Callable[[Pose], np.ndarray] | None = None) -> Pose:
+    def measured_pose(self, tensions_at: Callable[[Pose], np.ndarray] | None = None) -> Pose:
         """The platform pose from the current lengths, stretch-corrected with the static
         tensions of the pose (the platform is at rest when enabling; `tensions_at` the
         tensions at a pose where they are others): forward kinematics alternated with the
@@ -1307,13 +994,7 @@ _COMMANDS: dict[str, Callable[[Service, dict[str, Any]], Any]] = {
     "reset": Service._reset,
     "status": Service._status,
     "payload": Service._payload,
-    "home": Service._home,
-    "pretension": Service._pretension,
+    "home": home,
+    "pretension": pretension,
     "observer": Service._observer,
 }
-
-
-def _position(pose: Pose) -> str:
-    """A pose's reference point as messages print it."""
-    x, y, z = pose.position_tuple
-    return f"({x:.3f}, {y:.3f}, {z:.3f}) m"

@@ -86,6 +86,7 @@ from cdpr.stretch import ComplianceScale
 from cdpr.trajectory.limits import TrajectoryLimits
 
 RETRY = 0.1  # s between attempts to trust a first set after one failed
+RETRUST_CYCLES = 50  # cycles a retrust (a reset, a pretension's homing) waits for a judgement
 REFRESH_DISTANCE = 0.01  # m (or rad) the pose may move before N is linearised again
 # x feedback_tolerance: the largest change of a cable the linear consistency check judges
 # alone (module docstring); at 1 mm, a 1 cm change, where it errs by 0.1 mm on reference8
