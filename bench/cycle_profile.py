@@ -100,7 +100,7 @@ PARTS: list[tuple[str, str | None, Where]] = [
     ("step.payload_observe", "control.step", lambda s: (s.controller.payload, "observe")),
     ("control.safety_output", "cycle.control", lambda s: (s.monitor, "check_output")),
     ("control.encode", "cycle.control", lambda s: (s.driver, "commands")),
-    ("control.send", "cycle.control", lambda s: (s, "_send")),
+    ("control.send", "cycle.control", lambda s: (s, "send")),
     ("cycle.after_commands", "cycle", lambda s: (s, "_after_commands")),
     ("after.deadline_disarm", "cycle.after_commands", lambda s: (s._deadline, "disarm")),
     ("after.follow_pose", "cycle.after_commands", lambda s: (s.trust, "follow_pose")),

@@ -96,3 +96,46 @@ def upper_solve(U: Array, z: Array) -> None:
         for q in range(i + 1, m):
             s -= U[i, q] * z[q]
         z[i] = s / U[i, i]
+
+
+@njit(cache=True)
+def left_null_space(A: Array, N: Array) -> None:
+    """N (m x (m - n)): an orthonormal basis of the left null space of A (m x n, m > n),
+    the last m - n columns of Q in A = Q R by Householder reflections: N^T A = 0 and
+    N^T N = I whatever A's rank (a LAPACK SVD from Python took 0.1 ms in the cycle)."""
+    m, n = A.shape
+    R = A.copy()
+    V = np.zeros((n, m))  # the reflections' unit vectors, row k acting on rows k..m-1
+    for k in range(n):
+        norm = 0.0
+        for i in range(k, m):
+            norm += R[i, k] * R[i, k]
+        norm = math.sqrt(norm)
+        if norm == 0.0:
+            continue  # nothing below the diagonal to reflect away: H_k = I
+        alpha = -norm if R[k, k] >= 0.0 else norm
+        length = 0.0
+        for i in range(k, m):
+            V[k, i] = R[i, k]
+        V[k, k] -= alpha
+        for i in range(k, m):
+            length += V[k, i] * V[k, i]
+        length = math.sqrt(length)
+        for i in range(k, m):
+            V[k, i] /= length
+        for j in range(k, n):  # R = H_k R on the columns still to reduce
+            s = 0.0
+            for i in range(k, m):
+                s += V[k, i] * R[i, j]
+            for i in range(k, m):
+                R[i, j] -= 2.0 * s * V[k, i]
+    for c in range(m - n):  # Q e_(n + c) = H_0 H_1 ... H_(n-1) e_(n + c)
+        for i in range(m):
+            N[i, c] = 0.0
+        N[n + c, c] = 1.0
+        for k in range(n - 1, -1, -1):
+            s = 0.0
+            for i in range(k, m):
+                s += V[k, i] * N[i, c]
+            for i in range(k, m):
+                N[i, c] -= 2.0 * s * V[k, i]

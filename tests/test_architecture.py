@@ -289,6 +289,20 @@ def test_the_real_time_core_compiles_nothing_once_its_robot_is_built() -> None:
     assert _signatures_added(setup, action) == "True {}"
 
 
+def test_the_trusted_lengths_check_compiles_nothing_in_a_cycle() -> None:
+    """The consistency check's null-space kernel is loaded when the check is built: its
+    linearisation at a pose, which a cycle runs as the platform moves, adds no compiled
+    signature."""
+    setup = (
+        "from daemon.service.trusted_lengths import TrustedLengths\n"
+        "from tests.conftest import load_robot\n"
+        "robot = load_robot('reference8')\n"
+        "trust = TrustedLengths(robot, list(range(1, 9)), max_speed=3.0, tolerance=1e-3,\n"
+        "                       slack=0.01, rest_tensions=[100.0] * 8)\n"
+    )
+    assert _signatures_added(setup, "trust.follow_pose(robot.home)\n") == "True {}"
+
+
 def test_the_companion_compiles_nothing_for_a_client_s_trajectory() -> None:
     """The companion loads the validation's kernels before the core's hang timer runs
     (planner.load_checks, from a trajectory of Waypoints); a client's trajectory, parsed

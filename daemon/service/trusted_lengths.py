@@ -82,6 +82,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from cdpr import Pose, Robot
+from cdpr.compiled_linalg import kernel_array, left_null_space
 from cdpr.stretch import ComplianceScale
 from cdpr.trajectory.limits import TrajectoryLimits
 
@@ -161,6 +162,8 @@ class TrustedLengths:
         self._basis: list[list[float]] = []  # rows N_k of the left null space of Lambda
         self._inverse_norms = [0.0] * n  # 1 / |N_k| (0: cable not observable)
         self._pose: Pose | None = None  # where N was linearised
+        # its kernel loaded now, not in the cycle that first linearises (a compile there)
+        left_null_space(np.eye(7, 6), np.empty((7, 1)))
         self._next_look = -math.inf  # no second look before (a failed one waits RETRY)
 
     # -- every cycle ------------------------------------------------------------------
@@ -484,10 +487,13 @@ class TrustedLengths:
         return flagged
 
     def _linearise(self, pose: Pose) -> None:
-        """N at `pose`: an orthonormal basis of the left null space of Lambda."""
+        """N at `pose`: an orthonormal basis of the left null space of Lambda (none with
+        no more cables than degrees of freedom)."""
         Lam = self.robot.jacobian(pose)
-        u, _, _ = np.linalg.svd(Lam)
-        basis = u[:, Lam.shape[1] :]
+        cables, freedoms = Lam.shape
+        basis = np.zeros((cables, max(cables - freedoms, 0)))
+        if cables > freedoms:
+            left_null_space(kernel_array(Lam, Lam.shape), basis)
         norms2 = (basis * basis).sum(axis=1)
         self._basis = basis.tolist()
         self._inverse_norms = [
