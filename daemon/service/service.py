@@ -41,6 +41,12 @@ from daemon.service.calibration_state import (
 )
 from daemon.service.command_lead import LatencyMedian
 from daemon.service.cycle_stats import CycleStats
+from daemon.service.estimates import (
+    observer_command,
+    observer_state,
+    payload_command,
+    payload_state,
+)
 from daemon.service.flight_stats import FlightStats
 from daemon.service.hold_report import HoldReport, hold_summary
 from daemon.service.homing import LengthOffsets
@@ -859,56 +865,6 @@ class Service:
 
     # -- state ---------------------------------------------------------------------------
 
-    def _payload(self, args: dict[str, Any]) -> dict[str, Any]:
-        """Freeze or unfreeze the payload estimate, or set it (identify-payload's, applied;
-        within controller.adaptation's limits); the reply is the estimate."""
-        estimate = self.controller.payload
-        if estimate is None:
-            raise CommandError(
-                "invalid_state", "the payload estimate is off (controller.adaptation.enabled)"
-            )
-        if "mass" in args:
-            try:
-                self.controller.set_payload(args["mass"], args["center_of_mass"])
-            except ValueError as exc:
-                raise CommandError("rejected", str(exc)) from None
-        if "frozen" in args:
-            estimate.frozen = args["frozen"]
-        return self._payload_state()
-
-    def _payload_state(self) -> dict[str, Any] | None:
-        """The payload estimate as published (None when it is off)."""
-        estimate = self.controller.payload
-        if estimate is None:
-            return None
-        return {
-            "mass": estimate.mass,
-            "center_of_mass": list(estimate.center_of_mass),
-            # about the centre of mass, platform frame (the file's unless adaptation.inertia)
-            "inertia": estimate.platform.inertia.tolist(),
-            "frozen": estimate.frozen,
-        }
-
-    def _observer(self, args: dict[str, Any]) -> dict[str, Any]:
-        """Hold the external wrench observer out of the loop, or let it back in
-        (args "held"; ParallelController.hold_observer: `cdprd calibrate` flies with it
-        held); the reply is its state."""
-        if self.controller.observer is None:
-            raise CommandError(
-                "invalid_state",
-                "the external wrench observer is off (controller.disturbance_observer.enabled)",
-            )
-        if "held" in args:
-            self.controller.hold_observer(args["held"])
-        return self._observer_state()
-
-    def _observer_state(self) -> dict[str, Any] | None:
-        """The external wrench observer as published (None when it is off)."""
-        observer = self.controller.observer
-        if observer is None:
-            return None
-        return {"held": self.controller.observer_held, "estimate": observer.estimate.tolist()}
-
     def status(self) -> dict[str, Any]:
         """Safety state, fault and active conditions (the reply to most commands)."""
         fault = self.machine.fault
@@ -976,9 +932,9 @@ class Service:
         # the cables' EA as identified, a multiple of the robot file's (cdpr.stretch)
         state["stiffness_scale"] = self.controller.stretch.stiffness_scale
         # the platform's mass and centre of mass as estimated (cdpr.payload)
-        state["payload"] = self._payload_state()
+        state["payload"] = payload_state(self.controller)
         # the external wrench the model does not explain (cdpr.wrench_observer)
-        observer = self._observer_state()
+        observer = observer_state(self.controller)
         state["external_wrench"] = None if observer is None else observer["estimate"]
         # whether that observer is held out of the loop (ParallelController.hold_observer)
         state["observer_held"] = None if observer is None else observer["held"]
@@ -993,8 +949,8 @@ _COMMANDS: dict[str, Callable[[Service, dict[str, Any]], Any]] = {
     "brake": Service._brake_command,
     "reset": Service._reset,
     "status": Service._status,
-    "payload": Service._payload,
+    "payload": lambda core, args: payload_command(core.controller, args),
     "home": home,
     "pretension": pretension,
-    "observer": Service._observer,
+    "observer": lambda core, args: observer_command(core.controller, args),
 }

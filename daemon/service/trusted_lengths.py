@@ -162,9 +162,9 @@ class TrustedLengths:
         self._basis: list[list[float]] = []  # rows N_k of the left null space of Lambda
         self._inverse_norms = [0.0] * n  # 1 / |N_k| (0: cable not observable)
         self._pose: Pose | None = None  # where N was linearised
-        # its kernel loaded now, not in the cycle that first linearises (a compile there)
-        left_null_space(np.eye(7, 6), np.empty((7, 1)))
         self._next_look = -math.inf  # no second look before (a failed one waits RETRY)
+        # N's kernel loaded now, not in the cycle that first linearises (a compile there)
+        left_null_space(np.eye(7, 6), np.empty((7, 1)))
 
     # -- every cycle ------------------------------------------------------------------
 
