@@ -327,3 +327,26 @@ def test_a_brake_while_the_drives_enable_for_pretension_aborts_it() -> None:
             assert service.pretension is None
 
     run(main())
+
+
+def test_a_disable_while_the_fixture_s_share_is_handed_over_ends_the_pretension() -> None:
+    """Disabled in HOLD right after the loop closed, before unload_time has handed the
+    fixture's share to the controller: the robot is IDLE, the pretension aborted naming
+    the disable, and no later cycle goes on unloading it (the cycle's procedure, ended)."""
+    config = slack_config("cia402", pretension={"unload_time": 5.0})
+
+    async def main() -> None:
+        async with Stack(config) as stack:
+            service = stack.service
+            await started(stack)
+            reply = await stack.planner.command("pretension", {})
+            assert reply["state"] == "hold"
+            assert service.pretension.phase == "unload"
+            await stack.planner.command("disable", {})
+            assert service.machine.state is SafetyState.IDLE
+            before = service.stats.cycles
+            await stack.until(lambda: service.stats.cycles > before + 50, 10.0)
+            summary = service.status()["pretension"]
+            assert (summary["phase"], summary["fault"]) == ("aborted", "disabled")
+
+    run(main())
