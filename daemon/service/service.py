@@ -7,6 +7,9 @@ into the driver as they arrive, and the cycle runs the moment every actuator's f
 is in (or at the deadline): the controller step, the safety checks, then all command
 frames.  Trajectories come planned and validated (daemon.service.planner): the service
 only checks that the reference they were planned from still stands, and follows them.
+A procedure that needs the cycle itself (pretension: daemon.service.pretension_run) is
+driven through daemon.service.procedure.CycleProcedure alone; home and the rest checks
+live in daemon.service.rest, the estimates' commands in daemon.service.estimates.
 """
 
 from __future__ import annotations
