@@ -234,7 +234,14 @@ def test_a_hold_from_another_client_stops_identify_payload() -> None:
             planner.subscribe(events.append)
             await stack.enable()
             identify = asyncio.ensure_future(planner.command("identify_payload", {"client": "A"}))
-            await stack.until(lambda: planner.state()["motion"] is not None, 10.0)
+            running = lambda: planner.state()["motion"] is not None  # noqa: E731
+            await stack.until(lambda: running() or identify.done(), 10.0)
+            if identify.done():  # ended before it was seen running: say why (a brake's fault)
+                fault = stack.service.machine.fault
+                raise AssertionError(
+                    f"identify_payload ended at once: {identify.exception()!r}; "
+                    f"fault: {None if fault is None else fault.line()}"
+                )
             assert planner.state()["motion"] == {"what": "identify_payload", "client": "A"}
             await asyncio.sleep(0.5)
             reason = await _refused(
