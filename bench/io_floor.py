@@ -34,10 +34,10 @@ import os
 import select
 import socket
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 
 from daemon.config import RealtimeConfig
-from daemon.process.realtime import enter_realtime, leave_realtime
+from daemon.process.realtime import realtime
 from drivers.clock import DeadlineTimer, PeriodicTimer
 from sim_bus.bus.pairbus import FRAME, bus_pair
 
@@ -155,19 +155,9 @@ def run_plain(cycle: Cycle, seconds: float) -> Window:
                     cycle.take(by_fd[fd], deadline)
 
 
-@contextlib.contextmanager
-def as_the_core() -> Iterator[None]:
-    """This process scheduled as the core (CORE, where permitted), then as before."""
-    state = enter_realtime(CORE)
-    try:
-        yield
-    finally:
-        leave_realtime(state)
-
-
 def tick_cost(rate: float, seconds: float) -> float:
     """CPU us per wake-up of a thread that only waits for the periodic timerfd's ticks."""
-    with as_the_core(), PeriodicTimer(1.0 / rate) as timer:
+    with realtime(CORE), PeriodicTimer(1.0 / rate) as timer:
         os.set_blocking(timer.fileno(), True)
         ticks, end, begin = 0, time.monotonic() + seconds, time.process_time()
         while time.monotonic() < end:
@@ -189,7 +179,7 @@ def measure(way: str, rate: float, seconds: float, buses: int, drives_n: int) ->
     try:
         cycle = Cycle([c for c, _ in pairs], drives_n // buses, 1.0 / rate)
         runner: Callable = run_asyncio if way == "asyncio" else run_plain
-        with as_the_core():
+        with realtime(CORE):
             end, (begin, cycles0, misses0), cycles, misses = runner(cycle, seconds)
     finally:
         for core_end, _ in pairs:

@@ -76,7 +76,7 @@ class Ticker:
             return
         now = time.monotonic()
         self.missed += expired - 1  # periods that passed with no tick taken
-        late = now - self._timer.last_expiry(now) + (expired - 1) * TICK
+        late = self._timer.lateness(now, expired)
         self.longest = max(self.longest, late)
 
     def stop(self) -> None:

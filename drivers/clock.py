@@ -123,6 +123,11 @@ class PeriodicTimer(_TimerFd):
             return self.start
         return self.start + math.floor((now - self.start) / self.period + 1e-9) * self.period
 
+    def lateness(self, now: float, expired: int) -> float:
+        """How late (s) a wake-up at `now` that read `expired` expirations takes the
+        first of them: its own lateness plus the whole periods it let pass."""
+        return now - self.last_expiry(now) + (expired - 1) * self.period
+
     def next_expiry(self) -> float:
         """The monotonic time of the next expiry."""
         now = time.monotonic()

@@ -167,7 +167,7 @@ class SimulatorRunner:
         vCPU), and meanwhile no drive answered: the daemon sees missed feedback that real
         drives, on processors of their own, would not have caused.  Logged there."""
         now = time.monotonic()
-        late = now - timer.last_expiry(now) + (expired - 1) * timer.period
+        late = timer.lateness(now, expired)
         self._latest = max(self._latest, late)
         if late >= HELD_UP and self.own_process:
             log.warning(

@@ -41,6 +41,16 @@ def test_the_last_expiry_is_the_grid_point_at_or_before_now() -> None:
         assert timer.last_expiry(100.03) == pytest.approx(100.03)  # on a tick: that one
 
 
+def test_a_wake_up_s_lateness_counts_the_periods_it_let_pass() -> None:
+    """From the first expiry a wake-up reads: 4.9 ms after the latest, 3 expirations
+    read: the first was two periods before it."""
+    period, start = 0.01, 100.0
+    with PeriodicTimer(period, time.monotonic() + 60.0) as timer:
+        timer.start = start
+        assert timer.lateness(100.0349, 1) == pytest.approx(0.0049)
+        assert timer.lateness(100.0349, 3) == pytest.approx(0.0249)
+
+
 def test_a_deadline_fires_once_and_rearming_or_disarming_forgets_an_unread_expiry() -> None:
     with DeadlineTimer() as deadline:
         assert not deadline.expired()  # never armed
