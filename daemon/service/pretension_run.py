@@ -24,7 +24,7 @@ import numpy as np
 from cdpr.homing import homed_offsets
 from cdpr.pretension import Pretension, ramp_target
 from daemon.service.api import CommandError
-from daemon.service.rest import named_pose
+from daemon.service.rest import named_pose, require_unpowered
 from daemon.service.safety import Fault, SafetyState, Trigger
 from daemon.service.trusted_lengths import RETRUST_CYCLES
 from drivers.base import DriverError, FrameError
@@ -41,11 +41,7 @@ async def pretension(core: Service, args: dict[str, Any]) -> dict[str, Any]:
     docstring).  From IDLE, or BRAKED where the only conditions are lengths that fit no
     pose (slack cables at start-up).  The reply comes when the loop has closed (HOLD);
     CommandError naming the reason if it aborted (braked)."""
-    state = core.machine.state
-    if state not in (SafetyState.IDLE, SafetyState.BRAKED):
-        raise CommandError(
-            "invalid_state", f"cannot pretension while {state.value} (needs idle or braked)"
-        )
+    require_unpowered(core, "pretension")
     blocking = [f for f in core.faults if f.trigger is not Trigger.IMPLAUSIBLE_FEEDBACK]
     if blocking:
         raise CommandError(

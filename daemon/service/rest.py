@@ -38,6 +38,16 @@ REST_SETTLE = 3.0  # s the cables may take to come to rest once the drives hold 
 FORCE_READINGS = 10  # of the drives' measured forces, averaged for the rest check
 
 
+def require_unpowered(core: Service, action: str) -> None:
+    """CommandError unless the drives follow no forces (IDLE or BRAKED), where home and
+    pretension begin: the controller's lengths must not jump under them."""
+    state = core.machine.state
+    if state not in (SafetyState.IDLE, SafetyState.BRAKED):
+        raise CommandError(
+            "invalid_state", f"cannot {action} while {state.value} (needs idle or braked)"
+        )
+
+
 def named_pose(robot: Robot, what: str, args: dict[str, Any]) -> tuple[str, Pose]:
     """The robot file's pose args["pose_name"] (default home) and its name;
     CommandError naming the poses there are for an unknown one."""
@@ -134,11 +144,7 @@ async def home(core: Service, args: dict[str, Any]) -> dict[str, Any]:
     is seen at rest over HOME_SAMPLES cycles (and, where the drives measure force, its
     tensions hold it there).  Only while the drives are not following forces (IDLE or
     BRAKED): the controller's lengths must not jump under it."""
-    state = core.machine.state
-    if state not in (SafetyState.IDLE, SafetyState.BRAKED):
-        raise CommandError(
-            "invalid_state", f"cannot home while {state.value} (needs idle or braked)"
-        )
+    require_unpowered(core, "home")
     name, pose = named_pose(core.robot, "home", args)
     with core.drives_busy():
         samples = await rest_samples(core)
@@ -185,7 +191,7 @@ async def _home_rest_check(core: Service, name: str, pose: Pose, lengths: list[f
         ) from None
     finally:
         if core.brakes == brakes:  # a brake meanwhile sent its own frames
-            core.send(core.driver.brake(held, core.config.drives.brake))
+            core.send_brake(held)
     if core.brakes != brakes:
         raise CommandError("invalid_state", f"home aborted: {core.machine.fault.line()}")
     if refusal is not None:

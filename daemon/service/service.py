@@ -223,7 +223,7 @@ class Service:
         if self.machine.powered or self.machine.state is SafetyState.INIT:
             self.brake(Fault(trigger, "stop requested: braking before exit"))
         else:
-            self.send(self.driver.brake(self.hold_lengths(), self.config.drives.brake))
+            self.send_brake()
         self._exit_code = self._exit_code or exit_code
         if self._stopped is not None:
             self._stopped.set()
@@ -517,7 +517,7 @@ class Service:
         braked = self.machine.brake(fault, supersede)
         self.brakes += 1
         self.hold_report.forget()
-        self.send(self.driver.brake(self.hold_lengths(), self.config.drives.brake))
+        self.send_brake()
         self._trajectory = None
         self._scheduled.clear()
         if self.procedure is not None:
@@ -528,7 +528,7 @@ class Service:
             missed = self.monitor.missed_feedback()
             log.log(level, fault.line() + missed_text(missed))
             self.emit({"event": "brake", "trigger": fault.trigger.value, "message": fault.message,
-                        "missed_feedback": missed})  # fmt: skip
+                       "missed_feedback": missed})  # fmt: skip
 
     def _report_hold(self) -> None:
         """An event when the drives' answers to the brake change the verdict (whether
@@ -576,6 +576,12 @@ class Service:
     def send(self, frames: list[can.Message]) -> None:
         self.port.send_all(frames)
 
+    def send_brake(self, lengths: list[float] | None = None) -> None:
+        """The drives' brake frames (drives.brake): each holds its cable at `lengths`
+        (driver lengths), by default the last trusted ones (hold_lengths)."""
+        held = self.hold_lengths() if lengths is None else lengths
+        self.send(self.driver.brake(held, self.config.drives.brake))
+
     def emit(self, event: dict[str, Any]) -> None:
         event.setdefault("t", self.now())
         event.setdefault("state", self.machine.state.value)
@@ -615,12 +621,12 @@ class Service:
                 self.brake(Fault(Trigger.DRIVE_FAULT, f"enable failed: {exc}"))
                 raise CommandError("drive_error", f"enable failed: {exc}") from None
             except CommandError:  # never at rest
-                self.send(self.driver.brake(self.hold_lengths(), self.config.drives.brake))
+                self.send_brake()
                 raise
         if self.machine.state is not SafetyState.IDLE:  # braked meanwhile
             raise CommandError("invalid_state", f"enable aborted: {self.machine.fault.line()}")
         if refusal is not None:
-            self.send(self.driver.brake(self.hold_lengths(), self.config.drives.brake))
+            self.send_brake()
             why = (
                 f"the stored length offsets put the platform at {position_text(pose)}, "
                 f"but {refusal}"
@@ -639,7 +645,7 @@ class Service:
 
     def _disable(self, args: dict[str, Any]) -> dict[str, Any]:
         self._require_moving("disable")
-        self.send(self.driver.brake(self.hold_lengths(), self.config.drives.brake))
+        self.send_brake()
         self._trajectory = None
         self._scheduled.clear()
         if self.procedure is not None:
