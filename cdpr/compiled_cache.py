@@ -25,7 +25,9 @@ SOURCES = (
     "cdpr/compiled_model.py",
     "cdpr/forward_kinematics.py",
     "cdpr/kinematics.py",
-    "cdpr/so3.py",  # its scalar functions are compiled from the kernels that call them
+    "cdpr/measurement.py",
+    "cdpr/pose.py",  # its pose_difference is compiled from the kernel that calls it
+    "cdpr/so3.py",  # so are its scalar functions
     "cdpr/stretch.py",
     "cdpr/tension.py",
     "cdpr/wrench_observer.py",

@@ -33,13 +33,24 @@ from typing import NamedTuple, Protocol
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.linalg.lapack import dpotrs
 
 from cdpr.control_spec import DEFAULT_FORCE_LAG, MAX_COMMAND_LEAD, ControllerSpec
 from cdpr.dynamics import PlatformInertia
-from cdpr.forward_kinematics import FKResult, Linearisation
+from cdpr.forward_kinematics import FKResult, fit_result, fit_start, non_finite_lengths
+from cdpr.measurement import (
+    DIFFERENTIATED,
+    ERROR,
+    ERROR_RATE,
+    FILTERED_RATES,
+    FROM_RATES,
+    MEMORY_SIZE,
+    OUT_SIZE,
+    POSE,
+    TWIST,
+    measure,
+)  # fmt: skip
 from cdpr.payload import PayloadEstimate
-from cdpr.pose import Pose, liediff, liediff6, retract
+from cdpr.pose import Pose, retract
 from cdpr.robot import Robot
 from cdpr.so3 import quat_to_r9
 from cdpr.stretch import ComplianceScale
@@ -52,6 +63,7 @@ from cdpr.wrench_observer import WrenchObserver
 Array = NDArray[np.float64]
 _ZERO6 = np.zeros(6)
 _ZERO6_LIST = [0.0] * 6
+_NO_RATE = np.empty(0)  # measure's stretch rate where the drums move with the cables
 
 
 class ReferenceSource(Protocol):
@@ -135,8 +147,10 @@ class _Prepared(NamedTuple):
 
     t: float
     reference: Reference  # at t: what the measurement is compared with
+    compared: Array  # its pose (p, q) and twist, as cdpr.measurement takes them
     ahead: Reference  # at t + lead: what the command is for
-    guess: Linearisation  # forward kinematics' first linearisation, at the guess
+    guess: Pose  # forward kinematics' start
+    start: tuple[Array, int, Array, Array, Array]  # the guess (p, q), its linearisation
     f_b: Array  # with the winches' share of the cables' stretching (cdpr.stretch_rate)
     model: tuple[Array, Array, Array, Array] | None  # (Lambda, c, M, mu) at `ahead`
     factored: FactoredJacobian | None  # model's Lambda for the tension distribution
@@ -181,14 +195,20 @@ class ParallelController:
         lag = stretch_time(robot.m0, at_home, robot.compliance, drive_lag)
         self._tension_rate = TensionRate(lag)
         self._at_reference = spec.model_at == "reference"
-        self._differentiate = spec.velocity == "differentiate"
         self._smoothing = self.period / (spec.velocity_filter + self.period)
         self._stretch_corrected = bool(np.any(robot.compliance > 0.0))
+        self._compliance = np.array(robot.compliance, dtype=float)  # the kernel's own copy
+        if spec.velocity == "differentiate":
+            self._twist_from = DIFFERENTIATED
+        else:
+            self._twist_from = FILTERED_RATES if self._stretch_corrected else FROM_RATES
         self.stretch = ComplianceScale(robot)  # the cables' EA as identified (cdpr.stretch)
         self._observer_held = False  # hold_observer(): kept by reset()
         self._error = np.zeros((self.loop.Dd.shape[1], 6))
         # numba loads the trajectories' kernel at its first call: here, not in a cycle
         evaluate_segment(np.zeros((6, 18)), (1.0, 0.0, 0.0, 0.0), 0.0)
+        self.reset(robot.home)
+        self._measure(self._drums, np.zeros(robot.n_cables), self.period, self._prepare(0.0))
         self.reset(robot.home)
 
     def reset(self, pose: Pose) -> None:
@@ -207,8 +227,9 @@ class ParallelController:
         self._tensions = static_tensions(self.robot, self.tension, pose)
         self._drums = self.robot.cable_lengths(pose)  # the last measured drum lengths
         self._tension_rate.clear()
-        self._rate_bias = [0.0] * 6  # floats: see _measure_twist
-        self._drive_twist = [0.0] * 6  # the last twist from the drives' rates (at rest)
+        # what a cycle's measurement leaves the next (cdpr.measurement): at rest here
+        self._memory = np.zeros(MEMORY_SIZE)
+        self._memory[POSE] = (*pose.position_tuple, *pose.quaternion_tuple)
         self._prepared: _Prepared | None = None
         self._last_t = -math.inf  # the time of the last step
         # the last reference terms, with the Reference and the platform model they are for
@@ -243,7 +264,6 @@ class ParallelController:
         wrench observer (cdpr.wrench_observer, whose estimate the command cancels).
         step(t, ...) uses it; a step at another time, reset(), follow() and
         set_latency() discard it."""
-        robot = self.robot
         if self.payload is not None and self.payload.update():
             self._take_over(self.payload.platform)
         if self._observed is not None:
@@ -251,9 +271,18 @@ class ParallelController:
             twist, M, net, interval = self._observed
             self.observer.update(twist, M, net, self.lead, type(self.source) is Hold, interval)
             self._observed = None
+        self._prepared = self._prepare(t)
+        self.stretch.update(self.period)
+
+    def _prepare(self, t: float) -> _Prepared:
+        """prepare's part that its estimators' steps do not change (at time t)."""
+        robot = self.robot
         ref = self.source.sample(t)
         ahead = self.source.sample(t + self.lead) if self.lead else ref
-        guess = robot.linearise_at(retract(self._pose, self._twist * self._interval(t)))
+        guess = retract(self._pose, self._twist * self._interval(t))
+        start = (np.array((*guess.position_tuple, *guess.quaternion_tuple)),
+                 *fit_start(robot.linearise_at(guess)))  # fmt: skip
+        compared = np.array((*ref.pose.position_tuple, *ref.pose.quaternion_tuple, *ref.twist))
         # a reference at rest (a Hold, a trajectory after its end) is one Reference
         # sample after sample: its terms stand while the platform model does
         terms = self._terms
@@ -264,8 +293,7 @@ class ParallelController:
         if stretch_rate is not None:  # the drums move the stretch too: the winches' share
             stretch_rate = self._drums * robot.compliance * self.stretch.scale * stretch_rate
             f_b = f_b - robot.k0 * stretch_rate
-        self._prepared = _Prepared(t, ref, ahead, guess, f_b, model, factored, stretch_rate)
-        self.stretch.update(self.period)
+        return _Prepared(t, ref, compared, ahead, guess, start, f_b, model, factored, stretch_rate)
 
     def _reference_terms(
         self, ahead: Reference
@@ -371,11 +399,6 @@ class ParallelController:
         """The last measured pose (forward kinematics)."""
         return self._pose
 
-    def tracking_error(self, pose: Pose, twist: Array, reference: Reference) -> tuple[Array, Array]:
-        """Step 5 with the erratum of DESIGN §3: theta_d = liediff(eta_r, eta) ~ eta - eta_r
-        and its rate phi - phi_r (actual minus requested)."""
-        return liediff(reference.pose, pose), twist - reference.twist
-
     def step(self, t: float, lengths: ArrayLike, length_rates: ArrayLike) -> ControlOutput:
         """One control cycle at time t (s) from the measured lengths and rates."""
         robot = self.robot
@@ -389,29 +412,33 @@ class ParallelController:
         if type(self.source) is Switch and self.source.at <= t:
             # what came before the switch is over: let it go (its memory with it)
             self.source = _pending(self.source, t)
-        ref, guess = prepared.reference, prepared.guess
+        ref = prepared.reference
         if self.payload is not None and self.payload.fault:
             return self._fault(ref, self._pose, 0.0, self.payload.fault)
         if self.observer is not None and self.observer.fault:
             return self._fault(ref, self._pose, 0.0, self.observer.fault)
-        # the encoders measure the drums; the last planned tensions stretch the cables
-        lengths = np.asarray(lengths, dtype=float)
-        self._drums = lengths.copy()  # the caller may reuse its array
-        stretched_by = self._tensions
-        fk = robot.forward_kinematics(self.stretch.stretched(lengths, stretched_by), guess)
+        # the encoders measure the drums (a copy: the caller may reuse its array); the
+        # last planned tensions stretch the cables
+        lengths = np.array(lengths, dtype=float)
+        rates = np.array(length_rates, dtype=float)
+        n = self._drums.shape[0]
+        if lengths.shape != (n,) or rates.shape != (n,):
+            raise ValueError(f"expected {n} cable lengths and rates, got {lengths.shape} and "
+                             f"{rates.shape}")  # fmt: skip
+        self._drums, stretched_by = lengths, self._tensions
+        fk, measured = self._measure(lengths, rates, interval, prepared)
         if not fk.converged:
             return self._fault(ref, fk.pose, fk.residual, f"forward kinematics: {fk.reason}")
-        self.stretch.observe(lengths, self._tensions, fk)
+        self.stretch.observe(lengths, stretched_by, fk)
         pose = fk.pose
-        twist = self._measure_twist(pose, fk, length_rates, interval, prepared.stretch_rate)
-        if not math.isfinite(sum(twist.tolist())):  # NaN or inf in it
+        if measured is None:
             return self._fault(ref, pose, fk.residual, "non-finite twist from the drives' rates")
+        twist, theta_d = measured[TWIST], measured[ERROR]
         self._pose, self._twist = pose, twist
 
-        theta_d, theta_d_rate = self.tracking_error(pose, twist, ref)
         self._error[0] = theta_d
         if self._error.shape[0] > 1:
-            self._error[1] = theta_d_rate
+            self._error[1] = measured[ERROR_RATE]
         alpha_c = prepared.ahead.accel + self.loop.step(self._error)
 
         if prepared.model is not None:
@@ -434,7 +461,7 @@ class ParallelController:
             if self.payload is not None:
                 self.payload.observe(
                     t, pose, fk, lengths, stretched_by, self.stretch.scale,
-                    np.asarray(length_rates, dtype=float), commands, ref,
+                    rates, commands, ref,
                 )  # fmt: skip
         else:
             commands = np.full(robot.n_cables, np.nan)
@@ -462,51 +489,44 @@ class ParallelController:
         elapsed = t - self._last_t
         return elapsed if 0.0 < elapsed < math.inf else self.period
 
-    def _measure_twist(
-        self,
-        pose: Pose,
-        fk: FKResult,
-        length_rates: ArrayLike,
-        interval: float,
-        stretch_rate: Array | None,
-    ) -> Array:
-        """phi = Lambda^+ l' (least squares, with forward kinematics' Lambda and its
-        normal-equations factor) corrected for cable stretch, or filtered differences of
-        forward-kinematics poses.
+    def _measure(
+        self, lengths: Array, rates: Array, interval: float, prepared: _Prepared
+    ) -> tuple[FKResult, Array | None]:
+        """Forward kinematics of the drums' `lengths` and, where it converged, the
+        measurement (cdpr.measurement's `out`: pose, twist, pose error and its rate), or
+        None where the twist came out non-finite (NaN or inf in the rates).
 
-        Drums report l', but a stretching cable's length also moves with its tension
-        (L' = l' (1 + t/EA) + l t'/EA), a large error for a tilting platform whose
-        internal forces swing, or a lift that changes every tension.  The part the
-        reference's own tensions explain, `stretch_rate` (l t'/EA, cdpr.stretch_rate), is
-        added to the rates; the low-frequency part of what remains is taken from
-        the poses (which are stretch-corrected) through a low-pass of time constant
-        velocity_filter: a complementary filter, quiet like the drives' rates at high
-        frequency and consistent with the poses at low frequency.  The poses' difference
-        over a period is the mean twist over it, so it is compared with the mean of this
-        and the last cycle's drive twists (against this one alone the estimate would lag
-        half a period: a bias of -alpha T/2).  `interval`: seconds since the last pose."""
-        if self._differentiate:
-            raw = liediff(self._pose, pose) / interval
-            return self._twist + self._smoothing * (raw - self._twist)
-        rates = np.asarray(length_rates, dtype=float).reshape(-1)
-        if stretch_rate is not None:
-            rates = rates + stretch_rate
-        if fk.normal_factor is None:  # singular normal equations
-            return np.full(6, np.nan)
-        drive, _ = dpotrs(fk.normal_factor, rates.dot(fk.jacobian))
-        if not self._stretch_corrected:
-            return drive
-        # the filter on 6 floats: per-call numpy overhead dominates at this size
-        s, period = self._smoothing, interval
-        now, last = drive.tolist(), self._drive_twist
-        self._rate_bias = bias = [
-            b + s * (r / period - 0.5 * (d + d_last) - b)
-            for b, r, d, d_last in zip(
-                self._rate_bias, liediff6(self._pose, pose), now, last, strict=True
-            )
-        ]
-        self._drive_twist = now
-        return drive + bias
+        The twist: phi = Lambda^+ l' (least squares, with forward kinematics' Lambda and
+        its normal-equations factor) corrected for cable stretch, or filtered differences
+        of forward-kinematics poses.  Drums report l', but a stretching cable's length
+        also moves with its tension (L' = l' (1 + t/EA) + l t'/EA), a large error for a
+        tilting platform whose internal forces swing, or a lift that changes every
+        tension.  The part the reference's own tensions explain (l t'/EA,
+        cdpr.stretch_rate) is added to the rates; the low-frequency part of what remains
+        is taken from the poses (which are stretch-corrected) through a low-pass of time
+        constant velocity_filter: a complementary filter, quiet like the drives' rates
+        at high frequency and consistent with the poses at low frequency.  The poses'
+        difference over a period is the mean twist over it, so it is compared with the
+        mean of this and the last cycle's drive twists (against this one alone the
+        estimate would lag half a period: a bias of -alpha T/2).  `interval`: seconds
+        since the last pose.  The pose error is step 5 with the erratum of DESIGN §3:
+        theta_d = liediff(eta_r, eta) ~ eta - eta_r and its rate phi - phi_r (actual
+        minus requested)."""
+        guess = prepared.guess
+        if not math.isfinite(sum(lengths.tolist())) and (bad := non_finite_lengths(guess, lengths)):
+            return bad, None
+        settings, stretch_rate = self.robot.fk_settings, prepared.stretch_rate
+        start, kind, lengths0, J0, L0 = prepared.start
+        out = np.empty(OUT_SIZE)
+        status, finite, iterations, residual, p, q, J, U, factored = measure(
+            self.robot.geometry.rows, lengths, self._compliance, self._tensions,
+            self.stretch.scale, kind, start, lengths0, J0, L0, settings.max_iterations,
+            settings.step_tolerance**2, settings.max_residual, rates,
+            _NO_RATE if stretch_rate is None else stretch_rate, self._twist_from,
+            self._smoothing, interval, self._memory, prepared.compared, out,
+        )  # fmt: skip
+        fk = fit_result(guess, settings, status, iterations, residual, p, q, J, U, factored)
+        return fk, out if finite else None
 
     def _fault(self, ref: Reference, pose: Pose, residual: float, reason: str) -> ControlOutput:
         nan6, nan_n = np.full(6, np.nan), np.full(self.robot.n_cables, np.nan)

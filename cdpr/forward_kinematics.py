@@ -89,7 +89,8 @@ def solve_forward_kinematics(
     iteration without a further evaluation: convergence is quadratic there, so the
     remaining error is of the order of the step squared.  Below 1e-4 (m, rad;
     _CHORD_BELOW2 is its square) a step reuses the last Jacobian and its factor (a
-    chord step needs only the lengths).  The iteration is one compiled kernel (_fit).
+    chord step needs only the lengths).  The iteration and its verdict are one compiled
+    kernel (fit_kernel).
     """
     start = None
     if type(guess) is Linearisation:
@@ -100,26 +101,53 @@ def solve_forward_kinematics(
         raise ValueError(f"expected {n} cable lengths, got {measured.shape[0]}")
     # a NaN or inf among them; finite lengths sum to inf only when absurdly large, and
     # those fail the residual check
-    if not math.isfinite(measured.sum()):
-        for k, length in enumerate(measured.tolist()):
-            if not math.isfinite(length):
-                reason = f"non-finite length {length} at cable {k}"
-                return FKResult(guess, math.inf, 0, False, reason)
+    if not math.isfinite(measured.sum()) and (bad := non_finite_lengths(guess, measured)):
+        return bad
     if not (measured.flags.c_contiguous and measured.flags.writeable):
-        measured = measured.copy()  # the one array type _fit is compiled for
-    if start is None:
-        kind, lengths0, J0, L0 = _COLD, _NO_LENGTHS, _NO_JACOBIAN, _NO_FACTOR
-    else:
-        kind = _FACTORED if start.factor is not None else _LINEARISED
-        lengths0, J0 = start.lengths, start.jacobian
-        L0 = _NO_FACTOR if start.factor is None else start.factor
-    status, iterations, cost, p, q, J, U, factored = _fit(
+        measured = measured.copy()  # the one array type fit_kernel is compiled for
+    kind, lengths0, J0, L0 = fit_start(start)
+    status, iterations, residual, p, q, J, U, factored = fit_kernel(
         geometry.rows, measured, guess.position_tuple, guess.quaternion_tuple,
         kind, lengths0, J0, L0, settings.max_iterations, settings.step_tolerance**2,
+        settings.max_residual,
     )  # fmt: skip
-    residual = math.sqrt(max(cost, 0.0) / n) if math.isfinite(cost) else math.inf
-    p, q = p.tolist(), q.tolist()
-    if not (math.isfinite(sum(p)) and math.isfinite(sum(q))):
+    return fit_result(guess, settings, status, iterations, residual, p, q, J, U, factored)
+
+
+def non_finite_lengths(guess: Pose, measured: Array) -> FKResult | None:
+    """The failed result naming the first NaN or inf among the lengths; None if all are
+    finite (a sum of them can overflow: such lengths fail the residual check)."""
+    for k, length in enumerate(measured.tolist()):
+        if not math.isfinite(length):
+            return FKResult(guess, math.inf, 0, False, f"non-finite length {length} at cable {k}")
+    return None
+
+
+def fit_start(start: Linearisation | None) -> tuple[int, Array, Array, Array]:
+    """How fit_kernel starts (its `kind`, lengths0, J0, L0) from a linearisation or none."""
+    if start is None:
+        return _COLD, _NO_LENGTHS, _NO_JACOBIAN, _NO_FACTOR
+    kind = _FACTORED if start.factor is not None else _LINEARISED
+    return kind, start.lengths, start.jacobian, _NO_FACTOR if start.factor is None else start.factor
+
+
+def fit_result(
+    guess: Pose,
+    settings: FKSettings,
+    status: int,
+    iterations: int,
+    residual: float,
+    p: Array,
+    q: Array,
+    J: Array,
+    U: Array,
+    factored: bool,
+) -> FKResult:
+    """FKResult of what fit_kernel returned (a kernel that runs it returns the same)."""
+    if status == CONVERGED:
+        return FKResult(Pose._from_unit(p.tolist(), q.tolist()), residual, iterations, True, "",
+                        J, U if factored else None)  # fmt: skip
+    if status == _DIVERGED:
         return FKResult(guess, math.inf, iterations, False, "diverged to non-finite values")
     if status == _SINGULAR:
         reason = "singular Jacobian"
@@ -127,23 +155,20 @@ def solve_forward_kinematics(
         reason = "no descent direction"
     elif status == _NO_CONVERGENCE:
         reason = f"no convergence in {settings.max_iterations} iterations"
-    elif residual > settings.max_residual:
+    else:
         reason = (
             f"length residual {residual:.3g} m exceeds max_residual {settings.max_residual:.3g} m"
         )
-    else:
-        factor = U if factored else None
-        return FKResult(Pose._from_unit(p, q), residual, iterations, True, "", J, factor)
-    return FKResult(Pose._from_unit(p, q), residual, iterations, False, reason)
+    return FKResult(Pose._from_unit(p.tolist(), q.tolist()), residual, iterations, False, reason)
 
 
 _LM_START = 1e-4
 _LM_GIVE_UP = 1e12
 _CHORD_BELOW2 = 1e-4**2  # squared step length below which the chord finish is tried
-# how _fit starts: from the guess, or its linearisation with or without a factor
+# how fit_kernel starts: from the guess, or its linearisation with or without a factor
 _COLD, _LINEARISED, _FACTORED = 0, 1, 2
-# how _fit ends
-_CONVERGED, _SINGULAR, _NO_DESCENT, _NO_CONVERGENCE = 0, 1, 2, 3
+# how fit_kernel ends: converged within max_residual, or why not
+CONVERGED, _SINGULAR, _NO_DESCENT, _NO_CONVERGENCE, _DIVERGED, _RESIDUAL = 0, 1, 2, 3, 4, 5
 _NO_LENGTHS, _NO_JACOBIAN, _NO_FACTOR = np.empty(0), np.empty((0, 6)), np.empty((6, 6))
 
 
@@ -188,7 +213,35 @@ def _residuals(
 
 
 @njit(cache=True)
-def _fit(
+def fit_kernel(
+    cables: Array,
+    measured: Array,
+    p0: tuple[float, float, float],
+    q0: tuple[float, float, float, float],
+    kind: int,
+    lengths0: Array,
+    J0: Array,
+    L0: Array,
+    max_iterations: int,
+    tolerance2: float,
+    max_residual: float,
+) -> tuple[int, int, float, Array, Array, Array, Array, bool]:
+    """_iterate, and its verdict: (status, iterations, RMS length residual (m), p, q,
+    Lambda, U, whether U is one), status _DIVERGED for a non-finite pose and _RESIDUAL
+    for a converged fit whose residual exceeds `max_residual` (fit_result says why)."""
+    status, iterations, cost, p, q, J, U, factored = _iterate(
+        cables, measured, p0, q0, kind, lengths0, J0, L0, max_iterations, tolerance2
+    )
+    residual = math.sqrt(max(cost, 0.0) / measured.shape[0]) if math.isfinite(cost) else math.inf
+    if not math.isfinite(p[0] + p[1] + p[2] + q[0] + q[1] + q[2] + q[3]):
+        status = _DIVERGED
+    elif status == CONVERGED and residual > max_residual:
+        status = _RESIDUAL
+    return status, iterations, residual, p, q, J, U, factored
+
+
+@njit(cache=True)
+def _iterate(
     cables: Array,
     measured: Array,
     p0: tuple[float, float, float],
@@ -245,7 +298,7 @@ def _fit(
         step2 = _step(p, q, x, p_new, q_new)
         if not lam and step2 < tolerance2:
             # linearised cost after the step: |e|^2 - g . A^-1 g
-            return _CONVERGED, it, cost - _dot(g, x), p_new, q_new, J, _upper(L), True
+            return CONVERGED, it, cost - _dot(g, x), p_new, q_new, J, _upper(L), True
         cost_new = _residuals(cables, p_new, q_new, measured, table, e)
         if not lam and step2 < _CHORD_BELOW2:
             # quadratic regime: one more step with this factor and Jacobian needs only
@@ -255,7 +308,7 @@ def _fit(
             cholesky_solve(L, x)
             if _step(p_new, q_new, x, p_chord, q_chord) < tolerance2:
                 cost_chord = cost_new - _dot(g_chord, x)
-                return _CONVERGED, it + 1, cost_chord, p_chord, q_chord, J, _upper(L), True
+                return CONVERGED, it + 1, cost_chord, p_chord, q_chord, J, _upper(L), True
         if cost_new <= cost or not math.isfinite(cost):
             p[:] = p_new
             q[:] = q_new
@@ -266,8 +319,8 @@ def _fit(
             lam = lam * 0.1 if lam > _LM_START else 0.0
             if step2 < tolerance2:
                 if cholesky(G, L):
-                    return _CONVERGED, it, cost, p, q, J, _upper(L), True
-                return _CONVERGED, it, cost, p, q, J, L, False
+                    return CONVERGED, it, cost, p, q, J, _upper(L), True
+                return CONVERGED, it, cost, p, q, J, L, False
         else:
             lam = max(lam * 10.0, _LM_START)
             if lam > _LM_GIVE_UP:

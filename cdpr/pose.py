@@ -12,6 +12,7 @@ import math
 from collections.abc import Sequence
 
 import numpy as np
+from numba.extending import register_jitable
 from numpy.typing import ArrayLike, NDArray
 
 from cdpr import so3
@@ -138,10 +139,17 @@ def liediff(eta1: Pose, eta2: Pose) -> NDArray[np.float64]:
 
 def liediff6(eta1: Pose, eta2: Pose) -> tuple[float, float, float, float, float, float]:
     """liediff as a tuple of 6 floats; scalar hot path."""
-    w1, x1, y1, z1 = eta1._qt
-    dq = so3.quat_mul4(*eta2._qt, w1, -x1, -y1, -z1)
-    (a, b, c), (d, e, f) = eta1._pt, eta2._pt
-    return (d - a, e - b, f - c, *so3.quat4_to_rotvec(*dq))
+    return pose_difference(eta1._pt, eta1._qt, eta2._pt, eta2._qt)
+
+
+@register_jitable  # plain Python here, compiled where a kernel calls it
+def pose_difference(
+    p1: Sequence[float], q1: Sequence[float], p2: Sequence[float], q2: Sequence[float]
+) -> tuple[float, float, float, float, float, float]:
+    """liediff on the poses' numbers (tuples or arrays): (p2 - p1, log(R2 R1^T))."""
+    dq = so3.quat_mul4(q2[0], q2[1], q2[2], q2[3], q1[0], -q1[1], -q1[2], -q1[3])
+    rx, ry, rz = so3.quat4_to_rotvec(dq[0], dq[1], dq[2], dq[3])
+    return (p2[0] - p1[0], p2[1] - p1[1], p2[2] - p1[2], rx, ry, rz)
 
 
 def retract(eta: Pose, theta: Sequence[float] | NDArray[np.float64]) -> Pose:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from numba.extending import register_jitable
 from numpy.typing import ArrayLike, NDArray
 
 Vec = NDArray[np.float64]
@@ -74,6 +75,7 @@ def rotvec_from_quat(q: ArrayLike) -> Vec:
     return np.array(quat4_to_rotvec(*canonical_quat(q).tolist()))
 
 
+@register_jitable  # the scalar forms: plain Python here, compiled where a kernel calls them
 def quat4_to_rotvec(w: float, x: float, y: float, z: float) -> tuple[float, float, float]:
     """Rotation vector (angle in [0, pi]) of a unit quaternion; scalar hot path."""
     if w < 0.0:
@@ -170,6 +172,7 @@ def quat_from_matrix(R: ArrayLike) -> Vec:
     return q.reshape((*R.shape[:-2], 4))
 
 
+@register_jitable
 def quat_mul4(
     aw: float, ax: float, ay: float, az: float, bw: float, bx: float, by: float, bz: float
 ) -> tuple[float, float, float, float]:

@@ -16,13 +16,14 @@ PACKAGES = ("cdpr", "daemon", "drivers", "sim_bus", "tuning", "bench")
 
 
 def test_sources_name_every_file_that_compiles() -> None:
-    """Files with kernels, and the files of plain functions a kernel module compiles
+    """Files with kernels, files of plain functions a kernel may call
+    (`@register_jitable`), and the files of plain functions a kernel module compiles
     (`name = njit(cache=True)(function)`, function imported from another module)."""
     compiling = set()
     for package in PACKAGES:
         for path in (ROOT / package).rglob("*.py"):
             text = path.read_text()
-            if re.search(r"^@njit", text, re.M):
+            if re.search(r"^@(njit|register_jitable)", text, re.M):
                 compiling.add(path.relative_to(ROOT).as_posix())
             for name in re.findall(r"= njit\([^)]*\)\((\w+)\)", text):
                 module = re.search(rf"^from ([\w.]+) import .*\b{name}\b", text, re.M)

@@ -33,10 +33,20 @@ def test_holds_home_still(reference8: Robot, model_at: str) -> None:
 
 class LiteralStep5(ParallelController):
     """The paper's step 5 read literally: theta_d = liediff(eta, eta_r) ~ eta_r - eta,
-    and its rate phi_r - phi."""
+    and its rate phi_r - phi: exactly the negated error the controller measures
+    (liediff(a, b) = -liediff(b, a), test_the_literal_reading_is_the_negated_error), so
+    the loop is fed that."""
 
-    def tracking_error(self, pose, twist, reference):
-        return liediff(pose, reference.pose), reference.twist - twist
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        step = self.loop.step
+        self.loop.step = lambda error: step(-error)
+
+
+def test_the_literal_reading_is_the_negated_error() -> None:
+    a = Pose.from_rotvec((0.1, -0.2, 1.3), (0.3, -0.2, 0.5))
+    b = Pose.from_rotvec((0.12, -0.25, 1.31), (0.28, -0.1, 0.45))
+    assert np.allclose(liediff(b, a), -liediff(a, b), rtol=0.0, atol=1e-15)
 
 
 @pytest.mark.parametrize("model_at", ["reference", "measured"])
