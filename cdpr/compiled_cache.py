@@ -21,12 +21,14 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 # every file that compiles with numba (tests/cdpr/test_compiled_cache.py keeps it whole)
 SOURCES = (
+    "cdpr/command.py",
     "cdpr/compiled_linalg.py",
     "cdpr/compiled_model.py",
     "cdpr/forward_kinematics.py",
     "cdpr/kinematics.py",
     "cdpr/measurement.py",
     "cdpr/pose.py",  # its pose_difference is compiled from the kernel that calls it
+    "cdpr/single_actuator.py",
     "cdpr/so3.py",  # so are its scalar functions
     "cdpr/stretch.py",
     "cdpr/tension.py",

@@ -34,13 +34,13 @@ from typing import NamedTuple, Protocol
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from cdpr.command import command, out_size
 from cdpr.control_spec import DEFAULT_FORCE_LAG, MAX_COMMAND_LEAD, ControllerSpec
 from cdpr.dynamics import PlatformInertia
 from cdpr.forward_kinematics import FKResult, fit_result, fit_start, non_finite_lengths
 from cdpr.measurement import (
     DIFFERENTIATED,
     ERROR,
-    ERROR_RATE,
     FILTERED_RATES,
     FROM_RATES,
     MEMORY_SIZE,
@@ -51,11 +51,18 @@ from cdpr.measurement import (
 )  # fmt: skip
 from cdpr.payload import PayloadEstimate
 from cdpr.pose import Pose, retract
-from cdpr.robot import Robot
+from cdpr.robot import Robot, split_model
 from cdpr.so3 import quat_to_r9
 from cdpr.stretch import ComplianceScale
 from cdpr.stretch_rate import TensionRate, stretch_time
-from cdpr.tension import FactoredJacobian, TensionLimits, TensionSolver, make_tension_solver
+from cdpr.tension import (
+    FactoredJacobian,
+    Shortcut,
+    TensionLimits,
+    TensionResult,
+    TensionSolver,
+    make_tension_solver,
+)
 from cdpr.trajectory import Reference
 from cdpr.trajectory.core import evaluate_segment
 from cdpr.wrench_observer import WrenchObserver
@@ -151,8 +158,10 @@ class _Prepared(NamedTuple):
     ahead: Reference  # at t + lead: what the command is for
     guess: Pose  # forward kinematics' start
     start: tuple[Array, int, Array, Array, Array]  # the guess (p, q), its linearisation
+    accel: Array  # ahead's, as cdpr.command takes it
     f_b: Array  # with the winches' share of the cables' stretching (cdpr.stretch_rate)
     model: tuple[Array, Array, Array, Array] | None  # (Lambda, c, M, mu) at `ahead`
+    tables: tuple[Array, Array] | None  # the model as cdpr.command takes it
     factored: FactoredJacobian | None  # model's Lambda for the tension distribution
     stretch_rate: Array | None  # m/s the drums move beyond the cables (None: at rest)
 
@@ -204,12 +213,27 @@ class ParallelController:
             self._twist_from = FILTERED_RATES if self._stretch_corrected else FROM_RATES
         self.stretch = ComplianceScale(robot)  # the cables' EA as identified (cdpr.stretch)
         self._observer_held = False  # hold_observer(): kept by reset()
-        self._error = np.zeros((self.loop.Dd.shape[1], 6))
+        self._m0 = np.array(robot.m0, dtype=float)  # the kernels' own copies
+        self._no_wrench = np.zeros(6)
+        self._shortcut = self.tension.shortcut()  # None: the solver takes none
+        zero = np.zeros(robot.n_cables)
+        self._no_shortcut = Shortcut(zero, zero, zero, 1.0, 1.0)  # cdpr.command's types
         # numba loads the trajectories' kernel at its first call: here, not in a cycle
         evaluate_segment(np.zeros((6, 18)), (1.0, 0.0, 0.0, 0.0), 0.0)
+        self._load_kernels()
         self.reset(robot.home)
-        self._measure(self._drums, np.zeros(robot.n_cables), self.period, self._prepare(0.0))
+
+    def _load_kernels(self) -> None:
+        """Run the cycle's kernels once, at home at rest: numba loads each at its first
+        call, here, not in a control cycle (reset() then clears what they moved)."""
+        robot = self.robot
         self.reset(robot.home)
+        prepared = self._prepare(0.0)
+        drums = robot.drum_lengths(self._drums, self._tensions)  # unstretched under them
+        _, measured = self._measure(drums, np.zeros(robot.n_cables), self.period, prepared)
+        assert measured is not None, "the controller's own home does not measure"
+        tables = robot.model_tables(robot.home, _ZERO6)
+        self._command(prepared, measured, tables, self._no_wrench, split_model(*tables))
 
     def reset(self, pose: Pose) -> None:
         """Hold `pose`, zero the controller state, restart forward kinematics from it
@@ -288,24 +312,34 @@ class ParallelController:
         terms = self._terms
         if terms is None or terms[0] is not ahead or terms[1] is not robot.platform:
             terms = self._terms = (ahead, robot.platform, self._reference_terms(ahead))
-        f_b, model, factored, tensions = terms[2]
+        f_b, model, tables, factored, tensions = terms[2]
         stretch_rate = self._tension_rate.add(t + self.lead, tensions)
         if stretch_rate is not None:  # the drums move the stretch too: the winches' share
             stretch_rate = self._drums * robot.compliance * self.stretch.scale * stretch_rate
             f_b = f_b - robot.k0 * stretch_rate
-        return _Prepared(t, ref, compared, ahead, guess, start, f_b, model, factored, stretch_rate)
+        accel = np.array(ahead.accel, dtype=float)
+        f_b = f_b if f_b.flags.writeable else f_b.copy()  # the kernel's type
+        return _Prepared(t, ref, compared, ahead, guess, start, accel, f_b, model, tables,
+                         factored, stretch_rate)  # fmt: skip
 
     def _reference_terms(
         self, ahead: Reference
     ) -> tuple[
-        Array, tuple[Array, Array, Array, Array] | None, FactoredJacobian | None, Array | None
+        Array,
+        tuple[Array, Array, Array, Array] | None,
+        tuple[Array, Array] | None,
+        FactoredJacobian | None,
+        Array | None,
     ]:
         """What the command for reference `ahead` needs of it alone: f_b, with
-        model_at = "reference" the model terms and the tension distribution's factor of
-        their Lambda, and for elastic cables the tensions the reference needs (None: not
-        in W).  Read-only arrays: a reference at rest reuses them every cycle."""
+        model_at = "reference" the model's tables (Robot.model_tables), its terms and the
+        tension distribution's factor of their Lambda, and for elastic cables the tensions
+        the reference needs (None: not in W).  Read-only arrays but the tables (for the
+        command kernel, which only reads them): a reference at rest reuses them every
+        cycle."""
         robot = self.robot
-        model = robot.model_terms(ahead.pose, ahead.twist) if self._at_reference else None
+        tables = robot.model_tables(ahead.pose, ahead.twist) if self._at_reference else None
+        model = split_model(*tables) if tables is not None else None
         Lam_r = model[0] if model is not None else robot.jacobian(ahead.pose)
         f_b = robot.drag(Lam_r.dot(ahead.twist))  # ndarray.dot: see cdpr.kinematics
         factored = self.tension.factored(Lam_r) if model is not None else None
@@ -319,7 +353,7 @@ class ParallelController:
         for array in (f_b, *(model or ()), *(factored or ()), tensions):
             if array is not None:
                 array.setflags(write=False)
-        return f_b, model, factored, tensions
+        return f_b, model, tables, factored, tensions
 
     def set_payload(self, mass: float, center_of_mass: tuple[float, ...]) -> None:
         """Use this platform mass (kg) and centre of mass (m, platform frame) from now on
@@ -433,38 +467,30 @@ class ParallelController:
         pose = fk.pose
         if measured is None:
             return self._fault(ref, pose, fk.residual, "non-finite twist from the drives' rates")
-        twist, theta_d = measured[TWIST], measured[ERROR]
+        twist = measured[TWIST]
         self._pose, self._twist = pose, twist
 
-        self._error[0] = theta_d
-        if self._error.shape[0] > 1:
-            self._error[1] = measured[ERROR_RATE]
-        alpha_c = prepared.ahead.accel + self.loop.step(self._error)
-
         if prepared.model is not None:
-            Lam, c, M, mu = prepared.model
+            model, tables = prepared.model, prepared.tables
         else:  # at the measured state, carried to t + lead
-            Lam, c, M, mu = robot.model_terms(retract(pose, twist * self.lead), twist)
+            tables = robot.model_tables(retract(pose, twist * self.lead), twist)
+            model = split_model(*tables)
+        cancelled = self.observer is not None and not self._observer_held
+        # the push the model does not explain, cancelled
+        observed = self.observer.estimate if cancelled else self._no_wrench
+        result, commands, out = self._command(prepared, measured, tables, observed, model)
+        alpha_c, tau_c, f0 = out[0:6], out[6:12], out[12 : 12 + robot.n_cables]
+        if cancelled and self._observing:
+            M, mu = model[2], model[3]
+            self._observed = (twist, M, tau_c - mu, interval)
         f_b = prepared.f_b
-        tau_c = M.dot(alpha_c) + mu
-        if self.observer is not None and not self._observer_held:
-            # the push the model does not explain, cancelled
-            tau_c -= self.observer.estimate
-            if self._observing:
-                self._observed = (twist, M, tau_c - mu, interval)
-        f0 = robot.m0 * (Lam.dot(alpha_c) + c)
-        jacobian = Lam if prepared.factored is None else prepared.factored
-        result = self.tension.solve(jacobian, tau_c, f_b, f0)
         if result.feasible:
-            commands = result.forces + f_b
             self._tensions = result.tensions
             if self.payload is not None:
                 self.payload.observe(
                     t, pose, fk, lengths, stretched_by, self.stretch.scale,
                     rates, commands, ref,
                 )  # fmt: skip
-        else:
-            commands = np.full(robot.n_cables, np.nan)
         return ControlOutput(
             commands,
             result.feasible,
@@ -473,7 +499,7 @@ class ParallelController:
             pose,
             twist,
             fk.residual,
-            theta_d,
+            measured[ERROR],
             alpha_c,
             tau_c,
             f0,
@@ -481,6 +507,39 @@ class ParallelController:
             result.forces,
             result.tensions,
         )
+
+    def _command(
+        self,
+        prepared: _Prepared,
+        measured: Array,
+        tables: tuple[Array, Array],
+        observed: Array,
+        model: tuple[Array, Array, Array, Array],
+    ) -> tuple[TensionResult, Array, Array]:
+        """Steps 6-10 on the cycle's measurement (cdpr.command): the loop, tau_c less the
+        `observed` wrench, f0 and, where the least-norm tensions meet every bound, the
+        commands, in one kernel; elsewhere the solver decides from its tau_c and f0.
+        Returns the tension result, the commands (NaN unless it is feasible) and the
+        kernel's `out` (alpha_c, tau_c, f0, ...)."""
+        n = self.robot.n_cables
+        out = np.empty(out_size(n))
+        K, stack, order = self.loop.kernel_terms()
+        table, G = tables
+        shortcut = self._shortcut or self._no_shortcut
+        inside = command(
+            K, stack, order, measured, prepared.accel, table, G, self._m0, observed,
+            prepared.f_b, *shortcut, self._shortcut is not None, out,
+        )  # fmt: skip
+        if inside:
+            tensions = out[12 + 2 * n : 12 + 3 * n]
+            self.tension.answered_inside(tensions)
+            forces = out[12 + n : 12 + 2 * n]
+            return TensionResult(forces, tensions, True, "", 0), out[12 + 3 * n :], out
+        jacobian = model[0] if prepared.factored is None else prepared.factored
+        f_b = prepared.f_b
+        result = self.tension.solve(jacobian, out[6:12], f_b, out[12 : 12 + n])
+        commands = result.forces + f_b if result.feasible else np.full(n, np.nan)
+        return result, commands, out
 
     def _interval(self, t: float) -> float:
         """Seconds from the last step to one at `t`: the period, unless a cycle came late

@@ -199,17 +199,16 @@ class Robot:
 
     def dynamics(self, pose: Pose, twist: ArrayLike) -> tuple[Array, Array]:
         """(M, mu) at (eta, phi): tau = M alpha + mu, actuator inertia m0 included."""
-        G = self._model(pose, twist)[1]
+        G = self.model_tables(pose, twist)[1]
         return G[:6, :6], G[:6, 6]
 
     def model_terms(self, pose: Pose, twist: ArrayLike) -> tuple[Array, Array, Array, Array]:
         """(Lambda, c, M, mu) at (eta, phi) from one kinematics pass: what a control
         cycle needs of the model.  Lambda is contiguous: a control cycle multiplies with
         it several times (see the cdpr.kinematics docstring)."""
-        table, G = self._model(pose, twist)
-        return np.ascontiguousarray(table[:, :6]), table[:, 6], G[:6, :6], G[:6, 6]
+        return split_model(*self.model_tables(pose, twist))
 
-    def _model(self, pose: Pose, twist: ArrayLike) -> tuple[Array, Array]:
+    def model_tables(self, pose: Pose, twist: ArrayLike) -> tuple[Array, Array]:
         """The n x 7 table [Lambda | c] and a 7 x 7 matrix whose first 6 rows are [M | mu]:
         [Lambda | c]^T diag(m0) [Lambda | c] holds Lambda^T D Lambda and Lambda^T D c, to
         which [M_p | mu_p] is added (one compiled kernel, cdpr.compiled_model)."""
@@ -278,6 +277,12 @@ class Robot:
 
 
 _ZERO_TWIST = (0.0,) * 6
+
+
+def split_model(table: Array, G: Array) -> tuple[Array, Array, Array, Array]:
+    """(Lambda (a contiguous copy), c, M, mu) of Robot.model_tables' (table, G); c, M and
+    mu are views of them."""
+    return np.ascontiguousarray(table[:, :6]), table[:, 6], G[:6, :6], G[:6, 6]
 
 
 def _twist_tuple(twist: ArrayLike) -> tuple[float, ...]:

@@ -16,10 +16,14 @@ from __future__ import annotations
 from typing import Literal
 
 import numpy as np
+from numba import njit
 from numpy.typing import ArrayLike, NDArray
 from scipy import signal
 
+from cdpr.compiled_cache import key_numba_cache
 from cdpr.wrench_observer import WrenchObserver
+
+key_numba_cache()  # before the first @njit(cache=True): its cache keyed by the sources
 
 Array = NDArray[np.float64]
 Discretisation = Literal["zoh", "bilinear", "euler", "backward_diff"]
@@ -131,6 +135,8 @@ class DiscreteController:
         self._K = np.block([[Dd, Cd], [Bd, Ad]])
         self._stack = np.zeros((self._order + Ad.shape[0], channels))
         self.state = self._stack[self._order :]  # a view: (states, channels)
+        # numba loads the kernel at its first call: here, not in a control cycle
+        advance(self._K, self._stack.copy(), self._order, np.empty(channels))
         self._hold = _hold_direction(Ad, Cd)
 
     def hand_over(self, delta: Array) -> None:
@@ -166,9 +172,34 @@ class DiscreteController:
     def step(self, error: Array) -> Array:
         """One sample: `error` is l x channels ([e; e'; ...]); returns a (channels,)."""
         self._stack[: self._order] = error
-        out = self._K.dot(self._stack)
-        self.state[:] = out[1:]
-        return out[0]
+        out = np.empty(self.channels)
+        advance(self._K, self._stack, self._order, out)
+        return out
+
+    def kernel_terms(self) -> tuple[Array, Array, int]:
+        """(K, the stack [eps; x], l) for a compiled caller that writes the error into the
+        stack's first l rows and calls `advance` itself."""
+        return self._K, self._stack, self._order
+
+
+@njit(cache=True)
+def advance(K: Array, stack: Array, order: int, output: Array) -> None:
+    """One sample of DiscreteController on `stack` = [eps[k]; x[k]] (the error in its
+    first `order` rows): output = a[k], and x[k+1] into the stack's lower rows, by
+    [a; x[k+1]] = K [eps; x] (one product: per-call numpy overhead dominated)."""
+    rows, cols, channels = K.shape[0], K.shape[1], stack.shape[1]
+    new = np.empty((rows, channels))
+    for r in range(rows):
+        for ch in range(channels):
+            s = 0.0
+            for q in range(cols):
+                s += K[r, q] * stack[q, ch]
+            new[r, ch] = s
+    for ch in range(channels):
+        output[ch] = new[0, ch]
+    for r in range(1, rows):
+        for ch in range(channels):
+            stack[order + r - 1, ch] = new[r, ch]
 
 
 def _hold_direction(Ad: Array, Cd: Array) -> tuple[Array, Array] | None:

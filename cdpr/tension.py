@@ -164,6 +164,17 @@ class TensionLimits:
         return cls(t_min, force_max, ref, floor)
 
 
+class Shortcut(NamedTuple):
+    """A solver's least-norm shortcut as least_norm_inside takes it (the kernels' copies:
+    writable float64, never written)."""
+
+    t_ref: Array
+    low: Array  # the first lower bound solve() tries: t_min (+ floor)
+    f_max: Array
+    f_scale: float
+    rtol: float
+
+
 class FactoredJacobian(NamedTuple):
     """A Jacobian Λ (contiguous, n × 6) with what the least-norm tensions need of it
     alone: the Cholesky factor of ΛᵀΛ (cdpr.compiled_linalg.cholesky's; None where
@@ -190,6 +201,10 @@ class TensionSolver(Protocol):
     ) -> TensionResult: ...
 
     def factored(self, jacobian: ArrayLike) -> FactoredJacobian: ...
+
+    def shortcut(self) -> Shortcut | None: ...
+
+    def answered_inside(self, t: Array) -> None: ...
 
 
 def make_tension_solver(method: str, limits: TensionLimits, **options: Any) -> TensionSolver:
@@ -321,14 +336,25 @@ class _TensionSolverBase:
             return None
         t = np.empty(n)
         factored = C is not None
-        if not _inside(J, C if factored else _NO_FACTOR, factored, self._kernel_t_ref, tau,
-                       fb, f0, low, self._kernel_f_max, self._f_scale, self.rtol, t):  # fmt: skip
+        if not least_norm_inside(J, C if factored else _NO_FACTOR, factored, self._kernel_t_ref,
+                                 tau, fb, f0, low, self._kernel_f_max, self._f_scale, self.rtol,
+                                 t):  # fmt: skip
             return None
-        self._answered_inside(t)
+        self.answered_inside(t)
         return TensionResult(f0 - t, t, True, "", 0)
 
-    def _answered_inside(self, t: Array) -> None:
-        """What a method keeps of an answer _inside gave (OSQP: its next warm start)."""
+    def shortcut(self) -> Shortcut | None:
+        """What a compiled caller passes least_norm_inside to try the least-norm tensions
+        itself, as solve() tries them first (then answered_inside); None where this
+        solver does not (OSQP's interior_shortcut=False)."""
+        if not self._shortcut:
+            return None
+        return Shortcut(self._kernel_t_ref, self._kernel_lows[0], self._kernel_f_max,
+                        self._f_scale, self.rtol)  # fmt: skip
+
+    def answered_inside(self, t: Array) -> None:
+        """What a method keeps of least-norm tensions `t` that met every bound, the cycle's
+        answer (OSQP: its next warm start)."""
 
     def _solve(
         self,
@@ -455,7 +481,7 @@ def _gram_factor(J: Array, C: Array) -> bool:
 
 
 @njit(cache=True)
-def _inside(
+def least_norm_inside(
     J: Array,
     C: Array,
     factored: bool,
@@ -697,7 +723,7 @@ class OsqpTensionSolver(_TensionSolverBase):
         self._warm_start(self._t_ref)  # not from a diverged iterate
         return TensionResult(p.f0 - x, x, False, reason, iterations)
 
-    def _answered_inside(self, t: Array) -> None:
+    def answered_inside(self, t: Array) -> None:
         self._warm_start(t)
 
     def _warm_start(self, t: Array) -> None:

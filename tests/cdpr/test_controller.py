@@ -12,6 +12,7 @@ from cdpr import ConfigError, Pose, Robot, liediff, retract
 from cdpr.baseline import JointSpaceController
 from cdpr.control_spec import ControllerSpec, parse_controller
 from cdpr.controller import Hold, ParallelController
+from cdpr.measurement import ERROR, ERROR_RATE
 from cdpr.trajectory import Reference, Trajectory, TrajectoryLimits, goto
 from sim_bus.plant import Plant, equilibrium_tensions
 from sim_bus.plant.config import parse_plant_config
@@ -35,12 +36,14 @@ class LiteralStep5(ParallelController):
     """The paper's step 5 read literally: theta_d = liediff(eta, eta_r) ~ eta_r - eta,
     and its rate phi_r - phi: exactly the negated error the controller measures
     (liediff(a, b) = -liediff(b, a), test_the_literal_reading_is_the_negated_error), so
-    the loop is fed that."""
+    the measurement's error is negated before the loop sees it."""
 
-    def __init__(self, *args, **kwargs) -> None:
-        super().__init__(*args, **kwargs)
-        step = self.loop.step
-        self.loop.step = lambda error: step(-error)
+    def _measure(self, *args):
+        fk, measured = super()._measure(*args)
+        if measured is not None:
+            measured[ERROR] *= -1.0
+            measured[ERROR_RATE] *= -1.0
+        return fk, measured
 
 
 def test_the_literal_reading_is_the_negated_error() -> None:
