@@ -249,6 +249,7 @@ class PayloadEstimate:
         self._lag = drive_lag
         self._recent: deque[tuple] = deque()
         self.set_latency(0.0)
+        self._take_latency()
         self._forget = math.exp(-SAMPLE_EVERY * period / WINDOW)
         self._gain = SOLVE_EVERY * period / (spec.time_constant + SOLVE_EVERY * period)
         self._dead_zone = DEAD_ZONE * self.file.mass
@@ -303,7 +304,15 @@ class PayloadEstimate:
             )  # fmt: skip
 
     def set_latency(self, latency: float) -> None:
-        """The time (s) from a measurement to its command reaching the drives."""
+        """The time (s) from a measurement to its command reaching the drives, taken in by
+        the next update(): a daemon's cycle hands it over after its commands, and the
+        weights it needs (tens of microseconds) are the slack's work, not the cycle's."""
+        self._latency = latency
+
+    def _take_latency(self) -> None:
+        """The force weights and the window for the latency last set."""
+        latency, self._latency = self._latency, None
+        assert latency is not None
         self._weights, self._newest = drive_force_weights(self.period, self._lag, latency)
         # a sample: SPAN cycles either side of it, and its window's commands (one cycle
         # more either side for the force's rate)
@@ -316,6 +325,8 @@ class PayloadEstimate:
         regression (its drums' acceleration needs the cycles around it), every
         SOLVE_EVERY cycles (on another cycle) move the estimate.  True when the model
         (`platform`) changed."""
+        if self._latency is not None:
+            self._take_latency()
         observed, self._observed = self._observed, None
         self._cycles += 1
         phase = self._cycles % SOLVE_EVERY

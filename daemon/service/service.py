@@ -268,6 +268,7 @@ class Service:
         # work above (a late cycle closed, a stall) may have held the tick up since `now`
         self._opened = opened = time.monotonic()
         self.send(self.driver.cycle_start())
+        self.trust.catch_up()  # the consistency check at the last cycle's pose
         if self._all_fresh():
             self._run_cycle(opened, deadline=False)
             return
@@ -486,7 +487,7 @@ class Service:
             latency = self._latency.add(sent - self._opened)
             if latency is not None:
                 self.controller.set_latency(latency)
-        self.trust.follow_pose(output.pose)
+        self.trust.note_pose(output.pose)  # linearised there at the next tick (catch_up)
         t = self._opened - self.t0
         while self._scheduled and t >= self._scheduled[0].start_time:
             self._trajectory = self._scheduled.pop(0)

@@ -37,7 +37,9 @@ Lambda; one cable off by e leaves N N^T e_k e, largest on that cable when normal
 residual |N_k . N^T d| / |N_k| exceeds the tolerance is inconsistent.  Cables whose rows
 N_k are parallel cannot be told apart this way (reference8 pairs them in two groups of
 four at home): the message names every cable that disagrees as much.  N is linearised at
-a recent measured pose (`follow_pose`), again once the pose moved REFRESH_DISTANCE: its
+a recent measured pose (`follow_pose`, or in a daemon `note_pose` after a cycle's
+commands and `catch_up` at the next tick, while the feedback is on its way), again once
+the pose moved REFRESH_DISTANCE: its
 rows have turned by up to REFRESH_DISTANCE over the `shortest` cable since, and read up
 to that share of a rigid change as residual, which the check allows beside the tolerance
 (reference8, flying 4 mm a cycle: up to 58 um; 3 % of the change at its shortest cable).
@@ -162,6 +164,7 @@ class TrustedLengths:
         self._basis: list[list[float]] = []  # rows N_k of the left null space of Lambda
         self._inverse_norms = [0.0] * n  # 1 / |N_k| (0: cable not observable)
         self._pose: Pose | None = None  # where N was linearised
+        self._due: Pose | None = None  # where it is to be again (note_pose)
         self._next_look = -math.inf  # no second look before (a failed one waits RETRY)
         # N's kernel loaded now, not in the cycle that first linearises (a compile there)
         left_null_space(np.eye(7, 6), np.empty((7, 1)))
@@ -259,6 +262,13 @@ class TrustedLengths:
     def follow_pose(self, pose: Pose) -> None:
         """A pose measured from trusted lengths (the controller's forward kinematics):
         the consistency check is linearised there again once it moved REFRESH_DISTANCE."""
+        self.note_pose(pose)
+        self.catch_up()
+
+    def note_pose(self, pose: Pose) -> None:
+        """follow_pose with the linearisation left for catch_up(): a cycle notes its pose
+        after its commands and the next tick catches up, so that the ~30 us it takes each
+        time the platform moved REFRESH_DISTANCE falls in no cycle."""
         last = self._pose
         if last is not None:
             (x, y, z), (a, b, c) = pose.position_tuple, last.position_tuple
@@ -269,7 +279,12 @@ class TrustedLengths:
             moved2 = (x - a) ** 2 + (y - b) ** 2 + (z - c) ** 2
             if moved2 < REFRESH_DISTANCE**2 and angle < REFRESH_DISTANCE:
                 return
-        self._linearise(pose)
+        self._due = pose
+
+    def catch_up(self) -> None:
+        """Linearise at the pose note_pose left, if any."""
+        if self._due is not None:
+            self._linearise(self._due)
 
     def shift(self, changes: Sequence[float]) -> None:
         """The lengths' offsets changed by `changes` (m, homing): the trusted lengths
@@ -488,7 +503,8 @@ class TrustedLengths:
 
     def _linearise(self, pose: Pose) -> None:
         """N at `pose`: an orthonormal basis of the left null space of Lambda (none with
-        no more cables than degrees of freedom)."""
+        no more cables than degrees of freedom); a pose noted before it is superseded."""
+        self._due = None
         Lam = self.robot.jacobian(pose)
         cables, freedoms = Lam.shape
         basis = np.zeros((cables, max(cables - freedoms, 0)))

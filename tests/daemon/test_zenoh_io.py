@@ -217,6 +217,12 @@ def ask(session: zenoh.Session, key: str, payload: bytes | str | None = None) ->
     return {**body, "zenoh_ok": reply.ok is not None}
 
 
+def alive_tokens(session: zenoh.Session) -> list[str]:
+    """The daemons' alive tokens a session sees (cdpr/<robot>/alive), sorted."""
+    tokens = session.liveliness().get("cdpr/*/alive", timeout=WAIT)
+    return sorted(str(r.ok.key_expr) for r in tokens if r.ok is not None)
+
+
 def wait_until(condition: Callable[[], bool], what: str) -> None:
     deadline = time.monotonic() + WAIT
     while not condition():
@@ -1320,6 +1326,14 @@ def test_several_daemons_behind_a_router_with_access_control(
     router = zenoh.open(zenoh.Config.from_json5(router_conf))
     robots = {name: Running(StandIn(), settings, prefix=f"cdpr/{name}") for name in ("a", "b")}
     try:
+        # each daemon's session reaches the router in its own time (seconds on a loaded
+        # host): the client below is to find both, so wait until a planner sees both
+        planner = zenoh.open(client_zenoh_config([endpoint], tls(certificates, "planner")))
+        try:
+            both = ["cdpr/a/alive", "cdpr/b/alive"]
+            wait_until(lambda: alive_tokens(planner) == both, "both daemons")
+        finally:
+            planner.close()
         with pytest.raises(ClientError, match="several daemons answer: cdpr/a, cdpr/b"):
             CdprClient(None, endpoint, timeout=WAIT, zenoh_config=tls(certificates, "planner"))
         with pytest.raises(UnreachableError, match="no daemon answers"):
@@ -1381,19 +1395,15 @@ def test_with_the_templates_zenoh_section_only_the_daemon_speaks(access_control:
             forger.put(f"{PREFIX}/{key}", FORGED)
         list(forger.get(f"{PREFIX}/trajectory", timeout=WAIT))  # after the puts, on one link
 
-        def alive() -> list[str]:
-            tokens = planner.liveliness().get("cdpr/*/alive", timeout=WAIT)
-            return sorted(str(r.ok.key_expr) for r in tokens if r.ok is not None)
-
         forged = {f"{PREFIX}/state", f"{PREFIX}/events"}
         if not access_control:
             wait_until(lambda: {k for k, p in seen if p == FORGED} == forged, "the forged puts")
-            wait_until(lambda: "cdpr/ghost/alive" in alive(), "the forged token")
+            wait_until(lambda: "cdpr/ghost/alive" in alive_tokens(planner), "the forged token")
             return
         states = len(seen)
         wait_until(lambda: len(seen) >= states + 3, "three more states")  # forged ones came by
         status = ask(planner, "cmd/status")
-        tokens = alive()
+        tokens = alive_tokens(planner)
     finally:
         declared.clear()
         forger.close()
