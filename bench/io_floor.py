@@ -5,7 +5,8 @@ core's I/O on socket-pair buses (sim_bus.bus.pairbus's stream pairs and records)
 timerfd tick, a SYNC record written to each bus, a deadline timerfd armed, the drives'
 answers read (another process, on CPU 1, writes each bus's answers to a SYNC in one go,
 as the simulator does), the command records written (one write a bus), the deadline
-disarmed.  No frame is decoded past its record, nothing is checked or computed.  Two
+left to fire (its expiry read, as the core reads it).  No frame is decoded past its
+record, nothing is checked or computed.  Two
 ways of waiting:
 
 - `asyncio`: the readers on an asyncio loop, as the real-time core runs its cycle today
@@ -95,7 +96,7 @@ class Cycle:
         self.due, self.waiting = self.per_bus * len(self.ends), True
         deadline.arm(time.monotonic() + DEADLINE * self.period)
 
-    def take(self, end: socket.socket, deadline: DeadlineTimer) -> None:
+    def take(self, end: socket.socket) -> None:
         with contextlib.suppress(BlockingIOError):
             self.due -= len(end.recv(1 << 16)) // FRAME.size
         if self.waiting and self.due <= 0:
@@ -103,7 +104,6 @@ class Cycle:
             commands = _records(RPDO_BASE, self.per_bus)
             for each in self.ends:
                 each.send(commands)
-            deadline.disarm()
             self.cycles += 1
 
 
@@ -118,7 +118,7 @@ def run_asyncio(cycle: Cycle, seconds: float) -> Window:
         loop.add_reader(timer.fileno(), tick)
         loop.add_reader(deadline.fileno(), deadline.expired)
         for end in cycle.ends:
-            loop.add_reader(end.fileno(), cycle.take, end, deadline)
+            loop.add_reader(end.fileno(), cycle.take, end)
         await asyncio.sleep(SETTLE)
         start = (time.process_time(), cycle.cycles, cycle.misses)
         await asyncio.sleep(seconds)
@@ -152,7 +152,7 @@ def run_plain(cycle: Cycle, seconds: float) -> Window:
                 if not ready:
                     break
                 for fd, _ in ready:
-                    cycle.take(by_fd[fd], deadline)
+                    cycle.take(by_fd[fd])
 
 
 def tick_cost(rate: float, seconds: float) -> float:

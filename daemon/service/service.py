@@ -418,12 +418,11 @@ class Service:
 
     def _after_commands(self, output: ControlOutput | None, sent: float) -> None:
         """The cycle's work that waits until its frames are out, since no brake decision
-        of this cycle depends on it: disarming the feedback deadline (an expiry its reader
-        has not taken yet is forgotten with it), and, after commands
-        (`output`), the measured command latency, the consistency check's pose and the
-        trajectory schedule (for the next cycles)."""
-        if self._deadline is not None:
-            self._deadline.disarm()
+        of this cycle depends on it: after commands (`output`), the measured command
+        latency, the consistency check's pose and the trajectory schedule (for the next
+        cycles).  The feedback deadline is left to fire: its expiry read while no cycle
+        waits is ignored (_on_deadline), and the next tick's arm forgets one unread by
+        then (drivers.clock.DeadlineTimer)."""
         if output is not None:
             self._follow_up(output, sent)
 
