@@ -98,7 +98,6 @@ PARTS: list[tuple[str, str | None, Where]] = [
     ("control.encode", "cycle.control", lambda s: (s.driver, "commands")),
     ("control.send", "cycle.control", lambda s: (s, "send")),
     ("cycle.after_commands", "cycle", lambda s: (s, "_after_commands")),
-    ("after.deadline_disarm", "cycle.after_commands", lambda s: (s._deadline, "disarm")),
     ("after.note_pose", "cycle.after_commands", lambda s: (s.trust, "note_pose")),
     ("trust_catch_up", None, lambda s: (s.trust, "catch_up")),
     ("cycle.gc_policy", "cycle", lambda s: (s.collector, "after_cycle")),
