@@ -7,7 +7,7 @@ Each piece is the maths of its own module, called from here: the stretch
 L = l (1 + s t / EA) (Robot.stretched_lengths, cdpr.stretch), the Gauss-Newton fit and
 its verdict (cdpr.forward_kinematics.fit_kernel), the pose difference
 (cdpr.pose.pose_difference).
-The twist is measured here (ParallelController.step's docstring says why each way):
+The twist is measured here (ParallelController._measure's docstring says why each way):
 the least-squares phi = Lambda^+ (l' + stretch rate) on the fit's Lambda and normal
 factor, with or without the complementary filter that takes its low frequencies from
 the poses' differences, or the filtered differences alone.  One kernel because at
