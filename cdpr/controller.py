@@ -470,7 +470,7 @@ class ParallelController:
         twist = measured[TWIST]
         self._pose, self._twist = pose, twist
 
-        if prepared.model is not None:
+        if prepared.model is not None and prepared.tables is not None:  # both, or neither
             model, tables = prepared.model, prepared.tables
         else:  # at the measured state, carried to t + lead
             tables = robot.model_tables(retract(pose, twist * self.lead), twist)
