@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 from numba import njit
+from numba.extending import register_jitable
 from numpy.typing import NDArray
 
 from cdpr.compiled_cache import key_numba_cache
@@ -34,6 +35,14 @@ def out_size(n: int) -> int:
     """`out`'s length for n cables: alpha_c and tau_c (6 each), then f0, the forces
     f_p, the tensions and the commands (n each)."""
     return 12 + 4 * n
+
+
+@register_jitable  # plain Python here, compiled in the kernel: one layout for both
+def out_parts(out: Array) -> tuple[Array, Array, Array, Array, Array, Array]:
+    """Views of `out`'s parts: (alpha_c, tau_c, f0, forces, tensions, commands)."""
+    n = (out.shape[0] - 12) // 4
+    return (out[0:6], out[6:12], out[12 : 12 + n], out[12 + n : 12 + 2 * n],
+            out[12 + 2 * n : 12 + 3 * n], out[12 + 3 * n : 12 + 4 * n])  # fmt: skip
 
 
 @njit(cache=True)
@@ -71,13 +80,7 @@ def command(
             stack[1, ch] = measured[_THETA_RATE + ch]
     loop = np.empty(6)
     advance(K, stack, order, loop)
-    alpha, tau = out[0:6], out[6:12]
-    f0, forces, t, commands = (
-        out[12 : 12 + n],
-        out[12 + n : 12 + 2 * n],
-        out[12 + 2 * n : 12 + 3 * n],
-        out[12 + 3 * n : 12 + 4 * n],
-    )
+    alpha, tau, f0, forces, t, commands = out_parts(out)
     for a in range(6):
         alpha[a] = accel[a] + loop[a]
     for a in range(6):

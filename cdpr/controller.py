@@ -34,7 +34,7 @@ from typing import NamedTuple, Protocol
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from cdpr.command import command, out_size
+from cdpr.command import command, out_parts, out_size
 from cdpr.control_spec import DEFAULT_FORCE_LAG, MAX_COMMAND_LEAD, ControllerSpec
 from cdpr.dynamics import PlatformInertia
 from cdpr.forward_kinematics import FKResult, fit_result, fit_start, non_finite_lengths
@@ -479,7 +479,7 @@ class ParallelController:
         # the push the model does not explain, cancelled
         observed = self.observer.estimate if cancelled else self._no_wrench
         result, commands, out = self._command(prepared, measured, tables, observed, model)
-        alpha_c, tau_c, f0 = out[0:6], out[6:12], out[12 : 12 + robot.n_cables]
+        alpha_c, tau_c, f0 = out_parts(out)[:3]
         if cancelled and self._observing:
             M, mu = model[2], model[3]
             self._observed = (twist, M, tau_c - mu, interval)
@@ -530,14 +530,13 @@ class ParallelController:
             K, stack, order, measured, prepared.accel, table, G, self._m0, observed,
             prepared.f_b, *shortcut, self._shortcut is not None, out,
         )  # fmt: skip
+        _, tau_c, f0, forces, tensions, commands = out_parts(out)
         if inside:
-            tensions = out[12 + 2 * n : 12 + 3 * n]
             self.tension.answered_inside(tensions)
-            forces = out[12 + n : 12 + 2 * n]
-            return TensionResult(forces, tensions, True, "", 0), out[12 + 3 * n :], out
+            return TensionResult(forces, tensions, True, "", 0), commands, out
         jacobian = model[0] if prepared.factored is None else prepared.factored
         f_b = prepared.f_b
-        result = self.tension.solve(jacobian, out[6:12], f_b, out[12 : 12 + n])
+        result = self.tension.solve(jacobian, tau_c, f_b, f0)
         commands = result.forces + f_b if result.feasible else np.full(n, np.nan)
         return result, commands, out
 
@@ -572,7 +571,8 @@ class ParallelController:
         theta_d = liediff(eta_r, eta) ~ eta - eta_r and its rate phi - phi_r (actual
         minus requested)."""
         guess = prepared.guess
-        if not math.isfinite(sum(lengths.tolist())) and (bad := non_finite_lengths(guess, lengths)):
+        bad = non_finite_lengths(guess, lengths)
+        if bad is not None:
             return bad, None
         settings, stretch_rate = self.robot.fk_settings, prepared.stretch_rate
         start, kind, lengths0, J0, L0 = prepared.start

@@ -101,7 +101,8 @@ def solve_forward_kinematics(
         raise ValueError(f"expected {n} cable lengths, got {measured.shape[0]}")
     # a NaN or inf among them; finite lengths sum to inf only when absurdly large, and
     # those fail the residual check
-    if not math.isfinite(measured.sum()) and (bad := non_finite_lengths(guess, measured)):
+    bad = non_finite_lengths(guess, measured)
+    if bad is not None:
         return bad
     if not (measured.flags.c_contiguous and measured.flags.writeable):
         measured = measured.copy()  # the one array type fit_kernel is compiled for
@@ -116,8 +117,12 @@ def solve_forward_kinematics(
 
 def non_finite_lengths(guess: Pose, measured: Array) -> FKResult | None:
     """The failed result naming the first NaN or inf among the lengths; None if all are
-    finite (a sum of them can overflow: such lengths fail the residual check)."""
-    for k, length in enumerate(measured.tolist()):
+    finite (one sum says so in the usual case; a sum of finite lengths can overflow:
+    such lengths fail the residual check)."""
+    lengths = measured.tolist()
+    if math.isfinite(sum(lengths)):
+        return None
+    for k, length in enumerate(lengths):
         if not math.isfinite(length):
             return FKResult(guess, math.inf, 0, False, f"non-finite length {length} at cable {k}")
     return None
