@@ -1,13 +1,13 @@
 """What a control cycle's I/O alone costs on this host: the floor under any cycle design.
 
-A core process (SCHED_FIFO where permitted, on CPU 0) runs cycles of nothing but the
-core's I/O on socket-pair buses (sim_bus.bus.pairbus's stream pairs and records): a
-timerfd tick, a SYNC record written to each bus, a deadline timerfd armed, the drives'
-answers read (another process, on CPU 1, writes each bus's answers to a SYNC in one go,
-as the simulator does), the command records written (one write a bus), the deadline
-left to fire (its expiry read, as the core reads it).  No frame is decoded past its
-record, nothing is checked or computed.  Two
-ways of waiting:
+A core process (SCHED_FIFO where permitted, on CPU 0, the CPUs kept awake as the core
+keeps them: realtime.cpu_latency_us 0) runs cycles of nothing but the core's I/O on
+socket-pair buses (sim_bus.bus.pairbus's stream pairs and records): a timerfd tick, a
+SYNC record written to each bus, a deadline timerfd armed, the drives' answers read
+(another process, on CPU 1, writes each bus's answers to a SYNC in one go, as the
+simulator does), the command records written (one write a bus), the deadline left to
+fire (its expiry read, as the core reads it).  No frame is decoded past its record,
+nothing is checked or computed.  Two ways of waiting:
 
 - `asyncio`: the readers on an asyncio loop, as the real-time core runs its cycle today
   (daemon.service.service: PeriodicTimer, DeadlineTimer and the buses' fds added with
@@ -45,7 +45,7 @@ from sim_bus.bus.pairbus import FRAME, bus_pair
 SYNC_ID, TPDO_BASE, RPDO_BASE = 0x080, 0x180, 0x200
 DEADLINE = 0.8  # of a period: the daemon's default safety.feedback_deadline
 SETTLE = 0.5  # s before measuring
-CORE = RealtimeConfig(priority=50, cpus=(0,), lock_memory=False)  # the core's priority
+CORE = RealtimeConfig(priority=50, cpus=(0,), lock_memory=False)  # the core's, unlocked
 # (CPU s at the end, (CPU s, cycles, misses) at the start, cycles, misses at the end)
 Window = tuple[float, tuple[float, int, int], int, int]
 

@@ -172,6 +172,7 @@ class RecordingConfig(StrictModel):
 
 
 MAX_CPUS = 8192  # the kernel's largest NR_CPUS
+MAX_CPU_LATENCY_US = 2**31 - 1  # /dev/cpu_dma_latency takes a signed 32-bit value
 CpuIndex = Annotated[int, Field(ge=0, lt=MAX_CPUS)]
 
 
@@ -184,11 +185,16 @@ class RealtimeConfig(StrictModel):
     cpus: the CPUs the core may run on (indices as in /proc/cpuinfo), or null: any.
     lock_memory: mlockall(MCL_CURRENT | MCL_FUTURE), so that no page the cycle touches is
       paged out or first faulted in while the drives' watchdogs wait.
+    cpu_latency_us: the CPUs' wake-up latency (us) held while the core runs (the kernel's
+      CPU latency QoS, /dev/cpu_dma_latency): 0 keeps idle CPUs out of the idle states
+      that are slow to leave (they poll: more power), so a cycle's wake-ups and the
+      drives' answers are not slowed by them; null: the idle states as they are.
     """
 
     priority: Annotated[int, Field(ge=0, le=99)] | None = 50
     cpus: tuple[CpuIndex, ...] | None = None
     lock_memory: bool = True
+    cpu_latency_us: Annotated[int, Field(ge=0, le=MAX_CPU_LATENCY_US)] | None = 0
 
     @field_validator("cpus")
     @classmethod

@@ -1,4 +1,5 @@
-"""Real-time service for the core process: SCHED_FIFO, CPU affinity, locked memory.
+"""Real-time service for the core process: SCHED_FIFO, CPU affinity, locked memory, CPUs
+kept awake.
 
 The process that runs the control cycle calls `enter_realtime(config.realtime)` once at
 start-up, from the thread that runs the cycle: the kernel applies scheduling policy and
@@ -16,6 +17,11 @@ what failed and what to allow; the core then runs on without it.
   cycle waits for a page fault or a page-in.  With MCL_FUTURE an allocation past
   RLIMIT_MEMLOCK fails (MemoryError), so without CAP_IPC_LOCK memory is locked only when
   that limit is unlimited.
+- The CPU latency QoS at `cpu_latency_us` (/dev/cpu_dma_latency, held open while the core
+  runs, as cyclictest does): at 0 an idle CPU polls (x86; WFI on ARM) instead of entering
+  an idle state that is slow to leave, so no wake-up of the cycle waits for one; the idle
+  CPUs spend power instead.  docs/explanation/realtime.md has its figures on this
+  project's host, a VM, where it also has a cost.
 - The GIL's switch interval: GIL_SWITCH_INTERVAL instead of Python's 5 ms, so that
   another Python thread of the core's process (zenoh's callbacks, a Notifier thread)
   holding the GIL gives it back to the cycle within a fraction of a period.  With 5 ms,
@@ -41,6 +47,7 @@ import logging
 import os
 import resource
 import signal
+import struct
 import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -56,6 +63,8 @@ MCL_CURRENT, MCL_FUTURE = 1, 2  # <sys/mman.h>
 CAP_IPC_LOCK = 14  # <linux/capability.h>
 PROC_SYS_KERNEL = Path("/proc/sys/kernel")
 CPUS_ONLINE = Path("/sys/devices/system/cpu/online")
+CPU_LATENCY = Path("/dev/cpu_dma_latency")  # the kernel's CPU latency QoS, per open file
+CPU_LATENCY_RULE = "config/60-cdprd-cpu-latency.rules"
 UNIT = "config/cdprd.service"
 ORDINARY = ordinary.__file__  # the trampoline spawn_ordinary runs first
 SPAWN_PRIORITY = 1  # SCHED_FIFO priority of a child until it has dropped to normal
@@ -69,7 +78,8 @@ class RealtimeState:
     priority: the SCHED_FIFO priority in force, 0 for normal scheduling.  cpus: the CPUs
     the core may run on now.  memory_locked: mlockall in force.  rt_runtime_us /
     rt_period_us: the kernel's real-time throttling (None if unreadable; runtime -1:
-    off).  warnings: each request that was not granted, and why.
+    off).  cpu_latency_us: the CPU latency this process holds (None: none), through the
+    open file `cpu_latency_file`.  warnings: each request that was not granted, and why.
     """
 
     priority: int
@@ -78,6 +88,8 @@ class RealtimeState:
     rt_runtime_us: int | None
     rt_period_us: int | None
     warnings: list[str] = field(default_factory=list)
+    cpu_latency_us: int | None = None
+    cpu_latency_file: int | None = None
     previous_policy: int = os.SCHED_OTHER
     previous_priority: int = 0
     previous_cpus: frozenset[int] = frozenset()
@@ -93,6 +105,9 @@ def enter_realtime(settings: RealtimeConfig) -> RealtimeState:
     if settings.cpus is not None:
         cpus = _set_affinity(frozenset(settings.cpus), previous_cpus, warnings)
     locked = settings.lock_memory and _lock_memory(warnings)
+    latency_file = None
+    if settings.cpu_latency_us is not None:
+        latency_file = _hold_cpu_latency(settings.cpu_latency_us, warnings)
     previous_policy, previous_priority = os.sched_getscheduler(0), os.sched_getparam(0)
     priority = _set_fifo(settings.priority, warnings) if settings.priority else 0
     previous_switch_interval = sys.getswitchinterval()
@@ -115,6 +130,8 @@ def enter_realtime(settings: RealtimeConfig) -> RealtimeState:
         previous_priority=previous_priority.sched_priority,
         previous_cpus=previous_cpus,
         previous_switch_interval=previous_switch_interval,
+        cpu_latency_us=None if latency_file is None else settings.cpu_latency_us,
+        cpu_latency_file=latency_file,
     )
     for warning in warnings:
         log.warning("real-time: %s", warning)
@@ -124,8 +141,11 @@ def enter_realtime(settings: RealtimeConfig) -> RealtimeState:
 
 def leave_realtime(state: RealtimeState) -> None:
     """Undo `enter_realtime` in this thread: the scheduling and CPUs it had before,
-    memory unlocked, Python's switch interval as it was."""
+    memory unlocked, Python's switch interval as it was, the CPU latency let go."""
     sys.setswitchinterval(state.previous_switch_interval)
+    if state.cpu_latency_file is not None:
+        os.close(state.cpu_latency_file)
+        state.cpu_latency_file, state.cpu_latency_us = None, None
     if state.priority:
         os.sched_setscheduler(0, state.previous_policy, os.sched_param(state.previous_priority))
     if state.cpus != state.previous_cpus:
@@ -197,7 +217,7 @@ def realtime(settings: RealtimeConfig) -> Iterator[RealtimeState]:
 
 
 def describe(state: RealtimeState) -> str:
-    """One line: scheduling, CPUs, memory, throttling."""
+    """One line: scheduling, CPUs, memory, throttling, CPU latency."""
     scheduling = f"SCHED_FIFO priority {state.priority}" if state.priority else "normal priority"
     memory = "memory locked" if state.memory_locked else "memory not locked"
     if state.rt_runtime_us is None:
@@ -206,7 +226,12 @@ def describe(state: RealtimeState) -> str:
         throttle = "real-time throttling off"
     else:
         throttle = f"real-time throttling {state.rt_runtime_us}/{state.rt_period_us} us"
-    return f"{scheduling}, CPUs {_cpu_list(state.cpus)}, {memory}, {throttle}"
+    latency = (
+        "CPU idle states as they are"
+        if state.cpu_latency_us is None
+        else f"CPU latency held at {state.cpu_latency_us} us"
+    )
+    return f"{scheduling}, CPUs {_cpu_list(state.cpus)}, {memory}, {throttle}, {latency}"
 
 
 def _set_affinity(
@@ -252,6 +277,31 @@ def _lock_memory(warnings: list[str]) -> bool:
             f"{_limit(soft)}): page faults can delay cycles; {allow}"
         )
     return code == 0
+
+
+def _hold_cpu_latency(us: int, warnings: list[str]) -> int | None:
+    """Ask the kernel to keep every CPU's wake-up latency within `us` for as long as the
+    returned file stays open (closed by leave_realtime or at exit; not inherited by
+    children); None, and a warning, where refused."""
+    allow = (
+        f"allow it with {CPU_LATENCY_RULE} (udev) and DeviceAllow={CPU_LATENCY} w under "
+        f"systemd (as {UNIT} does) or root; or set realtime.cpu_latency_us: null to not ask"
+    )
+    try:
+        held = os.open(CPU_LATENCY, os.O_WRONLY)
+    except OSError as exc:
+        warnings.append(
+            f"CPU latency {us} us not held: {CPU_LATENCY}: {exc.strerror}: idle CPUs may "
+            f"sleep in states slow to wake, which slows each of the cycle's wake-ups; {allow}"
+        )
+        return None
+    try:
+        os.write(held, struct.pack("=i", us))
+    except OSError as exc:
+        os.close(held)
+        warnings.append(f"CPU latency {us} us not held: {CPU_LATENCY} refused it: {exc.strerror}")
+        return None
+    return held
 
 
 def _set_fifo(priority: int, warnings: list[str]) -> int:

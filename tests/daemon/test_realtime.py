@@ -58,7 +58,9 @@ def normal_afterwards() -> Iterator[None]:
 def test_takes_effect_and_is_restored() -> None:
     last = max(os.sched_getaffinity(0))
     before = os.sched_getaffinity(0)
-    with realtime(RealtimeConfig(priority=10, cpus=(last,), lock_memory=True)) as state:
+    with realtime(
+        RealtimeConfig(priority=10, cpus=(last,), lock_memory=True, cpu_latency_us=None)
+    ) as state:
         assert state.warnings == []
         assert (_policy(), os.sched_getparam(0).sched_priority) == (FIFO, 10)
         assert os.sched_getaffinity(0) == {last} == state.cpus
@@ -89,7 +91,9 @@ def test_a_thread_started_afterwards_inherits_priority_and_cpus() -> None:
         seen.append((_policy(), os.sched_getparam(0).sched_priority, os.sched_getaffinity(0)))
 
     last = max(os.sched_getaffinity(0))
-    with realtime(RealtimeConfig(priority=10, cpus=(last,), lock_memory=False)) as state:
+    with realtime(
+        RealtimeConfig(priority=10, cpus=(last,), lock_memory=False, cpu_latency_us=None)
+    ) as state:
         assert state.priority == 10
         thread = threading.Thread(target=look)
         thread.start()
@@ -109,7 +113,9 @@ def _spawned_sees(cpus: tuple[int, ...] | None) -> tuple:
     spawned from here under realtime(priority 10, `cpus`)."""
     read, write = os.pipe()
     try:
-        with realtime(RealtimeConfig(priority=10, cpus=cpus, lock_memory=False)):
+        with realtime(
+            RealtimeConfig(priority=10, cpus=cpus, lock_memory=False, cpu_latency_us=None)
+        ):
             argv = [sys.executable, "-c", REPORT, str(write), "an argument"]
             child = rt.spawn_ordinary(argv, {**os.environ, "MARK": "env"}, (write,))
         os.close(write)
@@ -147,7 +153,7 @@ def test_a_real_time_caller_spawns_above_normal_processes_until_the_exec(
         return os.getpid()
 
     monkeypatch.setattr(os, "posix_spawn", spawn)
-    with realtime(RealtimeConfig(priority=10, cpus=None, lock_memory=False)):
+    with realtime(RealtimeConfig(priority=10, cpus=None, lock_memory=False, cpu_latency_us=None)):
         rt.spawn_ordinary(["/bin/true", "x"], {})
     rt.spawn_ordinary(["/bin/true", "y"], {})
     (fifo_argv, fifo), (other_argv, other) = calls
@@ -175,7 +181,7 @@ def test_refused_priority_keeps_normal_scheduling_and_says_what_to_allow(
 
     monkeypatch.setattr(os, "sched_setscheduler", refuse)
     with caplog.at_level(logging.INFO, logger="cdprd"):
-        state = enter_realtime(RealtimeConfig(priority=50, lock_memory=False))
+        state = enter_realtime(RealtimeConfig(priority=50, lock_memory=False, cpu_latency_us=None))
     assert state.priority == 0 and _policy() == os.SCHED_OTHER
     (warning,) = state.warnings
     assert warning.startswith("SCHED_FIFO priority 50 refused (Operation not permitted)")
@@ -192,7 +198,7 @@ def test_failed_mlockall_is_a_warning_naming_the_memlock_limit(
 ) -> None:
     monkeypatch.setattr(rt, "_mlockall", lambda flags: errno.ENOMEM)
     monkeypatch.setattr(rt, "_has_capability", lambda bit: True)
-    state = enter_realtime(RealtimeConfig(priority=0, lock_memory=True))
+    state = enter_realtime(RealtimeConfig(priority=0, lock_memory=True, cpu_latency_us=None))
     assert not state.memory_locked
     (warning,) = state.warnings
     assert warning.startswith("memory not locked: mlockall failed (Cannot allocate memory;")
@@ -206,8 +212,11 @@ def test_nothing_is_asked_when_not_configured(monkeypatch: pytest.MonkeyPatch) -
     for name in ("sched_setscheduler", "sched_setaffinity"):
         monkeypatch.setattr(os, name, forbidden)
     monkeypatch.setattr(rt, "_mlockall", forbidden)
+    monkeypatch.setattr(rt, "_hold_cpu_latency", forbidden)
     for priority in (0, None):
-        state = enter_realtime(RealtimeConfig(priority=priority, cpus=None, lock_memory=False))
+        state = enter_realtime(
+            RealtimeConfig(priority=priority, cpus=None, lock_memory=False, cpu_latency_us=None)
+        )
         assert (state.priority, state.memory_locked, state.warnings) == (0, False, [])
         leave_realtime(state)
 
@@ -216,7 +225,9 @@ def test_cpus_the_kernel_cannot_use_are_named() -> None:
     absent = MAX_CPUS - 1  # no machine here has that many
     before = frozenset(os.sched_getaffinity(0))
     first = min(before)
-    state = enter_realtime(RealtimeConfig(priority=0, cpus=(first, absent), lock_memory=False))
+    state = enter_realtime(
+        RealtimeConfig(priority=0, cpus=(first, absent), lock_memory=False, cpu_latency_us=None)
+    )
     try:
         assert state.cpus == {first} and os.sched_getaffinity(0) == {first}
         (warning,) = state.warnings
@@ -225,7 +236,9 @@ def test_cpus_the_kernel_cannot_use_are_named() -> None:
     finally:
         leave_realtime(state)
     assert os.sched_getaffinity(0) == before
-    state = enter_realtime(RealtimeConfig(priority=0, cpus=(absent,), lock_memory=False))
+    state = enter_realtime(
+        RealtimeConfig(priority=0, cpus=(absent,), lock_memory=False, cpu_latency_us=None)
+    )
     assert state.cpus == before == os.sched_getaffinity(0)
     (warning,) = state.warnings
     assert warning.startswith(f"realtime.cpus: none of CPU {absent} can be used")
@@ -235,14 +248,14 @@ def test_the_throttling_bound_is_reported_and_its_absence_warned(
     monkeypatch: pytest.MonkeyPatch, tmp_path: Path
 ) -> None:
     monkeypatch.setattr(os, "sched_setscheduler", lambda *_args: None)  # granted, no effect
-    state = enter_realtime(RealtimeConfig(priority=50, lock_memory=False))
+    state = enter_realtime(RealtimeConfig(priority=50, lock_memory=False, cpu_latency_us=None))
     expected = int((rt.PROC_SYS_KERNEL / "sched_rt_runtime_us").read_text())
     assert state.rt_runtime_us == expected
     assert f"real-time throttling {expected}/" in rt.describe(state)
     (tmp_path / "sched_rt_runtime_us").write_text("-1\n")
     (tmp_path / "sched_rt_period_us").write_text("1000000\n")
     monkeypatch.setattr(rt, "PROC_SYS_KERNEL", tmp_path)
-    state = enter_realtime(RealtimeConfig(priority=50, lock_memory=False))
+    state = enter_realtime(RealtimeConfig(priority=50, lock_memory=False, cpu_latency_us=None))
     (warning,) = state.warnings
     assert warning.startswith("kernel real-time throttling is off (sched_rt_runtime_us = -1)")
     assert "real-time throttling off" in rt.describe(state)
@@ -299,3 +312,79 @@ def test_without_the_units_limits_the_core_runs_on_with_two_warnings() -> None:
     assert "LimitMEMLOCK=infinity" in memory
     assert fifo.startswith("SCHED_FIFO priority 50 refused (Operation not permitted)")
     assert "RLIMIT_RTPRIO, now 0" in fifo
+
+
+# -- the CPU latency ------------------------------------------------------------------------
+
+
+def _cpu_latency_now() -> int:
+    """The kernel's CPU latency target in force (us): the least any open request holds
+    (a read of /dev/cpu_dma_latency gives it; this file's own request asks nothing)."""
+    reader = os.open(rt.CPU_LATENCY, os.O_RDONLY)
+    try:
+        return int.from_bytes(os.read(reader, 4), sys.byteorder, signed=True)
+    finally:
+        os.close(reader)
+
+
+@pytest.mark.skipif(
+    not os.access(rt.CPU_LATENCY, os.W_OK), reason=f"needs write access to {rt.CPU_LATENCY}"
+)
+@pytest.mark.parametrize("us", [0, 20])
+def test_the_cpu_latency_is_held_while_in_real_time_and_let_go_after(us: int) -> None:
+    """The request stands while the file is open (another process holding a lower one,
+    a daemon test beside this one, lowers the target further, never raises it) and is
+    let go by leave_realtime; it is no descriptor a child would inherit."""
+    with realtime(RealtimeConfig(priority=0, lock_memory=False, cpu_latency_us=us)) as state:
+        held = state.cpu_latency_file
+        assert held is not None and state.cpu_latency_us == us and state.warnings == []
+        assert os.readlink(f"/proc/self/fd/{held}") == str(rt.CPU_LATENCY)
+        assert 0 <= _cpu_latency_now() <= us
+        assert not os.get_inheritable(held)
+        assert rt.describe(state).endswith(f"CPU latency held at {us} us")
+    assert state.cpu_latency_file is None and state.cpu_latency_us is None
+    with pytest.raises(OSError):
+        os.fstat(held)  # closed: the kernel dropped the request
+
+
+def test_an_unopenable_cpu_latency_is_a_warning_naming_what_to_allow(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    monkeypatch.setattr(rt, "CPU_LATENCY", tmp_path / "cpu_dma_latency")
+    state = enter_realtime(RealtimeConfig(priority=0, lock_memory=False, cpu_latency_us=0))
+    assert state.cpu_latency_file is None and state.cpu_latency_us is None
+    (warning,) = state.warnings
+    assert warning.startswith(
+        f"CPU latency 0 us not held: {tmp_path / 'cpu_dma_latency'}: No such file or directory"
+    )
+    for remedy in (rt.CPU_LATENCY_RULE, "DeviceAllow=", "realtime.cpu_latency_us: null"):
+        assert remedy in warning
+    assert rt.describe(state).endswith("CPU idle states as they are")
+    leave_realtime(state)
+
+
+def test_a_refused_cpu_latency_write_is_a_warning_and_leaves_nothing_open(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """/dev/full takes the open and refuses every write (ENOSPC)."""
+    monkeypatch.setattr(rt, "CPU_LATENCY", Path("/dev/full"))
+    before = set(os.listdir("/proc/self/fd"))
+    state = enter_realtime(RealtimeConfig(priority=0, lock_memory=False, cpu_latency_us=5))
+    assert state.cpu_latency_file is None
+    (warning,) = state.warnings
+    assert warning == "CPU latency 5 us not held: /dev/full refused it: No space left on device"
+    assert set(os.listdir("/proc/self/fd")) == before
+
+
+def test_the_unit_lets_the_core_hold_the_cpu_latency_the_udev_rule_opens() -> None:
+    """The node the core opens is the one config/cdprd.service allows and the udev rule
+    shipped beside it makes writable for the unit's dynamic user."""
+    unit = (ROOT / rt.UNIT).read_text()
+    assert f"\nDeviceAllow={rt.CPU_LATENCY} w\n" in unit
+    assert "\nDevicePolicy=closed\n" in unit and "\nPrivateDevices=no\n" in unit
+    rules = [
+        line
+        for line in (ROOT / rt.CPU_LATENCY_RULE).read_text().splitlines()
+        if line and not line.startswith("#")
+    ]
+    assert rules == [f'KERNEL=="{rt.CPU_LATENCY.name}", MODE="0666"']
