@@ -30,18 +30,24 @@ def test_hardware_template_is_a_valid_file() -> None:
     assert raw.drives["brake"] == "holding_brake"
     zenoh = validate_section(ZenohSettings, raw.zenoh, "zenoh")
     assert zenoh.ingress_limits_hz == {"trajectory": 20.0, "cmd/*": 20.0}
-    assert raw.realtime == RealtimeConfig(priority=50, cpus=None, lock_memory=True)
+    assert raw.realtime == RealtimeConfig(
+        priority=50, cpus=None, lock_memory=True, cpu_latency_us=0
+    )
 
 
 def test_realtime_defaults_and_values() -> None:
-    """Without the section the core asks for SCHED_FIFO 50 and locked memory, any CPU."""
+    """Without the section the core asks for SCHED_FIFO 50, locked memory and the CPUs
+    kept awake, on any CPU."""
     assert parse_config(_data(), CONFIG, "test.yaml").realtime == RealtimeConfig(
-        priority=50, cpus=None, lock_memory=True
+        priority=50, cpus=None, lock_memory=True, cpu_latency_us=0
     )
     data = _data()
-    data["realtime"] = {"priority": None, "cpus": [1, 0], "lock_memory": False}
+    data["realtime"] = {
+        "priority": None, "cpus": [1, 0], "lock_memory": False, "cpu_latency_us": None
+    }  # fmt: skip
     held = parse_config(data, CONFIG, "test.yaml").realtime
     assert (held.priority, held.cpus, held.lock_memory) == (None, (1, 0), False)
+    assert held.cpu_latency_us is None
 
 
 def _robot_with(**actuator: float) -> dict:
@@ -86,6 +92,16 @@ def _data() -> dict:
         (
             lambda d: d.update(realtime={"priority": True}),
             r"^test.yaml: realtime.priority: Input should be a valid integer \(got true\)$",
+        ),
+        (
+            lambda d: d.update(realtime={"cpu_latency_us": -1}),
+            r"^test.yaml: realtime.cpu_latency_us: Input should be greater than or equal to 0 "
+            r"\(got -1\)$",
+        ),
+        (
+            lambda d: d.update(realtime={"cpu_latency_us": 2**31}),
+            r"^test.yaml: realtime.cpu_latency_us: Input should be less than or equal to "
+            r"2147483647 \(got 2147483648\)$",
         ),
         (
             lambda d: d.update(realtime={"cpus": []}),
