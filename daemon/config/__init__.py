@@ -186,9 +186,9 @@ class RealtimeConfig(StrictModel):
     lock_memory: mlockall(MCL_CURRENT | MCL_FUTURE), so that no page the cycle touches is
       paged out or first faulted in while the drives' watchdogs wait.
     cpu_latency_us: the CPUs' wake-up latency (us) held while the core runs (the kernel's
-      CPU latency QoS, /dev/cpu_dma_latency): 0 keeps idle CPUs out of the idle states
-      that are slow to leave (they poll: more power), so a cycle's wake-ups and the
-      drives' answers are not slowed by them; null: the idle states as they are.
+      CPU latency QoS, /dev/cpu_dma_latency): 0 keeps idle CPUs in their shallowest idle
+      state (x86's cpuidle polls: more power; ARM waits in WFI), so that no wake-up of
+      the cycle waits for a CPU to leave a deeper one; null: the idle states as they are.
     """
 
     priority: Annotated[int, Field(ge=0, le=99)] | None = 50

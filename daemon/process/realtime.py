@@ -18,10 +18,11 @@ what failed and what to allow; the core then runs on without it.
   RLIMIT_MEMLOCK fails (MemoryError), so without CAP_IPC_LOCK memory is locked only when
   that limit is unlimited.
 - The CPU latency QoS at `cpu_latency_us` (/dev/cpu_dma_latency, held open while the core
-  runs, as cyclictest does): at 0 an idle CPU polls (x86; WFI on ARM) instead of entering
-  an idle state that is slow to leave, so no wake-up of the cycle waits for one; the idle
-  CPUs spend power instead.  docs/explanation/realtime.md has its figures on this
-  project's host, a VM, where it also has a cost.
+  runs, as cyclictest does): at 0 an idle CPU stays in its shallowest idle state (x86's
+  cpuidle polls; an ARM CPU waits in WFI) instead of one that is slow to leave, so no
+  wake-up of the cycle waits for one; the idle CPUs spend power instead.
+  docs/explanation/realtime.md has its figures on this project's host, a VM, where it
+  also has a cost.
 - The GIL's switch interval: GIL_SWITCH_INTERVAL instead of Python's 5 ms, so that
   another Python thread of the core's process (zenoh's callbacks, a Notifier thread)
   holding the GIL gives it back to the cycle within a fraction of a period.  With 5 ms,
