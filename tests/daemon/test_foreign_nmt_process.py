@@ -110,9 +110,13 @@ def test_another_node_s_command_ends_in_a_confirmed_hold(
                 intruder.shutdown()
             status = wait_status(client, "braked", 10.0)
             # the drives' report of the state (their heartbeat), their silence, or, when
-            # idle axes drop the platform before the next heartbeat says so, its weight
-            # as a wrench the model does not explain (seen on a fast host, every run)
+            # idle axes drop the platform before the next heartbeat says so (one each
+            # 100 ms), its weight as a wrench the model does not explain (seen on a fast
+            # host, every run) or its fall itself: 20 mm, the tracking bound, takes 64 ms
+            # (seen in a clean-clone CI run, the host busy with the other test worker)
             triggers = ("drive_fault", "stale_feedback", "external_wrench")
+            if protocol == "odrive":
+                triggers += ("tracking_error",)
             assert status["fault"]["trigger"] in triggers, status
             time.sleep(0.3)  # a brake at speed comes to rest
             start = truth(truth_log)[-1]
