@@ -99,9 +99,7 @@ def solve_forward_kinematics(
     measured = np.asarray(lengths, dtype=float).ravel()
     if measured.shape[0] != n:
         raise ValueError(f"expected {n} cable lengths, got {measured.shape[0]}")
-    # a NaN or inf among them; finite lengths sum to inf only when absurdly large, and
-    # those fail the residual check
-    bad = non_finite_lengths(guess, measured)
+    bad = non_finite_lengths(guess, measured)  # a NaN or inf among them
     if bad is not None:
         return bad
     if not (measured.flags.c_contiguous and measured.flags.writeable):
